@@ -1,0 +1,81 @@
+"""MarkerData: one marker seen by one sensor at one instant (the paper's Table 1, plus what a system needs).
+
+The paper's record is ``id, sigma, pos, rot``: the marker's pose in the sensor frame and the sensor's
+standard deviation. A running swarm also needs to know which sensor saw it, when the image was
+captured, how trustworthy the PnP solution was, and where the record came from.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+
+class Rejection(str, Enum):
+    """Why an observation was dropped. Every reason has a counter in the listener and the node."""
+
+    NON_FINITE = "non_finite"
+    ZERO_QUATERNION = "zero_quaternion"
+    BAD_SIGMA = "bad_sigma"
+    UNKNOWN_SENSOR = "unknown_sensor"
+    UNKNOWN_MARKER = "unknown_marker"
+    OWN_MARKER = "own_marker"
+    OUT_OF_RANGE = "out_of_range"
+    STALE = "stale"
+    DUPLICATE = "duplicate"
+    OUTLIER = "outlier"
+
+
+MAX_RANGE_M = 1000.0
+"""A marker reported farther than this from its sensor is absurd for an indoor swarm; rejected."""
+
+
+@dataclass(frozen=True, slots=True)
+class MarkerData:
+    """A marker's pose in the sensor's optical frame (OpenCV: x right, y down, z forward).
+
+    Attributes:
+        sensor_id: numeric id of the observing sensor (unique in the world file).
+        marker_id: id of the observed marker (unique in the world file).
+        sigma_m: standard deviation of the measurement, metres (the paper's sigma), > 0.
+        p_sensor_marker_m: marker centre in the sensor frame, metres, shape (3,).
+        q_sensor_marker_wxyz: marker orientation in the sensor frame, w first as MAVLink sends it.
+        capture_time_us: capture time of the image, microseconds on the observer's clock.
+        reprojection_error_px: RMS reprojection error of the chosen PnP solution, pixels (nan: unknown).
+        ambiguity_ratio: reprojection error of the chosen over the other planar solution, in [0, 1];
+            near 1 means the two IPPE solutions fit equally well (a possible flip). nan: unknown.
+        origin: system id of the node that produced it (0: this node).
+        seq: the producer's sequence number (wraps at 2**16), used with origin to drop duplicates.
+    """
+
+    sensor_id: int
+    marker_id: int
+    sigma_m: float
+    p_sensor_marker_m: tuple[float, float, float]
+    q_sensor_marker_wxyz: tuple[float, float, float, float]
+    capture_time_us: int
+    reprojection_error_px: float = math.nan
+    ambiguity_ratio: float = math.nan
+    origin: int = 0
+    seq: int = 0
+
+    def rejection(self) -> Rejection | None:
+        """The reason this record is invalid on its own (without a world file), or None if it is valid."""
+        values = (*self.p_sensor_marker_m, *self.q_sensor_marker_wxyz, self.sigma_m)
+        if not all(math.isfinite(v) for v in values):
+            return Rejection.NON_FINITE
+        if math.fsum(v * v for v in self.q_sensor_marker_wxyz) < 1e-12:
+            return Rejection.ZERO_QUATERNION
+        if self.sigma_m <= 0.0:
+            return Rejection.BAD_SIGMA
+        if float(np.linalg.norm(self.p_sensor_marker_m)) > MAX_RANGE_M:
+            return Rejection.OUT_OF_RANGE
+        return None
+
+    def q_sensor_marker_xyzw(self) -> np.ndarray:
+        """The quaternion in scipy's order (x, y, z, w)."""
+        w, x, y, z = self.q_sensor_marker_wxyz
+        return np.array([x, y, z, w])
