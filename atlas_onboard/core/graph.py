@@ -1,0 +1,239 @@
+"""The transform graph of the paper's section 3.2: static vertices, expiring bidirectional edges,
+a broad phase (BFS levels from ``world``) and a pose phase (fusion of parents one level lower).
+
+Vertices are the entities of the world file; edges are observations keyed by (sensor id, marker id),
+each holding ``T_a_b`` (the observed entity b in the observer entity a) and its inverse, so it can be
+walked both ways. Time is passed in as integer nanoseconds of the caller's monotonic clock: the graph
+never reads a clock, and expiry is exact (an edge whose age equals ``edge_timeout`` is still live, one
+nanosecond later it is gone: the paper removes an edge when its age *exceeds* the timeout).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.core import fusion, geometry
+from atlas_onboard.errors import GeometryError
+
+WORLD = "world"
+
+EdgeKey = tuple[int, int]
+"""(sensor id, marker id): one edge per sensor-marker pair, replaced on every new observation."""
+
+
+@dataclass(slots=True)
+class Edge:
+    """One observation between two entities, traversable both ways (Table 2, Edge)."""
+
+    key: EdgeKey
+    a: int  # index of the observing entity (the sensor's)
+    b: int  # index of the observed entity (the marker's)
+    p_a_b: NDArray[np.float64]
+    q_a_b: NDArray[np.float64]  # xyzw
+    p_b_a: NDArray[np.float64]
+    q_b_a: NDArray[np.float64]  # xyzw
+    sigma_m: float
+    stamp_ns: int  # arrival on this node's clock: the edge's age is measured from here
+    capture_time_us: int  # when the image was taken, on the observer's clock
+
+
+@dataclass(frozen=True, slots=True)
+class EntityPose:
+    """The fused world pose of one entity (Table 2, Vertex, plus what the publisher needs).
+
+    Attributes:
+        name: entity name.
+        p_world_m: position in the world frame (ENU), metres, shape (3,).
+        q_world_xyzw: orientation of the entity's body frame (FLU) in the world, x-first, shape (4,).
+        level: hops from ``world`` (world itself is 0).
+        order: position in the evaluation order (world is 0).
+        n_observations: number of candidates fused for this entity (edges from parents one level lower).
+        sigma_m: standard deviation of the fused position, metres, propagated along the chain.
+        capture_time_us: capture time of the newest observation that contributed (through the chain).
+    """
+
+    name: str
+    p_world_m: NDArray[np.float64]
+    q_world_xyzw: NDArray[np.float64]
+    level: int
+    order: int
+    n_observations: int
+    sigma_m: float
+    capture_time_us: int
+
+    @property
+    def T_world_entity(self) -> RigidTransform:
+        return RigidTransform.from_components(self.p_world_m, Rotation.from_quat(self.q_world_xyzw))
+
+
+@dataclass(frozen=True, slots=True)
+class GraphResult:
+    """The output of one evaluation: poses of the entities reachable from world, and the rest."""
+
+    poses: dict[str, EntityPose]
+    order: tuple[str, ...]  # evaluation order (BFS order from world)
+    levels: dict[str, int]  # broad-phase level of each reached entity
+    unreached: tuple[str, ...]  # entities with no edge path to world: no pose this time
+    n_edges: int  # live edges used in this evaluation
+
+    def pose(self, name: str) -> EntityPose | None:
+        return self.poses.get(name)
+
+
+class TransformGraph:
+    """Vertices fixed at construction; edges added by :meth:`update_edge`, expired by age."""
+
+    def __init__(self, entity_names: Sequence[str], edge_timeout_ns: int, inverse_variance: bool = False) -> None:
+        names = list(entity_names)
+        if WORLD not in names:
+            names.insert(0, WORLD)
+        if len(set(names)) != len(names):
+            raise GeometryError(f"expected unique entity names, got {names}")
+        if edge_timeout_ns <= 0:
+            raise GeometryError(f"expected a positive edge timeout, got {edge_timeout_ns} ns")
+        self.names: tuple[str, ...] = tuple(names)
+        self.index: dict[str, int] = {n: i for i, n in enumerate(names)}
+        self.edge_timeout_ns = int(edge_timeout_ns)
+        self.inverse_variance = inverse_variance
+        self.edges: dict[EdgeKey, Edge] = {}
+
+    def update_edge(
+        self,
+        key: EdgeKey,
+        observer: str,
+        observed: str,
+        p_a_b: NDArray[np.float64],
+        q_a_b_xyzw: NDArray[np.float64],
+        sigma_m: float,
+        now_ns: int,
+        capture_time_us: int = 0,
+    ) -> None:
+        """Create or refresh the edge ``key``: ``T_a_b`` of ``observed`` (b) in ``observer`` (a).
+
+        The inverse is computed once here, so evaluation walks both directions at no extra cost.
+        """
+        a, b = self.index[observer], self.index[observed]
+        if a == b:
+            raise GeometryError(f"an edge must join two entities, got {observer!r} twice")
+        p = np.asarray(p_a_b, dtype=float)
+        q = np.asarray(q_a_b_xyzw, dtype=float)
+        q = q / np.linalg.norm(q)
+        p_inv, q_inv = geometry.invert_arrays(p, q)
+        self.edges[key] = Edge(key, a, b, p, q, p_inv, q_inv, float(sigma_m), int(now_ns), int(capture_time_us))
+
+    def expire(self, now_ns: int) -> int:
+        """Remove edges older than the timeout (age > timeout); returns how many were removed."""
+        dead = [k for k, e in self.edges.items() if now_ns - e.stamp_ns > self.edge_timeout_ns]
+        for k in dead:
+            del self.edges[k]
+        return len(dead)
+
+    def live_edges(self, now_ns: int) -> list[Edge]:
+        """Edges whose age is at most the timeout (not removed: :meth:`expire` does that)."""
+        return [e for e in self.edges.values() if now_ns - e.stamp_ns <= self.edge_timeout_ns]
+
+    def broad_phase(self, edges: Sequence[Edge]) -> tuple[list[int], dict[int, int]]:
+        """BFS from world: the visiting order and each reached vertex's level.
+
+        Neighbours are visited in the order of the world file, so the order is deterministic.
+        """
+        n = len(self.names)
+        neighbours: list[set[int]] = [set() for _ in range(n)]
+        for e in edges:
+            neighbours[e.a].add(e.b)
+            neighbours[e.b].add(e.a)
+        world = self.index[WORLD]
+        level = {world: 0}
+        order = [world]
+        queue = deque([world])
+        while queue:
+            v = queue.popleft()
+            for child in sorted(neighbours[v]):
+                if child not in level:
+                    level[child] = level[v] + 1
+                    order.append(child)
+                    queue.append(child)
+        return order, level
+
+    def evaluate(self, now_ns: int) -> GraphResult:
+        """Expire old edges, then run the broad phase and the pose phase (eq. 2).
+
+        A vertex's candidates come from every live edge to a parent exactly one level lower; edges
+        within a level (cycles such as the paper's A-B) and towards higher levels are ignored.
+        """
+        self.expire(now_ns)
+        edges = list(self.edges.values())
+        order, level = self.broad_phase(edges)
+        n = len(self.names)
+        world = self.index[WORLD]
+        p_world = np.zeros((n, 3))
+        q_world = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        sigma = np.zeros(n)
+        stamp_us = np.zeros(n, dtype=np.int64)
+        count = np.zeros(n, dtype=np.intp)
+
+        # Candidates grouped by the child's level: (parent, child, p_parent_child, q_parent_child, sigma, stamp).
+        by_level: dict[int, list[tuple[int, int, NDArray[np.float64], NDArray[np.float64], float, int]]] = {}
+        for e in edges:
+            la, lb = level.get(e.a), level.get(e.b)
+            if la is None or lb is None:
+                continue
+            if lb == la + 1:
+                by_level.setdefault(lb, []).append((e.a, e.b, e.p_a_b, e.q_a_b, e.sigma_m, e.capture_time_us))
+            elif la == lb + 1:
+                by_level.setdefault(la, []).append((e.b, e.a, e.p_b_a, e.q_b_a, e.sigma_m, e.capture_time_us))
+
+        for lvl in sorted(by_level):
+            cands = by_level[lvl]
+            parent = np.fromiter((c[0] for c in cands), dtype=np.intp, count=len(cands))
+            child = np.fromiter((c[1] for c in cands), dtype=np.intp, count=len(cands))
+            p_pc = np.array([c[2] for c in cands])
+            q_pc = np.array([c[3] for c in cands])
+            s_edge = np.fromiter((c[4] for c in cands), dtype=float, count=len(cands))
+            t_edge = np.fromiter((c[5] for c in cands), dtype=np.int64, count=len(cands))
+            # eq. 2: each candidate is P_parent * T_parent_child
+            p_cand, q_cand = geometry.compose_arrays(p_world[parent], q_world[parent], p_pc, q_pc)
+            # The paper weighs by the sensor's sigma; the reported sigma also carries the parent's.
+            # eq. 6-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
+            s_min = np.full(n, np.inf)
+            np.minimum.at(s_min, child, s_edge)
+            weights = s_min[child] / s_edge
+            if self.inverse_variance:
+                weights = weights**2
+            s_cand = np.sqrt(s_edge**2 + sigma[parent] ** 2)
+            p_f, q_f, s_f, counts = fusion.fuse_groups(child, n, p_cand, q_cand, s_cand, weights)
+            got = counts > 0
+            p_world[got] = p_f[got]
+            q_world[got] = q_f[got]
+            sigma[got] = s_f[got]
+            count[got] = counts[got]
+            newest = np.zeros(n, dtype=np.int64)
+            np.maximum.at(newest, child, np.maximum(t_edge, stamp_us[parent]))
+            stamp_us[got] = newest[got]
+
+        poses = {}
+        for rank, v in enumerate(order):
+            poses[self.names[v]] = EntityPose(
+                name=self.names[v],
+                p_world_m=p_world[v].copy(),
+                q_world_xyzw=q_world[v].copy(),
+                level=level[v],
+                order=rank,
+                n_observations=int(count[v]) if v != world else 0,
+                sigma_m=float(sigma[v]),
+                capture_time_us=int(stamp_us[v]),
+            )
+        unreached = tuple(self.names[v] for v in range(n) if v not in level)
+        return GraphResult(
+            poses=poses,
+            order=tuple(self.names[v] for v in order),
+            levels={self.names[v]: level[v] for v in order},
+            unreached=unreached,
+            n_edges=len(edges),
+        )

@@ -1,0 +1,107 @@
+"""The sensor listener (the paper's section 3.1): MarkerData -> validated, EMA-filtered graph edges.
+
+Pure: no I/O and no clock; the caller passes the arrival time. Every rejected observation is counted
+by reason, and a rejected observation changes nothing (no edge, no filter state).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.config import WorldConfig
+from atlas_onboard.core import fusion
+from atlas_onboard.core.graph import EdgeKey, TransformGraph
+from atlas_onboard.core.markerdata import MarkerData, Rejection
+
+_logger = logging.getLogger(__name__)
+
+
+@dataclass(slots=True)
+class _EmaState:
+    p: NDArray[np.float64]
+    q: NDArray[np.float64]  # xyzw
+    stamp_ns: int
+
+
+@dataclass(frozen=True, slots=True)
+class EdgeUpdate:
+    """What an accepted observation became: the edge ``T_a_b`` after eq. 1 and the EMA of eq. 3."""
+
+    key: EdgeKey
+    observer: str
+    observed: str
+    p_a_b: NDArray[np.float64]
+    q_a_b_xyzw: NDArray[np.float64]
+    sigma_m: float
+
+
+class Listener:
+    """Turns MarkerData into graph edges for one world file.
+
+    ``T1`` (entity to sensor) and ``T3^-1`` (marker to entity) of eq. 1 are fixed by the world file,
+    so they are precomputed as 4x4 matrices; per observation the work is two matrix products.
+    """
+
+    def __init__(self, world: WorldConfig, graph: TransformGraph) -> None:
+        self.world = world
+        self.graph = graph
+        self.alpha = world.fusion.ema_alpha
+        self.timeout_ns = graph.edge_timeout_ns
+        self._sensor = {s.id: (s.entity, s.T_entity_sensor.as_matrix()) for s in world.sensors.values()}
+        self._marker = {m.id: (m.entity, m.T_entity_marker.inv().as_matrix()) for m in world.markers.values()}
+        self._ema: dict[EdgeKey, _EmaState] = {}
+        self.rejected: Counter[Rejection] = Counter()
+        self.accepted = 0
+
+    def edge_from(self, md: MarkerData) -> EdgeUpdate | Rejection:
+        """Eq. 1, T = T1 * T2 * T3^-1, without filtering; or the reason the observation is invalid."""
+        reason = md.rejection()
+        if reason is not None:
+            return reason
+        sensor = self._sensor.get(md.sensor_id)
+        if sensor is None:
+            return Rejection.UNKNOWN_SENSOR
+        marker = self._marker.get(md.marker_id)
+        if marker is None:
+            return Rejection.UNKNOWN_MARKER
+        observer, T1 = sensor
+        observed, T3_inv = marker
+        if observer == observed:
+            return Rejection.OWN_MARKER
+        T2 = np.eye(4)
+        T2[:3, :3] = Rotation.from_quat(md.q_sensor_marker_xyzw()).as_matrix()
+        T2[:3, 3] = md.p_sensor_marker_m
+        T = T1 @ T2 @ T3_inv  # eq. 1
+        q = Rotation.from_matrix(T[:3, :3]).as_quat()
+        return EdgeUpdate((md.sensor_id, md.marker_id), observer, observed, T[:3, 3].copy(), q, md.sigma_m)
+
+    def accept(self, md: MarkerData, now_ns: int) -> Rejection | None:
+        """Validate, transform (eq. 1), filter (eq. 3) and insert into the graph; None when accepted."""
+        result = self.edge_from(md)
+        if isinstance(result, Rejection):
+            self.rejected[result] += 1
+            return result
+        key = result.key
+        state = self._ema.get(key)
+        if state is None or now_ns - state.stamp_ns > self.timeout_ns:
+            # A new or expired edge starts the filter afresh: old information is not mixed in.
+            p, q = result.p_a_b, result.q_a_b_xyzw
+        else:
+            p = fusion.ema_position(state.p, result.p_a_b, self.alpha)
+            q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, self.alpha)
+        self._ema[key] = _EmaState(p, q, now_ns)
+        self.graph.update_edge(key, result.observer, result.observed, p, q, result.sigma_m, now_ns, md.capture_time_us)
+        self.accepted += 1
+        return None
+
+    def forget_expired(self, now_ns: int) -> None:
+        """Drop filter state of edges older than the timeout (bounded memory when sensors go away)."""
+        dead = [k for k, s in self._ema.items() if now_ns - s.stamp_ns > self.timeout_ns]
+        for k in dead:
+            del self._ema[k]

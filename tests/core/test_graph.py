@@ -1,0 +1,186 @@
+"""The transform graph: the paper's Figure 4, expiry, the pose phase against ground truth."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.core.graph import TransformGraph
+from tests.helpers import assert_pose_close, pose
+
+MS = 1_000_000  # nanoseconds per millisecond
+
+
+def add(graph, key, a, b, T_a_b, sigma=0.01, now_ns=0, capture_us=0):
+    graph.update_edge(key, a, b, T_a_b.translation, T_a_b.rotation.as_quat(), sigma, now_ns, capture_us)
+
+
+def figure4_graph():
+    """The paper's Figure 4 as described in its text and caption.
+
+    world sees A and B directly (level 1); A and B see each other (the A-B cycle); C is seen by B
+    (level 2); D and E see only each other, so they are never reached from world.
+    """
+    truth = {
+        "world": RigidTransform.identity(),
+        "A": pose([1, 0, 1], [0, 0, 30]),
+        "B": pose([0, 2, 1], [0, 0, -60]),
+        "C": pose([2, 3, 1.5], [5, -5, 90]),
+        "D": pose([5, 5, 0]),
+        "E": pose([6, 5, 0]),
+    }
+    g = TransformGraph(["world", "A", "B", "C", "D", "E"], edge_timeout_ns=250 * MS)
+
+    def rel(a, b):
+        return truth[a].inv() * truth[b]
+
+    add(g, (1, 1), "world", "A", rel("world", "A"))
+    add(g, (1, 2), "world", "B", rel("world", "B"))
+    add(g, (2, 3), "A", "B", rel("A", "B") * pose([0.5, 0, 0]))  # a wrong A-B edge: must be ignored
+    add(g, (3, 4), "B", "A", rel("B", "A") * pose([0, 0.5, 0]))  # and the reverse one
+    add(g, (4, 5), "B", "C", rel("B", "C"))
+    add(g, (5, 6), "D", "E", rel("D", "E"))
+    return g, truth
+
+
+def test_figure4_levels_and_order():
+    g, _ = figure4_graph()
+    result = g.evaluate(now_ns=0)
+    assert result.levels == {"world": 0, "A": 1, "B": 1, "C": 2}
+    assert result.order == ("world", "A", "B", "C")
+    assert [result.poses[n].order for n in result.order] == [0, 1, 2, 3]
+    assert set(result.unreached) == {"D", "E"}
+    assert "D" not in result.poses and "E" not in result.poses
+
+
+def test_figure4_cycle_between_same_level_vertices_is_ignored():
+    g, truth = figure4_graph()
+    result = g.evaluate(now_ns=0)
+    # The A-B edges carry a 0.5 m error; A and B come only from world, so they are exact.
+    for name in ("A", "B", "C"):
+        pose_ = result.poses[name]
+        assert_pose_close(pose_.p_world_m, pose_.q_world_xyzw, truth[name], 1e-12, 1e-12)
+    assert result.poses["A"].n_observations == 1
+    assert result.poses["C"].n_observations == 1
+
+
+def test_parents_must_be_exactly_one_level_lower():
+    # world sees A and C (both level 1); A also sees C, but A is at C's own level, so that edge is
+    # not a candidate (it would be a cyclic dependency).
+    truth = {"world": RigidTransform.identity(), "A": pose([1, 0, 0]), "C": pose([0, 1, 0])}
+    g = TransformGraph(["world", "A", "C"], 250 * MS)
+    add(g, (1, 1), "world", "A", truth["A"])
+    add(g, (1, 2), "world", "C", truth["C"])
+    add(g, (2, 3), "A", "C", truth["A"].inv() * truth["C"] * pose([1, 1, 1]))  # wrong, same level
+    result = g.evaluate(0)
+    assert result.levels["C"] == 1
+    assert result.poses["C"].n_observations == 1
+    np.testing.assert_allclose(result.poses["C"].p_world_m, [0, 1, 0], atol=1e-12)
+
+
+def test_edge_expiry_at_exactly_the_timeout():
+    g = TransformGraph(["world", "A"], edge_timeout_ns=250 * MS)
+    add(g, (1, 1), "world", "A", pose([1, 2, 3]), now_ns=1_000 * MS)
+    assert "A" in g.evaluate(now_ns=1_250 * MS).poses  # age == timeout: still live
+    assert "A" not in g.evaluate(now_ns=1_250 * MS + 1).poses  # one nanosecond older: removed
+    assert g.edges == {}
+
+
+def test_refreshed_edge_restarts_its_age():
+    g = TransformGraph(["world", "A"], edge_timeout_ns=250 * MS)
+    add(g, (1, 1), "world", "A", pose([1, 2, 3]), now_ns=0)
+    add(g, (1, 1), "world", "A", pose([1, 2, 4]), now_ns=200 * MS)
+    result = g.evaluate(now_ns=400 * MS)
+    np.testing.assert_allclose(result.poses["A"].p_world_m, [1, 2, 4])
+    assert len(g.edges) == 1  # same (sensor, marker) key: replaced, not added
+
+
+def test_pose_phase_fuses_candidates_with_paper_weights():
+    g = TransformGraph(["world", "A"], 250 * MS)
+    add(g, (1, 1), "world", "A", pose([0, 0, 0]), sigma=0.01)
+    add(g, (1, 2), "world", "A", pose([0.3, 0, 0]), sigma=0.02)  # weight 0.5
+    add(g, (2, 1), "A", "world", pose([0, -0.6, 0]), sigma=0.04)  # A sees world: T_world_A = (0, 0.6, 0), weight 0.25
+    result = g.evaluate(0)
+    a = result.poses["A"]
+    np.testing.assert_allclose(a.p_world_m, [0.15 / 1.75, 0.15 / 1.75, 0], atol=1e-12)
+    assert a.n_observations == 3
+    expected_sigma = np.sqrt((1 * 0.01) ** 2 + (0.5 * 0.02) ** 2 + (0.25 * 0.04) ** 2) / 1.75
+    assert a.sigma_m == pytest.approx(expected_sigma)
+
+
+def test_inverse_variance_option_changes_weights():
+    g = TransformGraph(["world", "A"], 250 * MS, inverse_variance=True)
+    add(g, (1, 1), "world", "A", pose([0, 0, 0]), sigma=0.01)
+    add(g, (1, 2), "world", "A", pose([0.5, 0, 0]), sigma=0.02)  # weight 0.25
+    np.testing.assert_allclose(g.evaluate(0).poses["A"].p_world_m, [0.1, 0, 0], atol=1e-12)
+
+
+def test_relay_through_another_drone():
+    # The paper's Figure 1: B sees no world marker; A sees the world and B.
+    truth = {"world": RigidTransform.identity(), "A": pose([1, 1, 2], [0, 10, 45]), "B": pose([3, 0, 1.5], [0, 0, 180])}
+    g = TransformGraph(["world", "A", "B"], 250 * MS)
+    add(g, (1, 1), "A", "world", truth["A"].inv(), sigma=0.01, capture_us=100)
+    add(g, (1, 7), "A", "B", truth["A"].inv() * truth["B"], sigma=0.03, capture_us=250)
+    result = g.evaluate(0)
+    b = result.poses["B"]
+    assert b.level == 2
+    assert_pose_close(b.p_world_m, b.q_world_xyzw, truth["B"], 1e-12, 1e-12)
+    assert b.sigma_m == pytest.approx(np.hypot(0.01, 0.03))  # the chain's uncertainty adds up
+    assert b.capture_time_us == 250
+    assert result.poses["A"].capture_time_us == 100
+
+
+def test_world_has_identity_pose_and_level_zero():
+    g = TransformGraph(["A"], 250 * MS)
+    result = g.evaluate(0)
+    w = result.poses["world"]
+    assert w.level == 0 and w.order == 0
+    np.testing.assert_array_equal(w.p_world_m, [0, 0, 0])
+    assert result.unreached == ("A",)
+
+
+poses_st = st.tuples(
+    st.lists(st.floats(-10, 10), min_size=3, max_size=3),
+    st.lists(st.floats(-179, 179), min_size=3, max_size=3).map(lambda a: [a[0], a[1] / 2.1, a[2]]),
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(poses_st, min_size=4, max_size=4), st.integers(0, 2**16))
+def test_same_pose_whatever_path(truth_list, seed):
+    """Exact edges: every entity's pose equals the truth whichever edges the graph happens to use."""
+    names = ["world", "A", "B", "C", "D"]
+    truth = {"world": RigidTransform.identity()}
+    truth.update({n: pose(p, r) for n, (p, r) in zip(names[1:], truth_list, strict=True)})
+    rng = np.random.default_rng(seed)
+    g = TransformGraph(names, 250 * MS)
+    pairs = [("world", "A"), ("A", "B"), ("B", "C"), ("C", "D")]  # a chain so everything is reached
+    extra = [(a, b) for a in names for b in names if a < b and (a, b) not in pairs]
+    pairs += [extra[i] for i in rng.choice(len(extra), size=3, replace=False)]
+    for k, (a, b) in enumerate(pairs):
+        if rng.random() < 0.5:
+            a, b = b, a
+        add(g, (k, k), a, b, truth[a].inv() * truth[b], sigma=float(rng.uniform(0.005, 0.05)))
+    result = g.evaluate(0)
+    for n in names:
+        e = result.poses[n]
+        assert_pose_close(e.p_world_m, e.q_world_xyzw, truth[n], 1e-8, 1e-8)
+
+
+def test_evaluation_does_not_mutate_live_edges():
+    g, _ = figure4_graph()
+    before = {k: (e.p_a_b.copy(), e.q_a_b.copy()) for k, e in g.edges.items()}
+    g.evaluate(0)
+    g.evaluate(0)
+    for k, (p, q) in before.items():
+        np.testing.assert_array_equal(g.edges[k].p_a_b, p)
+        np.testing.assert_array_equal(g.edges[k].q_a_b, q)
+
+
+def test_fused_rotation_mean_of_two_candidates():
+    g = TransformGraph(["world", "A"], 250 * MS)
+    add(g, (1, 1), "world", "A", pose([0, 0, 0], [0, 0, 10]), sigma=0.01)
+    add(g, (1, 2), "world", "A", pose([0, 0, 0], [0, 0, 30]), sigma=0.01)
+    yaw = Rotation.from_quat(g.evaluate(0).poses["A"].q_world_xyzw).as_euler("ZYX", degrees=True)[0]
+    assert yaw == pytest.approx(20.0, abs=1e-9)

@@ -1,0 +1,209 @@
+"""The world file: normalisation of conventions, and one test per kind of bad input, each asserting the
+field path in the message and (through the CLI) exit status 2 with one line and no traceback."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.config import WORLD, ConfigError, Weighting, load_world, parse_world
+from atlas_onboard.core.geometry import rpy_deg
+
+REPO = Path(__file__).resolve().parents[1]
+
+BASE = """\
+version: 1
+conventions: {world: ENU, body: FLU}
+fusion: {edge_timeout_s: 0.25, ema_alpha: 0.5, weighting: sigma_min}
+entities:
+  world:
+    markers:
+      - {id: 0, size_m: 0.18, pose: {pos: [0, 0, 0]}}
+  drone1:
+    sensors:
+      - name: front
+        id: 1
+        pose: {pos: [0.1, 0, 0], rot: {w: 1, x: 0, y: 0, z: 0}}
+    markers:
+      - {id: 10, size_m: 0.1, pose: {pos: [0, 0, 0.05]}}
+  drone2:
+    sensors:
+      - {name: front, id: 2, pose: {pos: [0.1, 0, 0]}}
+"""
+
+
+def test_base_loads_with_defaults_and_world():
+    w = parse_world(yaml.safe_load(BASE))
+    assert w.entity_names == (WORLD, "drone1", "drone2")
+    assert w.fusion.ema_alpha == 0.5 and w.fusion.weighting is Weighting.SIGMA_MIN
+    assert sorted(w.sensors) == [1, 2] and sorted(w.markers) == [0, 10]
+    assert w.markers[10].family == "tag36h11"
+
+
+def test_world_entity_always_exists():
+    w = parse_world({"entities": {"a": {}}})
+    assert w.entity_names == (WORLD, "a")
+
+
+def test_ned_frd_file_is_normalised_to_enu_flu():
+    doc = {
+        "conventions": {"world": "NED", "body": "FRD"},
+        "entities": {
+            "world": {"markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [1, 2, 3], "rpy_deg": [0, 0, 90]}}]},
+            "d": {"markers": [{"id": 1, "size_m": 0.1, "pose": {"pos": [0.1, 0.2, 0.3]}}]},
+        },
+    }
+    w = parse_world(doc)
+    m0 = w.markers[0].T_entity_marker
+    np.testing.assert_allclose(m0.translation, [2, 1, -3], atol=1e-12)  # NED (1, 2, 3) -> ENU (2, 1, -3)
+    # The marker's x axis points NED-east (yaw 90 from north) = ENU x.
+    np.testing.assert_allclose(m0.rotation.apply([1, 0, 0]), [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(w.markers[1].T_entity_marker.translation, [0.1, -0.2, -0.3], atol=1e-12)
+
+
+def test_same_world_in_ned_and_enu_has_same_fingerprint():
+    enu = {"entities": {"world": {"markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [2, 1, -3]}}]}}}
+    ned = {
+        "conventions": {"world": "NED"},
+        "entities": {"world": {"markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [1, 2, 3], "rpy_deg": [180, 0, 90]}}]}},
+    }
+    a, b = parse_world(enu), parse_world(ned)
+    np.testing.assert_allclose(a.markers[0].T_entity_marker.as_matrix(), b.markers[0].T_entity_marker.as_matrix(), atol=1e-12)
+    assert a.fingerprint() == b.fingerprint()
+    moved = {"entities": {"world": {"markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [2, 1, -3.01]}}]}}}
+    assert parse_world(moved).fingerprint() != a.fingerprint()
+
+
+def test_sensor_mount_pose_becomes_optical_frame():
+    w = parse_world({"entities": {"d": {"sensors": [{"name": "down", "id": 1, "pose": {"pos": [0, 0, 0], "rpy_deg": [0, 90, 0]}}]}}})
+    np.testing.assert_allclose(w.sensors[1].T_entity_sensor.rotation.apply([0, 0, 1]), [0, 0, -1], atol=1e-12)
+
+
+def test_quaternion_and_rpy_agree():
+    a = parse_world({"entities": {"d": {"markers": [{"id": 1, "size_m": 0.1, "pose": {"rpy_deg": [10, 20, 30]}}]}}})
+    q = Rotation.from_euler("ZYX", [30, 20, 10], degrees=True).as_quat()
+    b = parse_world(
+        {"entities": {"d": {"markers": [{"id": 1, "size_m": 0.1, "pose": {"rot": {"w": q[3], "x": q[0], "y": q[1], "z": q[2]}}}]}}}
+    )
+    np.testing.assert_allclose(rpy_deg(a.markers[1].T_entity_marker.rotation), [10, 20, 30], atol=1e-9)
+    np.testing.assert_allclose(a.markers[1].T_entity_marker.as_matrix(), b.markers[1].T_entity_marker.as_matrix(), atol=1e-12)
+
+
+def test_calibration_path_is_relative_to_the_file(tmp_path):
+    f = tmp_path / "w.yaml"
+    f.write_text("entities:\n  d:\n    sensors:\n      - {name: c, id: 1, pose: {}, camera: {calibration: cal/c.yaml, fps: 30}}\n")
+    assert load_world(f).sensors[1].camera.calibration == tmp_path / "cal" / "c.yaml"
+
+
+# One case per kind of bad input: (description, edit of BASE, expected field path, expected words).
+BAD = [
+    ("duplicate entity", BASE + "  drone1: {}\n", "", "duplicate key 'drone1'"),
+    ("duplicate sensor id", BASE.replace("id: 2,", "id: 1,"), "entities.drone2.sensors[0].id", "duplicate sensor id 1"),
+    (
+        "duplicate sensor name",
+        BASE.replace("      - {name: front, id: 2, pose: {pos: [0.1, 0, 0]}}", "      - {name: a, id: 2, pose: {}}\n      - {name: a, id: 3, pose: {}}"),
+        "entities.drone2.sensors[1].name",
+        "duplicate sensor name 'a'",
+    ),
+    ("marker id used twice", BASE.replace("id: 10,", "id: 0,"), "entities.drone1.markers[0].id", "duplicate marker id 0"),
+    ("unknown key (typo)", BASE.replace("ema_alpha", "ema_alhpa"), "fusion.ema_alhpa", "did you mean 'ema_alpha'"),
+    ("unknown top-level key", BASE + "enities: {}\n", "enities", "unknown key"),
+    ("unknown sensor key", BASE.replace("id: 2, pose", "id: 2, poes: {}, pose"), "entities.drone2.sensors[0].poes", "unknown key"),
+    ("missing field", BASE.replace("{id: 10, size_m: 0.1, ", "{id: 10, "), "entities.drone1.markers[0].size_m", "missing required field"),
+    ("missing entities", "version: 1\n", "entities", "missing required field"),
+    ("wrong type", BASE.replace("id: 2,", "id: two,"), "entities.drone2.sensors[0].id", "expected an integer, got str 'two'"),
+    ("wrong type bool", BASE.replace("size_m: 0.18", "size_m: true"), "entities.world.markers[0].size_m", "expected a number"),
+    ("wrong type list", BASE.replace("pos: [0.1, 0, 0], rot", "pos: [0.1, 0], rot"), "entities.drone1.sensors[0].pose.pos", "list of 3 numbers"),
+    ("non-unit quaternion", BASE.replace("w: 1, x: 0", "w: 1, x: 0.5"), "entities.drone1.sensors[0].pose.rot", "unit quaternion, got norm 1.118"),
+    ("zero quaternion", BASE.replace("w: 1, x: 0", "w: 0, x: 0"), "entities.drone1.sensors[0].pose.rot", "zero quaternion"),
+    ("negative size", BASE.replace("size_m: 0.1,", "size_m: -0.1,"), "entities.drone1.markers[0].size_m", "got -0.1"),
+    ("zero size", BASE.replace("size_m: 0.18", "size_m: 0"), "entities.world.markers[0].size_m", "(0, 10] metres"),
+    ("alpha zero", BASE.replace("ema_alpha: 0.5", "ema_alpha: 0"), "fusion.ema_alpha", "alpha in (0, 1], got 0.0"),
+    ("alpha above one", BASE.replace("ema_alpha: 0.5", "ema_alpha: 1.5"), "fusion.ema_alpha", "got 1.5"),
+    ("non-finite nan", BASE.replace("pos: [0.1, 0, 0], rot", "pos: [.nan, 0, 0], rot"), "entities.drone1.sensors[0].pose.pos[0]", "finite"),
+    ("non-finite inf", BASE.replace("edge_timeout_s: 0.25", "edge_timeout_s: .inf"), "fusion.edge_timeout_s", "finite"),
+    ("bad timeout", BASE.replace("edge_timeout_s: 0.25", "edge_timeout_s: -1"), "fusion.edge_timeout_s", "(0, 10]"),
+    ("bad convention", BASE.replace("world: ENU", "world: NWU"), "conventions.world", "one of ENU, NED"),
+    ("bad family", BASE.replace("{id: 0, size_m: 0.18,", "{id: 0, family: tag99h1, size_m: 0.18,"), "entities.world.markers[0].family", "tag36h11"),
+    ("bad entity name", BASE.replace("drone2:", "'drone 2':"), "entities.drone 2", "entity name"),
+    ("id out of range", BASE.replace("id: 2,", "id: 70000,"), "entities.drone2.sensors[0].id", "[0, 65535]"),
+    ("rot and rpy together", BASE.replace("rot: {w: 1, x: 0, y: 0, z: 0}", "rot: {w: 1, x: 0, y: 0, z: 0}, rpy_deg: [0, 0, 0]"), "entities.drone1.sensors[0].pose", "either rot"),
+    ("quaternion component missing", BASE.replace("w: 1, x: 0, ", ""), "entities.drone1.sensors[0].pose.rot.w", "missing required field"),
+    ("entities not a mapping", "entities: [a, b]\n", "entities", "expected a mapping"),
+    ("bad version", "version: 2\n" + BASE.replace("version: 1\n", ""), "version", "expected version 1"),
+    ("yaml syntax", BASE.replace("fusion: {", "fusion: {{"), "", "invalid YAML"),
+]
+
+
+@pytest.mark.parametrize(("what", "text", "path", "words"), BAD, ids=[b[0] for b in BAD])
+def test_bad_config_names_the_field(tmp_path, what, text, path, words):
+    f = tmp_path / "world.yaml"
+    f.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_world(f)
+    assert info.value.path == path, str(info.value)
+    assert words in str(info.value)
+    assert str(f) in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def run_cli(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "atlas_onboard", *args], capture_output=True, text=True, timeout=60, cwd=cwd
+    )
+
+
+@pytest.mark.parametrize(("what", "text", "path", "words"), BAD, ids=[b[0] for b in BAD])
+def test_cli_bad_config_exits_2_with_one_line(tmp_path, what, text, path, words):
+    f = tmp_path / "world.yaml"
+    f.write_text(text)
+    proc = run_cli("check-config", str(f))
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert (path + ":" if path else "") in lines[0] and words in lines[0]
+    assert proc.stdout == ""
+
+
+@pytest.mark.parametrize("kind", ["missing", "directory", "binary"])
+def test_unreadable_file(tmp_path, kind):
+    f = tmp_path / "world.yaml"
+    if kind == "directory":
+        f.mkdir()
+    elif kind == "binary":
+        f.write_bytes(b"\xff\xfe\x00\x01garbage")
+    proc = run_cli("check-config", str(f))
+    assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert str(f) in proc.stderr and "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("name", ["paper-test1.yaml", "paper-test2.yaml", "example.yaml"])
+def test_shipped_configs_check_ok(name):
+    proc = run_cli("check-config", str(REPO / "config" / name))
+    assert proc.returncode == 0, proc.stderr
+    world = load_world(REPO / "config" / name)
+    assert f"{len(world.markers)} markers" in proc.stdout
+    assert f"fingerprint: {world.fingerprint():08x}" in proc.stdout
+
+
+def test_paper_replicas_match_the_paper():
+    t1 = load_world(REPO / "config" / "paper-test1.yaml")
+    world_markers = t1.entity(WORLD).markers
+    assert len(world_markers) == 13 and all(m.size_m == 0.18 and m.family == "tag36h11" for m in world_markers)
+    assert all(abs(m.T_entity_marker.translation[2]) < 1e-12 for m in world_markers)  # on the floor
+    cam = t1.entity("ardrone").sensors[0]
+    np.testing.assert_allclose(cam.T_entity_sensor.rotation.apply([0, 0, 1]), [0, 0, -1], atol=1e-12)  # looks down
+    t2 = load_world(REPO / "config" / "paper-test2.yaml")
+    assert [m.size_m for m in t2.entity("tag").markers] == [0.12]
+    assert sum(1 for e in t2.entities if e.name.startswith("drone")) == 2
+
+
+def test_usage_error_is_one_line_exit_2():
+    proc = run_cli("check-config")
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1

@@ -1,0 +1,168 @@
+"""The listener: eq. 1 on hand-computed transforms, EMA per edge, every rejection counted."""
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.core.graph import TransformGraph
+from atlas_onboard.core.markerdata import MarkerData, Rejection
+from atlas_onboard.listener import Listener
+from tests.helpers import assert_pose_close, observe, pose, world_from
+
+MS = 1_000_000
+
+
+def make(doc, alpha=1.0):
+    doc = {"fusion": {"ema_alpha": alpha}, **doc}
+    world = world_from(doc)
+    graph = TransformGraph(world.entity_names, int(world.fusion.edge_timeout_s * 1e9))
+    return world, graph, Listener(world, graph)
+
+
+HAND = {
+    "entities": {
+        "world": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0.5, 0, 0]}}]},
+        "drone": {"sensors": [{"name": "cam", "id": 1, "pose_of": "optical", "pose": {"pos": [1, 0, 0], "rpy_deg": [0, 0, 90]}}]},
+    }
+}
+
+
+def test_eq1_on_hand_computed_transforms():
+    # T1 = drone->camera: rotation 90 deg about z, translation (1, 0, 0).
+    # T2 = camera->marker: translation (0, 0, 2), no rotation (the marker 2 m in front).
+    # T3 = world->marker: translation (0.5, 0, 0).
+    # T = T1 T2 T3^-1: T2 T3^-1 = translation (-0.5, 0, 2); rotated by 90 deg about z: (0, -0.5, 2);
+    # plus (1, 0, 0): T_drone_world = translation (1, -0.5, 2), rotation 90 deg about z.
+    _, _, listener = make(HAND)
+    md = MarkerData(1, 5, 0.01, (0.0, 0.0, 2.0), (1.0, 0.0, 0.0, 0.0), 0)
+    edge = listener.edge_from(md)
+    assert edge.observer == "drone" and edge.observed == "world"
+    np.testing.assert_allclose(edge.p_a_b, [1.0, -0.5, 2.0], atol=1e-12)
+    expected = Rotation.from_euler("z", 90, degrees=True)
+    assert (Rotation.from_quat(edge.q_a_b_xyzw).inv() * expected).magnitude() < 1e-12
+
+
+def test_downward_camera_localizes_drone_from_floor_tags():
+    world, graph, listener = make(
+        {
+            "entities": {
+                "world": {
+                    "markers": [
+                        {"id": 0, "size_m": 0.18, "pose": {"pos": [0, 0, 0]}},
+                        {"id": 1, "size_m": 0.18, "pose": {"pos": [1, 0, 0], "rpy_deg": [0, 0, 30]}},
+                    ]
+                },
+                "drone": {"sensors": [{"name": "down", "id": 1, "pose": {"pos": [0.2, 0, -0.05], "rpy_deg": [0, 90, 0]}}]},
+            }
+        }
+    )
+    truth = {"world": RigidTransform.identity(), "drone": pose([0.4, 0.3, 1.5], [3, -4, 120])}
+    for marker in (0, 1):
+        assert listener.accept(observe(world, truth, 1, marker), now_ns=0) is None
+    result = graph.evaluate(0)
+    d = result.poses["drone"]
+    assert d.n_observations == 2
+    assert_pose_close(d.p_world_m, d.q_world_xyzw, truth["drone"], 1e-9, 1e-9)
+
+
+def test_world_fixed_camera_observes_a_drone_marker():
+    world, graph, listener = make(
+        {
+            "conventions": {"world": "NED", "body": "FRD"},
+            "entities": {
+                "world": {"sensors": [{"name": "corner", "id": 9, "pose": {"pos": [-3, -3, -2.5], "rpy_deg": [0, -30, 45]}}]},
+                "drone": {"markers": [{"id": 40, "size_m": 0.1, "pose": {"pos": [0, 0, -0.05], "rpy_deg": [180, 0, 0]}}]},
+            },
+        }
+    )
+    # Truth is internal ENU/FLU: the NED/FRD file was normalised at load.
+    truth = {"world": RigidTransform.identity(), "drone": pose([0.5, -0.2, 1.0], [0, 0, -20])}
+    assert listener.accept(observe(world, truth, 9, 40), now_ns=0) is None
+    d = graph.evaluate(0).poses["drone"]
+    assert d.level == 1
+    assert_pose_close(d.p_world_m, d.q_world_xyzw, truth["drone"], 1e-9, 1e-9)
+
+
+def test_ema_filters_each_edge_and_restarts_after_expiry():
+    _, graph, listener = make(HAND, alpha=0.5)
+    first = MarkerData(1, 5, 0.01, (0.0, 0.0, 2.0), (1.0, 0.0, 0.0, 0.0), 0)
+    second = replace(first, p_sensor_marker_m=(0.0, 0.0, 3.0))
+    listener.accept(first, now_ns=0)
+    listener.accept(second, now_ns=100 * MS)
+    # T_drone_world z: 2 then 3 -> EMA with alpha 0.5 gives 2.5 (eq. 3).
+    assert graph.edges[(1, 5)].p_a_b[2] == pytest.approx(2.5)
+    listener.accept(first, now_ns=100 * MS + 250 * MS + 1)  # the edge expired meanwhile: start afresh
+    assert graph.edges[(1, 5)].p_a_b[2] == pytest.approx(2.0)
+
+
+def test_ema_is_sign_safe_on_incoming_quaternions():
+    _, graph, listener = make(HAND, alpha=0.5)
+    q = Rotation.from_euler("y", 20, degrees=True).as_quat()
+    w, x, y, z = q[3], q[0], q[1], q[2]
+    listener.accept(MarkerData(1, 5, 0.01, (0, 0, 2), (w, x, y, z), 0), 0)
+    listener.accept(MarkerData(1, 5, 0.01, (0, 0, 2), (-w, -x, -y, -z), 0), MS)
+    edge_before = listener.edge_from(MarkerData(1, 5, 0.01, (0, 0, 2), (w, x, y, z), 0))
+    got = Rotation.from_quat(graph.edges[(1, 5)].q_a_b)
+    assert (got.inv() * Rotation.from_quat(edge_before.q_a_b_xyzw)).magnitude() < 1e-9
+
+
+GOOD = MarkerData(1, 5, 0.01, (0.0, 0.0, 2.0), (1.0, 0.0, 0.0, 0.0), 0)
+
+
+@pytest.mark.parametrize(
+    ("bad", "reason"),
+    [
+        (replace(GOOD, p_sensor_marker_m=(math.nan, 0.0, 2.0)), Rejection.NON_FINITE),
+        (replace(GOOD, p_sensor_marker_m=(math.inf, 0.0, 2.0)), Rejection.NON_FINITE),
+        (replace(GOOD, q_sensor_marker_wxyz=(math.nan, 0.0, 0.0, 1.0)), Rejection.NON_FINITE),
+        (replace(GOOD, sigma_m=math.nan), Rejection.NON_FINITE),
+        (replace(GOOD, q_sensor_marker_wxyz=(0.0, 0.0, 0.0, 0.0)), Rejection.ZERO_QUATERNION),
+        (replace(GOOD, sigma_m=0.0), Rejection.BAD_SIGMA),
+        (replace(GOOD, sigma_m=-0.01), Rejection.BAD_SIGMA),
+        (replace(GOOD, p_sensor_marker_m=(0.0, 0.0, 1e7)), Rejection.OUT_OF_RANGE),
+        (replace(GOOD, sensor_id=77), Rejection.UNKNOWN_SENSOR),
+        (replace(GOOD, marker_id=77), Rejection.UNKNOWN_MARKER),
+    ],
+)
+def test_each_rejection_is_counted_and_changes_nothing(bad, reason):
+    _, graph, listener = make(HAND)
+    listener.accept(GOOD, now_ns=0)
+    edge = graph.edges[(1, 5)]
+    before = (edge.p_a_b.copy(), edge.q_a_b.copy(), edge.stamp_ns)
+    assert listener.accept(bad, now_ns=10 * MS) is reason
+    assert listener.rejected[reason] == 1
+    assert sum(listener.rejected.values()) == 1
+    assert listener.accepted == 1
+    edge = graph.edges[(1, 5)]
+    np.testing.assert_array_equal(edge.p_a_b, before[0])
+    np.testing.assert_array_equal(edge.q_a_b, before[1])
+    assert edge.stamp_ns == before[2]
+    assert len(graph.edges) == 1
+
+
+def test_marker_on_the_observers_own_entity_is_rejected():
+    _, graph, listener = make(
+        {
+            "entities": {
+                "drone": {
+                    "sensors": [{"name": "cam", "id": 1, "pose": {"pos": [0, 0, 0]}}],
+                    "markers": [{"id": 3, "size_m": 0.1, "pose": {"pos": [0, 0, 0.1]}}],
+                }
+            }
+        }
+    )
+    assert listener.accept(replace(GOOD, marker_id=3), 0) is Rejection.OWN_MARKER
+    assert listener.rejected[Rejection.OWN_MARKER] == 1
+    assert graph.edges == {}
+
+
+def test_forget_expired_bounds_filter_state():
+    _, _, listener = make(HAND, alpha=0.5)
+    listener.accept(GOOD, 0)
+    listener.forget_expired(250 * MS)
+    assert len(listener._ema) == 1
+    listener.forget_expired(250 * MS + 1)
+    assert len(listener._ema) == 0
