@@ -18,7 +18,7 @@ import math
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
@@ -44,16 +44,18 @@ APRILTAG_FAMILIES = (
     "tagStandard52h13",
     "tagCustom48h12",
 )
-ARUCO_DICTIONARIES = tuple(
-    f"DICT_{bits}X{bits}_{n}" for bits in (4, 5, 6, 7) for n in (50, 100, 250, 1000)
-) + ("DICT_ARUCO_ORIGINAL", "DICT_ARUCO_MIP_36h12")
+ARUCO_DICTIONARIES = (
+    *(f"DICT_{bits}X{bits}_{n}" for bits in (4, 5, 6, 7) for n in (50, 100, 250, 1000)),
+    "DICT_ARUCO_ORIGINAL",
+    "DICT_ARUCO_MIP_36h12",
+)
 MARKER_FAMILIES = APRILTAG_FAMILIES + ARUCO_DICTIONARIES
 
 MAX_ID = 65535
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
 
 
-class Weighting(str, Enum):
+class Weighting(StrEnum):
     """How fusion weighs candidates."""
 
     SIGMA_MIN = "sigma_min"  # the paper's eq. 6-7: w_i = sigma_min / sigma_i
@@ -177,7 +179,10 @@ class WorldConfig:
             [
                 e.name,
                 [[s.id, s.name, pose(s.T_entity_sensor)] for s in sorted(e.sensors, key=lambda s: s.id)],
-                [[m.id, m.family, round(m.size_m, 6), pose(m.T_entity_marker)] for m in sorted(e.markers, key=lambda m: m.id)],
+                [
+                    [m.id, m.family, round(m.size_m, 6), pose(m.T_entity_marker)]
+                    for m in sorted(e.markers, key=lambda m: m.id)
+                ],
             ]
             for e in sorted(self.entities, key=lambda e: e.name)
         ]
@@ -458,12 +463,16 @@ def _check_unique(entities: list[EntityConfig]) -> None:
                 raise ConfigError(_join(spath, "name"), f"duplicate sensor name {s.name!r} in entity {ent.name!r}")
             names.add(s.name)
             if s.id in sensor_ids:
-                raise ConfigError(_join(spath, "id"), f"duplicate sensor id {s.id} (already used by {sensor_ids[s.id]})")
+                raise ConfigError(
+                    _join(spath, "id"), f"duplicate sensor id {s.id} (already used by {sensor_ids[s.id]})"
+                )
             sensor_ids[s.id] = f"{ent.name}.{s.name}"
         for i, mk in enumerate(ent.markers):
             mpath = _join(_join(epath, "markers"), i)
             if mk.id in marker_ids:
-                raise ConfigError(_join(mpath, "id"), f"duplicate marker id {mk.id} (already used by {marker_ids[mk.id]})")
+                raise ConfigError(
+                    _join(mpath, "id"), f"duplicate marker id {mk.id} (already used by {marker_ids[mk.id]})"
+                )
             marker_ids[mk.id] = f"{ent.name}.markers"
 
 
@@ -498,7 +507,9 @@ def summary(world: WorldConfig) -> str:
             )
         for mk in ent.markers:
             p = mk.T_entity_marker.translation
-            lines.append(f"    marker {mk.id} ({mk.family}, {mk.size_m * 1000:.0f} mm) at [{p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}] m")
+            lines.append(
+                f"    marker {mk.id} ({mk.family}, {mk.size_m * 1000:.0f} mm) at [{p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}] m"
+            )
     lines.append("who can see whom (a sensor of the first sees markers of the second):")
     has_markers = [e.name for e in world.entities if e.markers]
     for ent in world.entities:

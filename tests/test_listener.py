@@ -25,7 +25,11 @@ def make(doc, alpha=1.0):
 HAND = {
     "entities": {
         "world": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0.5, 0, 0]}}]},
-        "drone": {"sensors": [{"name": "cam", "id": 1, "pose_of": "optical", "pose": {"pos": [1, 0, 0], "rpy_deg": [0, 0, 90]}}]},
+        "drone": {
+            "sensors": [
+                {"name": "cam", "id": 1, "pose_of": "optical", "pose": {"pos": [1, 0, 0], "rpy_deg": [0, 0, 90]}}
+            ]
+        },
     }
 }
 
@@ -55,7 +59,9 @@ def test_downward_camera_localizes_drone_from_floor_tags():
                         {"id": 1, "size_m": 0.18, "pose": {"pos": [1, 0, 0], "rpy_deg": [0, 0, 30]}},
                     ]
                 },
-                "drone": {"sensors": [{"name": "down", "id": 1, "pose": {"pos": [0.2, 0, -0.05], "rpy_deg": [0, 90, 0]}}]},
+                "drone": {
+                    "sensors": [{"name": "down", "id": 1, "pose": {"pos": [0.2, 0, -0.05], "rpy_deg": [0, 90, 0]}}]
+                },
             }
         }
     )
@@ -73,8 +79,12 @@ def test_world_fixed_camera_observes_a_drone_marker():
         {
             "conventions": {"world": "NED", "body": "FRD"},
             "entities": {
-                "world": {"sensors": [{"name": "corner", "id": 9, "pose": {"pos": [-3, -3, -2.5], "rpy_deg": [0, -30, 45]}}]},
-                "drone": {"markers": [{"id": 40, "size_m": 0.1, "pose": {"pos": [0, 0, -0.05], "rpy_deg": [180, 0, 0]}}]},
+                "world": {
+                    "sensors": [{"name": "corner", "id": 9, "pose": {"pos": [-3, -3, -2.5], "rpy_deg": [0, -30, 45]}}]
+                },
+                "drone": {
+                    "markers": [{"id": 40, "size_m": 0.1, "pose": {"pos": [0, 0, -0.05], "rpy_deg": [180, 0, 0]}}]
+                },
             },
         }
     )

@@ -18,20 +18,20 @@ Fixed frames:
 
 from __future__ import annotations
 
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
 
-class WorldConvention(str, Enum):
+class WorldConvention(StrEnum):
     """Axes of the world frame as written in a world file."""
 
     ENU = "ENU"
     NED = "NED"
 
 
-class BodyConvention(str, Enum):
+class BodyConvention(StrEnum):
     """Axes of body frames (entities, camera mounts) as written in a world file."""
 
     FLU = "FLU"

@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 
 import numpy as np
 
 
-class Rejection(str, Enum):
+class Rejection(StrEnum):
     """Why an observation was dropped. Every reason has a counter in the listener and the node."""
 
     NON_FINITE = "non_finite"

@@ -42,7 +42,9 @@ def test_compose_arrays_matches_scipy(p1, q1, p2, q2):
 @given(vec3, quat)
 def test_invert_arrays_matches_scipy(p, q):
     pi, qi = geometry.invert_arrays(p, q / np.linalg.norm(q))
-    np.testing.assert_allclose(geometry.pose_from_arrays(pi, qi).as_matrix(), transform(p, q).inv().as_matrix(), atol=1e-9)
+    np.testing.assert_allclose(
+        geometry.pose_from_arrays(pi, qi).as_matrix(), transform(p, q).inv().as_matrix(), atol=1e-9
+    )
 
 
 @given(quat)

@@ -22,7 +22,9 @@ def test_core_imports_no_io():
                 top = name.split(".")[0]
                 assert name not in FORBIDDEN_STDLIB and top not in FORBIDDEN_STDLIB, f"{path.name} imports {name}"
                 if top == "atlas_onboard":
-                    assert name.startswith(("atlas_onboard.core", "atlas_onboard.errors")), f"{path.name} imports {name}"
+                    assert name.startswith(("atlas_onboard.core", "atlas_onboard.errors")), (
+                        f"{path.name} imports {name}"
+                    )
                 assert top in ALLOWED_TOP or top in _stdlib(), f"{path.name} imports {name}"
 
 

@@ -1,0 +1,18 @@
+"""The code base is ruff clean (the house style's linter), checked with the project's own settings."""
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_ruff_clean():
+    ruff = shutil.which("ruff") or str(Path(sys.executable).with_name("ruff"))
+    if not Path(ruff).exists():
+        pytest.skip("ruff is not installed (pip install '.[test]' installs it)")
+    proc = subprocess.run([ruff, "check", "--no-cache", str(REPO)], capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
