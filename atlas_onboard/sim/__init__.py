@@ -1,0 +1,1 @@
+"""SITL-style simulation: trajectories, rendered cameras, simulated autopilots, scenarios, reports."""

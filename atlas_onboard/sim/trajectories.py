@@ -1,0 +1,150 @@
+"""Ground-truth trajectories of simulated entities, as functions of time.
+
+Quadrotors do not fly on rails: they tilt to accelerate and their controllers oscillate. A
+:class:`Quadrotor` trajectory therefore takes a smooth path (a position function of time), adds the
+oscillation and jitter of a real vehicle (sums of sinusoids with seeded phases), and derives roll and
+pitch from the acceleration the path needs (the thrust must point along a + g). Everything is a pure,
+vectorised function of time in seconds; poses are ENU/FLU, ``T_world_entity``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+G = 9.81
+PathFn = Callable[[NDArray[np.float64]], NDArray[np.float64]]  # t (N,) -> p (N, 3)
+YawFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]  # t, p -> yaw (N,) rad
+
+
+@dataclass(frozen=True)
+class Oscillation:
+    """Position oscillation: ``amplitude_m`` per axis at ``freq_hz``, plus small random jitter.
+
+    The AR.Drone 2 of the paper's test 1 "was oscillating heavily": a few centimetres at about 1 Hz.
+    """
+
+    amplitude_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    freq_hz: float = 1.0
+    jitter_m: float = 0.0
+    seed: int = 0
+
+    def __call__(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        rng = np.random.default_rng(self.seed)
+        phase = rng.uniform(0, 2 * np.pi, 3)
+        out = np.asarray(self.amplitude_m)[None, :] * np.sin(2 * np.pi * self.freq_hz * t[:, None] + phase[None, :])
+        if self.jitter_m > 0:
+            # Band-limited jitter: a few incommensurate sinusoids (deterministic, differentiable).
+            freqs = rng.uniform(2.0, 6.0, (4, 3))
+            phases = rng.uniform(0, 2 * np.pi, (4, 3))
+            for k in range(4):
+                out += (self.jitter_m / 2) * np.sin(2 * np.pi * freqs[k][None, :] * t[:, None] + phases[k][None, :])
+        return out
+
+
+@dataclass(frozen=True)
+class Static:
+    """An entity that does not move (a tag on the floor, a parked drone)."""
+
+    p_m: tuple[float, float, float]
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def pose(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        n = len(np.atleast_1d(t))
+        q = Rotation.from_euler("ZYX", self.rpy_deg[::-1], degrees=True).as_quat()
+        return np.tile(np.asarray(self.p_m, dtype=float), (n, 1)), np.tile(q, (n, 1))
+
+
+@dataclass(frozen=True)
+class Quadrotor:
+    """A multirotor following ``path`` with heading ``yaw``, tilting as its acceleration requires."""
+
+    path: PathFn
+    yaw: YawFn
+    oscillation: Oscillation = field(default_factory=Oscillation)
+    dt: float = 1e-3
+
+    def position(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return self.path(t) + self.oscillation(t)
+
+    def pose(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Positions (N, 3) and quaternions xyzw (N, 4) at times ``t`` (s)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        p = self.position(t)
+        acc = (self.position(t + self.dt) - 2 * p + self.position(t - self.dt)) / self.dt**2
+        yaw = self.yaw(t, p)
+        # Thrust direction (body z) must be along a + g; roll/pitch follow in the yawed frame.
+        thrust = acc + np.array([0.0, 0.0, G])
+        cy, sy = np.cos(yaw), np.sin(yaw)
+        fwd = cy * thrust[:, 0] + sy * thrust[:, 1]
+        left = -sy * thrust[:, 0] + cy * thrust[:, 1]
+        pitch = np.arctan2(fwd, thrust[:, 2])  # FLU: +pitch dips the nose, accelerating forward
+        roll = np.arctan2(-left, np.hypot(fwd, thrust[:, 2]))
+        q = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_quat()
+        return p, q
+
+    def velocity(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return (self.position(t + self.dt) - self.position(t - self.dt)) / (2 * self.dt)
+
+
+def lissajous(
+    center: tuple[float, float, float], amp: tuple[float, float, float], freq_hz: tuple[float, float, float],
+    phase: tuple[float, float, float] = (0.0, 0.0, 0.0),
+) -> PathFn:
+    """A smooth, bounded, 'arbitrary-looking' path: a 3-D Lissajous curve."""
+    c, a, f, ph = (np.asarray(v, dtype=float) for v in (center, amp, freq_hz, phase))
+
+    def path(t: NDArray[np.float64]) -> NDArray[np.float64]:
+        return c[None, :] + a[None, :] * np.sin(2 * np.pi * f[None, :] * t[:, None] + ph[None, :])
+
+    return path
+
+
+def circle(center: tuple[float, float, float], radius_m: float, period_s: float, phase_rad: float = 0.0) -> PathFn:
+    """A horizontal circle around ``center`` at its height, counter-clockwise seen from above."""
+    c = np.asarray(center, dtype=float)
+
+    def path(t: NDArray[np.float64]) -> NDArray[np.float64]:
+        a = 2 * np.pi * t / period_s + phase_rad
+        return np.stack([c[0] + radius_m * np.cos(a), c[1] + radius_m * np.sin(a), np.full_like(t, c[2])], axis=1)
+
+    return path
+
+
+def shuttle(start: tuple[float, float, float], end: tuple[float, float, float], period_s: float) -> PathFn:
+    """Back and forth between two points with a smooth (cosine) speed profile."""
+    s, e = np.asarray(start, dtype=float), np.asarray(end, dtype=float)
+
+    def path(t: NDArray[np.float64]) -> NDArray[np.float64]:
+        u = 0.5 - 0.5 * np.cos(2 * np.pi * t / period_s)
+        return s[None, :] + u[:, None] * (e - s)[None, :]
+
+    return path
+
+
+def offset(path: PathFn, delta: tuple[float, float, float]) -> PathFn:
+    """The same path shifted by ``delta`` (a follower in formation)."""
+    d = np.asarray(delta, dtype=float)
+    return lambda t: path(t) + d[None, :]
+
+
+def constant_yaw(yaw_deg: float) -> YawFn:
+    y = np.radians(yaw_deg)
+    return lambda t, p: np.full(len(t), y)
+
+
+def slow_yaw(yaw0_deg: float, amplitude_deg: float, period_s: float) -> YawFn:
+    y0, a = np.radians(yaw0_deg), np.radians(amplitude_deg)
+    return lambda t, p: y0 + a * np.sin(2 * np.pi * t / period_s)
+
+
+def face_point(target: tuple[float, float]) -> YawFn:
+    """Heading that keeps the nose (and a front camera) pointed at ``target`` (x, y)."""
+    tx, ty = target
+    return lambda t, p: np.arctan2(ty - p[:, 1], tx - p[:, 0])
