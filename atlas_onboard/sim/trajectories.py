@@ -23,27 +23,32 @@ YawFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]
 
 @dataclass(frozen=True)
 class Oscillation:
-    """Position oscillation: ``amplitude_m`` per axis at ``freq_hz``, plus small random jitter.
+    """The controller's oscillation and the vehicle's attitude jitter.
 
-    The AR.Drone 2 of the paper's test 1 "was oscillating heavily": a few centimetres at about 1 Hz.
+    Position oscillates by ``amplitude_m`` per axis at ``freq_hz`` (the AR.Drone 2 of the paper's test
+    1 "was oscillating heavily"); the tilt this needs follows from the acceleration. Vibration and
+    turbulence add ``jitter_deg`` of roll/pitch jitter at 3-8 Hz, too fast to move the vehicle much.
     """
 
     amplitude_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
     freq_hz: float = 1.0
-    jitter_m: float = 0.0
+    jitter_deg: float = 0.0
     seed: int = 0
 
     def __call__(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
-        rng = np.random.default_rng(self.seed)
-        phase = rng.uniform(0, 2 * np.pi, 3)
-        out = np.asarray(self.amplitude_m)[None, :] * np.sin(2 * np.pi * self.freq_hz * t[:, None] + phase[None, :])
-        if self.jitter_m > 0:
-            # Band-limited jitter: a few incommensurate sinusoids (deterministic, differentiable).
-            freqs = rng.uniform(2.0, 6.0, (4, 3))
-            phases = rng.uniform(0, 2 * np.pi, (4, 3))
-            for k in range(4):
-                out += (self.jitter_m / 2) * np.sin(2 * np.pi * freqs[k][None, :] * t[:, None] + phases[k][None, :])
-        return out
+        phase = np.random.default_rng(self.seed).uniform(0, 2 * np.pi, 3)
+        return np.asarray(self.amplitude_m)[None, :] * np.sin(2 * np.pi * self.freq_hz * t[:, None] + phase[None, :])
+
+    def attitude_jitter_rad(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Roll and pitch jitter (N, 2): a few incommensurate sinusoids (deterministic, smooth)."""
+        out = np.zeros((len(t), 2))
+        if self.jitter_deg <= 0:
+            return out
+        rng = np.random.default_rng(self.seed + 1)
+        freqs, phases = rng.uniform(3.0, 8.0, (3, 2)), rng.uniform(0, 2 * np.pi, (3, 2))
+        for k in range(3):
+            out += np.sin(2 * np.pi * freqs[k][None, :] * t[:, None] + phases[k][None, :])
+        return np.radians(self.jitter_deg) / 3 * out
 
 
 @dataclass(frozen=True)
@@ -85,6 +90,8 @@ class Quadrotor:
         left = -sy * thrust[:, 0] + cy * thrust[:, 1]
         pitch = np.arctan2(fwd, thrust[:, 2])  # FLU: +pitch dips the nose, accelerating forward
         roll = np.arctan2(-left, np.hypot(fwd, thrust[:, 2]))
+        jitter = self.oscillation.attitude_jitter_rad(t)
+        roll, pitch = roll + jitter[:, 0], pitch + jitter[:, 1]
         q = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_quat()
         return p, q
 

@@ -1,0 +1,170 @@
+"""The built-in scenarios: a world file each (in ``scenarios/``) plus the trajectories of its entities,
+the simulated camera optics, and which entities run a node.
+
+Rates and resolutions are chosen so that a scenario keeps real time on a two-core machine while every
+node, renderer and detector runs (the report states them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+from atlas_onboard.config import WORLD, WorldConfig, load_world
+from atlas_onboard.errors import AtlasError
+from atlas_onboard.sim import trajectories as tj
+
+Trajectory = tj.Quadrotor | tj.Static
+
+
+@dataclass(frozen=True)
+class Optics:
+    """Simulated camera optics and image degradation of one sensor."""
+
+    hfov_deg: float = 70.0
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    noise_sigma: float = 2.0  # grey levels of Gaussian pixel noise
+    exposure_s: float = 0.004  # for motion blur: blur length = image speed x exposure
+
+
+@dataclass(frozen=True)
+class Mocap:
+    """A motion-capture system (the paper's OptiTrack) reporting rigid bodies as observations."""
+
+    sensor: str  # name of the world sensor that stands for the mocap system
+    rate_hz: float = 50.0
+    sigma_m: float = 0.001
+    sigma_deg: float = 0.1
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str
+    description: str
+    world_file: str
+    duration_s: float
+    trajectories: dict[str, Trajectory]
+    drones: tuple[str, ...]  # entities that run a node with an autopilot
+    scored: tuple[str, ...]  # entities whose accuracy is reported
+    optics: dict[str, Optics] = field(default_factory=dict)  # by sensor name "entity.sensor"
+    mocap: Mocap | None = None
+    bars: dict[str, float] = field(default_factory=dict)  # e.g. {"drone_c.rmse_m": 0.10}
+
+    def world(self) -> WorldConfig:
+        return load_world(self.world_path())
+
+    def world_path(self) -> Path:
+        return Path(str(resources.files("atlas_onboard.sim") / "scenarios" / self.world_file))
+
+    def optics_of(self, entity: str, sensor: str) -> Optics:
+        return self.optics.get(f"{entity}.{sensor}", Optics())
+
+    @property
+    def needs_world_node(self) -> bool:
+        """A world node runs the world-fixed cameras (and the mocap), like a ground computer would."""
+        world = self.world()
+        return self.mocap is not None or any(s.camera is not None for s in world.entity(WORLD).sensors)
+
+
+def _paper_test1() -> Scenario:
+    # The AR.Drone flies arbitrarily over the 13 tags and oscillates heavily (the paper's words).
+    drone = tj.Quadrotor(
+        path=tj.lissajous((0.0, 0.0, 1.5), (1.5, 0.7, 0.2), (0.071, 0.113, 0.05), (0.0, 1.0, 0.0)),
+        yaw=tj.slow_yaw(0.0, 25.0, 17.0),
+        oscillation=tj.Oscillation((0.03, 0.03, 0.01), 1.2, 1.0, seed=1),
+    )
+    return Scenario(
+        name="paper-test1",
+        description="self-localization: 13 floor tags of 18 cm, one AR.Drone 2 with its 720p camera looking down",
+        world_file="paper-test1.yaml",
+        duration_s=20.0,
+        trajectories={"ardrone": drone},
+        drones=("ardrone",),
+        scored=("ardrone",),
+        optics={"ardrone.front": Optics(hfov_deg=70.0, distortion=(-0.05, 0.01, 0.0, 0.0, 0.0))},
+        bars={"ardrone.rmse_m": 0.02},
+    )
+
+
+def _paper_test2() -> Scenario:
+    tag = (-0.004, -0.052, 0.009)
+    drones = {
+        f"drone{i}": tj.Quadrotor(
+            path=tj.circle((tag[0], tag[1], 0.9), 1.5, 30.0, phase_rad=phase),
+            yaw=tj.face_point(tag[:2]),
+            oscillation=tj.Oscillation((0.02, 0.02, 0.01), 0.8, 0.5, seed=10 + i),
+        )
+        for i, phase in ((1, 0.0), (2, 3.14159))
+    }
+    return Scenario(
+        name="paper-test2",
+        description="entity localization: two drones circle a 12 cm tag at (-4, -52, 9) mm and localize it",
+        world_file="paper-test2.yaml",
+        duration_s=20.0,
+        trajectories={**drones, "tag": tj.Static(tag)},
+        drones=("drone1", "drone2"),
+        scored=("tag", "drone1", "drone2"),
+        optics={f"drone{i}.front": Optics(hfov_deg=70.0) for i in (1, 2)},
+        mocap=Mocap(sensor="optitrack"),
+        bars={"tag.rmse_m": 0.05},
+    )
+
+
+def _relay() -> Scenario:
+    lead = tj.shuttle((1.6, 0.0, 1.2), (3.4, 0.0, 1.2), 16.0)
+    osc = {name: tj.Oscillation((0.015, 0.015, 0.01), 0.9 + 0.1 * k, 0.5, seed=20 + k) for k, name in enumerate("abc")}
+    trajectories = {
+        "drone_a": tj.Quadrotor(lead, tj.constant_yaw(0.0), osc["a"]),
+        "drone_b": tj.Quadrotor(tj.offset(lead, (-1.2, 0.0, 0.0)), tj.constant_yaw(0.0), osc["b"]),
+        "drone_c": tj.Quadrotor(tj.offset(lead, (-2.4, 0.0, 0.0)), tj.constant_yaw(0.0), osc["c"]),
+    }
+    return Scenario(
+        name="relay",
+        description="cooperative localization: A sees the floor tags, B sees only A, C sees only B",
+        world_file="relay.yaml",
+        duration_s=16.0,
+        trajectories=trajectories,
+        drones=("drone_a", "drone_b", "drone_c"),
+        scored=("drone_a", "drone_b", "drone_c"),
+        optics={n: Optics(hfov_deg=70.0) for n in ("drone_a.down", "drone_b.front", "drone_c.front")},
+        bars={"drone_c.rmse_m": 0.10, "drone_c.availability": 0.95},
+    )
+
+
+def _swarm() -> Scenario:
+    def osc(k: int) -> tj.Oscillation:
+        return tj.Oscillation((0.02, 0.02, 0.01), 0.7 + 0.15 * k, 0.5, seed=30 + k)
+
+    trajectories: dict[str, Trajectory] = {
+        "d1": tj.Quadrotor(tj.circle((-1.5, 0.7, 1.5), 0.8, 12.0), tj.slow_yaw(0, 90, 20), osc(1)),
+        "d2": tj.Quadrotor(tj.circle((-1.4, -1.2, 1.2), 0.6, 9.0, 2.0), tj.constant_yaw(45), osc(2)),
+        "d3": tj.Quadrotor(tj.circle((1.5, 1.0, 1.6), 0.7, 11.0, 1.0), tj.slow_yaw(90, 60, 15), osc(3)),
+        "d4": tj.Quadrotor(tj.circle((1.4, -0.9, 1.4), 0.9, 14.0, 4.0), tj.constant_yaw(-30), osc(4)),
+        "d5": tj.Quadrotor(tj.lissajous((0.0, 0.0, 1.3), (2.2, 1.2, 0.1), (0.05, 0.1, 0.07)), tj.constant_yaw(0), osc(5)),
+        # d6 flies a wide circle that leaves both cameras' view for part of each lap.
+        "d6": tj.Quadrotor(tj.circle((0.0, 0.0, 1.5), 3.0, 16.0, 0.5), tj.constant_yaw(0), osc(6)),
+    }
+    drones = tuple(trajectories)
+    return Scenario(
+        name="swarm",
+        description="6 drones under two ceiling cameras, tags on every drone, some leaving the view",
+        world_file="swarm.yaml",
+        duration_s=20.0,
+        trajectories=trajectories,
+        drones=drones,
+        scored=drones,
+        optics={"world.ceiling_west": Optics(hfov_deg=90.0), "world.ceiling_east": Optics(hfov_deg=90.0)},
+    )
+
+
+SCENARIOS = {s.name: s for s in (_paper_test1(), _paper_test2(), _relay(), _swarm())}
+DEFAULT = "swarm"
+
+
+def get(name: str) -> Scenario:
+    """The scenario called ``name``, or an AtlasError listing the ones there are."""
+    try:
+        return SCENARIOS[name]
+    except KeyError:
+        raise AtlasError(f"unknown scenario {name!r} (choose from {', '.join(sorted(SCENARIOS))})") from None

@@ -1,0 +1,177 @@
+"""The simulated world at time t: ground truth of every entity, camera intrinsics, and which marker
+each camera can see (for rendering order and for the expected availability of each entity)."""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.config import WORLD, MarkerConfig, SensorConfig, WorldConfig
+from atlas_onboard.sim.scenarios import Optics, Scenario
+
+MIN_SIDE_PX = 16.0  # a tag36h11 needs about 2 px per cell (8 cells across) to decode
+MAX_VIEW_ANGLE_DEG = 70.0
+EDGE_MARGIN_PX = 3.0
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics with OpenCV's pixel-centre convention, plus distortion (k1 k2 p1 p2 k3)."""
+
+    width_px: int
+    height_px: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, float, float, float, float]
+
+    @classmethod
+    def from_fov(cls, width_px: int, height_px: int, optics: Optics) -> Intrinsics:
+        f = (width_px / 2.0) / np.tan(np.radians(optics.hfov_deg) / 2.0)
+        return cls(width_px, height_px, f, f, (width_px - 1) / 2.0, (height_px - 1) / 2.0, optics.distortion)
+
+    @property
+    def camera_matrix(self) -> NDArray[np.float64]:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def project(self, p_cam: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Pixel coordinates (N, 2) of points (N, 3) in the optical frame, with distortion."""
+        x = p_cam[:, 0] / p_cam[:, 2]
+        y = p_cam[:, 1] / p_cam[:, 2]
+        k1, k2, p1, p2, k3 = self.distortion
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2**3
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=1)
+
+
+def marker_corners(size_m: float) -> NDArray[np.float64]:
+    """Corners in the marker frame, OpenCV order: top-left, top-right, bottom-right, bottom-left."""
+    h = size_m / 2.0
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
+@dataclass(frozen=True)
+class Sighting:
+    """A marker a camera can see at some instant: truth for rendering and for scoring detections."""
+
+    sensor: SensorConfig
+    marker: MarkerConfig
+    T_sensor_marker: RigidTransform
+    corners_px: NDArray[np.float64]  # (4, 2)
+    distance_m: float
+
+
+class SimWorld:
+    """Ground truth for a scenario; time ``t`` is seconds since the start of the run."""
+
+    def __init__(self, scenario: Scenario, world: WorldConfig | None = None) -> None:
+        self.scenario = scenario
+        self.world = world if world is not None else scenario.world()
+        self.cameras: dict[int, tuple[SensorConfig, Intrinsics]] = {}
+        for ent in self.world.entities:
+            for s in ent.sensors:
+                if s.camera is not None and s.camera.width_px > 0:
+                    intr = Intrinsics.from_fov(s.camera.width_px, s.camera.height_px, scenario.optics_of(ent.name, s.name))
+                    self.cameras[s.id] = (s, intr)
+
+    def truth(self, t: float) -> dict[str, RigidTransform]:
+        """``T_world_entity`` of every entity at time t (entities without a trajectory sit at the origin)."""
+        out = {name: RigidTransform.identity() for name in self.world.entity_names}
+        for name, traj in self.scenario.trajectories.items():
+            p, q = traj.pose(np.array([t]))
+            out[name] = RigidTransform.from_components(p[0], Rotation.from_quat(q[0]))
+        return out
+
+    def truth_series(self, name: str, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Positions (N, 3) and quaternions xyzw (N, 4) of one entity at times t."""
+        traj = self.scenario.trajectories.get(name)
+        if traj is None:
+            n = len(t)
+            return np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        return traj.pose(np.asarray(t, dtype=float))
+
+    def sightings(self, sensor_id: int, truth: dict[str, RigidTransform]) -> list[Sighting]:
+        """Markers the camera sees: in the image, facing it, big enough, not hidden by a nearer marker.
+
+        Sorted far to near, the order in which a renderer paints them.
+        """
+        sensor, intr = self.cameras[sensor_id]
+        T_world_sensor = truth[sensor.entity] * sensor.T_entity_sensor
+        T_sensor_world = T_world_sensor.inv()
+        candidates = []
+        for m in self.world.markers.values():
+            if m.entity == sensor.entity:
+                continue
+            T_sm = T_sensor_world * truth[m.entity] * m.T_entity_marker
+            corners = T_sm.apply(marker_corners(m.size_m))
+            if np.any(corners[:, 2] < 0.05):
+                continue
+            to_camera = -T_sm.translation / np.linalg.norm(T_sm.translation)
+            normal = T_sm.rotation.apply([0.0, 0.0, 1.0])
+            if np.degrees(np.arccos(np.clip(normal @ to_camera, -1, 1))) > MAX_VIEW_ANGLE_DEG:
+                continue
+            px = intr.project(corners)
+            m_ = EDGE_MARGIN_PX
+            if np.any(px[:, 0] < m_) or np.any(px[:, 0] > intr.width_px - 1 - m_):
+                continue
+            if np.any(px[:, 1] < m_) or np.any(px[:, 1] > intr.height_px - 1 - m_):
+                continue
+            side = min(np.linalg.norm(px[i] - px[(i + 1) % 4]) for i in range(4))
+            if side < MIN_SIDE_PX:
+                continue
+            candidates.append(Sighting(sensor, m, T_sm, px, float(np.linalg.norm(T_sm.translation))))
+        candidates.sort(key=lambda s: -s.distance_m)
+        visible = []
+        for i, s in enumerate(candidates):
+            nearer = candidates[i + 1 :]
+            if any(_inside(c, n.corners_px) for n in nearer for c in s.corners_px):
+                continue
+            visible.append(s)
+        return visible
+
+    def observed_edges(self, t: float) -> list[tuple[str, str]]:
+        """(observer entity, observed entity) pairs a camera can see at time t (mocap included)."""
+        truth = self.truth(t)
+        edges = [(s.sensor.entity, s.marker.entity) for sid in self.cameras for s in self.sightings(sid, truth)]
+        if self.scenario.mocap is not None:
+            edges += [(WORLD, name) for name in self.scenario.drones]
+        return edges
+
+    def expected_availability(self, times: NDArray[np.float64]) -> dict[str, float]:
+        """Share of ``times`` at which each entity has a path of visible markers to the world."""
+        hits = dict.fromkeys(self.world.entity_names, 0)
+        for t in times:
+            for name in _reachable(self.observed_edges(float(t))):
+                hits[name] += 1
+        return {n: hits[n] / max(len(times), 1) for n in self.world.entity_names if n != WORLD}
+
+
+def _reachable(edges: list[tuple[str, str]]) -> set[str]:
+    adj: dict[str, set[str]] = {}
+    for a, b in edges:
+        adj.setdefault(a, set()).add(b)
+        adj.setdefault(b, set()).add(a)
+    seen = {WORLD}
+    queue = deque([WORLD])
+    while queue:
+        for n in adj.get(queue.popleft(), ()):
+            if n not in seen:
+                seen.add(n)
+                queue.append(n)
+    return seen
+
+
+def _inside(point: NDArray[np.float64], quad: NDArray[np.float64]) -> bool:
+    """True if a pixel lies inside a convex quadrilateral (either winding)."""
+    signs = []
+    for i in range(4):
+        a, b = quad[i], quad[(i + 1) % 4]
+        signs.append(np.sign((b[0] - a[0]) * (point[1] - a[1]) - (b[1] - a[1]) * (point[0] - a[0])))
+    return all(s >= 0 for s in signs) or all(s <= 0 for s in signs)
