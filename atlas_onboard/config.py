@@ -412,7 +412,7 @@ def _read_entity(
     return EntityConfig(name, tuple(sensors), tuple(markers))
 
 
-WORLD_KEYS = {"version", "conventions", "fusion", "marker_family", "entities"}
+WORLD_KEYS = {"version", "conventions", "fusion", "marker_family", "entities", "nodes"}
 
 
 def parse_world(doc: Any, source: Path | None = None, extra_keys: set[str] = frozenset()) -> WorldConfig:  # type: ignore[assignment]
@@ -481,9 +481,27 @@ def load_world(path: Path | str, extra_keys: set[str] = frozenset()) -> WorldCon
     p = Path(path)
     doc = read_yaml(p)
     try:
-        return parse_world(doc, p, extra_keys)
+        world = parse_world(doc, p, extra_keys)
+        check_nodes(doc, world, p.parent)
     except ConfigError as exc:
         raise ConfigError(exc.path, exc.problem, str(p)) from None
+    return world
+
+
+def check_nodes(doc: Any, world: WorldConfig, base_dir: Path | None = None) -> tuple[NodeConfig, ...]:
+    """Validate every node named in the ``nodes`` section (none if there is no such section)."""
+    if not isinstance(doc, Mapping) or doc.get("nodes") is None:
+        return ()
+    nodes = _mapping(doc["nodes"], "nodes", {"defaults", *world.entity_names})
+    parsed = tuple(parse_node(doc, name, world, base_dir) for name in nodes if name != "defaults")
+    ids: dict[int, str] = {}
+    for n in parsed:
+        if n.system_id in ids:
+            raise ConfigError(
+                f"nodes.{n.entity}.system_id", f"duplicate system id {n.system_id} (also {ids[n.system_id]})"
+            )
+        ids[n.system_id] = n.entity
+    return parsed
 
 
 def summary(world: WorldConfig) -> str:
@@ -525,3 +543,262 @@ def summary(world: WorldConfig) -> str:
 def as_array(T: RigidTransform) -> np.ndarray:
     """4x4 homogeneous matrix of a pose (for the listener's hot path)."""
     return T.as_matrix()
+
+
+# --- node settings: the `nodes:` section ---------------------------------------------------------------
+
+
+class AutopilotOutput(StrEnum):
+    """The message that carries the pose to the autopilot."""
+
+    VISION_POSITION_ESTIMATE = "vision_position_estimate"
+    ODOMETRY = "odometry"
+
+
+@dataclass(frozen=True, slots=True)
+class SigningConfig:
+    """MAVLink 2 signing of one link.
+
+    Attributes:
+        key_file: 32-byte secret key (raw bytes, or 64 hex characters); must not be readable by others.
+        sign_outgoing: sign what this node sends on the link.
+        require: drop (and count) unsigned or badly signed observations received on the link.
+    """
+
+    key_file: Path
+    sign_outgoing: bool = True
+    require: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class LinkConfig:
+    """One MAVLink connection, written as pymavlink/MAVProxy write them.
+
+    Attributes:
+        url: ``/dev/ttyAMA0,921600``, ``udpin:0.0.0.0:14550``, ``udpout:10.0.0.2:14550``,
+            ``udpbcast:10.0.0.255:14550`` or ``tcp:127.0.0.1:5760``.
+        tunnel: carry observations inside standard TUNNEL messages (for links through a flight
+            controller, which drops unknown message ids).
+        signing: MAVLink 2 signing, or None for an unsigned link.
+        rate_limit_hz: most observations accepted per second from one peer system on this link.
+    """
+
+    url: str
+    tunnel: bool = False
+    signing: SigningConfig | None = None
+    rate_limit_hz: float = 1000.0
+
+
+@dataclass(frozen=True, slots=True)
+class GlobalOrigin:
+    """The EKF origin sent with SET_GPS_GLOBAL_ORIGIN until the autopilot reports one."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+
+
+@dataclass(frozen=True, slots=True)
+class AutopilotConfig:
+    """The link to this drone's flight controller and what is sent on it.
+
+    Attributes:
+        link: the connection (its ``tunnel`` and ``rate_limit_hz`` are unused here).
+        output: VISION_POSITION_ESTIMATE (default) or ODOMETRY (LOCAL_FRD / BODY_FRD).
+        rate_hz: most pose messages per second (one per new observation of the own entity, capped).
+        component_id: MAVLink component id of this node (197: MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).
+        reset_jump_m: a jump of the published position larger than this increments reset_counter.
+        origin: SET_GPS_GLOBAL_ORIGIN to send until GPS_GLOBAL_ORIGIN arrives (ArduPilot needs it).
+    """
+
+    link: LinkConfig
+    output: AutopilotOutput = AutopilotOutput.VISION_POSITION_ESTIMATE
+    rate_hz: float = 30.0
+    component_id: int = 197
+    reset_jump_m: float = 0.5
+    origin: GlobalOrigin | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class NodeConfig:
+    """The settings of the node that runs for one entity.
+
+    Attributes:
+        entity: the entity whose pose this node publishes.
+        system_id: this drone's MAVLink system id (the autopilot's SYSID_THISMAV / MAV_SYS_ID);
+            it also identifies this node's observations on peer links, so it is unique in the swarm.
+        autopilot: the flight-controller link, or None (e.g. a ground node with world cameras).
+        peers: links to the other drones and the ground station.
+        fused_rate_hz: how often the fused poses of every entity go to peers and the GCS.
+        heartbeat_hz: HEARTBEAT rate on every link.
+        queue_size: observations waiting for the graph; beyond it the oldest are dropped (counted).
+        state_dir: where signing timestamps persist across restarts.
+        status_interval_s: period of the health log line.
+    """
+
+    entity: str
+    system_id: int
+    autopilot: AutopilotConfig | None = None
+    peers: tuple[LinkConfig, ...] = ()
+    fused_rate_hz: float = 5.0
+    heartbeat_hz: float = 1.0
+    queue_size: int = 256
+    state_dir: Path | None = None
+    status_interval_s: float = 10.0
+
+
+_NODE_KEYS = {
+    "system_id",
+    "autopilot",
+    "peers",
+    "fused_rate_hz",
+    "heartbeat_hz",
+    "queue_size",
+    "state_dir",
+    "status_interval_s",
+}
+
+
+def _merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
+    return out
+
+
+def _bool(value: Any, path: str) -> bool:
+    if not isinstance(value, bool):
+        raise ConfigError(path, f"expected true or false, got {_describe(value)}")
+    return value
+
+
+def _rate(value: Any, path: str, lo: float = 0.1, hi: float = 1000.0) -> float:
+    rate = _number(value, path, "Hz")
+    if not lo <= rate <= hi:
+        raise ConfigError(path, f"expected a rate in [{lo:g}, {hi:g}] Hz, got {rate:g}")
+    return rate
+
+
+_URL_RE = re.compile(r"^(udpin|udpout|udpbcast|udp|tcp|tcpin):[A-Za-z0-9._-]+:\d{1,5}$|^/dev/\S+?(,\d+)?$|^COM\d+(,\d+)?$")
+
+
+def _read_link(value: Any, path: str, base_dir: Path | None) -> LinkConfig:
+    if isinstance(value, str):
+        value = {"url": value}
+    m = _mapping(value, path, {"url", "tunnel", "signing", "rate_limit_hz"}, {"url"})
+    url = _string(m["url"], _join(path, "url"))
+    if not _URL_RE.match(url):
+        raise ConfigError(
+            _join(path, "url"),
+            f"expected a connection string such as udpin:0.0.0.0:14550, udpout:HOST:PORT, tcp:HOST:PORT or"
+            f" /dev/ttyAMA0,921600, got {url!r}",
+        )
+    signing = None
+    if "signing" in m:
+        spath = _join(path, "signing")
+        s = _mapping(m["signing"], spath, {"key_file", "sign_outgoing", "require"}, {"key_file"})
+        key = Path(_string(s["key_file"], _join(spath, "key_file")))
+        if base_dir is not None and not key.is_absolute():
+            key = base_dir / key
+        signing = SigningConfig(
+            key,
+            _bool(s.get("sign_outgoing", True), _join(spath, "sign_outgoing")),
+            _bool(s.get("require", True), _join(spath, "require")),
+        )
+    return LinkConfig(
+        url,
+        _bool(m.get("tunnel", False), _join(path, "tunnel")),
+        signing,
+        _rate(m.get("rate_limit_hz", 1000.0), _join(path, "rate_limit_hz"), 1.0, 100000.0),
+    )
+
+
+def _read_autopilot(value: Any, path: str, base_dir: Path | None, partial: bool = False) -> AutopilotConfig | None:
+    if value is None:
+        return None
+    keys = {"url", "signing", "output", "rate_hz", "component_id", "reset_jump_m", "origin"}
+    m = dict(_mapping(value, path, keys, set() if partial else {"url"}))
+    m.setdefault("url", "udpout:127.0.0.1:1")  # partial: a section that leaves the url to another
+    link = _read_link({k: m[k] for k in ("url", "signing") if k in m}, path, base_dir)
+    output = AutopilotOutput(
+        _choice(
+            m.get("output", "vision_position_estimate"), _join(path, "output"), tuple(o.value for o in AutopilotOutput)
+        )
+    )
+    jump = _number(m.get("reset_jump_m", 0.5), _join(path, "reset_jump_m"), "metres")
+    if not 0.0 < jump <= 100.0:
+        raise ConfigError(_join(path, "reset_jump_m"), f"expected a distance in (0, 100] metres, got {jump:g}")
+    origin = None
+    if "origin" in m:
+        opath = _join(path, "origin")
+        o = _mapping(m["origin"], opath, {"lat_deg", "lon_deg", "alt_m"}, {"lat_deg", "lon_deg", "alt_m"})
+        lat, lon = _number(o["lat_deg"], _join(opath, "lat_deg")), _number(o["lon_deg"], _join(opath, "lon_deg"))
+        if not -90.0 <= lat <= 90.0:
+            raise ConfigError(_join(opath, "lat_deg"), f"expected a latitude in [-90, 90] degrees, got {lat:g}")
+        if not -180.0 <= lon <= 180.0:
+            raise ConfigError(_join(opath, "lon_deg"), f"expected a longitude in [-180, 180] degrees, got {lon:g}")
+        origin = GlobalOrigin(lat, lon, _number(o["alt_m"], _join(opath, "alt_m"), "metres"))
+    return AutopilotConfig(
+        link,
+        output,
+        _rate(m.get("rate_hz", 30.0), _join(path, "rate_hz"), 1.0, 200.0),
+        _integer(m.get("component_id", 197), _join(path, "component_id"), 1, 255),
+        jump,
+        origin,
+    )
+
+
+def _read_node(m: Mapping[str, Any], path: str, entity: str, base_dir: Path | None, partial: bool) -> NodeConfig:
+    """Build a node's settings from one mapping; ``partial`` skips required fields (a defaults section)."""
+    _mapping(m, path, _NODE_KEYS)
+    if "system_id" not in m and not partial:
+        raise ConfigError(_join(path, "system_id"), "missing required field (this drone's MAVLink system id)")
+    peers_path = _join(path, "peers")
+    peers = tuple(
+        _read_link(v, _join(peers_path, i), base_dir) for i, v in enumerate(_list(m.get("peers"), peers_path))
+    )
+    status = _number(m.get("status_interval_s", 10.0), _join(path, "status_interval_s"), "seconds")
+    if not 0.5 <= status <= 3600.0:
+        raise ConfigError(_join(path, "status_interval_s"), f"expected an interval in [0.5, 3600] s, got {status:g}")
+    return NodeConfig(
+        entity=entity,
+        system_id=_integer(m.get("system_id", 1), _join(path, "system_id"), 1, 255),
+        autopilot=_read_autopilot(m.get("autopilot"), _join(path, "autopilot"), base_dir, partial),
+        peers=peers,
+        fused_rate_hz=_rate(m.get("fused_rate_hz", 5.0), _join(path, "fused_rate_hz"), 0.1, 100.0),
+        heartbeat_hz=_rate(m.get("heartbeat_hz", 1.0), _join(path, "heartbeat_hz"), 0.1, 10.0),
+        queue_size=_integer(m.get("queue_size", 256), _join(path, "queue_size"), 8, 1_000_000),
+        state_dir=Path(_string(m["state_dir"], _join(path, "state_dir"))) if "state_dir" in m else None,
+        status_interval_s=status,
+    )
+
+
+def parse_node(doc: Any, entity: str, world: WorldConfig, base_dir: Path | None = None) -> NodeConfig:
+    """The settings of ``entity``'s node: ``nodes.defaults`` overridden key by key by ``nodes.<entity>``.
+
+    Each section is validated where it is written (so an error names the section that holds the bad
+    value), then the merged settings are built, which only adds the checks for required fields.
+    """
+    if entity not in world.entity_names:
+        raise ConfigError("", f"unknown entity {entity!r} (the world file has {', '.join(world.entity_names)})")
+    raw = doc.get("nodes") if isinstance(doc, Mapping) else None
+    if raw is None:
+        raise ConfigError("nodes", "missing: `atlas-onboard run` needs a nodes section (see config/example.yaml)")
+    nodes = _mapping(raw, "nodes", {"defaults", *world.entity_names})
+    defaults = nodes.get("defaults") or {}
+    own = nodes.get(entity) or {}
+    path = _join("nodes", entity)
+    _read_node(defaults, "nodes.defaults", entity, base_dir, partial=True)
+    _read_node(own, path, entity, base_dir, partial=True)
+    return _read_node(_merge(defaults, own), path, entity, base_dir, partial=False)
+
+
+def load_node(path: Path | str, entity: str) -> tuple[WorldConfig, NodeConfig]:
+    """Read a world file with a ``nodes`` section and validate both for ``entity``."""
+    p = Path(path)
+    doc = read_yaml(p)
+    try:
+        world = parse_world(doc, p, extra_keys={"nodes"})
+        return world, parse_node(doc, entity, world, p.parent)
+    except ConfigError as exc:
+        raise ConfigError(exc.path, exc.problem, str(p)) from None
