@@ -141,7 +141,9 @@ def _swarm() -> Scenario:
         "d2": tj.Quadrotor(tj.circle((-1.4, -1.2, 1.2), 0.6, 9.0, 2.0), tj.constant_yaw(45), osc(2)),
         "d3": tj.Quadrotor(tj.circle((1.5, 1.0, 1.6), 0.7, 11.0, 1.0), tj.slow_yaw(90, 60, 15), osc(3)),
         "d4": tj.Quadrotor(tj.circle((1.4, -0.9, 1.4), 0.9, 14.0, 4.0), tj.constant_yaw(-30), osc(4)),
-        "d5": tj.Quadrotor(tj.lissajous((0.0, 0.0, 1.3), (2.2, 1.2, 0.1), (0.05, 0.1, 0.07)), tj.constant_yaw(0), osc(5)),
+        "d5": tj.Quadrotor(
+            tj.lissajous((0.0, 0.0, 1.3), (2.2, 1.2, 0.1), (0.05, 0.1, 0.07)), tj.constant_yaw(0), osc(5)
+        ),
         # d6 flies a wide circle that leaves both cameras' view for part of each lap.
         "d6": tj.Quadrotor(tj.circle((0.0, 0.0, 1.5), 3.0, 16.0, 0.5), tj.constant_yaw(0), osc(6)),
     }

@@ -101,7 +101,9 @@ class Quadrotor:
 
 
 def lissajous(
-    center: tuple[float, float, float], amp: tuple[float, float, float], freq_hz: tuple[float, float, float],
+    center: tuple[float, float, float],
+    amp: tuple[float, float, float],
+    freq_hz: tuple[float, float, float],
     phase: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> PathFn:
     """A smooth, bounded, 'arbitrary-looking' path: a 3-D Lissajous curve."""

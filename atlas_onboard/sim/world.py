@@ -78,7 +78,9 @@ class SimWorld:
         for ent in self.world.entities:
             for s in ent.sensors:
                 if s.camera is not None and s.camera.width_px > 0:
-                    intr = Intrinsics.from_fov(s.camera.width_px, s.camera.height_px, scenario.optics_of(ent.name, s.name))
+                    intr = Intrinsics.from_fov(
+                        s.camera.width_px, s.camera.height_px, scenario.optics_of(ent.name, s.name)
+                    )
                     self.cameras[s.id] = (s, intr)
 
     def truth(self, t: float) -> dict[str, RigidTransform]:
