@@ -1,0 +1,156 @@
+"""A simulated autopilot: the MAVLink endpoint a node's autopilot link talks to in simulations and tests.
+
+It behaves like the parts of PX4/ArduPilot that matter to an external-vision source: it sends
+HEARTBEAT at 1 Hz from its system id (component 1), answers TIMESYNC requests, and records every
+VISION_POSITION_ESTIMATE and ODOMETRY it receives with the arrival time, the sender and the fields.
+It speaks plain ``common.xml`` MAVLink 2 through pymavlink's parser: it is the stand-in for another
+program, so it deliberately shares no code with the node's transport.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+
+from pymavlink.dialects.v20 import common as mavlink
+
+_logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class Received:
+    """One external-vision message as the autopilot saw it (NED/FRD, as sent)."""
+
+    arrival_s: float  # time.time() at arrival
+    kind: str  # "VISION_POSITION_ESTIMATE" or "ODOMETRY"
+    usec: int
+    xyz_m: tuple[float, float, float]
+    rpy_rad: tuple[float, float, float] | None  # VISION_POSITION_ESTIMATE
+    q_wxyz: tuple[float, float, float, float] | None  # ODOMETRY
+    covariance: tuple[float, ...]
+    reset_counter: int
+    src_system: int
+    src_component: int
+    frame_id: int = 0
+    child_frame_id: int = 0
+    estimator_type: int = 0
+    quality: int = 0
+
+
+@dataclass
+class SimAutopilot:
+    """A UDP MAVLink endpoint on 127.0.0.1 (the node connects with ``udpout:127.0.0.1:PORT``)."""
+
+    system_id: int
+    port: int = 0  # 0: choose a free port; read it back from .port after start()
+    autopilot_type: int = mavlink.MAV_AUTOPILOT_PX4
+    received: list[Received] = field(default_factory=list)
+    heartbeats_from: dict[tuple[int, int], int] = field(default_factory=dict)
+    timesync_answered: int = 0
+    other: dict[str, int] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.bind(("127.0.0.1", self.port))
+        self._sock.settimeout(0.05)
+        self.port = self._sock.getsockname()[1]
+        self._mav = mavlink.MAVLink(None, srcSystem=self.system_id, srcComponent=1)
+        self._mav.robust_parsing = True
+        self._peer: tuple[str, int] | None = None
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, name=f"sim-autopilot-{self.system_id}", daemon=True)
+
+    def start(self) -> SimAutopilot:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self._sock.close()
+
+    def snapshot(self) -> list[Received]:
+        with self._lock:
+            return list(self.received)
+
+    def _send(self, msg: mavlink.MAVLink_message) -> None:
+        if self._peer is not None:
+            try:
+                self._sock.sendto(msg.pack(self._mav), self._peer)
+            except OSError:
+                pass
+
+    def _run(self) -> None:
+        next_heartbeat = 0.0
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now >= next_heartbeat:
+                next_heartbeat = now + 1.0
+                self._send(
+                    self._mav.heartbeat_encode(
+                        mavlink.MAV_TYPE_QUADROTOR, self.autopilot_type, 0, 0, mavlink.MAV_STATE_STANDBY
+                    )
+                )
+            try:
+                data, addr = self._sock.recvfrom(65535)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self._peer = addr
+            try:
+                msgs = self._mav.parse_buffer(data) or []
+            except mavlink.MAVError:
+                continue
+            for msg in msgs:
+                self._handle(msg)
+
+    def _handle(self, msg: mavlink.MAVLink_message) -> None:
+        kind = msg.get_type()
+        arrival = time.time()
+        if kind == "HEARTBEAT":
+            key = (msg.get_srcSystem(), msg.get_srcComponent())
+            self.heartbeats_from[key] = self.heartbeats_from.get(key, 0) + 1
+        elif kind == "TIMESYNC" and msg.tc1 == 0:
+            self._send(self._mav.timesync_encode(time.monotonic_ns(), msg.ts1))
+            self.timesync_answered += 1
+        elif kind == "VISION_POSITION_ESTIMATE":
+            rec = Received(
+                arrival,
+                kind,
+                msg.usec,
+                (msg.x, msg.y, msg.z),
+                (msg.roll, msg.pitch, msg.yaw),
+                None,
+                tuple(msg.covariance),
+                msg.reset_counter,
+                msg.get_srcSystem(),
+                msg.get_srcComponent(),
+            )
+            with self._lock:
+                self.received.append(rec)
+        elif kind == "ODOMETRY":
+            rec = Received(
+                arrival,
+                kind,
+                msg.time_usec,
+                (msg.x, msg.y, msg.z),
+                None,
+                tuple(msg.q),
+                tuple(msg.pose_covariance),
+                msg.reset_counter,
+                msg.get_srcSystem(),
+                msg.get_srcComponent(),
+                msg.frame_id,
+                msg.child_frame_id,
+                msg.estimator_type,
+                msg.quality,
+            )
+            with self._lock:
+                self.received.append(rec)
+        else:
+            self.other[kind] = self.other.get(kind, 0) + 1
