@@ -1,0 +1,67 @@
+"""Publishing decisions: never stale, never twice, rate-capped, reset counter on loss and jumps."""
+
+import numpy as np
+
+from atlas_onboard.core.graph import TransformGraph
+from atlas_onboard.publisher import Publisher
+
+MS = 1_000_000
+
+
+def graph_with(p, capture_us, now_ns, g=None):
+    g = g or TransformGraph(["world", "d"], 250 * MS)
+    g.update_edge((1, 1), "world", "d", np.asarray(p, float), np.array([0, 0, 0, 1.0]), 0.01, now_ns, capture_us)
+    return g
+
+
+def test_sends_once_per_new_observation_and_stops_when_edges_expire():
+    pub = Publisher("d", rate_hz=30)
+    g = graph_with([1, 2, 3], capture_us=1000, now_ns=0)
+    out, status = pub.autopilot(g.evaluate(0), 0)
+    assert status == "pose found" and out is not None and out.reset_counter == 0
+    np.testing.assert_allclose(out.pose.p_world_m, [1, 2, 3])
+    out, status = pub.autopilot(g.evaluate(40 * MS), 40 * MS)  # same observation: nothing new
+    assert out is None and status is None
+    out, status = pub.autopilot(g.evaluate(250 * MS + 1), 250 * MS + 1)  # edge expired
+    assert out is None and status == "pose lost"
+    out, status = pub.autopilot(g.evaluate(300 * MS), 300 * MS)
+    assert out is None and status is None
+    assert pub.sent == 1
+
+
+def test_rate_cap_holds_back_then_releases():
+    pub = Publisher("d", rate_hz=10)
+    g = graph_with([0, 0, 0], 1, 0)
+    assert pub.autopilot(g.evaluate(0), 0)[0] is not None
+    graph_with([0, 0, 0.01], 2, 50 * MS, g)
+    assert pub.autopilot(g.evaluate(50 * MS), 50 * MS)[0] is None  # 50 ms < 100 ms
+    assert pub.suppressed_rate == 1 and pub.next_autopilot_ns() == 100 * MS
+    out, _ = pub.autopilot(g.evaluate(100 * MS), 100 * MS)
+    assert out is not None and out.pose.capture_time_us == 2
+
+
+def test_reset_counter_on_found_again_and_on_jump():
+    pub = Publisher("d", rate_hz=1000, reset_jump_m=0.5)
+    g = graph_with([0, 0, 0], 1, 0)
+    assert pub.autopilot(g.evaluate(0), 0)[0].reset_counter == 0
+    pub.autopilot(g.evaluate(300 * MS), 300 * MS)  # lost
+    graph_with([0.1, 0, 0], 2, 400 * MS, g)
+    out, status = pub.autopilot(g.evaluate(400 * MS), 400 * MS)
+    assert status == "pose found" and out.reset_counter == 1
+    graph_with([0.2, 0, 0], 3, 410 * MS, g)  # small move: same counter
+    assert pub.autopilot(g.evaluate(410 * MS), 410 * MS)[0].reset_counter == 1
+    graph_with([1.0, 0, 0], 4, 420 * MS, g)  # 0.8 m jump
+    assert pub.autopilot(g.evaluate(420 * MS), 420 * MS)[0].reset_counter == 2
+
+
+def test_non_finite_pose_is_never_sent():
+    pub = Publisher("d")
+    g = graph_with([np.nan, 0, 0], 1, 0)
+    out, status = pub.autopilot(g.evaluate(0), 0)
+    assert out is None and status is None and pub.sent == 0
+
+
+def test_fused_rate():
+    pub = Publisher("d", fused_rate_hz=5)
+    due = [pub.fused_due(t * 50 * MS) for t in range(10)]  # every 50 ms for 0.5 s
+    assert due == [True, False, False, False, True, False, False, False, True, False]
