@@ -70,11 +70,17 @@ class FusionConfig:
         edge_timeout_s: an edge not refreshed for this long is removed (the paper: typically 250 ms).
         ema_alpha: EMA smoothing of each edge, eq. 3, in (0, 1]; 1 passes measurements through.
         weighting: candidate weights (the paper's sigma_min / sigma_i by default).
+        path: ``bfs`` (the paper: parents exactly one level lower) or ``dijkstra`` (parents with a
+            smaller chain variance, weighted by the whole chain's sigma).
+        relative_poses: also evaluate groups of entities with no path to world, relative to their
+            first entity (world-file order), and publish those relative poses.
     """
 
     edge_timeout_s: float = 0.25
     ema_alpha: float = 1.0
     weighting: Weighting = Weighting.SIGMA_MIN
+    path: str = "bfs"
+    relative_poses: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -331,7 +337,7 @@ def _read_pose(value: Any, path: str) -> RigidTransform:
 def _read_fusion(value: Any, path: str) -> FusionConfig:
     if value is None:
         return FusionConfig()
-    m = _mapping(value, path, {"edge_timeout_s", "ema_alpha", "weighting"})
+    m = _mapping(value, path, {"edge_timeout_s", "ema_alpha", "weighting", "path", "relative_poses"})
     default = FusionConfig()
     timeout = _number(m.get("edge_timeout_s", default.edge_timeout_s), _join(path, "edge_timeout_s"), "seconds")
     if not 0.0 < timeout <= 10.0:
@@ -342,7 +348,11 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
     weighting = _choice(
         m.get("weighting", default.weighting.value), _join(path, "weighting"), tuple(w.value for w in Weighting)
     )
-    return FusionConfig(edge_timeout_s=timeout, ema_alpha=alpha, weighting=Weighting(weighting))
+    graph_path = _choice(m.get("path", default.path), _join(path, "path"), ("bfs", "dijkstra"))
+    relative = m.get("relative_poses", False)
+    if not isinstance(relative, bool):
+        raise ConfigError(_join(path, "relative_poses"), f"expected true or false, got {_describe(relative)}")
+    return FusionConfig(timeout, alpha, Weighting(weighting), graph_path, relative)
 
 
 def _read_camera(value: Any, path: str, base_dir: Path | None) -> CameraConfig:

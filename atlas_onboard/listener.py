@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import WorldConfig
+from atlas_onboard.config import Weighting, WorldConfig
 from atlas_onboard.core import fusion
 from atlas_onboard.core.graph import EdgeKey, TransformGraph
 from atlas_onboard.core.markerdata import MarkerData, Rejection
@@ -39,6 +39,18 @@ class EdgeUpdate:
     p_a_b: NDArray[np.float64]
     q_a_b_xyzw: NDArray[np.float64]
     sigma_m: float
+
+
+def make_graph(world: WorldConfig) -> TransformGraph:
+    """The transform graph a world file describes: its entities and fusion settings."""
+    f = world.fusion
+    return TransformGraph(
+        world.entity_names,
+        round(f.edge_timeout_s * 1e9),
+        inverse_variance=f.weighting is Weighting.INVERSE_VARIANCE,
+        path=f.path,
+        relative=f.relative_poses,
+    )
 
 
 class Listener:

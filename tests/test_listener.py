@@ -7,9 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.core.graph import TransformGraph
 from atlas_onboard.core.markerdata import MarkerData, Rejection
-from atlas_onboard.listener import Listener
+from atlas_onboard.listener import Listener, make_graph
 from tests.helpers import assert_pose_close, observe, pose, world_from
 
 MS = 1_000_000
@@ -18,7 +17,7 @@ MS = 1_000_000
 def make(doc, alpha=1.0):
     doc = {"fusion": {"ema_alpha": alpha}, **doc}
     world = world_from(doc)
-    graph = TransformGraph(world.entity_names, int(world.fusion.edge_timeout_s * 1e9))
+    graph = make_graph(world)
     return world, graph, Listener(world, graph)
 
 

@@ -10,9 +10,10 @@ nanosecond later it is gone: the paper removes an edge when its age *exceeds* th
 
 from __future__ import annotations
 
+import heapq
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -56,6 +57,8 @@ class EntityPose:
         n_observations: number of candidates fused for this entity (edges from parents one level lower).
         sigma_m: standard deviation of the fused position, metres, propagated along the chain.
         capture_time_us: capture time of the newest observation that contributed (through the chain).
+        frame: the entity whose frame the pose is in: ``world``, or for a relative pose the first
+            entity of a group that has no path to world.
     """
 
     name: str
@@ -66,6 +69,7 @@ class EntityPose:
     n_observations: int
     sigma_m: float
     capture_time_us: int
+    frame: str = WORLD
 
     @property
     def T_world_entity(self) -> RigidTransform:
@@ -81,6 +85,7 @@ class GraphResult:
     levels: dict[str, int]  # broad-phase level of each reached entity
     unreached: tuple[str, ...]  # entities with no edge path to world: no pose this time
     n_edges: int  # live edges used in this evaluation
+    relative: dict[str, dict[str, EntityPose]] = field(default_factory=dict)  # root -> poses in root's frame
 
     def pose(self, name: str) -> EntityPose | None:
         return self.poses.get(name)
@@ -89,7 +94,14 @@ class GraphResult:
 class TransformGraph:
     """Vertices fixed at construction; edges added by :meth:`update_edge`, expired by age."""
 
-    def __init__(self, entity_names: Sequence[str], edge_timeout_ns: int, inverse_variance: bool = False) -> None:
+    def __init__(
+        self,
+        entity_names: Sequence[str],
+        edge_timeout_ns: int,
+        inverse_variance: bool = False,
+        path: str = "bfs",
+        relative: bool = False,
+    ) -> None:
         names = list(entity_names)
         if WORLD not in names:
             names.insert(0, WORLD)
@@ -101,6 +113,10 @@ class TransformGraph:
         self.index: dict[str, int] = {n: i for i, n in enumerate(names)}
         self.edge_timeout_ns = int(edge_timeout_ns)
         self.inverse_variance = inverse_variance
+        if path not in ("bfs", "dijkstra"):
+            raise GeometryError(f"expected path 'bfs' or 'dijkstra', got {path!r}")
+        self.path = path
+        self.relative = relative
         self.edges: dict[EdgeKey, Edge] = {}
 
     def update_edge(
@@ -138,20 +154,16 @@ class TransformGraph:
         """Edges whose age is at most the timeout (not removed: :meth:`expire` does that)."""
         return [e for e in self.edges.values() if now_ns - e.stamp_ns <= self.edge_timeout_ns]
 
-    def broad_phase(self, edges: Sequence[Edge]) -> tuple[list[int], dict[int, int]]:
-        """BFS from world: the visiting order and each reached vertex's level.
+    def broad_phase(self, edges: Sequence[Edge], root: int | None = None) -> tuple[list[int], dict[int, int]]:
+        """BFS from ``root`` (world by default): the visiting order and each reached vertex's level.
 
         Neighbours are visited in the order of the world file, so the order is deterministic.
         """
-        n = len(self.names)
-        neighbours: list[set[int]] = [set() for _ in range(n)]
-        for e in edges:
-            neighbours[e.a].add(e.b)
-            neighbours[e.b].add(e.a)
-        world = self.index[WORLD]
-        level = {world: 0}
-        order = [world]
-        queue = deque([world])
+        neighbours = self._neighbours(edges)
+        start = self.index[WORLD] if root is None else root
+        level = {start: 0}
+        order = [start]
+        queue = deque([start])
         while queue:
             v = queue.popleft()
             for child in sorted(neighbours[v]):
@@ -161,52 +173,141 @@ class TransformGraph:
                     queue.append(child)
         return order, level
 
-    def evaluate(self, now_ns: int) -> GraphResult:
-        """Expire old edges, then run the broad phase and the pose phase (eq. 2).
+    def dijkstra_phase(self, edges: Sequence[Edge], root: int | None = None) -> tuple[list[int], dict[int, float]]:
+        """Shortest paths from ``root`` with each edge's variance (sigma^2) as its length.
 
-        A vertex's candidates come from every live edge to a parent exactly one level lower; edges
-        within a level (cycles such as the paper's A-B) and towards higher levels are ignored.
+        Variances add along a chain of independent transforms, so the distance of a vertex is the
+        variance of its best chain: the paper's future work ("use the standard deviation information
+        of the graph as distance ... Dijkstra").
+        """
+        best: dict[tuple[int, int], float] = {}
+        for e in edges:
+            k = (min(e.a, e.b), max(e.a, e.b))
+            best[k] = min(best.get(k, np.inf), e.sigma_m**2)
+        adj: list[list[tuple[int, float]]] = [[] for _ in self.names]
+        for (a, b), w in best.items():
+            adj[a].append((b, w))
+            adj[b].append((a, w))
+        start = self.index[WORLD] if root is None else root
+        dist = {start: 0.0}
+        order: list[int] = []
+        heap = [(0.0, start)]
+        done: set[int] = set()
+        while heap:
+            d, v = heapq.heappop(heap)
+            if v in done:
+                continue
+            done.add(v)
+            order.append(v)
+            for u, w in adj[v]:
+                nd = d + w
+                if u not in done and nd < dist.get(u, np.inf):
+                    dist[u] = nd
+                    heapq.heappush(heap, (nd, u))
+        return order, dist
+
+    def _neighbours(self, edges: Sequence[Edge]) -> list[set[int]]:
+        neighbours: list[set[int]] = [set() for _ in self.names]
+        for e in edges:
+            neighbours[e.a].add(e.b)
+            neighbours[e.b].add(e.a)
+        return neighbours
+
+    def evaluate(self, now_ns: int) -> GraphResult:
+        """Expire old edges, then run the broad phase and the pose phase (eq. 2) from world.
+
+        With the paper's method (``path="bfs"``) a vertex's candidates come from every live edge to
+        a parent exactly one level lower; edges within a level (cycles such as the paper's A-B) and
+        towards higher levels are ignored. With ``path="dijkstra"`` the candidates come from every
+        neighbour whose best chain to world has a smaller variance, weighted by the variance of the
+        whole chain, so a long precise chain can outvote a short noisy one.
+
+        With ``relative=True``, each group of entities that has no path to world is evaluated from
+        its first entity (in world-file order), and its poses are reported relative to that entity.
         """
         self.expire(now_ns)
         edges = list(self.edges.values())
-        order, level = self.broad_phase(edges)
-        n = len(self.names)
         world = self.index[WORLD]
+        poses, order, levels = self._evaluate_from(edges, world)
+        reached = set(order)
+        unreached = tuple(self.names[v] for v in range(len(self.names)) if v not in reached)
+        relative: dict[str, dict[str, EntityPose]] = {}
+        if self.relative:
+            remaining = [v for v in range(len(self.names)) if v not in reached]
+            while remaining:
+                root = remaining[0]
+                rel, rel_order, _ = self._evaluate_from(edges, root)
+                if len(rel_order) > 1:
+                    relative[self.names[root]] = rel
+                remaining = [v for v in remaining if v not in set(rel_order)]
+        return GraphResult(
+            poses=poses,
+            order=tuple(self.names[v] for v in order),
+            levels={self.names[v]: levels[v] for v in order},
+            unreached=unreached,
+            n_edges=len(edges),
+            relative=relative,
+        )
+
+    def _evaluate_from(self, edges: list[Edge], root: int) -> tuple[dict[str, EntityPose], list[int], dict[int, int]]:
+        """Poses of every vertex reachable from ``root``, in ``root``'s frame."""
+        n = len(self.names)
+        order, level = self.broad_phase(edges, root)
+        if self.path == "dijkstra":
+            d_order, dist = self.dijkstra_phase(edges, root)
+            order = d_order
+
+            def is_parent(u: int, v: int) -> bool:
+                return dist[u] < dist[v]
+        else:
+
+            def is_parent(u: int, v: int) -> bool:
+                return level[u] == level[v] - 1
+
+        # A vertex's stage is one more than its deepest parent's, so that a whole stage can be
+        # composed and fused in one batched call (for BFS the stage is the level).
+        stage = {root: 0}
+        cands_of: dict[int, list[tuple[int, NDArray[np.float64], NDArray[np.float64], float, int]]] = {}
+        for e in edges:
+            if e.a not in level or e.b not in level:
+                continue
+            if is_parent(e.a, e.b):
+                cands_of.setdefault(e.b, []).append((e.a, e.p_a_b, e.q_a_b, e.sigma_m, e.capture_time_us))
+            elif is_parent(e.b, e.a):
+                cands_of.setdefault(e.a, []).append((e.b, e.p_b_a, e.q_b_a, e.sigma_m, e.capture_time_us))
+        for v in order[1:]:
+            stage[v] = 1 + max(stage[c[0]] for c in cands_of[v])
+
         p_world = np.zeros((n, 3))
         q_world = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
         sigma = np.zeros(n)
         stamp_us = np.zeros(n, dtype=np.int64)
         count = np.zeros(n, dtype=np.intp)
+        by_stage: dict[int, list[int]] = {}
+        for v in order[1:]:
+            by_stage.setdefault(stage[v], []).append(v)
 
-        # Candidates grouped by the child's level: (parent, child, p_parent_child, q_parent_child, sigma, stamp).
-        by_level: dict[int, list[tuple[int, int, NDArray[np.float64], NDArray[np.float64], float, int]]] = {}
-        for e in edges:
-            la, lb = level.get(e.a), level.get(e.b)
-            if la is None or lb is None:
-                continue
-            if lb == la + 1:
-                by_level.setdefault(lb, []).append((e.a, e.b, e.p_a_b, e.q_a_b, e.sigma_m, e.capture_time_us))
-            elif la == lb + 1:
-                by_level.setdefault(la, []).append((e.b, e.a, e.p_b_a, e.q_b_a, e.sigma_m, e.capture_time_us))
-
-        for lvl in sorted(by_level):
-            cands = by_level[lvl]
-            parent = np.fromiter((c[0] for c in cands), dtype=np.intp, count=len(cands))
-            child = np.fromiter((c[1] for c in cands), dtype=np.intp, count=len(cands))
+        for st in sorted(by_stage):
+            cands = [(c[0], v, *c[1:]) for v in by_stage[st] for c in cands_of[v]]
+            m = len(cands)
+            parent = np.fromiter((c[0] for c in cands), dtype=np.intp, count=m)
+            child = np.fromiter((c[1] for c in cands), dtype=np.intp, count=m)
             p_pc = np.array([c[2] for c in cands])
             q_pc = np.array([c[3] for c in cands])
-            s_edge = np.fromiter((c[4] for c in cands), dtype=float, count=len(cands))
-            t_edge = np.fromiter((c[5] for c in cands), dtype=np.int64, count=len(cands))
+            s_edge = np.fromiter((c[4] for c in cands), dtype=float, count=m)
+            t_edge = np.fromiter((c[5] for c in cands), dtype=np.int64, count=m)
             # eq. 2: each candidate is P_parent * T_parent_child
             p_cand, q_cand = geometry.compose_arrays(p_world[parent], q_world[parent], p_pc, q_pc)
-            # The paper weighs by the sensor's sigma; the reported sigma also carries the parent's.
+            # The candidate's sigma carries its parent's: variances add along a chain.
+            s_cand = np.sqrt(s_edge**2 + sigma[parent] ** 2)
             # eq. 6-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
+            # The paper weighs by the sensor's sigma; Dijkstra weighs by the whole chain's.
+            s_weigh = s_cand if self.path == "dijkstra" else s_edge
             s_min = np.full(n, np.inf)
-            np.minimum.at(s_min, child, s_edge)
-            weights = s_min[child] / s_edge
+            np.minimum.at(s_min, child, s_weigh)
+            weights = s_min[child] / s_weigh
             if self.inverse_variance:
                 weights = weights**2
-            s_cand = np.sqrt(s_edge**2 + sigma[parent] ** 2)
             p_f, q_f, s_f, counts = fusion.fuse_groups(child, n, p_cand, q_cand, s_cand, weights)
             got = counts > 0
             p_world[got] = p_f[got]
@@ -225,15 +326,9 @@ class TransformGraph:
                 q_world_xyzw=q_world[v].copy(),
                 level=level[v],
                 order=rank,
-                n_observations=int(count[v]) if v != world else 0,
+                n_observations=int(count[v]),
                 sigma_m=float(sigma[v]),
                 capture_time_us=int(stamp_us[v]),
+                frame=self.names[root],
             )
-        unreached = tuple(self.names[v] for v in range(n) if v not in level)
-        return GraphResult(
-            poses=poses,
-            order=tuple(self.names[v] for v in order),
-            levels={self.names[v]: level[v] for v in order},
-            unreached=unreached,
-            n_edges=len(edges),
-        )
+        return poses, order, level

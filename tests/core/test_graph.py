@@ -184,3 +184,55 @@ def test_fused_rotation_mean_of_two_candidates():
     add(g, (1, 2), "world", "A", pose([0, 0, 0], [0, 0, 30]), sigma=0.01)
     yaw = Rotation.from_quat(g.evaluate(0).poses["A"].q_world_xyzw).as_euler("ZYX", degrees=True)[0]
     assert yaw == pytest.approx(20.0, abs=1e-9)
+
+
+def short_noisy_long_precise(path):
+    """world sees D directly through a noisy edge (sigma 0.2 m, 0.3 m off) and through A precisely."""
+    truth = {"world": RigidTransform.identity(), "A": pose([2, 0, 1], [0, 0, 40]), "D": pose([3, 1, 1], [0, 0, -20])}
+    g = TransformGraph(["world", "A", "D"], 250 * MS, path=path)
+    add(g, (1, 1), "world", "D", truth["D"] * pose([0.3, 0, 0]), sigma=0.2)
+    add(g, (1, 2), "world", "A", truth["A"], sigma=0.005)
+    add(g, (2, 3), "A", "D", truth["A"].inv() * truth["D"], sigma=0.005)
+    return g, truth
+
+
+def test_dijkstra_prefers_the_long_precise_chain():
+    g_bfs, truth = short_noisy_long_precise("bfs")
+    g_dij, _ = short_noisy_long_precise("dijkstra")
+    bfs = g_bfs.evaluate(0).poses["D"]
+    dij = g_dij.evaluate(0).poses["D"]
+    err_bfs = np.linalg.norm(bfs.p_world_m - truth["D"].translation)
+    err_dij = np.linalg.norm(dij.p_world_m - truth["D"].translation)
+    assert err_bfs == pytest.approx(0.3, abs=1e-9)  # the paper's method: level 1, the noisy edge only
+    assert bfs.n_observations == 1
+    # Dijkstra fuses both; the chain's sigma is sqrt(2) * 0.005, so the noisy edge weighs 0.0354.
+    w_noisy = np.hypot(0.005, 0.005) / 0.2
+    assert err_dij == pytest.approx(0.3 * w_noisy / (1 + w_noisy), rel=1e-6)
+    assert dij.n_observations == 2
+    assert dij.sigma_m < bfs.sigma_m
+
+
+def test_dijkstra_equals_bfs_on_exact_edges():
+    g, truth = figure4_graph()
+    g.path = "dijkstra"
+    result = g.evaluate(0)
+    for name in ("A", "B", "C"):
+        e = result.poses[name]
+        assert_pose_close(e.p_world_m, e.q_world_xyzw, truth[name], 1e-12, 1e-12)
+    assert set(result.unreached) == {"D", "E"}
+
+
+def test_relative_poses_of_a_group_without_world():
+    g, truth = figure4_graph()
+    g.relative = True
+    result = g.evaluate(0)
+    assert "E" not in result.poses  # no world pose
+    rel = result.relative["D"]["E"]
+    assert rel.frame == "D" and rel.level == 1
+    assert_pose_close(rel.p_world_m, rel.q_world_xyzw, truth["D"].inv() * truth["E"], 1e-12, 1e-12)
+    assert result.poses["A"].frame == "world"
+
+
+def test_relative_off_by_default():
+    g, _ = figure4_graph()
+    assert g.evaluate(0).relative == {}
