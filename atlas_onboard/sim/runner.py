@@ -1,0 +1,238 @@
+"""``atlas-onboard sim``: run a scenario with real node processes talking real MAVLink over loopback.
+
+Each drone is a real ``atlas-onboard run`` process with its simulated cameras (rendered images,
+detected by the real detector), a simulated autopilot (:mod:`atlas_onboard.sim.autopilot`) on its
+autopilot link, and one peer link to a hub that stands in for the swarm's mesh. World-fixed cameras
+(and the paper's motion-capture system) run in a node for the ``world`` entity, as a ground computer
+would. The run is in real time on the wall clock: camera rates and resolutions are chosen per
+scenario so that two cores keep up, and the report states them.
+
+Timeline: the runner starts every process, waits until each node has said HEARTBEAT on the mesh,
+then writes the start time (``epoch``) to a file the nodes' simulated cameras wait for, so no node
+starts its scenario early. At the end every process gets SIGTERM (SIGKILL after a grace period), and
+the runner leaves no process and no socket behind, also on Ctrl-C or an error.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import json
+import logging
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from atlas_onboard.config import WORLD
+from atlas_onboard.errors import AtlasError
+from atlas_onboard.sim import scenarios
+from atlas_onboard.sim.autopilot import SimAutopilot
+from atlas_onboard.sim.hub import Hub
+from atlas_onboard.sim.world import Intrinsics, SimWorld
+
+_logger = logging.getLogger(__name__)
+
+SIM_ENV = "ATLAS_SIM"
+WORLD_NODE_SYSTEM_ID = 250
+WARMUP_S = 1.0  # scored from this long after the start: the first frames fill the pipelines
+
+
+@dataclass
+class SimOptions:
+    scenario: str = scenarios.DEFAULT
+    duration_s: float | None = None
+    seed: int = 0
+    out_dir: Path | None = None
+    keep_dir: bool = False
+    ready_timeout_s: float = 60.0
+    node_args: tuple[str, ...] = ()
+    world_overrides: dict[str, Any] = field(default_factory=dict)  # e.g. {"fusion": {"path": "dijkstra"}}
+
+
+@dataclass
+class SimRun:
+    """What a finished run leaves for scoring: records with times relative to the epoch."""
+
+    scenario: scenarios.Scenario
+    world: SimWorld
+    epoch_s: float
+    duration_s: float
+    run_dir: Path
+    autopilots: dict[str, SimAutopilot]
+    taps: list[tuple[float, bytes]]
+    exit_codes: dict[str, int | None]
+    logs: dict[str, str]
+
+
+def die_with_parent() -> None:
+    """Called by a node started by the runner: SIGTERM when the runner dies, even on a crash.
+
+    (Set by the child itself rather than in ``preexec_fn``, which is unsafe while threads run.)
+    """
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def write_calibration(path: Path, intr: Intrinsics) -> None:
+    """An OpenCV FileStorage YAML calibration, the format the detector reads."""
+    k = intr.camera_matrix.ravel()
+    d = intr.distortion
+    text = (
+        "%YAML:1.0\n---\n"
+        f"image_width: {intr.width_px}\nimage_height: {intr.height_px}\n"
+        "camera_matrix: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: d\n"
+        f"   data: [ {', '.join(f'{v:.10g}' for v in k)} ]\n"
+        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
+        f"   data: [ {', '.join(f'{v:.10g}' for v in d)} ]\n"
+    )
+    path.write_text(text, encoding="utf-8")
+
+
+def build_run_config(
+    scenario: scenarios.Scenario,
+    run_dir: Path,
+    hub_port: int,
+    autopilot_ports: dict[str, int],
+    overrides: dict[str, Any] | None = None,
+) -> Path:
+    """The world file of the run: the scenario's, plus calibrations and a ``nodes`` section."""
+    doc = yaml.safe_load(scenario.world_path().read_text(encoding="utf-8"))
+    for key, value in (overrides or {}).items():
+        doc[key] = {**doc.get(key, {}), **value} if isinstance(value, dict) else value
+    sim_world = SimWorld(scenario)
+    for entity, ent in doc["entities"].items():
+        for sensor in (ent or {}).get("sensors", []) or []:
+            if "camera" not in sensor:
+                continue
+            sid = int(sensor["id"])
+            cal = run_dir / f"calibration-{entity}-{sensor['name']}.yaml"
+            write_calibration(cal, sim_world.cameras[sid][1])
+            sensor["camera"]["calibration"] = str(cal)
+    nodes: dict[str, Any] = {"defaults": {"peers": [f"udpout:127.0.0.1:{hub_port}"], "status_interval_s": 5}}
+    for k, name in enumerate(scenario.drones, start=1):
+        nodes[name] = {"system_id": k, "autopilot": {"url": f"udpout:127.0.0.1:{autopilot_ports[name]}"}}
+    if scenario.needs_world_node:
+        nodes[WORLD] = {"system_id": WORLD_NODE_SYSTEM_ID}
+    doc["nodes"] = nodes
+    path = run_dir / "world.yaml"
+    path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
+    return path
+
+
+@contextlib.contextmanager
+def _processes() -> Iterator[dict[str, subprocess.Popen[bytes]]]:
+    procs: dict[str, subprocess.Popen[bytes]] = {}
+    try:
+        yield procs
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + 5.0
+        for p in procs.values():
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=max(deadline - time.monotonic(), 0.1))
+            if p.poll() is None:
+                p.kill()
+                p.wait(timeout=5.0)
+
+
+def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> SimRun:
+    """Run one scenario to the end and return its records (scoring is :func:`atlas_onboard.sim.report`)."""
+    say = progress or (lambda _msg: None)
+    scenario = scenarios.get(options.scenario)
+    duration = options.duration_s if options.duration_s is not None else scenario.duration_s
+    if not 2.0 <= duration <= 3600.0:
+        raise AtlasError(f"--duration: expected 2 to 3600 seconds, got {duration:g}")
+    run_dir = Path(tempfile.mkdtemp(prefix=f"atlas-sim-{scenario.name}-"))
+    taps: list[tuple[float, bytes]] = []
+    hub = Hub(tap=lambda data, _addr, t: taps.append((t, data))).start()
+    autopilots = {name: SimAutopilot(system_id=k).start() for k, name in enumerate(scenario.drones, start=1)}
+    logs: dict[str, str] = {}
+    exit_codes: dict[str, int | None] = {}
+    try:
+        world_file = build_run_config(
+            scenario, run_dir, hub.port, {n: a.port for n, a in autopilots.items()}, options.world_overrides
+        )
+        epoch_file = run_dir / "epoch"
+        env = dict(os.environ)
+        env[SIM_ENV] = json.dumps(
+            {"scenario": scenario.name, "seed": options.seed, "epoch_file": str(epoch_file), "duration_s": duration}
+        )
+        entities = list(scenario.drones) + ([WORLD] if scenario.needs_world_node else [])
+        with _processes() as procs:
+            for name in entities:
+                log = open(run_dir / f"{name}.log", "wb")
+                procs[name] = subprocess.Popen(  # noqa: S603 - our own interpreter and arguments
+                    [
+                        sys.executable,
+                        "-m",
+                        "atlas_onboard",
+                        *options.node_args,
+                        "run",
+                        "--config",
+                        str(world_file),
+                        "--entity",
+                        name,
+                    ],
+                    stdin=subprocess.DEVNULL,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    env=env,
+                    preexec_fn=_set_pdeathsig,
+                )
+                log.close()
+            say(f"started {len(procs)} node processes; waiting for them to come up")
+            deadline = time.monotonic() + options.ready_timeout_s
+            while len(hub.clients) < len(entities):
+                dead = [n for n, p in procs.items() if p.poll() is not None]
+                if dead:
+                    raise AtlasError(f"node {dead[0]} exited during start-up: {_tail(run_dir / f'{dead[0]}.log')}")
+                if time.monotonic() > deadline:
+                    raise AtlasError(
+                        f"only {len(hub.clients)} of {len(entities)} nodes came up in {options.ready_timeout_s:g} s"
+                    )
+                time.sleep(0.05)
+            epoch = time.time() + 0.3
+            tmp = epoch_file.with_suffix(".tmp")
+            tmp.write_text(f"{epoch:.6f}\n", encoding="utf-8")
+            tmp.replace(epoch_file)
+            say(f"running {scenario.name} for {duration:g} s")
+            while time.time() < epoch + duration:
+                dead = [n for n, p in procs.items() if p.poll() is not None]
+                if dead:
+                    raise AtlasError(f"node {dead[0]} died during the run: {_tail(run_dir / f'{dead[0]}.log')}")
+                time.sleep(0.05)
+        exit_codes = {n: p.returncode for n, p in procs.items()}
+        logs = {n: (run_dir / f"{n}.log").read_text(encoding="utf-8", errors="replace") for n in entities}
+    finally:
+        hub.stop()
+        for a in autopilots.values():
+            a.stop()
+        if not options.keep_dir:
+            shutil.rmtree(run_dir, ignore_errors=True)
+    return SimRun(scenario, SimWorld(scenario), epoch, duration, run_dir, autopilots, taps, exit_codes, logs)
+
+
+def _tail(path: Path, lines: int = 3) -> str:
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace").strip().splitlines()
+    except OSError:
+        return "(no log)"
+    return " | ".join(text[-lines:]) if text else "(empty log)"
+
+
+def availability_times(duration_s: float, step_s: float = 0.1) -> np.ndarray:
+    return np.arange(WARMUP_S, duration_s, step_s)
