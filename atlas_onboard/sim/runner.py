@@ -191,7 +191,6 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
                     stdout=log,
                     stderr=subprocess.STDOUT,
                     env=env,
-                    preexec_fn=_set_pdeathsig,
                 )
                 log.close()
             say(f"started {len(procs)} node processes; waiting for them to come up")
