@@ -1,0 +1,304 @@
+"""The running node: one owner of the graph, fed by bounded queues, publishing to the autopilot and peers.
+
+Threads: each camera and each MAVLink link has its own thread that only decodes and enqueues; the
+main loop (this module) is the only code that touches the listener, the graph and the publisher, so
+the core needs no locks. The inbox is bounded and drops its oldest entry when full (counted): a
+flooding peer or a stalled loop costs old observations, never memory or freshness.
+
+Signals only set flags (and wake the loop); SIGTERM/SIGINT end the loop cleanly (exit status 0),
+SIGHUP re-reads the world file and switches to it only if it validates and describes the same
+entities. systemd's notify protocol (READY, WATCHDOG, STOPPING) is spoken when NOTIFY_SOCKET is set.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections import Counter, deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Protocol
+
+from atlas_onboard.config import ConfigError, NodeConfig, WorldConfig, load_node
+from atlas_onboard.core.graph import EntityPose, GraphResult
+from atlas_onboard.core.markerdata import MarkerData, Rejection
+from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.publisher import AutopilotPose, Publisher
+
+_logger = logging.getLogger(__name__)
+
+NS = 1_000_000_000
+LOSS_CHECK_NS = 20_000_000  # evaluate at least every 20 ms, so a lost pose stops output promptly
+
+
+class Transport(Protocol):
+    """What the node needs from its MAVLink links (implemented in :mod:`atlas_onboard.mavlink`)."""
+
+    def start(self, deliver: Callable[[MarkerData, int], None]) -> None:
+        """Start the receive threads; ``deliver(md, arrival_ns)`` for every valid peer observation."""
+
+    def send_observation(self, md: MarkerData) -> None: ...
+
+    def send_fused(self, poses: Sequence[EntityPose], world: WorldConfig) -> None: ...
+
+    def send_autopilot(self, pose: AutopilotPose) -> None: ...
+
+    def send_status(self, text: str, severity: int) -> None: ...
+
+    def tick(self, now_ns: int) -> None:
+        """Periodic duties (heartbeats, TIMESYNC, origin, reconnects), called by the main loop."""
+
+    def counters(self) -> dict[str, int]: ...
+
+    def close(self) -> None: ...
+
+
+class Camera(Protocol):
+    """A camera worker (implemented in :mod:`atlas_onboard.detector`): frames in, MarkerData out."""
+
+    name: str
+
+    def start(self, deliver: Callable[[MarkerData], None]) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def counters(self) -> dict[str, int]: ...
+
+
+class Inbox:
+    """A bounded FIFO that drops its oldest item when full (thread-safe, counted)."""
+
+    def __init__(self, capacity: int) -> None:
+        self._items: deque[tuple[MarkerData, int, bool]] = deque()
+        self._capacity = capacity
+        self._cond = threading.Condition()
+        self.dropped = 0
+
+    def put(self, item: tuple[MarkerData, int, bool]) -> None:
+        with self._cond:
+            if len(self._items) >= self._capacity:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append(item)
+            self._cond.notify()
+
+    def get(self, timeout_s: float) -> tuple[MarkerData, int, bool] | None:
+        with self._cond:
+            if not self._items:
+                self._cond.wait(timeout_s)
+            return self._items.popleft() if self._items else None
+
+    def wake(self) -> None:
+        with self._cond:
+            self._cond.notify()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+@dataclass
+class Stats:
+    local_observations: int = 0
+    peer_observations: int = 0
+    evaluations: int = 0
+    autopilot_sent: int = 0
+    fused_sent: int = 0
+
+
+class Node:
+    """The service of one entity. Construct, then :meth:`run` until :meth:`stop` or a signal."""
+
+    def __init__(
+        self,
+        world: WorldConfig,
+        config: NodeConfig,
+        transport: Transport,
+        cameras: Sequence[Camera] = (),
+        *,
+        monotonic_ns: Callable[[], int] = time.monotonic_ns,
+        notifier: object | None = None,
+        config_path: Path | None = None,
+    ) -> None:
+        self.world = world
+        self.config = config
+        self.transport = transport
+        self.cameras = list(cameras)
+        self.clock = monotonic_ns
+        self.notifier = notifier
+        self.config_path = config_path
+        self.graph = make_graph(world)
+        self.listener = Listener(world, self.graph)
+        ap = config.autopilot
+        self.publisher = Publisher(
+            config.entity,
+            rate_hz=ap.rate_hz if ap else 30.0,
+            fused_rate_hz=config.fused_rate_hz,
+            reset_jump_m=ap.reset_jump_m if ap else 0.5,
+        )
+        self.inbox = Inbox(config.queue_size)
+        self.stats = Stats()
+        self.last_result: GraphResult | None = None
+        self._seq = 0
+        self._stop = threading.Event()
+        self._reload = threading.Event()
+        self._dirty = False
+        self._last_eval_ns = 0
+        self._next_status_ns = 0
+        self._next_watchdog_ns = 0
+        self.watchdog_interval_ns = NS  # the service layer shortens it to half of WatchdogSec if needed
+
+    # --- producers (any thread) ---------------------------------------------------------------------
+
+    def deliver_local(self, md: MarkerData) -> None:
+        """A detection from one of this node's cameras: stamped with our system id and a sequence."""
+        self._seq = (self._seq + 1) & 0xFFFF
+        self.inbox.put((replace(md, origin=self.config.system_id, seq=self._seq), self.clock(), True))
+
+    def deliver_peer(self, md: MarkerData, arrival_ns: int) -> None:
+        """An observation from a peer, already decoded, authenticated and de-duplicated by the link."""
+        self.inbox.put((md, arrival_ns, False))
+
+    def stop(self) -> None:
+        """Ask the loop to end (safe from a signal handler: it only sets a flag; the loop polls it)."""
+        self._stop.set()
+
+    def request_reload(self) -> None:
+        """Ask the loop to re-read the world file (safe from a signal handler)."""
+        self._reload.set()
+
+    # --- the loop (one thread) ------------------------------------------------------------------------
+
+    def run(self) -> int:
+        """Run until stopped; returns the exit status (0)."""
+        self.transport.start(self.deliver_peer)
+        for cam in self.cameras:
+            cam.start(self.deliver_local)
+        self._notify("READY=1", f"STATUS=running as {self.config.entity}")
+        _logger.info("node %s (system %d) running", self.config.entity, self.config.system_id)
+        try:
+            while not self._stop.is_set():
+                item = self.inbox.get(timeout_s=0.01)
+                now = self.clock()
+                if item is not None:
+                    self._handle(*item)
+                    # Drain what queued up meanwhile before evaluating once for all of it.
+                    while len(self.inbox) and not self._stop.is_set():
+                        nxt = self.inbox.get(0.0)
+                        if nxt is not None:
+                            self._handle(*nxt)
+                    now = self.clock()
+                self._step(now)
+                if self._reload.is_set():
+                    self._reload.clear()
+                    self._do_reload()
+        finally:
+            self._notify("STOPPING=1")
+            for cam in self.cameras:
+                cam.stop()
+            self.transport.close()
+            self._log_status(final=True)
+        return 0
+
+    def _handle(self, md: MarkerData, arrival_ns: int, local: bool) -> None:
+        reason = self.listener.accept(md, arrival_ns)
+        if local:
+            self.stats.local_observations += 1
+            if reason is None:
+                self.transport.send_observation(md)
+        else:
+            self.stats.peer_observations += 1
+        if reason is None:
+            self._dirty = True
+        elif reason is not Rejection.UNKNOWN_MARKER:
+            _logger.debug("rejected observation %s from %d: %s", (md.sensor_id, md.marker_id), md.origin, reason.value)
+
+    def _step(self, now: int) -> None:
+        """Evaluate when something changed (or edges may have expired) and publish what is due."""
+        held = self.publisher.next_autopilot_ns()
+        due_hold = held is not None and now >= held and self.publisher.has_pose
+        if self._dirty or now - self._last_eval_ns >= LOSS_CHECK_NS or due_hold:
+            self._evaluate(now)
+        if self.publisher.fused_due(now) and self.last_result is not None:
+            self.transport.send_fused(list(self.last_result.poses.values()), self.world)
+            self.stats.fused_sent += 1
+        self.transport.tick(now)
+        if now >= self._next_watchdog_ns:
+            self._notify("WATCHDOG=1")
+            self._next_watchdog_ns = now + self.watchdog_interval_ns
+        if now >= self._next_status_ns:
+            if self._next_status_ns:
+                self._log_status()
+            self._next_status_ns = now + int(self.config.status_interval_s * NS)
+
+    def _evaluate(self, now: int) -> None:
+        self._dirty = False
+        self._last_eval_ns = now
+        self.listener.forget_expired(now)
+        result = self.graph.evaluate(now)
+        self.last_result = result
+        self.stats.evaluations += 1
+        out, status = self.publisher.autopilot(result, now)
+        if status is not None:
+            lost = status == "pose lost"
+            _logger.log(logging.WARNING if lost else logging.INFO, "%s: %s", self.config.entity, status)
+            self.transport.send_status(f"atlas {self.config.entity}: {status}", 4 if lost else 6)  # WARNING / INFO
+        if out is not None and self.config.autopilot is not None:
+            self.transport.send_autopilot(out)
+            self.stats.autopilot_sent += 1
+
+    def _do_reload(self) -> None:
+        """SIGHUP: switch to the re-read world file only if it is valid and has the same entities."""
+        if self.config_path is None:
+            return
+        try:
+            world, config = load_node(self.config_path, self.config.entity)
+        except ConfigError as exc:
+            _logger.error("reload refused, keeping the running configuration: %s", exc)
+            self._notify("STATUS=reload refused: invalid world file")
+            return
+        if world.entity_names != self.world.entity_names or config != self.config:
+            _logger.error("reload refused: entities or node settings changed; restart the service to apply them")
+            return
+        self.world = world
+        self.graph.edges.clear()
+        self.graph = make_graph(world)
+        self.listener = Listener(world, self.graph)
+        _logger.info("reloaded %s (fingerprint %08x)", self.config_path, world.fingerprint())
+
+    def counters(self) -> dict[str, int]:
+        """Every counter of the node: rejections by reason, drops, rates, links, cameras."""
+        out: dict[str, int] = {f"rejected_{r.value}": n for r, n in self.listener.rejected.items()}
+        out.update(
+            accepted=self.listener.accepted,
+            inbox_dropped=self.inbox.dropped,
+            local_observations=self.stats.local_observations,
+            peer_observations=self.stats.peer_observations,
+            evaluations=self.stats.evaluations,
+            autopilot_sent=self.stats.autopilot_sent,
+            autopilot_rate_suppressed=self.publisher.suppressed_rate,
+            fused_sent=self.stats.fused_sent,
+            reset_counter=self.publisher.reset_counter,
+        )
+        out.update(self.transport.counters())
+        for cam in self.cameras:
+            out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})
+        return out
+
+    def _log_status(self, final: bool = False) -> None:
+        c = Counter(self.counters())
+        text = " ".join(f"{k}={v}" for k, v in sorted(c.items()))
+        _logger.info("%s %s", "final" if final else "status", text)
+
+    def _notify(self, *lines: str) -> None:
+        if self.notifier is not None:
+            self.notifier.notify(*lines)  # type: ignore[attr-defined]
+
+
+def install_signal_handlers(node: Node) -> None:
+    """SIGTERM/SIGINT stop the loop; SIGHUP asks for a reload. Handlers only set flags."""
+    signal.signal(signal.SIGTERM, lambda *_: node.stop())
+    signal.signal(signal.SIGINT, lambda *_: node.stop())
+    signal.signal(signal.SIGHUP, lambda *_: node.request_reload())
