@@ -39,11 +39,12 @@ from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.hub import Hub
+from atlas_onboard.sim.sources import SIM_ENV
 from atlas_onboard.sim.world import Intrinsics, SimWorld
 
 _logger = logging.getLogger(__name__)
 
-SIM_ENV = "ATLAS_SIM"
+
 WORLD_NODE_SYSTEM_ID = 250
 WARMUP_S = 1.0  # scored from this long after the start: the first frames fill the pipelines
 

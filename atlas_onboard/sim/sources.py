@@ -1,0 +1,135 @@
+"""Simulated sensors inside a node process: the shared start time, and the motion-capture system.
+
+A node started by ``atlas-onboard sim`` finds the scenario in the ``ATLAS_SIM`` environment variable
+(JSON: scenario, seed, epoch_file, duration_s). Its simulated sensors wait until the runner writes the
+start time (UNIX seconds) to ``epoch_file``, then produce data stamped on the wall clock, so every
+process of the run shares one timeline with the ground truth.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.config import WorldConfig
+from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.errors import AtlasError
+from atlas_onboard.sim import scenarios
+from atlas_onboard.sim.world import SimWorld
+
+_logger = logging.getLogger(__name__)
+
+SIM_ENV = "ATLAS_SIM"
+
+
+@dataclass(frozen=True)
+class SimContext:
+    """The simulation a node belongs to."""
+
+    scenario: scenarios.Scenario
+    seed: int
+    epoch_file: Path
+    duration_s: float
+
+    @classmethod
+    def from_env(cls) -> SimContext:
+        raw = os.environ.get(SIM_ENV)
+        if not raw:
+            raise AtlasError(
+                f"camera source 'sim' needs the {SIM_ENV} environment variable: run it from `atlas-onboard sim`"
+            )
+        try:
+            doc = json.loads(raw)
+            return cls(
+                scenarios.get(doc["scenario"]),
+                int(doc.get("seed", 0)),
+                Path(doc["epoch_file"]),
+                float(doc["duration_s"]),
+            )
+        except (ValueError, KeyError, TypeError) as exc:
+            raise AtlasError(f"{SIM_ENV}: expected JSON with scenario, epoch_file and duration_s ({exc})") from None
+
+    def wait_epoch(self, stop: threading.Event) -> float | None:
+        """The run's start time (UNIX s), waiting for the runner to write it; None if stopped first."""
+        while not stop.is_set():
+            try:
+                return float(self.epoch_file.read_text(encoding="utf-8"))
+            except (OSError, ValueError):
+                stop.wait(0.02)
+        return None
+
+
+class MocapWorker:
+    """The paper's OptiTrack: observes the rigid-body marker of every drone at a fixed rate, with noise.
+
+    It reports like any sensor, as MarkerData of the mocap "sensor" (its optical frame is the world
+    frame), so the rest of the system treats it as a very good camera.
+    """
+
+    def __init__(self, context: SimContext, world: WorldConfig, sensor_id: int) -> None:
+        self.name = "mocap"
+        self.context = context
+        self.sim = SimWorld(context.scenario, world)
+        self.sensor = world.sensors[sensor_id]
+        self.mocap = context.scenario.mocap
+        if self.mocap is None:
+            raise AtlasError(f"scenario {context.scenario.name} has no motion-capture system")
+        self.markers = [m for m in world.markers.values() if m.entity in context.scenario.drones]
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.sent = 0
+
+    def start(self, deliver: Callable[[MarkerData], None]) -> None:
+        self._thread = threading.Thread(target=self._run, args=(deliver,), name="sim-mocap", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+
+    def counters(self) -> dict[str, int]:
+        return {"observations": self.sent}
+
+    def _run(self, deliver: Callable[[MarkerData], None]) -> None:
+        assert self.mocap is not None
+        epoch = self.context.wait_epoch(self._stop)
+        if epoch is None:
+            return
+        rng = np.random.default_rng(self.context.seed + 1000)
+        period = 1.0 / self.mocap.rate_hz
+        k = 0
+        T_world_sensor = self.sensor.T_entity_sensor  # the mocap frame, on the world entity
+        while not self._stop.is_set():
+            t = k * period
+            wait = epoch + t - time.time()
+            if wait > 0:
+                self._stop.wait(wait)
+                continue
+            k += 1
+            truth = self.sim.truth(t)
+            for m in self.markers:
+                T = T_world_sensor.inv() * truth[m.entity] * m.T_entity_marker
+                p = T.translation + rng.normal(0.0, self.mocap.sigma_m, 3)
+                r = T.rotation * Rotation.from_rotvec(rng.normal(0.0, np.radians(self.mocap.sigma_deg), 3))
+                x, y, z, w = r.as_quat()
+                deliver(
+                    MarkerData(
+                        sensor_id=self.sensor.id,
+                        marker_id=m.id,
+                        sigma_m=self.mocap.sigma_m,
+                        p_sensor_marker_m=(float(p[0]), float(p[1]), float(p[2])),
+                        q_sensor_marker_wxyz=(float(w), float(x), float(y), float(z)),
+                        capture_time_us=round((epoch + t) * 1e6),
+                    )
+                )
+                self.sent += 1
