@@ -10,6 +10,7 @@ import argparse
 import logging
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from atlas_onboard import __version__
 from atlas_onboard.errors import AtlasError
@@ -34,6 +35,12 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    from atlas_onboard.service_run import run_node
+
+    return run_node(args.config, args.entity)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
     parser = _Parser(prog="atlas-onboard", description=__doc__.splitlines()[0] if __doc__ else None)
@@ -44,6 +51,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("check-config", help="validate and summarise a world file")
     p.add_argument("file", help="path of the YAML world file")
     p.set_defaults(func=_cmd_check_config)
+
+    p = sub.add_parser("run", help="run the node of one entity (the service)")
+    p.add_argument("--config", required=True, type=Path, help="world file with a nodes section")
+    p.add_argument("--entity", help="entity whose node this is (default: the only one with node settings)")
+    p.set_defaults(func=_cmd_run)
+
+    from atlas_onboard.sim.command import add_commands as add_sim
+
+    add_sim(sub)
     return parser
 
 
@@ -51,7 +67,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: parse ``argv``, run the subcommand, map known errors to one line and exit status 2."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2)
+    level = (logging.INFO if args.command in ("run", "sim") else logging.WARNING) - 10 * min(args.verbose, 1)
     logging.basicConfig(level=level, stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args))

@@ -1,0 +1,116 @@
+"""``atlas-onboard run``: build a node from the world file and run it as a service."""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+from pathlib import Path
+
+from atlas_onboard.config import WORLD, ConfigError, NodeConfig, WorldConfig, load_node, read_yaml
+from atlas_onboard.errors import AtlasError
+from atlas_onboard.node import Camera, Node, install_signal_handlers
+
+_logger = logging.getLogger(__name__)
+
+
+class Notifier:
+    """systemd's notify protocol (READY=1, WATCHDOG=1, STOPPING=1, STATUS=...), dependency-free."""
+
+    def __init__(self, address: str) -> None:
+        self.address = "\0" + address[1:] if address.startswith("@") else address
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+
+    @classmethod
+    def from_env(cls) -> Notifier | None:
+        addr = os.environ.get("NOTIFY_SOCKET")
+        return cls(addr) if addr else None
+
+    def notify(self, *lines: str) -> None:
+        try:
+            self.sock.sendto("\n".join(lines).encode(), self.address)
+        except OSError as exc:
+            _logger.debug("sd_notify failed: %s", exc)
+
+
+def watchdog_interval_ns() -> int | None:
+    """Half of systemd's WatchdogSec (WATCHDOG_USEC), when the watchdog is meant for this process."""
+    usec = os.environ.get("WATCHDOG_USEC")
+    pid = os.environ.get("WATCHDOG_PID")
+    if not usec or (pid and pid != str(os.getpid())):
+        return None
+    try:
+        return int(usec) * 1000 // 2
+    except ValueError:
+        return None
+
+
+def choose_entity(path: Path, entity: str | None) -> str:
+    """``--entity``, or the only entity with node settings in the file."""
+    if entity is not None:
+        return entity
+    doc = read_yaml(path)
+    nodes = doc.get("nodes") if isinstance(doc, dict) else None
+    names = [n for n in (nodes or {}) if n != "defaults"]
+    if len(names) != 1:
+        raise ConfigError("nodes", f"give --entity: the file has node settings for {', '.join(names) or 'no entity'}")
+    return names[0]
+
+
+def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
+    """The camera workers of this node's entity (simulated ones when the source is ``sim``)."""
+    cameras: list[Camera] = []
+    for sensor in world.entity(config.entity).sensors:
+        cam = sensor.camera
+        if cam is None or not cam.source:
+            continue
+        if cam.source == "sim":
+            from atlas_onboard.sim.camera import SimCameraWorker, geometric_detector
+            from atlas_onboard.sim.sources import MocapWorker, SimContext
+            from atlas_onboard.sim.world import SimWorld
+
+            context = SimContext.from_env()
+            mocap = context.scenario.mocap
+            if mocap is not None and config.entity == WORLD and sensor.name == mocap.sensor:
+                cameras.append(MocapWorker(context, world, sensor.id))
+                continue
+            intr = SimWorld(context.scenario, world).cameras[sensor.id][1]
+            detect = geometric_detector(context, sensor, intr, context.seed * 1000 + sensor.id)
+            cameras.append(SimCameraWorker(context, world, sensor, detect))
+        else:
+            raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera source {cam.source!r} is not supported yet")
+    if config.entity == WORLD:
+        # The motion-capture "sensor" has no camera block: it is a world sensor named by the scenario.
+        if os.environ.get("ATLAS_SIM"):
+            from atlas_onboard.sim.sources import MocapWorker, SimContext
+
+            context = SimContext.from_env()
+            mocap = context.scenario.mocap
+            if mocap is not None and not any(c.name == "mocap" for c in cameras):
+                sensor = next(s for s in world.entity(WORLD).sensors if s.name == mocap.sensor)
+                cameras.append(MocapWorker(context, world, sensor.id))
+    return cameras
+
+
+def run_node(config_path: Path, entity: str | None) -> int:
+    """Load, build and run the node; returns its exit status."""
+    name = choose_entity(config_path, entity)
+    world, config = load_node(config_path, name)
+    if os.environ.get("ATLAS_SIM"):
+        from atlas_onboard.sim.runner import die_with_parent
+
+        die_with_parent()
+    from atlas_onboard.mavlink.transport import MavlinkTransport
+
+    transport = MavlinkTransport(world, config)
+    cameras = build_cameras(world, config)
+    node = Node(world, config, transport, cameras, notifier=Notifier.from_env(), config_path=config_path)
+    interval = watchdog_interval_ns()
+    if interval is not None:
+        node.watchdog_interval_ns = interval
+    install_signal_handlers(node)
+    _logger.info(
+        "world %s (fingerprint %08x), entity %s, %d camera(s), %d peer link(s)",
+        config_path, world.fingerprint(), name, len(cameras), len(config.peers),
+    )  # fmt: skip
+    return node.run()
