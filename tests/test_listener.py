@@ -131,6 +131,7 @@ GOOD = MarkerData(1, 5, 0.01, (0.0, 0.0, 2.0), (1.0, 0.0, 0.0, 0.0), 0)
         (replace(GOOD, q_sensor_marker_wxyz=(0.0, 0.0, 0.0, 0.0)), Rejection.ZERO_QUATERNION),
         (replace(GOOD, sigma_m=0.0), Rejection.BAD_SIGMA),
         (replace(GOOD, sigma_m=-0.01), Rejection.BAD_SIGMA),
+        (replace(GOOD, sigma_m=1e30), Rejection.BAD_SIGMA),
         (replace(GOOD, p_sensor_marker_m=(0.0, 0.0, 1e7)), Rejection.OUT_OF_RANGE),
         (replace(GOOD, sensor_id=77), Rejection.UNKNOWN_SENSOR),
         (replace(GOOD, marker_id=77), Rejection.UNKNOWN_MARKER),

@@ -31,6 +31,8 @@ class Rejection(StrEnum):
 
 MAX_RANGE_M = 1000.0
 """A marker reported farther than this from its sensor is absurd for an indoor swarm; rejected."""
+MAX_SIGMA_M = 100.0
+"""A sigma beyond this says the measurement is worthless (or the sender is broken); rejected."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,7 +71,7 @@ class MarkerData:
             return Rejection.NON_FINITE
         if math.fsum(v * v for v in self.q_sensor_marker_wxyz) < 1e-12:
             return Rejection.ZERO_QUATERNION
-        if self.sigma_m <= 0.0:
+        if not 0.0 < self.sigma_m <= MAX_SIGMA_M:
             return Rejection.BAD_SIGMA
         if float(np.linalg.norm(self.p_sensor_marker_m)) > MAX_RANGE_M:
             return Rejection.OUT_OF_RANGE

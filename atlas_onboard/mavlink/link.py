@@ -104,6 +104,10 @@ class Link:
         # Our dialect (common.xml plus the atlas messages) on this connection only.
         conn.mav = self.dialect.MAVLink(conn, srcSystem=self.system_id, srcComponent=self.component_id)
         conn.mav.robust_parsing = True
+        # Our dialect speaks MAVLink 2 only; without this, mavutil's protocol auto-switch would replace
+        # conn.mav with its global dialect on the first MAVLink 2 byte.
+        conn.WIRE_PROTOCOL_VERSION = "2.0"
+        conn.first_byte = False
         if self._key is not None:
             self._setup_signing(conn, self.config.signing)  # type: ignore[arg-type]
         self._conn = conn

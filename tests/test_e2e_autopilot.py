@@ -1,0 +1,150 @@
+"""End to end over 127.0.0.1: a real node process, a peer sending observations, a simulated autopilot.
+
+The numbers the autopilot receives are checked against ground truth in its own frames (NED/FRD).
+"""
+
+import math
+import time
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.config import load_world
+from atlas_onboard.sim.autopilot import SimAutopilot
+from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.helpers import observe, pose
+
+MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD = 20, 12
+
+
+def world_doc(peer_port, ap_port, output="vision_position_estimate", extra_node=None):
+    return {
+        "entities": {
+            # A world-fixed camera 4 m up looking down, and a drone with a tag on top.
+            "world": {"sensors": [{"name": "ceiling", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},
+            "d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+        },
+        "nodes": {
+            "d1": {
+                "system_id": 1,
+                "autopilot": {"url": f"udpout:127.0.0.1:{ap_port}", "output": output},
+                "peers": [{"url": f"udpin:127.0.0.1:{peer_port}", **(extra_node or {})}],
+                "status_interval_s": 1,
+            }
+        },
+    }
+
+
+@pytest.fixture
+def rig(tmp_path, request):
+    output = getattr(request, "param", "vision_position_estimate")
+    ap = SimAutopilot(system_id=1).start()
+    peer_port = free_udp_port()
+    path = write_world(tmp_path, world_doc(peer_port, ap.port, output))
+    world = load_world(path)
+    node = NodeProcess(path, "d1")
+    peer = Peer(peer_port, system_id=250)
+    assert wait_for(lambda: ap.heartbeats_from.get((1, 197), 0) > 0), node.log()
+    yield world, ap, node, peer
+    peer.close()
+    node.stop()
+    ap.stop()
+
+
+TRUTH = {"world": RigidTransform.identity(), "d1": pose([1.0, 2.0, 3.0], [0, 0, 90])}
+
+
+def feed(world, peer, n=10, truth=TRUTH, period=0.02, t0_us=None):
+    t0_us = t0_us or int(time.time() * 1e6)
+    for k in range(n):
+        peer.send(observe(world, truth, 10, 5, sigma_m=0.02, capture_time_us=t0_us + k * 20000), world.fingerprint())
+        time.sleep(period)
+    return t0_us
+
+
+def test_vision_position_estimate_matches_truth_in_ned(rig):
+    world, ap, node, peer = rig
+    t0 = feed(world, peer)
+    assert wait_for(lambda: len(ap.snapshot()) >= 5), node.log()
+    for rec in ap.snapshot():
+        assert rec.kind == "VISION_POSITION_ESTIMATE"
+        # ENU (1, 2, 3) with yaw 90 (nose north) arrives as NED (2, 1, -3) with yaw 0.
+        np.testing.assert_allclose(rec.xyz_m, [2.0, 1.0, -3.0], atol=1e-5)
+        np.testing.assert_allclose(rec.rpy_rad, [0.0, 0.0, 0.0], atol=1e-5)
+        cov = np.array(rec.covariance)
+        assert np.all(cov[[0, 6, 11]] == pytest.approx(0.02**2, rel=1e-5))
+        assert np.all(cov[[15, 18, 20]] > 0) and np.all(np.isfinite(cov))
+        assert t0 <= rec.usec <= t0 + 9 * 20000  # capture time of the newest observation, not send time
+        assert (rec.src_system, rec.src_component) == (1, 197)
+        assert rec.reset_counter == 0
+    assert ap.heartbeats_from[(1, 197)] >= 1
+
+
+@pytest.mark.parametrize("rig", ["odometry"], indirect=True)
+def test_odometry_matches_truth_in_local_frd(rig):
+    world, ap, node, peer = rig
+    truth = {"world": RigidTransform.identity(), "d1": pose([-0.5, 1.5, 2.0], [5, -3, 30])}
+    feed(world, peer, truth=truth)
+    assert wait_for(lambda: len(ap.snapshot()) >= 5), node.log()
+    rec = ap.snapshot()[-1]
+    assert rec.kind == "ODOMETRY"
+    assert (rec.frame_id, rec.child_frame_id, rec.estimator_type) == (MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, 2)
+    np.testing.assert_allclose(rec.xyz_m, [1.5, -0.5, -2.0], atol=1e-5)
+    w, x, y, z = rec.q_wxyz
+    R_ned_frd = Rotation.from_quat([x, y, z, w])
+    # Expected: NED/FRD attitude of an ENU/FLU body with roll 5, pitch -3, yaw 30 -> roll 5, pitch 3, yaw 60.
+    np.testing.assert_allclose(R_ned_frd.as_euler("ZYX", degrees=True), [60.0, 3.0, 5.0], atol=1e-3)
+    assert 1 <= rec.quality <= 100
+
+
+def test_output_stops_when_the_peer_goes_silent_and_resumes(rig):
+    world, ap, node, peer = rig
+    feed(world, peer, n=10)
+    assert wait_for(lambda: len(ap.snapshot()) >= 5), node.log()
+    silent_from = time.time()
+    time.sleep(1.0)
+    during = [r for r in ap.snapshot() if r.arrival_s > silent_from + 0.25 + 0.05]
+    assert during == [], "the node kept sending a pose it no longer has"
+    n_before = len(ap.snapshot())
+    feed(world, peer, n=5)
+    assert wait_for(lambda: len(ap.snapshot()) > n_before), "output did not resume"
+    assert ap.snapshot()[-1].reset_counter == 1  # lost then found: the autopilot is told to reset
+    assert ap.other.get("STATUSTEXT", 0) >= 2  # pose found, pose lost, (pose found)
+
+
+def test_bad_input_changes_nothing_and_is_counted(rig):
+    world, ap, node, peer = rig
+    fp = world.fingerprint()
+    feed(world, peer, n=5)
+    assert wait_for(lambda: len(ap.snapshot()) >= 3), node.log()
+    good = observe(world, TRUTH, 10, 5, sigma_m=0.02, capture_time_us=int(time.time() * 1e6))
+    rng = np.random.default_rng(0)
+    peer.raw(rng.integers(0, 256, 300, dtype=np.uint8).tobytes())  # random bytes
+    frame = peer.send(good, fp)  # a valid frame, then truncated copies of it
+    for cut in (3, 10, len(frame) - 1):
+        peer.raw(frame[:cut])
+    for field in ("x", "y", "z", "sigma"):
+        for value in (math.nan, math.inf, -math.inf, 1e30):
+            peer.send(good, fp, **{field: value})
+    peer.send(good, fp, q=[0.0, 0.0, 0.0, 0.0])
+    peer.send(good, fp, q=[math.nan, 0.0, 0.0, 1.0])
+    peer.send(good, fp, sigma=-0.1)
+    peer.send(good, fp, sensor_id=999)
+    peer.send(good, fp, marker_id=999)
+    peer.send(good, fp ^ 0xFFFF)  # another world file
+    peer.send(good, fp, format_version=9)
+    time.sleep(0.5)
+    for rec in ap.snapshot():  # the estimate never moved
+        np.testing.assert_allclose(rec.xyz_m, [2.0, 1.0, -3.0], atol=1e-5)
+    assert node.proc.poll() is None, "the node died"
+    code = node.stop()
+    assert code == 0
+    c = node.final_counters()
+    assert c["rejected_non_finite"] >= 9  # nan and inf in x, y, z, sigma
+    assert c["rejected_out_of_range"] >= 3  # 1e30 in x, y, z
+    assert c["rejected_zero_quaternion"] == 1
+    assert c["rejected_bad_sigma"] == 2  # -0.1 and 1e30
+    assert c["rejected_unknown_sensor"] == 1 and c["rejected_unknown_marker"] == 1
+    assert c["rejected_wrong_fingerprint"] == 1 and c["rejected_bad_version"] == 1
+    assert c["peer0_rejected_bad_data"] >= 1
