@@ -35,7 +35,7 @@ class NodeProcess:
 
     def __init__(self, config: Path, entity: str, env: dict | None = None) -> None:
         self.log_path = config.parent / f"{entity}.log"
-        self._log = open(self.log_path, "wb")  # noqa: SIM115
+        self._log = open(self.log_path, "wb")
         full_env = {**os.environ, **(env or {})}
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "atlas_onboard", "-v", "run", "--config", str(config), "--entity", entity],
