@@ -20,7 +20,7 @@ from atlas_onboard.core.markerdata import MarkerData
 
 FORMAT_VERSION = 1
 TUNNEL_PAYLOAD_OBSERVATION = 43100
-# TUNNEL payload of an observation, little endian, 85 bytes (docs/wire-format.md):
+# TUNNEL payload of an observation, little endian, 87 bytes (docs/wire-format.md):
 # time_usec u64, fingerprint u32, x y z f32, q[4] f32, sigma f32, reprojection_error f32, ambiguity f32,
 # x_alt y_alt z_alt f32, q_alt[4] f32, sensor_id u16, marker_id u16, seq u16, format_version u8.
 TUNNEL_STRUCT = struct.Struct("<QI3f4f3f3f4fHHHB")
