@@ -99,6 +99,13 @@ class Link:
         if url.startswith(("/dev/", "COM")):
             device, _, baud = url.partition(",")
             conn = mavutil.mavlink_connection(device, baud=int(baud or 57600), **kwargs)
+        elif url.startswith("tcp:"):
+            conn = mavutil.mavlink_connection(url, retries=0, **kwargs)  # one attempt: we do the backoff
+
+            def closed() -> None:  # mavutil only prints on EOF/reset; make it an error we reopen on
+                raise ConnectionError("TCP peer closed the connection")
+
+            conn.handle_eof = conn.handle_disconnect = closed
         else:
             conn = mavutil.mavlink_connection(url, **kwargs)
         # Our dialect (common.xml plus the atlas messages) on this connection only.

@@ -46,6 +46,7 @@ class SimAutopilot:
 
     system_id: int
     port: int = 0  # 0: choose a free port; read it back from .port after start()
+    tcp: bool = False  # a TCP server (like SITL's tcp:5760) instead of a UDP endpoint
     autopilot_type: int = mavlink.MAV_AUTOPILOT_PX4
     received: list[Received] = field(default_factory=list)
     heartbeats_from: dict[tuple[int, int], int] = field(default_factory=dict)
@@ -53,10 +54,15 @@ class SimAutopilot:
     other: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM if self.tcp else socket.SOCK_DGRAM)
+        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._sock.bind(("127.0.0.1", self.port))
+        if self.tcp:
+            self._sock.listen(1)
         self._sock.settimeout(0.05)
         self.port = self._sock.getsockname()[1]
+        self._client: socket.socket | None = None
+        self.connections = 0
         self._mav = mavlink.MAVLink(None, srcSystem=self.system_id, srcComponent=1)
         self._mav.robust_parsing = True
         self._peer: tuple[str, int] | None = None
@@ -71,6 +77,8 @@ class SimAutopilot:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2.0)
+        if self._client is not None:
+            self._client.close()
         self._sock.close()
 
     def snapshot(self) -> list[Received]:
@@ -78,11 +86,31 @@ class SimAutopilot:
             return list(self.received)
 
     def _send(self, msg: mavlink.MAVLink_message) -> None:
-        if self._peer is not None:
-            try:
+        try:
+            if self.tcp:
+                if self._client is not None:
+                    self._client.sendall(msg.pack(self._mav))
+            elif self._peer is not None:
                 self._sock.sendto(msg.pack(self._mav), self._peer)
-            except OSError:
-                pass
+        except OSError:
+            pass
+
+    def _receive(self) -> bytes | None:
+        """Next chunk of bytes, or None when there is nothing yet (UDP: a datagram; TCP: a read)."""
+        if not self.tcp:
+            data, self._peer = self._sock.recvfrom(65535)
+            return data
+        if self._client is None:
+            self._client, _ = self._sock.accept()
+            self._client.settimeout(0.05)
+            self.connections += 1
+            return None
+        data = self._client.recv(65535)
+        if not data:  # the node closed the connection: wait for the next one
+            self._client.close()
+            self._client = None
+            return None
+        return data
 
     def _run(self) -> None:
         next_heartbeat = 0.0
@@ -96,12 +124,16 @@ class SimAutopilot:
                     )
                 )
             try:
-                data, addr = self._sock.recvfrom(65535)
+                data = self._receive()
             except TimeoutError:
                 continue
             except OSError:
-                return
-            self._peer = addr
+                if self._stop.is_set():
+                    return
+                self._client = None
+                continue
+            if data is None:
+                continue
             try:
                 msgs = self._mav.parse_buffer(data) or []
             except mavlink.MAVError:
