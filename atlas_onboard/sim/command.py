@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -38,10 +39,45 @@ def autopilot_track(records: list[Received], epoch_s: float) -> report.Track:
     )
 
 
-def score_run(
-    sim: SimRun, fused: dict[str, report.Track] | None = None
-) -> tuple[report.RunReport, dict[str, report.Track]]:
+def decode_taps(sim: SimRun) -> tuple[dict[str, report.Track], Counter[str]]:
+    """Fused poses broadcast by the nodes (per entity) and observation counts (per entity), from the
+    datagrams that crossed the hub."""
+    from atlas_onboard.mavlink import dialect
+
+    d = dialect.load()
+    names = sim.world.world.entity_names
+    markers, sensors = sim.world.world.markers, sim.world.world.sensors
+    rows: dict[str, list[tuple[float, float, list[float], list[float], int]]] = {}
+    observations: Counter[str] = Counter()
+    parser = d.MAVLink(None)
+    parser.robust_parsing = True
+    for arrival, data in sim.taps:
+        for msg in parser.parse_buffer(data) or []:
+            kind = msg.get_type()
+            if kind == "ATLAS_FUSED_POSE" and msg.frame_index == 0 and msg.entity_index < len(names):
+                w, x, y, z = msg.q
+                rows.setdefault(names[msg.entity_index], []).append(
+                    (msg.time_usec / 1e6 - sim.epoch_s, arrival - sim.epoch_s, [msg.x, msg.y, msg.z], [x, y, z, w],
+                     msg.n_observations)
+                )  # fmt: skip
+            elif kind == "ATLAS_OBSERVATION" and WARMUP_S <= arrival - sim.epoch_s <= sim.duration_s:
+                m, s = markers.get(msg.marker_id), sensors.get(msg.sensor_id)
+                for name in {m.entity if m else None, s.entity if s else None} - {None}:
+                    observations[name] += 1  # type: ignore[index]
+    tracks = {}
+    for name, r in rows.items():
+        r.sort(key=lambda row: row[0])
+        tracks[name] = report.Track(
+            capture_s=np.array([row[0] for row in r]), arrival_s=np.array([row[1] for row in r]),
+            p_m=np.array([row[2] for row in r]), q_xyzw=np.array([row[3] for row in r]),
+            n_observations=np.array([row[4] for row in r], dtype=float),
+        )  # fmt: skip
+    return tracks, observations
+
+
+def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
     """Per-entity figures of a finished run (drones: what their autopilot got; others: fused poses)."""
+    fused, observations = decode_taps(sim)
     sc = sim.scenario
     t0, t1 = WARMUP_S, sim.duration_s
     expected = sim.world.expected_availability(np.arange(t0, t1, 0.1))
@@ -58,13 +94,18 @@ def score_run(
         if name in sim.autopilots:
             track = autopilot_track(sim.autopilots[name].snapshot(), sim.epoch_s)
             source = "autopilot"
-        elif fused is not None and name in fused:
+            if name in fused:  # the number of measurements, for the plots
+                track.n_observations = np.interp(track.capture_s, fused[name].capture_s, fused[name].n_observations)
+        elif name in fused:
             track, source = fused[name], "fused"
         else:
-            continue
+            track, source = report.Track(*(np.zeros((0, k)) for k in (0, 0, 3, 4))), "none"  # type: ignore[arg-type]
+            track.capture_s = track.arrival_s = np.zeros(0)
         tracks[name] = track
         bin_s = 0.1 if source == "autopilot" else 0.5
-        rep.entities.append(report.score(name, source, track, sim.world, t0, t1, expected.get(name, 0.0), bin_s))
+        score = report.score(name, source, track, sim.world, t0, t1, expected.get(name, 0.0), bin_s)
+        score.detections_per_s = observations[name] / (t1 - t0)
+        rep.entities.append(score)
     for key, limit in sc.bars.items():
         name, metric = key.split(".")
         got = next((getattr(e, metric) for e in rep.entities if e.entity == name), float("nan"))
