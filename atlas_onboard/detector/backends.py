@@ -1,0 +1,105 @@
+"""Detection backends: corners of the configured markers in a grey image.
+
+AprilTag families go through the AprilTag 3 C library (pupil-apriltags), ArUco dictionaries through
+OpenCV's ``ArucoDetector`` (with sub-pixel corner refinement). Both return corners in OpenCV's order
+(top-left, top-right, bottom-right, bottom-left of the printed marker) and pixel-centre convention;
+only ids present in the world file are returned (the others are counted and dropped).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from atlas_onboard.detector.families import family, opencv_dictionary
+from atlas_onboard.errors import AtlasError
+
+
+@dataclass(frozen=True)
+class Detection:
+    """A marker found in an image: id, family, corners (4, 2) in OpenCV order and convention."""
+
+    marker_id: int
+    family: str
+    corners_px: NDArray[np.float64]
+    decision_margin: float = float("nan")
+
+
+class AprilTagBackend:
+    """The AprilTag 3 library. ``decimate`` > 1 is faster and misses small markers."""
+
+    def __init__(self, families: list[str], decimate: float = 1.0, threads: int = 1) -> None:
+        try:
+            import pupil_apriltags
+        except ImportError as exc:  # pragma: no cover - a dependency of the package
+            raise AtlasError(f"AprilTag detection needs pupil-apriltags: {exc}") from None
+        self.families = families
+        self._detectors = {
+            d: pupil_apriltags.Detector(families=" ".join(families), nthreads=threads, quad_decimate=d, refine_edges=1)
+            for d in sorted({1.0, float(decimate)})
+        }
+        self.decimate = float(decimate)
+
+    def detect(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:
+        det = self._detectors.get(float(decimate or self.decimate)) or self._detectors[self.decimate]
+        out = []
+        for r in det.detect(np.ascontiguousarray(gray)):
+            if (
+                r.hamming > 0
+                and family(r.tag_family.decode() if isinstance(r.tag_family, bytes) else r.tag_family).cells < 7
+            ):
+                continue  # small families with bit errors give false ids too easily
+            fam = r.tag_family.decode() if isinstance(r.tag_family, bytes) else str(r.tag_family)
+            # The library's corners start at the tag's bottom-left and use the pixel-corner origin.
+            corners = np.asarray(r.corners, dtype=float)[[3, 2, 1, 0]] - 0.5
+            out.append(Detection(int(r.tag_id), fam, corners, float(r.decision_margin)))
+        return out
+
+
+class ArucoBackend:
+    """OpenCV's ArucoDetector for one ArUco dictionary."""
+
+    def __init__(self, family_name: str) -> None:
+        params = cv2.aruco.DetectorParameters()
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        params.cornerRefinementWinSize = 3
+        self.family = family_name
+        self._detector = cv2.aruco.ArucoDetector(opencv_dictionary(family_name), params)
+
+    def detect(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:
+        corners, ids, _ = self._detector.detectMarkers(gray)
+        if ids is None:
+            return []
+        return [
+            Detection(int(i), self.family, np.asarray(c, dtype=float).reshape(4, 2))
+            for c, i in zip(corners, ids.ravel(), strict=True)
+        ]
+
+
+class MarkerFinder:
+    """All backends a world file's markers need, filtered to the configured ids."""
+
+    def __init__(self, wanted: dict[int, str], decimate: float = 1.0) -> None:
+        """``wanted`` maps each configured marker id to its family."""
+        self.wanted = wanted
+        fams = sorted(set(wanted.values()))
+        april = [f for f in fams if family(f).is_apriltag]
+        self.backends: list[AprilTagBackend | ArucoBackend] = []
+        if april:
+            self.backends.append(AprilTagBackend(april, decimate))
+        self.backends += [ArucoBackend(f) for f in fams if not family(f).is_apriltag]
+        self.dropped: Counter[str] = Counter()
+
+    def find(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:
+        out = []
+        for backend in self.backends:
+            for d in backend.detect(gray, decimate):
+                if self.wanted.get(d.marker_id) == d.family:
+                    out.append(d)
+                else:
+                    self.dropped["unknown_id"] += 1
+        return out
