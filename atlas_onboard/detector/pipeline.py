@@ -1,0 +1,114 @@
+"""Frame in, MarkerData out: find the configured markers, undistort their corners, solve their poses.
+
+Speed beyond the library: markers are searched at ``decimate`` 2 (four times fewer pixels), and the
+regions where markers were last seen, or are small, are searched again at full resolution, so the
+detector keeps the recall of decimate 1 at close to the cost of decimate 2.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from atlas_onboard.config import SensorConfig, WorldConfig
+from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.detector import pose
+from atlas_onboard.detector.backends import Detection, MarkerFinder
+from atlas_onboard.detector.calibration import Calibration
+
+SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
+ROI_MARGIN = 0.6  # a region is the marker's box grown by this fraction of its size on each side
+
+
+@dataclass
+class Detector:
+    """The detector of one sensor."""
+
+    sensor: SensorConfig
+    world: WorldConfig
+    calibration: Calibration
+    decimate: float = 2.0
+    track: bool = True
+    counters: Counter[str] = field(default_factory=Counter)
+
+    def __post_init__(self) -> None:
+        self.sizes = {m.id: m.size_m for m in self.world.markers.values() if m.entity != self.sensor.entity}
+        wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
+        self.finder = MarkerFinder(wanted, self.decimate)
+        self._last: list[NDArray[np.float64]] = []  # boxes (x0, y0, x1, y1) of the previous frame's markers
+
+    def find(self, gray: NDArray[np.uint8]) -> list[Detection]:
+        """Markers in the frame: a decimated pass, then full-resolution passes where they may hide."""
+        if not self.track or self.decimate <= 1.0:
+            return self.finder.find(gray, 1.0)
+        found = {d.marker_id: d for d in self.finder.find(gray, self.decimate)}
+        boxes = list(self._last)
+        for d in found.values():
+            side = _side(d.corners_px)
+            if side < SMALL_SIDE_PX:
+                boxes.append(_box(d.corners_px))
+        h, w = gray.shape[:2]
+        for x0, y0, x1, y1 in _merge(boxes, w, h):
+            roi = gray[y0:y1, x0:x1]
+            for d in self.finder.find(np.ascontiguousarray(roi), 1.0):
+                c = d.corners_px + np.array([x0, y0], dtype=float)
+                found[d.marker_id] = Detection(d.marker_id, d.family, c, d.decision_margin)
+                self.counters["roi_finds"] += 1
+        self._last = [_box(d.corners_px) for d in found.values()]
+        return list(found.values())
+
+    def detect(self, gray: NDArray[np.uint8], capture_time_us: int) -> list[MarkerData]:
+        """MarkerData of every configured marker in ``gray``."""
+        h, w = gray.shape[:2]
+        self.calibration.check_size(w, h, f"sensor {self.sensor.name}")
+        out = []
+        K = self.calibration.K
+        for d in self.find(gray):
+            corners = pose.undistort(d.corners_px, K, self.calibration.dist, self.calibration.fisheye)
+            mp = pose.solve(corners, self.sizes[d.marker_id], K)
+            if mp is None:
+                self.counters["pnp_failed"] += 1
+                continue
+            x, y, z, w_ = mp.q_xyzw
+            out.append(
+                MarkerData(
+                    sensor_id=self.sensor.id,
+                    marker_id=d.marker_id,
+                    sigma_m=mp.sigma_m,
+                    p_sensor_marker_m=(float(mp.p_m[0]), float(mp.p_m[1]), float(mp.p_m[2])),
+                    q_sensor_marker_wxyz=(float(w_), float(x), float(y), float(z)),
+                    capture_time_us=capture_time_us,
+                    reprojection_error_px=mp.reprojection_error_px,
+                    ambiguity_ratio=mp.ambiguity,
+                )
+            )
+        self.counters["detections"] += len(out)
+        return out
+
+
+def _side(c: NDArray[np.float64]) -> float:
+    return float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
+
+
+def _box(c: NDArray[np.float64]) -> NDArray[np.float64]:
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    grow = (hi - lo) * ROI_MARGIN + 8
+    return np.concatenate([lo - grow, hi + grow])
+
+
+def _merge(boxes: list[NDArray[np.float64]], w: int, h: int) -> list[tuple[int, int, int, int]]:
+    """Clip boxes to the image and merge overlapping ones (so no marker is cut in two)."""
+    rects = [[max(int(b[0]), 0), max(int(b[1]), 0), min(int(b[2]) + 1, w), min(int(b[3]) + 1, h)] for b in boxes]
+    rects = [r for r in rects if r[2] - r[0] >= 16 and r[3] - r[1] >= 16]
+    merged: list[list[int]] = []
+    for r in sorted(rects):
+        for m in merged:
+            if r[0] <= m[2] and r[2] >= m[0] and r[1] <= m[3] and r[3] >= m[1]:
+                m[:] = [min(m[0], r[0]), min(m[1], r[1]), max(m[2], r[2]), max(m[3], r[3])]
+                break
+        else:
+            merged.append(r)
+    return [(a, b, c, d) for a, b, c, d in merged]
