@@ -74,6 +74,8 @@ class FusionConfig:
             smaller chain variance, weighted by the whole chain's sigma).
         relative_poses: also evaluate groups of entities with no path to world, relative to their
             first entity (world-file order), and publish those relative poses.
+        age_sigma_m_per_s: how fast an edge's information goes stale (about the entities' speed):
+            an edge of age a counts with sigma sqrt(sigma^2 + (a * this)^2). 0: the paper's method.
     """
 
     edge_timeout_s: float = 0.25
@@ -81,6 +83,7 @@ class FusionConfig:
     weighting: Weighting = Weighting.SIGMA_MIN
     path: str = "bfs"
     relative_poses: bool = False
+    age_sigma_m_per_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -337,7 +340,9 @@ def _read_pose(value: Any, path: str) -> RigidTransform:
 def _read_fusion(value: Any, path: str) -> FusionConfig:
     if value is None:
         return FusionConfig()
-    m = _mapping(value, path, {"edge_timeout_s", "ema_alpha", "weighting", "path", "relative_poses"})
+    m = _mapping(
+        value, path, {"edge_timeout_s", "ema_alpha", "weighting", "path", "relative_poses", "age_sigma_m_per_s"}
+    )
     default = FusionConfig()
     timeout = _number(m.get("edge_timeout_s", default.edge_timeout_s), _join(path, "edge_timeout_s"), "seconds")
     if not 0.0 < timeout <= 10.0:
@@ -352,7 +357,10 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
     relative = m.get("relative_poses", False)
     if not isinstance(relative, bool):
         raise ConfigError(_join(path, "relative_poses"), f"expected true or false, got {_describe(relative)}")
-    return FusionConfig(timeout, alpha, Weighting(weighting), graph_path, relative)
+    age = _number(m.get("age_sigma_m_per_s", 0.0), _join(path, "age_sigma_m_per_s"), "m/s")
+    if not 0.0 <= age <= 100.0:
+        raise ConfigError(_join(path, "age_sigma_m_per_s"), f"expected a speed in [0, 100] m/s, got {age:g}")
+    return FusionConfig(timeout, alpha, Weighting(weighting), graph_path, relative, age)
 
 
 def _read_camera(value: Any, path: str, base_dir: Path | None) -> CameraConfig:

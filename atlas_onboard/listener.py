@@ -50,6 +50,7 @@ def make_graph(world: WorldConfig) -> TransformGraph:
         inverse_variance=f.weighting is Weighting.INVERSE_VARIANCE,
         path=f.path,
         relative=f.relative_poses,
+        age_sigma_m_per_s=f.age_sigma_m_per_s,
     )
 
 

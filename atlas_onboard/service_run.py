@@ -65,7 +65,7 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
         if cam is None or not cam.source:
             continue
         if cam.source == "sim":
-            from atlas_onboard.sim.camera import SimCameraWorker, geometric_detector
+            from atlas_onboard.sim.camera import SimCameraWorker, geometric_detector, rendered_detector
             from atlas_onboard.sim.sources import MocapWorker, SimContext
             from atlas_onboard.sim.world import SimWorld
 
@@ -74,8 +74,12 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
             if mocap is not None and config.entity == WORLD and sensor.name == mocap.sensor:
                 cameras.append(MocapWorker(context, world, sensor.id))
                 continue
-            intr = SimWorld(context.scenario, world).cameras[sensor.id][1]
-            detect = geometric_detector(context, sensor, intr, context.seed * 1000 + sensor.id)
+            seed = context.seed * 1000 + sensor.id
+            if os.environ.get("ATLAS_SIM_GEOMETRIC"):  # no images: corners from geometry plus noise
+                intr = SimWorld(context.scenario, world).cameras[sensor.id][1]
+                detect = geometric_detector(context, sensor, intr, seed)
+            else:
+                detect = rendered_detector(context, world, sensor, seed)
             cameras.append(SimCameraWorker(context, world, sensor, detect))
         else:
             raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera source {cam.source!r} is not supported yet")

@@ -101,6 +101,7 @@ class TransformGraph:
         inverse_variance: bool = False,
         path: str = "bfs",
         relative: bool = False,
+        age_sigma_m_per_s: float = 0.0,
     ) -> None:
         names = list(entity_names)
         if WORLD not in names:
@@ -117,6 +118,10 @@ class TransformGraph:
             raise GeometryError(f"expected path 'bfs' or 'dijkstra', got {path!r}")
         self.path = path
         self.relative = relative
+        # An edge's information ages: the entities may have moved since it arrived. With this > 0,
+        # an edge of age a (s) counts with sigma sqrt(sigma^2 + (a * age_sigma)^2), so fresh
+        # observations outvote stale ones (0: the paper's method, every live edge counts as new).
+        self.age_sigma_m_per_s = age_sigma_m_per_s
         self.edges: dict[EdgeKey, Edge] = {}
 
     def update_edge(
@@ -206,6 +211,12 @@ class TransformGraph:
                     heapq.heappush(heap, (nd, u))
         return order, dist
 
+    def _sigma(self, e: Edge, now_ns: int) -> float:
+        if self.age_sigma_m_per_s <= 0.0:
+            return e.sigma_m
+        age_s = max(now_ns - e.stamp_ns, 0) / 1e9
+        return float(np.hypot(e.sigma_m, age_s * self.age_sigma_m_per_s))
+
     def _neighbours(self, edges: Sequence[Edge]) -> list[set[int]]:
         neighbours: list[set[int]] = [set() for _ in self.names]
         for e in edges:
@@ -228,7 +239,7 @@ class TransformGraph:
         self.expire(now_ns)
         edges = list(self.edges.values())
         world = self.index[WORLD]
-        poses, order, levels = self._evaluate_from(edges, world)
+        poses, order, levels = self._evaluate_from(edges, world, now_ns)
         reached = set(order)
         unreached = tuple(self.names[v] for v in range(len(self.names)) if v not in reached)
         relative: dict[str, dict[str, EntityPose]] = {}
@@ -236,7 +247,7 @@ class TransformGraph:
             remaining = [v for v in range(len(self.names)) if v not in reached]
             while remaining:
                 root = remaining[0]
-                rel, rel_order, _ = self._evaluate_from(edges, root)
+                rel, rel_order, _ = self._evaluate_from(edges, root, now_ns)
                 if len(rel_order) > 1:
                     relative[self.names[root]] = rel
                 remaining = [v for v in remaining if v not in set(rel_order)]
@@ -249,7 +260,9 @@ class TransformGraph:
             relative=relative,
         )
 
-    def _evaluate_from(self, edges: list[Edge], root: int) -> tuple[dict[str, EntityPose], list[int], dict[int, int]]:
+    def _evaluate_from(
+        self, edges: list[Edge], root: int, now_ns: int
+    ) -> tuple[dict[str, EntityPose], list[int], dict[int, int]]:
         """Poses of every vertex reachable from ``root``, in ``root``'s frame."""
         n = len(self.names)
         order, level = self.broad_phase(edges, root)
@@ -272,9 +285,9 @@ class TransformGraph:
             if e.a not in level or e.b not in level:
                 continue
             if is_parent(e.a, e.b):
-                cands_of.setdefault(e.b, []).append((e.a, e.p_a_b, e.q_a_b, e.sigma_m, e.capture_time_us))
+                cands_of.setdefault(e.b, []).append((e.a, e.p_a_b, e.q_a_b, self._sigma(e, now_ns), e.capture_time_us))
             elif is_parent(e.b, e.a):
-                cands_of.setdefault(e.a, []).append((e.b, e.p_b_a, e.q_b_a, e.sigma_m, e.capture_time_us))
+                cands_of.setdefault(e.a, []).append((e.b, e.p_b_a, e.q_b_a, self._sigma(e, now_ns), e.capture_time_us))
         for v in order[1:]:
             stage[v] = 1 + max(stage[c[0]] for c in cands_of[v])
 

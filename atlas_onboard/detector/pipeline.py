@@ -19,6 +19,9 @@ from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 
+MAX_AMBIGUITY = 0.5
+"""IPPE's two planar solutions fit almost equally well above this ratio: the chosen one may be the
+mirror image (a "flip", degrees to tens of degrees off). Such observations are dropped and counted."""
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
 ROI_MARGIN = 0.6  # a region is the marker's box grown by this fraction of its size on each side
 
@@ -32,6 +35,7 @@ class Detector:
     calibration: Calibration
     decimate: float = 2.0
     track: bool = True
+    max_ambiguity: float = MAX_AMBIGUITY
     counters: Counter[str] = field(default_factory=Counter)
 
     def __post_init__(self) -> None:
@@ -71,6 +75,9 @@ class Detector:
             mp = pose.solve(corners, self.sizes[d.marker_id], K)
             if mp is None:
                 self.counters["pnp_failed"] += 1
+                continue
+            if mp.ambiguity > self.max_ambiguity:
+                self.counters["ambiguous"] += 1
                 continue
             x, y, z, w_ = mp.q_xyzw
             out.append(

@@ -50,8 +50,20 @@ def _bitmap(name: str, marker_id: int) -> NDArray[np.float32]:
     return _bitmaps[key]
 
 
+_backgrounds: dict[tuple[int, int, int], NDArray[np.float32]] = {}
+
+
 def background(camera: Camera, seed: int = 0, mean: float = 140.0, contrast: float = 40.0) -> NDArray[np.float32]:
-    """A smooth random texture (a floor, a wall) of the camera's size."""
+    """A smooth random texture (a floor, a wall) of the camera's size (cached: made once per seed)."""
+    key = (camera.width_px, camera.height_px, seed)
+    if key not in _backgrounds:
+        if len(_backgrounds) > 8:
+            _backgrounds.clear()
+        _backgrounds[key] = _texture(camera, seed, mean, contrast)
+    return _backgrounds[key].copy()
+
+
+def _texture(camera: Camera, seed: int, mean: float, contrast: float) -> NDArray[np.float32]:
     rng = np.random.default_rng(seed)
     small = rng.normal(0.0, 1.0, (camera.height_px // 16 + 2, camera.width_px // 16 + 2)).astype(np.float32)
     tex = cv2.resize(small, (camera.width_px, camera.height_px), interpolation=cv2.INTER_CUBIC)
@@ -126,6 +138,7 @@ def render(
     views: list[MarkerView],
     *,
     seed: int = 0,
+    background_seed: int = 0,
     noise_sigma: float = 0.0,
     blur_px: tuple[float, float] = (0.0, 0.0),
     supersample: int = 4,
@@ -134,7 +147,7 @@ def render(
 
     ``blur_px`` is the motion of the image during the exposure (dx, dy in pixels): a linear blur.
     """
-    img = background(camera, seed)
+    img = background(camera, background_seed)
     for view in sorted(views, key=lambda v: -float(np.linalg.norm(v.T_camera_marker.translation))):
         draw_marker(img, camera, view, supersample)
     length = float(np.hypot(*blur_px))
@@ -147,5 +160,8 @@ def render(
             kernel[round(c + a * blur_px[1]), round(c + a * blur_px[0])] += 1.0
         img = cv2.filter2D(img, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REPLICATE)
     if noise_sigma > 0:
-        img = img + np.random.default_rng(seed + 1).normal(0.0, noise_sigma, img.shape).astype(np.float32)
+        noise = np.empty(img.shape, np.float32)
+        cv2.setRNGSeed(seed)
+        cv2.randn(noise, 0.0, noise_sigma)
+        img += noise
     return np.clip(np.rint(img), 0, 255).astype(np.uint8)

@@ -127,3 +127,44 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
         return out
 
     return detect
+
+
+def rendered_detector(context: SimContext, world: WorldConfig, sensor: SensorConfig, seed: int) -> FrameHandler:
+    """Render the frame the camera would see (noise, motion blur) and run the real detector on it."""
+    from atlas_onboard.detector.calibration import load as load_calibration
+    from atlas_onboard.detector.pipeline import Detector
+    from atlas_onboard.detector.render import Camera, MarkerView, render
+
+    assert sensor.camera is not None and sensor.camera.calibration is not None
+    cal = load_calibration(sensor.camera.calibration)
+    cam = Camera(cal.width_px, cal.height_px, cal.K, cal.dist)
+    detector = Detector(sensor, world, cal, decimate=2.0)
+    optics = context.scenario.optics_of(sensor.entity, sensor.name)
+    sim = SimWorld(context.scenario, world)
+    dt = 1e-3
+
+    def detect(t: float, sightings: list[Sighting], info: dict[str, object]) -> list[MarkerData]:
+        epoch = float(info["epoch"])  # type: ignore[arg-type]
+        frame = int(info["frame"])  # type: ignore[call-overload]
+        truth = info["truth"]
+        views = [MarkerView(s.marker.family, s.marker.id, s.marker.size_m, s.T_sensor_marker) for s in sightings]
+        # Motion blur: how far the image of the marker centres moves during the exposure.
+        blur = (0.0, 0.0)
+        if sightings and optics.exposure_s > 0:
+            later = sim.truth(t + dt)
+            shifts = []
+            for s in sightings:
+                T_later = (
+                    (later[sensor.entity] * sensor.T_entity_sensor).inv()
+                    * later[s.marker.entity]
+                    * s.marker.T_entity_marker
+                )
+                a = sim.cameras[sensor.id][1].project(s.T_sensor_marker.translation[None, :])[0]
+                b = sim.cameras[sensor.id][1].project(T_later.translation[None, :])[0]
+                shifts.append((b - a) * optics.exposure_s / dt)
+            blur = tuple(np.mean(shifts, axis=0))  # type: ignore[assignment]
+        del truth
+        img = render(cam, views, seed=seed + frame, noise_sigma=optics.noise_sigma, blur_px=blur, supersample=3)
+        return detector.detect(img, round((epoch + t) * 1e6))
+
+    return detect

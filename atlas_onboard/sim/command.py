@@ -8,6 +8,7 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+import yaml
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core import frames
@@ -115,7 +116,16 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
-    options = SimOptions(scenario=args.scenario, duration_s=args.duration, seed=args.seed, out_dir=args.out)
+    overrides: dict[str, dict[str, object]] = {}
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        section, dot, name = key.partition(".")
+        if not sep or not dot or section != "fusion":
+            raise AtlasError(f"--set: expected fusion.KEY=VALUE, got {item!r}")
+        overrides.setdefault(section, {})[name] = yaml.safe_load(value)
+    options = SimOptions(
+        scenario=args.scenario, duration_s=args.duration, seed=args.seed, out_dir=args.out, world_overrides=overrides
+    )
     sim = run(options, progress=lambda msg: print(f"atlas-onboard sim: {msg}", file=sys.stderr))
     rep, tracks = score_run(sim)
     rep.seed = args.seed
@@ -161,5 +171,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p.add_argument("--duration", type=float, default=None, help="seconds (default: the scenario's own)")
     p.add_argument("--out", type=Path, default=None, help="write report.json, TUM trajectories and PNG plots here")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
-    p.add_argument("--seed", type=int, default=0, help="seed of pixel noise and trajectory jitter")
+    p.add_argument("--seed", type=int, default=0, help="seed of the pixel noise")
+    p.add_argument(
+        "--set", action="append", metavar="fusion.KEY=VALUE",
+        help="override a fusion setting of the scenario's world file, e.g. --set fusion.path=dijkstra",
+    )  # fmt: skip
     p.set_defaults(func=_cmd_sim)
