@@ -27,6 +27,7 @@ class _EmaState:
     p: NDArray[np.float64]
     q: NDArray[np.float64]  # xyzw
     stamp_ns: int
+    sigma_m: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,6 +66,7 @@ class Listener:
         self.world = world
         self.graph = graph
         self.alpha = world.fusion.ema_alpha
+        self.age_sigma = world.fusion.age_sigma_m_per_s
         self.timeout_ns = graph.edge_timeout_ns
         self._sensor = {s.id: (s.entity, s.T_entity_sensor.as_matrix()) for s in world.sensors.values()}
         self._marker = {m.id: (m.entity, m.T_entity_marker.inv().as_matrix()) for m in world.markers.values()}
@@ -102,14 +104,26 @@ class Listener:
             return result
         key = result.key
         state = self._ema.get(key)
+        sigma = result.sigma_m
         if state is None or now_ns - state.stamp_ns > self.timeout_ns:
             # A new or expired edge starts the filter afresh: old information is not mixed in.
             p, q = result.p_a_b, result.q_a_b_xyzw
+        elif self.age_sigma > 0.0:
+            # Beyond the paper: a per-edge Kalman filter with a random walk of age_sigma m/s. The old
+            # value's variance grows with its age; the blend weighs old and new by inverse variance,
+            # so a blurred frame (large sigma) cannot overwrite a sharp one taken a moment before.
+            age_s = (now_ns - state.stamp_ns) / 1e9
+            var_old = state.sigma_m**2 + (age_s * self.age_sigma) ** 2
+            var_new = sigma**2
+            alpha = var_old / (var_old + var_new)
+            p = fusion.ema_position(state.p, result.p_a_b, alpha)
+            q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, alpha)
+            sigma = float(np.sqrt(var_old * var_new / (var_old + var_new)))
         else:
-            p = fusion.ema_position(state.p, result.p_a_b, self.alpha)
+            p = fusion.ema_position(state.p, result.p_a_b, self.alpha)  # eq. 3
             q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, self.alpha)
-        self._ema[key] = _EmaState(p, q, now_ns)
-        self.graph.update_edge(key, result.observer, result.observed, p, q, result.sigma_m, now_ns, md.capture_time_us)
+        self._ema[key] = _EmaState(p, q, now_ns, sigma)
+        self.graph.update_edge(key, result.observer, result.observed, p, q, sigma, now_ns, md.capture_time_us)
         self.accepted += 1
         return None
 

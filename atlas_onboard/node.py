@@ -212,6 +212,10 @@ class Node:
             self.stats.peer_observations += 1
         if reason is None:
             self._dirty = True
+            _logger.debug(
+                "obs %d/%d cap %d sigma %.4f p %s", md.sensor_id, md.marker_id, md.capture_time_us, md.sigma_m,
+                md.p_sensor_marker_m,
+            )  # fmt: skip
         elif reason is not Rejection.UNKNOWN_MARKER:
             _logger.debug("rejected observation %s from %d: %s", (md.sensor_id, md.marker_id), md.origin, reason.value)
 
@@ -246,6 +250,8 @@ class Node:
             _logger.log(logging.WARNING if lost else logging.INFO, "%s: %s", self.config.entity, status)
             self.transport.send_status(f"atlas {self.config.entity}: {status}", 4 if lost else 6)  # WARNING / INFO
         if out is not None and self.config.autopilot is not None:
+            pose = out.pose
+            _logger.debug("pose cap %d p %s n %d", pose.capture_time_us, pose.p_world_m, pose.n_observations)
             self.transport.send_autopilot(out)
             self.stats.autopilot_sent += 1
 

@@ -176,3 +176,20 @@ def test_forget_expired_bounds_filter_state():
     assert len(listener._ema) == 1
     listener.forget_expired(250 * MS + 1)
     assert len(listener._ema) == 0
+
+
+def test_with_age_sigma_each_edge_is_a_kalman_filter():
+    """Beyond the paper: a blurred frame (large sigma) cannot overwrite a sharp one taken just before."""
+    world = world_from({**HAND, "fusion": {"age_sigma_m_per_s": 1.0}})
+    graph = make_graph(world)
+    listener = Listener(world, graph)
+    sharp = MarkerData(1, 5, 0.001, (0.0, 0.0, 2.0), (1.0, 0.0, 0.0, 0.0), 0)
+    blurred = replace(sharp, sigma_m=0.1, p_sensor_marker_m=(0.0, 0.0, 2.3))
+    listener.accept(sharp, now_ns=0)
+    listener.accept(blurred, now_ns=20 * MS)
+    # old variance: 0.001^2 + (0.02 s * 1 m/s)^2 = 4.01e-4; new: 0.01 -> alpha = 4.01e-4 / 1.0401e-2
+    var_old, var_new = 0.001**2 + 0.02**2, 0.1**2
+    alpha = var_old / (var_old + var_new)
+    edge = graph.edges[(1, 5)]
+    assert edge.p_a_b[2] == pytest.approx(2.0 + alpha * 0.3, rel=1e-9)
+    assert edge.sigma_m == pytest.approx(np.sqrt(var_old * var_new / (var_old + var_new)))

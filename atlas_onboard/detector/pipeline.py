@@ -12,12 +12,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import SensorConfig, WorldConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.families import family
 
 MAX_AMBIGUITY = 0.5
 """IPPE's two planar solutions fit almost equally well above this ratio: the chosen one may be the
@@ -36,10 +38,14 @@ class Detector:
     decimate: float = 2.0
     track: bool = True
     max_ambiguity: float = MAX_AMBIGUITY
+    joint: bool = True
     counters: Counter[str] = field(default_factory=Counter)
 
     def __post_init__(self) -> None:
-        self.sizes = {m.id: m.size_m for m in self.world.markers.values() if m.entity != self.sensor.entity}
+        others = [m for m in self.world.markers.values() if m.entity != self.sensor.entity]
+        self.sizes = {m.id: m.size_m for m in others}
+        self.entity_of = {m.id: m.entity for m in others}
+        self.marker_pose = {m.id: m.T_entity_marker for m in others}
         wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
         self.finder = MarkerFinder(wanted, self.decimate)
         self._last: list[NDArray[np.float64]] = []  # boxes (x0, y0, x1, y1) of the previous frame's markers
@@ -65,35 +71,89 @@ class Detector:
         return list(found.values())
 
     def detect(self, gray: NDArray[np.uint8], capture_time_us: int) -> list[MarkerData]:
-        """MarkerData of every configured marker in ``gray``."""
+        """MarkerData of the configured markers in ``gray``.
+
+        With ``joint`` (the default), the markers of one entity seen together are solved as one
+        rigid pattern (every corner at once, far better conditioned than any single square) and
+        reported as one observation of the first of them; a lone marker is solved on its own.
+        """
         h, w = gray.shape[:2]
         self.calibration.check_size(w, h, f"sensor {self.sensor.name}")
-        out = []
         K = self.calibration.K
+        singles: dict[int, tuple[pose.MarkerPose, NDArray[np.float64]]] = {}
         for d in self.find(gray):
             corners = pose.undistort(d.corners_px, K, self.calibration.dist, self.calibration.fisheye)
-            mp = pose.solve(corners, self.sizes[d.marker_id], K)
+            mp = pose.solve(corners, self.sizes[d.marker_id], K, self._sigma_px(d.family))
             if mp is None:
                 self.counters["pnp_failed"] += 1
                 continue
-            if mp.ambiguity > self.max_ambiguity:
-                self.counters["ambiguous"] += 1
-                continue
-            x, y, z, w_ = mp.q_xyzw
-            out.append(
-                MarkerData(
-                    sensor_id=self.sensor.id,
-                    marker_id=d.marker_id,
-                    sigma_m=mp.sigma_m,
-                    p_sensor_marker_m=(float(mp.p_m[0]), float(mp.p_m[1]), float(mp.p_m[2])),
-                    q_sensor_marker_wxyz=(float(w_), float(x), float(y), float(z)),
-                    capture_time_us=capture_time_us,
-                    reprojection_error_px=mp.reprojection_error_px,
-                    ambiguity_ratio=mp.ambiguity,
-                )
-            )
+            singles[d.marker_id] = (mp, corners)
+        out = []
+        groups: dict[str, list[int]] = {}
+        for mid in sorted(singles):
+            groups.setdefault(self.entity_of[mid], []).append(mid)
+        for ids in groups.values():
+            if self.joint and len(ids) > 1:
+                md = self._joint(ids, singles, capture_time_us)
+                if md is not None:
+                    out.append(md)
+                    continue
+            for mid in ids:
+                mp = singles[mid][0]
+                if mp.ambiguity > self.max_ambiguity:
+                    self.counters["ambiguous"] += 1
+                    continue
+                out.append(self._markerdata(mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px, mp.ambiguity,
+                                            capture_time_us))  # fmt: skip
         self.counters["detections"] += len(out)
         return out
+
+    def _sigma_px(self, family_name: str) -> float:
+        return pose.SIGMA_PX_APRILTAG if family(family_name).is_apriltag else pose.SIGMA_PX_ARUCO
+
+    def _joint(self, ids: list[int], singles: dict, capture_time_us: int) -> MarkerData | None:
+        anchor = ids[0]
+        T_entity_anchor = self.marker_pose[anchor]
+        obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
+        img = np.vstack([singles[m][1] for m in ids])
+        # Start from the least ambiguous single solution, moved to the entity frame.
+        best = min(ids, key=lambda m: singles[m][0].ambiguity if np.isfinite(singles[m][0].ambiguity) else 1.0)
+        mp = singles[best][0]
+        T_cam_entity = (
+            RigidTransform.from_components(mp.p_m, Rotation.from_quat(mp.q_xyzw)) * self.marker_pose[best].inv()
+        )
+        guess = (T_cam_entity.rotation.as_rotvec(), T_cam_entity.translation)
+        fam = self.world.markers[anchor].family
+        sol = pose.solve_joint(obj, img, self.calibration.K, self._sigma_px(fam), guess)
+        if sol is None:
+            self.counters["joint_failed"] += 1
+            return None
+        rvec, tvec, err, sigma = sol
+        T = RigidTransform.from_components(tvec, Rotation.from_rotvec(rvec)) * T_entity_anchor
+        self.counters["joint"] += 1
+        return self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us)
+
+    def _markerdata(
+        self,
+        marker_id: int,
+        p: NDArray[np.float64],
+        q_xyzw: NDArray[np.float64],
+        sigma: float,
+        err: float,
+        ambiguity: float,
+        capture_time_us: int,
+    ) -> MarkerData:
+        x, y, z, w = q_xyzw
+        return MarkerData(
+            sensor_id=self.sensor.id,
+            marker_id=marker_id,
+            sigma_m=float(sigma),
+            p_sensor_marker_m=(float(p[0]), float(p[1]), float(p[2])),
+            q_sensor_marker_wxyz=(float(w), float(x), float(y), float(z)),
+            capture_time_us=capture_time_us,
+            reprojection_error_px=float(err),
+            ambiguity_ratio=float(ambiguity),
+        )
 
 
 def _side(c: NDArray[np.float64]) -> float:

@@ -1,14 +1,15 @@
 """Marker pose from corners: undistort, IPPE (both planar solutions), ambiguity ratio, and sigma.
 
-The sigma model (metres, the standard deviation of the marker's position in the camera frame):
-
-    sigma = k * z^2 * sigma_px / (f * s) * (1 + (e_reproj / sigma_px)^2)^0.5 / max(cos(theta), 0.26)^0.5
-
-where z is the range, f the focal length in pixels, s the marker side in metres, sigma_px the corner
-noise (0.1 px for the AprilTag library on sharp images), e_reproj the RMS reprojection error of the
-chosen solution and theta the viewing angle off the marker's normal. The first factor is the range
-error of a square of s metres seen at z metres with corners that wobble by sigma_px; a poor fit or an
-oblique view inflates it. ``k`` is calibrated in simulation against truth (tests/detector).
+Sigma is the standard deviation (metres) of what the graph actually uses from an observation: where
+the camera is relative to the marker (eq. 1 inverts the marker's pose, so an error in the marker's
+orientation swings the camera around it by range x angle). It comes from first-order propagation of
+corner noise: the Jacobian J of the corners' projection with respect to the pose gives the pose
+covariance sigma_px^2 (J^T J)^-1, and the camera position -R^T t its covariance; sigma is the square
+root of the largest eigenvalue. A single marker seen face-on is the degenerate case: its tilt is then
+determined only to second order, so sigma is capped at range x sqrt(2 sigma_px / side_px), what
+second order gives. A poor fit (reprojection error above the corner noise) inflates sigma by
+sqrt(1 + (e / sigma_px)^2). The corner noise sigma_px is 0.1 px for the AprilTag library and 0.25 px
+for OpenCV's ArUco corners; the model is checked against truth in simulation (tests/detector).
 """
 
 from __future__ import annotations
@@ -21,14 +22,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-SIGMA_PX = 0.1
-SIGMA_K = 1.0
+SIGMA_PX_APRILTAG = 0.1
+SIGMA_PX_ARUCO = 0.25
 MIN_SIGMA_M = 0.0005
 
 
 @dataclass(frozen=True)
 class MarkerPose:
-    """The chosen (lowest reprojection error) IPPE solution and the other one."""
+    """The chosen (lowest reprojection error) solution and, for a single square, the other IPPE one."""
 
     p_m: NDArray[np.float64]
     q_xyzw: NDArray[np.float64]
@@ -59,38 +60,83 @@ def undistort(
     return out.reshape(-1, 2)
 
 
-def sigma_model(
-    p_m: NDArray[np.float64], q_xyzw: NDArray[np.float64], size_m: float, f_px: float, err_px: float
+def camera_position_sigma(
+    rvec: NDArray[np.float64],
+    tvec: NDArray[np.float64],
+    obj: NDArray[np.float64],
+    K: NDArray[np.float64],
+    sigma_px: float,
+    err_px: float,
 ) -> float:
-    z = float(np.linalg.norm(p_m))
-    normal = Rotation.from_quat(q_xyzw).apply([0.0, 0.0, 1.0])
-    cos_theta = abs(float(normal @ (-p_m / max(z, 1e-9))))
-    base = SIGMA_K * z * z * SIGMA_PX / (f_px * size_m)
-    fit = math.sqrt(1.0 + (err_px / SIGMA_PX) ** 2) if math.isfinite(err_px) else 2.0
-    return max(base * fit / math.sqrt(max(cos_theta, 0.26)), MIN_SIGMA_M)
+    """First-order standard deviation of the camera's position in the object's frame (metres)."""
+    _, J = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, K, None)
+    J = J[:, :6]  # d(pixels) / d(rvec, tvec)
+    try:
+        cov = sigma_px**2 * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return math.inf
+    x0 = np.concatenate([np.ravel(rvec), np.ravel(tvec)]).astype(float)
+
+    def camera(x: NDArray[np.float64]) -> NDArray[np.float64]:  # c = -R^T t
+        return -Rotation.from_rotvec(x[:3]).inv().apply(x[3:])
+
+    Jc = np.zeros((3, 6))
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = 1e-6
+        Jc[:, i] = (camera(x0 + d) - camera(x0 - d)) / 2e-6
+    var = float(np.linalg.eigvalsh(Jc @ cov @ Jc.T).max())
+    fit = math.sqrt(1.0 + (err_px / sigma_px) ** 2) if math.isfinite(err_px) else 2.0
+    return math.sqrt(max(var, 0.0)) * fit
 
 
-def solve(corners_px: NDArray[np.float64], size_m: float, K: NDArray[np.float64]) -> MarkerPose | None:
-    """IPPE on undistorted corners; None if OpenCV finds no solution."""
+def solve(corners_px: NDArray[np.float64], size_m: float, K: NDArray[np.float64], sigma_px: float) -> MarkerPose | None:
+    """IPPE on undistorted corners of one square; None if OpenCV finds no solution in front."""
     obj = object_corners(size_m)
-    ok, rvecs, tvecs, errs = cv2.solvePnPGeneric(
-        obj,
-        np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 1, 2),
-        K,
-        None,
-        flags=cv2.SOLVEPNP_IPPE_SQUARE,
-    )
+    img = np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 1, 2)
+    ok, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
     if not ok or len(rvecs) == 0:
         return None
     e = np.asarray(errs, dtype=float).ravel()
-    sols = [
-        (Rotation.from_rotvec(np.asarray(r).ravel()).as_quat(), np.asarray(t, dtype=float).ravel())
-        for r, t in zip(rvecs, tvecs, strict=True)
-    ]
-    q0, p0 = sols[0]
-    if p0[2] <= 0:
+    r0, t0 = np.asarray(rvecs[0], float).ravel(), np.asarray(tvecs[0], float).ravel()
+    if t0[2] <= 0:
         return None
-    alt = sols[1] if len(sols) > 1 else None
+    alt = (
+        (np.asarray(tvecs[1], float).ravel(), Rotation.from_rotvec(np.ravel(rvecs[1])).as_quat())
+        if len(rvecs) > 1
+        else (None, None)
+    )
     ambiguity = float(e[0] / e[1]) if len(e) > 1 and e[1] > 0 else float("nan")
-    sigma = sigma_model(p0, q0, size_m, float(K[0, 0] + K[1, 1]) / 2, float(e[0]))
-    return MarkerPose(p0, q0, float(e[0]), alt[1] if alt else None, alt[0] if alt else None, ambiguity, sigma)
+    sigma = camera_position_sigma(r0, t0, obj, K, sigma_px, float(e[0]))
+    # Face-on, the first order says nothing about tilt; second order bounds it.
+    z = float(np.linalg.norm(t0))
+    side_px = float(np.mean(np.linalg.norm(np.diff(np.vstack([corners_px, corners_px[:1]]), axis=0), axis=1)))
+    cap = z * math.sqrt((sigma_px / side_px) ** 2 + 2.0 * sigma_px / side_px)
+    fit = math.sqrt(1.0 + (e[0] / sigma_px) ** 2)
+    sigma = max(min(sigma, cap * fit), MIN_SIGMA_M)
+    return MarkerPose(t0, Rotation.from_rotvec(r0).as_quat(), float(e[0]), alt[0], alt[1], ambiguity, sigma)
+
+
+def solve_joint(
+    obj_entity: NDArray[np.float64],
+    img: NDArray[np.float64],
+    K: NDArray[np.float64],
+    sigma_px: float,
+    guess: tuple[NDArray[np.float64], NDArray[np.float64]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], float, float] | None:
+    """Pose of an entity from the corners of several of its markers at once.
+
+    ``obj_entity``: (N, 3) corners in the entity frame; ``img``: (N, 2) undistorted pixels; ``guess``:
+    rvec, tvec to start from (the best single-marker solution). Returns rvec, tvec, RMS error, sigma.
+    """
+    ok, rvec, tvec = cv2.solvePnP(
+        obj_entity.reshape(-1, 1, 3), img.reshape(-1, 1, 2), K, None, guess[0].copy(), guess[1].copy(),
+        useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE,
+    )  # fmt: skip
+    if not ok:
+        return None
+    rvec, tvec = rvec.ravel(), tvec.ravel()
+    proj, _ = cv2.projectPoints(obj_entity.reshape(-1, 1, 3), rvec, tvec, K, None)
+    err = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))
+    sigma = max(camera_position_sigma(rvec, tvec, obj_entity, K, sigma_px, err), MIN_SIGMA_M)
+    return rvec, tvec, err, sigma

@@ -74,6 +74,8 @@ class SimRun:
     taps: list[tuple[float, bytes]]
     exit_codes: dict[str, int | None]
     logs: dict[str, str]
+    ports: list[int] = field(default_factory=list)  # every UDP port the runner opened (all closed now)
+    pids: list[int] = field(default_factory=list)  # every node process it started (all ended now)
 
 
 def die_with_parent() -> None:
@@ -163,6 +165,8 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
     autopilots = {name: SimAutopilot(system_id=k).start() for k, name in enumerate(scenario.drones, start=1)}
     logs: dict[str, str] = {}
     exit_codes: dict[str, int | None] = {}
+    pids: list[int] = []
+    epoch = 0.0
     try:
         world_file = build_run_config(
             scenario, run_dir, hub.port, {n: a.port for n, a in autopilots.items()}, options.world_overrides
@@ -216,6 +220,7 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
                     raise AtlasError(f"node {dead[0]} died during the run: {_tail(run_dir / f'{dead[0]}.log')}")
                 time.sleep(0.05)
         exit_codes = {n: p.returncode for n, p in procs.items()}
+        pids = [p.pid for p in procs.values()]
         logs = {n: (run_dir / f"{n}.log").read_text(encoding="utf-8", errors="replace") for n in entities}
     finally:
         hub.stop()
@@ -223,7 +228,10 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
             a.stop()
         if not options.keep_dir:
             shutil.rmtree(run_dir, ignore_errors=True)
-    return SimRun(scenario, SimWorld(scenario), epoch, duration, run_dir, autopilots, taps, exit_codes, logs)
+    ports = [hub.port, *(a.port for a in autopilots.values())]
+    return SimRun(
+        scenario, SimWorld(scenario), epoch, duration, run_dir, autopilots, taps, exit_codes, logs, ports, pids
+    )
 
 
 def _tail(path: Path, lines: int = 3) -> str:
