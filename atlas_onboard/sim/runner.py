@@ -59,6 +59,9 @@ class SimOptions:
     ready_timeout_s: float = 60.0
     node_args: tuple[str, ...] = ()
     world_overrides: dict[str, Any] = field(default_factory=dict)  # e.g. {"fusion": {"path": "dijkstra"}}
+    # Faults to inject, (seconds after the start, "kill" or "start", entity): a node crashes (SIGKILL)
+    # and is started again, to check what its peers do meanwhile.
+    faults: tuple[tuple[float, str, str], ...] = ()
 
 
 @dataclass
@@ -178,26 +181,18 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
         )
         entities = list(scenario.drones) + ([WORLD] if scenario.needs_world_node else [])
         with _processes() as procs:
+
+            def spawn(name: str) -> None:
+                with open(run_dir / f"{name}.log", "ab") as log:
+                    procs[name] = subprocess.Popen(  # noqa: S603 - our own interpreter and arguments
+                        [sys.executable, "-m", "atlas_onboard", *options.node_args, "run", "--config", str(world_file),
+                         "--entity", name],
+                        stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env,
+                    )  # fmt: skip
+                pids.append(procs[name].pid)
+
             for name in entities:
-                log = open(run_dir / f"{name}.log", "wb")
-                procs[name] = subprocess.Popen(  # noqa: S603 - our own interpreter and arguments
-                    [
-                        sys.executable,
-                        "-m",
-                        "atlas_onboard",
-                        *options.node_args,
-                        "run",
-                        "--config",
-                        str(world_file),
-                        "--entity",
-                        name,
-                    ],
-                    stdin=subprocess.DEVNULL,
-                    stdout=log,
-                    stderr=subprocess.STDOUT,
-                    env=env,
-                )
-                log.close()
+                spawn(name)
             say(f"started {len(procs)} node processes; waiting for them to come up")
             deadline = time.monotonic() + options.ready_timeout_s
             while len(hub.clients) < len(entities):
@@ -214,13 +209,24 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
             tmp.write_text(f"{epoch:.6f}\n", encoding="utf-8")
             tmp.replace(epoch_file)
             say(f"running {scenario.name} for {duration:g} s")
+            pending = sorted(options.faults)
+            killed: set[str] = set()
             while time.time() < epoch + duration:
-                dead = [n for n, p in procs.items() if p.poll() is not None]
+                while pending and time.time() >= epoch + pending[0][0]:
+                    _, action, name = pending.pop(0)
+                    if action == "kill":
+                        procs[name].kill()
+                        procs[name].wait()
+                        killed.add(name)
+                    elif action == "start":
+                        spawn(name)
+                        killed.discard(name)
+                    say(f"fault: {action} {name}")
+                dead = [n for n, p in procs.items() if p.poll() is not None and n not in killed]
                 if dead:
                     raise AtlasError(f"node {dead[0]} died during the run: {_tail(run_dir / f'{dead[0]}.log')}")
-                time.sleep(0.05)
+                time.sleep(0.02)
         exit_codes = {n: p.returncode for n, p in procs.items()}
-        pids = [p.pid for p in procs.values()]
         logs = {n: (run_dir / f"{n}.log").read_text(encoding="utf-8", errors="replace") for n in entities}
     finally:
         hub.stop()
