@@ -98,10 +98,54 @@ class Listener:
 
     def accept(self, md: MarkerData, now_ns: int) -> Rejection | None:
         """Validate, transform (eq. 1), filter (eq. 3) and insert into the graph; None when accepted."""
-        result = self.edge_from(md)
-        if isinstance(result, Rejection):
-            self.rejected[result] += 1
-            return result
+        return self.accept_many([(md, now_ns)])[0]
+
+    def accept_many(self, items: list[tuple[MarkerData, int]]) -> list[Rejection | None]:
+        """:meth:`accept` for a burst of observations, with eq. 1 computed for all of them at once
+        (one scipy call per step instead of one per observation: the node's hot path)."""
+        results: list[Rejection | None] = [None] * len(items)
+        valid = []
+        for i, (md, _) in enumerate(items):
+            reason = self._check(md)
+            if reason is not None:
+                self.rejected[reason] += 1
+                results[i] = reason
+            else:
+                valid.append(i)
+        if not valid:
+            return results
+        T1 = np.array([self._sensor[items[i][0].sensor_id][1] for i in valid])
+        T3_inv = np.array([self._marker[items[i][0].marker_id][1] for i in valid])
+        T2 = np.tile(np.eye(4), (len(valid), 1, 1))
+        T2[:, :3, :3] = Rotation.from_quat(np.array([items[i][0].q_sensor_marker_xyzw() for i in valid])).as_matrix()
+        T2[:, :3, 3] = np.array([items[i][0].p_sensor_marker_m for i in valid])
+        T = T1 @ T2 @ T3_inv  # eq. 1, for the whole burst
+        q_all = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+        for j, i in enumerate(valid):
+            md, now_ns = items[i]
+            observer = self._sensor[md.sensor_id][0]
+            observed = self._marker[md.marker_id][0]
+            update = EdgeUpdate(
+                (md.sensor_id, md.marker_id), observer, observed, T[j, :3, 3].copy(), q_all[j], md.sigma_m
+            )
+            self._insert(md, update, now_ns)
+        return results
+
+    def _check(self, md: MarkerData) -> Rejection | None:
+        reason = md.rejection()
+        if reason is not None:
+            return reason
+        sensor = self._sensor.get(md.sensor_id)
+        if sensor is None:
+            return Rejection.UNKNOWN_SENSOR
+        marker = self._marker.get(md.marker_id)
+        if marker is None:
+            return Rejection.UNKNOWN_MARKER
+        if sensor[0] == marker[0]:
+            return Rejection.OWN_MARKER
+        return None
+
+    def _insert(self, md: MarkerData, result: EdgeUpdate, now_ns: int) -> None:
         key = result.key
         state = self._ema.get(key)
         sigma = result.sigma_m
@@ -125,7 +169,6 @@ class Listener:
         self._ema[key] = _EmaState(p, q, now_ns, sigma)
         self.graph.update_edge(key, result.observer, result.observed, p, q, sigma, now_ns, md.capture_time_us)
         self.accepted += 1
-        return None
 
     def forget_expired(self, now_ns: int) -> None:
         """Drop filter state of edges older than the timeout (bounded memory when sensors go away)."""

@@ -31,6 +31,8 @@ from atlas_onboard.publisher import AutopilotPose, Publisher
 _logger = logging.getLogger(__name__)
 
 NS = 1_000_000_000
+SETTLE_S = 0.0003  # wait this long for the rest of a burst before evaluating
+MAX_SETTLE_S = 0.0006  # and never longer than this
 LOSS_CHECK_NS = 20_000_000  # evaluate at least every 20 ms, so a lost pose stops output promptly
 
 
@@ -183,12 +185,16 @@ class Node:
                 item = self.inbox.get(timeout_s=0.01)
                 now = self.clock()
                 if item is not None:
-                    self._handle(*item)
-                    # Drain what queued up meanwhile before evaluating once for all of it.
-                    while len(self.inbox) and not self._stop.is_set():
-                        nxt = self.inbox.get(0.0)
-                        if nxt is not None:
-                            self._handle(*nxt)
+                    # Observations of one frame arrive as a burst (one datagram each): take what is
+                    # queued, and what follows within SETTLE_S, then accept and evaluate them at once.
+                    batch = [item]
+                    settle_end = time.monotonic() + MAX_SETTLE_S
+                    while not self._stop.is_set() and time.monotonic() < settle_end:
+                        nxt = self.inbox.get(SETTLE_S)
+                        if nxt is None:
+                            break
+                        batch.append(nxt)
+                    self._handle(batch)
                     now = self.clock()
                 self._step(now)
                 if self._reload.is_set():
@@ -202,22 +208,25 @@ class Node:
             self._log_status(final=True)
         return 0
 
-    def _handle(self, md: MarkerData, arrival_ns: int, local: bool) -> None:
-        reason = self.listener.accept(md, arrival_ns)
-        if local:
-            self.stats.local_observations += 1
+    def _handle(self, batch: list[tuple[MarkerData, int, bool]]) -> None:
+        reasons = self.listener.accept_many([(md, arrival) for md, arrival, _ in batch])
+        for (md, _, local), reason in zip(batch, reasons, strict=True):
+            if local:
+                self.stats.local_observations += 1
+                if reason is None:
+                    self.transport.send_observation(md)
+            else:
+                self.stats.peer_observations += 1
             if reason is None:
-                self.transport.send_observation(md)
-        else:
-            self.stats.peer_observations += 1
-        if reason is None:
-            self._dirty = True
-            _logger.debug(
-                "obs %d/%d cap %d sigma %.4f p %s", md.sensor_id, md.marker_id, md.capture_time_us, md.sigma_m,
-                md.p_sensor_marker_m,
-            )  # fmt: skip
-        elif reason is not Rejection.UNKNOWN_MARKER:
-            _logger.debug("rejected observation %s from %d: %s", (md.sensor_id, md.marker_id), md.origin, reason.value)
+                self._dirty = True
+                _logger.debug(
+                    "obs %d/%d cap %d sigma %.4f p %s", md.sensor_id, md.marker_id, md.capture_time_us, md.sigma_m,
+                    md.p_sensor_marker_m,
+                )  # fmt: skip
+            elif reason is not Rejection.UNKNOWN_MARKER:
+                _logger.debug(
+                    "rejected observation %s from %d: %s", (md.sensor_id, md.marker_id), md.origin, reason.value
+                )
 
     def _step(self, now: int) -> None:
         """Evaluate when something changed (or edges may have expired) and publish what is due."""

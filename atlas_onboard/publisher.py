@@ -41,6 +41,9 @@ class Publisher:
     has_pose: bool = False
     sent: int = 0
     suppressed_rate: int = 0
+    burst: float = 2.0
+    _tokens: float = 2.0
+    _tokens_ns: int | None = None
     _last_sent_ns: int | None = None
     _last_capture_us: int = -1
     _last_p: np.ndarray | None = None
@@ -62,7 +65,7 @@ class Publisher:
             status = "pose found"
         if pose.capture_time_us <= self._last_capture_us:
             return None, status  # nothing new contributed since the last message
-        if self._last_sent_ns is not None and now_ns - self._last_sent_ns < NS / self.rate_hz:
+        if not self._take_token(now_ns):
             self.suppressed_rate += 1
             return None, status
         if self._lost_since_sent or (
@@ -77,11 +80,22 @@ class Publisher:
         self.sent += 1
         return AutopilotPose(pose, self.reset_counter), status
 
+    def _take_token(self, now_ns: int) -> bool:
+        """Token bucket: at most ``rate_hz`` on average, ``burst`` back to back. A camera at the cap's
+        own rate then never waits for its jitter, and a burst of detections cannot flood the autopilot."""
+        if self._tokens_ns is not None:
+            self._tokens = min(self.burst, self._tokens + (now_ns - self._tokens_ns) * self.rate_hz / NS)
+        self._tokens_ns = now_ns
+        if self._tokens >= 1.0:
+            self._tokens -= 1.0
+            return True
+        return False
+
     def next_autopilot_ns(self) -> int | None:
         """When a pose held back by the rate cap may go (the node re-evaluates then)."""
-        if self._last_sent_ns is None:
+        if self._tokens_ns is None or self._tokens >= 1.0:
             return None
-        return self._last_sent_ns + int(NS / self.rate_hz)
+        return self._tokens_ns + int((1.0 - self._tokens) * NS / self.rate_hz) + 1
 
     def fused_due(self, now_ns: int) -> bool:
         """True when the fused poses of every entity should go to peers now."""

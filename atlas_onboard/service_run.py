@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import sys
 from pathlib import Path
 
 from atlas_onboard.config import WORLD, ConfigError, NodeConfig, WorldConfig, load_node, read_yaml
@@ -113,6 +114,9 @@ def run_node(config_path: Path, entity: str | None) -> int:
     if interval is not None:
         node.watchdog_interval_ns = interval
     install_signal_handlers(node)
+    # Link threads decode bursts of datagrams while holding the GIL; with Python's default 5 ms switch
+    # interval the main loop would wait up to that long for its turn. Latency matters more here.
+    sys.setswitchinterval(0.0002)
     _logger.info(
         "world %s (fingerprint %08x), entity %s, %d camera(s), %d peer link(s)",
         config_path, world.fingerprint(), name, len(cameras), len(config.peers),

@@ -29,15 +29,25 @@ def test_sends_once_per_new_observation_and_stops_when_edges_expire():
     assert pub.sent == 1
 
 
-def test_rate_cap_holds_back_then_releases():
-    pub = Publisher("d", rate_hz=10)
+def test_rate_cap_is_a_token_bucket():
+    pub = Publisher("d", rate_hz=10)  # burst 2: two back to back, then one per 100 ms
     g = graph_with([0, 0, 0], 1, 0)
     assert pub.autopilot(g.evaluate(0), 0)[0] is not None
-    graph_with([0, 0, 0.01], 2, 50 * MS, g)
-    assert pub.autopilot(g.evaluate(50 * MS), 50 * MS)[0] is None  # 50 ms < 100 ms
-    assert pub.suppressed_rate == 1 and pub.next_autopilot_ns() == 100 * MS
-    out, _ = pub.autopilot(g.evaluate(100 * MS), 100 * MS)
-    assert out is not None and out.pose.capture_time_us == 2
+    graph_with([0, 0, 0.01], 2, 1 * MS, g)
+    assert pub.autopilot(g.evaluate(1 * MS), 1 * MS)[0] is not None  # the burst allows a second
+    graph_with([0, 0, 0.02], 3, 2 * MS, g)
+    assert pub.autopilot(g.evaluate(2 * MS), 2 * MS)[0] is None  # the third waits for a token
+    assert pub.suppressed_rate == 1
+    release = pub.next_autopilot_ns()
+    assert 95 * MS < release <= 101 * MS  # one token refills in 100 ms
+    out, _ = pub.autopilot(g.evaluate(release), release)
+    assert out is not None and out.pose.capture_time_us == 3
+    sent = 0
+    for k in range(100):  # a steady 100 Hz of new observations for 1 s: about 10 go out
+        t = 200 * MS + k * 10 * MS
+        graph_with([0, 0, 0.03], 10 + k, t, g)
+        sent += pub.autopilot(g.evaluate(t), t)[0] is not None
+    assert 10 <= sent <= 12
 
 
 def test_reset_counter_on_found_again_and_on_jump():

@@ -79,6 +79,17 @@ def enu_flu_to_ned_frd(T_enu_flu: RigidTransform) -> RigidTransform:
     return T_ENU_NED.inv() * T_enu_flu * T_FLU_FRD
 
 
+_M_NED_ENU = R_ENU_NED.as_matrix().T
+_M_FLU_FRD = R_FLU_FRD.as_matrix()
+
+
+def enu_flu_to_ned_frd_arrays(p_enu_m: np.ndarray, q_enu_flu_xyzw: np.ndarray) -> tuple[np.ndarray, Rotation]:
+    """:func:`enu_flu_to_ned_frd` on a position and an x-first quaternion, for the publishing hot path
+    (plain 3x3 products instead of RigidTransform objects, a few microseconds instead of hundreds)."""
+    R_ned_frd = _M_NED_ENU @ Rotation.from_quat(q_enu_flu_xyzw).as_matrix() @ _M_FLU_FRD
+    return _M_NED_ENU @ np.asarray(p_enu_m, dtype=float), Rotation.from_matrix(R_ned_frd)
+
+
 def ned_frd_to_enu_flu(T_ned_frd: RigidTransform) -> RigidTransform:
     """Inverse of :func:`enu_flu_to_ned_frd`."""
     return T_ENU_NED * T_ned_frd * T_FLU_FRD.inv()

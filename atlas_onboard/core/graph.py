@@ -37,8 +37,8 @@ class Edge:
     b: int  # index of the observed entity (the marker's)
     p_a_b: NDArray[np.float64]
     q_a_b: NDArray[np.float64]  # xyzw
-    p_b_a: NDArray[np.float64]
-    q_b_a: NDArray[np.float64]  # xyzw
+    p_b_a: NDArray[np.float64] | None  # the inverse, filled in at the next evaluation
+    q_b_a: NDArray[np.float64] | None  # xyzw
     sigma_m: float
     stamp_ns: int  # arrival on this node's clock: the edge's age is measured from here
     capture_time_us: int  # when the image was taken, on the observer's clock
@@ -145,8 +145,16 @@ class TransformGraph:
         p = np.asarray(p_a_b, dtype=float)
         q = np.asarray(q_a_b_xyzw, dtype=float)
         q = q / np.linalg.norm(q)
-        p_inv, q_inv = geometry.invert_arrays(p, q)
-        self.edges[key] = Edge(key, a, b, p, q, p_inv, q_inv, float(sigma_m), int(now_ns), int(capture_time_us))
+        # The inverse (for walking the edge backwards) is computed at evaluation, for all new edges at once.
+        self.edges[key] = Edge(key, a, b, p, q, None, None, float(sigma_m), int(now_ns), int(capture_time_us))
+
+    def _invert_new_edges(self, edges: list[Edge]) -> None:
+        new = [e for e in edges if e.p_b_a is None]
+        if not new:
+            return
+        p_inv, q_inv = geometry.invert_arrays(np.array([e.p_a_b for e in new]), np.array([e.q_a_b for e in new]))
+        for e, pi, qi in zip(new, p_inv, q_inv, strict=True):
+            e.p_b_a, e.q_b_a = pi, qi
 
     def expire(self, now_ns: int) -> int:
         """Remove edges older than the timeout (age > timeout); returns how many were removed."""
@@ -238,6 +246,7 @@ class TransformGraph:
         """
         self.expire(now_ns)
         edges = list(self.edges.values())
+        self._invert_new_edges(edges)
         world = self.index[WORLD]
         poses, order, levels = self._evaluate_from(edges, world, now_ns)
         reached = set(order)

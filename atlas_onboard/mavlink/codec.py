@@ -12,7 +12,7 @@ from types import ModuleType
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import RigidTransform, Rotation
+from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core import frames
 from atlas_onboard.core.graph import EntityPose
@@ -192,18 +192,16 @@ def quality_percent(sigma_m: float) -> int:
     return int(np.clip(round(q), 1, 100))
 
 
-def ned_pose(pose: EntityPose) -> RigidTransform:
-    """The autopilot's view: the FRD body in the local NED frame (the one tested conversion)."""
-    return frames.enu_flu_to_ned_frd(
-        RigidTransform.from_components(pose.p_world_m, Rotation.from_quat(pose.q_world_xyzw))
-    )
+def ned_pose(pose: EntityPose) -> tuple[np.ndarray, Rotation]:
+    """The autopilot's view: position in local NED and the FRD body's attitude (the one conversion)."""
+    return frames.enu_flu_to_ned_frd_arrays(pose.p_world_m, pose.q_world_xyzw)
 
 
 def vision_position_estimate(dialect: ModuleType, pose: EntityPose, reset_counter: int) -> Any:
     """VISION_POSITION_ESTIMATE: usec = capture time of the newest contributing observation."""
-    T = ned_pose(pose)
-    yaw, pitch, roll = T.rotation.as_euler("ZYX")
-    x, y, z = T.translation
+    p_ned, R_ned_frd = ned_pose(pose)
+    yaw, pitch, roll = R_ned_frd.as_euler("ZYX")
+    x, y, z = p_ned
     return dialect.MAVLink_vision_position_estimate_message(
         usec=int(pose.capture_time_us), x=float(x), y=float(y), z=float(z), roll=float(roll), pitch=float(pitch),
         yaw=float(yaw), covariance=pose_covariance(pose.sigma_m), reset_counter=reset_counter & 0xFF,
@@ -212,9 +210,9 @@ def vision_position_estimate(dialect: ModuleType, pose: EntityPose, reset_counte
 
 def odometry(dialect: ModuleType, pose: EntityPose, reset_counter: int) -> Any:
     """ODOMETRY in LOCAL_FRD / BODY_FRD (what ArduPilot requires; PX4 accepts it too), velocity unknown."""
-    T = ned_pose(pose)
-    qx, qy, qz, qw = T.rotation.as_quat()
-    x, y, z = T.translation
+    p_ned, R_ned_frd = ned_pose(pose)
+    qx, qy, qz, qw = R_ned_frd.as_quat()
+    x, y, z = p_ned
     nan = math.nan
     vel_cov = [nan] + [0.0] * 20
     return dialect.MAVLink_odometry_message(

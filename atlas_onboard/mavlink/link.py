@@ -204,15 +204,19 @@ class Link:
                     _logger.debug("%s: cannot open %s: %s", self.name, self.config.url, exc)
                 continue
             try:
-                msg = self._conn.recv_match(blocking=True, timeout=0.05)
+                # Raw bytes and pymavlink's parser, not mavutil's recv_match: that one also keeps
+                # per-message bookkeeping for interactive tools, which costs more than the decode.
+                if not self._conn.select(0.05):
+                    continue
+                data = self._conn.recv(4096)
+                msgs = self._conn.mav.parse_buffer(data) if data else None
             except Exception as exc:  # the device vanished or the peer went away: reopen with backoff
                 self.counters["read_errors"] += 1
                 _logger.warning("%s: link %s failed (%s); reopening", self.name, self.config.url, exc)
                 self._drop()
                 continue
-            if msg is None:
-                continue
-            self._dispatch(msg)
+            for msg in msgs or ():
+                self._dispatch(msg)
             if self._key is not None and time.monotonic() - self._last_ts_save > 10.0:
                 self._last_ts_save = time.monotonic()
                 self.save_timestamp()

@@ -83,3 +83,12 @@ def test_rpy_order_is_yaw_then_pitch_then_roll():
     expected = Rotation.from_euler("z", 30, degrees=True) * Rotation.from_euler("y", 20, degrees=True)
     expected = expected * Rotation.from_euler("x", 10, degrees=True)
     np.testing.assert_allclose(R.as_matrix(), expected.as_matrix(), atol=1e-12)
+
+
+@given(finite, finite, finite, angles, st.floats(-89, 89), angles)
+def test_fast_ned_conversion_equals_the_reference(x, y, z, r, p, yaw):
+    T = make_pose([x, y, z], rotation_from_rpy_deg([r, p, yaw]))
+    ref = frames.enu_flu_to_ned_frd(T)
+    p_ned, R_ned = frames.enu_flu_to_ned_frd_arrays(T.translation, T.rotation.as_quat())
+    np.testing.assert_allclose(p_ned, ref.translation, atol=1e-9)
+    assert (R_ned.inv() * ref.rotation).magnitude() < 1e-9

@@ -1,0 +1,191 @@
+"""Latency and throughput of one node process, on loopback.
+
+A load generator plays 10 drones x 30 Hz x 4 markers (1200 observations/s) to one node (drone d0);
+a simulated autopilot receives its VISION_POSITION_ESTIMATE. Latency is from the moment an
+observation of d0 is written to the node's socket to the moment its pose arrives at the autopilot
+(the observation's capture stamp is its send time, and VISION_POSITION_ESTIMATE.usec carries it).
+The anchor, measured in the same run under the same load: a process that decodes every observation
+with pymavlink, as a node's link does, and forwards d0's at once (peer -> endpoint -> autopilot, no
+graph). Overhead = node - anchor: what the listener, graph and publisher add.
+
+    python benchmarks/bench_node.py [--seconds S]
+
+Bar: overhead <= 2 ms median at 10 drones x 30 Hz x 4 markers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from scipy.spatial.transform import RigidTransform, Rotation
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from atlas_onboard.config import load_world
+from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.mavlink import codec, dialect
+from atlas_onboard.sim.autopilot import SimAutopilot
+
+N_DRONES, RATE_HZ, MARKERS = 10, 30, 4
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def world_doc(peer_port: int, ap_port: int) -> dict:
+    markers = [{"id": i, "size_m": 0.2, "pose": {"pos": [float(i % 8), float(i // 8), 0.0]}} for i in range(40)]
+    ents: dict = {"world": {"markers": markers}}
+    for k in range(N_DRONES):
+        ents[f"d{k}"] = {"sensors": [{"name": "down", "id": k + 1, "pose": {"rpy_deg": [0, 90, 0]}}]}
+    return {
+        "entities": ents,
+        "nodes": {"d0": {"system_id": 1, "autopilot": {"url": f"udpout:127.0.0.1:{ap_port}"},
+                         "peers": [f"udpin:127.0.0.1:{peer_port}"], "status_interval_s": 60}},
+    }  # fmt: skip
+
+
+def observations(world, k: int, t_us: int, seq: int) -> list[MarkerData]:
+    T_world_drone = RigidTransform.from_components([1.0 + k % 5, 1.0 + k // 5, 1.5], Rotation.identity())
+    s = world.sensors[k + 1]
+    out = []
+    for j in range(MARKERS):
+        m = world.markers[(4 * k + j) % 40]
+        T = (T_world_drone * s.T_entity_sensor).inv() * m.T_entity_marker
+        x, y, z, w = T.rotation.as_quat()
+        p = T.translation
+        out.append(MarkerData(k + 1, m.id, 0.01, (p[0], p[1], p[2]), (w, x, y, z), t_us, origin=50 + k, seq=seq))
+    return out
+
+
+def load(port: int, world, seconds: float, fingerprint: int, stop: threading.Event) -> int:
+    """Send 10 drones x 30 Hz x 4 markers; each drone its own system id. Returns observations sent."""
+    d = dialect.load()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    mavs = [d.MAVLink(None, srcSystem=50 + k, srcComponent=197) for k in range(N_DRONES)]
+    period = 1.0 / RATE_HZ
+    sent = 0
+    t_end = time.time() + seconds
+    frame = 0
+    next_t = time.time()
+    while time.time() < t_end and not stop.is_set():
+        for k in range(N_DRONES):
+            t_us = int(time.time() * 1e6)
+            for md in observations(world, k, t_us, (frame * MARKERS) & 0xFFFF):
+                msg = codec.encode_observation(d, md, fingerprint)
+                sock.sendto(msg.pack(mavs[k]), ("127.0.0.1", port))
+                sent += 1
+        frame += 1
+        next_t += period
+        time.sleep(max(next_t - time.time(), 0))
+    sock.close()
+    return sent
+
+
+def relay_process(in_port: int, ap_port: int, ready: Any, stop: Any) -> None:
+    """The anchor: a process that decodes every observation of the same load with pymavlink (as a
+    node's link does) and forwards those of d0 to the autopilot at once, with no graph in between."""
+    d = dialect.load()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", in_port))
+    sock.settimeout(0.05)
+    rx = d.MAVLink(None)
+    tx = d.MAVLink(None, srcSystem=1, srcComponent=197)
+    ready.set()
+    while not stop.is_set():
+        try:
+            data = sock.recv(65535)
+        except TimeoutError:
+            continue
+        for msg in rx.parse_buffer(data) or []:
+            if msg.get_type() == "ATLAS_OBSERVATION" and msg.sensor_id == 1:
+                out = d.MAVLink_vision_position_estimate_message(msg.time_usec, 0, 0, 0, 0, 0, 0, [0.0] * 21, 0)
+                sock.sendto(out.pack(tx), ("127.0.0.1", ap_port))
+
+
+def relay_anchor(world, seconds: float) -> np.ndarray:
+    ap = SimAutopilot(system_id=1).start()
+    port = free_port()
+    ctx = mp.get_context("spawn")
+    ready, stop = ctx.Event(), ctx.Event()
+    proc = ctx.Process(target=relay_process, args=(port, ap.port, ready, stop))
+    proc.start()
+    ready.wait(30)
+    load(port, world, seconds, world.fingerprint(), threading.Event())
+    time.sleep(0.2)
+    stop.set()
+    proc.join(5)
+    recs = ap.snapshot()
+    ap.stop()
+    return np.array([(r.arrival_s * 1e6 - r.usec) / 1e3 for r in recs[5:]])
+
+
+def main() -> int:
+    ap_ = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap_.add_argument("--seconds", type=float, default=10.0)
+    args = ap_.parse_args()
+    # The load generator and the autopilot's receiver share this process: keep the GIL hand-over short
+    # so the autopilot stamps arrivals promptly (both node and anchor are measured the same way).
+    sys.setswitchinterval(0.0002)
+    with tempfile.TemporaryDirectory() as tmp:
+        peer_port = free_port()
+        ap = SimAutopilot(system_id=1).start()
+        path = Path(tmp) / "world.yaml"
+        path.write_text(yaml.safe_dump(world_doc(peer_port, ap.port)))
+        world = load_world(path)
+        log = open(Path(tmp) / "node.log", "wb")
+        node = subprocess.Popen(
+            [sys.executable, "-m", "atlas_onboard", "run", "--config", str(path), "--entity", "d0"],
+            stdout=log, stderr=subprocess.STDOUT, env={**os.environ},
+        )  # fmt: skip
+        deadline = time.time() + 30
+        while not ap.heartbeats_from and time.time() < deadline:
+            time.sleep(0.05)
+        stop = threading.Event()
+        t0 = time.time()
+        sent = load(peer_port, world, args.seconds, world.fingerprint(), stop)
+        elapsed = time.time() - t0
+        time.sleep(0.3)
+        node.send_signal(signal.SIGTERM)
+        node.wait(timeout=10)
+        log.close()
+        recs = ap.snapshot()
+        ap.stop()
+        anchor = relay_anchor(world, min(args.seconds, 5.0))
+        final = [ln for ln in (Path(tmp) / "node.log").read_text().splitlines() if " final " in ln]
+    counters = dict(p.split("=", 1) for p in final[-1].split(" final ", 1)[1].split()) if final else {}
+    lat = np.array([(r.arrival_s * 1e6 - r.usec) / 1e3 for r in recs[5:]])
+    accepted = int(counters.get("accepted", 0))
+    med, p99 = float(np.median(lat)), float(np.percentile(lat, 99))
+    a_med, a_p99 = float(np.median(anchor)), float(np.percentile(anchor, 99))
+    overhead = med - a_med
+    rate = sent / elapsed
+    print(f"load: {N_DRONES} drones x {RATE_HZ} Hz x {MARKERS} markers = {rate:.0f} observations/s for {elapsed:.1f} s")
+    dropped = counters.get("inbox_dropped", "?")
+    print(f"node accepted {accepted} of {sent} ({accepted / elapsed:.0f}/s), inbox dropped {dropped},"
+          f" autopilot messages {len(recs)} ({len(recs) / elapsed:.1f}/s)")  # fmt: skip
+    print(f"{'':28} {'median ms':>10} {'p99 ms':>8}")
+    print(f"{'node (observation -> AP)':28} {med:>10.3f} {p99:>8.3f}")
+    print(f"{'anchor (decode all, resend)':28} {a_med:>10.3f} {a_p99:>8.3f}")
+    print(f"{'overhead':28} {overhead:>10.3f} {p99 - a_p99:>8.3f}")
+    print(f"BAR node_overhead_median {overhead:.3f} ms 2.0 {'pass' if overhead <= 2.0 else 'fail'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
