@@ -26,6 +26,7 @@ SKEW_WARN_EVERY_S = 10.0
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_AUTOPILOT_INVALID = 8
 MAV_STATE_ACTIVE = 4
+PEER_LOST_NS = 3 * NS
 
 
 class TokenBucket:
@@ -76,6 +77,7 @@ class MavlinkTransport:
         self.origin_known = False
         self.autopilot_system: int | None = None
         self.peers_seen: dict[int, int] = {}  # system id -> last arrival (ns)
+        self._peers_alive: set[int] = set()
 
     # --- Transport ------------------------------------------------------------------------------------
 
@@ -126,6 +128,7 @@ class MavlinkTransport:
             )
 
     def tick(self, now_ns: int) -> None:
+        self._peer_changes(now_ns)
         if now_ns >= self._next_heartbeat_ns:
             self._next_heartbeat_ns = now_ns + int(NS / self.config.heartbeat_hz)
             for link in self._links():
@@ -146,6 +149,19 @@ class MavlinkTransport:
                     altitude=round(ap.origin.alt_m * 1000), time_usec=int(self.wall() * 1e6),
                 )
             )  # fmt: skip
+
+    def _peer_changes(self, now_ns: int) -> None:
+        """STATUSTEXT and a log line when a peer appears or falls silent for PEER_LOST_S."""
+        for sysid, last in list(self.peers_seen.items()):
+            alive = now_ns - last <= PEER_LOST_NS
+            if alive and sysid not in self._peers_alive:
+                self._peers_alive.add(sysid)
+                _logger.info("peer system %d seen", sysid)
+                self.send_status(f"atlas: peer {sysid} seen", 6)
+            elif not alive and sysid in self._peers_alive:
+                self._peers_alive.discard(sysid)
+                _logger.warning("peer system %d lost", sysid)
+                self.send_status(f"atlas: peer {sysid} lost", 4)
 
     def counters(self) -> dict[str, int]:
         out = dict(self.counters_)

@@ -52,6 +52,8 @@ class SimAutopilot:
     heartbeats_from: dict[tuple[int, int], int] = field(default_factory=dict)
     timesync_answered: int = 0
     other: dict[str, int] = field(default_factory=dict)
+    statustexts: list[bytes] = field(default_factory=list)
+    last: dict[str, object] = field(default_factory=dict)  # the last message of each other kind
 
     def __post_init__(self) -> None:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM if self.tcp else socket.SOCK_DGRAM)
@@ -84,6 +86,10 @@ class SimAutopilot:
     def snapshot(self) -> list[Received]:
         with self._lock:
             return list(self.received)
+
+    def send(self, msg: mavlink.MAVLink_message) -> None:
+        """Send a message to the node (e.g. a TIMESYNC request or GPS_GLOBAL_ORIGIN), from the autopilot."""
+        self._send(msg)
 
     def _send(self, msg: mavlink.MAVLink_message) -> None:
         try:
@@ -150,6 +156,8 @@ class SimAutopilot:
         elif kind == "TIMESYNC" and msg.tc1 == 0:
             self._send(self._mav.timesync_encode(time.monotonic_ns(), msg.ts1))
             self.timesync_answered += 1
+        elif kind == "TIMESYNC":
+            self.last[kind] = msg  # the node's answer to our request
         elif kind == "VISION_POSITION_ESTIMATE":
             rec = Received(
                 arrival,
@@ -186,3 +194,7 @@ class SimAutopilot:
                 self.received.append(rec)
         else:
             self.other[kind] = self.other.get(kind, 0) + 1
+            self.last[kind] = msg
+            if kind == "STATUSTEXT":
+                text = msg.text
+                self.statustexts.append(text.encode() if isinstance(text, str) else bytes(text))

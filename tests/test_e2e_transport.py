@@ -1,0 +1,84 @@
+"""The node's MAVLink transport in a real process: duplicates fused once, a flooding peer limited
+without starving the others, TIMESYNC answered, the EKF origin sent until the autopilot has one,
+peers seen and lost, clock skew noticed."""
+
+import time
+
+from atlas_onboard.config import load_world
+from atlas_onboard.mavlink import dialect
+from atlas_onboard.sim.autopilot import SimAutopilot
+from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.helpers import observe
+from tests.test_e2e_autopilot import TRUTH, world_doc
+
+
+def start(tmp_path, extra_node=None, autopilot_extra=None):
+    ap = SimAutopilot(system_id=1).start()
+    port = free_udp_port()
+    doc = world_doc(port, ap.port, extra_node=extra_node)
+    doc["nodes"]["d1"]["autopilot"].update(autopilot_extra or {})
+    path = write_world(tmp_path, doc)
+    world = load_world(path)
+    node = NodeProcess(path, "d1")
+    assert wait_for(lambda: ap.heartbeats_from.get((1, 197), 0) > 0), node.log()
+    return ap, port, world, node
+
+
+def test_duplicates_rate_limit_peer_status_and_skew(tmp_path):
+    ap, port, world, node = start(tmp_path, extra_node={"rate_limit_hz": 50})
+    a, b = Peer(port, 250), Peer(port, 251)
+    fp = world.fingerprint()
+    try:
+        now_us = int(time.time() * 1e6)
+        frame = a.send(observe(world, TRUTH, 10, 5, capture_time_us=now_us), fp)
+        a.raw(frame)  # a mesh echo: the very same observation again
+        a.raw(frame)
+        time.sleep(0.2)
+        # Peer a floods 500 observations at once; peer b sends 5 spread over the same time.
+        for k in range(500):
+            a.send(observe(world, TRUTH, 10, 5, capture_time_us=now_us + 10 + k), fp)
+        for _ in range(5):
+            b.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6)), fp)
+            time.sleep(0.05)
+        # An observation stamped 2 s in the past: the clocks disagree.
+        b.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6) - 2_000_000), fp)
+        time.sleep(0.3)
+        assert wait_for(lambda: any(b"peer 250 seen" in t for t in ap.statustexts), 5)
+        time.sleep(3.5)  # both peers fall silent for longer than 3 s
+        assert wait_for(lambda: any(b"peer 250 lost" in t for t in ap.statustexts), 5)
+    finally:
+        a.close()
+        b.close()
+        assert node.stop() == 0
+        ap.stop()
+    c = node.final_counters()
+    assert c["rejected_duplicate"] == 2
+    # a's bucket holds 50 (one second's worth): of 501 observations, about 50 pass; b's are all used.
+    assert 440 <= c["rejected_rate_limited"] <= 455
+    assert c["accepted"] == 501 + 6 - c["rejected_rate_limited"]  # every distinct one, less the limited
+    assert c["clock_skew_warnings"] >= 1
+    assert "sync the clocks" in node.log()
+
+
+def test_timesync_is_answered_and_origin_sent_until_known(tmp_path):
+    origin = {"lat_deg": 49.6116, "lon_deg": 6.1319, "alt_m": 300.0}
+    ap, _, _, node = start(tmp_path, autopilot_extra={"origin": origin})
+    try:
+        assert wait_for(lambda: ap.other.get("SET_GPS_GLOBAL_ORIGIN", 0) >= 2, 5), node.log()
+        msg = ap.last["SET_GPS_GLOBAL_ORIGIN"]
+        assert (msg.latitude, msg.longitude, msg.altitude) == (496116000, 61319000, 300000)
+        d = dialect.load()
+        ts1 = time.monotonic_ns()
+        ap.send(d.MAVLink_timesync_message(tc1=0, ts1=ts1))
+        assert wait_for(lambda: "TIMESYNC" in ap.last and ap.last["TIMESYNC"].ts1 == ts1, 5)
+        assert ap.last["TIMESYNC"].tc1 > 0  # the node's time, answered
+        ap.send(
+            d.MAVLink_gps_global_origin_message(latitude=496116000, longitude=61319000, altitude=300000, time_usec=0)
+        )
+        time.sleep(0.3)
+        n = ap.other["SET_GPS_GLOBAL_ORIGIN"]
+        time.sleep(2.2)
+        assert ap.other["SET_GPS_GLOBAL_ORIGIN"] == n, "the origin kept coming after GPS_GLOBAL_ORIGIN"
+    finally:
+        node.stop()
+        ap.stop()
