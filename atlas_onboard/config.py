@@ -699,7 +699,7 @@ def _rate(value: Any, path: str, lo: float = 0.1, hi: float = 1000.0) -> float:
 
 _URL_RE = re.compile(
     r"^(udpin|udpout|udpbcast|udp|tcp|tcpin):[A-Za-z0-9._-]+:\d{1,5}$"  # network: HOST:PORT
-    r"|^/dev/\S+?(,\d+)?$|^COM\d+(,\d+)?$"  # serial: DEVICE[,BAUD]
+    r"|^/\S+?(,\d+)?$|^COM\d+(,\d+)?$"  # serial: /DEVICE/PATH[,BAUD]
 )
 
 

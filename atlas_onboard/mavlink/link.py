@@ -96,7 +96,7 @@ class Link:
     def _open(self) -> None:
         url = self.config.url
         kwargs: dict[str, Any] = {"source_system": self.system_id, "source_component": self.component_id}
-        if url.startswith(("/dev/", "COM")):
+        if url.startswith(("/", "COM")):
             device, _, baud = url.partition(",")
             conn = mavutil.mavlink_connection(device, baud=int(baud or 57600), **kwargs)
         elif url.startswith("tcp:"):

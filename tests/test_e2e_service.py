@@ -1,0 +1,111 @@
+"""The node as a systemd service: the notify protocol (READY, WATCHDOG, STOPPING) against a test
+NOTIFY_SOCKET, a clean exit on SIGTERM, and an autopilot on a serial port that vanishes and returns."""
+
+import os
+import socket
+import time
+
+import numpy as np
+from pymavlink.dialects.v20 import common
+
+from atlas_onboard.config import load_world
+from tests.e2e import NodeProcess, Peer, free_udp_port, write_world
+from tests.helpers import observe
+from tests.test_e2e_autopilot import TRUTH, world_doc
+
+
+def test_notify_protocol(tmp_path):
+    addr = str(tmp_path / "notify.sock")
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    sock.bind(addr)
+    sock.settimeout(0.2)
+    path = write_world(tmp_path, world_doc(free_udp_port(), free_udp_port()))
+    node = NodeProcess(path, "d1", env={"NOTIFY_SOCKET": addr, "WATCHDOG_USEC": "2000000"})
+    got = []
+    deadline = time.monotonic() + 20
+    while time.monotonic() < deadline and sum("WATCHDOG=1" in g for g in got) < 3:
+        try:
+            got.append(sock.recv(4096).decode())
+        except TimeoutError:
+            pass
+    code = node.stop()
+    sock.settimeout(1.0)
+    try:
+        while True:
+            got.append(sock.recv(4096).decode())
+    except TimeoutError:
+        pass
+    sock.close()
+    assert code == 0
+    assert got[0].splitlines()[0] == "READY=1" and "STATUS=running as d1" in got[0]
+    assert sum("WATCHDOG=1" in g for g in got) >= 3
+    assert got[-1] == "STOPPING=1"
+
+
+def pty_autopilot(link_path):
+    """A pseudo-terminal whose slave end appears at ``link_path``, like /dev/ttyAMA0 would."""
+    master, slave = os.openpty()
+    if os.path.lexists(link_path):
+        os.unlink(link_path)
+    os.symlink(os.ttyname(slave), link_path)
+    return master, slave
+
+
+def test_serial_autopilot_vanishes_and_returns(tmp_path):
+    dev = str(tmp_path / "ttyFC")
+    master, slave = pty_autopilot(dev)
+    os.set_blocking(master, False)
+    port = free_udp_port()
+    doc = world_doc(port, 1)
+    doc["nodes"]["d1"]["autopilot"]["url"] = f"{dev},921600"
+    path = write_world(tmp_path, doc)
+    world = load_world(path)
+    node = NodeProcess(path, "d1")
+    peer = Peer(port, 250)
+    parser = common.MAVLink(None)
+    parser.robust_parsing = True
+
+    def read_vision(fd):
+        out = []
+        try:
+            data = os.read(fd, 65536)
+        except (BlockingIOError, OSError):
+            return out
+        for m in parser.parse_buffer(data) or []:
+            if m.get_type() == "VISION_POSITION_ESTIMATE":
+                out.append(m)
+        return out
+
+    def feed_until(fd, n, seconds):
+        got = []
+        end = time.time() + seconds
+        while time.time() < end and len(got) < n:
+            peer.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6)), world.fingerprint())
+            time.sleep(0.03)
+            got += read_vision(fd)
+        return got
+
+    try:
+        first = feed_until(master, 5, 20)
+        assert len(first) >= 5, node.log()[-2000:]
+        np.testing.assert_allclose([first[-1].x, first[-1].y, first[-1].z], [2.0, 1.0, -3.0], atol=1e-5)
+        # The flight controller's USB cable is pulled: the device disappears.
+        os.close(master)
+        os.close(slave)
+        os.unlink(dev)
+        feed_until(-1, 1, 1.5)
+        assert node.proc.poll() is None, "the node died with its serial device"
+        master, slave = pty_autopilot(dev)  # plugged back in
+        os.set_blocking(master, False)
+        again = feed_until(master, 5, 20)
+        assert len(again) >= 5, node.log()[-2000:]
+    finally:
+        peer.close()
+        assert node.stop() == 0
+        for fd in (master, slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+    c = node.final_counters()
+    assert c["autopilot_read_errors"] >= 1 and c["autopilot_reconnects"] >= 1
