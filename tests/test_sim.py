@@ -2,10 +2,13 @@
 MAVLink; accuracy against ground truth per scenario, and nothing left behind afterwards."""
 
 import itertools
+import json
 import os
 import socket
 
-from atlas_onboard.sim.command import score_run
+import numpy as np
+
+from atlas_onboard.sim.command import score_run, write_outputs
 from atlas_onboard.sim.runner import SimOptions, run
 
 
@@ -30,9 +33,19 @@ def test_paper_test1_self_localization():
     assert drone.availability >= 0.9 and drone.messages >= 100
 
 
-def test_paper_test2_entity_localization():
-    e, rep = run_and_score("paper-test2", 6)
+def test_paper_test2_entity_localization(tmp_path):
+    sim = run(SimOptions(scenario="paper-test2", duration_s=6))
+    rep, tracks = score_run(sim)
+    e = {x.entity: x for x in rep.entities}
     print(rep.table())
+    write_outputs(tmp_path, rep, tracks, sim)
+    # TUM files: one line per estimate (t x y z qx qy qz qw), and ground truth at 100 Hz.
+    est = np.loadtxt(tmp_path / "tag-estimate.tum")
+    truth = np.loadtxt(tmp_path / "tag-groundtruth.tum")
+    assert est.shape == (len(tracks["tag"].capture_s), 8) and truth.shape[1] == 8
+    np.testing.assert_allclose(truth[:, 1:4].mean(axis=0), [-0.004, -0.052, 0.009], atol=1e-9)
+    assert (tmp_path / "tag.png").stat().st_size > 10_000 and (tmp_path / "drone1.png").exists()
+    assert json.loads((tmp_path / "report.json").read_text())["scenario"] == "paper-test2"
     tag = e["tag"]
     assert tag.source == "fused" and tag.messages >= 20
     assert tag.rmse_m <= 0.05, f"tag RMSE {tag.rmse_m:.4f} m"
