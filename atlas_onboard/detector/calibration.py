@@ -105,7 +105,7 @@ def load(path: Path | str) -> Calibration:
         text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise CalibrationError(f"{p}: cannot read: {getattr(exc, 'strerror', None) or exc}") from None
-    if text.lstrip().startswith("%YAML:1.0"):
+    if text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text:  # OpenCV writes %YAML:1.0 or 1.2
         cal = _load_opencv(p)
     else:
         try:
