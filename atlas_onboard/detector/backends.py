@@ -16,6 +16,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from atlas_onboard.detector.families import family, opencv_dictionary
+from atlas_onboard.detector.refine import refine_corners
 from atlas_onboard.errors import AtlasError
 
 
@@ -75,7 +76,7 @@ class ArucoBackend:
         if ids is None:
             return []
         return [
-            Detection(int(i), self.family, np.asarray(c, dtype=float).reshape(4, 2))
+            Detection(int(i), self.family, refine_corners(gray, np.asarray(c, dtype=float).reshape(4, 2)))
             for c, i in zip(corners, ids.ravel(), strict=True)
         ]
 
