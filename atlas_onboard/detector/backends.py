@@ -30,19 +30,31 @@ class Detection:
     decision_margin: float = float("nan")
 
 
+def _library_detector(families: str, threads: int, decimate: float) -> object:
+    """A new AprilTag library detector that is never destroyed.
+
+    pupil-apriltags 1.0.4 can crash (SIGSEGV) when a detector is destroyed after it has found tags,
+    which would take the node down with it. A detector is not thread-safe either, so each backend
+    (each camera thread) gets its own; they live as long as the process (a few hundred kB each).
+    """
+    try:
+        import pupil_apriltags
+    except ImportError as exc:  # pragma: no cover - a dependency of the package
+        raise AtlasError(f"AprilTag detection needs pupil-apriltags: {exc}") from None
+
+    class _Kept(pupil_apriltags.Detector):  # type: ignore[misc]
+        def __del__(self) -> None:  # never destroyed: see above
+            pass
+
+    return _Kept(families=families, nthreads=threads, quad_decimate=decimate, refine_edges=1)
+
+
 class AprilTagBackend:
     """The AprilTag 3 library. ``decimate`` > 1 is faster and misses small markers."""
 
     def __init__(self, families: list[str], decimate: float = 1.0, threads: int = 1) -> None:
-        try:
-            import pupil_apriltags
-        except ImportError as exc:  # pragma: no cover - a dependency of the package
-            raise AtlasError(f"AprilTag detection needs pupil-apriltags: {exc}") from None
         self.families = families
-        self._detectors = {
-            d: pupil_apriltags.Detector(families=" ".join(families), nthreads=threads, quad_decimate=d, refine_edges=1)
-            for d in sorted({1.0, float(decimate)})
-        }
+        self._detectors = {d: _library_detector(" ".join(families), threads, d) for d in sorted({1.0, float(decimate)})}
         self.decimate = float(decimate)
 
     def detect(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:

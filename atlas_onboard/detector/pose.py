@@ -8,8 +8,10 @@ covariance sigma_px^2 (J^T J)^-1, and the camera position -R^T t its covariance;
 root of the largest eigenvalue. A single marker seen face-on is the degenerate case: its tilt is then
 determined only to second order, so sigma is capped at range x sqrt(2 sigma_px / side_px), what
 second order gives. A poor fit (reprojection error above the corner noise) inflates sigma by
-sqrt(1 + (e / sigma_px)^2). The corner noise sigma_px is 0.1 px for the AprilTag library and 0.25 px
-for OpenCV's ArUco corners; the model is checked against truth in simulation (tests/detector).
+sqrt(1 + (e / sigma_px)^2). The corner noise sigma_px shrinks with the square root of the marker's
+side in pixels (a corner is where two fitted edge lines cross): 0.08 px at a 50 px side for the
+AprilTag library, 0.2 px for OpenCV's ArUco corners. The model is checked against truth on rendered
+markers from 0.5 to 5 m and 0 to 60 degrees (tests/detector/test_sigma.py).
 """
 
 from __future__ import annotations
@@ -22,9 +24,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-SIGMA_PX_APRILTAG = 0.1
-SIGMA_PX_ARUCO = 0.25
-MIN_SIGMA_M = 0.0005
+SIGMA_PX_APRILTAG = 0.08  # corner noise at a 50 px side, scaled by sqrt(50 / side): corner_noise_px
+SIGMA_PX_ARUCO = 0.2
+MIN_SIGMA_M = 0.0001
 
 
 @dataclass(frozen=True)
@@ -90,6 +92,13 @@ def camera_position_sigma(
     return math.sqrt(max(var, 0.0)) * fit
 
 
+def corner_noise_px(base_px: float, side_px: float) -> float:
+    """Corner noise of a marker whose side spans ``side_px``: a corner is the crossing of two lines
+    fitted along the edges, so its error shrinks with the square root of the edge length
+    (``base_px`` at a 50 px side)."""
+    return float(np.clip(base_px * math.sqrt(50.0 / max(side_px, 1.0)), 0.02, 0.5))
+
+
 def solve(corners_px: NDArray[np.float64], size_m: float, K: NDArray[np.float64], sigma_px: float) -> MarkerPose | None:
     """IPPE on undistorted corners of one square; None if OpenCV finds no solution in front."""
     obj = object_corners(size_m)
@@ -107,10 +116,11 @@ def solve(corners_px: NDArray[np.float64], size_m: float, K: NDArray[np.float64]
         else (None, None)
     )
     ambiguity = float(e[0] / e[1]) if len(e) > 1 and e[1] > 0 else float("nan")
+    side_px = float(np.mean(np.linalg.norm(np.diff(np.vstack([corners_px, corners_px[:1]]), axis=0), axis=1)))
+    sigma_px = corner_noise_px(sigma_px, side_px)
     sigma = camera_position_sigma(r0, t0, obj, K, sigma_px, float(e[0]))
     # Face-on, the first order says nothing about tilt; second order bounds it.
     z = float(np.linalg.norm(t0))
-    side_px = float(np.mean(np.linalg.norm(np.diff(np.vstack([corners_px, corners_px[:1]]), axis=0), axis=1)))
     cap = z * math.sqrt((sigma_px / side_px) ** 2 + 2.0 * sigma_px / side_px)
     fit = math.sqrt(1.0 + (e[0] / sigma_px) ** 2)
     sigma = max(min(sigma, cap * fit), MIN_SIGMA_M)

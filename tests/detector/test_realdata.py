@@ -6,12 +6,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pupil_apriltags
 import pytest
 import yaml
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import parse_world
+from atlas_onboard.detector.backends import _library_detector
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
 
@@ -44,7 +44,8 @@ def detector_for(ids, width, height, K):
 
 @pytest.mark.parametrize("kind", ["mapping_feb_2014", "clipboard"])
 def test_recall_at_least_the_library_and_no_false_ids(kind):
-    library = pupil_apriltags.Detector(families="tag36h11", quad_decimate=1.0, refine_edges=1, decode_sharpening=0.25)
+    # The library at decimate 1 with its default settings (refine_edges 1, decode_sharpening 0.25).
+    library = _library_detector("tag36h11", 1, 1.0)
     expected_total = ours_found = lib_found = 0
     false_ids = []
     for path, expected in images(kind):
