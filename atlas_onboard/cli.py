@@ -57,9 +57,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--entity", help="entity whose node this is (default: the only one with node settings)")
     p.set_defaults(func=_cmd_run)
 
+    from atlas_onboard.detector.commands import add_commands as add_detector
     from atlas_onboard.sim.command import add_commands as add_sim
 
     add_sim(sub)
+    add_detector(sub)
     return parser
 
 

@@ -83,7 +83,16 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
                 detect = rendered_detector(context, world, sensor, seed)
             cameras.append(SimCameraWorker(context, world, sensor, detect))
         else:
-            raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera source {cam.source!r} is not supported yet")
+            from atlas_onboard.detector.calibration import load as load_calibration
+            from atlas_onboard.detector.pipeline import Detector
+            from atlas_onboard.detector.sources import CameraWorker
+
+            if cam.calibration is None:
+                raise AtlasError(
+                    f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}"
+                )
+            detector = Detector(sensor, world, load_calibration(cam.calibration), decimate=2.0)
+            cameras.append(CameraWorker(sensor.name, cam, detector))
     if config.entity == WORLD:
         # The motion-capture "sensor" has no camera block: it is a world sensor named by the scenario.
         if os.environ.get("ATLAS_SIM"):

@@ -1,0 +1,150 @@
+"""``atlas-onboard detect`` and ``atlas-onboard markers``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.config import CameraConfig, load_world
+from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.detector.calibration import load as load_calibration
+from atlas_onboard.detector.families import family
+from atlas_onboard.detector.pipeline import Detector
+from atlas_onboard.detector.sources import SourceError, open_source
+from atlas_onboard.errors import AtlasError
+
+
+def _cmd_detect(args: argparse.Namespace) -> int:
+    world = load_world(args.config)
+    sensor = next((s for s in world.sensors.values() if s.name == args.sensor or str(s.id) == args.sensor), None)
+    if sensor is None:
+        names = ", ".join(f"{s.entity}.{s.name}" for s in world.sensors.values())
+        raise AtlasError(f"--sensor: no sensor {args.sensor!r} in {args.config} (there are: {names})")
+    cam = sensor.camera or CameraConfig()
+    cal_path = args.calibration or cam.calibration
+    if cal_path is None:
+        raise AtlasError(f"sensor {sensor.name}: no calibration (give --calibration or camera.calibration)")
+    detector = Detector(
+        sensor, world, load_calibration(cal_path), decimate=1.0 if args.image else 2.0, track=not args.image
+    )
+    if args.image:
+        img = cv2.imread(str(args.image), cv2.IMREAD_GRAYSCALE) if Path(args.image).is_file() else None
+        if img is None:
+            raise AtlasError(f"--image: cannot read {args.image}")
+        frames = [(img, int(time.time() * 1e6))]
+    else:
+        source = open_source(replace(cam, source=str(args.video or args.device)), fast=True)
+        try:
+            frames = ((f.gray, f.capture_time_us) for f in source.frames())
+        except SourceError as exc:
+            raise AtlasError(str(exc)) from None
+    for k, (gray, stamp) in enumerate(frames):
+        found = detector.detect(gray, stamp)
+        for md in found:
+            print(json.dumps(_as_dict(md, k)) if args.json else _as_line(md, k), flush=True)
+        if args.annotate and k == 0:
+            _annotate(Path(args.annotate), gray, found, detector)
+        if args.frames and k + 1 >= args.frames:
+            break
+    return 0
+
+
+def _as_dict(md: MarkerData, frame: int) -> dict[str, object]:
+    return {
+        "frame": frame, "sensor_id": md.sensor_id, "marker_id": md.marker_id, "sigma_m": md.sigma_m,
+        "p_sensor_marker_m": list(md.p_sensor_marker_m), "q_sensor_marker_wxyz": list(md.q_sensor_marker_wxyz),
+        "capture_time_us": md.capture_time_us, "reprojection_error_px": md.reprojection_error_px,
+        "ambiguity_ratio": None if math.isnan(md.ambiguity_ratio) else md.ambiguity_ratio,
+    }  # fmt: skip
+
+
+def _as_line(md: MarkerData, frame: int) -> str:
+    p = md.p_sensor_marker_m
+    w, x, y, z = md.q_sensor_marker_wxyz
+    return (
+        f"frame {frame} marker {md.marker_id}: p [{p[0]:+.4f} {p[1]:+.4f} {p[2]:+.4f}] m"
+        f" q_wxyz [{w:+.4f} {x:+.4f} {y:+.4f} {z:+.4f}] sigma {md.sigma_m * 1000:.1f} mm"
+        f" reproj {md.reprojection_error_px:.2f} px"
+    )
+
+
+def _annotate(path: Path, gray: np.ndarray, found: list[MarkerData], detector: Detector) -> None:
+    img = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+    K, dist = detector.calibration.K, detector.calibration.dist
+    for md in found:
+        w, x, y, z = md.q_sensor_marker_wxyz
+        rvec = Rotation.from_quat([x, y, z, w]).as_rotvec()
+        size = detector.sizes[md.marker_id]
+        cv2.drawFrameAxes(img, K, dist, rvec, np.array(md.p_sensor_marker_m), size * 0.75, 2)
+        px, _ = cv2.projectPoints(np.zeros((1, 3)), rvec, np.array(md.p_sensor_marker_m), K, dist)
+        cv2.putText(
+            img, str(md.marker_id), tuple(int(v) for v in px.ravel()), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 255, 255), 2
+        )
+    if not cv2.imwrite(str(path), img):
+        raise AtlasError(f"--annotate: cannot write {path}")
+
+
+def _cmd_markers(args: argparse.Namespace) -> int:
+    world = load_world(args.config)
+    out = Path(args.out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise AtlasError(f"--out: cannot create {out}: {exc.strerror}") from None
+    for m in sorted(world.markers.values(), key=lambda m: m.id):
+        path = out / f"{m.family}-{m.id}.svg"
+        path.write_text(marker_svg(m.family, m.id, m.size_m), encoding="utf-8")
+        print(f"{path}: {m.family} id {m.id}, black square {m.size_m * 1000:g} mm ({m.entity})")
+    return 0
+
+
+def marker_svg(family_name: str, marker_id: int, size_m: float) -> str:
+    """One marker at its exact physical size (print at 100 %): the black square is ``size_m`` wide,
+    inside a white quiet zone of one cell, with the id and family printed below."""
+    fam = family(family_name)
+    bmp = fam.bitmap(marker_id, cell_px=1, quiet_zone_cells=0)  # one pixel a cell, black border included
+    cell_mm = size_m * 1000 / fam.cells
+    quiet = cell_mm
+    side = size_m * 1000 + 2 * quiet
+    height = side + 12
+    cell = f'width="{cell_mm:.4f}" height="{cell_mm:.4f}"'
+    rects = [
+        f'<rect x="{quiet + c * cell_mm:.4f}" y="{quiet + r * cell_mm:.4f}" {cell}/>'
+        for r in range(fam.cells) for c in range(fam.cells) if bmp[r, c] < 128
+    ]  # fmt: skip
+    return (
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{side:.4f}mm" height="{height:.4f}mm"'
+        f' viewBox="0 0 {side:.4f} {height:.4f}">\n'
+        f'<rect width="{side:.4f}" height="{height:.4f}" fill="white"/>\n'
+        f'<g fill="black" shape-rendering="crispEdges">\n' + "\n".join(rects) + "\n</g>\n"
+        f'<text x="{quiet:.2f}" y="{side + 8:.2f}" font-family="sans-serif" font-size="5">'
+        f"{family_name} id {marker_id} - {size_m * 1000:g} mm - print at 100 %</text>\n</svg>\n"
+    )
+
+
+def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Register ``detect`` and ``markers``."""
+    p = sub.add_parser("detect", help="run the detector on an image, a video or a device and print MarkerData")
+    p.add_argument("--config", required=True, type=Path, help="world file")
+    p.add_argument("--sensor", required=True, help="sensor name or id")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--image", type=Path)
+    src.add_argument("--video", type=Path)
+    src.add_argument("--device", help="V4L2 index or path, or a stream URL")
+    p.add_argument("--calibration", type=Path, help="calibration file (default: the sensor's camera.calibration)")
+    p.add_argument("--frames", type=int, default=0, help="stop after this many frames (0: all)")
+    p.add_argument("--json", action="store_true", help="one JSON object a line")
+    p.add_argument("--annotate", type=Path, help="write the first frame with markers and axes drawn")
+    p.set_defaults(func=_cmd_detect)
+    p = sub.add_parser("markers", help="one SVG per configured marker, at its exact printed size")
+    p.add_argument("--config", required=True, type=Path)
+    p.add_argument("--out", required=True, type=Path)
+    p.set_defaults(func=_cmd_markers)

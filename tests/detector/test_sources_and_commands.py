@@ -1,0 +1,147 @@
+"""Camera sources and the camera worker (a source that dies and comes back), and the detect and
+markers commands."""
+
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from atlas_onboard.config import CameraConfig, parse_world
+from atlas_onboard.detector import sources
+from atlas_onboard.detector.backends import MarkerFinder
+from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.commands import marker_svg
+from atlas_onboard.detector.families import family
+from atlas_onboard.detector.pipeline import Detector
+from atlas_onboard.detector.sources import CameraWorker, Frame, ImageFolder, Source, SourceError
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+
+
+def test_image_folder_stamps_from_names_and_order(tmp_path):
+    for name in ("b_1700000000123.png", "a_1700000000100.png", "c_noise.png"):
+        cv2.imwrite(str(tmp_path / name), np.zeros((8, 8), np.uint8))
+    frames = list(ImageFolder(tmp_path, fps=10, fast=True, start_us=5_000_000).frames())
+    assert [f.capture_time_us for f in frames] == [1_700_000_000_100_000, 1_700_000_000_123_000, 5_000_000 + 200_000]
+    assert ImageFolder.stamp_from_name("x_1700000000.jpg") == 1_700_000_000_000_000
+    assert ImageFolder.stamp_from_name("1700000000123456.png") == 1_700_000_000_123_456
+
+
+def test_camera_worker_survives_a_source_that_dies_and_comes_back(monkeypatch):
+    """Open fails twice, then a source gives 3 frames and dies, then one gives 3 more: 6 frames reach
+    the detector and the worker keeps running."""
+    gray = cv2.imread(str(DATA / "swatbotics_mapping" / "IMG_1368.JPG"), cv2.IMREAD_GRAYSCALE)
+    attempts = {"n": 0}
+
+    class Flaky(Source):
+        def __init__(self, dies):
+            self.dies = dies
+
+        def frames(self):
+            for k in range(3):
+                yield Frame(gray, k)
+            if self.dies:
+                raise SourceError("camera unplugged")
+            while True:
+                time.sleep(0.05)
+                yield from ()
+
+    def fake_open(camera, fast=False, start_us=None):
+        attempts["n"] += 1
+        if attempts["n"] <= 2:
+            raise SourceError("no such device")
+        return Flaky(dies=attempts["n"] == 3)
+
+    monkeypatch.setattr(sources, "open_source", fake_open)
+    monkeypatch.setattr(sources, "BACKOFF_S", (0.01,))
+    world = parse_world(
+        {
+            "entities": {
+                "world": {
+                    "markers": [{"id": i, "size_m": 0.127, "pose": {"pos": [float(i), 0, 0]}} for i in range(20)]
+                },
+                "cam": {"sensors": [{"name": "c", "id": 1, "pose": {}}]},
+            }
+        }
+    )
+    K = np.array([[765.0, 0, 393.72], [0, 764.18, 304.66], [0, 0, 1]])
+    cal = Calibration(816, 612, K, np.zeros(5))
+    det = Detector(world.sensors[1], world, cal, decimate=1.0, track=False, joint=False, max_ambiguity=1.0)
+    worker = CameraWorker("c", CameraConfig(source="/dev/video9"), det)
+    got = []
+    worker.start(got.append)
+    deadline = time.time() + 20
+    while time.time() < deadline and worker.counts["frames"] < 6:
+        time.sleep(0.02)
+    alive = worker._thread.is_alive()
+    worker.stop()
+    c = worker.counters()
+    assert c["open_errors"] == 2 and c["source_failures"] == 1 and c["opened"] == 2
+    assert c["frames"] + c.get("frames_dropped", 0) == 6 and alive
+    assert {md.marker_id for md in got} == {13, 19}  # the expected ids of IMG_1368
+
+
+def test_markers_svg_is_exact_and_decodes(tmp_path):
+    svg = marker_svg("tag36h11", 42, 0.18)
+    w_mm = float(re.search(r'width="([\d.]+)mm"', svg).group(1))
+    assert w_mm == 180.0 + 2 * 180.0 / 8  # the black square plus a one-cell quiet zone on each side
+    # Paint the rectangles at 10 px/mm and detect the result with the AprilTag library.
+    scale = 4.0
+    h_mm = float(re.search(r'height="([\d.]+)mm"', svg).group(1))
+    img = np.full((int(h_mm * scale) + 40, int(w_mm * scale) + 40), 255, np.uint8)
+    for x, y, w, h in re.findall(r'<rect x="([\d.]+)" y="([\d.]+)" width="([\d.]+)" height="([\d.]+)"/>', svg):
+        x0, y0 = round(float(x) * scale) + 20, round(float(y) * scale) + 20
+        img[y0 : y0 + round(float(h) * scale), x0 : x0 + round(float(w) * scale)] = 0
+    found = MarkerFinder({42: "tag36h11"}).find(img, 1.0)
+    assert [d.marker_id for d in found] == [42]
+    side_px = np.linalg.norm(found[0].corners_px[1] - found[0].corners_px[0])
+    assert abs(side_px - 180.0 * scale) < 1.5
+    assert family("tag36h11").cells == 8
+
+
+def run_cli(*args):
+    return subprocess.run(
+        [sys.executable, "-m", "atlas_onboard", *args], capture_output=True, text=True, timeout=60, check=False
+    )
+
+
+def test_detect_command_on_a_real_photo(tmp_path):
+    cams = yaml.safe_load((DATA / "ubiquity" / "cameras.yaml").read_text())["test_png_and_403"]
+    cal = tmp_path / "cal.yaml"
+    cal.write_text(
+        yaml.safe_dump(
+            {
+                "image_width": 1280, "image_height": 960, "distortion_model": "plumb_bob",
+                "camera_matrix": {"rows": 3, "cols": 3, "data": cams["K"]},
+                "distortion_coefficients": {"rows": 1, "cols": 5, "data": cams["D"]},
+            }
+        )
+    )  # fmt: skip
+    world = tmp_path / "w.yaml"
+    world.write_text(
+        yaml.safe_dump(
+            {
+                "marker_family": "DICT_5X5_1000",
+                "entities": {
+                    "world": {"markers": [{"id": 403, "size_m": 0.145, "pose": {}}]},
+                    "robot": {"sensors": [{"name": "cam", "id": 1, "pose": {}, "camera": {"calibration": str(cal)}}]},
+                },
+            }
+        )
+    )
+    proc = run_cli("detect", "--config", str(world), "--sensor", "cam", "--image", str(DATA / "ubiquity" / "403.jpg"),
+                   "--json", "--annotate", str(tmp_path / "a.png"))  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    rows = [json.loads(line) for line in proc.stdout.splitlines()]
+    assert [r["marker_id"] for r in rows] == [403]
+    # The source set's derived camera-frame position of marker 403 (IPPE on OpenCV corners).
+    np.testing.assert_allclose(rows[0]["p_sensor_marker_m"], [-0.0278, 0.0162, 0.7835], atol=0.005)
+    assert (tmp_path / "a.png").stat().st_size > 1000
+    bad = run_cli("detect", "--config", str(world), "--sensor", "cam", "--image", str(tmp_path / "missing.png"))
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "cannot read" in bad.stderr
