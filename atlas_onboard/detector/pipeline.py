@@ -24,6 +24,7 @@ from atlas_onboard.detector.families import family
 MAX_AMBIGUITY = 0.5
 """IPPE's two planar solutions fit almost equally well above this ratio: the chosen one may be the
 mirror image (a "flip", degrees to tens of degrees off). Such observations are dropped and counted."""
+SCAN_EVERY = 4  # frames between whole-image searches (between them, only tracked regions)
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
 ROI_MARGIN = 0.6  # a region is the marker's box grown by this fraction of its size on each side
 
@@ -49,26 +50,61 @@ class Detector:
         wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
         self.finder = MarkerFinder(wanted, self.decimate)
         self._last: list[NDArray[np.float64]] = []  # boxes (x0, y0, x1, y1) of the previous frame's markers
+        self._frame = 0
 
     def find(self, gray: NDArray[np.uint8]) -> list[Detection]:
-        """Markers in the frame: a decimated pass, then full-resolution passes where they may hide."""
+        """Markers in the frame, tracked from the previous one.
+
+        Every frame, the regions around the markers of the previous frame are searched at full
+        resolution (as precise as decimate 1, on a fraction of the pixels). Every ``SCAN_EVERY``
+        frames the whole image is searched at ``decimate`` and one tile of a 2x2 grid (in turn) at
+        full resolution, so that new and small markers are found too; when nothing is tracked, the
+        whole image is searched at full resolution.
+        """
         if not self.track or self.decimate <= 1.0:
             return self.finder.find(gray, 1.0)
-        found = {d.marker_id: d for d in self.finder.find(gray, self.decimate)}
-        boxes = list(self._last)
-        for d in found.values():
-            side = _side(d.corners_px)
-            if side < SMALL_SIDE_PX:
-                boxes.append(_box(d.corners_px))
+        h, w = gray.shape[:2]
+        found: dict[int, Detection] = {}
+        if not self._last:  # nothing tracked (start, or everything lost): one full-resolution search
+            found = {d.marker_id: d for d in self.finder.find(gray, 1.0)}
+            self._frame += 1
+            self._last = [_box(d.corners_px) for d in found.values()]
+            self.counters["full_searches"] += 1
+            return list(found.values())
+        self._roi_search(gray, self._last, found)
+        if self._frame % SCAN_EVERY == 0 or not found:
+            small = []
+            for d in self.finder.find(gray, self.decimate):
+                if d.marker_id not in found:
+                    found[d.marker_id] = d
+                    if _side(d.corners_px) < SMALL_SIDE_PX:
+                        small.append(_box(d.corners_px))
+            self._roi_search(gray, small, found)
+            tile = (self._frame // SCAN_EVERY) % 4
+            tx, ty = tile % 2, tile // 2
+            mx, my = w // 8, h // 8  # tiles overlap so that no marker is cut on every tile
+            box = np.array([tx * w // 2 - mx, ty * h // 2 - my, (tx + 1) * w // 2 + mx, (ty + 1) * h // 2 + my], float)
+            self._roi_search(gray, [box], found, only_new=True)
+            self.counters["scans"] += 1
+        self._frame += 1
+        self._last = [_box(d.corners_px) for d in found.values()]
+        return list(found.values())
+
+    def _roi_search(
+        self,
+        gray: NDArray[np.uint8],
+        boxes: list[NDArray[np.float64]],
+        found: dict[int, Detection],
+        only_new: bool = False,
+    ) -> None:
         h, w = gray.shape[:2]
         for x0, y0, x1, y1 in _merge(boxes, w, h):
-            roi = gray[y0:y1, x0:x1]
-            for d in self.finder.find(np.ascontiguousarray(roi), 1.0):
+            for d in self.finder.find(np.ascontiguousarray(gray[y0:y1, x0:x1]), 1.0):
+                if only_new and d.marker_id in found:
+                    continue
                 c = d.corners_px + np.array([x0, y0], dtype=float)
                 found[d.marker_id] = Detection(d.marker_id, d.family, c, d.decision_margin)
                 self.counters["roi_finds"] += 1
-        self._last = [_box(d.corners_px) for d in found.values()]
-        return list(found.values())
 
     def detect(self, gray: NDArray[np.uint8], capture_time_us: int) -> list[MarkerData]:
         """MarkerData of the configured markers in ``gray``.
