@@ -76,25 +76,35 @@ class Listener:
 
     def edge_from(self, md: MarkerData) -> EdgeUpdate | Rejection:
         """Eq. 1, T = T1 * T2 * T3^-1, without filtering; or the reason the observation is invalid."""
-        reason = md.rejection()
-        if reason is not None:
-            return reason
-        sensor = self._sensor.get(md.sensor_id)
-        if sensor is None:
-            return Rejection.UNKNOWN_SENSOR
-        marker = self._marker.get(md.marker_id)
-        if marker is None:
-            return Rejection.UNKNOWN_MARKER
-        observer, T1 = sensor
-        observed, T3_inv = marker
-        if observer == observed:
-            return Rejection.OWN_MARKER
-        T2 = np.eye(4)
-        T2[:3, :3] = Rotation.from_quat(md.q_sensor_marker_xyzw()).as_matrix()
-        T2[:3, 3] = md.p_sensor_marker_m
+        updates = self._edges([md])
+        return updates[0]
+
+    def _edges(self, mds: list[MarkerData]) -> list[EdgeUpdate | Rejection]:
+        """Eq. 1 for many observations at once (one scipy call per step, not one per observation)."""
+        out: list[EdgeUpdate | Rejection] = []
+        valid = []
+        for md in mds:
+            reason = self._check(md)
+            out.append(reason if reason is not None else md)  # type: ignore[arg-type]
+            if reason is None:
+                valid.append(md)
+        if not valid:
+            return out
+        T1 = np.array([self._sensor[md.sensor_id][1] for md in valid])
+        T3_inv = np.array([self._marker[md.marker_id][1] for md in valid])
+        T2 = np.tile(np.eye(4), (len(valid), 1, 1))
+        T2[:, :3, :3] = Rotation.from_quat(np.array([md.q_sensor_marker_xyzw() for md in valid])).as_matrix()
+        T2[:, :3, 3] = np.array([md.p_sensor_marker_m for md in valid])
         T = T1 @ T2 @ T3_inv  # eq. 1
-        q = Rotation.from_matrix(T[:3, :3]).as_quat()
-        return EdgeUpdate((md.sensor_id, md.marker_id), observer, observed, T[:3, 3].copy(), q, md.sigma_m)
+        q_all = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+        j = 0
+        for i, item in enumerate(out):
+            if isinstance(item, MarkerData):
+                observer, observed = self._sensor[item.sensor_id][0], self._marker[item.marker_id][0]
+                key = (item.sensor_id, item.marker_id)
+                out[i] = EdgeUpdate(key, observer, observed, T[j, :3, 3].copy(), q_all[j], item.sigma_m)
+                j += 1
+        return out
 
     def accept(self, md: MarkerData, now_ns: int) -> Rejection | None:
         """Validate, transform (eq. 1), filter (eq. 3) and insert into the graph; None when accepted."""
@@ -102,33 +112,15 @@ class Listener:
 
     def accept_many(self, items: list[tuple[MarkerData, int]]) -> list[Rejection | None]:
         """:meth:`accept` for a burst of observations, with eq. 1 computed for all of them at once
-        (one scipy call per step instead of one per observation: the node's hot path)."""
-        results: list[Rejection | None] = [None] * len(items)
-        valid = []
-        for i, (md, _) in enumerate(items):
-            reason = self._check(md)
-            if reason is not None:
-                self.rejected[reason] += 1
-                results[i] = reason
+        (the node's hot path)."""
+        results: list[Rejection | None] = []
+        for (md, now_ns), update in zip(items, self._edges([md for md, _ in items]), strict=True):
+            if isinstance(update, Rejection):
+                self.rejected[update] += 1
+                results.append(update)
             else:
-                valid.append(i)
-        if not valid:
-            return results
-        T1 = np.array([self._sensor[items[i][0].sensor_id][1] for i in valid])
-        T3_inv = np.array([self._marker[items[i][0].marker_id][1] for i in valid])
-        T2 = np.tile(np.eye(4), (len(valid), 1, 1))
-        T2[:, :3, :3] = Rotation.from_quat(np.array([items[i][0].q_sensor_marker_xyzw() for i in valid])).as_matrix()
-        T2[:, :3, 3] = np.array([items[i][0].p_sensor_marker_m for i in valid])
-        T = T1 @ T2 @ T3_inv  # eq. 1, for the whole burst
-        q_all = Rotation.from_matrix(T[:, :3, :3]).as_quat()
-        for j, i in enumerate(valid):
-            md, now_ns = items[i]
-            observer = self._sensor[md.sensor_id][0]
-            observed = self._marker[md.marker_id][0]
-            update = EdgeUpdate(
-                (md.sensor_id, md.marker_id), observer, observed, T[j, :3, 3].copy(), q_all[j], md.sigma_m
-            )
-            self._insert(md, update, now_ns)
+                self._insert(md, update, now_ns)
+                results.append(None)
         return results
 
     def _check(self, md: MarkerData) -> Rejection | None:
