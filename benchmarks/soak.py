@@ -1,0 +1,159 @@
+"""Soak: N node processes (default 10) on loopback for a set time, fed 30 Hz observations of every
+drone through a hub, each with a simulated autopilot. Prints resident memory of every node over time,
+dropped-message counters, the longest gap between autopilot messages while observations flow, and
+CPU per node.
+
+    python benchmarks/soak.py [--nodes 10] [--minutes 10]
+
+Bars: memory growth < 5 % (first sample after warm-up to the last), no autopilot gap > 100 ms,
+no observation dropped from a bounded queue.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import yaml
+from scipy.spatial.transform import RigidTransform, Rotation
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import itertools
+
+from atlas_onboard.config import load_world
+from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.mavlink import codec, dialect
+from atlas_onboard.sim.autopilot import SimAutopilot
+from atlas_onboard.sim.hub import Hub
+
+RATE_HZ = 30
+
+
+def rss_kb(pid: int) -> int:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--nodes", type=int, default=10)
+    ap.add_argument("--minutes", type=float, default=10.0)
+    args = ap.parse_args()
+    sys.setswitchinterval(0.0002)
+    n = args.nodes
+    hub = Hub().start()
+    aps = [SimAutopilot(system_id=k + 1).start() for k in range(n)]
+    markers = [{"id": i, "size_m": 0.2, "pose": {"pos": [float(i % 8), float(i // 8), 0.0]}} for i in range(4 * n)]
+    ents: dict = {"world": {"markers": markers}}
+    for k in range(n):
+        ents[f"d{k}"] = {"sensors": [{"name": "down", "id": k + 1, "pose": {"rpy_deg": [0, 90, 0]}}]}
+    nodes = {f"d{k}": {"system_id": k + 1, "autopilot": {"url": f"udpout:127.0.0.1:{aps[k].port}"}} for k in range(n)}
+    nodes["defaults"] = {"peers": [f"udpout:127.0.0.1:{hub.port}"], "status_interval_s": 30, "queue_size": 256}
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "world.yaml"
+        path.write_text(yaml.safe_dump({"entities": ents, "nodes": nodes}))
+        world = load_world(path)
+        procs = {
+            name: subprocess.Popen(
+                [sys.executable, "-m", "atlas_onboard", "run", "--config", str(path), "--entity", name],
+                stdout=open(Path(tmp) / f"{name}.log", "wb"), stderr=subprocess.STDOUT,
+            )
+            for name in (f"d{k}" for k in range(n))
+        }  # fmt: skip
+        while len(hub.clients) < n:
+            time.sleep(0.1)
+        # The load: every drone's camera sees 4 markers at 30 Hz, sent into the mesh by a "camera" peer.
+        d = dialect.load()
+        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        mav = d.MAVLink(None, srcSystem=200, srcComponent=197)
+        fp = world.fingerprint()
+        stop = threading.Event()
+        sent = [0]
+
+        def load() -> None:
+            period = 1.0 / RATE_HZ
+            nxt = time.time()
+            seq = 0
+            while not stop.is_set():
+                for k in range(n):
+                    T_wd = RigidTransform.from_components([1.0 + k % 5, 1.0 + k // 5, 1.5], Rotation.identity())
+                    s = world.sensors[k + 1]
+                    for j in range(4):
+                        m = world.markers[4 * k + j]
+                        T = (T_wd * s.T_entity_sensor).inv() * m.T_entity_marker
+                        x, y, z, w = T.rotation.as_quat()
+                        p = T.translation
+                        seq = (seq + 1) & 0xFFFF
+                        md = MarkerData(k + 1, m.id, 0.01, tuple(p), (w, x, y, z), int(time.time() * 1e6), seq=seq)
+                        sock.sendto(codec.encode_observation(d, md, fp).pack(mav), ("127.0.0.1", hub.port))
+                        sent[0] += 1
+                nxt += period
+                time.sleep(max(nxt - time.time(), 0.0))
+
+        th = threading.Thread(target=load, daemon=True)
+        th.start()
+        t0 = time.time()
+        duration = args.minutes * 60
+        samples = []
+        print(f"{'t s':>6} " + " ".join(f"{name:>7}" for name in procs) + "   (resident MB)")
+        warm = None
+        while time.time() - t0 < duration:
+            time.sleep(min(30.0, max(duration / 20, 2.0)))
+            row = [rss_kb(p.pid) / 1024 for p in procs.values()]
+            samples.append(row)
+            if warm is None and time.time() - t0 > min(60, duration / 5):
+                warm = row
+            print(f"{time.time() - t0:>6.0f} " + " ".join(f"{v:>7.1f}" for v in row), flush=True)
+        stop.set()
+        th.join()
+        elapsed = time.time() - t0
+        cpu = {name: cpu_s(p.pid) / elapsed * 100 for name, p in procs.items()}
+        for p in procs.values():
+            p.send_signal(signal.SIGTERM)
+        for p in procs.values():
+            p.wait(timeout=20)
+        finals = {}
+        for name in procs:
+            lines = [ln for ln in (Path(tmp) / f"{name}.log").read_text().splitlines() if " final " in ln]
+            finals[name] = dict(x.split("=", 1) for x in lines[-1].split(" final ", 1)[1].split()) if lines else {}
+    gaps = []
+    for a in aps:
+        t = sorted(r.arrival_s for r in a.snapshot() if r.arrival_s > t0 + 5 and r.arrival_s < t0 + elapsed - 1)
+        gaps.append(max((b - x for x, b in itertools.pairwise(t)), default=float("inf")))
+        a.stop()
+    hub.stop()
+    warm = warm or samples[0]
+    growth = max((last - first) / first * 100 for first, last in zip(warm, samples[-1], strict=True))
+    dropped = sum(int(f.get("inbox_dropped", 0)) for f in finals.values())
+    print(
+        f"load: {sent[0] / elapsed:.0f} observations/s into the mesh for {elapsed:.0f} s; each node receives them all"
+    )
+    print("node   cpu %  accepted  inbox_dropped  longest autopilot gap ms")
+    for (name, f), gap in zip(finals.items(), gaps, strict=True):
+        acc, drop = f.get("accepted", "?"), f.get("inbox_dropped", "?")
+        print(f"{name:>5} {cpu[name]:>6.1f} {acc:>9} {drop:>14} {gap * 1000:>10.1f}")
+    worst_gap = max(gaps) * 1000
+    print(f"BAR soak_memory_growth {growth:.2f} percent 5 {'pass' if growth < 5 else 'fail'}")
+    print(f"BAR soak_longest_output_gap {worst_gap:.1f} ms 100 {'pass' if worst_gap <= 100 else 'fail'}")
+    print(f"BAR soak_inbox_dropped {dropped} count 0 {'pass' if dropped == 0 else 'fail'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
