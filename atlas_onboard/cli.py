@@ -58,10 +58,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_run)
 
     from atlas_onboard.detector.commands import add_commands as add_detector
+    from atlas_onboard.install import add_commands as add_install
     from atlas_onboard.sim.command import add_commands as add_sim
 
     add_sim(sub)
     add_detector(sub)
+    add_install(sub)
     return parser
 
 

@@ -9,7 +9,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common
 
 from atlas_onboard.config import load_world
-from tests.e2e import NodeProcess, Peer, free_udp_port, write_world
+from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
 from tests.helpers import observe
 from tests.test_e2e_autopilot import TRUTH, world_doc
 
@@ -109,3 +109,36 @@ def test_serial_autopilot_vanishes_and_returns(tmp_path):
                 pass
     c = node.final_counters()
     assert c["autopilot_read_errors"] >= 1 and c["autopilot_reconnects"] >= 1
+
+
+def test_sighup_with_a_broken_file_keeps_the_running_config(tmp_path):
+    import signal
+
+    from atlas_onboard.sim.autopilot import SimAutopilot
+
+    ap = SimAutopilot(system_id=1).start()
+    port = free_udp_port()
+    path = write_world(tmp_path, world_doc(port, ap.port))
+    world = load_world(path)
+    node = NodeProcess(path, "d1")
+    peer = Peer(port, 250)
+    try:
+        assert wait_for(lambda: ap.heartbeats_from.get((1, 197), 0) > 0), node.log()
+        good = path.read_text()
+        path.write_text(good.replace("size_m: 0.2", "size_m: -1"))  # broken: a negative marker size
+        node.proc.send_signal(signal.SIGHUP)
+        assert wait_for(lambda: "reload refused" in node.log(), 10), node.log()
+        assert "size_m" in node.log()
+        # Still running on the old file: observations of the old world are used.
+        for _ in range(5):
+            peer.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6)), world.fingerprint())
+            time.sleep(0.03)
+        assert wait_for(lambda: len(ap.snapshot()) >= 1, 5)
+        np.testing.assert_allclose(ap.snapshot()[-1].xyz_m, [2.0, 1.0, -3.0], atol=1e-5)
+        path.write_text(good)
+        node.proc.send_signal(signal.SIGHUP)
+        assert wait_for(lambda: "reloaded" in node.log(), 10), node.log()
+    finally:
+        peer.close()
+        assert node.stop() == 0
+        ap.stop()
