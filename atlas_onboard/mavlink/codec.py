@@ -1,6 +1,6 @@
 """Encoding and decoding: MarkerData <-> ATLAS_OBSERVATION (and its TUNNEL form), fused poses, and the
-external-vision messages PX4 and ArduPilot accept. Decoders never raise: a bad message becomes a
-counted rejection with a reason."""
+external-vision messages PX4 and ArduPilot accept. Decoders never raise anything but RejectionError: a
+bad message becomes a counted rejection with a reason (the counter's name)."""
 
 from __future__ import annotations
 
@@ -17,17 +17,20 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.core import frames
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.mavlink import autopilot
 
 FORMAT_VERSION = 1
 TUNNEL_PAYLOAD_OBSERVATION = 43100
+TUNNEL_PAYLOAD_MAX = 128
 # TUNNEL payload of an observation, little endian, 87 bytes (docs/wire-format.md):
 # time_usec u64, fingerprint u32, x y z f32, q[4] f32, sigma f32, reprojection_error f32, ambiguity f32,
 # x_alt y_alt z_alt f32, q_alt[4] f32, sensor_id u16, marker_id u16, seq u16, format_version u8.
 TUNNEL_STRUCT = struct.Struct("<QI3f4f3f3f4fHHHB")
+ENTITY_NAME_LEN = 16
 
-MAV_FRAME_LOCAL_FRD = 20
-MAV_FRAME_BODY_FRD = 12
-MAV_ESTIMATOR_TYPE_VISION = 2
+MAV_FRAME_LOCAL_FRD = autopilot.MAV_FRAME_LOCAL_FRD
+MAV_FRAME_BODY_FRD = autopilot.MAV_FRAME_BODY_FRD
+MAV_ESTIMATOR_TYPE_VISION = autopilot.MAV_ESTIMATOR_TYPE_VISION
 
 
 class RejectionError(Exception):
@@ -74,25 +77,41 @@ def encode_observation(dialect: ModuleType, md: MarkerData, fingerprint: int) ->
     return dialect.MAVLink_atlas_observation_message(**observation_fields(md, fingerprint))
 
 
-def decode_observation(msg: Any, origin: int, fingerprint: int) -> MarkerData:
-    """MarkerData from an ATLAS_OBSERVATION (or its TUNNEL fields); RejectionError on a wrong version or world."""
+def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = False) -> MarkerData:
+    """MarkerData from an ATLAS_OBSERVATION (or its TUNNEL fields).
+
+    RejectionError (reason ``bad_version``, ``wrong_fingerprint``, ``malformed``) for a message that is
+    not a version-1 observation of our world. With ``check``, also the record's own validity
+    (:meth:`MarkerData.rejection`: ``non_finite``, ``zero_quaternion``, ``bad_sigma``, ``out_of_range``);
+    the node leaves that to the listener, which counts those reasons for local and peer records alike.
+    """
     if msg.format_version != FORMAT_VERSION:
         raise RejectionError("bad_version")
-    if msg.fingerprint != fingerprint:
+    if msg.fingerprint != fingerprint & 0xFFFFFFFF:
         raise RejectionError("wrong_fingerprint")
-    q = tuple(float(v) for v in msg.q)
-    return MarkerData(
-        sensor_id=int(msg.sensor_id),
-        marker_id=int(msg.marker_id),
-        sigma_m=float(msg.sigma),
-        p_sensor_marker_m=(float(msg.x), float(msg.y), float(msg.z)),
-        q_sensor_marker_wxyz=(q[0], q[1], q[2], q[3]),
-        capture_time_us=int(msg.time_usec),
-        reprojection_error_px=float(msg.reprojection_error),
-        ambiguity_ratio=float(msg.ambiguity),
-        origin=origin,
-        seq=int(msg.seq),
-    )
+    try:
+        q = tuple(float(v) for v in msg.q)
+        if len(q) != 4:
+            raise RejectionError("malformed")
+        md = MarkerData(
+            sensor_id=int(msg.sensor_id),
+            marker_id=int(msg.marker_id),
+            sigma_m=float(msg.sigma),
+            p_sensor_marker_m=(float(msg.x), float(msg.y), float(msg.z)),
+            q_sensor_marker_wxyz=(q[0], q[1], q[2], q[3]),
+            capture_time_us=int(msg.time_usec),
+            reprojection_error_px=float(msg.reprojection_error),
+            ambiguity_ratio=float(msg.ambiguity),
+            origin=int(origin),
+            seq=int(msg.seq),
+        )
+    except (TypeError, ValueError, AttributeError):
+        raise RejectionError("malformed") from None
+    if check:
+        reason = md.rejection()
+        if reason is not None:
+            raise RejectionError(reason.value)
+    return md
 
 
 @dataclass
@@ -126,70 +145,83 @@ def tunnel_payload(md: MarkerData, fingerprint: int) -> bytes:
     )  # fmt: skip
 
 
-def decode_tunnel(payload_type: int, length: int, payload: Sequence[int], origin: int, fingerprint: int) -> MarkerData:
-    """MarkerData from a TUNNEL message's fields; RejectionError if it is not ours or is malformed."""
+def tunnel_fields(md: MarkerData, fingerprint: int) -> dict[str, Any]:
+    """The TUNNEL message fields carrying an observation (broadcast, payload zero-padded to 128 bytes)."""
+    payload = tunnel_payload(md, fingerprint)
+    return {
+        "target_system": 0,
+        "target_component": 0,
+        "payload_type": TUNNEL_PAYLOAD_OBSERVATION,
+        "payload_length": len(payload),
+        "payload": list(payload) + [0] * (TUNNEL_PAYLOAD_MAX - len(payload)),
+    }
+
+
+def encode_tunnel(dialect: ModuleType, md: MarkerData, fingerprint: int) -> Any:
+    """A TUNNEL message object carrying the observation, ready for ``mav.send``."""
+    return dialect.MAVLink_tunnel_message(**tunnel_fields(md, fingerprint))
+
+
+def decode_tunnel(
+    payload_type: int, length: int, payload: Sequence[int], origin: int, fingerprint: int, check: bool = False
+) -> MarkerData:
+    """MarkerData from a TUNNEL message's fields; RejectionError (``tunnel_unknown_type``,
+    ``tunnel_bad_length``, then as :func:`decode_observation`) if it is not ours or is malformed."""
     if payload_type != TUNNEL_PAYLOAD_OBSERVATION:
         raise RejectionError("tunnel_unknown_type")
     if length != TUNNEL_STRUCT.size or len(payload) < length:
         raise RejectionError("tunnel_bad_length")
-    v = TUNNEL_STRUCT.unpack(bytes(payload[:length]))
+    try:
+        v = TUNNEL_STRUCT.unpack(bytes(payload[:length]))
+    except (struct.error, TypeError, ValueError):
+        raise RejectionError("tunnel_bad_length") from None
     fields = _TunnelFields(v[0], v[1], v[2], v[3], v[4], v[5:9], v[9], v[10], v[11], v[12], v[13], v[14], v[15:19],
                            v[19], v[20], v[21], v[22])  # fmt: skip
-    return decode_observation(fields, origin, fingerprint)
+    return decode_observation(fields, origin, fingerprint, check)
+
+
+def fused_fields(pose: EntityPose, entity_index: int, frame_index: int, fingerprint: int) -> dict[str, Any]:
+    """ATLAS_FUSED_POSE fields of an entity's pose (ENU world, FLU body; ``frame_index`` 0 = world)."""
+    x, y, z, w = pose.q_world_xyzw
+    return {
+        "time_usec": min(max(int(pose.capture_time_us), 0), 2**64 - 1),
+        "fingerprint": fingerprint & 0xFFFFFFFF,
+        "x": float(pose.p_world_m[0]),
+        "y": float(pose.p_world_m[1]),
+        "z": float(pose.p_world_m[2]),
+        "q": [float(w), float(x), float(y), float(z)],
+        "sigma": float(pose.sigma_m),
+        "entity_index": entity_index & 0xFF,
+        "frame_index": frame_index & 0xFF,
+        "level": min(max(pose.level, 0), 255),
+        "n_observations": min(max(pose.n_observations, 0), 255),
+        "format_version": FORMAT_VERSION,
+        "entity_name": pose.name.encode("utf-8")[:ENTITY_NAME_LEN],
+    }
 
 
 def encode_fused(dialect: ModuleType, pose: EntityPose, entity_index: int, frame_index: int, fingerprint: int) -> Any:
-    x, y, z, w = pose.q_world_xyzw
-    return dialect.MAVLink_atlas_fused_pose_message(
-        time_usec=max(int(pose.capture_time_us), 0),
-        fingerprint=fingerprint & 0xFFFFFFFF,
-        x=float(pose.p_world_m[0]),
-        y=float(pose.p_world_m[1]),
-        z=float(pose.p_world_m[2]),
-        q=[float(w), float(x), float(y), float(z)],
-        sigma=float(pose.sigma_m),
-        entity_index=entity_index & 0xFF,
-        frame_index=frame_index & 0xFF,
-        level=min(pose.level, 255),
-        n_observations=min(pose.n_observations, 255),
-        format_version=FORMAT_VERSION,
-    )
+    """An ATLAS_FUSED_POSE message object."""
+    return dialect.MAVLink_atlas_fused_pose_message(**fused_fields(pose, entity_index, frame_index, fingerprint))
 
 
 # --- external vision for the autopilot ----------------------------------------------------------------
+# Thin wrappers over the pure field functions of :mod:`atlas_onboard.mavlink.autopilot`, for the node's
+# EntityPose (position and x-first quaternion arrays: the hot path converts with 3x3 products).
 
-
-def attitude_sigma_rad(sigma_m: float) -> float:
-    """Attitude standard deviation used when only a position sigma is known.
-
-    A marker pose's angular error scales with its position error over the marker's lever arm; with
-    markers of 10-20 cm, 1 cm of position error goes with about 2-3 degrees. Clamped to [1, 30] deg.
-    """
-    return float(np.clip(sigma_m / 0.25, math.radians(1.0), math.radians(30.0)))
+attitude_sigma_rad = autopilot.attitude_sigma_rad
+quality_percent = autopilot.quality_percent
 
 
 def pose_covariance(sigma_m: float, sigma_att_rad: float | None = None) -> list[float]:
     """21-element upper-triangle covariance (x y z roll pitch yaw), variances at 0, 6, 11, 15, 18, 20.
 
     Never zero and never NaN for a known pose: PX4 would raise zero to its floor, ArduPilot would
-    take NaN as "unknown", and both would then ignore the honest uncertainty.
+    take NaN as "unknown", and both would then ignore the honest uncertainty. A sigma of 0 is sent as
+    the floor (0.1 mm); a non-finite or negative sigma raises AtlasError.
     """
-    var_p = max(sigma_m, 1e-4) ** 2
-    var_a = (sigma_att_rad if sigma_att_rad is not None else attitude_sigma_rad(sigma_m)) ** 2
-    cov = [0.0] * 21
-    for i in (0, 6, 11):
-        cov[i] = var_p
-    for i in (15, 18, 20):
-        cov[i] = var_a
-    return cov
-
-
-def quality_percent(sigma_m: float) -> int:
-    """ODOMETRY.quality from sigma: 100 at <= 1 cm, falling logarithmically to 1 at >= 50 cm."""
-    if not math.isfinite(sigma_m) or sigma_m <= 0:
-        return 0
-    q = 100.0 * (1.0 - math.log10(max(sigma_m, 0.01) / 0.01) / math.log10(50.0))
-    return int(np.clip(round(q), 1, 100))
+    sigma = max(sigma_m, autopilot.MIN_SIGMA_M) if math.isfinite(sigma_m) and sigma_m >= 0.0 else sigma_m
+    return autopilot.covariance_upper_triangle(autopilot.covariance_from_sigma(sigma, sigma_att_rad))
 
 
 def ned_pose(pose: EntityPose) -> tuple[np.ndarray, Rotation]:
@@ -197,28 +229,26 @@ def ned_pose(pose: EntityPose) -> tuple[np.ndarray, Rotation]:
     return frames.enu_flu_to_ned_frd_arrays(pose.p_world_m, pose.q_world_xyzw)
 
 
-def vision_position_estimate(dialect: ModuleType, pose: EntityPose, reset_counter: int) -> Any:
-    """VISION_POSITION_ESTIMATE: usec = capture time of the newest contributing observation."""
+def vision_position_estimate_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:
+    """VISION_POSITION_ESTIMATE fields: usec = capture time of the newest contributing observation."""
     p_ned, R_ned_frd = ned_pose(pose)
-    yaw, pitch, roll = R_ned_frd.as_euler("ZYX")
-    x, y, z = p_ned
-    return dialect.MAVLink_vision_position_estimate_message(
-        usec=int(pose.capture_time_us), x=float(x), y=float(y), z=float(z), roll=float(roll), pitch=float(pitch),
-        yaw=float(yaw), covariance=pose_covariance(pose.sigma_m), reset_counter=reset_counter & 0xFF,
-    )  # fmt: skip
+    cov = pose_covariance(pose.sigma_m)
+    return autopilot.vision_position_estimate_from_ned(p_ned, R_ned_frd, pose.capture_time_us, reset_counter, cov)
+
+
+def odometry_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:
+    """ODOMETRY fields in LOCAL_FRD / BODY_FRD (what ArduPilot requires; PX4 accepts it), velocity unknown."""
+    p_ned, R_ned_frd = ned_pose(pose)
+    cov = pose_covariance(pose.sigma_m)
+    quality = quality_percent(pose.sigma_m)
+    return autopilot.odometry_from_ned(p_ned, R_ned_frd, pose.capture_time_us, reset_counter, cov, quality)
+
+
+def vision_position_estimate(dialect: ModuleType, pose: EntityPose, reset_counter: int) -> Any:
+    """A VISION_POSITION_ESTIMATE message object; AtlasError for a non-finite pose or sigma."""
+    return dialect.MAVLink_vision_position_estimate_message(**vision_position_estimate_fields(pose, reset_counter))
 
 
 def odometry(dialect: ModuleType, pose: EntityPose, reset_counter: int) -> Any:
-    """ODOMETRY in LOCAL_FRD / BODY_FRD (what ArduPilot requires; PX4 accepts it too), velocity unknown."""
-    p_ned, R_ned_frd = ned_pose(pose)
-    qx, qy, qz, qw = R_ned_frd.as_quat()
-    x, y, z = p_ned
-    nan = math.nan
-    vel_cov = [nan] + [0.0] * 20
-    return dialect.MAVLink_odometry_message(
-        time_usec=int(pose.capture_time_us), frame_id=MAV_FRAME_LOCAL_FRD, child_frame_id=MAV_FRAME_BODY_FRD,
-        x=float(x), y=float(y), z=float(z), q=[float(qw), float(qx), float(qy), float(qz)], vx=nan, vy=nan, vz=nan,
-        rollspeed=nan, pitchspeed=nan, yawspeed=nan, pose_covariance=pose_covariance(pose.sigma_m),
-        velocity_covariance=vel_cov, reset_counter=reset_counter & 0xFF, estimator_type=MAV_ESTIMATOR_TYPE_VISION,
-        quality=quality_percent(pose.sigma_m),
-    )  # fmt: skip
+    """An ODOMETRY message object; AtlasError for a non-finite pose or sigma."""
+    return dialect.MAVLink_odometry_message(**odometry_fields(pose, reset_counter))

@@ -1,0 +1,311 @@
+"""What PX4 and ArduPilot accept, as pure functions: message fields from poses, sigmas and times.
+
+Nothing here imports pymavlink, reads a clock or sends anything: each function returns the fields
+of one message as a ``dict`` (keyword arguments of pymavlink's ``MAVLink_<name>_message``), so they
+are tested on numbers alone. The facts they follow are in ``/work/shared/AUTOPILOTS.md``:
+
+- VISION_POSITION_ESTIMATE (#102) is local NED, body FRD, ``usec`` the capture time; covariance is
+  the upper-right triangle (row-major, states x y z roll pitch yaw) of a 6x6 matrix, with the
+  variances at indices 0, 6, 11, 15, 18, 20. Zero is raised to the autopilot's floor and NaN means
+  "unknown": neither is sent for a known pose.
+- ODOMETRY (#331) with frame_id LOCAL_FRD and child_frame_id BODY_FRD (ArduPilot ignores any other
+  pair; PX4 accepts it), estimator_type VISION, quality in percent.
+- ``reset_counter`` increments on every jump (pose lost then found, or a step beyond a threshold).
+- TIMESYNC: PX4 uses our ``usec`` only once TIMESYNC converges, and converts it with the offset it
+  estimates from our ``tc1``; so ``tc1`` must be read from the same clock as the capture times
+  (UNIX epoch), or every stamp would be shifted by the difference of the two clocks.
+
+Frames: poses come in as the internal world ENU / body FLU (``T_enu_flu``) and leave through
+:func:`atlas_onboard.core.frames.enu_flu_to_ned_frd`, the one tested conversion.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.core import frames
+from atlas_onboard.errors import AtlasError
+
+MAV_FRAME_BODY_FRD = 12
+MAV_FRAME_LOCAL_FRD = 20
+MAV_ESTIMATOR_TYPE_VISION = 2
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_ACTIVE = 4
+MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
+
+COVARIANCE_DIAGONAL = (0, 6, 11, 15, 18, 20)
+"""Indices of the variances of x, y, z, roll, pitch, yaw in a 21-element MAVLink covariance."""
+MIN_SIGMA_M = 1e-4
+"""Position standard deviations below this are sent as this (0.1 mm): never a zero variance."""
+MIN_SIGMA_RAD = 1e-4
+"""Attitude standard deviations below this are sent as this."""
+
+# J maps an ENU/FLU 6-vector (position in the world ENU, small rotation about the body FLU axes) to
+# NED/FRD: position by R_NED_ENU, rotation by R_FRD_FLU. Covariances transform as J C J^T.
+_M_NED_ENU = frames.R_ENU_NED.as_matrix().T
+_M_FRD_FLU = frames.R_FLU_FRD.as_matrix().T
+_J_NED_FRD_ENU_FLU = np.block([[_M_NED_ENU, np.zeros((3, 3))], [np.zeros((3, 3)), _M_FRD_FLU]])
+_ROWS, _COLS = np.triu_indices(6)  # row-major upper triangle: (0,0) (0,1) ... (0,5) (1,1) ... (5,5)
+
+
+def attitude_sigma_rad(sigma_m: float) -> float:
+    """Attitude standard deviation (rad) used when only a position sigma (m) is known.
+
+    A marker pose's angular error scales with its position error over the marker's lever arm; with
+    markers of 10-20 cm, 1 cm of position error goes with about 2-3 degrees. Clamped to [1, 30] deg.
+    """
+    return float(np.clip(sigma_m / 0.25, math.radians(1.0), math.radians(30.0)))
+
+
+def covariance_from_sigma(sigma_m: float, sigma_att_rad: float | None = None) -> np.ndarray:
+    """Diagonal 6x6 covariance (m^2, rad^2) of x y z roll pitch yaw from a position sigma (m).
+
+    Isotropic, so it is the same in ENU/FLU and NED/FRD. Raises AtlasError for a sigma that is not a
+    positive finite number: a pose without an honest uncertainty is not sent.
+    """
+    if not (math.isfinite(sigma_m) and sigma_m > 0.0):
+        raise AtlasError(f"expected a position sigma > 0 m, got {sigma_m!r}")
+    att = attitude_sigma_rad(sigma_m) if sigma_att_rad is None else sigma_att_rad
+    if not (math.isfinite(att) and att > 0.0):
+        raise AtlasError(f"expected an attitude sigma > 0 rad, got {att!r}")
+    var_p, var_a = max(sigma_m, MIN_SIGMA_M) ** 2, max(att, MIN_SIGMA_RAD) ** 2
+    return np.diag([var_p, var_p, var_p, var_a, var_a, var_a])
+
+
+def covariance_ned_frd(cov_enu_flu: np.ndarray) -> np.ndarray:
+    """A 6x6 covariance of (x y z in world ENU, small rotations about body FLU x y z) in NED/FRD.
+
+    ``C_ned_frd = J C J^T`` with J = blockdiag(R_NED_ENU, R_FRD_FLU): position axes swap (east <-> north)
+    and up flips; rotations about the body's y and z axes flip sign, which flips the sign of their
+    cross terms but never of a variance.
+    """
+    cov = np.asarray(cov_enu_flu, dtype=float)
+    if cov.shape != (6, 6):
+        raise AtlasError(f"expected a covariance of shape (6, 6), got shape {cov.shape}")
+    return _J_NED_FRD_ENU_FLU @ cov @ _J_NED_FRD_ENU_FLU.T
+
+
+def covariance_upper_triangle(cov: np.ndarray) -> list[float]:
+    """The 21 MAVLink covariance values (row-major upper triangle) of a 6x6 covariance, already in NED/FRD.
+
+    Variances (indices 0, 6, 11, 15, 18, 20) are floored at MIN_SIGMA_M^2 / MIN_SIGMA_RAD^2 so none is
+    ever zero. Raises AtlasError for a non-finite, asymmetric or negative-variance matrix.
+    """
+    c = np.asarray(cov, dtype=float)
+    if c.shape != (6, 6):
+        raise AtlasError(f"expected a covariance of shape (6, 6), got shape {c.shape}")
+    if not np.all(np.isfinite(c)):
+        raise AtlasError("expected a finite covariance, got NaN or inf")
+    scale = max(float(np.max(np.abs(c))), 1e-300)
+    if float(np.max(np.abs(c - c.T))) > 1e-9 * scale:
+        raise AtlasError("expected a symmetric covariance")
+    diag = np.diag(c)
+    if np.any(diag < 0.0):
+        raise AtlasError(f"expected non-negative variances, got {diag.tolist()}")
+    c = c.copy()
+    floors = np.array([MIN_SIGMA_M**2] * 3 + [MIN_SIGMA_RAD**2] * 3)
+    c[np.diag_indices(6)] = np.maximum(diag, floors)
+    return [float(v) for v in c[_ROWS, _COLS]]
+
+
+def quality_percent(sigma_m: float) -> int:
+    """ODOMETRY.quality from sigma: 100 at <= 1 cm, falling logarithmically to 1 at >= 50 cm; 0 unknown."""
+    if not math.isfinite(sigma_m) or sigma_m <= 0:
+        return 0
+    q = 100.0 * (1.0 - math.log10(max(sigma_m, 0.01) / 0.01) / math.log10(50.0))
+    return int(np.clip(round(q), 1, 100))
+
+
+def _covariance_21(sigma_m: float | None, covariance_enu_flu: np.ndarray | None) -> list[float]:
+    if covariance_enu_flu is not None:
+        return covariance_upper_triangle(covariance_ned_frd(covariance_enu_flu))
+    if sigma_m is None:
+        raise AtlasError("expected a sigma or a 6x6 covariance for the pose, got neither")
+    return covariance_upper_triangle(covariance_from_sigma(sigma_m))
+
+
+def _check_pose(p_ned_m: np.ndarray, R_ned_frd: Rotation, capture_time_us: int) -> None:
+    if not np.all(np.isfinite(p_ned_m)) or not np.all(np.isfinite(R_ned_frd.as_quat())):
+        raise AtlasError("expected a finite pose, got NaN or inf")
+    if not 0 <= int(capture_time_us) < 2**64:
+        raise AtlasError(f"expected a capture time in [0, 2^64) us, got {capture_time_us}")
+
+
+def vision_position_estimate_from_ned(
+    p_ned_m: np.ndarray,
+    R_ned_frd: Rotation,
+    capture_time_us: int,
+    reset_counter: int,
+    covariance_21: Sequence[float],
+) -> dict[str, Any]:
+    """VISION_POSITION_ESTIMATE fields from a pose already in local NED / body FRD."""
+    _check_pose(p_ned_m, R_ned_frd, capture_time_us)
+    yaw, pitch, roll = R_ned_frd.as_euler("ZYX")  # intrinsic Z-Y'-X'': aerospace yaw, pitch, roll
+    return {
+        "usec": int(capture_time_us),
+        "x": float(p_ned_m[0]),
+        "y": float(p_ned_m[1]),
+        "z": float(p_ned_m[2]),
+        "roll": float(roll),
+        "pitch": float(pitch),
+        "yaw": float(yaw),
+        "covariance": list(covariance_21),
+        "reset_counter": int(reset_counter) & 0xFF,
+    }
+
+
+def odometry_from_ned(
+    p_ned_m: np.ndarray,
+    R_ned_frd: Rotation,
+    capture_time_us: int,
+    reset_counter: int,
+    covariance_21: Sequence[float],
+    quality: int,
+) -> dict[str, Any]:
+    """ODOMETRY fields (LOCAL_FRD / BODY_FRD, VISION, velocity unknown) from a pose in NED / FRD."""
+    _check_pose(p_ned_m, R_ned_frd, capture_time_us)
+    qx, qy, qz, qw = R_ned_frd.as_quat()
+    nan = math.nan
+    return {
+        "time_usec": int(capture_time_us),
+        "frame_id": MAV_FRAME_LOCAL_FRD,
+        "child_frame_id": MAV_FRAME_BODY_FRD,
+        "x": float(p_ned_m[0]),
+        "y": float(p_ned_m[1]),
+        "z": float(p_ned_m[2]),
+        "q": [float(qw), float(qx), float(qy), float(qz)],
+        "vx": nan,
+        "vy": nan,
+        "vz": nan,
+        "rollspeed": nan,
+        "pitchspeed": nan,
+        "yawspeed": nan,
+        "pose_covariance": list(covariance_21),
+        "velocity_covariance": [nan] + [0.0] * 20,  # NaN in [0]: velocity unknown
+        "reset_counter": int(reset_counter) & 0xFF,
+        "estimator_type": MAV_ESTIMATOR_TYPE_VISION,
+        "quality": int(quality),
+    }
+
+
+def vision_position_estimate_fields(
+    T_enu_flu: RigidTransform,
+    capture_time_us: int,
+    reset_counter: int,
+    sigma_m: float | None = None,
+    covariance_enu_flu: np.ndarray | None = None,
+) -> dict[str, Any]:
+    """VISION_POSITION_ESTIMATE fields of a world ENU / body FLU pose.
+
+    Args:
+        T_enu_flu: the body's pose in the world (ENU world, FLU body).
+        capture_time_us: capture time of the newest observation that contributed (UNIX epoch, us).
+        reset_counter: the current reset counter (see :class:`ResetCounter`); sent modulo 256.
+        sigma_m: position standard deviation (m); the attitude's follows from it.
+        covariance_enu_flu: or a full 6x6 covariance (m^2, rad^2) of x y z in ENU and small
+            rotations about the FLU body axes; it wins over ``sigma_m``.
+
+    Raises AtlasError for a non-finite pose or an uncertainty that is missing, non-finite or negative.
+    """
+    T_ned_frd = frames.enu_flu_to_ned_frd(T_enu_flu)
+    cov = _covariance_21(sigma_m, covariance_enu_flu)
+    return vision_position_estimate_from_ned(
+        T_ned_frd.translation, T_ned_frd.rotation, capture_time_us, reset_counter, cov
+    )
+
+
+def odometry_fields(
+    T_enu_flu: RigidTransform,
+    capture_time_us: int,
+    reset_counter: int,
+    sigma_m: float | None = None,
+    covariance_enu_flu: np.ndarray | None = None,
+    quality: int | None = None,
+) -> dict[str, Any]:
+    """ODOMETRY fields of a world ENU / body FLU pose (arguments as :func:`vision_position_estimate_fields`;
+    ``quality`` in percent, by default from ``sigma_m`` by :func:`quality_percent`, 0 when unknown)."""
+    T_ned_frd = frames.enu_flu_to_ned_frd(T_enu_flu)
+    cov = _covariance_21(sigma_m, covariance_enu_flu)
+    if quality is None:
+        quality = quality_percent(sigma_m) if sigma_m is not None else 0
+    return odometry_from_ned(T_ned_frd.translation, T_ned_frd.rotation, capture_time_us, reset_counter, cov, quality)
+
+
+def heartbeat_fields() -> dict[str, Any]:
+    """HEARTBEAT of a companion computer: MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, active.
+
+    The system and component ids are the link's (the autopilot's system id, component 197 by default).
+    """
+    return {
+        "type": MAV_TYPE_ONBOARD_CONTROLLER,
+        "autopilot": MAV_AUTOPILOT_INVALID,
+        "base_mode": 0,
+        "custom_mode": 0,
+        "system_status": MAV_STATE_ACTIVE,
+        "mavlink_version": 3,
+    }
+
+
+def timesync_reply(tc1: int, ts1: int, now_wall_ns: int) -> dict[str, Any] | None:
+    """The answer to a TIMESYNC request, or None when the message is not a request.
+
+    A request has ``tc1 == 0`` and the sender's time in ``ts1``; the answer echoes ``ts1`` and puts our
+    time in ``tc1``, in nanoseconds of the clock our ``usec`` stamps use (UNIX epoch): PX4 estimates
+    the offset between the two clocks from it and applies it to every VISION_POSITION_ESTIMATE.usec.
+    """
+    if tc1 != 0:
+        return None
+    return {"tc1": int(now_wall_ns), "ts1": int(ts1)}
+
+
+def set_gps_global_origin_fields(
+    target_system: int, lat_deg: float, lon_deg: float, alt_m: float, time_usec: int = 0
+) -> dict[str, Any]:
+    """SET_GPS_GLOBAL_ORIGIN: latitude/longitude in 1e-7 degrees, altitude in mm (AMSL)."""
+    for name, value, lo, hi in (("lat_deg", lat_deg, -90.0, 90.0), ("lon_deg", lon_deg, -180.0, 180.0)):
+        if not (math.isfinite(value) and lo <= value <= hi):
+            raise AtlasError(f"expected {name} in [{lo:g}, {hi:g}] degrees, got {value!r}")
+    if not math.isfinite(alt_m):
+        raise AtlasError(f"expected a finite alt_m, got {alt_m!r}")
+    return {
+        "target_system": int(target_system) & 0xFF,
+        "latitude": round(lat_deg * 1e7),
+        "longitude": round(lon_deg * 1e7),
+        "altitude": round(alt_m * 1000.0),
+        "time_usec": max(int(time_usec), 0),
+    }
+
+
+@dataclass(slots=True)
+class ResetCounter:
+    """The ``reset_counter`` to send: it increments when the pose was lost and is found again, or when
+    the published position jumps by more than ``jump_m``. Pure: feed it every pose about to be sent,
+    and None whenever the pose is lost.
+
+    The first pose ever sent does not count as a jump (there is nothing to reset from).
+    """
+
+    jump_m: float = 0.5
+    value: int = 0
+    _last_p_m: np.ndarray | None = field(default=None, repr=False)
+    _lost: bool = False
+
+    def update(self, p_m: Sequence[float] | np.ndarray | None) -> int:
+        """The counter for a pose at position ``p_m`` (any frame, metres), or note a loss (None)."""
+        if p_m is None:
+            if self._last_p_m is not None:
+                self._lost = True
+            return self.value
+        p = np.asarray(p_m, dtype=float)
+        if self._last_p_m is not None and (self._lost or float(np.linalg.norm(p - self._last_p_m)) > self.jump_m):
+            self.value = (self.value + 1) % 256
+        self._lost = False
+        self._last_p_m = p.copy()
+        return self.value
