@@ -1,5 +1,6 @@
 """Soak: N node processes (default 10) on loopback for a set time, fed 30 Hz observations of every
-drone through a hub, each with a simulated autopilot. Prints resident memory of every node over time,
+drone (``--markers`` per frame, default 4) through a hub, each node with a simulated autopilot.
+Every node receives every drone's observations, as on a real mesh. Prints resident memory of every node over time,
 dropped-message counters, the longest gap between autopilot messages while observations flow, and
 CPU per node.
 
@@ -54,12 +55,14 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--nodes", type=int, default=10)
     ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--markers", type=int, default=4, help="markers each drone's camera sees per frame")
     args = ap.parse_args()
     sys.setswitchinterval(0.0002)
     n = args.nodes
     hub = Hub().start()
     aps = [SimAutopilot(system_id=k + 1).start() for k in range(n)]
-    markers = [{"id": i, "size_m": 0.2, "pose": {"pos": [float(i % 8), float(i // 8), 0.0]}} for i in range(4 * n)]
+    per = args.markers
+    markers = [{"id": i, "size_m": 0.2, "pose": {"pos": [float(i % 8), float(i // 8), 0.0]}} for i in range(per * n)]
     ents: dict = {"world": {"markers": markers}}
     for k in range(n):
         ents[f"d{k}"] = {"sensors": [{"name": "down", "id": k + 1, "pose": {"rpy_deg": [0, 90, 0]}}]}
@@ -94,8 +97,8 @@ def main() -> int:
                 for k in range(n):
                     T_wd = RigidTransform.from_components([1.0 + k % 5, 1.0 + k // 5, 1.5], Rotation.identity())
                     s = world.sensors[k + 1]
-                    for j in range(4):
-                        m = world.markers[4 * k + j]
+                    for j in range(per):
+                        m = world.markers[per * k + j]
                         T = (T_wd * s.T_entity_sensor).inv() * m.T_entity_marker
                         x, y, z, w = T.rotation.as_quat()
                         p = T.translation
