@@ -27,6 +27,7 @@ from atlas_onboard.config import CameraConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.errors import AtlasError
+from atlas_onboard.worker import SensorWorker
 
 _logger = logging.getLogger(__name__)
 
@@ -149,29 +150,19 @@ def open_source(camera: CameraConfig, fast: bool = False, start_us: int | None =
     return Capture(camera, fast, start)
 
 
-class CameraWorker:
+class CameraWorker(SensorWorker):
     """One camera: its own thread reads frames, detects, and delivers MarkerData (node.Camera)."""
 
     def __init__(self, name: str, camera: CameraConfig, detector: Detector, fast: bool = False) -> None:
+        super().__init__()
         self.name = name
         self.camera = camera
         self.detector = detector
         self.fast = fast
         self.counts: Counter[str] = Counter()
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self._latest: Frame | None = None
         self._lock = threading.Lock()
         self._have = threading.Event()
-
-    def start(self, deliver: Callable[[MarkerData], None]) -> None:
-        self._thread = threading.Thread(target=self._run, args=(deliver,), name=f"camera-{self.name}", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=3.0)
 
     def counters(self) -> dict[str, int]:
         return dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}

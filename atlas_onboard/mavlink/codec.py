@@ -41,10 +41,6 @@ class RejectionError(Exception):
         self.reason = reason
 
 
-def _f32(v: float) -> float:
-    return float(np.float32(v))
-
-
 def observation_fields(
     md: MarkerData, fingerprint: int, alt: tuple[Sequence[float], Sequence[float]] | None = None
 ) -> dict[str, Any]:

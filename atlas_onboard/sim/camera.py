@@ -8,7 +8,6 @@ solved by PnP) rather than from rendered images; :mod:`atlas_onboard.detector` r
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Callable
 
@@ -19,6 +18,7 @@ from atlas_onboard.config import SensorConfig, WorldConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.sim.sources import SimContext
 from atlas_onboard.sim.world import Sighting, SimWorld
+from atlas_onboard.worker import SensorWorker
 
 _logger = logging.getLogger(__name__)
 
@@ -26,10 +26,11 @@ NOISE_PX = 0.3  # corner noise of the geometric detector, pixels
 FrameHandler = Callable[[float, list[Sighting], dict[str, object]], list[MarkerData]]
 
 
-class SimCameraWorker:
+class SimCameraWorker(SensorWorker):
     """Frames at the camera's rate on the run's timeline; one thread; late frames are skipped (counted)."""
 
     def __init__(self, context: SimContext, world: WorldConfig, sensor: SensorConfig, detect: FrameHandler) -> None:
+        super().__init__()
         self.name = sensor.name
         self.context = context
         self.sim = SimWorld(context.scenario, world)
@@ -37,20 +38,9 @@ class SimCameraWorker:
         self.intrinsics = self.sim.cameras[sensor.id][1]
         self.fps = sensor.camera.fps if sensor.camera is not None and sensor.camera.fps > 0 else 30.0
         self.detect = detect
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self.frames = 0
         self.skipped = 0
         self.detections = 0
-
-    def start(self, deliver: Callable[[MarkerData], None]) -> None:
-        self._thread = threading.Thread(target=self._run, args=(deliver,), name=f"sim-camera-{self.name}", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
 
     def counters(self) -> dict[str, int]:
         return {"frames": self.frames, "frames_skipped": self.skipped, "detections": self.detections}

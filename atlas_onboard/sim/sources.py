@@ -25,6 +25,7 @@ from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.world import SimWorld
+from atlas_onboard.worker import SensorWorker
 
 _logger = logging.getLogger(__name__)
 
@@ -68,7 +69,7 @@ class SimContext:
         return None
 
 
-class MocapWorker:
+class MocapWorker(SensorWorker):
     """The paper's OptiTrack: observes the rigid-body marker of every drone at a fixed rate, with noise.
 
     It reports like any sensor, as MarkerData of the mocap "sensor" (its optical frame is the world
@@ -76,6 +77,7 @@ class MocapWorker:
     """
 
     def __init__(self, context: SimContext, world: WorldConfig, sensor_id: int) -> None:
+        super().__init__()
         self.name = "mocap"
         self.context = context
         self.sim = SimWorld(context.scenario, world)
@@ -84,18 +86,7 @@ class MocapWorker:
         if self.mocap is None:
             raise AtlasError(f"scenario {context.scenario.name} has no motion-capture system")
         self.markers = [m for m in world.markers.values() if m.entity in context.scenario.drones]
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
         self.sent = 0
-
-    def start(self, deliver: Callable[[MarkerData], None]) -> None:
-        self._thread = threading.Thread(target=self._run, args=(deliver,), name="sim-mocap", daemon=True)
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
 
     def counters(self) -> dict[str, int]:
         return {"observations": self.sent}

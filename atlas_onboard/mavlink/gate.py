@@ -1,0 +1,122 @@
+"""The peer gate: what a received observation must pass before it is handed to the node, by origin.
+
+Pure apart from a lock (several link threads share one gate): the times are passed in. In order:
+
+1. ``own_echo``: our own observation coming back (a mesh or a router echoes broadcasts);
+2. ``duplicate``: the same observation already admitted, from another link or a second copy, keyed by
+   (origin system id, seq, sensor id, marker id, capture time) within the last ``dedupe_window``;
+3. ``rate_limited``: more than the link's rate from one origin (a token bucket per (link, system id),
+   so a flooding or broken peer spends only its own tokens and cannot starve the others; a spoofed
+   system id on one link cannot drain the real peer's bucket on another).
+
+Memory is bounded whatever arrives: the window is a fixed-size FIFO and there are at most 256 system
+ids per link. Clock skew (capture stamp against arrival on the wall clock) is measured here and
+reported, rate-limited per origin, for the caller to log.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+
+from atlas_onboard.core.markerdata import MarkerData
+
+NS = 1_000_000_000
+DEDUPE_WINDOW = 4096
+SKEW_WARN_S = 0.1
+SKEW_WARN_EVERY_S = 10.0
+
+
+class TokenBucket:
+    """At most ``rate_hz`` events per second on average, bursts up to ``burst`` (default one second's worth)."""
+
+    def __init__(self, rate_hz: float, now_ns: int, burst: float | None = None) -> None:
+        self.rate_hz = rate_hz
+        self.burst = max(rate_hz if burst is None else burst, 1.0)
+        self.tokens = self.burst
+        self.t_ns = now_ns
+
+    def take(self, now_ns: int) -> bool:
+        """Spend one token if there is one (a clock that goes back refills nothing)."""
+        if now_ns > self.t_ns:
+            self.tokens = min(self.burst, self.tokens + (now_ns - self.t_ns) * self.rate_hz / NS)
+            self.t_ns = now_ns
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+@dataclass(frozen=True, slots=True)
+class SkewReport:
+    """A peer's capture stamps disagree with our arrival times: log it (already rate-limited per origin)."""
+
+    origin: int
+    skew_s: float
+
+
+class PeerGate:
+    """De-duplication, per-peer rate limits and clock-skew checks for observations from peers."""
+
+    def __init__(
+        self,
+        own_system_id: int,
+        dedupe_window: int = DEDUPE_WINDOW,
+        skew_warn_s: float = SKEW_WARN_S,
+        skew_warn_every_s: float = SKEW_WARN_EVERY_S,
+    ) -> None:
+        self.own_system_id = own_system_id
+        self.dedupe_window = dedupe_window
+        self.skew_warn_s = skew_warn_s
+        self.skew_warn_every_ns = int(skew_warn_every_s * NS)
+        self._seen: OrderedDict[tuple[int, int, int, int, int], None] = OrderedDict()
+        self._buckets: dict[tuple[int, int], TokenBucket] = {}
+        self._skew_reported_ns: dict[int, int] = {}
+        self._lock = threading.Lock()
+        self.skew_warnings = 0
+
+    def admit(self, md: MarkerData, link_index: int, rate_hz: float, arrival_ns: int) -> str | None:
+        """None if the observation may go on; otherwise the reason it is dropped (a counter name).
+
+        ``md.origin`` is the sender's system id; ``arrival_ns`` is on the receiver's monotonic clock.
+        A duplicate spends no token; a rate-limited observation is still remembered as seen, so its
+        copy from another link is a duplicate too.
+        """
+        if md.origin == self.own_system_id:
+            return "own_echo"
+        key = (md.origin & 0xFF, md.seq & 0xFFFF, md.sensor_id, md.marker_id, md.capture_time_us)
+        with self._lock:
+            if key in self._seen:
+                return "duplicate"
+            self._seen[key] = None
+            while len(self._seen) > self.dedupe_window:
+                self._seen.popitem(last=False)
+            bucket_key = (link_index, md.origin & 0xFF)
+            bucket = self._buckets.get(bucket_key)
+            if bucket is None or bucket.rate_hz != rate_hz:
+                bucket = self._buckets[bucket_key] = TokenBucket(rate_hz, arrival_ns)
+            if not bucket.take(arrival_ns):
+                return "rate_limited"
+        return None
+
+    def check_skew(self, md: MarkerData, arrival_wall_ns: int, arrival_ns: int) -> SkewReport | None:
+        """A report when ``md``'s capture stamp and its arrival on our wall clock differ by more than
+        ``skew_warn_s`` and this origin was not reported within ``skew_warn_every_s`` (``arrival_ns``,
+        monotonic, times the reports). Every such disagreement is counted in ``skew_warnings``."""
+        skew_s = (arrival_wall_ns - md.capture_time_us * 1000) / NS
+        if abs(skew_s) <= self.skew_warn_s:
+            return None
+        origin = md.origin & 0xFF
+        with self._lock:
+            self.skew_warnings += 1
+            last = self._skew_reported_ns.get(origin)
+            if last is not None and arrival_ns - last < self.skew_warn_every_ns:
+                return None
+            self._skew_reported_ns[origin] = arrival_ns
+        return SkewReport(md.origin, skew_s)
+
+    def sizes(self) -> tuple[int, int]:
+        """(remembered observations, token buckets): both bounded."""
+        with self._lock:
+            return len(self._seen), len(self._buckets)

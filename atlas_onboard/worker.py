@@ -1,0 +1,37 @@
+"""A sensor worker: one thread that produces MarkerData and hands each to a callback (the node's
+``Camera`` protocol). Cameras, simulated cameras and the simulated motion capture derive from it."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+from atlas_onboard.core.markerdata import MarkerData
+
+Deliver = Callable[[MarkerData], None]
+
+
+class SensorWorker:
+    """Subclasses implement ``_run(deliver)``, returning when ``self._stop`` is set."""
+
+    name: str = "sensor"
+    join_timeout_s = 3.0
+
+    def __init__(self) -> None:
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self, deliver: Deliver) -> None:
+        self._thread = threading.Thread(target=self._run, args=(deliver,), name=f"sensor-{self.name}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=self.join_timeout_s)
+
+    def counters(self) -> dict[str, int]:
+        return {}
+
+    def _run(self, deliver: Deliver) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
