@@ -1,22 +1,34 @@
-"""One MAVLink connection: opened from a pymavlink connection string with the atlas dialect, read by
-its own thread, reopened with backoff when it fails, optionally signed.
+"""One MAVLink connection: opened from a pymavlink connection string with the atlas dialect, reopened
+with backoff when it fails, optionally signed; read either by its own thread (:meth:`Link.start`) or
+by the caller (:meth:`Link.poll`).
 
-A link knows nothing of the graph: it hands every decoded message to a callback and counts what it
-drops (bad CRC or signature, unsigned where signing is required, unknown ids, read errors).
+A link knows nothing of the graph: it returns (or hands to a callback) every message that decoded
+and passed the signing policy, and counts what it drops (bad CRC, bad or missing signature where it
+is required, replays, unknown ids, read errors).
+
+Two fixes over pymavlink's signing, both needed by a swarm:
+
+- pymavlink stores a stream's timestamp *before* it checks the signature, so one forged frame with
+  a far-future timestamp (no key needed) would make every later genuine frame of that stream look
+  like a replay. Here the signature is checked first, the timestamp only after.
+- pymavlink's outgoing timestamp only counts messages (+1 each), never the clock, so a node that has
+  run a while signs far behind real time and a peer that restarts rejects it (more than 60 s behind)
+  for good. Here it follows the wall clock, and never goes below the value persisted in ``state_dir``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import hmac
 import json
 import logging
 import os
 import stat
+import struct
 import threading
 import time
-from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,14 +41,46 @@ from atlas_onboard.mavlink import dialect
 _logger = logging.getLogger(__name__)
 
 SIGNING_EPOCH_S = 1420070400  # MAVLink signing timestamps count 10 us units since 2015-01-01
+SIGNING_TICKS_PER_S = 100_000
+STREAM_MAX_BEHIND_TICKS = 60 * SIGNING_TICKS_PER_S  # a new stream more than 60 s behind is refused
+TIMESTAMP_SAVE_EVERY_S = 10.0
 BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
-PROTECTED = {"ATLAS_OBSERVATION", "ATLAS_FUSED_POSE", "TUNNEL"}  # never accepted unsigned when required
+PROTECTED = frozenset({"ATLAS_OBSERVATION", "ATLAS_FUSED_POSE", "TUNNEL"})  # never accepted unsigned when required
+KEY_LEN = 32
 
 Handler = Callable[["Link", Any, int], None]
 
 
+class Counters:
+    """Named event counters, safe to increment from a link's thread while another thread reads them."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._values: dict[str, int] = {}
+
+    def inc(self, name: str, n: int = 1) -> None:
+        with self._lock:
+            self._values[name] = self._values.get(name, 0) + n
+
+    def __getitem__(self, name: str) -> int:
+        return self._values.get(name, 0)
+
+    def get(self, name: str, default: int = 0) -> int:
+        return self._values.get(name, default)
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._values)
+
+    def items(self) -> Iterator[tuple[str, int]]:
+        return iter(self.snapshot().items())
+
+    def __repr__(self) -> str:
+        return f"Counters({self.snapshot()})"
+
+
 def read_key(path: Path) -> bytes:
-    """A 32-byte signing key: 32 raw bytes, or 64 hex characters. Refused if others may read it."""
+    """A 32-byte signing key: 32 raw bytes, or 64 hex characters. Refused if group or others may read it."""
     try:
         st = path.stat()
         data = path.read_bytes()
@@ -47,22 +91,37 @@ def read_key(path: Path) -> bytes:
             f"signing key {path}: readable by group or others (mode {stat.S_IMODE(st.st_mode):o}); chmod 600 it"
         )
     text = data.strip()
-    if len(text) == 64:
+    if len(text) == 2 * KEY_LEN:
         try:
             return bytes.fromhex(text.decode("ascii"))
         except (UnicodeDecodeError, ValueError):
             pass
-    if len(data) == 32:
+    if len(data) == KEY_LEN:
         return data
     raise AtlasError(f"signing key {path}: expected 32 bytes or 64 hex characters, got {len(data)} bytes")
 
 
-def _now_signing_ts() -> int:
-    return int((max(time.time(), SIGNING_EPOCH_S) - SIGNING_EPOCH_S) * 100_000)
+def signing_timestamp(wall_s: float) -> int:
+    """A MAVLink signing timestamp (10 us units since 2015-01-01 UTC) from UNIX seconds."""
+    return int((max(wall_s, SIGNING_EPOCH_S) - SIGNING_EPOCH_S) * SIGNING_TICKS_PER_S)
+
+
+def is_serial(url: str) -> bool:
+    """Any absolute device path (``/dev/ttyAMA0,921600``, ``/dev/serial/by-id/...``) or ``COMn`` is serial."""
+    return url.startswith(("/", "COM"))
 
 
 class Link:
-    """A MAVLink connection with a receive thread, reconnects, counters and optional signing."""
+    """A MAVLink connection with reconnects, counters and optional signing.
+
+    Args:
+        config: the connection string, signing and rate settings.
+        name: used in counter prefixes and log lines (``autopilot``, ``peer0``).
+        system_id, component_id: what this node sends as (the autopilot's system id, 197).
+        state_dir: where the signing timestamp persists (None: not persisted).
+        link_id: the MAVLink signing link id of this connection.
+        wall_clock: UNIX time in seconds (signing timestamps); injectable for tests.
+    """
 
     def __init__(
         self,
@@ -72,6 +131,8 @@ class Link:
         component_id: int,
         state_dir: Path | None = None,
         link_id: int = 0,
+        *,
+        wall_clock: Callable[[], float] = time.time,
     ) -> None:
         self.config = config
         self.name = name
@@ -79,8 +140,9 @@ class Link:
         self.component_id = component_id
         self.state_dir = state_dir
         self.link_id = link_id
-        self.counters: Counter[str] = Counter()
+        self.counters = Counters()
         self.dialect = dialect.load()
+        self._wall = wall_clock
         self._key = read_key(config.signing.key_file) if config.signing is not None else None
         self._conn: Any = None
         self._send_lock = threading.Lock()
@@ -88,15 +150,18 @@ class Link:
         self._thread: threading.Thread | None = None
         self._handler: Handler | None = None
         self._backoff = 0
-        self._last_ts_save = 0.0
+        self._next_open_s = 0.0  # monotonic time of the next reopen attempt
+        self._last_ts_save = time.monotonic()
+        self._opened_before = False
         self.connected = threading.Event()
 
     # --- connection ---------------------------------------------------------------------------------
 
-    def _open(self) -> None:
+    def open(self) -> None:
+        """Open the connection now (raises what pymavlink raises: a missing device, a refused TCP connect)."""
         url = self.config.url
         kwargs: dict[str, Any] = {"source_system": self.system_id, "source_component": self.component_id}
-        if url.startswith(("/", "COM")):
+        if is_serial(url):
             device, _, baud = url.partition(",")
             conn = mavutil.mavlink_connection(device, baud=int(baud or 57600), **kwargs)
         elif url.startswith("tcp:"):
@@ -115,8 +180,8 @@ class Link:
         # conn.mav with its global dialect on the first MAVLink 2 byte.
         conn.WIRE_PROTOCOL_VERSION = "2.0"
         conn.first_byte = False
-        if self._key is not None:
-            self._setup_signing(conn, self.config.signing)  # type: ignore[arg-type]
+        if self._key is not None and self.config.signing is not None:
+            self._setup_signing(conn, self.config.signing)
         self._conn = conn
         self.connected.set()
 
@@ -126,7 +191,7 @@ class Link:
             if not signing.require:
                 return True
             if getattr(self.dialect.mavlink_map.get(msg_id), "msgname", "") in PROTECTED:
-                self.counters["rejected_unsigned_or_bad_signature"] += 1
+                self.counters.inc("rejected_unsigned_or_bad_signature")
                 return False
             return True
 
@@ -134,9 +199,40 @@ class Link:
             self._key,
             sign_outgoing=signing.sign_outgoing,
             allow_unsigned_callback=allow_unsigned,
-            initial_timestamp=max(_now_signing_ts(), self._load_timestamp() + 1),
+            initial_timestamp=max(signing_timestamp(self._wall()), self._load_timestamp() + 1),
             link_id=self.link_id,
         )
+        mav = conn.mav
+        mav.check_signature = lambda buf, src_system, src_component: self._check_signature(mav, buf, src_system,
+                                                                                           src_component)  # fmt: skip
+
+    def _check_signature(self, mav: Any, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
+        """pymavlink's check, in the safe order: the signature first, then the stream's timestamp."""
+        signing = mav.signing
+        link_id = msgbuf[-13]
+        low, high = struct.unpack("<IH", bytes(msgbuf[-12:-6]))
+        timestamp = low + (high << 32)
+        digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+        if not hmac.compare_digest(digest, bytes(msgbuf[-6:])):
+            self.counters.inc("signature_mismatch")
+            return False
+        stream = (link_id, src_system, src_component)
+        last = signing.stream_timestamps.get(stream)
+        if last is not None and timestamp <= last:
+            self.counters.inc("signature_replayed")
+            return False
+        if last is None and timestamp + STREAM_MAX_BEHIND_TICKS < signing.timestamp:
+            self.counters.inc("signature_stream_too_old")
+            return False
+        signing.stream_timestamps[stream] = timestamp
+        signing.timestamp = max(signing.timestamp, timestamp)
+        return True
+
+    def _advance_signing_clock(self, conn: Any) -> None:
+        """Keep the signing timestamp at least at the wall clock (it must rise with real time)."""
+        signing = conn.mav.signing
+        if signing.secret_key is not None:
+            signing.timestamp = max(signing.timestamp, signing_timestamp(self._wall()))
 
     def _ts_path(self) -> Path | None:
         if self.state_dir is None:
@@ -149,120 +245,159 @@ class Link:
         if path is None:
             return 0
         try:
-            # Saved periodically: add the save period so a restart never reuses a timestamp.
-            return int(json.loads(path.read_text(encoding="utf-8"))["timestamp"]) + 10 * 100_000
+            saved = int(json.loads(path.read_text(encoding="utf-8"))["timestamp"])
         except (OSError, ValueError, KeyError, TypeError):
             return 0
+        # Saved periodically: add the save period so a restart never reuses a timestamp.
+        return saved + int(TIMESTAMP_SAVE_EVERY_S * SIGNING_TICKS_PER_S)
 
     def save_timestamp(self) -> None:
         """Persist the signing timestamp (a companion without an RTC restarts with a clock in the past)."""
         path = self._ts_path()
-        if path is None or self._conn is None or self._key is None:
+        conn = self._conn
+        if path is None or conn is None or self._key is None:
             return
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(".tmp")
-            tmp.write_text(json.dumps({"timestamp": int(self._conn.mav.signing.timestamp)}), encoding="utf-8")
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_text(json.dumps({"timestamp": int(conn.mav.signing.timestamp)}), encoding="utf-8")
             os.replace(tmp, path)
         except OSError as exc:
-            self.counters["signing_state_write_errors"] += 1
+            self.counters.inc("signing_state_write_errors")
             _logger.warning("%s: cannot save signing timestamp to %s: %s", self.name, path, exc.strerror)
 
-    # --- threads ------------------------------------------------------------------------------------
+    @property
+    def is_open(self) -> bool:
+        return self._conn is not None
 
-    def start(self, handler: Handler) -> None:
-        self._handler = handler
-        with contextlib.suppress(Exception):
-            self._open()
-        self._thread = threading.Thread(target=self._run, name=f"link-{self.name}", daemon=True)
-        self._thread.start()
+    # --- receiving ----------------------------------------------------------------------------------
 
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
-        self.save_timestamp()
-        if self._conn is not None:
-            with contextlib.suppress(Exception):
-                self._conn.close()
-        self._conn = None
+    def poll(self, timeout_s: float = 0.05) -> list[Any]:
+        """Wait up to ``timeout_s`` for data and return the messages that passed (possibly none).
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            if self._conn is None:
-                delay = BACKOFF_S[min(self._backoff, len(BACKOFF_S) - 1)]
-                if self._stop.wait(delay):
-                    return
-                try:
-                    self._open()
-                    self._backoff = 0
-                    self.counters["reconnects"] += 1
-                    _logger.info("%s: link %s open again", self.name, self.config.url)
-                except Exception as exc:  # serial device gone, port in use, peer down: retry with backoff
-                    self._backoff += 1
-                    self.counters["open_errors"] += 1
-                    _logger.debug("%s: cannot open %s: %s", self.name, self.config.url, exc)
-                continue
-            try:
-                # Raw bytes and pymavlink's parser, not mavutil's recv_match: that one also keeps
-                # per-message bookkeeping for interactive tools, which costs more than the decode.
-                if not self._conn.select(0.05):
-                    continue
-                data = self._conn.recv(4096)
-                msgs = self._conn.mav.parse_buffer(data) if data else None
-            except Exception as exc:  # the device vanished or the peer went away: reopen with backoff
-                self.counters["read_errors"] += 1
-                _logger.warning("%s: link %s failed (%s); reopening", self.name, self.config.url, exc)
-                self._drop()
-                continue
-            for msg in msgs or ():
-                self._dispatch(msg)
-            if self._key is not None and time.monotonic() - self._last_ts_save > 10.0:
-                self._last_ts_save = time.monotonic()
-                self.save_timestamp()
+        Never raises for anything the link or the bytes do: a failed read closes the connection and
+        the next calls reopen it with backoff (0.2 s growing to 5 s). Dropped input is counted.
+        """
+        conn = self._conn
+        if conn is None:
+            self._try_reopen(timeout_s)
+            return []
+        try:
+            # Raw bytes and pymavlink's parser, not mavutil's recv_match: that one also keeps
+            # per-message bookkeeping for interactive tools, which costs more than the decode.
+            if not conn.select(timeout_s):
+                self._housekeeping(conn)
+                return []
+            data = conn.recv(4096)
+            msgs = conn.mav.parse_buffer(data) if data else None
+        except Exception as exc:  # the device vanished or the peer went away: reopen with backoff
+            self.counters.inc("read_errors")
+            _logger.warning("%s: link %s failed (%s); reopening", self.name, self.config.url, exc)
+            self._drop()
+            return []
+        self._housekeeping(conn)
+        return [m for m in msgs or () if self._accept(m)]
+
+    def _try_reopen(self, timeout_s: float) -> None:
+        wait = self._next_open_s - time.monotonic()
+        if wait > 0:
+            self._stop.wait(min(wait, timeout_s))
+            if time.monotonic() < self._next_open_s:
+                return
+        try:
+            self.open()
+        except Exception as exc:  # serial device gone, port in use, peer down: retry with backoff
+            self.counters.inc("open_errors")
+            _logger.debug("%s: cannot open %s: %s", self.name, self.config.url, exc)
+            self._next_open_s = time.monotonic() + BACKOFF_S[min(self._backoff, len(BACKOFF_S) - 1)]
+            self._backoff += 1
+            return
+        if self._opened_before:
+            self.counters.inc("reconnects")
+            _logger.info("%s: link %s open again", self.name, self.config.url)
+        self._opened_before = True
+        self._backoff = 0
+
+    def _housekeeping(self, conn: Any) -> None:
+        if self._key is None:
+            return
+        self._advance_signing_clock(conn)
+        if time.monotonic() - self._last_ts_save > TIMESTAMP_SAVE_EVERY_S:
+            self._last_ts_save = time.monotonic()
+            self.save_timestamp()
+
+    def _accept(self, msg: Any) -> bool:
+        """Count and drop what must not go further; True for a message to hand on."""
+        kind = msg.get_type()
+        if kind == "BAD_DATA":
+            reason = str(getattr(msg, "reason", ""))
+            self.counters.inc("rejected_bad_signature" if "signature" in reason else "rejected_bad_data")
+            return False
+        if type(msg).__name__ == "MAVLink_unknown" or kind.startswith("UNKNOWN"):
+            # pymavlink returns unknown ids before any CRC or signature check: never trust them.
+            self.counters.inc("rejected_unknown_id")
+            return False
+        self.counters.inc(f"rx_{kind.lower()}")
+        return True
 
     def _drop(self) -> None:
         self.connected.clear()
         conn, self._conn = self._conn, None
-        with contextlib.suppress(Exception):
-            conn.close()
+        self._next_open_s = time.monotonic() + BACKOFF_S[0]
+        if conn is not None:
+            with contextlib.suppress(Exception):
+                conn.close()
 
-    def _dispatch(self, msg: Any) -> None:
-        kind = msg.get_type()
-        if kind == "BAD_DATA":
-            reason = str(getattr(msg, "reason", ""))
-            self.counters["rejected_bad_signature" if "signature" in reason else "rejected_bad_data"] += 1
-            return
-        if kind == "UNKNOWN" or type(msg).__name__ == "MAVLink_unknown":
-            self.counters["rejected_unknown_id"] += 1
-            return
-        self.counters[f"rx_{kind.lower()}"] += 1
-        if self._handler is not None:
-            try:
-                self._handler(self, msg, time.monotonic_ns())
-            except Exception:  # a bug in a handler must not kill the link's thread
-                self.counters["handler_errors"] += 1
-                _logger.exception("%s: handler failed on %s", self.name, kind)
+    # --- thread mode --------------------------------------------------------------------------------
+
+    def start(self, handler: Handler) -> None:
+        """Read in a thread of its own: ``handler(link, msg, arrival_monotonic_ns)`` for each message."""
+        self._handler = handler
+        self._try_reopen(0.0)
+        self._thread = threading.Thread(target=self._run, name=f"link-{self.name}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            for msg in self.poll(0.05):
+                if self._handler is None:
+                    continue
+                try:
+                    self._handler(self, msg, time.monotonic_ns())
+                except Exception:  # a bug in a handler must not kill the link's thread
+                    self.counters.inc("handler_errors")
+                    _logger.exception("%s: handler failed on %s", self.name, msg.get_type())
+
+    def close(self) -> None:
+        """Stop the thread (if any), save the signing timestamp and close the connection."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self.save_timestamp()
+        self._drop()
 
     # --- sending ------------------------------------------------------------------------------------
 
     def send(self, msg: Any) -> bool:
-        """Send one message; False (counted) when the link is down or the write fails."""
+        """Send one message (thread-safe); False (counted) when the link is down or the write fails."""
         conn = self._conn
         if conn is None:
-            self.counters["tx_dropped_link_down"] += 1
+            self.counters.inc("tx_dropped_link_down")
             return False
         try:
             with self._send_lock:
+                if self._key is not None:
+                    self._advance_signing_clock(conn)
                 conn.mav.send(msg)
-        except Exception as exc:  # a write error is a dead link: the reader thread reopens it
-            self.counters["tx_errors"] += 1
+        except Exception as exc:  # a write error is a dead link: the reader reopens it when its read fails
+            self.counters.inc("tx_errors")
             _logger.debug("%s: send failed: %s", self.name, exc)
             return False
-        self.counters[f"tx_{msg.get_type().lower()}"] += 1
+        self.counters.inc(f"tx_{msg.get_type().lower()}")
         return True
 
     @property
     def mav(self) -> Any:
         """The dialect's MAVLink object of the current connection (for building messages), or None."""
-        return self._conn.mav if self._conn is not None else None
+        conn = self._conn
+        return conn.mav if conn is not None else None

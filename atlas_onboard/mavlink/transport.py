@@ -6,44 +6,26 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import Counter, OrderedDict
 from collections.abc import Callable, Sequence
 from typing import Any
 
 from atlas_onboard.config import NodeConfig, WorldConfig
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.mavlink import codec
-from atlas_onboard.mavlink.link import Link
+from atlas_onboard.errors import AtlasError
+from atlas_onboard.mavlink import autopilot, codec
+from atlas_onboard.mavlink.gate import PeerGate, TokenBucket
+from atlas_onboard.mavlink.link import Counters, Link
 from atlas_onboard.publisher import AutopilotPose
 
 _logger = logging.getLogger(__name__)
 
+__all__ = ["MavlinkTransport", "TokenBucket"]
+
 NS = 1_000_000_000
-DEDUPE_WINDOW = 4096
-SKEW_WARN_S = 0.1
-SKEW_WARN_EVERY_S = 10.0
-MAV_TYPE_ONBOARD_CONTROLLER = 18
-MAV_AUTOPILOT_INVALID = 8
-MAV_STATE_ACTIVE = 4
+MAV_TYPE_ONBOARD_CONTROLLER = autopilot.MAV_TYPE_ONBOARD_CONTROLLER
+MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
 PEER_LOST_NS = 3 * NS
-
-
-class TokenBucket:
-    """At most ``rate`` events per second on average, bursts up to one second's worth."""
-
-    def __init__(self, rate: float, now_ns: int) -> None:
-        self.rate = rate
-        self.tokens = rate
-        self.t_ns = now_ns
-
-    def take(self, now_ns: int) -> bool:
-        self.tokens = min(self.rate, self.tokens + (now_ns - self.t_ns) * self.rate / NS)
-        self.t_ns = now_ns
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
 
 
 class MavlinkTransport:
@@ -54,7 +36,7 @@ class MavlinkTransport:
         self.config = config
         self.fingerprint = world.fingerprint()
         self.wall = wall_clock
-        self.counters_: Counter[str] = Counter()
+        self.counters_ = Counters()
         ap = config.autopilot
         compid = ap.component_id if ap is not None else 197
         self.autopilot = (
@@ -68,16 +50,15 @@ class MavlinkTransport:
         ]
         self.entity_index = {name: i for i, name in enumerate(world.entity_names)}
         self._deliver: Callable[[MarkerData, int], None] | None = None
-        self._seen: OrderedDict[tuple[int, ...], None] = OrderedDict()
-        self._buckets: dict[tuple[int, int], TokenBucket] = {}
-        self._skew_warned: dict[int, float] = {}
-        self._lock = threading.Lock()  # receive threads of several links share the dedupe window
+        self.gate = PeerGate(config.system_id)  # shared by the receive threads of every peer link
+        self._lock = threading.Lock()
         self._next_heartbeat_ns = 0
         self._next_origin_ns = 0
         self.origin_known = False
         self.autopilot_system: int | None = None
         self.peers_seen: dict[int, int] = {}  # system id -> last arrival (ns)
         self._peers_alive: set[int] = set()
+        self._fingerprint_warned: set[int] = set()
 
     # --- Transport ------------------------------------------------------------------------------------
 
@@ -89,16 +70,19 @@ class MavlinkTransport:
             link.start(lambda lk, msg, t, i=i: self._on_peer(i, lk, msg, t))
 
     def send_observation(self, md: MarkerData) -> None:
+        """Our own observation to every peer link (as ATLAS_OBSERVATION, or TUNNEL where configured)."""
+        plain = tunnel = None
         for link in self.peers:
-            if link.config.tunnel:
-                payload = codec.tunnel_payload(md, self.fingerprint)
-                msg = link.dialect.MAVLink_tunnel_message(
-                    target_system=0, target_component=0, payload_type=codec.TUNNEL_PAYLOAD_OBSERVATION,
-                    payload_length=len(payload), payload=list(payload) + [0] * (128 - len(payload)),
-                )  # fmt: skip
-            else:
-                msg = codec.encode_observation(link.dialect, md, self.fingerprint)
-            link.send(msg)
+            try:
+                if link.config.tunnel:
+                    tunnel = tunnel or codec.encode_tunnel(link.dialect, md, self.fingerprint)
+                    link.send(tunnel)
+                else:
+                    plain = plain or codec.encode_observation(link.dialect, md, self.fingerprint)
+                    link.send(plain)
+            except Exception as exc:  # a value that does not fit its wire type: counted, never raised
+                self.counters_.inc("tx_observation_encode_errors")
+                _logger.debug("cannot encode observation %s: %s", (md.sensor_id, md.marker_id), exc)
 
     def send_fused(self, poses: Sequence[EntityPose], world: WorldConfig) -> None:
         for pose in poses:
@@ -112,13 +96,19 @@ class MavlinkTransport:
                 link.send(codec.encode_fused(link.dialect, pose, idx, frame, self.fingerprint))
 
     def send_autopilot(self, pose: AutopilotPose) -> None:
+        """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity; a non-finite pose is counted, not sent."""
         if self.autopilot is None or self.config.autopilot is None:
             return
         d = self.autopilot.dialect
-        if self.config.autopilot.output.value == "odometry":
-            msg = codec.odometry(d, pose.pose, pose.reset_counter)
-        else:
-            msg = codec.vision_position_estimate(d, pose.pose, pose.reset_counter)
+        try:
+            if self.config.autopilot.output.value == "odometry":
+                msg = codec.odometry(d, pose.pose, pose.reset_counter)
+            else:
+                msg = codec.vision_position_estimate(d, pose.pose, pose.reset_counter)
+        except AtlasError as exc:
+            self.counters_.inc("autopilot_pose_refused")
+            _logger.debug("pose not sent to the autopilot: %s", exc)
+            return
         self.autopilot.send(msg)
 
     def send_status(self, text: str, severity: int) -> None:
@@ -132,23 +122,16 @@ class MavlinkTransport:
         if now_ns >= self._next_heartbeat_ns:
             self._next_heartbeat_ns = now_ns + int(NS / self.config.heartbeat_hz)
             for link in self._links():
-                link.send(
-                    link.dialect.MAVLink_heartbeat_message(
-                        type=MAV_TYPE_ONBOARD_CONTROLLER, autopilot=MAV_AUTOPILOT_INVALID, base_mode=0, custom_mode=0,
-                        system_status=MAV_STATE_ACTIVE, mavlink_version=3,
-                    )
-                )  # fmt: skip
+                link.send(link.dialect.MAVLink_heartbeat_message(**autopilot.heartbeat_fields()))
         ap = self.config.autopilot
         if ap is not None and ap.origin is not None and not self.origin_known and now_ns >= self._next_origin_ns:
             self._next_origin_ns = now_ns + NS
-            assert self.autopilot is not None
-            self.autopilot.send(
-                self.autopilot.dialect.MAVLink_set_gps_global_origin_message(
-                    target_system=self.autopilot_system or self.config.system_id,
-                    latitude=round(ap.origin.lat_deg * 1e7), longitude=round(ap.origin.lon_deg * 1e7),
-                    altitude=round(ap.origin.alt_m * 1000), time_usec=int(self.wall() * 1e6),
-                )
-            )  # fmt: skip
+            if self.autopilot is not None:
+                fields = autopilot.set_gps_global_origin_fields(
+                    self.autopilot_system or self.config.system_id, ap.origin.lat_deg, ap.origin.lon_deg,
+                    ap.origin.alt_m, int(self.wall() * 1e6),
+                )  # fmt: skip
+                self.autopilot.send(self.autopilot.dialect.MAVLink_set_gps_global_origin_message(**fields))
 
     def _peer_changes(self, now_ns: int) -> None:
         """STATUSTEXT and a log line when a peer appears or falls silent for PEER_LOST_S."""
@@ -164,7 +147,8 @@ class MavlinkTransport:
                 self.send_status(f"atlas: peer {sysid} lost", 4)
 
     def counters(self) -> dict[str, int]:
-        out = dict(self.counters_)
+        out = self.counters_.snapshot()
+        out["clock_skew_warnings"] = self.gate.skew_warnings
         for link in self._links():
             out.update({f"{link.name}_{k}": v for k, v in link.counters.items()})
         return out
@@ -189,9 +173,12 @@ class MavlinkTransport:
                         msg.get_srcSystem(), self.config.system_id,
                     )  # fmt: skip
             self.autopilot_system = msg.get_srcSystem()
-        elif kind == "TIMESYNC" and msg.tc1 == 0:
-            # Answer the autopilot's time-sync request (PX4 trusts our usec only once this converges).
-            link.send(link.dialect.MAVLink_timesync_message(tc1=time.monotonic_ns(), ts1=msg.ts1))
+        elif kind == "TIMESYNC":
+            # Answer the autopilot's time-sync request (PX4 trusts our usec only once this converges),
+            # on the wall clock: the clock of the capture times we send as usec.
+            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, int(self.wall() * NS))
+            if reply is not None:
+                link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind == "GPS_GLOBAL_ORIGIN":
             if not self.origin_known:
                 _logger.info("autopilot reports its EKF origin; no more SET_GPS_GLOBAL_ORIGIN")
@@ -204,48 +191,33 @@ class MavlinkTransport:
             if kind in ("HEARTBEAT", "ATLAS_FUSED_POSE"):
                 self.peers_seen[origin] = arrival_ns
             return
-        if origin == self.config.system_id:
-            self.counters_["rejected_own_echo"] += 1
-            return
         try:
             if kind == "TUNNEL":
                 md = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, origin, self.fingerprint)
             else:
                 md = codec.decode_observation(msg, origin, self.fingerprint)
         except codec.RejectionError as exc:
-            self.counters_[f"rejected_{exc.reason}"] += 1
-            if exc.reason == "wrong_fingerprint" and self.counters_["rejected_wrong_fingerprint"] == 1:
-                _logger.error("peer system %d uses another world file (fingerprint differs): refused", origin)
+            self.counters_.inc(f"rejected_{exc.reason}")
+            if exc.reason == "wrong_fingerprint":
+                self._warn_fingerprint(origin)
             return
-        key = (origin, md.seq, md.sensor_id, md.marker_id, md.capture_time_us)
-        with self._lock:
-            if key in self._seen:
-                self.counters_["rejected_duplicate"] += 1
-                return
-            self._seen[key] = None
-            if len(self._seen) > DEDUPE_WINDOW:
-                self._seen.popitem(last=False)
-            bucket = self._buckets.get((index, origin))
-            if bucket is None:
-                if len(self._buckets) > 1024:  # bound the table against spoofed system ids
-                    self._buckets.clear()
-                bucket = self._buckets[(index, origin)] = TokenBucket(link.config.rate_limit_hz, arrival_ns)
-            if not bucket.take(arrival_ns):
-                self.counters_["rejected_rate_limited"] += 1
-                return
+        reason = self.gate.admit(md, index, link.config.rate_limit_hz, arrival_ns)
+        if reason is not None:
+            self.counters_.inc(f"rejected_{reason}")
+            return
         self.peers_seen[origin] = arrival_ns
-        self._check_skew(origin, md)
+        skew = self.gate.check_skew(md, int(self.wall() * NS), arrival_ns)
+        if skew is not None:
+            _logger.warning(
+                "peer system %d: capture stamps and arrival disagree by %.0f ms; sync the clocks (chrony)",
+                skew.origin, skew.skew_s * 1e3,
+            )  # fmt: skip
         if self._deliver is not None:
             self._deliver(md, arrival_ns)
 
-    def _check_skew(self, origin: int, md: MarkerData) -> None:
-        skew = self.wall() - md.capture_time_us / 1e6
-        if abs(skew) > SKEW_WARN_S:
-            self.counters_["clock_skew_warnings"] += 1
-            now = time.monotonic()
-            if now - self._skew_warned.get(origin, -1e9) > SKEW_WARN_EVERY_S:
-                self._skew_warned[origin] = now
-                _logger.warning(
-                    "peer system %d: capture stamps and arrival disagree by %.0f ms; sync the clocks (chrony)",
-                    origin, skew * 1e3,
-                )  # fmt: skip
+    def _warn_fingerprint(self, origin: int) -> None:
+        with self._lock:
+            first = origin not in self._fingerprint_warned
+            self._fingerprint_warned.add(origin & 0xFF)
+        if first:
+            _logger.error("peer system %d uses another world file (fingerprint differs): refused", origin)
