@@ -89,6 +89,8 @@ def covariance_ned_frd(cov_enu_flu: np.ndarray) -> np.ndarray:
     cov = np.asarray(cov_enu_flu, dtype=float)
     if cov.shape != (6, 6):
         raise AtlasError(f"expected a covariance of shape (6, 6), got shape {cov.shape}")
+    if not np.all(np.isfinite(cov)):
+        raise AtlasError("expected a finite covariance, got NaN or inf")
     return _J_NED_FRD_ENU_FLU @ cov @ _J_NED_FRD_ENU_FLU.T
 
 

@@ -192,7 +192,7 @@ def fused_fields(pose: EntityPose, entity_index: int, frame_index: int, fingerpr
         "level": min(max(pose.level, 0), 255),
         "n_observations": min(max(pose.n_observations, 0), 255),
         "format_version": FORMAT_VERSION,
-        "entity_name": pose.name.encode("utf-8")[:ENTITY_NAME_LEN],
+        "entity_name": pose.name.encode("ascii", "replace")[:ENTITY_NAME_LEN],
     }
 
 

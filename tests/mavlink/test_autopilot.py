@@ -1,0 +1,209 @@
+"""Autopilot messages as pure functions: NED/FRD numbers, covariance layout, ODOMETRY frames, the
+reset counter, HEARTBEAT, TIMESYNC and the EKF origin."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.core.graph import EntityPose
+from atlas_onboard.errors import AtlasError
+from atlas_onboard.mavlink import autopilot, codec, dialect
+
+DIAG = [0, 6, 11, 15, 18, 20]
+
+
+def enu(p, yaw_deg=0.0, pitch_deg=0.0, roll_deg=0.0):
+    rot = Rotation.from_euler("ZYX", [yaw_deg, pitch_deg, roll_deg], degrees=True)
+    return RigidTransform.from_components(np.asarray(p, float), rot)
+
+
+def test_enu_yaw_90_arrives_as_ned_yaw_0():
+    f = autopilot.vision_position_estimate_fields(enu([1, 2, 3], 90), 1_700_000_000_000_000, 4, sigma_m=0.02)
+    assert (f["x"], f["y"], f["z"]) == pytest.approx((2.0, 1.0, -3.0), abs=1e-12)
+    assert (f["roll"], f["pitch"], f["yaw"]) == pytest.approx((0.0, 0.0, 0.0), abs=1e-12)
+    assert f["usec"] == 1_700_000_000_000_000 and f["reset_counter"] == 4
+
+
+@pytest.mark.parametrize(
+    ("yaw_enu", "yaw_ned"), [(0.0, 90.0), (90.0, 0.0), (180.0, -90.0), (-90.0, 180.0), (45.0, 45.0), (30.0, 60.0)]
+)
+def test_yaw_mapping(yaw_enu, yaw_ned):
+    f = autopilot.vision_position_estimate_fields(enu([0, 0, 0], yaw_enu), 1, 0, sigma_m=0.01)
+    # yaw_ned = 90 - yaw_enu, wrapped to (-180, 180]
+    assert math.cos(f["yaw"] - math.radians(yaw_ned)) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_roll_and_pitch_keep_their_meaning():
+    # FLU pitch -10 deg (about the left axis: nose up) is FRD pitch +10 deg (about the right axis: nose up).
+    f = autopilot.vision_position_estimate_fields(enu([0, 0, 0], 90, pitch_deg=-10), 1, 0, sigma_m=0.01)
+    assert math.degrees(f["pitch"]) == pytest.approx(10.0, abs=1e-9)
+    # FLU roll +10 deg (left wing up) is FRD roll +10 deg (right wing down): the same motion, same sign.
+    f = autopilot.vision_position_estimate_fields(enu([0, 0, 0], 90, roll_deg=10), 1, 0, sigma_m=0.01)
+    assert math.degrees(f["roll"]) == pytest.approx(10.0, abs=1e-9)
+    assert math.degrees(f["yaw"]) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_covariance_from_sigma_has_real_variances_on_the_diagonal():
+    f = autopilot.vision_position_estimate_fields(enu([1, 2, 3], 90), 1, 0, sigma_m=0.02)
+    cov = np.array(f["covariance"])
+    assert cov.shape == (21,)
+    assert cov[[0, 6, 11]] == pytest.approx([0.0004] * 3)
+    att = math.radians(1.0) ** 2  # 0.02 m / 0.25 m = 0.08 rad, above the 1 deg floor
+    assert cov[[15, 18, 20]] == pytest.approx([0.08**2] * 3) and cov[15] > att
+    assert np.all(np.delete(cov, DIAG) == 0.0)
+
+
+def test_full_covariance_rotates_into_ned_frd():
+    # ENU variances east 1, north 4, up 9 (m^2), east-north covariance 0.5; attitude roll 0.01,
+    # pitch 0.02, yaw 0.03 (rad^2) about FLU axes with a roll-pitch term 0.001 and an east-yaw term 0.002.
+    C = np.diag([1.0, 4.0, 9.0, 0.01, 0.02, 0.03])
+    C[0, 1] = C[1, 0] = 0.5
+    C[3, 4] = C[4, 3] = 0.001
+    C[0, 5] = C[5, 0] = 0.002
+    f = autopilot.vision_position_estimate_fields(enu([0, 0, 0], 90), 1, 0, covariance_enu_flu=C)
+    cov = f["covariance"]
+    # NED: x = north (4), y = east (1), z = down (9); x-y covariance stays 0.5.
+    assert [cov[i] for i in DIAG] == pytest.approx([4.0, 1.0, 9.0, 0.01, 0.02, 0.03])
+    assert cov[1] == pytest.approx(0.5)  # (0, 1): north-east
+    assert cov[16] == pytest.approx(-0.001)  # (3, 4): roll-pitch flips with the pitch axis
+    assert cov[10] == pytest.approx(-0.002)  # (1, 5): east-yaw, yaw axis flips
+    assert cov[5] == pytest.approx(0.0)  # (0, 5): north-yaw
+
+
+def test_upper_triangle_order_is_row_major():
+    C = np.arange(36, dtype=float).reshape(6, 6)
+    C = C + C.T + 100 * np.eye(6)
+    out = autopilot.covariance_upper_triangle(C)
+    expected = [C[i, j] for i in range(6) for j in range(i, 6)]
+    assert out == expected
+
+
+def test_zero_variance_is_floored_never_sent():
+    cov = autopilot.covariance_upper_triangle(np.zeros((6, 6)))
+    assert [cov[i] for i in DIAG] == pytest.approx([1e-8] * 6)
+    assert all(cov[i] > 0 for i in DIAG)
+    assert all(v > 0 and math.isfinite(v) for v in (codec.pose_covariance(0.0)[i] for i in DIAG))
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.full((6, 6), math.nan),
+        np.diag([1, 1, 1, 1, 1, math.inf]),
+        np.diag([1, 1, -1, 1, 1, 1]),
+        np.triu(np.ones((6, 6))),  # asymmetric
+        np.eye(5),
+    ],
+)
+def test_bad_covariance_is_refused(bad):
+    with pytest.raises(AtlasError):
+        autopilot.vision_position_estimate_fields(enu([0, 0, 0]), 1, 0, covariance_enu_flu=bad)
+
+
+@pytest.mark.parametrize("sigma", [math.nan, math.inf, -0.01, 0.0, None])
+def test_bad_sigma_is_refused(sigma):
+    with pytest.raises(AtlasError):
+        autopilot.vision_position_estimate_fields(enu([0, 0, 0]), 1, 0, sigma_m=sigma)
+
+
+def test_non_finite_pose_is_refused():
+    pose = EntityPose("d", np.array([math.nan, 0, 0]), np.array([0, 0, 0, 1.0]), 1, 1, 1, 0.01, 5)
+    with pytest.raises(AtlasError):
+        codec.vision_position_estimate_fields(pose, 0)
+    pose = EntityPose("d", np.zeros(3), np.array([0, 0, 0, 1.0]), 1, 1, 1, math.nan, 5)
+    with pytest.raises(AtlasError):
+        codec.odometry_fields(pose, 0)
+
+
+def test_odometry_frames_and_quaternion():
+    f = autopilot.odometry_fields(enu([1, 2, 3], 90), 77, 300, sigma_m=0.01)
+    assert (f["frame_id"], f["child_frame_id"], f["estimator_type"]) == (20, 12, 2)
+    assert (f["x"], f["y"], f["z"]) == pytest.approx((2, 1, -3))
+    assert f["q"] == pytest.approx([1, 0, 0, 0], abs=1e-12)  # NED yaw 0: identity, w first
+    assert f["quality"] == 100 and f["time_usec"] == 77 and f["reset_counter"] == 300 % 256
+    assert math.isnan(f["vx"]) and math.isnan(f["velocity_covariance"][0])
+    assert [f["pose_covariance"][i] for i in DIAG[:3]] == pytest.approx([1e-4] * 3)
+    msg = dialect.load().MAVLink_odometry_message(**f)  # every field fits the message
+    assert msg.frame_id == 20
+
+
+def test_entity_pose_path_equals_rigid_transform_path():
+    T = enu([0.3, -1.2, 2.5], 37, 5, -8)
+    x, y, z, w = T.rotation.as_quat()
+    pose = EntityPose("d", T.translation, np.array([x, y, z, w]), 1, 1, 2, 0.05, 123)
+    a = codec.vision_position_estimate_fields(pose, 2)
+    b = autopilot.vision_position_estimate_fields(T, 123, 2, sigma_m=0.05)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert a[k] == pytest.approx(b[k], abs=1e-12), k
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.floats(-100, 100), min_size=3, max_size=3),
+    st.floats(-179, 179),
+    st.floats(-80, 80),
+    st.floats(-179, 179),
+)
+def test_vision_fields_rebuild_the_ned_pose(p, yaw, pitch, roll):
+    """Rebuilding the pose from the message (NED, ZYX Euler) and converting back gives the ENU pose."""
+    T = enu(p, yaw, pitch, roll)
+    f = autopilot.vision_position_estimate_fields(T, 1, 0, sigma_m=0.1)
+    R_ned_frd = Rotation.from_euler("ZYX", [f["yaw"], f["pitch"], f["roll"]])
+    R_enu_ned = Rotation.from_matrix([[0, 1, 0], [1, 0, 0], [0, 0, -1]])
+    R_flu_frd = Rotation.from_matrix(np.diag([1.0, -1.0, -1.0]))
+    R_back = R_enu_ned * R_ned_frd * R_flu_frd.inv()
+    assert (R_back.inv() * T.rotation).magnitude() < 1e-9
+    np.testing.assert_allclose(R_enu_ned.apply([f["x"], f["y"], f["z"]]), p, atol=1e-9)
+
+
+def test_reset_counter_counts_loss_and_jumps_only():
+    rc = autopilot.ResetCounter(jump_m=0.5)
+    assert rc.update([0, 0, 0]) == 0  # the first pose is no jump
+    assert rc.update([0.3, 0, 0]) == 0  # 0.3 m: within the threshold
+    assert rc.update([0.3, 0.6, 0]) == 1  # 0.6 m step
+    assert rc.update(None) == 1  # lost
+    assert rc.update(None) == 1
+    assert rc.update([0.3, 0.6, 0]) == 2  # found again, even in the same place
+    assert rc.update([0.3, 0.6, 0.1]) == 2
+    rc.value = 255
+    assert rc.update([5, 5, 5]) == 0  # wraps like the uint8 field
+
+
+def test_reset_counter_loss_before_any_pose_is_no_reset():
+    rc = autopilot.ResetCounter()
+    assert rc.update(None) == 0
+    assert rc.update([1, 2, 3]) == 0
+
+
+def test_heartbeat_fields():
+    f = autopilot.heartbeat_fields()
+    assert (f["type"], f["autopilot"], f["system_status"]) == (18, 8, 4)
+    d = dialect.load()
+    msg = d.MAVLink_heartbeat_message(**f)
+    assert msg.type == d.MAV_TYPE_ONBOARD_CONTROLLER and msg.autopilot == d.MAV_AUTOPILOT_INVALID
+    assert autopilot.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY == d.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY == 197
+
+
+def test_timesync_answers_requests_only_on_the_given_clock():
+    reply = autopilot.timesync_reply(tc1=0, ts1=123_456_789, now_wall_ns=1_700_000_000_123_456_789)
+    assert reply == {"tc1": 1_700_000_000_123_456_789, "ts1": 123_456_789}
+    assert autopilot.timesync_reply(tc1=5, ts1=1, now_wall_ns=9) is None  # a reply, not a request
+
+
+def test_origin_fields():
+    f = autopilot.set_gps_global_origin_fields(1, 47.397742, 8.545594, 488.0, 5)
+    assert f == {"target_system": 1, "latitude": 473977420, "longitude": 85455940, "altitude": 488000, "time_usec": 5}
+    with pytest.raises(AtlasError):
+        autopilot.set_gps_global_origin_fields(1, 91.0, 0.0, 0.0)
+    with pytest.raises(AtlasError):
+        autopilot.set_gps_global_origin_fields(1, 0.0, math.nan, 0.0)
+
+
+@pytest.mark.parametrize(("sigma", "quality"), [(0.005, 100), (0.01, 100), (0.1, 41), (0.5, 1), (math.nan, 0)])
+def test_quality(sigma, quality):
+    assert autopilot.quality_percent(sigma) == quality

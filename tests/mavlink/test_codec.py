@@ -1,0 +1,172 @@
+"""The wire format byte for byte: ATLAS_OBSERVATION, its TUNNEL form and ATLAS_FUSED_POSE round trips,
+the documented offsets, and every way a received observation is refused (fuzzed fields included)."""
+
+import math
+import struct
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from atlas_onboard.core.graph import EntityPose
+from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.mavlink import codec, dialect
+
+D = dialect.load()
+FP = 0xDEADBEEF
+MD = MarkerData(7, 33, 0.0125, (0.1, -0.2, 1.5), (0.9, 0.1, -0.3, 0.2), 1_700_000_000_123_456, 0.42, 0.8, 9, 65535)
+
+
+def wire(msg, sysid=9):
+    tx = D.MAVLink(None, srcSystem=sysid, srcComponent=197)
+    return msg.pack(tx)
+
+
+def parse(buf):
+    rx = D.MAVLink(None)
+    rx.robust_parsing = True
+    return rx.parse_buffer(buf) or []
+
+
+def f32(v):
+    return struct.unpack("<f", struct.pack("<f", v))[0]
+
+
+def assert_md_equal(a, b):
+    assert (a.sensor_id, a.marker_id, a.capture_time_us, a.origin, a.seq) == (
+        b.sensor_id, b.marker_id, b.capture_time_us, b.origin, b.seq,
+    )  # fmt: skip
+    got = (*a.p_sensor_marker_m, *a.q_sensor_marker_wxyz, a.sigma_m, a.reprojection_error_px, a.ambiguity_ratio)
+    want = (*b.p_sensor_marker_m, *b.q_sensor_marker_wxyz, b.sigma_m, b.reprojection_error_px, b.ambiguity_ratio)
+    assert got == tuple(f32(v) for v in want)  # exact: float32 on the wire
+
+
+def test_observation_round_trip_exact():
+    (msg,) = parse(wire(codec.encode_observation(D, MD, FP)))
+    assert msg.get_type() == "ATLAS_OBSERVATION" and msg.get_msgId() == 43100 and msg.get_srcSystem() == 9
+    assert_md_equal(codec.decode_observation(msg, origin=9, fingerprint=FP, check=True), MD)
+
+
+def test_observation_payload_offsets_match_the_document():
+    buf = wire(codec.encode_observation(D, MD, FP))
+    assert buf[0] == 0xFD and buf[7:10] == bytes([43100 & 0xFF, (43100 >> 8) & 0xFF, 0])  # MAVLink 2, id 43100
+    payload = buf[10 : 10 + buf[1]]
+    assert len(payload) == 87  # the last byte (format_version 1) is not zero, so nothing is truncated
+    assert struct.unpack_from("<Q", payload, 0)[0] == MD.capture_time_us
+    assert struct.unpack_from("<I", payload, 8)[0] == FP
+    assert struct.unpack_from("<3f", payload, 12) == tuple(f32(v) for v in MD.p_sensor_marker_m)
+    assert struct.unpack_from("<4f", payload, 24) == tuple(f32(v) for v in MD.q_sensor_marker_wxyz)
+    assert struct.unpack_from("<3f", payload, 40) == (f32(0.0125), f32(0.42), f32(0.8))
+    assert all(math.isnan(v) for v in struct.unpack_from("<7f", payload, 52))  # no alternative solution
+    assert struct.unpack_from("<HHHB", payload, 80) == (7, 33, 65535, 1)
+    # The TUNNEL payload is the same 87 bytes.
+    assert codec.tunnel_payload(MD, FP) == bytes(payload)
+
+
+def test_tunnel_round_trip():
+    msg_obj = codec.encode_tunnel(D, MD, FP)
+    (msg,) = parse(wire(msg_obj))
+    assert msg.get_type() == "TUNNEL" and msg.payload_type == 43100 > 32767 and msg.payload_length == 87
+    assert (msg.target_system, msg.target_component) == (0, 0)
+    got = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, 9, FP, check=True)
+    assert_md_equal(got, MD)
+
+
+@pytest.mark.parametrize(
+    ("ptype", "length", "reason"),
+    [(1234, 87, "tunnel_unknown_type"), (43100, 86, "tunnel_bad_length"), (43100, 128, "tunnel_bad_length")],
+)
+def test_tunnel_rejections(ptype, length, reason):
+    with pytest.raises(codec.RejectionError) as info:
+        codec.decode_tunnel(ptype, length, [0] * 128, 9, 1)
+    assert info.value.reason == reason
+
+
+def test_tunnel_with_a_short_payload_list_is_refused():
+    with pytest.raises(codec.RejectionError, match="tunnel_bad_length"):
+        codec.decode_tunnel(43100, 87, [0] * 40, 9, 1)
+
+
+def test_wrong_fingerprint_and_version_are_refused():
+    (msg,) = parse(wire(codec.encode_observation(D, MD, 1)))
+    with pytest.raises(codec.RejectionError, match="wrong_fingerprint"):
+        codec.decode_observation(msg, 9, 2)
+    fields = codec.observation_fields(MD, 1)
+    fields["format_version"] = 2
+    (msg,) = parse(wire(D.MAVLink_atlas_observation_message(**fields)))
+    with pytest.raises(codec.RejectionError, match="bad_version"):
+        codec.decode_observation(msg, 9, 1)
+
+
+def fuzzed(**override):
+    fields = codec.observation_fields(MD, FP)
+    fields.update(override)
+    (msg,) = parse(wire(D.MAVLink_atlas_observation_message(**fields)))
+    return msg
+
+
+@pytest.mark.parametrize(
+    ("override", "reason"),
+    [
+        *[({f: v}, "non_finite") for f in ("x", "y", "z", "sigma") for v in (math.nan, math.inf, -math.inf)],
+        *[({f: 3e38}, "out_of_range") for f in ("x", "y", "z")],  # huge but finite float32
+        ({"sigma": 3e38}, "bad_sigma"),
+        ({"sigma": -0.1}, "bad_sigma"),
+        ({"sigma": 0.0}, "bad_sigma"),
+        ({"q": [0.0, 0.0, 0.0, 0.0]}, "zero_quaternion"),
+        ({"q": [math.nan, 0.0, 0.0, 1.0]}, "non_finite"),
+        ({"q": [1.0, math.inf, 0.0, 0.0]}, "non_finite"),
+        ({"format_version": 0}, "bad_version"),
+        ({"format_version": 255}, "bad_version"),
+        ({"fingerprint": FP ^ 1}, "wrong_fingerprint"),
+    ],
+)
+def test_every_bad_field_is_a_rejection_with_its_reason(override, reason):
+    with pytest.raises(codec.RejectionError) as info:
+        codec.decode_observation(fuzzed(**override), 9, FP, check=True)
+    assert info.value.reason == reason
+
+
+def test_without_check_the_record_reaches_the_listener_for_its_checks():
+    md = codec.decode_observation(fuzzed(sigma=-0.1), 9, FP)
+    assert md.sigma_m == pytest.approx(-0.1) and md.rejection() is not None
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(min_size=0, max_size=300))
+def test_random_bytes_never_raise_and_never_yield_an_observation(data):
+    rx = D.MAVLink(None)
+    rx.robust_parsing = True
+    out = rx.parse_buffer(data) or []
+    for msg in out:  # random bytes that happen to frame must still fail the CRC
+        assert msg.get_type() == "BAD_DATA" or msg.get_type().startswith("UNKNOWN")
+
+
+def test_truncated_frames_yield_nothing():
+    frame = wire(codec.encode_observation(D, MD, FP))
+    for cut in range(1, len(frame)):
+        rx = D.MAVLink(None)
+        rx.robust_parsing = True
+        assert [m for m in rx.parse_buffer(frame[:cut]) or [] if m.get_type() == "ATLAS_OBSERVATION"] == []
+
+
+def test_fused_pose_round_trip_with_name():
+    pose = EntityPose("drone_alpha_long_name", np.array([-1, 0.5, 2.0]), np.array([0, 0, 0.6, 0.8]), 2, 3, 4, 0.03, 99)
+    (msg,) = parse(wire(codec.encode_fused(D, pose, entity_index=4, frame_index=0, fingerprint=5)))
+    assert (msg.entity_index, msg.frame_index, msg.level, msg.n_observations, msg.time_usec) == (4, 0, 2, 4, 99)
+    assert (msg.x, msg.y, msg.z, msg.sigma) == (f32(-1), f32(0.5), f32(2), f32(0.03))
+    assert msg.q == [f32(0.8), 0.0, 0.0, f32(0.6)]  # w first
+    assert msg.entity_name == "drone_alpha_long"  # 16 bytes
+    assert msg.fingerprint == 5 and msg.format_version == 1
+
+
+def test_fused_pose_from_an_older_sender_without_the_name_extension():
+    pose = EntityPose("d", np.zeros(3), np.array([0, 0, 0, 1.0]), 1, 1, 1, 0.03, 1)
+    buf = bytearray(wire(codec.encode_fused(D, pose, 1, 0, 5)))
+    assert buf[1] == 50  # 49 bytes of version-1 fields, then the name "d" (trailing zeros are cut)
+    # The same message as a sender without the extension frames it: 49 bytes, CRC over those.
+    fields = codec.fused_fields(pose, 1, 0, 5)
+    fields["entity_name"] = b""
+    (msg,) = parse(wire(D.MAVLink_atlas_fused_pose_message(**fields)))
+    assert msg.entity_name == "" and msg.entity_index == 1 and msg.format_version == 1
