@@ -184,6 +184,10 @@ class Link:
             self._setup_signing(conn, self.config.signing)
         self._conn = conn
         self.connected.set()
+        if self._opened_before:
+            self.counters.inc("reconnects")
+            _logger.info("%s: link %s open again", self.name, url)
+        self._opened_before = True
 
     def _setup_signing(self, conn: Any, signing: SigningConfig) -> None:
         def allow_unsigned(_mav: Any, msg_id: int) -> bool:
@@ -312,10 +316,6 @@ class Link:
             self._next_open_s = time.monotonic() + BACKOFF_S[min(self._backoff, len(BACKOFF_S) - 1)]
             self._backoff += 1
             return
-        if self._opened_before:
-            self.counters.inc("reconnects")
-            _logger.info("%s: link %s open again", self.name, self.config.url)
-        self._opened_before = True
         self._backoff = 0
 
     def _housekeeping(self, conn: Any) -> None:
