@@ -176,7 +176,7 @@ class MavlinkTransport:
         elif kind == "TIMESYNC":
             # Answer the autopilot's time-sync request (PX4 trusts our usec only once this converges),
             # on the wall clock: the clock of the capture times we send as usec.
-            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, int(self.wall() * NS))
+            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, self._wall_ns())
             if reply is not None:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind == "GPS_GLOBAL_ORIGIN":
@@ -206,7 +206,7 @@ class MavlinkTransport:
             self.counters_.inc(f"rejected_{reason}")
             return
         self.peers_seen[origin] = arrival_ns
-        skew = self.gate.check_skew(md, int(self.wall() * NS), arrival_ns)
+        skew = self.gate.check_skew(md, self._wall_ns(), arrival_ns)
         if skew is not None:
             _logger.warning(
                 "peer system %d: capture stamps and arrival disagree by %.0f ms; sync the clocks (chrony)",
@@ -214,6 +214,10 @@ class MavlinkTransport:
             )  # fmt: skip
         if self._deliver is not None:
             self._deliver(md, arrival_ns)
+
+    def _wall_ns(self) -> int:
+        """The wall clock (UNIX epoch) in ns, to the microsecond (the resolution of a float of seconds)."""
+        return round(self.wall() * 1e6) * 1000
 
     def _warn_fingerprint(self, origin: int) -> None:
         with self._lock:

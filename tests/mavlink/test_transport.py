@@ -1,0 +1,232 @@
+"""The node's transport in this process over 127.0.0.1: an observation arriving on two links is
+delivered once, TUNNEL and plain alike; refusals are counted; TIMESYNC is answered on the wall clock;
+the EKF origin is sent until the autopilot reports one; a pose that is not finite is never sent."""
+
+import math
+import random
+import socket
+import threading
+import time
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.config import AutopilotConfig, AutopilotOutput, GlobalOrigin, LinkConfig, NodeConfig
+from atlas_onboard.core.graph import EntityPose
+from atlas_onboard.core.markerdata import Rejection
+from atlas_onboard.mavlink import codec
+from atlas_onboard.mavlink.transport import MavlinkTransport
+from atlas_onboard.publisher import AutopilotPose
+from tests.helpers import world_from
+from tests.mavlink.loopback import MD, D, RawSender, free_port
+
+WALL_S = 1_700_000_000.25  # the transport's wall clock, frozen
+
+
+class FakeAutopilot:
+    """A UDP socket the transport's ``udpout`` autopilot link talks to; it records what arrives."""
+
+    def __init__(self) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.port = self.sock.getsockname()[1]
+        self.mav = D.MAVLink(None, srcSystem=1, srcComponent=1)
+        self.parser = D.MAVLink(None)
+        self.received: list = []
+        self.node_addr = None
+
+    def pump(self, seconds: float = 0.2) -> None:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            try:
+                data, addr = self.sock.recvfrom(4096)
+            except TimeoutError:
+                continue
+            self.node_addr = addr
+            self.received.extend(self.parser.parse_buffer(data) or [])
+
+    def send(self, msg) -> None:
+        self.sock.sendto(msg.pack(self.mav), self.node_addr)
+
+    def of(self, kind: str) -> list:
+        return [m for m in self.received if m.get_type() == kind]
+
+
+@pytest.fixture
+def rig():
+    world = world_from(
+        {
+            "entities": {
+                "world": {"sensors": [{"name": "cam", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},
+                "d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+            }
+        }
+    )
+    ap = FakeAutopilot()
+    p0, p1 = free_port(), free_port()
+    config = NodeConfig(
+        entity="d1",
+        system_id=1,
+        autopilot=AutopilotConfig(LinkConfig(f"udpout:127.0.0.1:{ap.port}"), origin=GlobalOrigin(47.1, 8.5, 400.0)),
+        peers=(LinkConfig(f"udpin:127.0.0.1:{p0}"), LinkConfig(f"udpin:127.0.0.1:{p1}", tunnel=True)),
+        heartbeat_hz=2.0,
+    )
+    transport = MavlinkTransport(world, config, wall_clock=lambda: WALL_S)
+    delivered: list = []
+    lock = threading.Lock()
+
+    def deliver(md, arrival_ns):
+        with lock:
+            delivered.append(md)
+
+    transport.start(deliver)
+    senders = [RawSender(p0, 250), RawSender(p1, 250)]
+    yield world, transport, ap, senders, delivered
+    transport.close()
+    ap.sock.close()
+    for s in senders:
+        s.close()
+
+
+def wait_for(predicate, timeout_s=5.0):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def settle(transport, delivered, quiet_s=0.2):
+    """Wait until neither deliveries nor counters change for ``quiet_s``."""
+    last = None
+    stable_since = time.monotonic()
+    while time.monotonic() - stable_since < quiet_s:
+        now = (len(delivered), sorted(transport.counters().items()))
+        if now != last:
+            last, stable_since = now, time.monotonic()
+        time.sleep(0.02)
+
+
+def test_one_observation_over_two_links_is_delivered_once(rig):
+    world, transport, _, (s0, s1), delivered = rig
+    fp = world.fingerprint()
+    t_us = int(WALL_S * 1e6)
+    frame = s0.observation(seq=1, fingerprint=fp, time_usec=t_us)
+    s0.raw(frame)  # plain, on link 0
+    s0.raw(frame)  # a mesh echo
+    payload_fields = codec.tunnel_fields(replace(MD, capture_time_us=t_us, seq=1), fp)
+    s1.raw(s1.frame(D.MAVLink_tunnel_message(**payload_fields)))  # the same observation in TUNNEL, link 1
+    s1.raw(s1.observation(seq=2, fingerprint=fp, time_usec=t_us))  # another one
+    settle(transport, delivered)
+    assert sorted((m.origin, m.seq) for m in delivered) == [(250, 1), (250, 2)]
+    assert transport.counters()["rejected_duplicate"] == 2
+    assert delivered[0].capture_time_us == t_us and delivered[0].sensor_id == 10
+
+
+def test_refusals_are_counted_and_nothing_raises(rig):
+    world, transport, _, (s0, s1), delivered = rig
+    fp = world.fingerprint()
+    t_us = int(WALL_S * 1e6)
+    rng = random.Random(7)
+    for _ in range(30):
+        s0.raw(bytes(rng.randrange(256) for _ in range(rng.randrange(1, 300))))
+    good = s0.observation(seq=100, fingerprint=fp, time_usec=t_us)
+    for cut in (2, 9, 40, len(good) - 1):
+        s0.raw(good[:cut])
+    unknown = bytearray(s0.heartbeat())
+    unknown[7:10] = (45000).to_bytes(3, "little")
+    s0.raw(bytes(unknown))
+    s0.raw(s0.observation(seq=101, fingerprint=fp ^ 0xFF, time_usec=t_us))  # another world file
+    s0.raw(s0.observation(seq=102, fingerprint=fp, time_usec=t_us, format_version=7))
+    s1.raw(s1.frame(D.MAVLink_tunnel_message(0, 0, 40000, 10, [1] * 128)))  # someone else's TUNNEL
+    s1.raw(s1.frame(D.MAVLink_tunnel_message(0, 0, 43100, 50, [1] * 128)))  # ours, but cut short
+    s0.raw(s0.observation(seq=103, fingerprint=fp, time_usec=t_us, x=math.nan))
+    s0.raw(s0.observation(seq=104, fingerprint=fp, time_usec=t_us, q=[0.0, 0.0, 0.0, 0.0]))
+    s0.raw(s0.observation(seq=105, fingerprint=fp, time_usec=t_us, sigma=-1.0))
+    s0.raw(s0.observation(seq=106, fingerprint=fp, time_usec=t_us, sigma=math.inf))
+    s0.raw(s0.observation(seq=107, fingerprint=fp, time_usec=t_us))  # finally a good one
+    settle(transport, delivered, 0.3)
+    c = transport.counters()
+    assert c["rejected_wrong_fingerprint"] == 1 and c["rejected_bad_version"] == 1
+    assert c["rejected_tunnel_unknown_type"] == 1 and c["rejected_tunnel_bad_length"] == 1
+    assert c["peer0_rejected_unknown_id"] >= 1 and c["peer0_rejected_bad_data"] >= 1
+    # Wire-valid records go on to the listener, whose checks (and counters) they fail there.
+    reasons = {m.seq: m.rejection() for m in delivered}
+    assert reasons == {
+        103: Rejection.NON_FINITE,
+        104: Rejection.ZERO_QUATERNION,
+        105: Rejection.BAD_SIGMA,
+        106: Rejection.NON_FINITE,
+        107: None,
+    }
+    assert all(lk.is_open for lk in transport.peers)
+
+
+def test_timesync_answered_on_the_wall_clock_and_origin_until_known(rig):
+    _, transport, ap, _, _ = rig
+    for now_ns in (0, 400_000_000, 1_000_000_000):  # origin at 1 Hz, heartbeats at 2 Hz
+        transport.tick(now_ns)
+    ap.pump(0.3)
+    assert len(ap.of("HEARTBEAT")) == 2  # at 0 and 1 s (0.4 s is before the 0.5 s period)
+    hb = ap.of("HEARTBEAT")[0]
+    assert (hb.type, hb.autopilot, hb.get_srcSystem(), hb.get_srcComponent()) == (18, 8, 1, 197)
+    origins = ap.of("SET_GPS_GLOBAL_ORIGIN")
+    assert [(o.latitude, o.longitude, o.altitude, o.target_system) for o in origins] == [
+        (471000000, 85000000, 400000, 1)
+    ] * 2
+    ap.send(D.MAVLink_timesync_message(0, 987_654_321))
+    ap.send(D.MAVLink_gps_global_origin_message(471000000, 85000000, 400000, 0))
+    ap.pump(0.3)
+    (reply,) = ap.of("TIMESYNC")
+    assert (reply.tc1, reply.ts1) == (1_700_000_000_250_000_000, 987_654_321)  # the wall clock of usec, in ns
+    assert transport.origin_known
+    transport.tick(2_000_000_000)
+    ap.pump(0.2)
+    assert len(ap.of("SET_GPS_GLOBAL_ORIGIN")) == 2  # no more once the autopilot has one
+
+
+def test_autopilot_gets_ned_and_never_a_non_finite_pose(rig):
+    _, transport, ap, _, _ = rig
+    transport.tick(0)
+    ap.pump(0.1)
+    q = Rotation.from_euler("z", 90, degrees=True).as_quat()
+    good = EntityPose("d1", np.array([1.0, 2.0, 3.0]), q, 1, 1, 2, 0.02, 1_700_000_000_000_000)
+    bad = EntityPose("d1", np.array([math.nan, 2.0, 3.0]), q, 1, 1, 2, 0.02, 1_700_000_000_000_001)
+    worse = EntityPose("d1", np.array([1.0, 2.0, 3.0]), q, 1, 1, 2, math.inf, 1_700_000_000_000_002)
+    transport.send_autopilot(AutopilotPose(bad, 0))
+    transport.send_autopilot(AutopilotPose(worse, 0))
+    transport.send_autopilot(AutopilotPose(good, 3))
+    ap.pump(0.3)
+    (vpe,) = ap.of("VISION_POSITION_ESTIMATE")
+    assert (vpe.x, vpe.y, vpe.z) == pytest.approx((2.0, 1.0, -3.0)) and abs(vpe.yaw) < 1e-6
+    assert vpe.usec == 1_700_000_000_000_000 and vpe.reset_counter == 3
+    assert [vpe.covariance[i] for i in (0, 6, 11)] == pytest.approx([0.0004] * 3)
+    assert transport.counters()["autopilot_pose_refused"] == 2
+
+
+def test_odometry_output(rig):
+    _, transport, ap, _, _ = rig
+    ap_config = AutopilotConfig(transport.config.autopilot.link, output=AutopilotOutput.ODOMETRY)
+    transport.config = replace(transport.config, autopilot=ap_config)
+    transport.tick(0)
+    ap.pump(0.1)
+    q = Rotation.from_euler("z", 90, degrees=True).as_quat()
+    transport.send_autopilot(AutopilotPose(EntityPose("d1", np.array([1.0, 2.0, 3.0]), q, 1, 1, 2, 0.01, 5), 1))
+    ap.pump(0.3)
+    (odo,) = ap.of("ODOMETRY")
+    assert (odo.frame_id, odo.child_frame_id, odo.estimator_type, odo.quality) == (20, 12, 2, 100)
+    assert (odo.x, odo.y, odo.z) == pytest.approx((2.0, 1.0, -3.0))
+    assert odo.q == pytest.approx([1.0, 0.0, 0.0, 0.0], abs=1e-6)
+
+
+def test_clock_skew_is_counted(rig):
+    world, transport, _, (s0, _), delivered = rig
+    fp = world.fingerprint()
+    s0.raw(s0.observation(seq=1, fingerprint=fp, time_usec=int(WALL_S * 1e6) - 2_000_000))  # 2 s old stamp
+    s0.raw(s0.observation(seq=2, fingerprint=fp, time_usec=int(WALL_S * 1e6) - 50_000))  # 50 ms: fine
+    settle(transport, delivered)
+    assert len(delivered) == 2 and transport.counters()["clock_skew_warnings"] == 1
