@@ -333,3 +333,41 @@ def test_thread_mode_survives_a_failing_handler(closing):
         time.sleep(0.05)
     assert seen[:2] == [("HEARTBEAT", True), ("HEARTBEAT", True)]
     assert link.counters["handler_errors"] == 1
+
+
+def test_serial_device_that_vanishes_and_returns(tmp_path, closing):
+    """A USB serial adapter unplugged and plugged back (a pty behind a stable symlink)."""
+    device = tmp_path / "ttyAUTOPILOT"
+    hb = RawSender(1, 1)
+    closing(hb)
+
+    def plug():
+        master, slave = os.openpty()
+        if device.is_symlink():
+            device.unlink()
+        device.symlink_to(os.ttyname(slave))
+        return master, slave
+
+    master, slave = plug()
+    link = make_link(f"{device},921600", 1)
+    closing(link)
+    link.open()
+    os.write(master, hb.heartbeat())
+    assert kinds(poll_until(link, lambda m: len(m) >= 1)) == ["HEARTBEAT"]
+    os.close(master)  # unplugged
+    os.close(slave)
+    poll_until(link, lambda m: link.counters["read_errors"] >= 1 and link.counters["open_errors"] >= 1, 5.0)
+    assert link.counters["read_errors"] == 1 and not link.is_open
+    master, slave = plug()  # plugged back (another pts, the same symlink)
+    try:
+        poll_until(link, lambda m: link.is_open, 5.0)
+        assert link.counters["reconnects"] == 1
+        os.write(master, hb.heartbeat())
+        assert kinds(poll_until(link, lambda m: len(m) >= 1)) == ["HEARTBEAT"]
+        assert link.send(D.MAVLink_heartbeat_message(18, 8, 0, 0, 4, 3))
+        time.sleep(0.05)
+        assert os.read(master, 100)[0] == 0xFD
+    finally:
+        link.close()
+        os.close(master)
+        os.close(slave)

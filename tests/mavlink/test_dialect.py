@@ -1,0 +1,64 @@
+"""The generated dialect: made by mavgen into a cache keyed by a hash, atomically, regenerated when
+damaged; and the numbers in docs/wire-format.md are the generated ones."""
+
+import re
+from pathlib import Path
+
+from atlas_onboard.mavlink import codec, dialect
+
+DOC = Path(__file__).resolve().parents[2] / "docs" / "wire-format.md"
+
+
+def test_generated_into_a_cache_keyed_by_the_hash_and_regenerated_when_damaged(tmp_path, monkeypatch):
+    monkeypatch.setenv("ATLAS_ONBOARD_CACHE", str(tmp_path))
+    monkeypatch.setattr(dialect, "_cache", {})
+    module = dialect.load()
+    key = dialect.digest()
+    path = tmp_path / f"atlas_dialect_{key}.py"
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no staging file left behind
+    assert module.MAVLink_atlas_observation_message.id == 43100
+    assert module.MAVLink_atlas_fused_pose_message.id == 43101
+    assert module.MAVLink_tunnel_message.id == 385  # common.xml is included
+    assert dialect.load() is module  # one module per process
+    path.write_text("this is not python (", encoding="utf-8")  # a damaged cache file
+    monkeypatch.setattr(dialect, "_cache", {})
+    again = dialect.load()
+    assert again.MAVLink_atlas_observation_message.crc_extra == module.MAVLink_atlas_observation_message.crc_extra
+    assert "this is not python" not in path.read_text(encoding="utf-8")
+
+
+def test_common_xml_is_found_in_the_installed_pymavlink():
+    assert (dialect.definitions_dir() / "common.xml").is_file()
+    assert len(dialect.digest()) == 16
+
+
+def test_ids_in_the_unallocated_range_and_not_in_common():
+    d = dialect.load()
+    ours = {cls.id for cls in d.mavlink_map.values() if getattr(cls, "msgname", "").startswith("ATLAS_")}
+    assert ours == {43100, 43101} and all(43000 <= i <= 49999 for i in ours)
+
+
+def test_the_document_states_the_generated_numbers():
+    text = DOC.read_text(encoding="utf-8")
+    d = dialect.load()
+    rows = {
+        m[0]: (int(m[1]), int(m[2]), int(m[3]))
+        for m in re.findall(r"^\| (\w+) .*?\| (\d+) \| (\d+) \| (\d+)", text, re.M)
+    }
+    for name in ("ATLAS_OBSERVATION", "ATLAS_FUSED_POSE", "TUNNEL"):
+        cls = getattr(d, f"MAVLink_{name.lower()}_message")
+        msg_id, crc, _size = rows[name]
+        assert (msg_id, crc) == (cls.id, cls.crc_extra), name
+    assert rows["ATLAS_OBSERVATION"][2] == d.MAVLink_atlas_observation_message.unpacker.size == 87
+    assert rows["ATLAS_FUSED_POSE"][2] + 16 == d.MAVLink_atlas_fused_pose_message.unpacker.size
+    assert 'struct.Struct("<QI3f4f3f3f4fHHHB")' in text and codec.TUNNEL_STRUCT.format == "<QI3f4f3f3f4fHHHB"
+    # Every field of the observation table is at the offset the generated layout puts it.
+    offsets = dict(re.findall(r"^\| (\d+) \| (\w+)(?:\[\d+\])? \| (?:uint|float|char)", text, re.M)[:17])
+    layout, at = {}, 0
+    cls = d.MAVLink_atlas_observation_message
+    sizes = {"Q": 8, "I": 4, "f": 4, "H": 2, "B": 1}
+    fmt = re.findall(r"(\d*)([QIfHB])", cls.unpacker.format)
+    for name, (count, code) in zip(cls.ordered_fieldnames, fmt, strict=True):
+        layout[name] = at
+        at += sizes[code] * int(count or 1)
+    assert {name: int(off) for off, name in offsets.items()} == layout
