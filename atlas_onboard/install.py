@@ -1,64 +1,202 @@
-"""``atlas-onboard install-service``: the systemd unit(s) and an example world file, under a root."""
+"""``atlas-onboard install-service``: the systemd units and an example world file, under a root.
+
+What it writes, all below ``--root`` (default ``/``), nothing outside it:
+
+- ``etc/systemd/system/atlas-onboard.service`` and ``atlas-onboard@.service``: the units shipped in
+  the package (``atlas_onboard/data``, the same files as the repository's ``systemd/``), byte for
+  byte; rewritten when they differ (an upgrade), so never edit them: use a drop-in;
+- ``etc/atlas-onboard/world.yaml``: the annotated example world file, only if there is none (an
+  existing one is kept unless ``--force``);
+- with ``--entity NAME``: ``etc/atlas-onboard/atlas-onboard.env``, which makes the plain unit run
+  that entity's node (kept unless ``--force``, like the world file).
+
+It then prints the steps that remain (a user, the console script on ``/usr/local/bin``, systemctl,
+journalctl), leaving out those already done under the root. It runs no command and touches no
+running system; ``--root`` also prepares an image or a mounted SD card.
+"""
 
 from __future__ import annotations
 
 import argparse
+import os
+import re
+import shutil
 import sys
+import tempfile
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
 from atlas_onboard.errors import AtlasError
 
 UNITS = ("atlas-onboard.service", "atlas-onboard@.service")
+EXAMPLE = "example.yaml"
+UNIT_DIR = Path("etc/systemd/system")
+CONF_DIR = Path("etc/atlas-onboard")
+WORLD_FILE = CONF_DIR / "world.yaml"
+ENV_FILE = CONF_DIR / "atlas-onboard.env"
+EXEC_PATH = Path("usr/local/bin/atlas-onboard")  # the units' ExecStart
+SERVICE_USER = "atlas"
+# Entity names as the world file allows them (config.py), which are also valid unit instance names.
+_ENTITY_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
+# What the units' ProtectHome=yes makes inaccessible to the service.
+_HIDDEN_HOMES = (Path("/home"), Path("/root"), Path("/run/user"))
 
 
-def unit_text(name: str, python: str = sys.executable) -> str:
-    """A shipped unit with ExecStart pointing at this installation's interpreter."""
-    text = (resources.files("atlas_onboard") / "data" / name).read_text(encoding="utf-8")
-    return text.replace("ExecStart=/usr/local/bin/atlas-onboard ", f"ExecStart={python} -m atlas_onboard ")
+@dataclass(frozen=True, slots=True)
+class Action:
+    """What install-service did to one file: ``wrote`` (new), ``updated``, ``unchanged`` or ``kept``."""
+
+    path: Path
+    what: str
+    note: str = ""
 
 
-def install(root: Path, force: bool = False, python: str = sys.executable) -> list[Path]:
-    """Write the units to ROOT/etc/systemd/system and an example world file to ROOT/etc/atlas-onboard."""
-    written = []
-    unit_dir = root / "etc" / "systemd" / "system"
-    conf_dir = root / "etc" / "atlas-onboard"
-    try:
-        unit_dir.mkdir(parents=True, exist_ok=True)
-        conf_dir.mkdir(parents=True, exist_ok=True)
-        for name in UNITS:
-            path = unit_dir / name
-            path.write_text(unit_text(name, python), encoding="utf-8")
-            written.append(path)
-        world = conf_dir / "world.yaml"
-        if world.exists() and not force:
-            print(f"kept {world} (it exists; --force replaces it)")
-        else:
-            world.write_text((resources.files("atlas_onboard") / "data" / "example.yaml").read_text(), encoding="utf-8")
-            written.append(world)
-    except OSError as exc:
-        raise AtlasError(f"install-service: cannot write under {root}: {exc.strerror} ({exc.filename})") from None
-    return written
+def shipped(name: str) -> str:
+    """The text of a file shipped in ``atlas_onboard/data`` (a unit or the example world file)."""
+    return (resources.files("atlas_onboard") / "data" / name).read_text(encoding="utf-8")
 
 
-def _cmd(args: argparse.Namespace) -> int:
-    for path in install(Path(args.root), args.force):
-        print(f"wrote {path}")
-    print(
-        "next:\n"
-        "  useradd --system --home /var/lib/atlas-onboard --groups video,dialout atlas\n"
-        "  edit /etc/atlas-onboard/world.yaml (entities, nodes.<entity>.system_id, autopilot url, peers)\n"
-        "  atlas-onboard check-config /etc/atlas-onboard/world.yaml\n"
-        "  systemctl daemon-reload\n"
-        "  systemctl enable --now atlas-onboard        # one node (the file's only node section)\n"
-        "  systemctl enable --now atlas-onboard@drone1 # or one unit per entity on this computer\n"
-        "  journalctl -u atlas-onboard -f"
+def env_text(entity: str) -> str:
+    """The environment file that makes ``atlas-onboard.service`` run ``entity``'s node."""
+    return (
+        "# Read by atlas-onboard.service: options of `atlas-onboard run` (written by install-service).\n"
+        f"ATLAS_ONBOARD_ARGS=--entity {entity}\n"
     )
+
+
+def install_service(root: Path, entity: str | None = None, force: bool = False) -> list[Action]:
+    """Write the units, the example world file and (with ``entity``) the environment file under ``root``.
+
+    Raises AtlasError when ``root`` is not a directory, ``entity`` is not a valid entity name, a
+    target would resolve outside ``root`` (a symlink), or a file cannot be written.
+    """
+    if entity is not None and not _ENTITY_RE.match(entity):
+        raise AtlasError(
+            f"--entity: expected an entity name as in the world file (a letter, then letters, digits, _ or -,"
+            f" at most 32), got {entity!r}"
+        )
+    if not root.is_dir():
+        raise AtlasError(f"--root: {root} is not a directory")
+    root = root.resolve()
+    plan: list[tuple[Path, str, bool]] = [(UNIT_DIR / name, shipped(name), True) for name in UNITS]
+    plan.append((WORLD_FILE, shipped(EXAMPLE), force))
+    if entity is not None:
+        plan.append((ENV_FILE, env_text(entity), force))
+    targets = [(_inside(root, rel), text, replace) for rel, text, replace in plan]  # all checked before any write
+    actions = []
+    for path, text, replace in targets:
+        if not path.exists():
+            _write(root, path, text)
+            actions.append(Action(path, "wrote"))
+        elif path.read_text(encoding="utf-8") == text:
+            actions.append(Action(path, "unchanged"))
+        elif replace:
+            _write(root, path, text)
+            actions.append(Action(path, "updated"))
+        else:
+            actions.append(Action(path, "kept", "it exists; --force replaces it"))
+    return actions
+
+
+def _inside(root: Path, rel: Path) -> Path:
+    """``root / rel``, refusing a path that resolves outside ``root`` (e.g. ``root/etc`` -> ``/etc``)."""
+    path = root / rel
+    if not path.resolve().is_relative_to(root):
+        raise AtlasError(f"--root: {path} resolves to {path.resolve()}, outside {root}; nothing was written")
+    return path
+
+
+def _write(root: Path, path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` (mode 0644) atomically, creating missing directories (0755) below root."""
+    try:
+        missing = [p for p in reversed(path.parents) if p.is_relative_to(root) and not p.exists()]
+        for directory in missing:
+            directory.mkdir(mode=0o755)
+        fd, staged = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(text)
+            os.chmod(staged, 0o644)
+            os.replace(staged, path)
+        except BaseException:
+            Path(staged).unlink(missing_ok=True)
+            raise
+    except OSError as exc:
+        hint = " (run it as root, or give --root)" if isinstance(exc, PermissionError) else ""
+        raise AtlasError(f"install-service: cannot write {path}: {exc.strerror}{hint}") from None
+
+
+def console_script() -> str | None:
+    """The ``atlas-onboard`` script of this installation (beside the interpreter in a venv), if any."""
+    beside = Path(sys.executable).parent / "atlas-onboard"
+    if beside.is_file():
+        return str(beside)
+    return shutil.which("atlas-onboard")
+
+
+def next_steps(root: Path, entity: str | None, script: str | None) -> list[str]:
+    """The commands that remain after install_service, as lines to print, with paths as on the target."""
+    steps = []
+    if not _has_user(root, SERVICE_USER):
+        steps.append(
+            f"useradd --system --user-group --groups video,dialout --home-dir /var/lib/atlas-onboard"
+            f" --no-create-home --shell /usr/sbin/nologin {SERVICE_USER}"
+        )
+    if not os.path.lexists(root / EXEC_PATH):
+        if script is not None and any(Path(script).resolve().is_relative_to(h) for h in _HIDDEN_HOMES):
+            steps.append(
+                f"install atlas-onboard into a venv outside /home and /root (docs/deployment.md: /opt/atlas-onboard):"
+                f" the service cannot run {script} (ProtectHome=yes)"
+            )
+            script = None
+        steps.append(f"ln -s {script or '/opt/atlas-onboard/bin/atlas-onboard'} /{EXEC_PATH}")
+    steps.append(f"atlas-onboard check-config /{WORLD_FILE}   # after editing it for your swarm and this drone")
+    steps.append("systemctl daemon-reload")
+    if entity is not None:
+        steps.append("systemctl enable --now atlas-onboard.service")
+        steps.append("journalctl -u atlas-onboard.service -f")
+    else:
+        steps.append("systemctl enable --now atlas-onboard@ENTITY.service   # ENTITY: this drone's name in the file")
+        steps.append("journalctl -u atlas-onboard@ENTITY.service -f")
+    return steps
+
+
+def _has_user(root: Path, name: str) -> bool:
+    try:
+        lines = (root / "etc/passwd").read_text(encoding="utf-8").splitlines()
+    except OSError:
+        return False
+    return any(line.split(":", 1)[0] == name for line in lines)
+
+
+def _cmd_install_service(args: argparse.Namespace) -> int:
+    root = Path(args.root)
+    actions = install_service(root, args.entity, args.force)
+    for a in actions:
+        print(f"{a.what:9} {a.path}" + (f" ({a.note})" if a.note else ""))
+    print("\nNext, as root:")
+    for i, step in enumerate(next_steps(root.resolve(), args.entity, console_script()), start=1):
+        print(f"  {i}. {step}")
     return 0
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    p = sub.add_parser("install-service", help="install the systemd unit(s) and an example world file")
-    p.add_argument("--root", default="/", help="install under this root (default /)")
-    p.add_argument("--force", action="store_true", help="replace an existing /etc/atlas-onboard/world.yaml")
-    p.set_defaults(func=_cmd)
+    """Register ``install-service``."""
+    p = sub.add_parser(
+        "install-service",
+        help="install the systemd units and an example world file",
+        description="Write the systemd units (atlas-onboard.service, atlas-onboard@.service) to ROOT/etc/systemd/system"
+        " and the annotated example world file to ROOT/etc/atlas-onboard/world.yaml, then print the remaining steps."
+        " Nothing is written outside ROOT and no command is run.",
+    )
+    p.add_argument("--root", default="/", help="install below this directory (default: /)")
+    p.add_argument(
+        "--entity",
+        help="the entity whose node atlas-onboard.service runs: writes ROOT/etc/atlas-onboard/atlas-onboard.env"
+        " (without it, use atlas-onboard@ENTITY.service)",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="replace an existing world.yaml (and atlas-onboard.env) with the example"
+    )
+    p.set_defaults(func=_cmd_install_service)
