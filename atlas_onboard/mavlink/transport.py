@@ -40,12 +40,12 @@ class MavlinkTransport:
         ap = config.autopilot
         compid = ap.component_id if ap is not None else 197
         self.autopilot = (
-            Link(ap.link, "autopilot", config.system_id, compid, config.state_dir, link_id=0)
+            Link(ap.link, "autopilot", config.system_id, compid, config.state_dir, link_id=0, wall_clock=wall_clock)
             if ap is not None
             else None
         )
         self.peers = [
-            Link(p, f"peer{i}", config.system_id, compid, config.state_dir, link_id=i + 1)
+            Link(p, f"peer{i}", config.system_id, compid, config.state_dir, link_id=i + 1, wall_clock=wall_clock)
             for i, p in enumerate(config.peers)
         ]
         self.entity_index = {name: i for i, name in enumerate(world.entity_names)}
@@ -114,7 +114,9 @@ class MavlinkTransport:
     def send_status(self, text: str, severity: int) -> None:
         for link in self._links():
             link.send(
-                link.dialect.MAVLink_statustext_message(severity=severity, text=text[:50].encode(), id=0, chunk_seq=0)
+                link.dialect.MAVLink_statustext_message(
+                    severity=severity, text=text.encode("utf-8")[:50], id=0, chunk_seq=0
+                )
             )
 
     def tick(self, now_ns: int) -> None:
