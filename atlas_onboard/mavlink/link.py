@@ -263,7 +263,7 @@ class Link:
             return
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
             tmp.write_text(json.dumps({"timestamp": int(conn.mav.signing.timestamp)}), encoding="utf-8")
             os.replace(tmp, path)
         except OSError as exc:
@@ -321,7 +321,8 @@ class Link:
     def _housekeeping(self, conn: Any) -> None:
         if self._key is None:
             return
-        self._advance_signing_clock(conn)
+        with self._send_lock:  # send() advances it too: never write back a value it has passed
+            self._advance_signing_clock(conn)
         if time.monotonic() - self._last_ts_save > TIMESTAMP_SAVE_EVERY_S:
             self._last_ts_save = time.monotonic()
             self.save_timestamp()

@@ -170,3 +170,30 @@ def test_fused_pose_from_an_older_sender_without_the_name_extension():
     fields["entity_name"] = b""
     (msg,) = parse(wire(D.MAVLink_atlas_fused_pose_message(**fields)))
     assert msg.entity_name == "" and msg.entity_index == 1 and msg.format_version == 1
+
+
+finite32 = st.floats(-1e6, 1e6, width=32)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    st.integers(0, 0xFFFF),
+    st.integers(0, 0xFFFF),
+    st.floats(2**-20, 100.0, width=32),
+    st.tuples(finite32, finite32, finite32),
+    st.tuples(finite32, finite32, finite32, finite32),
+    st.integers(0, 2**64 - 1),
+    st.integers(0, 0xFFFF),
+    st.booleans(),
+)
+def test_round_trip_is_exact_for_every_representable_record(sensor, marker, sigma, p, q, t_us, seq, tunnel):
+    md = MarkerData(sensor, marker, sigma, p, q, t_us, 0.5, math.nan, 77, seq)
+    if tunnel:
+        (msg,) = parse(wire(codec.encode_tunnel(D, md, FP), sysid=77))
+        got = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, msg.get_srcSystem(), FP)
+    else:
+        (msg,) = parse(wire(codec.encode_observation(D, md, FP), sysid=77))
+        got = codec.decode_observation(msg, msg.get_srcSystem(), FP)
+    assert (got.sensor_id, got.marker_id, got.capture_time_us, got.seq, got.origin) == (sensor, marker, t_us, seq, 77)
+    assert got.p_sensor_marker_m == p and got.q_sensor_marker_wxyz == q and got.sigma_m == sigma
+    assert got.reprojection_error_px == 0.5 and math.isnan(got.ambiguity_ratio)
