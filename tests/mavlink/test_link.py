@@ -371,3 +371,54 @@ def test_serial_device_that_vanishes_and_returns(tmp_path, closing):
         link.close()
         os.close(master)
         os.close(slave)
+
+
+def test_udpbcast_sends_then_talks_to_whoever_answers(closing):
+    port = free_port()
+    peer = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    closing(peer)
+    peer.bind(("127.0.0.1", port))
+    peer.settimeout(5.0)
+    link = make_link(f"udpbcast:127.0.0.1:{port}", 1)
+    closing(link)
+    link.open()
+    assert link.send(D.MAVLink_heartbeat_message(18, 8, 0, 0, 4, 3))
+    frame, addr = peer.recvfrom(300)
+    assert [m.get_type() for m in D.MAVLink(None).parse_buffer(frame)] == ["HEARTBEAT"]
+    answer = RawSender(port, 250)
+    closing(answer)
+    peer.sendto(answer.heartbeat(), addr)
+    msgs = poll_until(link, lambda m: len(m) >= 1)
+    assert [(m.get_type(), m.get_srcSystem()) for m in msgs] == [("HEARTBEAT", 250)]
+
+
+@pytest.mark.parametrize(
+    ("url", "device", "kwargs"),
+    [
+        ("/dev/ttyAMA0,921600", "/dev/ttyAMA0", {"baud": 921600}),
+        ("/dev/serial/by-id/usb-ArduPilot_fmuv3-if00,115200", "/dev/serial/by-id/usb-ArduPilot_fmuv3-if00",
+         {"baud": 115200}),
+        ("/dev/ttyACM0", "/dev/ttyACM0", {"baud": 57600}),
+        ("tcp:127.0.0.1:5760", "tcp:127.0.0.1:5760", {"retries": 0}),
+        ("udpin:0.0.0.0:14550", "udpin:0.0.0.0:14550", {}),
+        ("udpout:10.0.0.2:14550", "udpout:10.0.0.2:14550", {}),
+        ("udpbcast:192.168.50.255:14600", "udpbcast:192.168.50.255:14600", {}),
+    ],
+)  # fmt: skip
+def test_connection_strings_reach_pymavlink_as_written(monkeypatch, url, device, kwargs):
+    calls = []
+
+    class Fake:
+        mav = None
+
+    def fake_connection(dev, **kw):
+        calls.append((dev, kw))
+        return Fake()
+
+    monkeypatch.setattr("atlas_onboard.mavlink.link.mavutil.mavlink_connection", fake_connection)
+    link = make_link(url, 7)
+    link.open()
+    ((dev, kw),) = calls
+    assert dev == device
+    assert kw == {"source_system": 7, "source_component": 197, **kwargs}
+    assert link.mav.srcSystem == 7 and link.mav.srcComponent == 197  # our dialect on this connection
