@@ -34,16 +34,9 @@ WORLD = "world"
 
 SCHEMA_VERSION = 1
 
-APRILTAG_FAMILIES = (
-    "tag36h11",
-    "tag25h9",
-    "tag16h5",
-    "tagCircle21h7",
-    "tagCircle49h12",
-    "tagStandard41h12",
-    "tagStandard52h13",
-    "tagCustom48h12",
-)
+# The families the detector reads (OpenCV has no tagCircle/tagStandard/tagCustom families, and the
+# config refuses what no node could ever see).
+APRILTAG_FAMILIES = ("tag36h11", "tag25h9", "tag16h5")
 ARUCO_DICTIONARIES = (
     *(f"DICT_{bits}X{bits}_{n}" for bits in (4, 5, 6, 7) for n in (50, 100, 250, 1000)),
     "DICT_ARUCO_ORIGINAL",
@@ -402,6 +395,13 @@ def _read_entity(
     def to_internal(T: RigidTransform) -> RigidTransform:
         return frames.world_to_enu(T, world) if name == WORLD else frames.body_to_flu(T, body)
 
+    # A world camera's mount frame follows the world axes: ENU is right-handed with z up like FLU,
+    # NED with z down like FRD.
+    if name == WORLD:
+        world_body = frames.BodyConvention.FLU if world is frames.WorldConvention.ENU else frames.BodyConvention.FRD
+    else:
+        world_body = body
+
     sensors = []
     for i, raw in enumerate(_list(m.get("sensors"), _join(path, "sensors"))):
         spath = _join(_join(path, "sensors"), i)
@@ -410,10 +410,12 @@ def _read_entity(
         if not _NAME_RE.match(sname):
             raise ConfigError(_join(spath, "name"), f"expected a name of letters, digits, _ or -, got {sname!r}")
         pose_of = _choice(s.get("pose_of", "mount"), _join(spath, "pose_of"), ("mount", "optical"))
-        T = to_internal(_read_pose(s["pose"], _join(spath, "pose")))
+        T = _read_pose(s["pose"], _join(spath, "pose"))
         if pose_of == "mount":
-            # The mount frame is FLU once normalised, whatever the file's body convention.
-            T = frames.mount_to_optical(T, frames.BodyConvention.FLU)
+            # The mount frame has the axes of the file's convention (FRD in an FRD file: y right, z
+            # down), so it becomes the optical frame before the parent frame is re-expressed.
+            T = frames.mount_to_optical(T, world_body)
+        T = to_internal(T)
         camera = _read_camera(s["camera"], _join(spath, "camera"), base_dir) if "camera" in s else None
         sensors.append(SensorConfig(sname, _integer(s["id"], _join(spath, "id"), 0, MAX_ID), name, T, camera))
 

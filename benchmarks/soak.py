@@ -13,15 +13,16 @@ no observation dropped from a bounded queue.
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import yaml
 from scipy.spatial.transform import RigidTransform, Rotation
@@ -51,6 +52,33 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def load(path: Path, hub_port: int, n: int, per: int, stop: Any, sent: Any) -> None:
+    """Send every drone's observations of its ``per`` markers at 30 Hz until ``stop`` is set."""
+    world = load_world(path)
+    d = dialect.load()
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    mav = d.MAVLink(None, srcSystem=200, srcComponent=197)
+    fp = world.fingerprint()
+    period = 1.0 / RATE_HZ
+    nxt = time.time()
+    seq = 0
+    while not stop.is_set():
+        for k in range(n):
+            T_wd = RigidTransform.from_components([1.0 + k % 5, 1.0 + k // 5, 1.5], Rotation.identity())
+            s = world.sensors[k + 1]
+            for j in range(per):
+                m = world.markers[per * k + j]
+                T = (T_wd * s.T_entity_sensor).inv() * m.T_entity_marker
+                x, y, z, w = T.rotation.as_quat()
+                seq = (seq + 1) & 0xFFFF
+                md = MarkerData(k + 1, m.id, 0.01, tuple(T.translation), (w, x, y, z), int(time.time() * 1e6), seq=seq)
+                sock.sendto(codec.encode_observation(d, md, fp).pack(mav), ("127.0.0.1", hub_port))
+                with sent.get_lock():
+                    sent.value += 1
+        nxt += period
+        time.sleep(max(nxt - time.time(), 0.0))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--nodes", type=int, default=10)
@@ -71,7 +99,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "world.yaml"
         path.write_text(yaml.safe_dump({"entities": ents, "nodes": nodes}))
-        world = load_world(path)
+        load_world(path)  # a bad world file fails here, before any process starts
         procs = {
             name: subprocess.Popen(
                 [sys.executable, "-m", "atlas_onboard", "run", "--config", str(path), "--entity", name],
@@ -81,36 +109,12 @@ def main() -> int:
         }  # fmt: skip
         while len(hub.clients) < n:
             time.sleep(0.1)
-        # The load: every drone's camera sees 4 markers at 30 Hz, sent into the mesh by a "camera" peer.
-        d = dialect.load()
-        sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        mav = d.MAVLink(None, srcSystem=200, srcComponent=197)
-        fp = world.fingerprint()
-        stop = threading.Event()
-        sent = [0]
-
-        def load() -> None:
-            period = 1.0 / RATE_HZ
-            nxt = time.time()
-            seq = 0
-            while not stop.is_set():
-                for k in range(n):
-                    T_wd = RigidTransform.from_components([1.0 + k % 5, 1.0 + k // 5, 1.5], Rotation.identity())
-                    s = world.sensors[k + 1]
-                    for j in range(per):
-                        m = world.markers[per * k + j]
-                        T = (T_wd * s.T_entity_sensor).inv() * m.T_entity_marker
-                        x, y, z, w = T.rotation.as_quat()
-                        p = T.translation
-                        seq = (seq + 1) & 0xFFFF
-                        md = MarkerData(k + 1, m.id, 0.01, tuple(p), (w, x, y, z), int(time.time() * 1e6), seq=seq)
-                        sock.sendto(codec.encode_observation(d, md, fp).pack(mav), ("127.0.0.1", hub.port))
-                        sent[0] += 1
-                nxt += period
-                time.sleep(max(nxt - time.time(), 0.0))
-
-        th = threading.Thread(target=load, daemon=True)
-        th.start()
+        # The load: every drone's camera sees its markers at 30 Hz, sent into the mesh by a "camera"
+        # peer in a process of its own, so the measuring threads here never stall it.
+        stop = multiprocessing.Event()
+        sent = multiprocessing.Value("q", 0)
+        gen = multiprocessing.Process(target=load, args=(path, hub.port, n, per, stop, sent), daemon=True)
+        gen.start()
         t0 = time.time()
         duration = args.minutes * 60
         samples = []
@@ -124,7 +128,7 @@ def main() -> int:
                 warm = row
             print(f"{time.time() - t0:>6.0f} " + " ".join(f"{v:>7.1f}" for v in row), flush=True)
         stop.set()
-        th.join()
+        gen.join(timeout=10)
         elapsed = time.time() - t0
         cpu = {name: cpu_s(p.pid) / elapsed * 100 for name, p in procs.items()}
         for p in procs.values():
@@ -145,7 +149,8 @@ def main() -> int:
     growth = max((last - first) / first * 100 for first, last in zip(warm, samples[-1], strict=True))
     dropped = sum(int(f.get("inbox_dropped", 0)) for f in finals.values())
     print(
-        f"load: {sent[0] / elapsed:.0f} observations/s into the mesh for {elapsed:.0f} s; each node receives them all"
+        f"load: {sent.value / elapsed:.0f} observations/s into the mesh for {elapsed:.0f} s;"
+        " each node receives them all"
     )
     print("node   cpu %  accepted  inbox_dropped  longest autopilot gap ms")
     for (name, f), gap in zip(finals.items(), gaps, strict=True):

@@ -372,3 +372,46 @@ def test_bad_node_settings_name_the_field(tmp_path, what, text, path, words):
     assert proc.returncode == 2
     assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert f"{path}: " in proc.stderr and words in proc.stderr, proc.stderr
+
+
+def test_mounted_cameras_are_the_same_whether_written_in_flu_or_frd():
+    # The same physical cameras: a drone's forward camera rolled 30 deg, a down camera, and a world
+    # camera on the ceiling looking down. FLU pitch +90 (nose down) is FRD pitch -90; y and z flip.
+    flu = {
+        "entities": {
+            "world": {"sensors": [{"name": "ceil", "id": 9, "pose": {"pos": [1, 2, 3], "rpy_deg": [0, 90, 0]}}]},
+            "d": {
+                "sensors": [
+                    {"name": "fwd", "id": 1, "pose": {"pos": [0.1, 0.02, -0.03], "rpy_deg": [30, 0, 0]}},
+                    {"name": "down", "id": 2, "pose": {"pos": [0.05, 0.0, -0.03], "rpy_deg": [0, 90, 0]}},
+                ]
+            },
+        }
+    }
+    frd = {
+        "conventions": {"world": "NED", "body": "FRD"},
+        "entities": {
+            "world": {"sensors": [{"name": "ceil", "id": 9, "pose": {"pos": [2, 1, -3], "rpy_deg": [0, -90, 90]}}]},
+            "d": {
+                "sensors": [
+                    {"name": "fwd", "id": 1, "pose": {"pos": [0.1, -0.02, 0.03], "rpy_deg": [30, 0, 0]}},
+                    {"name": "down", "id": 2, "pose": {"pos": [0.05, 0.0, 0.03], "rpy_deg": [0, -90, 0]}},
+                ]
+            },
+        },
+    }
+    a, b = parse_world(flu), parse_world(frd)
+    for sid in (1, 2, 9):
+        np.testing.assert_allclose(
+            a.sensors[sid].T_entity_sensor.as_matrix(), b.sensors[sid].T_entity_sensor.as_matrix(), atol=1e-12
+        )
+    # The forward camera rolled 30 deg right-side down: it looks along +x and the image's right
+    # (optical x) points to the drone's right (FLU -y), lowered by 30 deg.
+    R = b.sensors[1].T_entity_sensor.rotation
+    np.testing.assert_allclose(R.apply([0, 0, 1]), [1, 0, 0], atol=1e-12)
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    np.testing.assert_allclose(R.apply([1, 0, 0]), [0, -c, -s], atol=1e-12)
+    # The down camera: optical axis down, image top (optical -y) towards the nose.
+    R = b.sensors[2].T_entity_sensor.rotation
+    np.testing.assert_allclose(R.apply([0, 0, 1]), [0, 0, -1], atol=1e-12)
+    np.testing.assert_allclose(R.apply([0, -1, 0]), [1, 0, 0], atol=1e-12)

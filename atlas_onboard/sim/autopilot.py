@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import logging
 import socket
+import struct
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -19,12 +21,15 @@ from pymavlink.dialects.v20 import common as mavlink
 
 _logger = logging.getLogger(__name__)
 
+# Linux's SO_TIMESTAMPNS (also the ancillary message type, SCM_TIMESTAMPNS); Python does not name it.
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
+
 
 @dataclass(frozen=True, slots=True)
 class Received:
     """One external-vision message as the autopilot saw it (NED/FRD, as sent)."""
 
-    arrival_s: float  # time.time() at arrival
+    arrival_s: float  # wall-clock arrival: the kernel's receive timestamp for UDP, time.time() for TCP
     kind: str  # "VISION_POSITION_ESTIMATE" or "ODOMETRY"
     usec: int
     xyz_m: tuple[float, float, float]
@@ -61,6 +66,13 @@ class SimAutopilot:
         self._sock.bind(("127.0.0.1", self.port))
         if self.tcp:
             self._sock.listen(1)
+        elif _SO_TIMESTAMPNS is not None:
+            # The kernel stamps each datagram as it is queued, so arrival times measure the node, not
+            # how promptly this thread (which shares a GIL with the test or benchmark) got to read it.
+            try:
+                self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
+            except OSError:
+                pass
         self._sock.settimeout(0.05)
         self.port = self._sock.getsockname()[1]
         self._client: socket.socket | None = None
@@ -68,6 +80,7 @@ class SimAutopilot:
         self._mav = mavlink.MAVLink(None, srcSystem=self.system_id, srcComponent=1)
         self._mav.robust_parsing = True
         self._peer: tuple[str, int] | None = None
+        self._arrival = 0.0
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name=f"sim-autopilot-{self.system_id}", daemon=True)
@@ -104,7 +117,12 @@ class SimAutopilot:
     def _receive(self) -> bytes | None:
         """Next chunk of bytes, or None when there is nothing yet (UDP: a datagram; TCP: a read)."""
         if not self.tcp:
-            data, self._peer = self._sock.recvfrom(65535)
+            data, ancillary, _flags, self._peer = self._sock.recvmsg(65535, socket.CMSG_SPACE(16))
+            self._arrival = time.time()
+            for level, kind, raw in ancillary:
+                if level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS and len(raw) >= 16:
+                    sec, nsec = struct.unpack("qq", raw[:16])
+                    self._arrival = sec + nsec * 1e-9
             return data
         if self._client is None:
             self._client, _ = self._sock.accept()
@@ -112,6 +130,7 @@ class SimAutopilot:
             self.connections += 1
             return None
         data = self._client.recv(65535)
+        self._arrival = time.time()
         if not data:  # the node closed the connection: wait for the next one
             self._client.close()
             self._client = None
@@ -149,7 +168,7 @@ class SimAutopilot:
 
     def _handle(self, msg: mavlink.MAVLink_message) -> None:
         kind = msg.get_type()
-        arrival = time.time()
+        arrival = self._arrival
         if kind == "HEARTBEAT":
             key = (msg.get_srcSystem(), msg.get_srcComponent())
             self.heartbeats_from[key] = self.heartbeats_from.get(key, 0) + 1
