@@ -69,6 +69,15 @@ class FusionConfig:
             first entity (world-file order), and publish those relative poses.
         age_sigma_m_per_s: how fast an edge's information goes stale (about the entities' speed):
             an edge of age a counts with sigma sqrt(sigma^2 + (a * this)^2). 0: the paper's method.
+        outlier_gate_sigma: a candidate farther from the consensus of the others than this many
+            standard deviations (position or attitude) is rejected and counted. 0: off (the paper).
+        filter: ``none`` (the paper: the fused pose of the newest observations is the output) or
+            ``ekf`` (an error-state EKF per entity fed by the graph's candidates, predicting through
+            short gaps and gating outliers by Mahalanobis distance).
+        ekf_accel_noise: the EKF's white acceleration noise density, m/s^2 (how hard the drones
+            manoeuvre).
+        ekf_max_predict_s: the EKF predicts at most this long past its last update; then the pose
+            is lost, as without the filter.
     """
 
     edge_timeout_s: float = 0.25
@@ -77,6 +86,10 @@ class FusionConfig:
     path: str = "bfs"
     relative_poses: bool = False
     age_sigma_m_per_s: float = 0.0
+    outlier_gate_sigma: float = 0.0
+    filter: str = "none"
+    ekf_accel_noise: float = 2.0
+    ekf_max_predict_s: float = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -333,9 +346,9 @@ def _read_pose(value: Any, path: str) -> RigidTransform:
 def _read_fusion(value: Any, path: str) -> FusionConfig:
     if value is None:
         return FusionConfig()
-    m = _mapping(
-        value, path, {"edge_timeout_s", "ema_alpha", "weighting", "path", "relative_poses", "age_sigma_m_per_s"}
-    )
+    keys = {"edge_timeout_s", "ema_alpha", "weighting", "path", "relative_poses", "age_sigma_m_per_s"}
+    keys |= {"outlier_gate_sigma", "filter", "ekf_accel_noise", "ekf_max_predict_s"}
+    m = _mapping(value, path, keys)
     default = FusionConfig()
     timeout = _number(m.get("edge_timeout_s", default.edge_timeout_s), _join(path, "edge_timeout_s"), "seconds")
     if not 0.0 < timeout <= 10.0:
@@ -353,7 +366,17 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
     age = _number(m.get("age_sigma_m_per_s", 0.0), _join(path, "age_sigma_m_per_s"), "m/s")
     if not 0.0 <= age <= 100.0:
         raise ConfigError(_join(path, "age_sigma_m_per_s"), f"expected a speed in [0, 100] m/s, got {age:g}")
-    return FusionConfig(timeout, alpha, Weighting(weighting), graph_path, relative, age)
+    gate = _number(m.get("outlier_gate_sigma", 0.0), _join(path, "outlier_gate_sigma"))
+    if gate != 0.0 and not 2.0 <= gate <= 100.0:
+        raise ConfigError(_join(path, "outlier_gate_sigma"), f"expected 0 (off) or a gate in [2, 100], got {gate:g}")
+    filt = _choice(m.get("filter", default.filter), _join(path, "filter"), ("none", "ekf"))
+    accel = _number(m.get("ekf_accel_noise", default.ekf_accel_noise), _join(path, "ekf_accel_noise"), "m/s^2")
+    if not 0.01 <= accel <= 100.0:
+        raise ConfigError(_join(path, "ekf_accel_noise"), f"expected a noise in [0.01, 100] m/s^2, got {accel:g}")
+    horizon = _number(m.get("ekf_max_predict_s", default.ekf_max_predict_s), _join(path, "ekf_max_predict_s"), "s")
+    if not 0.0 < horizon <= 5.0:
+        raise ConfigError(_join(path, "ekf_max_predict_s"), f"expected a horizon in (0, 5] s, got {horizon:g}")
+    return FusionConfig(timeout, alpha, Weighting(weighting), graph_path, relative, age, gate, filt, accel, horizon)
 
 
 def _read_camera(value: Any, path: str, base_dir: Path | None) -> CameraConfig:
