@@ -19,13 +19,18 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.core import fusion, geometry
+from atlas_onboard.core import covariance, fusion, geometry
 from atlas_onboard.errors import GeometryError
 
 WORLD = "world"
 
 EdgeKey = tuple[int, int]
 """(sensor id, marker id): one edge per sensor-marker pair, replaced on every new observation."""
+
+MAX_SPEED_M_S = 3.0
+"""The outlier gate's allowance for motion since the last estimate (an indoor drone's top speed)."""
+MAX_RATE_RAD_S = 3.0
+"""And for rotation since the last estimate (about 170 deg/s)."""
 
 
 @dataclass(slots=True)
@@ -42,6 +47,25 @@ class Edge:
     sigma_m: float
     stamp_ns: int  # arrival on this node's clock: the edge's age is measured from here
     capture_time_us: int  # when the image was taken, on the observer's clock
+    cov_a_b: NDArray[np.float64] | None = None  # 6x6, see core.covariance
+    cov_b_a: NDArray[np.float64] | None = None  # of the inverse, filled in with it
+
+
+@dataclass(frozen=True, slots=True)
+class Candidate:
+    """One edge's vote for an entity's pose (eq. 2: the parent's pose times the edge), for a filter.
+
+    ``covariance`` is 6x6 in the convention of :mod:`atlas_onboard.core.covariance` (position in the
+    frame of the result, small rotation about the entity's body axes), including the parent's.
+    """
+
+    entity: str
+    key: EdgeKey
+    stamp_ns: int
+    capture_time_us: int
+    p_m: NDArray[np.float64]
+    q_xyzw: NDArray[np.float64]
+    covariance: NDArray[np.float64]
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,6 +83,11 @@ class EntityPose:
         capture_time_us: capture time of the newest observation that contributed (through the chain).
         frame: the entity whose frame the pose is in: ``world``, or for a relative pose the first
             entity of a group that has no path to world.
+        covariance: 6x6 covariance of (position in ``frame``, small rotation about the body axes),
+            propagated along the chains of transforms (None: not computed).
+        velocity_m_s: velocity in ``frame`` (None unless a filter estimates it).
+        angular_rate_rad_s: body angular rate about the body axes (None unless a filter estimates it).
+        velocity_covariance: 3x3 covariance of the velocity (None unless a filter estimates it).
     """
 
     name: str
@@ -70,6 +99,10 @@ class EntityPose:
     sigma_m: float
     capture_time_us: int
     frame: str = WORLD
+    covariance: NDArray[np.float64] | None = None
+    velocity_m_s: NDArray[np.float64] | None = None
+    angular_rate_rad_s: NDArray[np.float64] | None = None
+    velocity_covariance: NDArray[np.float64] | None = None
 
     @property
     def T_world_entity(self) -> RigidTransform:
@@ -86,6 +119,8 @@ class GraphResult:
     unreached: tuple[str, ...]  # entities with no edge path to world: no pose this time
     n_edges: int  # live edges used in this evaluation
     relative: dict[str, dict[str, EntityPose]] = field(default_factory=dict)  # root -> poses in root's frame
+    candidates: dict[str, list[Candidate]] = field(default_factory=dict)  # only with keep_candidates
+    gated: int = 0  # candidates rejected by the outlier gate in this evaluation
 
     def pose(self, name: str) -> EntityPose | None:
         return self.poses.get(name)
@@ -102,6 +137,8 @@ class TransformGraph:
         path: str = "bfs",
         relative: bool = False,
         age_sigma_m_per_s: float = 0.0,
+        outlier_gate_sigma: float = 0.0,
+        keep_candidates: bool = False,
     ) -> None:
         names = list(entity_names)
         if WORLD not in names:
@@ -122,7 +159,15 @@ class TransformGraph:
         # an edge of age a (s) counts with sigma sqrt(sigma^2 + (a * age_sigma)^2), so fresh
         # observations outvote stale ones (0: the paper's method, every live edge counts as new).
         self.age_sigma_m_per_s = age_sigma_m_per_s
+        # Beyond the paper: a candidate farther than this many sigma from the consensus of the others
+        # (or, with fewer than three, from the entity's last estimate) is left out. 0: off.
+        self.outlier_gate_sigma = outlier_gate_sigma
+        self.keep_candidates = keep_candidates
         self.edges: dict[EdgeKey, Edge] = {}
+        # The last estimate of each entity per frame root, for the gate: (p, q, sigma, sigma_att, stamp).
+        self._prior: dict[tuple[int, int], tuple[NDArray[np.float64], NDArray[np.float64], float, float, int]] = {}
+        self._gated_stamp: dict[EdgeKey, int] = {}
+        self.gated_total = 0  # distinct edge observations the gate rejected (counted once each)
 
     def update_edge(
         self,
@@ -134,10 +179,12 @@ class TransformGraph:
         sigma_m: float,
         now_ns: int,
         capture_time_us: int = 0,
+        sigma_att_rad: float | None = None,
     ) -> None:
         """Create or refresh the edge ``key``: ``T_a_b`` of ``observed`` (b) in ``observer`` (a).
 
-        The inverse is computed once here, so evaluation walks both directions at no extra cost.
+        ``sigma_att_rad`` is the attitude's standard deviation (by default from ``sigma_m`` and the
+        distance, :func:`covariance.attitude_sigma_rad`). The inverse is computed at evaluation.
         """
         a, b = self.index[observer], self.index[observed]
         if a == b:
@@ -145,16 +192,24 @@ class TransformGraph:
         p = np.asarray(p_a_b, dtype=float)
         q = np.asarray(q_a_b_xyzw, dtype=float)
         q = q / np.linalg.norm(q)
+        att = (
+            covariance.attitude_sigma_rad(sigma_m, float(np.linalg.norm(p))) if sigma_att_rad is None else sigma_att_rad
+        )
+        cov = covariance.diagonal(float(sigma_m), float(att))
         # The inverse (for walking the edge backwards) is computed at evaluation, for all new edges at once.
-        self.edges[key] = Edge(key, a, b, p, q, None, None, float(sigma_m), int(now_ns), int(capture_time_us))
+        self.edges[key] = Edge(key, a, b, p, q, None, None, float(sigma_m), int(now_ns), int(capture_time_us), cov)
 
     def _invert_new_edges(self, edges: list[Edge]) -> None:
         new = [e for e in edges if e.p_b_a is None]
         if not new:
             return
-        p_inv, q_inv = geometry.invert_arrays(np.array([e.p_a_b for e in new]), np.array([e.q_a_b for e in new]))
-        for e, pi, qi in zip(new, p_inv, q_inv, strict=True):
-            e.p_b_a, e.q_b_a = pi, qi
+        p_ab = np.array([e.p_a_b for e in new])
+        q_ab = np.array([e.q_a_b for e in new])
+        p_inv, q_inv = geometry.invert_arrays(p_ab, q_ab)
+        J = covariance.inverse_jacobian(p_ab, Rotation.from_quat(q_ab).as_matrix())
+        c_inv = covariance.transform(J, np.array([e.cov_a_b for e in new]))
+        for e, pi, qi, ci in zip(new, p_inv, q_inv, c_inv, strict=True):
+            e.p_b_a, e.q_b_a, e.cov_b_a = pi, qi, ci
 
     def expire(self, now_ns: int) -> int:
         """Remove edges older than the timeout (age > timeout); returns how many were removed."""
@@ -248,7 +303,8 @@ class TransformGraph:
         edges = list(self.edges.values())
         self._invert_new_edges(edges)
         world = self.index[WORLD]
-        poses, order, levels = self._evaluate_from(edges, world, now_ns)
+        cands: dict[str, list[Candidate]] | None = {} if self.keep_candidates else None
+        poses, order, levels, gated = self._evaluate_from(edges, world, now_ns, cands)
         reached = set(order)
         unreached = tuple(self.names[v] for v in range(len(self.names)) if v not in reached)
         relative: dict[str, dict[str, EntityPose]] = {}
@@ -256,7 +312,8 @@ class TransformGraph:
             remaining = [v for v in range(len(self.names)) if v not in reached]
             while remaining:
                 root = remaining[0]
-                rel, rel_order, _ = self._evaluate_from(edges, root, now_ns)
+                rel, rel_order, _, g = self._evaluate_from(edges, root, now_ns)
+                gated += g
                 if len(rel_order) > 1:
                     relative[self.names[root]] = rel
                 remaining = [v for v in remaining if v not in set(rel_order)]
@@ -267,12 +324,15 @@ class TransformGraph:
             unreached=unreached,
             n_edges=len(edges),
             relative=relative,
+            candidates=cands or {},
+            gated=gated,
         )
 
     def _evaluate_from(
-        self, edges: list[Edge], root: int, now_ns: int
-    ) -> tuple[dict[str, EntityPose], list[int], dict[int, int]]:
-        """Poses of every vertex reachable from ``root``, in ``root``'s frame."""
+        self, edges: list[Edge], root: int, now_ns: int, out: dict[str, list[Candidate]] | None = None
+    ) -> tuple[dict[str, EntityPose], list[int], dict[int, int], int]:
+        """Poses of every vertex reachable from ``root``, in ``root``'s frame (and how many candidates
+        the gate left out). ``out`` collects each entity's candidates when given."""
         n = len(self.names)
         order, level = self.broad_phase(edges, root)
         if self.path == "dijkstra":
@@ -289,19 +349,20 @@ class TransformGraph:
         # A vertex's stage is one more than its deepest parent's, so that a whole stage can be
         # composed and fused in one batched call (for BFS the stage is the level).
         stage = {root: 0}
-        cands_of: dict[int, list[tuple[int, NDArray[np.float64], NDArray[np.float64], float, int]]] = {}
+        cands_of: dict[int, list[tuple[int, NDArray[np.float64], NDArray[np.float64], float, Edge, NDArray]]] = {}
         for e in edges:
             if e.a not in level or e.b not in level:
                 continue
             if is_parent(e.a, e.b):
-                cands_of.setdefault(e.b, []).append((e.a, e.p_a_b, e.q_a_b, self._sigma(e, now_ns), e.capture_time_us))
+                cands_of.setdefault(e.b, []).append((e.a, e.p_a_b, e.q_a_b, self._sigma(e, now_ns), e, e.cov_a_b))
             elif is_parent(e.b, e.a):
-                cands_of.setdefault(e.a, []).append((e.b, e.p_b_a, e.q_b_a, self._sigma(e, now_ns), e.capture_time_us))
+                cands_of.setdefault(e.a, []).append((e.b, e.p_b_a, e.q_b_a, self._sigma(e, now_ns), e, e.cov_b_a))
         for v in order[1:]:
             stage[v] = 1 + max(stage[c[0]] for c in cands_of[v])
 
         p_world = np.zeros((n, 3))
         q_world = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        cov_world = np.zeros((n, 6, 6))
         sigma = np.zeros(n)
         stamp_us = np.zeros(n, dtype=np.int64)
         count = np.zeros(n, dtype=np.intp)
@@ -309,6 +370,7 @@ class TransformGraph:
         for v in order[1:]:
             by_stage.setdefault(stage[v], []).append(v)
 
+        gated = 0
         for st in sorted(by_stage):
             cands = [(c[0], v, *c[1:]) for v in by_stage[st] for c in cands_of[v]]
             m = len(cands)
@@ -317,11 +379,49 @@ class TransformGraph:
             p_pc = np.array([c[2] for c in cands])
             q_pc = np.array([c[3] for c in cands])
             s_edge = np.fromiter((c[4] for c in cands), dtype=float, count=m)
-            t_edge = np.fromiter((c[5] for c in cands), dtype=np.int64, count=m)
+            t_edge = np.fromiter((c[5].capture_time_us for c in cands), dtype=np.int64, count=m)
+            c_edge = np.array([c[6] for c in cands])
             # eq. 2: each candidate is P_parent * T_parent_child
             p_cand, q_cand = geometry.compose_arrays(p_world[parent], q_world[parent], p_pc, q_pc)
             # The candidate's sigma carries its parent's: variances add along a chain.
             s_cand = np.sqrt(s_edge**2 + sigma[parent] ** 2)
+            # Beyond the paper: the full 6x6 covariance along the chain (lever arms included).
+            if self.age_sigma_m_per_s > 0.0:
+                c_edge = c_edge.copy()
+                grow = (s_edge**2 - np.fromiter((c[5].sigma_m for c in cands), dtype=float, count=m) ** 2).clip(0.0)
+                c_edge[:, [0, 1, 2], [0, 1, 2]] += grow[:, None]
+            R_wp = Rotation.from_quat(q_world[parent]).as_matrix()
+            Jp, Je = covariance.compose_jacobians(R_wp, p_pc, Rotation.from_quat(q_pc).as_matrix())
+            edge_term = covariance.transform(Je, c_edge)
+            keep = np.ones(m, dtype=bool)
+            if self.outlier_gate_sigma > 0.0:
+                c_cand = covariance.transform(Jp, cov_world[parent]) + edge_term
+                keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns)
+                for c, k in zip(cands, keep, strict=True):
+                    if not k and self._gated_stamp.get(c[5].key) != c[5].stamp_ns:
+                        self._gated_stamp[c[5].key] = c[5].stamp_ns
+                        self.gated_total += 1
+                gated += int(m - keep.sum())
+            if out is not None:
+                c_all = covariance.transform(Jp, cov_world[parent]) + edge_term
+                for i in np.flatnonzero(keep):
+                    e = cands[i][5]
+                    out.setdefault(self.names[child[i]], []).append(
+                        Candidate(
+                            self.names[child[i]], e.key, e.stamp_ns, int(max(t_edge[i], stamp_us[parent[i]])),
+                            p_cand[i], q_cand[i], c_all[i],
+                        )
+                    )  # fmt: skip
+            # A child whose every candidate was gated keeps its last estimate (not re-sent: same stamp).
+            for v in set(child[~keep].tolist()) - set(child[keep].tolist()):
+                prior = self._prior[(root, v)]
+                p_world[v], q_world[v], sigma[v] = prior[0], prior[1], prior[2]
+                cov_world[v] = covariance.diagonal(prior[2], prior[3])
+                stamp_us[v] = prior[5]
+            parent, child, p_cand, q_cand = parent[keep], child[keep], p_cand[keep], q_cand[keep]
+            s_edge, s_cand, t_edge, Jp, edge_term = s_edge[keep], s_cand[keep], t_edge[keep], Jp[keep], edge_term[keep]
+            if len(child) == 0:
+                continue
             # eq. 6-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
             # The paper weighs by the sensor's sigma; Dijkstra weighs by the whole chain's.
             s_weigh = s_cand if self.path == "dijkstra" else s_edge
@@ -331,14 +431,27 @@ class TransformGraph:
             if self.inverse_variance:
                 weights = weights**2
             p_f, q_f, s_f, counts = fusion.fuse_groups(child, n, p_cand, q_cand, s_cand, weights)
+            c_f = covariance.fuse(child, parent, n, weights, Jp, cov_world, edge_term)
             got = counts > 0
             p_world[got] = p_f[got]
             q_world[got] = q_f[got]
             sigma[got] = s_f[got]
+            cov_world[got] = c_f[got]
             count[got] = counts[got]
             newest = np.zeros(n, dtype=np.int64)
             np.maximum.at(newest, child, np.maximum(t_edge, stamp_us[parent]))
             stamp_us[got] = newest[got]
+            if self.outlier_gate_sigma > 0.0:
+                for v in np.flatnonzero(got):
+                    att = float(np.sqrt(max(np.trace(c_f[v][3:, 3:]) / 3.0, 0.0)))
+                    self._prior[(root, int(v))] = (
+                        p_f[v].copy(),
+                        q_f[v].copy(),
+                        float(s_f[v]),
+                        att,
+                        now_ns,
+                        int(newest[v]),
+                    )
 
         poses = {}
         for rank, v in enumerate(order):
@@ -352,5 +465,63 @@ class TransformGraph:
                 sigma_m=float(sigma[v]),
                 capture_time_us=int(stamp_us[v]),
                 frame=self.names[root],
+                covariance=cov_world[v].copy(),
             )
-        return poses, order, level
+        return poses, order, level, gated
+
+    def _gate(
+        self,
+        root: int,
+        child: NDArray[np.intp],
+        p: NDArray[np.float64],
+        q: NDArray[np.float64],
+        cov: NDArray[np.float64],
+        now_ns: int,
+    ) -> NDArray[np.bool_]:
+        """Which candidates agree with the consensus of their entity's candidates.
+
+        With three or more candidates the reference is their median (position per axis; orientation:
+        the candidate nearest to all others), which one wrong candidate cannot move. With fewer, the
+        reference is the entity's last estimate if it is younger than the edge timeout, widened by
+        what the entity may have moved since. A candidate is out when its position or attitude is
+        more than ``outlier_gate_sigma`` standard deviations (its own and the reference's) away.
+        If the median would leave out more than half of the candidates, there is no consensus and
+        all are kept; two candidates that both contradict the last estimate but agree with each other
+        are kept (the estimate is out of date). A lone candidate against a fresh estimate loses: the
+        entity keeps its estimate until that is older than the edge timeout.
+        """
+        k = self.outlier_gate_sigma
+        keep = np.ones(len(child), dtype=bool)
+        s_pos = np.sqrt(np.trace(cov[:, :3, :3], axis1=1, axis2=2) / 3.0)
+        s_att = np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2) / 3.0)
+        for v in np.unique(child):
+            idx = np.flatnonzero(child == v)
+            rot = Rotation.from_quat(q[idx])
+            if len(idx) >= 3:
+                ref_p = np.median(p[idx], axis=0)
+                angles = np.array([(rot[i].inv() * rot).magnitude().sum() for i in range(len(idx))])
+                ref_q = rot[int(np.argmin(angles))]
+                ref_s, ref_a, slack_p, slack_a = 0.0, 0.0, 0.0, 0.0
+            else:
+                prior = self._prior.get((root, int(v)))
+                if prior is None or now_ns - prior[4] > self.edge_timeout_ns:
+                    continue
+                age_s = (now_ns - prior[4]) / 1e9
+                ref_p, ref_q, ref_s, ref_a = prior[0], Rotation.from_quat(prior[1]), prior[2], prior[3]
+                slack_p, slack_a = MAX_SPEED_M_S * age_s, MAX_RATE_RAD_S * age_s
+            d_p = np.linalg.norm(p[idx] - ref_p, axis=1)
+            d_a = (ref_q.inv() * rot).magnitude()
+            ok = (d_p <= k * np.hypot(s_pos[idx], ref_s) + slack_p) & (d_a <= k * np.hypot(s_att[idx], ref_a) + slack_a)
+            if len(idx) >= 3:
+                if ok.sum() * 2 >= len(idx):
+                    keep[idx] = ok
+            elif len(idx) == 2 and not ok.any():
+                # Both contradict the last estimate: if they agree with each other, it is the estimate
+                # that is out of date (kept both); if not, nothing can be trusted (both out).
+                d2 = float(np.linalg.norm(p[idx[0]] - p[idx[1]]))
+                a2 = float((rot[0].inv() * rot[1]).magnitude())
+                agree = d2 <= k * np.hypot(s_pos[idx[0]], s_pos[idx[1]]) and a2 <= k * np.hypot(*s_att[idx])
+                keep[idx] = agree
+            else:
+                keep[idx] = ok
+        return keep

@@ -1,0 +1,121 @@
+"""6x6 pose covariances carried along chains of transforms (the paper's future work: honest uncertainty).
+
+Convention (the same everywhere in atlas-onboard, and what the autopilot message wants once turned
+to NED/FRD): a pose T_a_b = (p, R) is uncertain as ``p_true = p + dp`` with ``dp`` in frame a, and
+``R_true = R Exp(dtheta)`` with ``dtheta`` a small rotation about b's own axes. The 6-vector is
+``[dp, dtheta]``; its covariance is (m^2, m rad, rad^2).
+
+First-order propagation (derived in docs/covariance.md):
+
+- composition ``T_w_c = T_w_p T_p_c``: ``C_c = Jp C_p Jp^T + Je C_e Je^T`` with
+  ``Jp = [[I, -R_wp [p_pc]x], [0, R_pc^T]]`` and ``Je = blockdiag(R_wp, I)``;
+- inverse ``T_b_a = T_a_b^-1``: ``C_ba = Ji C_ab Ji^T`` with ``Ji = [[-R_ab^T, [p_ba]x], [0, -R_ab]]``;
+- a weighted mean of candidates that share a parent: the parent's error is common to all of them
+  and does not average out, each edge's own error does.
+
+Everything here is batched over a leading axis (numpy ``einsum``) and pure.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+MIN_ATTITUDE_SIGMA_RAD = math.radians(0.1)
+MAX_ATTITUDE_SIGMA_RAD = math.radians(30.0)
+
+
+def skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Cross-product matrices of vectors, shape (..., 3) -> (..., 3, 3): ``skew(a) @ b == a x b``."""
+    v = np.asarray(v, dtype=float)
+    out = np.zeros((*v.shape[:-1], 3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def attitude_sigma_rad(
+    sigma_m: NDArray[np.float64] | float, range_m: NDArray[np.float64] | float
+) -> NDArray[np.float64]:
+    """Attitude standard deviation of a marker observation from its position sigma and range.
+
+    A tag's camera-position error is mostly its tilt error swung over the range (lateral error =
+    range x angle), so the angle's sigma is about sigma / range; clamped to [0.1, 30] degrees.
+    """
+    r = np.maximum(np.asarray(range_m, dtype=float), 0.05)
+    return np.clip(np.asarray(sigma_m, dtype=float) / r, MIN_ATTITUDE_SIGMA_RAD, MAX_ATTITUDE_SIGMA_RAD)
+
+
+def diagonal(sigma_m: NDArray[np.float64] | float, sigma_att_rad: NDArray[np.float64] | float) -> NDArray[np.float64]:
+    """Covariances of isotropic position and attitude errors, shape (..., 6, 6)."""
+    s = np.asarray(sigma_m, dtype=float)
+    a = np.broadcast_to(np.asarray(sigma_att_rad, dtype=float), s.shape)
+    out = np.zeros((*s.shape, 6, 6))
+    for i in range(3):
+        out[..., i, i] = s**2
+        out[..., 3 + i, 3 + i] = a**2
+    return out
+
+
+def inverse_jacobian(p_ab: NDArray[np.float64], R_ab: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Jacobian of the inverse, shape (..., 6, 6): ``C_ba = Ji C_ab Ji^T``."""
+    R_ba = np.swapaxes(R_ab, -1, -2)
+    p_ba = -np.einsum("...ij,...j->...i", R_ba, p_ab)
+    J = np.zeros((*np.shape(p_ab)[:-1], 6, 6))
+    J[..., 0:3, 0:3] = -R_ba
+    J[..., 0:3, 3:6] = skew(p_ba)
+    J[..., 3:6, 3:6] = -R_ab
+    return J
+
+
+def transform(J: NDArray[np.float64], C: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``J C J^T``, batched."""
+    return np.einsum("...ij,...jk,...lk->...il", J, C, J)
+
+
+def compose_jacobians(
+    R_wp: NDArray[np.float64], p_pc: NDArray[np.float64], R_pc: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Jacobians (Jp, Je) of ``T_w_c = T_w_p T_p_c`` with respect to the parent's and the edge's errors."""
+    lead = np.shape(p_pc)[:-1]
+    Jp = np.zeros((*lead, 6, 6))
+    Jp[..., 0:3, 0:3] = np.eye(3)
+    Jp[..., 0:3, 3:6] = -np.einsum("...ij,...jk->...ik", R_wp, skew(p_pc))
+    Jp[..., 3:6, 3:6] = np.swapaxes(R_pc, -1, -2)
+    Je = np.zeros((*lead, 6, 6))
+    Je[..., 0:3, 0:3] = R_wp
+    Je[..., 3:6, 3:6] = np.eye(3)
+    return Jp, Je
+
+
+def fuse(
+    child: NDArray[np.intp],
+    parent: NDArray[np.intp],
+    n: int,
+    weights: NDArray[np.float64],
+    Jp: NDArray[np.float64],
+    C_parent: NDArray[np.float64],
+    edge_term: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Covariance of each child's weighted mean of candidates, shape (n, 6, 6).
+
+    Candidate i of ``child[i]`` comes from ``parent[i]`` (covariance ``C_parent[parent[i]]``, Jacobian
+    ``Jp[i]``) with its own edge error ``edge_term[i] = Je C_e Je^T``. With normalised weights w_i,
+    the mean's error is ``sum_i w_i (Jp_i e_parent + Je_i e_edge_i)``: the edge terms add as
+    ``w_i^2``, and each parent's term as ``(sum of w_i Jp_i over its candidates) C_parent (...)^T``.
+    """
+    total = np.zeros(n)
+    np.add.at(total, child, weights)
+    w = weights / total[child]
+    out = np.zeros((n, 6, 6))
+    np.add.at(out, child, (w**2)[:, None, None] * edge_term)
+    # Group the candidates by (child, parent): their parent Jacobians add before the parent's covariance.
+    pairs, inverse = np.unique(np.stack([child, parent], axis=1), axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    A = np.zeros((len(pairs), 6, 6))
+    np.add.at(A, inverse, w[:, None, None] * Jp)
+    np.add.at(out, pairs[:, 0], transform(A, C_parent[pairs[:, 1]]))
+    return out

@@ -1,0 +1,173 @@
+"""6x6 covariances along chains of transforms: the Jacobians against Monte Carlo, fusion of
+correlated candidates, the graph's published covariance, and the outlier gate."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.core import covariance
+from atlas_onboard.core.graph import TransformGraph
+from tests.helpers import pose
+
+MS = 1_000_000
+
+
+def random_cov(rng, scale_p=0.02, scale_a=0.03):
+    A = rng.normal(size=(6, 6)) * np.array([scale_p] * 3 + [scale_a] * 3)
+    return A @ A.T + np.eye(6) * 1e-6
+
+
+def perturb(T, e):
+    """T with the error e = [dp (parent frame), dtheta (own axes)] applied, as the convention says."""
+    return RigidTransform.from_components(T.translation + e[:3], T.rotation * Rotation.from_rotvec(e[3:]))
+
+
+def error(T_est, T_true):
+    return np.concatenate(
+        [T_true.translation - T_est.translation, (T_est.rotation.inv() * T_true.rotation).as_rotvec()]
+    )
+
+
+def sampled_cov(errors):
+    e = np.array(errors)
+    return e.T @ e / len(e)
+
+
+def test_skew_is_the_cross_product():
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=3), rng.normal(size=3)
+    np.testing.assert_allclose(covariance.skew(a) @ b, np.cross(a, b), atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_composition_matches_monte_carlo(seed):
+    rng = np.random.default_rng(seed)
+    T_wp = pose([1, 2, 0.5], [10, -20, 60])
+    T_pc = pose([2.0, -1.0, 0.3], [-30, 15, 100])  # a long lever arm: the parent's attitude error matters
+    C_p, C_e = random_cov(rng), random_cov(rng)
+    Jp, Je = covariance.compose_jacobians(T_wp.rotation.as_matrix(), T_pc.translation, T_pc.rotation.as_matrix())
+    predicted = covariance.transform(Jp, C_p) + covariance.transform(Je, C_e)
+    T_wc = T_wp * T_pc
+    L_p, L_e = np.linalg.cholesky(C_p), np.linalg.cholesky(C_e)
+    errs = [
+        error(T_wc, perturb(T_wp, L_p @ rng.normal(size=6)) * perturb(T_pc, L_e @ rng.normal(size=6)))
+        for _ in range(20000)
+    ]
+    got = sampled_cov(errs)
+    # Sampling error of a covariance with 20000 samples: ~1 %; first-order error: small at these sigmas.
+    scale = np.sqrt(np.outer(np.diag(predicted), np.diag(predicted)))
+    assert np.max(np.abs(got - predicted) / scale) < 0.05
+
+
+def test_inverse_matches_monte_carlo():
+    rng = np.random.default_rng(7)
+    T_ab = pose([1.5, -0.4, 2.0], [20, 30, -45])
+    C = random_cov(rng)
+    J = covariance.inverse_jacobian(T_ab.translation, T_ab.rotation.as_matrix())
+    predicted = covariance.transform(J, C)
+    L = np.linalg.cholesky(C)
+    T_ba = T_ab.inv()
+    got = sampled_cov([error(T_ba, perturb(T_ab, L @ rng.normal(size=6)).inv()) for _ in range(20000)])
+    scale = np.sqrt(np.outer(np.diag(predicted), np.diag(predicted)))
+    assert np.max(np.abs(got - predicted) / scale) < 0.05
+
+
+@settings(max_examples=50, deadline=None)
+@given(st.floats(1e-4, 1.0), st.floats(1e-4, 0.5))
+def test_inverse_of_inverse_is_identity_on_covariance(s_p, s_a):
+    T = pose([0.3, -1.0, 2.0], [5, 50, -120])
+    C = covariance.diagonal(s_p, s_a)
+    J1 = covariance.inverse_jacobian(T.translation, T.rotation.as_matrix())
+    Ti = T.inv()
+    J2 = covariance.inverse_jacobian(Ti.translation, Ti.rotation.as_matrix())
+    np.testing.assert_allclose(covariance.transform(J2, covariance.transform(J1, C)), C, rtol=1e-9, atol=1e-15)
+
+
+def test_fusion_averages_edge_errors_but_not_the_shared_parent():
+    # Two equal candidates of one child: from the same parent (its error is common to both) and
+    # from world (exact). Identity Jacobians make the figures exact.
+    edge = np.eye(6) * 4.0
+    parent_cov = np.stack([np.zeros((6, 6)), np.eye(6) * 9.0])
+    Jp = np.stack([np.eye(6), np.eye(6)])
+    same = covariance.fuse(np.array([0, 0]), np.array([1, 1]), 1, np.ones(2), Jp, parent_cov, np.stack([edge, edge]))
+    np.testing.assert_allclose(same[0], np.eye(6) * (9.0 + 4.0 / 2))
+    both = covariance.fuse(np.array([0, 0]), np.array([0, 1]), 1, np.ones(2), Jp, parent_cov, np.stack([edge, edge]))
+    np.testing.assert_allclose(both[0], np.eye(6) * (9.0 / 4 + 4.0 / 2))
+
+
+def test_graph_covariance_of_a_chain_grows_with_the_lever_arm():
+    # world sees A (1 cm, so about 0.6 deg at 1 m); A sees B 3 m ahead with 1 cm: B's lateral
+    # variance carries A's attitude error over 3 m, its along-track variance does not.
+    g = TransformGraph(["world", "A", "B"], edge_timeout_ns=250 * MS)
+    T_wA, T_AB = pose([0, 0, 1]), pose([3, 0, 0])
+    g.update_edge((1, 1), "world", "A", T_wA.translation, T_wA.rotation.as_quat(), 0.01, 0, sigma_att_rad=0.01)
+    g.update_edge((2, 2), "A", "B", T_AB.translation, T_AB.rotation.as_quat(), 0.01, 0, sigma_att_rad=0.01)
+    r = g.evaluate(0)
+    np.testing.assert_allclose(r.poses["A"].covariance, covariance.diagonal(0.01, 0.01), atol=1e-15)
+    C = r.poses["B"].covariance
+    assert C[0, 0] == pytest.approx(2 * 0.01**2)  # along x: two position errors
+    assert C[1, 1] == pytest.approx(2 * 0.01**2 + (3 * 0.01) ** 2)  # lateral: plus 3 m x 0.01 rad
+    assert C[2, 2] == pytest.approx(2 * 0.01**2 + (3 * 0.01) ** 2)
+    assert C[5, 5] == pytest.approx(2 * 0.01**2)
+
+
+def floor_scene(gate, wrong=None):
+    """A drone 1.5 m above four floor tags, each seen with 1 cm; ``wrong`` replaces one observation.
+
+    Each observation is an edge drone -> world (eq. 1 has already taken the tag's placement out)."""
+    g = TransformGraph(["world", "d"], edge_timeout_ns=250 * MS, outlier_gate_sigma=gate)
+    truth = pose([1.0, 2.0, 1.5], [0, 0, 40])
+    for k in range(4):
+        T = truth.inv() if k != 1 or wrong is None else wrong(truth)
+        g.update_edge((1, k), "d", "world", T.translation, T.rotation.as_quat(), 0.01, 0, 100)
+    return g, truth
+
+
+def test_gate_leaves_out_a_wrong_id_among_four():
+    # The second tag's detection is really another tag, 2 m away (eq. 1 then shifts the edge by
+    # 2 m): without the gate it drags the drone by 50 cm; with it, the estimate is that of the three
+    # good ones and the rejection is counted.
+    def wrong(truth):
+        return truth.inv() * pose([2.0, 0, 0])
+
+    g_off, truth = floor_scene(0.0, wrong)
+    g_on, _ = floor_scene(5.0, wrong)
+    off, on = g_off.evaluate(0), g_on.evaluate(0)
+    assert np.linalg.norm(off.poses["d"].p_world_m - truth.translation) > 0.3
+    np.testing.assert_allclose(on.poses["d"].p_world_m, truth.translation, atol=1e-9)
+    assert on.poses["d"].n_observations == 3 and on.gated == 1 and g_on.gated_total == 1
+    g_on.evaluate(1)  # the same edge seen again in the next evaluation is not counted twice
+    assert g_on.gated_total == 1
+
+
+def test_gate_keeps_the_estimate_when_a_lone_flipped_pose_arrives():
+    # One tag in view. A flipped pose (30 deg tilt, 25 cm off) arrives 33 ms after a good one: the
+    # drone keeps its estimate and its capture time (so nothing new is published); once the
+    # estimate is older than the edge timeout the next observation is taken whatever it says.
+    g = TransformGraph(["world", "d"], edge_timeout_ns=250 * MS, outlier_gate_sigma=5.0)
+    truth = pose([1.0, 2.0, 1.5])
+    good = truth.inv()
+    g.update_edge((1, 0), "d", "world", good.translation, good.rotation.as_quat(), 0.01, 0, 100)
+    first = g.evaluate(0).poses["d"]
+    flipped = (truth * pose([0.25, 0, 0], [0, 30, 0])).inv()
+    g.update_edge((1, 0), "d", "world", flipped.translation, flipped.rotation.as_quat(), 0.01, 33 * MS, 133)
+    r = g.evaluate(33 * MS)
+    np.testing.assert_allclose(r.poses["d"].p_world_m, first.p_world_m, atol=1e-12)
+    assert r.poses["d"].capture_time_us == 100 and g.gated_total == 1
+    g.update_edge((1, 0), "d", "world", good.translation, good.rotation.as_quat(), 0.01, 66 * MS, 166)
+    r = g.evaluate(66 * MS)
+    np.testing.assert_allclose(r.poses["d"].p_world_m, truth.translation, atol=1e-9)
+    assert r.poses["d"].capture_time_us == 166
+    # 300 ms later the old estimate has expired: a different pose is accepted (re-acquisition).
+    moved = pose([2.0, 2.0, 1.5]).inv()
+    g.update_edge((1, 0), "d", "world", moved.translation, moved.rotation.as_quat(), 0.01, 400 * MS, 400)
+    np.testing.assert_allclose(g.evaluate(400 * MS).poses["d"].p_world_m, [2.0, 2.0, 1.5], atol=1e-9)
+
+
+def test_gate_off_is_the_paper():
+    g, truth = floor_scene(0.0)
+    r = g.evaluate(0)
+    np.testing.assert_allclose(r.poses["d"].p_world_m, truth.translation, atol=1e-9)
+    assert r.gated == 0 and r.poses["d"].n_observations == 4
