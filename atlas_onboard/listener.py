@@ -52,6 +52,8 @@ def make_graph(world: WorldConfig) -> TransformGraph:
         path=f.path,
         relative=f.relative_poses,
         age_sigma_m_per_s=f.age_sigma_m_per_s,
+        outlier_gate_sigma=f.outlier_gate_sigma,
+        keep_candidates=f.filter == "ekf",
     )
 
 

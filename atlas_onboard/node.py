@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import Protocol
 
 from atlas_onboard.config import ConfigError, NodeConfig, WorldConfig, load_node
+from atlas_onboard.core.ekf import EkfSettings
+from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.listener import Listener, make_graph
@@ -121,6 +123,7 @@ class Node:
         cameras: Sequence[Camera] = (),
         *,
         monotonic_ns: Callable[[], int] = time.monotonic_ns,
+        wall_ns: Callable[[], int] = time.time_ns,
         notifier: object | None = None,
         config_path: Path | None = None,
     ) -> None:
@@ -129,10 +132,12 @@ class Node:
         self.transport = transport
         self.cameras = list(cameras)
         self.clock = monotonic_ns
+        self.wall = wall_ns  # capture times are on the swarm's wall clock: the EKF predicts to it
         self.notifier = notifier
         self.config_path = config_path
         self.graph = make_graph(world)
         self.listener = Listener(world, self.graph)
+        self.ekf = _make_ekf(world)
         ap = config.autopilot
         self.publisher = Publisher(
             config.entity,
@@ -253,6 +258,10 @@ class Node:
         result = self.graph.evaluate(now)
         self.last_result = result
         self.stats.evaluations += 1
+        if self.ekf is not None:
+            # The autopilot gets the filter's pose predicted to now (stamped now), at its rate.
+            self.ekf.update(result)
+            result = self.ekf.poses(result, self.wall() // 1000)
         out, status = self.publisher.autopilot(result, now)
         if status is not None:
             lost = status == "pose lost"
@@ -281,6 +290,7 @@ class Node:
         self.graph.edges.clear()
         self.graph = make_graph(world)
         self.listener = Listener(world, self.graph)
+        self.ekf = _make_ekf(world)
         _logger.info("reloaded %s (fingerprint %08x)", self.config_path, world.fingerprint())
 
     def counters(self) -> dict[str, int]:
@@ -297,6 +307,9 @@ class Node:
             fused_sent=self.stats.fused_sent,
             reset_counter=self.publisher.reset_counter,
         )
+        out["rejected_outlier"] = out.get("rejected_outlier", 0) + self.graph.gated_total
+        if self.ekf is not None:
+            out.update({f"ekf_{k}": v for k, v in self.ekf.outcomes.items()})
         out.update(self.transport.counters())
         for cam in self.cameras:
             out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})
@@ -310,6 +323,14 @@ class Node:
     def _notify(self, *lines: str) -> None:
         if self.notifier is not None:
             self.notifier.notify(*lines)  # type: ignore[attr-defined]
+
+
+def _make_ekf(world: WorldConfig) -> EkfBank | None:
+    f = world.fusion
+    if f.filter != "ekf":
+        return None
+    settings = EkfSettings(accel_noise=f.ekf_accel_noise, max_gap_s=f.ekf_max_predict_s)
+    return EkfBank(settings, max_predict_s=f.ekf_max_predict_s)
 
 
 def install_signal_handlers(node: Node) -> None:

@@ -87,7 +87,8 @@ class EntityPose:
             propagated along the chains of transforms (None: not computed).
         velocity_m_s: velocity in ``frame`` (None unless a filter estimates it).
         angular_rate_rad_s: body angular rate about the body axes (None unless a filter estimates it).
-        velocity_covariance: 3x3 covariance of the velocity (None unless a filter estimates it).
+        velocity_covariance: 6x6 covariance of (velocity, angular rate) (None unless a filter
+            estimates them).
     """
 
     name: str

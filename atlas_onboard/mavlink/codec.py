@@ -225,19 +225,71 @@ def ned_pose(pose: EntityPose) -> tuple[np.ndarray, Rotation]:
     return frames.enu_flu_to_ned_frd_arrays(pose.p_world_m, pose.q_world_xyzw)
 
 
+def _pose_covariance_21(pose: EntityPose) -> list[float]:
+    """The propagated 6x6 covariance when the pose has one, else the diagonal from its sigma."""
+    if pose.covariance is not None:
+        return autopilot.covariance_upper_triangle(autopilot.covariance_ned_frd(pose.covariance))
+    return pose_covariance(pose.sigma_m)
+
+
 def vision_position_estimate_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:
-    """VISION_POSITION_ESTIMATE fields: usec = capture time of the newest contributing observation."""
+    """VISION_POSITION_ESTIMATE fields: usec = capture time of the newest contributing observation
+    (or, with the EKF, the time the pose is predicted for)."""
     p_ned, R_ned_frd = ned_pose(pose)
-    cov = pose_covariance(pose.sigma_m)
+    cov = _pose_covariance_21(pose)
     return autopilot.vision_position_estimate_from_ned(p_ned, R_ned_frd, pose.capture_time_us, reset_counter, cov)
 
 
 def odometry_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:
-    """ODOMETRY fields in LOCAL_FRD / BODY_FRD (what ArduPilot requires; PX4 accepts it), velocity unknown."""
+    """ODOMETRY fields in LOCAL_FRD / BODY_FRD (what ArduPilot requires; PX4 accepts it). Velocity
+    (in the body FRD frame, as MAVLink wants it in child_frame_id) and angular rate when a filter
+    estimates them, else NaN (unknown)."""
     p_ned, R_ned_frd = ned_pose(pose)
-    cov = pose_covariance(pose.sigma_m)
+    cov = _pose_covariance_21(pose)
     quality = quality_percent(pose.sigma_m)
-    return autopilot.odometry_from_ned(p_ned, R_ned_frd, pose.capture_time_us, reset_counter, cov, quality)
+    fields = autopilot.odometry_from_ned(p_ned, R_ned_frd, pose.capture_time_us, reset_counter, cov, quality)
+    if pose.velocity_m_s is not None and pose.angular_rate_rad_s is not None:
+        M_frd_ned = R_ned_frd.as_matrix().T
+        v_frd = M_frd_ned @ (_M_NED_ENU @ np.asarray(pose.velocity_m_s, dtype=float))
+        w_frd = _FLU_TO_FRD * np.asarray(pose.angular_rate_rad_s, dtype=float)
+        if np.all(np.isfinite(v_frd)) and np.all(np.isfinite(w_frd)):
+            fields.update(vx=v_frd[0], vy=v_frd[1], vz=v_frd[2], rollspeed=w_frd[0], pitchspeed=w_frd[1])
+            fields["yawspeed"] = w_frd[2]
+            if pose.velocity_covariance is not None:
+                # Velocity in the world ENU -> body FRD, rates FLU -> FRD.
+                J = np.zeros((6, 6))
+                J[0:3, 0:3] = M_frd_ned @ _M_NED_ENU
+                J[3:6, 3:6] = np.diag(_FLU_TO_FRD)
+                C = J @ pose.velocity_covariance @ J.T
+                fields["velocity_covariance"] = autopilot.covariance_upper_triangle(0.5 * (C + C.T))
+    return fields
+
+
+def vision_speed_estimate_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any] | None:
+    """VISION_SPEED_ESTIMATE (#103) fields: the velocity in local NED with its 3x3 covariance, or
+    None when the pose has no velocity (no filter) or it is not finite."""
+    if pose.velocity_m_s is None:
+        return None
+    v_ned = _M_NED_ENU @ np.asarray(pose.velocity_m_s, dtype=float)
+    if not np.all(np.isfinite(v_ned)):
+        return None
+    if pose.velocity_covariance is not None:
+        C = _M_NED_ENU @ pose.velocity_covariance[0:3, 0:3] @ _M_NED_ENU.T
+        cov = [float(v) for v in (0.5 * (C + C.T)).reshape(-1)]
+    else:
+        cov = [math.nan] + [0.0] * 8
+    return {
+        "usec": int(pose.capture_time_us),
+        "x": float(v_ned[0]),
+        "y": float(v_ned[1]),
+        "z": float(v_ned[2]),
+        "covariance": cov,
+        "reset_counter": int(reset_counter) & 0xFF,
+    }
+
+
+_M_NED_ENU = frames.R_ENU_NED.as_matrix().T
+_FLU_TO_FRD = np.array([1.0, -1.0, -1.0])
 
 
 def vision_position_estimate(dialect: ModuleType, pose: EntityPose, reset_counter: int) -> Any:
@@ -248,3 +300,9 @@ def vision_position_estimate(dialect: ModuleType, pose: EntityPose, reset_counte
 def odometry(dialect: ModuleType, pose: EntityPose, reset_counter: int) -> Any:
     """An ODOMETRY message object; AtlasError for a non-finite pose or sigma."""
     return dialect.MAVLink_odometry_message(**odometry_fields(pose, reset_counter))
+
+
+def vision_speed_estimate(dialect: ModuleType, pose: EntityPose, reset_counter: int) -> Any | None:
+    """A VISION_SPEED_ESTIMATE message object, or None when the pose has no velocity."""
+    fields = vision_speed_estimate_fields(pose, reset_counter)
+    return None if fields is None else dialect.MAVLink_vision_speed_estimate_message(**fields)

@@ -100,16 +100,20 @@ class MavlinkTransport:
         if self.autopilot is None or self.config.autopilot is None:
             return
         d = self.autopilot.dialect
+        speed = None
         try:
             if self.config.autopilot.output.value == "odometry":
                 msg = codec.odometry(d, pose.pose, pose.reset_counter)
             else:
                 msg = codec.vision_position_estimate(d, pose.pose, pose.reset_counter)
+                speed = codec.vision_speed_estimate(d, pose.pose, pose.reset_counter)
         except AtlasError as exc:
             self.counters_.inc("autopilot_pose_refused")
             _logger.debug("pose not sent to the autopilot: %s", exc)
             return
         self.autopilot.send(msg)
+        if speed is not None:
+            self.autopilot.send(speed)  # with the EKF: its velocity, for EK3_SRC1_VELXY=6 / EKF2_EV_CTRL bit 2
 
     def send_status(self, text: str, severity: int) -> None:
         for link in self._links():

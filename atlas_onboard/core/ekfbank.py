@@ -1,0 +1,100 @@
+"""One pose EKF per entity, fed by the transform graph's candidates (``fusion.filter: ekf``).
+
+After each graph evaluation the bank takes every candidate that comes from an edge it has not seen
+yet (a new observation), in capture-time order, as a pose measurement with the candidate's 6x6
+covariance (propagated along its chain). Each filter predicts with a constant-velocity model, so
+an entity's pose is available between detections and for up to ``max_predict_s`` after the last
+one, stamped with the time it is predicted for, with a velocity and an angular rate. Outliers are
+gated by Mahalanobis distance inside each filter (counted).
+
+Pure: times are passed in (microseconds on the capture clock, the wall clock of the swarm).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.core.ekf import EkfSettings, PoseEkf
+from atlas_onboard.core.graph import WORLD, EdgeKey, EntityPose, GraphResult
+
+_TWIST = [3, 4, 5, 9, 10, 11]  # velocity (world) and angular rate (body) in the error state
+
+
+@dataclass
+class EkfBank:
+    """The filters of every entity (world excluded: it does not move)."""
+
+    settings: EkfSettings = field(default_factory=EkfSettings)
+    max_predict_s: float = 0.5
+    filters: dict[str, PoseEkf] = field(default_factory=dict)
+    outcomes: Counter[str] = field(default_factory=Counter)
+    _fed: dict[tuple[str, EdgeKey], int] = field(default_factory=dict)
+    _last: dict[str, EntityPose] = field(default_factory=dict)
+
+    def update(self, result: GraphResult) -> None:
+        """Feed the new candidates of one evaluation (world-frame poses only)."""
+        for name, cands in result.candidates.items():
+            if name == WORLD or name not in result.poses:
+                continue
+            ekf = self.filters.get(name)
+            if ekf is None:
+                ekf = self.filters[name] = PoseEkf(replace(self.settings))
+            self._last[name] = result.poses[name]
+            fresh = [c for c in cands if self._fed.get((name, c.key)) != c.stamp_ns]
+            for c in sorted(fresh, key=lambda c: c.capture_time_us):
+                self._fed[(name, c.key)] = c.stamp_ns
+                cov = 0.5 * (c.covariance + c.covariance.T)
+                outcome = ekf.update(c.capture_time_us / 1e6, c.p_m, Rotation.from_quat(c.q_xyzw), cov)
+                self.outcomes[outcome] += 1
+        # Forget edges no longer in the graph, so the bookkeeping stays bounded.
+        live = {(n, c.key) for n, cands in result.candidates.items() for c in cands}
+        for k in [k for k in self._fed if k not in live]:
+            del self._fed[k]
+
+    def pose(self, name: str, now_us: int) -> EntityPose | None:
+        """The entity's pose predicted to ``now_us``, or None when it has no estimate or its last
+        update is older than ``max_predict_s`` (the pose is then lost, as without a filter)."""
+        ekf = self.filters.get(name)
+        last = self._last.get(name)
+        if ekf is None or last is None or not ekf.initialized:
+            return None
+        t = now_us / 1e6
+        if t - ekf.t_update_s > self.max_predict_s:
+            return None
+        t = max(t, ekf.t_s)
+        p, q, cov = ekf.pose_at(t)
+        pos_sigma = float(np.sqrt(max(np.trace(cov[0:3, 0:3]) / 3.0, 0.0)))
+        return replace(
+            last,
+            p_world_m=p,
+            q_world_xyzw=q.as_quat(),
+            sigma_m=pos_sigma,
+            capture_time_us=round(t * 1e6),
+            covariance=0.5 * (cov + cov.T),
+            velocity_m_s=ekf.v.copy(),
+            angular_rate_rad_s=ekf.w.copy(),
+            velocity_covariance=ekf.P[np.ix_(_TWIST, _TWIST)].copy(),
+        )
+
+    def poses(self, result: GraphResult, now_us: int) -> GraphResult:
+        """``result`` with every filtered entity's pose replaced by its prediction at ``now_us``;
+        entities whose filter has lapsed are removed (their pose is lost)."""
+        out = {}
+        for name, graph_pose in result.poses.items():
+            if name == WORLD:
+                out[name] = graph_pose
+                continue
+            filtered = self.pose(name, now_us)
+            if filtered is not None:
+                out[name] = filtered
+        # An entity out of the graph this instant (its edges expired) still has its prediction.
+        for name in self.filters:
+            if name not in out:
+                filtered = self.pose(name, now_us)
+                if filtered is not None:
+                    out[name] = filtered
+        return replace(result, poses=out)
