@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import Weighting, WorldConfig
-from atlas_onboard.core import fusion
+from atlas_onboard.core import covariance, fusion
 from atlas_onboard.core.graph import EdgeKey, TransformGraph
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 
@@ -40,6 +40,7 @@ class EdgeUpdate:
     p_a_b: NDArray[np.float64]
     q_a_b_xyzw: NDArray[np.float64]
     sigma_m: float
+    cov_a_b: NDArray[np.float64] | None = None  # 6x6, core.covariance convention
 
 
 def make_graph(world: WorldConfig) -> TransformGraph:
@@ -99,12 +100,13 @@ class Listener:
         T2[:, :3, 3] = np.array([md.p_sensor_marker_m for md in valid])
         T = T1 @ T2 @ T3_inv  # eq. 1
         q_all = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+        cov = covariance.observation(T1, T2, T3_inv, np.array([md.sigma_m for md in valid]))
         j = 0
         for i, item in enumerate(out):
             if isinstance(item, MarkerData):
                 observer, observed = self._sensor[item.sensor_id][0], self._marker[item.marker_id][0]
                 key = (item.sensor_id, item.marker_id)
-                out[i] = EdgeUpdate(key, observer, observed, T[j, :3, 3].copy(), q_all[j], item.sigma_m)
+                out[i] = EdgeUpdate(key, observer, observed, T[j, :3, 3].copy(), q_all[j], item.sigma_m, cov[j])
                 j += 1
         return out
 
@@ -161,7 +163,10 @@ class Listener:
             p = fusion.ema_position(state.p, result.p_a_b, self.alpha)  # eq. 3
             q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, self.alpha)
         self._ema[key] = _EmaState(p, q, now_ns, sigma)
-        self.graph.update_edge(key, result.observer, result.observed, p, q, sigma, now_ns, md.capture_time_us)
+        cov = None if result.cov_a_b is None else result.cov_a_b * (sigma / result.sigma_m) ** 2
+        self.graph.update_edge(
+            key, result.observer, result.observed, p, q, sigma, now_ns, md.capture_time_us, cov_a_b=cov
+        )
         self.accepted += 1
 
     def forget_expired(self, now_ns: int) -> None:

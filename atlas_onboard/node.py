@@ -260,8 +260,9 @@ class Node:
         self.stats.evaluations += 1
         if self.ekf is not None:
             # The autopilot gets the filter's pose predicted to now (stamped now), at its rate.
-            self.ekf.update(result)
-            result = self.ekf.poses(result, self.wall() // 1000)
+            wall_us = self.wall() // 1000
+            self.ekf.update(result, wall_us)
+            result = self.ekf.poses(result, wall_us)
         out, status = self.publisher.autopilot(result, now)
         if status is not None:
             lost = status == "pose lost"
@@ -329,7 +330,9 @@ def _make_ekf(world: WorldConfig) -> EkfBank | None:
     f = world.fusion
     if f.filter != "ekf":
         return None
-    settings = EkfSettings(accel_noise=f.ekf_accel_noise, max_gap_s=f.ekf_max_predict_s)
+    # The attitude is held between updates (see EkfSettings.constant_rate): the autopilot's gyros
+    # know the rates far better than a camera does.
+    settings = EkfSettings(accel_noise=f.ekf_accel_noise, max_gap_s=f.ekf_max_predict_s, constant_rate=False)
     return EkfBank(settings, max_predict_s=f.ekf_max_predict_s)
 
 

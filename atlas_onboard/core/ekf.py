@@ -32,6 +32,11 @@ class EkfSettings:
         gate_chi2: reject an update whose squared Mahalanobis distance exceeds this (6 dof).
         max_gap_s: beyond this without an update the filter is reset by the next measurement.
         max_lag_s: a measurement older than the filter's time by more than this is dropped as late.
+        constant_rate: True: the attitude is predicted with the estimated body rate (constant angular
+            rate); False: it is held (a random walk driven by ``angular_rate_noise``, rad/s/sqrt(Hz)),
+            the rate state stays zero. A quadrotor's attitude jitters at several hertz, faster than a
+            30 Hz camera can follow: extrapolating a rate estimated from it does more harm than good.
+        angular_rate_noise: the random walk's rate noise density (with ``constant_rate`` False).
     """
 
     accel_noise: float = 1.0
@@ -39,6 +44,8 @@ class EkfSettings:
     gate_chi2: float = CHI2_6DOF_999
     max_gap_s: float = 1.0
     max_lag_s: float = 0.1
+    constant_rate: bool = True
+    angular_rate_noise: float = 1.0
 
 
 @dataclass
@@ -68,7 +75,7 @@ class PoseEkf:
         self.P[0:3, 0:3] = R[0:3, 0:3]
         self.P[6:9, 6:9] = R[3:6, 3:6]
         self.P[3:6, 3:6] = np.eye(3) * 1.0**2  # up to ~1 m/s unknown
-        self.P[9:12, 9:12] = np.eye(3) * 1.0**2  # up to ~1 rad/s unknown
+        self.P[9:12, 9:12] = np.eye(3) * (1.0**2 if self.settings.constant_rate else 0.0)  # ~1 rad/s unknown
         self.t_s = self.t_update_s = t_s
         self.initialized = True
         self.resets += 1
@@ -88,11 +95,16 @@ class PoseEkf:
         F[6:9, 9:12] = np.eye(3) * dt
         qa, qw = self.settings.accel_noise**2, self.settings.angular_accel_noise**2
         Q = np.zeros((12, 12))
-        for i0, q_ in ((0, qa), (6, qw)):
+        blocks = ((0, qa), (6, qw)) if self.settings.constant_rate else ((0, qa),)
+        for i0, q_ in blocks:
             Q[i0 : i0 + 3, i0 : i0 + 3] = np.eye(3) * q_ * dt**3 / 3
             Q[i0 : i0 + 3, i0 + 3 : i0 + 6] = np.eye(3) * q_ * dt**2 / 2
             Q[i0 + 3 : i0 + 6, i0 : i0 + 3] = np.eye(3) * q_ * dt**2 / 2
             Q[i0 + 3 : i0 + 6, i0 + 3 : i0 + 6] = np.eye(3) * q_ * dt
+        if not self.settings.constant_rate:
+            # Attitude as a random walk: the rate state is pinned at zero with zero variance.
+            F[6:9, 9:12] = 0.0
+            Q[6:9, 6:9] = np.eye(3) * self.settings.angular_rate_noise**2 * dt
         self.P = F @ self.P @ F.T + Q
         self.t_s = t_s
 

@@ -34,9 +34,11 @@ class EkfBank:
     outcomes: Counter[str] = field(default_factory=Counter)
     _fed: dict[tuple[str, EdgeKey], int] = field(default_factory=dict)
     _last: dict[str, EntityPose] = field(default_factory=dict)
+    latency_us: float | None = None  # smoothed capture-to-filter delay of the measurements
 
-    def update(self, result: GraphResult) -> None:
-        """Feed the new candidates of one evaluation (world-frame poses only)."""
+    def update(self, result: GraphResult, now_us: int | None = None) -> None:
+        """Feed the new candidates of one evaluation (world-frame poses only); ``now_us`` (capture
+        clock) measures how old measurements are when they arrive."""
         for name, cands in result.candidates.items():
             if name == WORLD or name not in result.poses:
                 continue
@@ -47,6 +49,9 @@ class EkfBank:
             fresh = [c for c in cands if self._fed.get((name, c.key)) != c.stamp_ns]
             for c in sorted(fresh, key=lambda c: c.capture_time_us):
                 self._fed[(name, c.key)] = c.stamp_ns
+                if now_us is not None:
+                    lag = float(min(max(now_us - c.capture_time_us, 0), 1_000_000))
+                    self.latency_us = lag if self.latency_us is None else 0.9 * self.latency_us + 0.1 * lag
                 cov = 0.5 * (c.covariance + c.covariance.T)
                 outcome = ekf.update(c.capture_time_us / 1e6, c.p_m, Rotation.from_quat(c.q_xyzw), cov)
                 self.outcomes[outcome] += 1
@@ -56,13 +61,20 @@ class EkfBank:
             del self._fed[k]
 
     def pose(self, name: str, now_us: int) -> EntityPose | None:
-        """The entity's pose predicted to ``now_us``, or None when it has no estimate or its last
-        update is older than ``max_predict_s`` (the pose is then lost, as without a filter)."""
+        """The entity's pose at ``now_us`` less the measurements' usual latency, or None when it has
+        no estimate or its last update is older than ``max_predict_s`` (the pose is then lost, as
+        without a filter).
+
+        Stamping at the usual capture age (not at ``now``) keeps the autopilot's delay setting
+        (EKF2_EV_DELAY, VISO_DELAY_MS) the same with and without the filter, and does not
+        extrapolate attitude jitter faster than the camera can see; between detections and through
+        gaps the stamp still advances, so the output keeps its rate.
+        """
         ekf = self.filters.get(name)
         last = self._last.get(name)
         if ekf is None or last is None or not ekf.initialized:
             return None
-        t = now_us / 1e6
+        t = (now_us - (self.latency_us or 0.0)) / 1e6
         if t - ekf.t_update_s > self.max_predict_s:
             return None
         t = max(t, ekf.t_s)
@@ -76,7 +88,7 @@ class EkfBank:
             capture_time_us=round(t * 1e6),
             covariance=0.5 * (cov + cov.T),
             velocity_m_s=ekf.v.copy(),
-            angular_rate_rad_s=ekf.w.copy(),
+            angular_rate_rad_s=ekf.w.copy() if ekf.settings.constant_rate else None,
             velocity_covariance=ekf.P[np.ix_(_TWIST, _TWIST)].copy(),
         )
 

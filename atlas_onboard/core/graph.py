@@ -181,10 +181,12 @@ class TransformGraph:
         now_ns: int,
         capture_time_us: int = 0,
         sigma_att_rad: float | None = None,
+        cov_a_b: NDArray[np.float64] | None = None,
     ) -> None:
         """Create or refresh the edge ``key``: ``T_a_b`` of ``observed`` (b) in ``observer`` (a).
 
-        ``sigma_att_rad`` is the attitude's standard deviation (by default from ``sigma_m`` and the
+        ``cov_a_b`` is the edge's 6x6 covariance (:func:`covariance.observation` models a detection);
+        without it, isotropic: ``sigma_m`` and ``sigma_att_rad`` (by default from ``sigma_m`` and the
         distance, :func:`covariance.attitude_sigma_rad`). The inverse is computed at evaluation.
         """
         a, b = self.index[observer], self.index[observed]
@@ -196,7 +198,7 @@ class TransformGraph:
         att = (
             covariance.attitude_sigma_rad(sigma_m, float(np.linalg.norm(p))) if sigma_att_rad is None else sigma_att_rad
         )
-        cov = covariance.diagonal(float(sigma_m), float(att))
+        cov = covariance.diagonal(float(sigma_m), float(att)) if cov_a_b is None else np.asarray(cov_a_b, dtype=float)
         # The inverse (for walking the edge backwards) is computed at evaluation, for all new edges at once.
         self.edges[key] = Edge(key, a, b, p, q, None, None, float(sigma_m), int(now_ns), int(capture_time_us), cov)
 

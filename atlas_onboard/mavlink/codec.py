@@ -248,20 +248,27 @@ def odometry_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:
     cov = _pose_covariance_21(pose)
     quality = quality_percent(pose.sigma_m)
     fields = autopilot.odometry_from_ned(p_ned, R_ned_frd, pose.capture_time_us, reset_counter, cov, quality)
-    if pose.velocity_m_s is not None and pose.angular_rate_rad_s is not None:
+    if pose.velocity_m_s is not None:
         M_frd_ned = R_ned_frd.as_matrix().T
-        v_frd = M_frd_ned @ (_M_NED_ENU @ np.asarray(pose.velocity_m_s, dtype=float))
-        w_frd = _FLU_TO_FRD * np.asarray(pose.angular_rate_rad_s, dtype=float)
-        if np.all(np.isfinite(v_frd)) and np.all(np.isfinite(w_frd)):
+        J_v = M_frd_ned @ _M_NED_ENU  # velocity: world ENU -> body FRD (ODOMETRY's child frame)
+        v_frd = J_v @ np.asarray(pose.velocity_m_s, dtype=float)
+        rates = pose.angular_rate_rad_s
+        w_frd = _FLU_TO_FRD * np.asarray(rates, dtype=float) if rates is not None else np.full(3, math.nan)
+        if np.all(np.isfinite(v_frd)):
             fields.update(vx=v_frd[0], vy=v_frd[1], vz=v_frd[2], rollspeed=w_frd[0], pitchspeed=w_frd[1])
             fields["yawspeed"] = w_frd[2]
             if pose.velocity_covariance is not None:
-                # Velocity in the world ENU -> body FRD, rates FLU -> FRD.
                 J = np.zeros((6, 6))
-                J[0:3, 0:3] = M_frd_ned @ _M_NED_ENU
+                J[0:3, 0:3] = J_v
                 J[3:6, 3:6] = np.diag(_FLU_TO_FRD)
                 C = J @ pose.velocity_covariance @ J.T
-                fields["velocity_covariance"] = autopilot.covariance_upper_triangle(0.5 * (C + C.T))
+                cov = autopilot.covariance_upper_triangle(0.5 * (C + C.T))
+                if rates is None:  # rates unknown: their variances NaN, their cross terms 0
+                    cov = [
+                        math.nan if i in (15, 18, 20) else (0.0 if _ROW[i] >= 3 or _COL[i] >= 3 else v)
+                        for i, v in enumerate(cov)
+                    ]
+                fields["velocity_covariance"] = cov
     return fields
 
 
@@ -290,6 +297,7 @@ def vision_speed_estimate_fields(pose: EntityPose, reset_counter: int) -> dict[s
 
 _M_NED_ENU = frames.R_ENU_NED.as_matrix().T
 _FLU_TO_FRD = np.array([1.0, -1.0, -1.0])
+_ROW, _COL = np.triu_indices(6)
 
 
 def vision_position_estimate(dialect: ModuleType, pose: EntityPose, reset_counter: int) -> Any:
