@@ -252,6 +252,7 @@ class Node:
         self.listener.forget_expired(now)
         result = self.graph.evaluate(now)
         self.last_result = result
+        self.listener.set_estimates(result.poses)
         self.stats.evaluations += 1
         out, status = self.publisher.autopilot(result, now)
         if status is not None:
