@@ -2,12 +2,18 @@
 
 Pure: no I/O and no clock; the caller passes the arrival time. Every rejected observation is counted
 by reason, and a rejected observation changes nothing (no edge, no filter state).
+
+Planar ambiguity: an observation whose IPPE ratio exceeds ``ambiguity_threshold`` may carry the flipped
+pose. If it carries the other solution too, the current estimates (:meth:`Listener.set_estimates`,
+which the node calls after every evaluation) pick the consistent one by the rule of
+:mod:`atlas_onboard.core.ambiguity`; if they cannot, or if it carries none, it is rejected and counted.
 """
 
 from __future__ import annotations
 
 import logging
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,11 +21,17 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import Weighting, WorldConfig
-from atlas_onboard.core import covariance, fusion
-from atlas_onboard.core.graph import EdgeKey, TransformGraph
-from atlas_onboard.core.markerdata import MarkerData, Rejection
+from atlas_onboard.core import ambiguity, covariance, fusion
+from atlas_onboard.core.ambiguity import Verdict
+from atlas_onboard.core.graph import EdgeKey, EntityPose, TransformGraph
+from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection
 
 _logger = logging.getLogger(__name__)
+
+ESTIMATE_ATTITUDE_SIGMA_RAD = 0.05
+"""Per-axis attitude error assumed for an entity's estimate when it resolves an ambiguity (about 3
+degrees: the graph's attitude error plus the motion since the previous evaluation). The root of the
+estimates' frame (``world``) is exact."""
 
 
 @dataclass(slots=True)
@@ -65,26 +77,56 @@ class Listener:
     so they are precomputed as 4x4 matrices; per observation the work is two matrix products.
     """
 
-    def __init__(self, world: WorldConfig, graph: TransformGraph) -> None:
+    def __init__(
+        self,
+        world: WorldConfig,
+        graph: TransformGraph,
+        *,
+        ambiguity_threshold: float = ambiguity.AMBIGUITY_THRESHOLD,
+        attitude_sigma_rad: float = ESTIMATE_ATTITUDE_SIGMA_RAD,
+        gate_r2: float = ambiguity.GATE_R2,
+        min_likelihood_ratio: float = ambiguity.MIN_LIKELIHOOD_RATIO,
+    ) -> None:
+        """``ambiguity_threshold``: IPPE ratio above which an observation must be resolved (or is
+        rejected); ``attitude_sigma_rad``, ``gate_r2``, ``min_likelihood_ratio``: the resolution rule's
+        parameters (:mod:`atlas_onboard.core.ambiguity`)."""
         self.world = world
         self.graph = graph
         self.alpha = world.fusion.ema_alpha
         self.age_sigma = world.fusion.age_sigma_m_per_s
         self.timeout_ns = graph.edge_timeout_ns
+        self.ambiguity_threshold = ambiguity_threshold
+        self.attitude_sigma_rad = attitude_sigma_rad
+        self.gate_r2 = gate_r2
+        self.min_likelihood_ratio = min_likelihood_ratio
         self._sensor = {s.id: (s.entity, s.T_entity_sensor.as_matrix()) for s in world.sensors.values()}
         self._marker = {m.id: (m.entity, m.T_entity_marker.inv().as_matrix()) for m in world.markers.values()}
+        self._sensor_inv = {s.id: s.T_entity_sensor.inv().as_matrix() for s in world.sensors.values()}
+        self._marker_fwd = {m.id: m.T_entity_marker.as_matrix() for m in world.markers.values()}
         self._ema: dict[EdgeKey, _EmaState] = {}
+        self._estimates: dict[str, EntityPose] = {}
         self.rejected: Counter[Rejection] = Counter()
+        self.counters: Counter[str] = Counter()
+        """Beyond rejections: ``ambiguity_resolved``, ``ambiguity_swapped`` (the other solution won),
+        ``ambiguity_<verdict>`` for each unresolved one, and ``alt_ignored`` (an unusable other
+        solution, see :class:`MarkerData`)."""
         self.accepted = 0
 
+    def set_estimates(self, poses: Mapping[str, EntityPose]) -> None:
+        """The current pose estimates (a graph evaluation's ``poses``), used to resolve ambiguity."""
+        self._estimates = dict(poses)
+
     def edge_from(self, md: MarkerData) -> EdgeUpdate | Rejection:
-        """Eq. 1, T = T1 * T2 * T3^-1, without filtering; or the reason the observation is invalid."""
-        updates = self._edges([md])
+        """Eq. 1, T = T1 * T2 * T3^-1, without filtering (an ambiguous observation resolved with the
+        current estimates); or the reason the observation is invalid. Counts nothing."""
+        updates, _ = self._edges([md])
         return updates[0]
 
-    def _edges(self, mds: list[MarkerData]) -> list[EdgeUpdate | Rejection]:
-        """Eq. 1 for many observations at once (one scipy call per step, not one per observation)."""
+    def _edges(self, mds: list[MarkerData]) -> tuple[list[EdgeUpdate | Rejection], list[str]]:
+        """Eq. 1 for many observations at once (one scipy call per step, not one per observation),
+        and the names of the ambiguity counters to increment."""
         out: list[EdgeUpdate | Rejection] = []
+        notes: list[str] = []
         valid = []
         for md in mds:
             reason = self._check(md)
@@ -92,23 +134,88 @@ class Listener:
             if reason is None:
                 valid.append(md)
         if not valid:
-            return out
+            return out, notes
         T1 = np.array([self._sensor[md.sensor_id][1] for md in valid])
         T3_inv = np.array([self._marker[md.marker_id][1] for md in valid])
         T2 = np.tile(np.eye(4), (len(valid), 1, 1))
         T2[:, :3, :3] = Rotation.from_quat(np.array([md.q_sensor_marker_xyzw() for md in valid])).as_matrix()
         T2[:, :3, 3] = np.array([md.p_sensor_marker_m for md in valid])
+        unresolved = self._resolve_ambiguity(valid, T2, notes)
         T = T1 @ T2 @ T3_inv  # eq. 1
         q_all = Rotation.from_matrix(T[:, :3, :3]).as_quat()
         cov = covariance.observation(T1, T2, T3_inv, np.array([md.sigma_m for md in valid]))
         j = 0
         for i, item in enumerate(out):
             if isinstance(item, MarkerData):
-                observer, observed = self._sensor[item.sensor_id][0], self._marker[item.marker_id][0]
-                key = (item.sensor_id, item.marker_id)
-                out[i] = EdgeUpdate(key, observer, observed, T[j, :3, 3].copy(), q_all[j], item.sigma_m, cov[j])
+                if j in unresolved:
+                    out[i] = unresolved[j]
+                else:
+                    observer, observed = self._sensor[item.sensor_id][0], self._marker[item.marker_id][0]
+                    key = (item.sensor_id, item.marker_id)
+                    out[i] = EdgeUpdate(key, observer, observed, T[j, :3, 3].copy(), q_all[j], item.sigma_m, cov[j])
                 j += 1
-        return out
+        return out, notes
+
+    def _resolve_ambiguity(
+        self, valid: list[MarkerData], T2: NDArray[np.float64], notes: list[str]
+    ) -> dict[int, Rejection]:
+        """Resolve the ambiguous observations among ``valid`` in place in ``T2`` (N, 4, 4), batched.
+
+        Returns the rejections by index into ``valid``; appends counter names to ``notes``.
+        """
+        rejected: dict[int, Rejection] = {}
+        todo: list[tuple[int, EntityPose, EntityPose]] = []
+        for j, md in enumerate(valid):
+            state = md.alt_state()
+            if state is AltState.INVALID:
+                notes.append("alt_ignored")
+            if not md.ambiguity_ratio > self.ambiguity_threshold:  # nan (unknown) passes, as before
+                continue
+            if state is not AltState.VALID:
+                rejected[j] = Rejection.AMBIGUOUS
+                continue
+            est_a = self._estimates.get(self._sensor[md.sensor_id][0])
+            est_b = self._estimates.get(self._marker[md.marker_id][0])
+            if est_a is None or est_b is None or est_a.frame != est_b.frame:
+                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+                notes.append(f"ambiguity_{Verdict.NO_PREDICTION.value}")
+                continue
+            todo.append((j, est_a, est_b))
+        if not todo:
+            return rejected
+        idx = [j for j, _, _ in todo]
+        # Predicted T_sensor_marker = T1^-1 * T_frame_observer^-1 * T_frame_observed * T3 (eq. 1 backwards).
+        W_a = _matrices(np.array([a.p_world_m for _, a, _ in todo]), np.array([a.q_world_xyzw for _, a, _ in todo]))
+        W_b = _matrices(np.array([b.p_world_m for _, _, b in todo]), np.array([b.q_world_xyzw for _, _, b in todo]))
+        T1_inv = np.array([self._sensor_inv[valid[j].sensor_id] for j in idx])
+        T3 = np.array([self._marker_fwd[valid[j].marker_id] for j in idx])
+        pred = T1_inv @ np.linalg.inv(W_a) @ W_b @ T3
+        p_a = T2[idx, :3, 3]
+        p_b = np.array([valid[j].p_sensor_marker_alt_m for j in idx])
+        q_b = np.array([valid[j].q_sensor_marker_alt_xyzw() for j in idx])
+        # The estimates' frame root (world) is exact; every other entity has the assumed attitude error.
+        att_a = np.array([0.0 if a.name == a.frame else self.attitude_sigma_rad for _, a, _ in todo])
+        att_b = np.array([0.0 if b.name == b.frame else self.attitude_sigma_rad for _, _, b in todo])
+        sigma_rad, sigma_m = ambiguity.prediction_sigmas(
+            np.linalg.norm(p_a, axis=1), np.array([valid[j].sigma_m for j in idx]),
+            np.array([a.sigma_m for _, a, _ in todo]), np.array([b.sigma_m for _, _, b in todo]), att_a, att_b,
+        )  # fmt: skip
+        verdicts, _, _ = ambiguity.resolve_arrays(
+            p_a, Rotation.from_matrix(T2[idx, :3, :3]).as_quat(), p_b, q_b,
+            pred[:, :3, 3], Rotation.from_matrix(pred[:, :3, :3]).as_quat(),
+            sigma_rad, sigma_m, self.gate_r2, self.min_likelihood_ratio,
+        )  # fmt: skip
+        for j, verdict in zip(idx, verdicts, strict=True):
+            if verdict is Verdict.ALT:
+                T2[j, :3, :3] = Rotation.from_quat(valid[j].q_sensor_marker_alt_xyzw()).as_matrix()
+                T2[j, :3, 3] = valid[j].p_sensor_marker_alt_m
+                notes.append("ambiguity_swapped")
+            if verdict.decided:
+                notes.append("ambiguity_resolved")
+            else:
+                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+                notes.append(f"ambiguity_{verdict.value}")
+        return rejected
 
     def accept(self, md: MarkerData, now_ns: int) -> Rejection | None:
         """Validate, transform (eq. 1), filter (eq. 3) and insert into the graph; None when accepted."""
@@ -118,7 +225,9 @@ class Listener:
         """:meth:`accept` for a burst of observations, with eq. 1 computed for all of them at once
         (the node's hot path)."""
         results: list[Rejection | None] = []
-        for (md, now_ns), update in zip(items, self._edges([md for md, _ in items]), strict=True):
+        updates, notes = self._edges([md for md, _ in items])
+        self.counters.update(notes)
+        for (md, now_ns), update in zip(items, updates, strict=True):
             if isinstance(update, Rejection):
                 self.rejected[update] += 1
                 results.append(update)
@@ -174,3 +283,11 @@ class Listener:
         dead = [k for k, s in self._ema.items() if now_ns - s.stamp_ns > self.timeout_ns]
         for k in dead:
             del self._ema[k]
+
+
+def _matrices(p: NDArray[np.float64], q_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
+    """4x4 matrices of N poses given as positions (N, 3) and x-first quaternions (N, 4)."""
+    M = np.tile(np.eye(4), (len(p), 1, 1))
+    M[:, :3, :3] = Rotation.from_quat(q_xyzw).as_matrix()
+    M[:, :3, 3] = p
+    return M

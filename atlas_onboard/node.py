@@ -257,6 +257,7 @@ class Node:
         self.listener.forget_expired(now)
         result = self.graph.evaluate(now)
         self.last_result = result
+        self.listener.set_estimates(result.poses)
         self.stats.evaluations += 1
         if self.ekf is not None:
             # The autopilot gets the filter's pose predicted to now (stamped now), at its rate.
@@ -308,6 +309,7 @@ class Node:
             fused_sent=self.stats.fused_sent,
             reset_counter=self.publisher.reset_counter,
         )
+        out.update(self.listener.counters)  # ambiguity resolved / swapped / undecided, alt ignored
         out["rejected_outlier"] = out.get("rejected_outlier", 0) + self.graph.gated_total
         if self.ekf is not None:
             out.update({f"ekf_{k}": v for k, v in self.ekf.outcomes.items()})

@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core.markerdata import MarkerData, Rejection
-from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.listener import EdgeUpdate, Listener, make_graph
 from tests.helpers import assert_pose_close, observe, pose, world_from
 
 MS = 1_000_000
@@ -193,3 +193,128 @@ def test_with_age_sigma_each_edge_is_a_kalman_filter():
     edge = graph.edges[(1, 5)]
     assert edge.p_a_b[2] == pytest.approx(2.0 + alpha * 0.3, rel=1e-9)
     assert edge.sigma_m == pytest.approx(np.sqrt(var_old * var_new / (var_old + var_new)))
+
+
+# --- planar ambiguity ------------------------------------------------------------------------------
+
+AMB = {
+    "entities": {
+        "world": {
+            "markers": [
+                {"id": 5, "size_m": 0.15, "pose": {"pos": [0.5, 0, 0]}},
+                {"id": 6, "size_m": 0.15, "pose": {"pos": [-0.5, 0.3, 0], "rpy_deg": [0, 0, 40]}},
+            ]
+        },
+        "drone": {"sensors": [{"name": "down", "id": 1, "pose": {"pos": [0.2, 0, -0.05], "rpy_deg": [0, 90, 0]}}]},
+    }
+}
+
+
+def ambiguous_scene(estimate_error_deg: float = 2.0):
+    """A drone 4 m from world marker 5, seen 15 degrees from face-on so that IPPE's chosen solution is
+    the flip; the drone's estimate comes from an unambiguous observation of marker 6 with an error."""
+    from tests.core.test_ambiguity import T_TRUE, flipped_seed, ippe
+
+    world, graph, listener = make(AMB)
+    T_drone_sensor = world.sensors[1].T_entity_sensor
+    truth = {
+        "world": RigidTransform.identity(),
+        "drone": world.markers[5].T_entity_marker * T_TRUE.inv() * T_drone_sensor.inv(),
+    }
+    a, b, ratio, sigma = ippe(T_TRUE, 0.3, flipped_seed())
+    qa, qb = a.rotation.as_quat(), b.rotation.as_quat()
+    md = MarkerData(
+        1, 5, sigma, tuple(a.translation), (qa[3], *qa[:3]), 0, 0.5, ratio,
+        p_sensor_marker_alt_m=tuple(b.translation), q_sensor_marker_alt_wxyz=(qb[3], *qb[:3]),
+    )  # fmt: skip
+    noise = RigidTransform.from_rotation(
+        Rotation.from_euler("xz", [estimate_error_deg, -estimate_error_deg], degrees=True)
+    )
+    bootstrap = observe(world, truth, 1, 6, T_noise=noise)
+    return world, graph, listener, truth, md, bootstrap
+
+
+def test_ambiguous_flip_becomes_the_true_edge_given_estimates():
+    _, graph, listener, truth, md, bootstrap = ambiguous_scene()
+    T_true_edge = truth["drone"].inv()  # T_drone_world
+    flipped = listener.edge_from(md)  # no estimates yet: unresolved
+    assert flipped is Rejection.AMBIGUITY_UNRESOLVED
+    assert listener.accept(bootstrap, now_ns=0) is None
+    listener.set_estimates(graph.evaluate(0).poses)
+    edge = listener.edge_from(md)
+    assert isinstance(edge, EdgeUpdate)
+    # It is eq. 1 on the other solution, exactly, and the flip it replaced was far from the truth.
+    alt = listener.edge_from(replace(md, ambiguity_ratio=0.0, p_sensor_marker_m=md.p_sensor_marker_alt_m,
+                                     q_sensor_marker_wxyz=md.q_sensor_marker_alt_wxyz))  # fmt: skip
+    primary = listener.edge_from(replace(md, ambiguity_ratio=0.0))
+    np.testing.assert_allclose(edge.p_a_b, alt.p_a_b, atol=1e-12)
+    err = lambda e: np.degrees((Rotation.from_quat(e.q_a_b_xyzw).inv() * T_true_edge.rotation).magnitude())  # noqa: E731
+    assert err(primary) > 10.0 > err(edge)
+
+    # Where that puts the drone in the world (eq. 1 inverted swings it by range x angle).
+    def drone_error_m(e):
+        T_world_drone = RigidTransform.from_components(e.p_a_b, Rotation.from_quat(e.q_a_b_xyzw)).inv()
+        return float(np.linalg.norm(T_world_drone.translation - truth["drone"].translation))
+
+    assert drone_error_m(edge) < 0.2 < drone_error_m(primary)
+    # Accepted through the hot path: counted, and the graph's edge is the resolved one.
+    assert listener.accept_many([(md, 1 * MS)]) == [None]
+    assert listener.counters["ambiguity_resolved"] == 1 and listener.counters["ambiguity_swapped"] == 1
+    np.testing.assert_allclose(graph.edges[(1, 5)].p_a_b, alt.p_a_b, atol=1e-12)
+
+
+def test_ambiguous_without_estimates_is_rejected_and_counted():
+    _, graph, listener, _, md, _ = ambiguous_scene()
+    assert listener.accept_many([(md, 0)]) == [Rejection.AMBIGUITY_UNRESOLVED]
+    assert listener.rejected[Rejection.AMBIGUITY_UNRESOLVED] == 1
+    assert listener.counters["ambiguity_no_prediction"] == 1
+    assert graph.edges == {}
+
+
+def test_ambiguous_with_an_estimate_far_off_is_rejected_as_both_far():
+    _, graph, listener, _, md, bootstrap = ambiguous_scene(estimate_error_deg=60.0)
+    listener.accept(bootstrap, now_ns=0)
+    listener.set_estimates(graph.evaluate(0).poses)
+    assert listener.accept(md, 1 * MS) is Rejection.AMBIGUITY_UNRESOLVED
+    assert listener.counters["ambiguity_both_far"] == 1
+    assert (1, 5) not in graph.edges
+
+
+def test_ambiguous_without_the_other_solution_is_rejected_as_before():
+    _, graph, listener, _, md, _ = ambiguous_scene()
+    bare = replace(md, p_sensor_marker_alt_m=(math.nan,) * 3, q_sensor_marker_alt_wxyz=(math.nan,) * 4)
+    assert listener.accept(bare, 0) is Rejection.AMBIGUOUS
+    assert listener.rejected[Rejection.AMBIGUOUS] == 1 and graph.edges == {}
+
+
+@pytest.mark.parametrize(
+    ("p_alt", "q_alt"),
+    [
+        ((math.nan, 0.0, 2.0), (1.0, 0.0, 0.0, 0.0)),  # partly NaN
+        ((0.0, 0.0, math.inf), (1.0, 0.0, 0.0, 0.0)),
+        ((0.0, 0.0, 2.0), (0.0, 0.0, 0.0, 0.0)),  # zero quaternion
+        ((0.0, 0.0, 1e7), (1.0, 0.0, 0.0, 0.0)),  # out of range
+    ],
+)
+def test_an_unusable_other_solution_is_ignored_and_counted(p_alt, q_alt):
+    _, _, listener = make(HAND)
+    clear = replace(GOOD, ambiguity_ratio=0.1, p_sensor_marker_alt_m=p_alt, q_sensor_marker_alt_wxyz=q_alt)
+    assert listener.accept(clear, 0) is None  # the primary solution stands on its own
+    assert listener.counters["alt_ignored"] == 1
+    assert listener.accept(replace(clear, ambiguity_ratio=0.9), MS) is Rejection.AMBIGUOUS
+    assert listener.counters["alt_ignored"] == 2 and listener.rejected[Rejection.AMBIGUOUS] == 1
+
+
+def test_a_batch_resolves_exactly_as_one_by_one():
+    _, graph, listener, _, md, bootstrap = ambiguous_scene()
+    listener.accept(bootstrap, 0)
+    listener.set_estimates(graph.evaluate(0).poses)
+    batch = [md, bootstrap, replace(md, ambiguity_ratio=0.2), replace(md, marker_id=77), md]
+    one_by_one = [listener.edge_from(m) for m in batch]
+    together, _ = listener._edges(batch)
+    for x, y in zip(one_by_one, together, strict=True):
+        if isinstance(x, Rejection):
+            assert x is y
+        else:
+            np.testing.assert_allclose(x.p_a_b, y.p_a_b, atol=1e-12)
+            np.testing.assert_allclose(x.q_a_b_xyzw, y.q_a_b_xyzw, atol=1e-12)

@@ -27,10 +27,18 @@ class Rejection(StrEnum):
     STALE = "stale"
     DUPLICATE = "duplicate"
     OUTLIER = "outlier"
+    AMBIGUOUS = "ambiguous"
+    """The two planar solutions fit almost equally well and the record carries no usable other one."""
+    AMBIGUITY_UNRESOLVED = "ambiguity_unresolved"
+    """Ambiguous with both solutions, but the current estimates could not say which is right (no
+    estimate of the observer or the observed entity, or both solutions far from the prediction, or
+    both about as close to it: see :mod:`atlas_onboard.core.ambiguity`)."""
 
 
 MAX_RANGE_M = 1000.0
 """A marker reported farther than this from its sensor is absurd for an indoor swarm; rejected."""
+_NAN3 = (math.nan, math.nan, math.nan)
+_NAN4 = (math.nan, math.nan, math.nan, math.nan)
 MAX_SIGMA_M = 100.0
 """A sigma beyond this says the measurement is worthless (or the sender is broken); rejected."""
 
@@ -51,6 +59,15 @@ class MarkerData:
             near 1 means the two IPPE solutions fit equally well (a possible flip). nan: unknown.
         origin: system id of the node that produced it (0: this node).
         seq: the producer's sequence number (wraps at 2**16), used with origin to drop duplicates.
+        p_sensor_marker_alt_m: the other planar (IPPE) solution's marker centre in the sensor frame,
+            metres, shape (3,); all NaN when the producer has none.
+        q_sensor_marker_alt_wxyz: the other planar solution's orientation, w first; all NaN when none.
+
+    The other solution is auxiliary: the record stands on its primary solution. An alternative that is
+    neither all finite nor all NaN (or has a zero quaternion, or is out of range) is unusable: the
+    listener ignores it (and counts ``alt_ignored``) rather than rejecting the record, because the
+    primary solution was validated on its own; without a usable alternative an ambiguous record is
+    then rejected as ``ambiguous``, exactly as a record that never had one.
     """
 
     sensor_id: int
@@ -63,6 +80,8 @@ class MarkerData:
     ambiguity_ratio: float = math.nan
     origin: int = 0
     seq: int = 0
+    p_sensor_marker_alt_m: tuple[float, float, float] = _NAN3
+    q_sensor_marker_alt_wxyz: tuple[float, float, float, float] = _NAN4
 
     def rejection(self) -> Rejection | None:
         """The reason this record is invalid on its own (without a world file), or None if it is valid."""
@@ -81,3 +100,29 @@ class MarkerData:
         """The quaternion in scipy's order (x, y, z, w)."""
         w, x, y, z = self.q_sensor_marker_wxyz
         return np.array([x, y, z, w])
+
+    def alt_state(self) -> AltState:
+        """Whether the record carries the other planar solution, and whether it is usable."""
+        values = (*self.p_sensor_marker_alt_m, *self.q_sensor_marker_alt_wxyz)
+        if all(math.isnan(v) for v in values):
+            return AltState.ABSENT
+        if not all(math.isfinite(v) for v in values):
+            return AltState.INVALID  # partly NaN, or infinite
+        if math.fsum(v * v for v in self.q_sensor_marker_alt_wxyz) < 1e-12:
+            return AltState.INVALID
+        if math.sqrt(math.fsum(v * v for v in self.p_sensor_marker_alt_m)) > MAX_RANGE_M:
+            return AltState.INVALID
+        return AltState.VALID
+
+    def q_sensor_marker_alt_xyzw(self) -> np.ndarray:
+        """The other solution's quaternion in scipy's order (x, y, z, w)."""
+        w, x, y, z = self.q_sensor_marker_alt_wxyz
+        return np.array([x, y, z, w])
+
+
+class AltState(StrEnum):
+    """What a record says about the other planar solution."""
+
+    ABSENT = "absent"  # all NaN: the producer had none (joint solves, non-planar, older senders)
+    VALID = "valid"  # all finite, non-zero quaternion, within MAX_RANGE_M
+    INVALID = "invalid"  # anything else: ignored (the record stands on its primary solution)

@@ -7,6 +7,7 @@ detector keeps the recall of decimate 1 at close to the cost of decimate 2.
 
 from __future__ import annotations
 
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -15,15 +16,19 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import SensorConfig, WorldConfig
+from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.families import family
 
-MAX_AMBIGUITY = 0.5
-"""IPPE's two planar solutions fit almost equally well above this ratio: the chosen one may be the
-mirror image (a "flip", degrees to tens of degrees off). Such observations are dropped and counted."""
+MAX_AMBIGUITY = 1.0
+"""Detections whose IPPE ratio (chosen over other solution's reprojection error) exceeds this are
+dropped (counted ``ambiguous_dropped``). Above ``AMBIGUITY_THRESHOLD`` (0.5) the two planar solutions
+fit almost equally well and the chosen one may be the mirror image (a "flip", tens of degrees off):
+such detections are kept with both solutions (counted ``ambiguous``) for the listener to resolve with
+the current estimates (:mod:`atlas_onboard.core.ambiguity`). 1.0 keeps them all."""
 SCAN_EVERY = 4  # frames between whole-image searches (between them, only tracked regions)
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
 ROI_MARGIN = 0.6  # a region is the marker's box grown by this fraction of its size on each side
@@ -136,11 +141,15 @@ class Detector:
                     continue
             for mid in ids:
                 mp = singles[mid][0]
-                if mp.ambiguity > self.max_ambiguity:
-                    self.counters["ambiguous"] += 1
+                ambiguous = mp.ambiguity > AMBIGUITY_THRESHOLD
+                if mp.ambiguity > self.max_ambiguity or (ambiguous and mp.p_alt_m is None):
+                    # Too poor a fit, or nothing downstream could resolve it: drop it here.
+                    self.counters["ambiguous_dropped"] += 1
                     continue
+                self.counters["ambiguous"] += ambiguous
+                alt = (mp.p_alt_m, mp.q_alt_xyzw) if mp.p_alt_m is not None and mp.q_alt_xyzw is not None else None
                 out.append(self._markerdata(mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px, mp.ambiguity,
-                                            capture_time_us))  # fmt: skip
+                                            capture_time_us, alt))  # fmt: skip
         self.counters["detections"] += len(out)
         return out
 
@@ -178,8 +187,15 @@ class Detector:
         err: float,
         ambiguity: float,
         capture_time_us: int,
+        alt: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     ) -> MarkerData:
+        """``alt``: the other IPPE solution (p, q_xyzw), carried along for the listener."""
         x, y, z, w = q_xyzw
+        if alt is None:
+            p_alt, q_alt = (math.nan,) * 3, (math.nan,) * 4
+        else:
+            pa, (xa, ya, za, wa) = alt
+            p_alt, q_alt = (float(pa[0]), float(pa[1]), float(pa[2])), (float(wa), float(xa), float(ya), float(za))
         return MarkerData(
             sensor_id=self.sensor.id,
             marker_id=marker_id,
@@ -189,6 +205,8 @@ class Detector:
             capture_time_us=capture_time_us,
             reprojection_error_px=float(err),
             ambiguity_ratio=float(ambiguity),
+            p_sensor_marker_alt_m=p_alt,  # type: ignore[arg-type]
+            q_sensor_marker_alt_wxyz=q_alt,  # type: ignore[arg-type]
         )
 
 

@@ -41,12 +41,9 @@ class RejectionError(Exception):
         self.reason = reason
 
 
-def observation_fields(
-    md: MarkerData, fingerprint: int, alt: tuple[Sequence[float], Sequence[float]] | None = None
-) -> dict[str, Any]:
-    """The ATLAS_OBSERVATION fields of a MarkerData (``alt``: the other IPPE solution, p and q_wxyz)."""
-    nan4 = [math.nan] * 4
-    p_alt, q_alt = alt if alt is not None else ([math.nan] * 3, nan4)
+def observation_fields(md: MarkerData, fingerprint: int) -> dict[str, Any]:
+    """The ATLAS_OBSERVATION fields of a MarkerData, the other IPPE solution (NaN: none) included."""
+    p_alt, q_alt = md.p_sensor_marker_alt_m, md.q_sensor_marker_alt_wxyz
     return {
         "time_usec": int(md.capture_time_us) & 0xFFFFFFFFFFFFFFFF,
         "fingerprint": fingerprint & 0xFFFFFFFF,
@@ -77,7 +74,9 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
     """MarkerData from an ATLAS_OBSERVATION (or its TUNNEL fields).
 
     RejectionError (reason ``bad_version``, ``wrong_fingerprint``, ``malformed``) for a message that is
-    not a version-1 observation of our world. With ``check``, also the record's own validity
+    not a version-1 observation of our world. The other IPPE solution (``x_alt``..``q_alt``) is carried
+    as it arrived; its validity is the listener's to judge (an unusable one is ignored there, counted).
+    With ``check``, also the record's own validity
     (:meth:`MarkerData.rejection`: ``non_finite``, ``zero_quaternion``, ``bad_sigma``, ``out_of_range``);
     the node leaves that to the listener, which counts those reasons for local and peer records alike.
     """
@@ -87,7 +86,8 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
         raise RejectionError("wrong_fingerprint")
     try:
         q = tuple(float(v) for v in msg.q)
-        if len(q) != 4:
+        q_alt = tuple(float(v) for v in msg.q_alt)
+        if len(q) != 4 or len(q_alt) != 4:
             raise RejectionError("malformed")
         md = MarkerData(
             sensor_id=int(msg.sensor_id),
@@ -100,6 +100,8 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
             ambiguity_ratio=float(msg.ambiguity),
             origin=int(origin),
             seq=int(msg.seq),
+            p_sensor_marker_alt_m=(float(msg.x_alt), float(msg.y_alt), float(msg.z_alt)),
+            q_sensor_marker_alt_wxyz=(q_alt[0], q_alt[1], q_alt[2], q_alt[3]),
         )
     except (TypeError, ValueError, AttributeError):
         raise RejectionError("malformed") from None

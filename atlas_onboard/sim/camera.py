@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -112,6 +112,7 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
                     capture_time_us=round((epoch + t) * 1e6),
                     reprojection_error_px=float(e[0]) if len(e) else float("nan"),
                     ambiguity_ratio=float(e[0] / e[1]) if len(e) > 1 and e[1] > 0 else float("nan"),
+                    **_alt_fields(rvecs, tvecs),
                 )
             )
         return out
@@ -158,3 +159,15 @@ def rendered_detector(context: SimContext, world: WorldConfig, sensor: SensorCon
         return detector.detect(img, round((epoch + t) * 1e6))
 
     return detect
+
+
+def _alt_fields(rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray]) -> dict[str, tuple[float, ...]]:
+    """MarkerData's fields of IPPE's other solution, as the real detector fills them (none: NaN)."""
+    if len(rvecs) < 2:
+        return {}
+    x, y, z, w = Rotation.from_rotvec(np.asarray(rvecs[1]).ravel()).as_quat()
+    p = np.asarray(tvecs[1], dtype=float).ravel()
+    return {
+        "p_sensor_marker_alt_m": (float(p[0]), float(p[1]), float(p[2])),
+        "q_sensor_marker_alt_wxyz": (float(w), float(x), float(y), float(z)),
+    }

@@ -3,6 +3,7 @@ the documented offsets, and every way a received observation is refused (fuzzed 
 
 import math
 import struct
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -40,6 +41,35 @@ def assert_md_equal(a, b):
     got = (*a.p_sensor_marker_m, *a.q_sensor_marker_wxyz, a.sigma_m, a.reprojection_error_px, a.ambiguity_ratio)
     want = (*b.p_sensor_marker_m, *b.q_sensor_marker_wxyz, b.sigma_m, b.reprojection_error_px, b.ambiguity_ratio)
     assert got == tuple(f32(v) for v in want)  # exact: float32 on the wire
+    alt_got = (*a.p_sensor_marker_alt_m, *a.q_sensor_marker_alt_wxyz)
+    alt_want = (*b.p_sensor_marker_alt_m, *b.q_sensor_marker_alt_wxyz)
+    assert [math.isnan(v) for v in alt_got] == [math.isnan(v) for v in alt_want]
+    assert [v for v in alt_got if not math.isnan(v)] == [f32(v) for v in alt_want if not math.isnan(v)]
+
+
+MD_ALT = MarkerData(
+    7, 33, 0.0125, (0.1, -0.2, 1.5), (0.9, 0.1, -0.3, 0.2), 1_700_000_000_123_456, 0.42, 0.8, 9, 65535,
+    p_sensor_marker_alt_m=(0.11, -0.19, 1.49), q_sensor_marker_alt_wxyz=(0.2, 0.9, 0.3, -0.1),
+)  # fmt: skip
+
+
+@pytest.mark.parametrize("md", [MD, MD_ALT], ids=["without_alt", "with_alt"])
+@pytest.mark.parametrize("tunnel", [False, True], ids=["observation", "tunnel"])
+def test_round_trip_with_and_without_the_other_solution(md, tunnel):
+    if tunnel:
+        (msg,) = parse(wire(codec.encode_tunnel(D, md, FP)))
+        got = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, 9, FP, check=True)
+    else:
+        (msg,) = parse(wire(codec.encode_observation(D, md, FP)))
+        got = codec.decode_observation(msg, origin=9, fingerprint=FP, check=True)
+    assert_md_equal(got, md)
+    assert got.alt_state() is md.alt_state()
+
+
+def test_the_other_solution_sits_at_its_documented_offsets():
+    payload = codec.tunnel_payload(MD_ALT, FP)
+    assert struct.unpack_from("<3f", payload, 52) == tuple(f32(v) for v in MD_ALT.p_sensor_marker_alt_m)
+    assert struct.unpack_from("<4f", payload, 64) == tuple(f32(v) for v in MD_ALT.q_sensor_marker_alt_wxyz)
 
 
 def test_observation_round_trip_exact():
@@ -185,9 +215,12 @@ finite32 = st.floats(-1e6, 1e6, width=32)
     st.integers(0, 2**64 - 1),
     st.integers(0, 0xFFFF),
     st.booleans(),
+    st.none() | st.tuples(st.tuples(finite32, finite32, finite32), st.tuples(finite32, finite32, finite32, finite32)),
 )
-def test_round_trip_is_exact_for_every_representable_record(sensor, marker, sigma, p, q, t_us, seq, tunnel):
+def test_round_trip_is_exact_for_every_representable_record(sensor, marker, sigma, p, q, t_us, seq, tunnel, alt):
     md = MarkerData(sensor, marker, sigma, p, q, t_us, 0.5, math.nan, 77, seq)
+    if alt is not None:
+        md = replace(md, p_sensor_marker_alt_m=alt[0], q_sensor_marker_alt_wxyz=alt[1])
     if tunnel:
         (msg,) = parse(wire(codec.encode_tunnel(D, md, FP), sysid=77))
         got = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, msg.get_srcSystem(), FP)
@@ -197,3 +230,7 @@ def test_round_trip_is_exact_for_every_representable_record(sensor, marker, sigm
     assert (got.sensor_id, got.marker_id, got.capture_time_us, got.seq, got.origin) == (sensor, marker, t_us, seq, 77)
     assert got.p_sensor_marker_m == p and got.q_sensor_marker_wxyz == q and got.sigma_m == sigma
     assert got.reprojection_error_px == 0.5 and math.isnan(got.ambiguity_ratio)
+    if alt is None:
+        assert all(math.isnan(v) for v in (*got.p_sensor_marker_alt_m, *got.q_sensor_marker_alt_wxyz))
+    else:
+        assert (got.p_sensor_marker_alt_m, got.q_sensor_marker_alt_wxyz) == alt

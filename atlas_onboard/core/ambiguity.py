@@ -1,0 +1,180 @@
+"""Planar-pose ambiguity: which of IPPE's two solutions agrees with the current estimate.
+
+A square marker seen nearly face-on, small or far has two poses that reproject its four corners
+almost equally well (IPPE returns both; their error ratio is MarkerData's ``ambiguity_ratio``). The two
+share nearly the same position and differ by a rotation, roughly a mirror of the marker's tilt about
+the line of sight, so a wrong pick ("flip") is tens of degrees off in attitude and, after eq. 1 inverts
+the marker's pose, swings the observer around the marker by range x angle.
+
+The current estimates of the observer and observed entities predict the marker's pose in the sensor
+frame (eq. 1 read backwards):
+
+    T_sensor_marker^pred = T_entity_sensor^-1 * T_world_observer^-1 * T_world_observed * T_observed_marker
+
+Rule. Each solution i gets the squared distance to the prediction normalised by the per-axis standard
+deviations of the prediction's error (``sigma_rad`` in attitude, ``sigma_m`` in position)::
+
+    r_i^2 = (theta_i / sigma_rad)^2 + (|p_i - p_pred| / sigma_m)^2
+
+with theta_i the angle of R_pred^-1 R_i. For the true solution r^2 is chi-square with 6 degrees of
+freedom. The nearer solution is chosen when both hold:
+
+1. it is consistent with the prediction: ``r_near^2 <= gate_r2`` (default 22.46, the 0.999 quantile
+   of chi-square(6)); otherwise both are far (the estimate is wrong, or the detection is) -> BOTH_FAR;
+2. it is decisively nearer: ``r_far^2 - r_near^2 >= 2 ln(min_likelihood_ratio)`` (default 1000, so
+   13.8): under the same Gaussian model the nearer is at least that many times as likely. Two
+   solutions closer to each other than about 3.7 sigma cannot pass -> TOO_CLOSE.
+
+Rotation distance is what separates IPPE flips; position rarely does, but it keeps a prediction that
+puts the marker in the wrong place from deciding anything (rule 1). Without a prediction nothing is
+decided (NO_PREDICTION). Pure: numpy and scipy only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.errors import GeometryError
+
+AMBIGUITY_THRESHOLD = 0.5
+"""Above this ratio (chosen over other IPPE reprojection error) the chosen solution may be the flip:
+the listener resolves such an observation with the estimates, or rejects it."""
+GATE_R2 = 22.46
+"""chi-square(6) at 0.999: the nearer solution must lie within this normalised squared distance."""
+MIN_LIKELIHOOD_RATIO = 1000.0
+"""The nearer solution must be at least this many times as likely as the other."""
+
+
+class Verdict(StrEnum):
+    """The outcome of :func:`resolve` (the value names the listener's counter)."""
+
+    PRIMARY = "primary"  # the detector's chosen solution agrees with the prediction
+    ALT = "alt"  # the other solution does: the chosen one was the flip
+    NO_PREDICTION = "no_prediction"  # no estimate of the observer or of the observed entity
+    BOTH_FAR = "both_far"  # neither solution is consistent with the prediction
+    TOO_CLOSE = "too_close"  # both about equally close: the prediction cannot tell them apart
+
+    @property
+    def decided(self) -> bool:
+        return self in (Verdict.PRIMARY, Verdict.ALT)
+
+
+@dataclass(frozen=True, slots=True)
+class Resolution:
+    """A verdict with the normalised squared distances of both solutions (nan without a prediction)."""
+
+    verdict: Verdict
+    r2_primary: float
+    r2_alt: float
+
+
+def predict_sensor_marker(
+    T_world_observer: RigidTransform,
+    T_observer_sensor: RigidTransform,
+    T_world_observed: RigidTransform,
+    T_observed_marker: RigidTransform,
+) -> RigidTransform:
+    """The marker's pose in the sensor frame that the estimates predict (eq. 1 read backwards)."""
+    return (T_world_observer * T_observer_sensor).inv() * T_world_observed * T_observed_marker
+
+
+def prediction_sigmas(
+    range_m: float | NDArray[np.float64],
+    observation_sigma_m: float | NDArray[np.float64],
+    observer_sigma_m: float | NDArray[np.float64],
+    observed_sigma_m: float | NDArray[np.float64],
+    observer_attitude_sigma_rad: float | NDArray[np.float64],
+    observed_attitude_sigma_rad: float | NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per-axis standard deviations (attitude in rad, position in m) of a solution's distance to the
+    prediction: both estimates' errors plus the observation's own.
+
+    The observation's sigma is that of the camera's position relative to the marker, dominated by
+    range x attitude error for an ambiguous (near face-on) marker, so its attitude part is taken as
+    ``observation_sigma_m / range_m``. The observer's attitude error moves the predicted marker by
+    range x angle. Shapes broadcast; every input >= 0, ``range_m`` > 0.
+    """
+    rng = np.asarray(range_m, dtype=float)
+    obs = np.asarray(observation_sigma_m, dtype=float)
+    att_a = np.asarray(observer_attitude_sigma_rad, dtype=float)
+    att_b = np.asarray(observed_attitude_sigma_rad, dtype=float)
+    sigma_rad = np.sqrt(att_a**2 + att_b**2 + (obs / rng) ** 2)
+    sigma_m = np.sqrt(
+        np.asarray(observer_sigma_m, dtype=float) ** 2
+        + np.asarray(observed_sigma_m, dtype=float) ** 2
+        + obs**2
+        + (rng * att_a) ** 2
+    )
+    return sigma_rad, sigma_m
+
+
+def resolve_arrays(
+    p_primary: NDArray[np.float64],
+    q_primary_xyzw: NDArray[np.float64],
+    p_alt: NDArray[np.float64],
+    q_alt_xyzw: NDArray[np.float64],
+    p_pred: NDArray[np.float64],
+    q_pred_xyzw: NDArray[np.float64],
+    sigma_rad: float | NDArray[np.float64],
+    sigma_m: float | NDArray[np.float64],
+    gate_r2: float = GATE_R2,
+    min_likelihood_ratio: float = MIN_LIKELIHOOD_RATIO,
+) -> tuple[list[Verdict], NDArray[np.float64], NDArray[np.float64]]:
+    """The rule of this module for N observations at once (one scipy call per step).
+
+    Positions (N, 3) in metres and x-first quaternions (N, 4), all in the sensor frame; ``sigma_rad``
+    and ``sigma_m`` scalars or shape (N,), > 0. Returns the verdicts and r^2 of both solutions.
+    """
+    R_pred_inv = Rotation.from_quat(q_pred_xyzw).inv()
+    theta_a = (R_pred_inv * Rotation.from_quat(q_primary_xyzw)).magnitude()
+    theta_b = (R_pred_inv * Rotation.from_quat(q_alt_xyzw)).magnitude()
+    d_a = np.linalg.norm(np.asarray(p_primary) - p_pred, axis=-1)
+    d_b = np.linalg.norm(np.asarray(p_alt) - p_pred, axis=-1)
+    s_rad = np.asarray(sigma_rad, dtype=float)
+    s_m = np.asarray(sigma_m, dtype=float)
+    r2_a = np.atleast_1d((theta_a / s_rad) ** 2 + (d_a / s_m) ** 2)
+    r2_b = np.atleast_1d((theta_b / s_rad) ** 2 + (d_b / s_m) ** 2)
+    margin = 2.0 * math.log(min_likelihood_ratio)
+    verdicts = []
+    for a, b in zip(r2_a.tolist(), r2_b.tolist(), strict=True):
+        near, far = (a, b) if a <= b else (b, a)
+        if not near <= gate_r2:  # also catches NaN
+            verdicts.append(Verdict.BOTH_FAR)
+        elif far - near < margin:
+            verdicts.append(Verdict.TOO_CLOSE)
+        else:
+            verdicts.append(Verdict.PRIMARY if a <= b else Verdict.ALT)
+    return verdicts, r2_a, r2_b
+
+
+def resolve(
+    T_primary: RigidTransform,
+    T_alt: RigidTransform,
+    T_pred: RigidTransform | None,
+    sigma_rad: float,
+    sigma_m: float,
+    gate_r2: float = GATE_R2,
+    min_likelihood_ratio: float = MIN_LIKELIHOOD_RATIO,
+) -> Resolution:
+    """Which of two T_sensor_marker solutions agrees with the predicted ``T_pred`` (None: no estimate).
+
+    ``sigma_rad`` and ``sigma_m``: per-axis standard deviations of the prediction's error (see
+    :func:`prediction_sigmas`), > 0. The rule is the module's.
+    """
+    if not (sigma_rad > 0.0 and sigma_m > 0.0):
+        raise GeometryError(f"expected sigma_rad > 0 and sigma_m > 0, got {sigma_rad!r} rad, {sigma_m!r} m")
+    if T_pred is None:
+        return Resolution(Verdict.NO_PREDICTION, math.nan, math.nan)
+    verdicts, r2_a, r2_b = resolve_arrays(
+        T_primary.translation[None], T_primary.rotation.as_quat()[None],
+        T_alt.translation[None], T_alt.rotation.as_quat()[None],
+        T_pred.translation[None], T_pred.rotation.as_quat()[None],
+        sigma_rad, sigma_m, gate_r2, min_likelihood_ratio,
+    )  # fmt: skip
+    return Resolution(verdicts[0], float(r2_a[0]), float(r2_b[0]))
