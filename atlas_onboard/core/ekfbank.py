@@ -35,6 +35,8 @@ class EkfBank:
     _fed: dict[tuple[str, EdgeKey], int] = field(default_factory=dict)
     _last: dict[str, EntityPose] = field(default_factory=dict)
     latency_us: float | None = None  # smoothed capture-to-filter delay of the measurements
+    gap_factor: float = 1.5  # predict once the last update is this many usual intervals old
+    _interval: dict[str, float] = field(default_factory=dict)  # smoothed update interval, s
 
     def update(self, result: GraphResult, now_us: int | None = None) -> None:
         """Feed the new candidates of one evaluation (world-frame poses only); ``now_us`` (capture
@@ -47,6 +49,7 @@ class EkfBank:
                 ekf = self.filters[name] = PoseEkf(replace(self.settings))
             self._last[name] = result.poses[name]
             fresh = [c for c in cands if self._fed.get((name, c.key)) != c.stamp_ns]
+            before = ekf.t_update_s if ekf.initialized else None
             for c in sorted(fresh, key=lambda c: c.capture_time_us):
                 self._fed[(name, c.key)] = c.stamp_ns
                 if now_us is not None:
@@ -55,20 +58,26 @@ class EkfBank:
                 cov = 0.5 * (c.covariance + c.covariance.T)
                 outcome = ekf.update(c.capture_time_us / 1e6, c.p_m, Rotation.from_quat(c.q_xyzw), cov)
                 self.outcomes[outcome] += 1
+            if before is not None and ekf.t_update_s > before:
+                step = min(ekf.t_update_s - before, self.max_predict_s)
+                old = self._interval.get(name)
+                self._interval[name] = step if old is None else 0.9 * old + 0.1 * step
         # Forget edges no longer in the graph, so the bookkeeping stays bounded.
         live = {(n, c.key) for n, cands in result.candidates.items() for c in cands}
         for k in [k for k in self._fed if k not in live]:
             del self._fed[k]
 
     def pose(self, name: str, now_us: int) -> EntityPose | None:
-        """The entity's pose at ``now_us`` less the measurements' usual latency, or None when it has
-        no estimate or its last update is older than ``max_predict_s`` (the pose is then lost, as
-        without a filter).
+        """The entity's filtered pose, or None when it has no estimate or its last update is older
+        than ``max_predict_s`` (the pose is then lost, as without a filter).
 
-        Stamping at the usual capture age (not at ``now``) keeps the autopilot's delay setting
-        (EKF2_EV_DELAY, VISO_DELAY_MS) the same with and without the filter, and does not
-        extrapolate attitude jitter faster than the camera can see; between detections and through
-        gaps the stamp still advances, so the output keeps its rate.
+        While detections flow the pose is the filter's at its newest measurement, stamped with that
+        capture time: filtered, not extrapolated (a quadrotor's attitude jitters faster than a
+        30 Hz camera can follow, so extrapolating between frames costs more than it gives). Once
+        the last update is older than ``gap_factor`` usual intervals, the pose is predicted to
+        ``now_us`` less the measurements' usual latency, and keeps advancing through the gap. Either
+        way the stamp is a capture-clock time of the usual age, so the autopilot's delay setting
+        (EKF2_EV_DELAY, VISO_DELAY_MS) is the same with and without the filter.
         """
         ekf = self.filters.get(name)
         last = self._last.get(name)
@@ -77,6 +86,9 @@ class EkfBank:
         t = (now_us - (self.latency_us or 0.0)) / 1e6
         if t - ekf.t_update_s > self.max_predict_s:
             return None
+        interval = self._interval.get(name)
+        if interval is None or t - ekf.t_update_s <= self.gap_factor * interval:
+            t = ekf.t_update_s  # detections flow: the filtered pose at the newest one
         t = max(t, ekf.t_s)
         p, q, cov = ekf.pose_at(t)
         pos_sigma = float(np.sqrt(max(np.trace(cov[0:3, 0:3]) / 3.0, 0.0)))
