@@ -23,6 +23,7 @@ def autopilot_track(records: list[Received], epoch_s: float) -> report.Track:
     n = len(records)
     p = np.zeros((n, 3))
     q = np.zeros((n, 4))
+    q_ned = np.zeros((n, 4))
     for i, r in enumerate(records):
         if r.q_wxyz is not None:
             w, x, y, z = r.q_wxyz
@@ -31,12 +32,17 @@ def autopilot_track(records: list[Received], epoch_s: float) -> report.Track:
             roll, pitch, yaw = r.rpy_rad  # type: ignore[misc]
             R_ned_frd = Rotation.from_euler("ZYX", [yaw, pitch, roll])
         T = frames.ned_frd_to_enu_flu(RigidTransform.from_components(np.asarray(r.xyz_m), R_ned_frd))
-        p[i], q[i] = T.translation, T.rotation.as_quat()
+        p[i], q[i], q_ned[i] = T.translation, T.rotation.as_quat(), R_ned_frd.as_quat()
     return report.Track(
         capture_s=np.array([r.usec / 1e6 - epoch_s for r in records]),
         arrival_s=np.array([r.arrival_s - epoch_s for r in records]),
         p_m=p,
         q_xyzw=q,
+        p_ned_m=np.array([r.xyz_m for r in records], dtype=float).reshape(n, 3),
+        q_ned_frd_xyzw=q_ned,
+        covariance_ned_frd=report.covariance_from_upper_triangle(
+            np.array([r.covariance for r in records], dtype=float).reshape(n, 21)
+        ),
     )
 
 
