@@ -99,12 +99,15 @@ class SimWorld:
             return np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
         return traj.pose(np.asarray(t, dtype=float))
 
-    def sightings(self, sensor_id: int, truth: dict[str, RigidTransform]) -> list[Sighting]:
-        """Markers the camera sees: in the image, facing it, big enough, not hidden by a nearer marker.
+    def sightings(self, sensor_id: int, truth: dict[str, RigidTransform], t_s: float | None = None) -> list[Sighting]:
+        """Markers the camera sees: in the image, facing it, big enough, not hidden by a nearer marker,
+        and none while the scenario's occlusions block the camera's view at ``t_s`` (when given).
 
         Sorted far to near, the order in which a renderer paints them.
         """
         sensor, intr = self.cameras[sensor_id]
+        if t_s is not None and self.scenario.occluded(sensor.entity, sensor.name, t_s):
+            return []
         T_world_sensor = truth[sensor.entity] * sensor.T_entity_sensor
         T_sensor_world = T_world_sensor.inv()
         candidates = []
@@ -141,7 +144,7 @@ class SimWorld:
     def observed_edges(self, t: float) -> list[tuple[str, str]]:
         """(observer entity, observed entity) pairs a camera can see at time t (mocap included)."""
         truth = self.truth(t)
-        edges = [(s.sensor.entity, s.marker.entity) for sid in self.cameras for s in self.sightings(sid, truth)]
+        edges = [(s.sensor.entity, s.marker.entity) for sid in self.cameras for s in self.sightings(sid, truth, t)]
         if self.scenario.mocap is not None:
             edges += [(WORLD, name) for name in self.scenario.drones]
         return edges
