@@ -87,7 +87,6 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
     fused, observations = decode_taps(sim)
     sc = sim.scenario
     t0, t1 = WARMUP_S, sim.duration_s
-    expected = sim.world.expected_availability(np.arange(t0, t1, 0.1))
     rates = {}
     for s in sim.world.cameras.values():
         sensor, intr = s
@@ -97,6 +96,7 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
         rates[f"world.{sc.mocap.sensor}"] = f"motion capture @ {sc.mocap.rate_hz:g} Hz"
     rep = report.RunReport(sc.name, sim.duration_s, 0, "real time (wall clock); every node a separate process", rates)
     tracks: dict[str, report.Track] = {}
+    expected = {b: sim.world.expected_availability(t0, t1, b) for b in (0.1, 0.5)}
     for name in sc.scored:
         if name in sim.autopilots:
             track = autopilot_track(sim.autopilots[name].snapshot(), sim.epoch_s)
@@ -110,7 +110,7 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
             track.capture_s = track.arrival_s = np.zeros(0)
         tracks[name] = track
         bin_s = 0.1 if source == "autopilot" else 0.5
-        score = report.score(name, source, track, sim.world, t0, t1, expected.get(name, 0.0), bin_s)
+        score = report.score(name, source, track, sim.world, t0, t1, expected[bin_s].get(name, 0.0), bin_s)
         score.detections_per_s = observations[name] / (t1 - t0)
         rep.entities.append(score)
     for key, limit in sc.bars.items():
