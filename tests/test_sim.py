@@ -117,7 +117,7 @@ def test_paths_dijkstra_beats_bfs_for_the_drone_with_a_noisy_short_path():
 def test_gaps_availability_follows_the_expected_gaps():
     """With the paper's method the pose is published exactly when markers are in view: the reported
     availability tracks the expected one, which the occlusions keep well below 100 %."""
-    e, rep = run_and_score("gaps", 10, world_overrides={"fusion": PAPER})
+    e, rep = run_and_score("gaps", 8, world_overrides={"fusion": PAPER})
     print(rep.table())
     d = e["drone"]
     assert d.expected_availability < 0.9

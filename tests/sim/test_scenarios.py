@@ -19,8 +19,8 @@ def test_occlusions_last_a_tenth_to_six_tenths_of_a_second_and_blank_the_camera(
     assert np.all(iv[1:, 0] - iv[:-1, 1] >= 0.6)  # clear time between gaps
     world = SimWorld(sc)
     sid = next(iter(world.cameras))
-    inside = [t for t in np.arange(1.0, 20.0, 0.05) if sc.occluded("drone", "down", t)]
-    outside = [t for t in np.arange(1.0, 20.0, 0.05) if not sc.occluded("drone", "down", t)]
+    inside = [t for t in np.arange(1.0, 12.0, 0.05) if sc.occluded("drone", "down", t)]
+    outside = [t for t in np.arange(1.0, 12.0, 0.05) if not sc.occluded("drone", "down", t)]
     assert all(world.sightings(sid, world.truth(t), t) == [] for t in inside)
     # Without a time the geometry alone decides, and it sees tags at most of those instants.
     assert sum(bool(world.sightings(sid, world.truth(t))) for t in inside) > 0.5 * len(inside)
@@ -29,8 +29,8 @@ def test_occlusions_last_a_tenth_to_six_tenths_of_a_second_and_blank_the_camera(
 
 def test_gaps_expected_availability_counts_the_occlusions_and_the_tags_leaving_the_view():
     sc = scenarios.get("gaps")
-    with_occlusions = SimWorld(sc).expected_availability(1.0, 20.0, 0.1)["drone"]
-    geometry_only = SimWorld(dataclasses.replace(sc, occlusions=())).expected_availability(1.0, 20.0, 0.1)["drone"]
+    with_occlusions = SimWorld(sc).expected_availability(1.0, 12.0, 0.1)["drone"]
+    geometry_only = SimWorld(dataclasses.replace(sc, occlusions=())).expected_availability(1.0, 12.0, 0.1)["drone"]
     assert with_occlusions < geometry_only < 1.0
     assert 0.5 < with_occlusions < 0.9
 
