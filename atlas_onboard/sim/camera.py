@@ -65,7 +65,7 @@ class SimCameraWorker(SensorWorker):
             k += 1
             self.frames += 1
             truth = self.sim.truth(t)
-            sightings = self.sim.sightings(self.sensor.id, truth)
+            sightings = self.sim.sightings(self.sensor.id, truth, t)
             try:
                 found = self.detect(t, sightings, {"truth": truth, "epoch": epoch, "frame": k})
             except Exception:  # a detector bug must not kill the camera thread; the frame is lost

@@ -23,6 +23,7 @@ def autopilot_track(records: list[Received], epoch_s: float) -> report.Track:
     n = len(records)
     p = np.zeros((n, 3))
     q = np.zeros((n, 4))
+    q_ned = np.zeros((n, 4))
     for i, r in enumerate(records):
         if r.q_wxyz is not None:
             w, x, y, z = r.q_wxyz
@@ -31,12 +32,17 @@ def autopilot_track(records: list[Received], epoch_s: float) -> report.Track:
             roll, pitch, yaw = r.rpy_rad  # type: ignore[misc]
             R_ned_frd = Rotation.from_euler("ZYX", [yaw, pitch, roll])
         T = frames.ned_frd_to_enu_flu(RigidTransform.from_components(np.asarray(r.xyz_m), R_ned_frd))
-        p[i], q[i] = T.translation, T.rotation.as_quat()
+        p[i], q[i], q_ned[i] = T.translation, T.rotation.as_quat(), R_ned_frd.as_quat()
     return report.Track(
         capture_s=np.array([r.usec / 1e6 - epoch_s for r in records]),
         arrival_s=np.array([r.arrival_s - epoch_s for r in records]),
         p_m=p,
         q_xyzw=q,
+        p_ned_m=np.array([r.xyz_m for r in records], dtype=float).reshape(n, 3),
+        q_ned_frd_xyzw=q_ned,
+        covariance_ned_frd=report.covariance_from_upper_triangle(
+            np.array([r.covariance for r in records], dtype=float).reshape(n, 21)
+        ),
     )
 
 
@@ -81,7 +87,6 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
     fused, observations = decode_taps(sim)
     sc = sim.scenario
     t0, t1 = WARMUP_S, sim.duration_s
-    expected = sim.world.expected_availability(np.arange(t0, t1, 0.1))
     rates = {}
     for s in sim.world.cameras.values():
         sensor, intr = s
@@ -91,6 +96,7 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
         rates[f"world.{sc.mocap.sensor}"] = f"motion capture @ {sc.mocap.rate_hz:g} Hz"
     rep = report.RunReport(sc.name, sim.duration_s, 0, "real time (wall clock); every node a separate process", rates)
     tracks: dict[str, report.Track] = {}
+    expected = {b: sim.world.expected_availability(t0, t1, b) for b in (0.1, 0.5)}
     for name in sc.scored:
         if name in sim.autopilots:
             track = autopilot_track(sim.autopilots[name].snapshot(), sim.epoch_s)
@@ -104,7 +110,7 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
             track.capture_s = track.arrival_s = np.zeros(0)
         tracks[name] = track
         bin_s = 0.1 if source == "autopilot" else 0.5
-        score = report.score(name, source, track, sim.world, t0, t1, expected.get(name, 0.0), bin_s)
+        score = report.score(name, source, track, sim.world, t0, t1, expected[bin_s].get(name, 0.0), bin_s)
         score.detections_per_s = observations[name] / (t1 - t0)
         rep.entities.append(score)
     for key, limit in sc.bars.items():

@@ -10,9 +10,13 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import RigidTransform, Rotation
 
+from atlas_onboard.core import frames
+from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim.world import SimWorld
+
+_ROWS, _COLS = np.triu_indices(6)  # MAVLink's row-major upper triangle: (0,0) (0,1) ... (0,5) (1,1) ... (5,5)
 
 
 @dataclass
@@ -24,6 +28,11 @@ class Track:
     p_m: NDArray[np.float64]  # (N, 3) ENU
     q_xyzw: NDArray[np.float64]  # (N, 4) FLU body in ENU
     n_observations: NDArray[np.float64] | None = None
+    # What the autopilot received, as sent: position in local NED, body FRD in NED, and the 6x6
+    # covariance (x y z in NED, small rotations about the FRD body axes); NaN where unknown.
+    p_ned_m: NDArray[np.float64] | None = None  # (N, 3)
+    q_ned_frd_xyzw: NDArray[np.float64] | None = None  # (N, 4)
+    covariance_ned_frd: NDArray[np.float64] | None = None  # (N, 6, 6)
 
 
 @dataclass
@@ -43,6 +52,10 @@ class EntityScore:
     detections_per_s: float = 0.0
     longest_gap_s: float = 0.0
     stale_after_loss_s: float = 0.0
+    # Mean normalised estimation error squared against the covariance published with each message:
+    # about 3 (position) and 6 (pose) when the covariance is honest; NaN when it is unknown.
+    position_nees: float = float("nan")
+    pose_nees: float = float("nan")
 
 
 @dataclass
@@ -62,7 +75,7 @@ class RunReport:
     def table(self) -> str:
         head = (
             f"{'entity':<10} {'source':<9} {'msgs':>5} {'rate Hz':>7} {'RMSE cm':>8} {'max cm':>7} {'att deg':>7}"
-            f" {'avail':>6} {'expect':>6} {'det/s':>6} {'lat ms':>7} {'p95 ms':>7}"
+            f" {'avail':>6} {'expect':>6} {'det/s':>6} {'lat ms':>7} {'p95 ms':>7} {'NEES3':>7} {'NEES6':>7}"
         )
         rows = [head]
         for e in self.entities:
@@ -70,7 +83,7 @@ class RunReport:
                 f"{e.entity:<10} {e.source:<9} {e.messages:>5} {e.rate_hz:>7.1f} {e.rmse_m * 100:>8.2f}"
                 f" {e.max_error_m * 100:>7.2f} {e.attitude_rmse_deg:>7.2f} {e.availability:>6.1%}"
                 f" {e.expected_availability:>6.1%} {e.detections_per_s:>6.1f} {e.latency_median_ms:>7.1f}"
-                f" {e.latency_p95_ms:>7.1f}"
+                f" {e.latency_p95_ms:>7.1f} {e.position_nees:>7.2f} {e.pose_nees:>7.2f}"
             )
         return "\n".join(rows)
 
@@ -112,6 +125,12 @@ def score(
     hit[np.clip(((arr - t0_s) / bin_s).astype(int), 0, bins - 1)] = True
     latency_ms = (arr - cap) * 1e3
     gaps = np.diff(np.concatenate(([t0_s], np.sort(arr), [t1_s])))
+    nees3 = nees6 = float("nan")
+    if track.p_ned_m is not None and track.q_ned_frd_xyzw is not None and track.covariance_ned_frd is not None:
+        e = pose_errors_ned_frd(track.p_ned_m[inside], track.q_ned_frd_xyzw[inside], p_true, q_true)
+        cov = track.covariance_ned_frd[inside]
+        nees3 = _mean_known(nees(e[:, :3], cov[:, :3, :3]))
+        nees6 = _mean_known(nees(e, cov))
     return EntityScore(
         entity=entity,
         source=source,
@@ -126,7 +145,65 @@ def score(
         latency_median_ms=float(np.median(latency_ms)),
         latency_p95_ms=float(np.percentile(latency_ms, 95)),
         longest_gap_s=float(gaps.max()),
+        position_nees=nees3,
+        pose_nees=nees6,
     )
+
+
+def covariance_from_upper_triangle(values: NDArray[np.float64]) -> NDArray[np.float64]:
+    """6x6 covariances (N, 6, 6) from MAVLink's 21-element row-major upper triangles (N, 21).
+
+    The inverse of :func:`atlas_onboard.mavlink.autopilot.covariance_upper_triangle`. A triangle whose
+    first element is NaN means "unknown" (MAVLink's convention) and gives an all-NaN matrix.
+    """
+    v = np.atleast_2d(np.asarray(values, dtype=float))
+    if v.shape[-1] != 21:
+        raise AtlasError(f"expected covariance triangles of shape (N, 21), got shape {v.shape}")
+    out = np.zeros((len(v), 6, 6))
+    out[:, _ROWS, _COLS] = v
+    out[:, _COLS, _ROWS] = v
+    out[np.isnan(v[:, 0])] = np.nan
+    return out
+
+
+def pose_errors_ned_frd(
+    p_est_ned_m: NDArray[np.float64],
+    q_est_ned_frd_xyzw: NDArray[np.float64],
+    p_true_enu_m: NDArray[np.float64],
+    q_true_enu_flu_xyzw: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Errors (N, 6) of estimates sent in NED/FRD against truth in ENU/FLU, in the frame of the
+    published covariance: position estimate - truth in NED (m), then the small rotation d (rad) about
+    the FRD body axes with ``R_est = R_true * exp(d)`` (the error-state convention of the EKF and of
+    :func:`atlas_onboard.mavlink.autopilot.covariance_ned_frd`)."""
+    T_true = frames.enu_flu_to_ned_frd(
+        RigidTransform.from_components(np.asarray(p_true_enu_m, float), Rotation.from_quat(q_true_enu_flu_xyzw))
+    )
+    dp = np.asarray(p_est_ned_m, dtype=float) - T_true.translation
+    dtheta = (T_true.rotation.inv() * Rotation.from_quat(q_est_ned_frd_xyzw)).as_rotvec()
+    return np.hstack([np.atleast_2d(dp), np.atleast_2d(dtheta)])
+
+
+def nees(errors: NDArray[np.float64], covariances: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Normalised estimation error squared ``e^T C^-1 e`` per row: errors (N, k), covariances (N, k, k).
+
+    NaN for a covariance that is unknown (non-finite) or not positive definite.
+    """
+    e = np.atleast_2d(np.asarray(errors, dtype=float))
+    c = np.asarray(covariances, dtype=float).reshape(len(e), e.shape[1], e.shape[1])
+    out = np.full(len(e), np.nan)
+    ok = np.all(np.isfinite(c), axis=(1, 2))
+    if np.any(ok):
+        ok[ok] = np.linalg.eigvalsh(c[ok]).min(axis=1) > 0.0
+    if np.any(ok):
+        x = np.linalg.solve(c[ok], e[ok][:, :, None])[:, :, 0]
+        out[ok] = np.einsum("ij,ij->i", e[ok], x)
+    return out
+
+
+def _mean_known(values: NDArray[np.float64]) -> float:
+    known = values[np.isfinite(values)]
+    return float(known.mean()) if len(known) else float("nan")
 
 
 def write_tum(path: Path, t_s: NDArray[np.float64], p: NDArray[np.float64], q_xyzw: NDArray[np.float64]) -> None:

@@ -7,9 +7,13 @@ node, renderer and detector runs (the report states them).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
 
 from atlas_onboard.config import WORLD, WorldConfig, load_world
 from atlas_onboard.errors import AtlasError
@@ -39,6 +43,42 @@ class Mocap:
 
 
 @dataclass(frozen=True)
+class Occlusions:
+    """Something passes in front of one camera now and then (a rotor arm, a cable, a person walking
+    through a ceiling camera's view), hiding every marker it would see: the gaps in detection of a real
+    flight. Gaps last ``gap_s`` (uniform between its bounds) and are separated by ``clear_s``; the
+    schedule is a pure function of the seed, so every process of a run sees the same one.
+    """
+
+    sensor: str  # "entity.sensor"
+    gap_s: tuple[float, float] = (0.1, 0.6)
+    clear_s: tuple[float, float] = (0.6, 2.0)
+    seed: int = 0
+    horizon_s: float = 3600.0  # the longest run (the runner's limit)
+
+    def intervals(self) -> NDArray[np.float64]:
+        """(K, 2) start and end times (s since the run's start) of the gaps up to ``horizon_s``."""
+        rng = np.random.default_rng(self.seed)
+        mean = (sum(self.gap_s) + sum(self.clear_s)) / 2.0
+        k = int(self.horizon_s / mean * 1.5) + 2
+        clear = rng.uniform(*self.clear_s, k)
+        gap = rng.uniform(*self.gap_s, k)
+        start = np.cumsum(clear + gap) - gap
+        return np.column_stack([start, start + gap])[start < self.horizon_s]
+
+    def hidden(self, t_s: float) -> bool:
+        """True if the camera's view is blocked at ``t_s``."""
+        iv = _occlusion_table(self)
+        i = int(np.searchsorted(iv[:, 0], t_s, side="right")) - 1
+        return i >= 0 and t_s < iv[i, 1]
+
+
+@functools.cache
+def _occlusion_table(occ: Occlusions) -> NDArray[np.float64]:
+    return occ.intervals()
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     description: str
@@ -50,6 +90,7 @@ class Scenario:
     optics: dict[str, Optics] = field(default_factory=dict)  # by sensor name "entity.sensor"
     mocap: Mocap | None = None
     bars: dict[str, float] = field(default_factory=dict)  # e.g. {"drone_c.rmse_m": 0.10}
+    occlusions: tuple[Occlusions, ...] = ()
 
     def world(self) -> WorldConfig:
         return load_world(self.world_path())
@@ -59,6 +100,10 @@ class Scenario:
 
     def optics_of(self, entity: str, sensor: str) -> Optics:
         return self.optics.get(f"{entity}.{sensor}", Optics())
+
+    def occluded(self, entity: str, sensor: str, t_s: float) -> bool:
+        """True if the view of camera ``entity.sensor`` is blocked at ``t_s`` (see :class:`Occlusions`)."""
+        return any(o.sensor == f"{entity}.{sensor}" and o.hidden(t_s) for o in self.occlusions)
 
     @property
     def needs_world_node(self) -> bool:
@@ -160,7 +205,51 @@ def _swarm() -> Scenario:
     )
 
 
-SCENARIOS = {s.name: s for s in (_paper_test1(), _paper_test2(), _relay(), _swarm())}
+def _paths() -> Scenario:
+    # Holding formation: a slow drift (peak 8 cm/s) plus each vehicle's own oscillation.
+    line = tj.shuttle((0.0, 0.0, 1.2), (0.4, 0.0, 1.2), 16.0)
+    trajectories: dict[str, Trajectory] = {
+        "lead": tj.Quadrotor(line, tj.constant_yaw(0.0), tj.Oscillation((0.015, 0.015, 0.01), 0.9, 0.5, seed=40)),
+        "wing": tj.Quadrotor(
+            tj.offset(line, (0.0, -1.0, 0.0)),
+            tj.constant_yaw(0.0),
+            tj.Oscillation((0.015, 0.015, 0.01), 1.1, 0.5, seed=41),
+        ),
+    }
+    return Scenario(
+        name="paths",
+        description="a short noisy path (a far wall tag) and a long precise one (ceiling -> wing -> lead) for the lead",
+        world_file="paths.yaml",
+        duration_s=20.0,
+        trajectories=trajectories,
+        drones=("lead", "wing"),
+        scored=("lead", "wing"),
+        optics={n: Optics(hfov_deg=70.0) for n in ("lead.front", "wing.left", "world.ceiling")},
+    )
+
+
+def _gaps() -> Scenario:
+    # Cruising at about 1 m/s over a sparse tag field: tags leave the view between rows, and something
+    # (a swinging payload cable) blocks the camera for 0.1-0.6 s every 0.6-2 s.
+    drone = tj.Quadrotor(
+        path=tj.lissajous((0.0, 0.0, 1.2), (2.0, 1.0, 0.1), (0.08, 0.13, 0.05)),
+        yaw=tj.slow_yaw(0.0, 20.0, 13.0),
+        oscillation=tj.Oscillation((0.02, 0.02, 0.01), 1.0, 0.8, seed=50),
+    )
+    return Scenario(
+        name="gaps",
+        description="detection gaps of 0.1-0.6 s: tags leave the view of a cruising drone, the camera is occluded",
+        world_file="gaps.yaml",
+        duration_s=20.0,
+        trajectories={"drone": drone},
+        drones=("drone",),
+        scored=("drone",),
+        optics={"drone.down": Optics(hfov_deg=70.0)},
+        occlusions=(Occlusions("drone.down", seed=51),),
+    )
+
+
+SCENARIOS = {s.name: s for s in (_paper_test1(), _paper_test2(), _relay(), _swarm(), _paths(), _gaps())}
 DEFAULT = "swarm"
 
 

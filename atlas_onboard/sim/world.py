@@ -75,6 +75,7 @@ class SimWorld:
         self.scenario = scenario
         self.world = world if world is not None else scenario.world()
         self.cameras: dict[int, tuple[SensorConfig, Intrinsics]] = {}
+        self._visibility: dict[tuple[float, float], tuple[NDArray[np.float64], dict[str, NDArray[np.bool_]]]] = {}
         for ent in self.world.entities:
             for s in ent.sensors:
                 if s.camera is not None and s.camera.width_px > 0:
@@ -99,12 +100,15 @@ class SimWorld:
             return np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
         return traj.pose(np.asarray(t, dtype=float))
 
-    def sightings(self, sensor_id: int, truth: dict[str, RigidTransform]) -> list[Sighting]:
-        """Markers the camera sees: in the image, facing it, big enough, not hidden by a nearer marker.
+    def sightings(self, sensor_id: int, truth: dict[str, RigidTransform], t_s: float | None = None) -> list[Sighting]:
+        """Markers the camera sees: in the image, facing it, big enough, not hidden by a nearer marker,
+        and none while the scenario's occlusions block the camera's view at ``t_s`` (when given).
 
         Sorted far to near, the order in which a renderer paints them.
         """
         sensor, intr = self.cameras[sensor_id]
+        if t_s is not None and self.scenario.occluded(sensor.entity, sensor.name, t_s):
+            return []
         T_world_sensor = truth[sensor.entity] * sensor.T_entity_sensor
         T_sensor_world = T_world_sensor.inv()
         candidates = []
@@ -141,18 +145,45 @@ class SimWorld:
     def observed_edges(self, t: float) -> list[tuple[str, str]]:
         """(observer entity, observed entity) pairs a camera can see at time t (mocap included)."""
         truth = self.truth(t)
-        edges = [(s.sensor.entity, s.marker.entity) for sid in self.cameras for s in self.sightings(sid, truth)]
+        edges = [(s.sensor.entity, s.marker.entity) for sid in self.cameras for s in self.sightings(sid, truth, t)]
         if self.scenario.mocap is not None:
             edges += [(WORLD, name) for name in self.scenario.drones]
         return edges
 
-    def expected_availability(self, times: NDArray[np.float64]) -> dict[str, float]:
-        """Share of ``times`` at which each entity has a path of visible markers to the world."""
-        hits = dict.fromkeys(self.world.entity_names, 0)
-        for t in times:
-            for name in _reachable(self.observed_edges(float(t))):
-                hits[name] += 1
-        return {n: hits[n] / max(len(times), 1) for n in self.world.entity_names if n != WORLD}
+    def frame_period_s(self) -> float:
+        """The shortest period of the scenario's sensors (cameras and mocap), seconds."""
+        rates = [s.camera.fps for s, _ in self.cameras.values() if s.camera is not None and s.camera.fps > 0]
+        if self.scenario.mocap is not None:
+            rates.append(self.scenario.mocap.rate_hz)
+        return 1.0 / max(rates, default=30.0)
+
+    def expected_availability(self, t0_s: float, t1_s: float, bin_s: float = 0.1) -> dict[str, float]:
+        """Share of the ``bin_s`` bins of [t0, t1] in which each entity has a path of visible markers to
+        the world at some frame time (multiples of :meth:`frame_period_s`): the bins in which a node
+        could have published, as :func:`atlas_onboard.sim.report.score` counts the ones it did."""
+        frames, reached = self._frame_visibility(t0_s, t1_s)
+        bins = max(round((t1_s - t0_s) / bin_s), 1)
+        index = np.minimum(((frames - t0_s) / bin_s + 1e-9).astype(int), bins - 1)
+        out = {}
+        for name, seen in reached.items():
+            hit = np.zeros(bins, dtype=bool)
+            hit[index[seen]] = True
+            out[name] = float(hit.mean())
+        return out
+
+    def _frame_visibility(self, t0_s: float, t1_s: float) -> tuple[NDArray[np.float64], dict[str, NDArray[np.bool_]]]:
+        """Frame times in [t0, t1] and, per entity, whether it had a path to the world at each (cached)."""
+        key = (t0_s, t1_s)
+        if key not in self._visibility:
+            step = self.frame_period_s()
+            frames = np.arange(np.ceil(t0_s / step - 1e-9), np.floor(t1_s / step + 1e-9) + 1) * step
+            names = [n for n in self.world.entity_names if n != WORLD]
+            reached = {n: np.zeros(len(frames), dtype=bool) for n in names}
+            for i, t in enumerate(frames):
+                for name in _reachable(self.observed_edges(float(t))) - {WORLD}:
+                    reached[name][i] = True
+            self._visibility[key] = (frames, reached)
+        return self._visibility[key]
 
 
 def _reachable(edges: list[tuple[str, str]]) -> set[str]:
