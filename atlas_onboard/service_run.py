@@ -4,46 +4,15 @@ from __future__ import annotations
 
 import logging
 import os
-import socket
 import sys
 from pathlib import Path
 
 from atlas_onboard.config import WORLD, ConfigError, NodeConfig, WorldConfig, load_node, read_yaml
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.node import Camera, Node, install_signal_handlers
+from atlas_onboard.service import Notifier, watchdog_interval_us
 
 _logger = logging.getLogger(__name__)
-
-
-class Notifier:
-    """systemd's notify protocol (READY=1, WATCHDOG=1, STOPPING=1, STATUS=...), dependency-free."""
-
-    def __init__(self, address: str) -> None:
-        self.address = "\0" + address[1:] if address.startswith("@") else address
-        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
-
-    @classmethod
-    def from_env(cls) -> Notifier | None:
-        addr = os.environ.get("NOTIFY_SOCKET")
-        return cls(addr) if addr else None
-
-    def notify(self, *lines: str) -> None:
-        try:
-            self.sock.sendto("\n".join(lines).encode(), self.address)
-        except OSError as exc:
-            _logger.debug("sd_notify failed: %s", exc)
-
-
-def watchdog_interval_ns() -> int | None:
-    """Half of systemd's WatchdogSec (WATCHDOG_USEC), when the watchdog is meant for this process."""
-    usec = os.environ.get("WATCHDOG_USEC")
-    pid = os.environ.get("WATCHDOG_PID")
-    if not usec or (pid and pid != str(os.getpid())):
-        return None
-    try:
-        return int(usec) * 1000 // 2
-    except ValueError:
-        return None
 
 
 def choose_entity(path: Path, entity: str | None) -> str:
@@ -118,10 +87,10 @@ def run_node(config_path: Path, entity: str | None) -> int:
 
     transport = MavlinkTransport(world, config)
     cameras = build_cameras(world, config)
-    node = Node(world, config, transport, cameras, notifier=Notifier.from_env(), config_path=config_path)
-    interval = watchdog_interval_ns()
-    if interval is not None:
-        node.watchdog_interval_ns = interval
+    node = Node(world, config, transport, cameras, notifier=Notifier.from_environ(), config_path=config_path)
+    interval_us = watchdog_interval_us()  # half of systemd's WatchdogSec, when meant for this process
+    if interval_us is not None:
+        node.watchdog_interval_ns = interval_us * 1000
     install_signal_handlers(node)
     # Link threads decode bursts of datagrams while holding the GIL; with Python's default 5 ms switch
     # interval the main loop would wait up to that long for its turn. Latency matters more here.
