@@ -64,6 +64,17 @@ def test_reset_counter_on_found_again_and_on_jump():
     assert pub.autopilot(g.evaluate(420 * MS), 420 * MS)[0].reset_counter == 2
 
 
+def test_reset_counter_wraps_like_the_uint8_field_and_a_loss_before_any_pose_is_no_reset():
+    pub = Publisher("d", rate_hz=1000, reset_jump_m=0.5)
+    g = TransformGraph(["world", "d"], 250 * MS)
+    assert pub.autopilot(g.evaluate(0), 0) == (None, None)  # nothing yet: no loss to report
+    graph_with([0, 0, 0], 1, 10 * MS, g)
+    assert pub.autopilot(g.evaluate(10 * MS), 10 * MS)[0].reset_counter == 0
+    pub.reset_counter = 255
+    graph_with([5, 5, 5], 2, 20 * MS, g)
+    assert pub.autopilot(g.evaluate(20 * MS), 20 * MS)[0].reset_counter == 0
+
+
 def test_non_finite_pose_is_never_sent():
     pub = Publisher("d")
     g = graph_with([np.nan, 0, 0], 1, 0)

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -209,7 +208,7 @@ def vision_position_estimate_fields(
     Args:
         T_enu_flu: the body's pose in the world (ENU world, FLU body).
         capture_time_us: capture time of the newest observation that contributed (UNIX epoch, us).
-        reset_counter: the current reset counter (see :class:`ResetCounter`); sent modulo 256.
+        reset_counter: the current reset counter (:class:`atlas_onboard.publisher.Publisher` keeps it); sent modulo 256.
         sigma_m: position standard deviation (m); the attitude's follows from it.
         covariance_enu_flu: or a full 6x6 covariance (m^2, rad^2) of x y z in ENU and small
             rotations about the FLU body axes; it wins over ``sigma_m``.
@@ -283,31 +282,3 @@ def set_gps_global_origin_fields(
         "altitude": round(alt_m * 1000.0),
         "time_usec": max(int(time_usec), 0),
     }
-
-
-@dataclass(slots=True)
-class ResetCounter:
-    """The ``reset_counter`` to send: it increments when the pose was lost and is found again, or when
-    the published position jumps by more than ``jump_m``. Pure: feed it every pose about to be sent,
-    and None whenever the pose is lost.
-
-    The first pose ever sent does not count as a jump (there is nothing to reset from).
-    """
-
-    jump_m: float = 0.5
-    value: int = 0
-    _last_p_m: np.ndarray | None = field(default=None, repr=False)
-    _lost: bool = False
-
-    def update(self, p_m: Sequence[float] | np.ndarray | None) -> int:
-        """The counter for a pose at position ``p_m`` (any frame, metres), or note a loss (None)."""
-        if p_m is None:
-            if self._last_p_m is not None:
-                self._lost = True
-            return self.value
-        p = np.asarray(p_m, dtype=float)
-        if self._last_p_m is not None and (self._lost or float(np.linalg.norm(p - self._last_p_m)) > self.jump_m):
-            self.value = (self.value + 1) % 256
-        self._lost = False
-        self._last_p_m = p.copy()
-        return self.value

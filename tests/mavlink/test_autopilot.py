@@ -161,25 +161,6 @@ def test_vision_fields_rebuild_the_ned_pose(p, yaw, pitch, roll):
     np.testing.assert_allclose(R_enu_ned.apply([f["x"], f["y"], f["z"]]), p, atol=1e-9)
 
 
-def test_reset_counter_counts_loss_and_jumps_only():
-    rc = autopilot.ResetCounter(jump_m=0.5)
-    assert rc.update([0, 0, 0]) == 0  # the first pose is no jump
-    assert rc.update([0.3, 0, 0]) == 0  # 0.3 m: within the threshold
-    assert rc.update([0.3, 0.6, 0]) == 1  # 0.6 m step
-    assert rc.update(None) == 1  # lost
-    assert rc.update(None) == 1
-    assert rc.update([0.3, 0.6, 0]) == 2  # found again, even in the same place
-    assert rc.update([0.3, 0.6, 0.1]) == 2
-    rc.value = 255
-    assert rc.update([5, 5, 5]) == 0  # wraps like the uint8 field
-
-
-def test_reset_counter_loss_before_any_pose_is_no_reset():
-    rc = autopilot.ResetCounter()
-    assert rc.update(None) == 0
-    assert rc.update([1, 2, 3]) == 0
-
-
 def test_heartbeat_fields():
     f = autopilot.heartbeat_fields()
     assert (f["type"], f["autopilot"], f["system_status"]) == (18, 8, 4)
