@@ -1,5 +1,6 @@
 """The node as a systemd service: the notify protocol (READY, WATCHDOG, STOPPING) against a test
-NOTIFY_SOCKET, a clean exit on SIGTERM, and an autopilot on a serial port that vanishes and returns."""
+NOTIFY_SOCKET, a clean exit on SIGTERM that leaves no child process or socket behind, SIGHUP with a
+broken file, and an autopilot on a serial port that vanishes and returns."""
 
 import os
 import socket
@@ -141,4 +142,64 @@ def test_sighup_with_a_broken_file_keeps_the_running_config(tmp_path):
     finally:
         peer.close()
         assert node.stop() == 0
+        ap.stop()
+
+
+def _socket_inodes(pid):
+    out = set()
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        try:
+            target = os.readlink(f"/proc/{pid}/fd/{fd}")
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            out.add(int(target[8:-1]))
+    return out
+
+
+def _children(pid):
+    kids = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = open(f"/proc/{entry}/stat").read().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(stat[1]) == pid:
+                kids.append(int(entry))
+    return kids
+
+
+def _live_socket_inodes():
+    inodes = set()
+    for table in ("udp", "udp6", "tcp", "tcp6", "unix"):
+        try:
+            lines = open(f"/proc/net/{table}").read().splitlines()[1:]
+        except OSError:
+            continue
+        col = 6 if table == "unix" else 9
+        inodes |= {int(line.split()[col]) for line in lines if len(line.split()) > col}
+    return inodes
+
+
+def test_sigterm_leaves_no_child_process_or_socket_behind(tmp_path):
+    from atlas_onboard.sim.autopilot import SimAutopilot
+
+    ap = SimAutopilot(system_id=1).start()
+    port = free_udp_port()
+    path = write_world(tmp_path, world_doc(port, ap.port))
+    node = NodeProcess(path, "d1")
+    try:
+        assert wait_for(lambda: ap.heartbeats_from.get((1, 197), 0) > 0), node.log()
+        pid = node.proc.pid
+        sockets = _socket_inodes(pid)
+        children = _children(pid)
+        assert sockets, "the node holds its link sockets while running"
+        assert node.stop() == 0
+        assert not [k for k in children if os.path.exists(f"/proc/{k}")]  # no child outlives it
+        assert not sockets & _live_socket_inodes()  # none of its sockets is left open
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.bind(("127.0.0.1", port))  # its listening port is free again at once
+        s.close()
+    finally:
         ap.stop()
