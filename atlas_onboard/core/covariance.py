@@ -147,9 +147,9 @@ def fuse(
     out = np.zeros((n, 6, 6))
     np.add.at(out, child, (w**2)[:, None, None] * edge_term)
     # Group the candidates by (child, parent): their parent Jacobians add before the parent's covariance.
-    pairs, inverse = np.unique(np.stack([child, parent], axis=1), axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    A = np.zeros((len(pairs), 6, 6))
-    np.add.at(A, inverse, w[:, None, None] * Jp)
-    np.add.at(out, pairs[:, 0], transform(A, C_parent[pairs[:, 1]]))
+    base = len(C_parent)
+    keys, inverse = np.unique(child.astype(np.int64) * base + parent, return_inverse=True)
+    A = np.zeros((len(keys), 6, 6))
+    np.add.at(A, inverse.reshape(-1), w[:, None, None] * Jp)
+    np.add.at(out, keys // base, transform(A, C_parent[keys % base]))
     return out
