@@ -35,7 +35,7 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
         if cam is None or not cam.source:
             continue
         if cam.source == "sim":
-            from atlas_onboard.sim.camera import SimCameraWorker, geometric_detector, rendered_detector
+            from atlas_onboard.sim.camera import SimCameraWorker, camera_seed, geometric_detector, rendered_detector
             from atlas_onboard.sim.sources import MocapWorker, SimContext
             from atlas_onboard.sim.world import SimWorld
 
@@ -44,7 +44,7 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
             if mocap is not None and config.entity == WORLD and sensor.name == mocap.sensor:
                 cameras.append(MocapWorker(context, world, sensor.id))
                 continue
-            seed = context.seed * 1000 + sensor.id
+            seed = camera_seed(context.seed, sensor.id)
             if os.environ.get("ATLAS_SIM_GEOMETRIC"):  # no images: corners from geometry plus noise
                 intr = SimWorld(context.scenario, world).cameras[sensor.id][1]
                 detect = geometric_detector(context, sensor, intr, seed)

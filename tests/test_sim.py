@@ -25,12 +25,14 @@ def run_and_score(scenario, duration, **kw):
 
 
 def test_paper_test1_self_localization():
-    e, rep = run_and_score("paper-test1", 8)
+    e, rep = run_and_score("paper-test1", 12)
     drone = e["ardrone"]
     print(rep.table())
     assert drone.rmse_m <= 0.02, f"RMSE {drone.rmse_m:.4f} m"
     assert drone.attitude_rmse_deg <= 1.0
-    assert drone.availability >= 0.9 and drone.messages >= 100
+    # The camera runs at 30 Hz: 11 s scored hold 330 frames, and at least half of them must reach
+    # the autopilot (the rest may be dropped by a detector that falls behind, as on a small computer).
+    assert drone.availability >= 0.9 and drone.messages >= 165
 
 
 def test_paper_test2_entity_localization(tmp_path):
@@ -52,7 +54,7 @@ def test_paper_test2_entity_localization(tmp_path):
 
 
 def test_relay_localizes_a_drone_that_sees_no_world_marker():
-    e, rep = run_and_score("relay", 10)
+    e, rep = run_and_score("relay", 14)
     print(rep.table())
     c = e["drone_c"]
     assert c.availability >= 0.95, f"availability {c.availability:.3f}"
@@ -64,7 +66,7 @@ def test_swarm_each_drone_within_its_expected_availability():
     print(rep.table())
     for name in ("d1", "d2", "d3", "d4", "d5", "d6"):
         d = e[name]
-        # 10 Hz cameras scored in 100 ms bins: a dropped frame empties a bin, hence the 0.1 margin.
+        # 15 Hz cameras scored in 100 ms bins: a dropped frame can empty a bin, hence the 0.1 margin.
         assert d.availability >= d.expected_availability - 0.1, (name, d.availability, d.expected_availability)
         # Never more available than geometry allows, beyond the 250 ms an edge lives.
         assert d.availability <= d.expected_availability + 0.1, (name, d.availability, d.expected_availability)

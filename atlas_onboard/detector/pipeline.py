@@ -55,7 +55,9 @@ class Detector:
         wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
         self.finder = MarkerFinder(wanted, self.decimate)
         self._last: list[NDArray[np.float64]] = []  # boxes (x0, y0, x1, y1) of the previous frame's markers
-        self._frame = 0
+        # Whole-image searches every SCAN_EVERY frames, in a phase of their own for each sensor: the
+        # cameras of one node do not all search at once (their frames come at the same instants).
+        self._frame = self.sensor.id % SCAN_EVERY
 
     def find(self, gray: NDArray[np.uint8]) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.

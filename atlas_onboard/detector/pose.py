@@ -77,16 +77,13 @@ def camera_position_sigma(
         cov = sigma_px**2 * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         return math.inf
-    x0 = np.concatenate([np.ravel(rvec), np.ravel(tvec)]).astype(float)
-
-    def camera(x: NDArray[np.float64]) -> NDArray[np.float64]:  # c = -R^T t
-        return -Rotation.from_rotvec(x[:3]).inv().apply(x[3:])
-
-    Jc = np.zeros((3, 6))
-    for i in range(6):
-        d = np.zeros(6)
-        d[i] = 1e-6
-        Jc[:, i] = (camera(x0 + d) - camera(x0 - d)) / 2e-6
+    # The camera's position c = -R^T t: dc/dt = -R^T, dc/dr_i = -(dR/dr_i)^T t (Rodrigues' Jacobian).
+    R, dR = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
+    t = np.asarray(tvec, dtype=np.float64).ravel()
+    Jc = np.empty((3, 6))
+    for i in range(3):
+        Jc[:, i] = -dR[i].reshape(3, 3).T @ t
+    Jc[:, 3:] = -R.T
     var = float(np.linalg.eigvalsh(Jc @ cov @ Jc.T).max())
     fit = math.sqrt(1.0 + (err_px / sigma_px) ** 2) if math.isfinite(err_px) else 2.0
     return math.sqrt(max(var, 0.0)) * fit

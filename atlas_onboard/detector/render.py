@@ -8,6 +8,7 @@ The background is a smooth random texture; motion blur and pixel noise can be ad
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -77,36 +78,83 @@ def _project(camera: Camera, pts_cam: NDArray[np.float64]) -> NDArray[np.float64
     return px.reshape(-1, 2)
 
 
-def draw_marker(img: NDArray[np.float32], camera: Camera, view: MarkerView, supersample: int = 4) -> bool:
-    """Paint one marker into ``img`` in place; False if it is behind the camera or out of the image."""
-    bmp = _bitmap(view.family, view.marker_id)
+GRID_STEP = 4  # the lens undistortion is computed exactly on every GRID_STEP-th sample, interpolated between
+
+_grids: dict[tuple[object, ...], NDArray[np.float64]] = {}
+
+
+def _undistorted_grid(camera: Camera, supersample: int) -> NDArray[np.float64]:
+    """Normalized image coordinates (rows, cols, 2) of every ``GRID_STEP``-th sample of the whole image.
+
+    Sample k (along x) sits at pixel (k + 0.5) / supersample - 0.5 (pixel-centre convention); grid
+    point j is sample j * GRID_STEP. Computed once per camera and supersampling (cached), so that a
+    frame costs no undistortion; :func:`draw_marker` starts each region on a grid point.
+    """
+    key = (camera.width_px, camera.height_px, camera.K.tobytes(), np.asarray(camera.dist).tobytes(), supersample)
+    grid = _grids.get(key)
+    if grid is None:
+        if len(_grids) > 8:
+            _grids.clear()
+        s, step = supersample, GRID_STEP
+        gx = (np.arange(0, camera.width_px * s + 2 * step, step) + 0.5) / s - 0.5
+        gy = (np.arange(0, camera.height_px * s + 2 * step, step) + 0.5) / s - 0.5
+        pts = np.stack(np.meshgrid(gx, gy), axis=-1).reshape(-1, 1, 2)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-10)
+        norm = cv2.undistortPoints(pts, camera.K, camera.dist, None, None, criteria=crit)
+        grid = norm.reshape(len(gy), len(gx), 2).astype(np.float64)
+        _grids[key] = grid
+    return grid
+
+
+def prepare(camera: Camera, supersample: int = 4) -> None:
+    """Compute what :func:`render` caches for this camera now (a simulated camera calls it before its
+    first frame, so that the first frame is not late)."""
+    _undistorted_grid(camera, supersample)
+
+
+def _marker_box(camera: Camera, view: MarkerView) -> tuple[int, int, int, int] | None:
+    """The pixel box (x0, y0, x1, y1, inclusive) the marker with its quiet zone covers, or None."""
     fam = family(view.family)
-    n_px = bmp.shape[0]  # bitmap side in pixels, quiet zone included
-    cells_total = fam.cells + 2
-    side_m = view.size_m * cells_total / fam.cells  # printed size with the quiet zone
-    h = side_m / 2
+    h = view.size_m * (fam.cells + 2) / fam.cells / 2
     outline = np.array([[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]])
     pts = view.T_camera_marker.apply(outline)
     if np.any(pts[:, 2] <= 0.01):
-        return False
+        return None
     px = _project(camera, pts)
     x0, y0 = np.floor(px.min(axis=0)).astype(int) - 2
     x1, y1 = np.ceil(px.max(axis=0)).astype(int) + 2
-    x0, y0 = max(x0, 0), max(y0, 0)
-    x1, y1 = min(x1, camera.width_px - 1), min(y1, camera.height_px - 1)
+    x0, y0 = max(int(x0), 0), max(int(y0), 0)
+    x1, y1 = min(int(x1), camera.width_px - 1), min(int(y1), camera.height_px - 1)
     if x1 <= x0 or y1 <= y0:
-        return False
-    s = supersample
+        return None
+    return x0, y0, x1, y1
+
+
+def draw_marker(
+    img: NDArray[np.float32], camera: Camera, view: MarkerView, supersample: int = 4
+) -> tuple[int, int, int, int] | None:
+    """Paint one marker into ``img`` in place; the pixel box it covers, or None if it is behind the
+    camera or out of the image."""
+    box = _marker_box(camera, view)
+    if box is None:
+        return None
+    bmp = _bitmap(view.family, view.marker_id)
+    fam = family(view.family)
+    n_px = bmp.shape[0]  # bitmap side in pixels, quiet zone included
+    side_m = view.size_m * (fam.cells + 2) / fam.cells  # printed size with the quiet zone
+    h = side_m / 2
+    s, step = supersample, GRID_STEP
+    # Start the region on a point of the cached grid: sample 0 of the region is global sample x0 * s,
+    # a grid point when x0 * s is a multiple of the step.
+    align = step // math.gcd(step, s)
+    x0, y0, x1, y1 = box
+    x0, y0 = x0 - x0 % align, y0 - y0 % align
     w, hgt = (x1 - x0 + 1) * s, (y1 - y0 + 1) * s
-    # Sample positions (pixel-centre convention) on a coarse grid; distortion is smooth, so the
-    # exact undistortion on a grid of every 4th sample, resized, is accurate to well under 0.01 px.
-    step = 4
-    gx = x0 + (np.arange(0, w + step, step) + 0.5) / s - 0.5  # sample k: x0 + (k + 0.5) / s - 0.5
-    gy = y0 + (np.arange(0, hgt + step, step) + 0.5) / s - 0.5
-    grid = np.stack(np.meshgrid(gx, gy), axis=-1).reshape(-1, 1, 2)
-    norm = cv2.undistortPoints(
-        grid, camera.K, camera.dist, None, None, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-10)
-    ).reshape(len(gy), len(gx), 2)
+    # Distortion is smooth: the exact undistortion on every 4th sample, interpolated, is accurate to
+    # well under 0.01 px.
+    j0, i0 = x0 * s // step, y0 * s // step
+    nx, ny = len(range(0, w + step, step)), len(range(0, hgt + step, step))
+    norm = _undistorted_grid(camera, s)[i0 : i0 + ny, j0 : j0 + nx]
     # Ray through each sample hits the marker plane: solve in the marker frame.
     R = view.T_camera_marker.rotation.as_matrix()
     t = view.T_camera_marker.translation
@@ -130,7 +178,7 @@ def draw_marker(img: NDArray[np.float32], camera: Camera, view: MarkerView, supe
     under = cv2.resize(region, (w, hgt), interpolation=cv2.INTER_NEAREST)
     mixed = np.where(inside, samples, under)
     region[:] = cv2.resize(mixed, (x1 - x0 + 1, y1 - y0 + 1), interpolation=cv2.INTER_AREA)
-    return True
+    return box
 
 
 def render(
@@ -148,8 +196,11 @@ def render(
     ``blur_px`` is the motion of the image during the exposure (dx, dy in pixels): a linear blur.
     """
     img = background(camera, background_seed)
+    boxes = []
     for view in sorted(views, key=lambda v: -float(np.linalg.norm(v.T_camera_marker.translation))):
-        draw_marker(img, camera, view, supersample)
+        box = draw_marker(img, camera, view, supersample)
+        if box is not None:
+            boxes.append(box)
     length = float(np.hypot(*blur_px))
     if length >= 0.5:
         k = int(np.ceil(length)) * 2 + 1
@@ -158,10 +209,46 @@ def render(
         n = max(int(np.ceil(length * 4)), 2)
         for a in np.linspace(-0.5, 0.5, n):
             kernel[round(c + a * blur_px[1]), round(c + a * blur_px[0])] += 1.0
-        img = cv2.filter2D(img, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REPLICATE)
+        kernel /= kernel.sum()
+        # The background is a smooth texture that blur hardly changes: only the markers' regions
+        # (grown by the blur's reach, merged where they overlap) are blurred, each from the whole image.
+        height, width = img.shape[:2]
+        grown = [
+            (max(b[0] - k, 0), max(b[1] - k, 0), min(b[2] + k, width - 1), min(b[3] + k, height - 1)) for b in boxes
+        ]
+        blurred = img.copy()
+        for x0, y0, x1, y1 in _merged(grown):
+            # Source rows and columns k beyond the region (or the image border, replicated).
+            sx0, sy0, sx1, sy1 = max(x0 - k, 0), max(y0 - k, 0), min(x1 + k, width - 1), min(y1 + k, height - 1)
+            src = img[sy0 : sy1 + 1, sx0 : sx1 + 1]  # at the image border, replicated as before
+            out = cv2.filter2D(src, -1, kernel, borderType=cv2.BORDER_REPLICATE)
+            blurred[y0 : y1 + 1, x0 : x1 + 1] = out[y0 - sy0 : y1 - sy0 + 1, x0 - sx0 : x1 - sx0 + 1]
+        img = blurred
     if noise_sigma > 0:
         noise = np.empty(img.shape, np.float32)
         cv2.setRNGSeed(seed)
         cv2.randn(noise, 0.0, noise_sigma)
         img += noise
-    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    # Round to the nearest grey level and saturate to 0..255 (as np.clip(np.rint(img), 0, 255), in
+    # two passes: convertScaleAbs rounds half to even and saturates, the maximum drops negatives first).
+    np.maximum(img, 0.0, out=img)
+    return cv2.convertScaleAbs(img)
+
+
+def _merged(boxes: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
+    """Boxes (x0, y0, x1, y1, inclusive) merged into disjoint ones: overlapping boxes become their union."""
+    out = list(boxes)
+    merged = True
+    while merged:
+        merged = False
+        for i in range(len(out)):
+            for j in range(i + 1, len(out)):
+                a, b = out[i], out[j]
+                if a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]:
+                    out[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+                    del out[j]
+                    merged = True
+                    break
+            if merged:
+                break
+    return out

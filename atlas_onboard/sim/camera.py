@@ -7,15 +7,24 @@ solved by PnP) rather than from rendered images; :mod:`atlas_onboard.detector` r
 
 from __future__ import annotations
 
+import itertools
 import logging
+import math
+import multiprocessing as mp
+import os
+import threading
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import SensorConfig, WorldConfig
+from atlas_onboard.config import SensorConfig, WorldConfig, load_world
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.sim.scenarios import Scenario
 from atlas_onboard.sim.sources import SimContext
 from atlas_onboard.sim.world import Sighting, SimWorld
 from atlas_onboard.worker import SensorWorker
@@ -23,6 +32,7 @@ from atlas_onboard.worker import SensorWorker
 _logger = logging.getLogger(__name__)
 
 NOISE_PX = 0.3  # corner noise of the geometric detector, pixels
+SUPERSAMPLE = 3  # rendered cameras: samples per pixel along each axis
 FrameHandler = Callable[[float, list[Sighting], dict[str, object]], list[MarkerData]]
 
 
@@ -62,12 +72,14 @@ class SimCameraWorker(SensorWorker):
                 self.skipped += missed
                 k += missed
                 continue
+            index = k
             k += 1
             self.frames += 1
-            truth = self.sim.truth(t)
-            sightings = self.sim.sightings(self.sensor.id, truth, t)
+            # Ground truth only when the detector needs it (not for images rendered before the run).
+            truth = self.sim.truth(t) if getattr(self.detect, "needs_truth", True) else {}
+            sightings = self.sim.sightings(self.sensor.id, truth, t) if truth else []
             try:
-                found = self.detect(t, sightings, {"truth": truth, "epoch": epoch, "frame": k})
+                found = self.detect(t, sightings, {"truth": truth, "epoch": epoch, "index": index})
             except Exception:  # a detector bug must not kill the camera thread; the frame is lost
                 _logger.exception("camera %s: detection failed", self.name)
                 continue
@@ -120,45 +132,133 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
     return detect
 
 
-def rendered_detector(context: SimContext, world: WorldConfig, sensor: SensorConfig, seed: int) -> FrameHandler:
-    """Render the frame the camera would see (noise, motion blur) and run the real detector on it."""
-    from atlas_onboard.detector.calibration import load as load_calibration
-    from atlas_onboard.detector.pipeline import Detector
-    from atlas_onboard.detector.render import Camera, MarkerView, render
+def camera_seed(run_seed: int, sensor_id: int) -> int:
+    """The seed of one camera's images (pixel noise) in a run."""
+    return run_seed * 1000 + sensor_id
 
-    assert sensor.camera is not None and sensor.camera.calibration is not None
-    cal = load_calibration(sensor.camera.calibration)
-    cam = Camera(cal.width_px, cal.height_px, cal.K, cal.dist)
-    detector = Detector(sensor, world, cal, decimate=2.0)
-    optics = context.scenario.optics_of(sensor.entity, sensor.name)
-    sim = SimWorld(context.scenario, world)
-    dt = 1e-3
 
-    def detect(t: float, sightings: list[Sighting], info: dict[str, object]) -> list[MarkerData]:
-        epoch = float(info["epoch"])  # type: ignore[arg-type]
-        frame = int(info["frame"])  # type: ignore[call-overload]
-        truth = info["truth"]
+def frames_path(directory: Path, sensor_id: int) -> Path:
+    """Where a run keeps the pre-rendered images of one camera (an ``.npy`` array frames x rows x cols)."""
+    return directory / f"frames-{sensor_id}.npy"
+
+
+class FrameRenderer:
+    """The image a simulated camera takes at frame index j (time j / fps): the markers it sees, with
+    the scenario's optics (lens distortion, pixel noise, motion blur), rendered from ground truth."""
+
+    def __init__(self, scenario: Scenario, world: WorldConfig, sensor: SensorConfig, seed: int) -> None:
+        from atlas_onboard.detector.render import Camera, prepare
+
+        self.sim = SimWorld(scenario, world)
+        self.sensor = sensor
+        self.seed = seed
+        self.intr = self.sim.cameras[sensor.id][1]
+        self.cam = Camera(
+            self.intr.width_px, self.intr.height_px, self.intr.camera_matrix, np.array(self.intr.distortion)
+        )
+        self.optics = scenario.optics_of(sensor.entity, sensor.name)
+        assert sensor.camera is not None
+        self.fps = sensor.camera.fps if sensor.camera.fps > 0 else 30.0
+        self._M_entity_sensor = sensor.T_entity_sensor.as_matrix()
+        prepare(self.cam, SUPERSAMPLE)  # the renderer's per-camera tables, before the first frame
+
+    def __call__(self, index: int) -> NDArray[np.uint8]:
+        from atlas_onboard.detector.render import MarkerView, render
+
+        t = index / self.fps
+        sensor, dt = self.sensor, 1e-3
+        sightings = self.sim.sightings(sensor.id, self.sim.truth(t), t)
         views = [MarkerView(s.marker.family, s.marker.id, s.marker.size_m, s.T_sensor_marker) for s in sightings]
         # Motion blur: how far the image of the marker centres moves during the exposure.
         blur = (0.0, 0.0)
-        if sightings and optics.exposure_s > 0:
-            later = sim.truth(t + dt)
+        if sightings and self.optics.exposure_s > 0:
+            later = self.sim.truth(t + dt, {sensor.entity} | {s.marker.entity for s in sightings})
+            M_later_sensor = np.linalg.inv(later[sensor.entity].as_matrix() @ self._M_entity_sensor)
             shifts = []
             for s in sightings:
-                T_later = (
-                    (later[sensor.entity] * sensor.T_entity_sensor).inv()
-                    * later[s.marker.entity]
-                    * s.marker.T_entity_marker
-                )
-                a = sim.cameras[sensor.id][1].project(s.T_sensor_marker.translation[None, :])[0]
-                b = sim.cameras[sensor.id][1].project(T_later.translation[None, :])[0]
-                shifts.append((b - a) * optics.exposure_s / dt)
+                M_marker = later[s.marker.entity].as_matrix() @ s.marker.T_entity_marker.as_matrix()
+                a = self.intr.project(s.T_sensor_marker.translation[None, :])[0]
+                b = self.intr.project((M_later_sensor @ M_marker)[None, :3, 3])[0]
+                shifts.append((b - a) * self.optics.exposure_s / dt)
             blur = tuple(np.mean(shifts, axis=0))  # type: ignore[assignment]
-        del truth
-        img = render(cam, views, seed=seed + frame, noise_sigma=optics.noise_sigma, blur_px=blur, supersample=3)
+        return render(
+            self.cam,
+            views,
+            seed=self.seed + index + 1,
+            noise_sigma=self.optics.noise_sigma,
+            blur_px=blur,
+            supersample=SUPERSAMPLE,
+        )
+
+
+def rendered_detector(context: SimContext, world: WorldConfig, sensor: SensorConfig, seed: int) -> FrameHandler:
+    """Run the real detector on the frame the camera would see: the run's pre-rendered image of that
+    instant when there is one (:func:`prerender`), otherwise rendered now."""
+    from atlas_onboard.detector.calibration import load as load_calibration
+    from atlas_onboard.detector.pipeline import Detector
+
+    assert sensor.camera is not None and sensor.camera.calibration is not None
+    detector = Detector(sensor, world, load_calibration(sensor.camera.calibration), decimate=2.0)
+    renderer = FrameRenderer(context.scenario, world, sensor, seed)
+    frames: NDArray[np.uint8] | None = None
+    if context.frames_dir is not None and frames_path(context.frames_dir, sensor.id).exists():
+        frames = np.load(frames_path(context.frames_dir, sensor.id), mmap_mode="r")
+
+    def detect(t: float, sightings: list[Sighting], info: dict[str, object]) -> list[MarkerData]:
+        epoch = float(info["epoch"])  # type: ignore[arg-type]
+        index = int(info["index"])  # type: ignore[call-overload]
+        img = np.array(frames[index]) if frames is not None and index < len(frames) else renderer(index)
         return detector.detect(img, round((epoch + t) * 1e6))
 
+    detect.needs_truth = False  # type: ignore[attr-defined]  # it renders from the index alone
     return detect
+
+
+def _render_frames(args: tuple[str, Path, int, int, Path, int, int]) -> None:
+    from atlas_onboard.sim import scenarios
+
+    scenario, world_file, sensor_id, seed, path, start, stop = args
+    world = load_world(world_file)
+    renderer = FrameRenderer(scenarios.get(scenario), world, world.sensors[sensor_id], seed)
+    frames = np.load(path, mmap_mode="r+")
+    for j in range(start, stop):
+        frames[j] = renderer(j)
+    frames.flush()
+
+
+def prerender(scenario: Scenario, world_file: Path, run_seed: int, duration_s: float, directory: Path) -> int:
+    """Render every frame of the run's cameras before it starts, on all cores, into ``directory``.
+
+    A real drone's camera delivers its images for free; rendering them while the run goes would
+    charge the node's processor for work the drone never does, and on a small machine make the
+    figures depend on its speed. Returns the number of frames rendered."""
+    world = load_world(world_file)
+    jobs = []
+    total = 0
+    for sensor_id in SimWorld(scenario, world).cameras:
+        sensor = world.sensors[sensor_id]
+        assert sensor.camera is not None
+        if sensor.camera.source != "sim":
+            continue
+        fps = sensor.camera.fps if sensor.camera.fps > 0 else 30.0
+        n = math.floor(duration_s * fps) + 2
+        shape = (n, sensor.camera.height_px, sensor.camera.width_px)
+        path = frames_path(directory, sensor_id)
+        np.lib.format.open_memmap(path, mode="w+", dtype=np.uint8, shape=shape).flush()
+        workers = os.cpu_count() or 1
+        bounds = np.linspace(0, n, workers + 1).astype(int)
+        seed = camera_seed(run_seed, sensor_id)
+        jobs += [
+            (scenario.name, world_file, sensor_id, seed, path, int(a), int(b)) for a, b in itertools.pairwise(bounds)
+        ]
+        total += n
+    if not jobs:
+        return 0
+    # Fork when this process has no other thread (fast, nothing to import again); spawn otherwise.
+    method = "fork" if threading.active_count() == 1 and "fork" in mp.get_all_start_methods() else "spawn"
+    with ProcessPoolExecutor(max_workers=min(len(jobs), os.cpu_count() or 1), mp_context=mp.get_context(method)) as ex:
+        list(ex.map(_render_frames, jobs))
+    return total
 
 
 def _alt_fields(rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray]) -> dict[str, tuple[float, ...]]:

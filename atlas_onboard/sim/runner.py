@@ -38,6 +38,7 @@ from atlas_onboard.config import WORLD
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
+from atlas_onboard.sim.camera import prerender
 from atlas_onboard.sim.hub import Hub
 from atlas_onboard.sim.sources import SIM_ENV
 from atlas_onboard.sim.world import Intrinsics, SimWorld
@@ -163,6 +164,16 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
     if not 2.0 <= duration <= 3600.0:
         raise AtlasError(f"--duration: expected 2 to 3600 seconds, got {duration:g}")
     run_dir = Path(tempfile.mkdtemp(prefix=f"atlas-sim-{scenario.name}-"))
+    frames_dir = None
+    if not os.environ.get("ATLAS_SIM_GEOMETRIC"):
+        # Before any thread of ours starts (the renderer forks its workers).
+        say("rendering the cameras' images")
+        try:
+            if prerender(scenario, scenario.world_path(), options.seed, duration, run_dir):
+                frames_dir = run_dir
+        except BaseException:
+            shutil.rmtree(run_dir, ignore_errors=True)
+            raise
     taps: list[tuple[float, bytes]] = []
     hub = Hub(tap=lambda data, _addr, t: taps.append((t, data))).start()
     autopilots = {name: SimAutopilot(system_id=k).start() for k, name in enumerate(scenario.drones, start=1)}
@@ -177,7 +188,13 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
         epoch_file = run_dir / "epoch"
         env = dict(os.environ)
         env[SIM_ENV] = json.dumps(
-            {"scenario": scenario.name, "seed": options.seed, "epoch_file": str(epoch_file), "duration_s": duration}
+            {
+                "scenario": scenario.name,
+                "seed": options.seed,
+                "epoch_file": str(epoch_file),
+                "duration_s": duration,
+                "frames_dir": str(frames_dir) if frames_dir is not None else None,
+            }
         )
         entities = list(scenario.drones) + ([WORLD] if scenario.needs_world_node else [])
         with _processes() as procs:

@@ -40,6 +40,7 @@ class SimContext:
     seed: int
     epoch_file: Path
     duration_s: float
+    frames_dir: Path | None = None  # the cameras' pre-rendered images, if the runner made them
 
     @classmethod
     def from_env(cls) -> SimContext:
@@ -55,6 +56,7 @@ class SimContext:
                 int(doc.get("seed", 0)),
                 Path(doc["epoch_file"]),
                 float(doc["duration_s"]),
+                Path(doc["frames_dir"]) if doc.get("frames_dir") else None,
             )
         except (ValueError, KeyError, TypeError) as exc:
             raise AtlasError(f"{SIM_ENV}: expected JSON with scenario, epoch_file and duration_s ({exc})") from None

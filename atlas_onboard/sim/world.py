@@ -4,6 +4,7 @@ each camera can see (for rendering order and for the expected availability of ea
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import numpy as np
@@ -83,13 +84,26 @@ class SimWorld:
                         s.camera.width_px, s.camera.height_px, scenario.optics_of(ent.name, s.name)
                     )
                     self.cameras[s.id] = (s, intr)
+        # 4x4 matrices of the fixed mountings: sightings are computed with plain matrix products
+        # (scipy's RigidTransform costs a few hundred microseconds an operation).
+        self._T_entity_sensor = {sid: s.T_entity_sensor.as_matrix() for sid, (s, _) in self.cameras.items()}
+        self._markers = [
+            (m, m.T_entity_marker.as_matrix(), marker_corners(m.size_m)) for m in self.world.markers.values()
+        ]
 
-    def truth(self, t: float) -> dict[str, RigidTransform]:
-        """``T_world_entity`` of every entity at time t (entities without a trajectory sit at the origin)."""
-        out = {name: RigidTransform.identity() for name in self.world.entity_names}
+    def truth(self, t: float, names: Collection[str] | None = None) -> dict[str, RigidTransform]:
+        """``T_world_entity`` of every entity at time t (entities without a trajectory sit at the origin);
+        of the entities in ``names`` only, when given."""
+        identity = RigidTransform.identity()
+        out = dict.fromkeys(self.world.entity_names if names is None else names, identity)
         for name, traj in self.scenario.trajectories.items():
+            if names is not None and name not in out:
+                continue
             p, q = traj.pose(np.array([t]))
-            out[name] = RigidTransform.from_components(p[0], Rotation.from_quat(q[0]))
+            M = np.eye(4)
+            M[:3, :3] = Rotation.from_quat(q[0]).as_matrix()
+            M[:3, 3] = p[0]
+            out[name] = RigidTransform(M, normalize=False, copy=False)  # a rotation matrix already
         return out
 
     def truth_series(self, name: str, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -109,18 +123,23 @@ class SimWorld:
         sensor, intr = self.cameras[sensor_id]
         if t_s is not None and self.scenario.occluded(sensor.entity, sensor.name, t_s):
             return []
-        T_world_sensor = truth[sensor.entity] * sensor.T_entity_sensor
-        T_sensor_world = T_world_sensor.inv()
+        M_world_sensor = truth[sensor.entity].as_matrix() @ self._T_entity_sensor[sensor_id]
+        M_sensor_world = _rigid_inverse(M_world_sensor)
+        M_sensor_entity: dict[str, NDArray[np.float64]] = {}
         candidates = []
-        for m in self.world.markers.values():
+        for m, M_entity_marker, corners_m in self._markers:
             if m.entity == sensor.entity:
                 continue
-            T_sm = T_sensor_world * truth[m.entity] * m.T_entity_marker
-            corners = T_sm.apply(marker_corners(m.size_m))
+            if m.entity not in M_sensor_entity:
+                M_sensor_entity[m.entity] = M_sensor_world @ truth[m.entity].as_matrix()
+            M_sm = M_sensor_entity[m.entity] @ M_entity_marker
+            R, p = M_sm[:3, :3], M_sm[:3, 3]
+            corners = corners_m @ R.T + p
             if np.any(corners[:, 2] < 0.05):
                 continue
-            to_camera = -T_sm.translation / np.linalg.norm(T_sm.translation)
-            normal = T_sm.rotation.apply([0.0, 0.0, 1.0])
+            distance = float(np.linalg.norm(p))
+            to_camera = -p / distance
+            normal = R[:, 2]  # the marker's z axis (out of its face) in the sensor frame
             if np.degrees(np.arccos(np.clip(normal @ to_camera, -1, 1))) > MAX_VIEW_ANGLE_DEG:
                 continue
             px = intr.project(corners)
@@ -129,10 +148,10 @@ class SimWorld:
                 continue
             if np.any(px[:, 1] < m_) or np.any(px[:, 1] > intr.height_px - 1 - m_):
                 continue
-            side = min(np.linalg.norm(px[i] - px[(i + 1) % 4]) for i in range(4))
-            if side < MIN_SIDE_PX:
+            if np.min(np.linalg.norm(px - np.roll(px, -1, axis=0), axis=1)) < MIN_SIDE_PX:
                 continue
-            candidates.append(Sighting(sensor, m, T_sm, px, float(np.linalg.norm(T_sm.translation))))
+            # A product of rigid matrices is rigid to rounding: no re-orthonormalization needed.
+            candidates.append(Sighting(sensor, m, RigidTransform(M_sm, normalize=False, copy=False), px, distance))
         candidates.sort(key=lambda s: -s.distance_m)
         visible = []
         for i, s in enumerate(candidates):
@@ -184,6 +203,15 @@ class SimWorld:
                     reached[name][i] = True
             self._visibility[key] = (frames, reached)
         return self._visibility[key]
+
+
+def _rigid_inverse(M: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The inverse of a 4x4 rigid transform matrix."""
+    out = np.eye(4)
+    R_t = M[:3, :3].T
+    out[:3, :3] = R_t
+    out[:3, 3] = -R_t @ M[:3, 3]
+    return out
 
 
 def _reachable(edges: list[tuple[str, str]]) -> set[str]:

@@ -20,19 +20,33 @@ def random_cov(rng, scale_p=0.02, scale_a=0.03):
 
 
 def perturb(T, e):
-    """T with the error e = [dp (parent frame), dtheta (own axes)] applied, as the convention says."""
-    return RigidTransform.from_components(T.translation + e[:3], T.rotation * Rotation.from_rotvec(e[3:]))
+    """T with the errors e = [dp (parent frame), dtheta (own axes)] applied, as the convention says.
+
+    ``e`` is one error (6,) or a batch (N, 6); a batch gives a batch of transforms."""
+    e = np.asarray(e)
+    return RigidTransform.from_components(T.translation + e[..., :3], T.rotation * Rotation.from_rotvec(e[..., 3:]))
 
 
 def error(T_est, T_true):
+    """The error of the estimate against the truth (or a batch of truths), in the same convention."""
     return np.concatenate(
-        [T_true.translation - T_est.translation, (T_est.rotation.inv() * T_true.rotation).as_rotvec()]
+        [T_true.translation - T_est.translation, (T_est.rotation.inv() * T_true.rotation).as_rotvec()], axis=-1
     )
 
 
 def sampled_cov(errors):
     e = np.array(errors)
     return e.T @ e / len(e)
+
+
+def test_batched_perturb_and_error_equal_one_at_a_time():
+    # The Monte Carlo tests below draw their samples as batches; each sample is the scalar formula.
+    rng = np.random.default_rng(3)
+    T = pose([1, 2, 0.5], [10, -20, 60])
+    E = rng.normal(size=(5, 6)) * 0.05
+    batch = error(T, perturb(T, E) * T)
+    one = np.array([error(T, perturb(T, e) * T) for e in E])
+    np.testing.assert_allclose(batch, one, atol=1e-12)
 
 
 def test_skew_is_the_cross_product():
@@ -51,11 +65,9 @@ def test_composition_matches_monte_carlo(seed):
     predicted = covariance.transform(Jp, C_p) + covariance.transform(Je, C_e)
     T_wc = T_wp * T_pc
     L_p, L_e = np.linalg.cholesky(C_p), np.linalg.cholesky(C_e)
-    errs = [
-        error(T_wc, perturb(T_wp, L_p @ rng.normal(size=6)) * perturb(T_pc, L_e @ rng.normal(size=6)))
-        for _ in range(20000)
-    ]
-    got = sampled_cov(errs)
+    n = 20000
+    E_p, E_e = rng.normal(size=(n, 6)) @ L_p.T, rng.normal(size=(n, 6)) @ L_e.T
+    got = sampled_cov(error(T_wc, perturb(T_wp, E_p) * perturb(T_pc, E_e)))
     # Sampling error of a covariance with 20000 samples: ~1 %; first-order error: small at these sigmas.
     scale = np.sqrt(np.outer(np.diag(predicted), np.diag(predicted)))
     assert np.max(np.abs(got - predicted) / scale) < 0.05
@@ -69,7 +81,7 @@ def test_inverse_matches_monte_carlo():
     predicted = covariance.transform(J, C)
     L = np.linalg.cholesky(C)
     T_ba = T_ab.inv()
-    got = sampled_cov([error(T_ba, perturb(T_ab, L @ rng.normal(size=6)).inv()) for _ in range(20000)])
+    got = sampled_cov(error(T_ba, perturb(T_ab, rng.normal(size=(20000, 6)) @ L.T).inv()))
     scale = np.sqrt(np.outer(np.diag(predicted), np.diag(predicted)))
     assert np.max(np.abs(got - predicted) / scale) < 0.05
 

@@ -1,0 +1,88 @@
+"""The renderer's shortcuts are exact: blur restricted to the markers' regions equals blurring the
+whole image there, the cached undistortion grid gives the image the direct computation gives, and
+the analytic Jacobian of the camera-position sigma equals finite differences."""
+
+import cv2
+import numpy as np
+import pytest
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.detector import pose, render
+
+K = np.array([[900.0, 0, 639.5], [0, 900.0, 359.5], [0, 0, 1]])
+DIST = np.array([-0.05, 0.01, 0.001, -0.001, 0.0])
+CAM = render.Camera(1280, 720, K, DIST)
+
+
+def views(seed):
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(4):
+        T = RigidTransform.from_components(
+            [rng.uniform(-1, 1), rng.uniform(-0.5, 0.5), rng.uniform(1.5, 3.0)],
+            Rotation.from_euler("xyz", [180 + rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(0, 360)], True),
+        )
+        out.append(render.MarkerView("tag36h11", i, 0.18, T))
+    return out
+
+
+@pytest.mark.parametrize("blur", [(3.7, 0.5), (-0.8, -2.4), (1.2, 3.3)])
+def test_blur_in_the_marker_regions_equals_blurring_the_whole_image(blur):
+    vs = views(1)
+    sharp = render.render(CAM, vs, supersample=2)
+    got = render.render(CAM, vs, blur_px=blur, supersample=2)
+    # The reference: the same kernel over the whole (unrounded) image, as the renderer did before.
+    img = render.background(CAM)
+    for v in sorted(vs, key=lambda v: -float(np.linalg.norm(v.T_camera_marker.translation))):
+        render.draw_marker(img, CAM, v, 2)
+    length = float(np.hypot(*blur))
+    k = int(np.ceil(length)) * 2 + 1
+    kernel = np.zeros((k, k), np.float32)
+    for a in np.linspace(-0.5, 0.5, max(int(np.ceil(length * 4)), 2)):
+        kernel[round(k // 2 + a * blur[1]), round(k // 2 + a * blur[0])] += 1.0
+    ref = np.clip(np.rint(cv2.filter2D(img, -1, kernel / kernel.sum(), borderType=cv2.BORDER_REPLICATE)), 0, 255)
+    inside = np.zeros(sharp.shape, bool)
+    for v in vs:
+        box = render._marker_box(CAM, v)
+        if box is not None:
+            inside[box[1] : box[3] + 1, box[0] : box[2] + 1] = True
+    assert inside.sum() > 10_000
+    # Inside every marker's region the result is the whole-image blur (to float rounding).
+    assert np.abs(got.astype(int) - ref.astype(int))[inside].max() <= 1
+    # And the blur did something there.
+    assert np.abs(got.astype(int) - sharp.astype(int))[inside].max() > 20
+
+
+def test_cached_undistortion_grid_is_the_direct_undistortion():
+    s = 3
+    grid = render._undistorted_grid(CAM, s)
+    rng = np.random.default_rng(2)
+    rows = rng.integers(0, grid.shape[0] - 1, 50)
+    cols = rng.integers(0, grid.shape[1] - 1, 50)
+    px = np.stack([(cols * render.GRID_STEP + 0.5) / s - 0.5, (rows * render.GRID_STEP + 0.5) / s - 0.5], axis=-1)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-10)
+    direct = cv2.undistortPoints(px.reshape(-1, 1, 2), K, DIST, None, None, criteria=crit).reshape(-1, 2)
+    np.testing.assert_allclose(grid[rows, cols], direct, atol=1e-12)
+    # Projected again, each grid point lands on its sample's pixel position.
+    back, _ = cv2.projectPoints(np.concatenate([direct, np.ones((50, 1))], 1), np.zeros(3), np.zeros(3), K, DIST)
+    np.testing.assert_allclose(back.reshape(-1, 2), px, atol=1e-6)
+
+
+def test_camera_position_sigma_jacobian_equals_finite_differences():
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        rvec = rng.normal(size=3) * rng.uniform(0, 2)
+        tvec = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(0.5, 5)])
+        obj = pose.object_corners(rng.uniform(0.05, 0.3))
+        got = pose.camera_position_sigma(rvec, tvec, obj, K, 0.2, 0.1)
+        # Reference: the same covariance, with dc/dx by central differences of c = -R^T t.
+        _, J = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, K, None)
+        cov = 0.2**2 * np.linalg.inv(J[:, :6].T @ J[:, :6])
+        x0 = np.concatenate([rvec, tvec])
+
+        def camera(x):
+            return -Rotation.from_rotvec(x[:3]).inv().apply(x[3:])
+
+        Jc = np.stack([(camera(x0 + d) - camera(x0 - d)) / 2e-6 for d in np.eye(6) * 1e-6], axis=1)
+        ref = np.sqrt(np.linalg.eigvalsh(Jc @ cov @ Jc.T).max()) * np.sqrt(1 + (0.1 / 0.2) ** 2)
+        assert got == pytest.approx(ref, rel=1e-6)
