@@ -199,15 +199,22 @@ def rendered_detector(context: SimContext, world: WorldConfig, sensor: SensorCon
 
     assert sensor.camera is not None and sensor.camera.calibration is not None
     detector = Detector(sensor, world, load_calibration(sensor.camera.calibration), decimate=2.0)
-    renderer = FrameRenderer(context.scenario, world, sensor, seed)
     frames: NDArray[np.uint8] | None = None
     if context.frames_dir is not None and frames_path(context.frames_dir, sensor.id).exists():
         frames = np.load(frames_path(context.frames_dir, sensor.id), mmap_mode="r")
+    # The live renderer (its tables take a moment and some memory) only where there are no frames.
+    renderer = FrameRenderer(context.scenario, world, sensor, seed) if frames is None else None
+
+    def render_now(index: int) -> NDArray[np.uint8]:
+        nonlocal renderer
+        if renderer is None:  # past the pre-rendered frames (a run longer than planned)
+            renderer = FrameRenderer(context.scenario, world, sensor, seed)
+        return renderer(index)
 
     def detect(t: float, sightings: list[Sighting], info: dict[str, object]) -> list[MarkerData]:
         epoch = float(info["epoch"])  # type: ignore[arg-type]
         index = int(info["index"])  # type: ignore[call-overload]
-        img = np.array(frames[index]) if frames is not None and index < len(frames) else renderer(index)
+        img = np.array(frames[index]) if frames is not None and index < len(frames) else render_now(index)
         return detector.detect(img, round((epoch + t) * 1e6))
 
     detect.needs_truth = False  # type: ignore[attr-defined]  # it renders from the index alone
