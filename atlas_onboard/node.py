@@ -35,7 +35,7 @@ _logger = logging.getLogger(__name__)
 NS = 1_000_000_000
 SETTLE_S = 0.0003  # wait this long for the rest of a burst before evaluating
 MAX_SETTLE_S = 0.0006  # and never longer than this
-LOSS_CHECK_NS = 20_000_000  # evaluate at least every 20 ms, so a lost pose stops output promptly
+PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
 
 
 class Transport(Protocol):
@@ -152,7 +152,7 @@ class Node:
         self._stop = threading.Event()
         self._reload = threading.Event()
         self._dirty = False
-        self._last_eval_ns = 0
+        self._last_publish_ns = 0
         self._next_status_ns = 0
         self._next_watchdog_ns = 0
         self.watchdog_interval_ns = NS  # the service layer shortens it to half of WatchdogSec if needed
@@ -234,11 +234,22 @@ class Node:
                 )
 
     def _step(self, now: int) -> None:
-        """Evaluate when something changed (or edges may have expired) and publish what is due."""
-        held = self.publisher.next_autopilot_ns()
-        due_hold = held is not None and now >= held and self.publisher.has_pose
-        if self._dirty or now - self._last_eval_ns >= LOSS_CHECK_NS or due_hold:
+        """Evaluate when something changed or an edge has expired, publish what is due.
+
+        Between new observations and expiries the graph can only differ by the age of its edges, and
+        the autopilot gets a pose only for a new capture: the graph is not re-evaluated then (this is
+        most of a node's time in a swarm). With the EKF, the prediction to now is published every
+        ``PREDICT_NS``, and a pose held back by the rate cap goes when the cap allows.
+        """
+        expiry = self.graph.next_expiry_ns()
+        if self._dirty or (expiry is not None and now >= expiry):
             self._evaluate(now)
+            self._publish(now)
+        elif self.last_result is not None:
+            held = self.publisher.next_autopilot_ns()
+            due_hold = held is not None and now >= held and self.publisher.has_pose
+            if due_hold or (self.ekf is not None and now - self._last_publish_ns >= PREDICT_NS):
+                self._publish(now)
         if self.publisher.fused_due(now) and self.last_result is not None:
             self.transport.send_fused(list(self.last_result.poses.values()), self.world)
             self.stats.fused_sent += 1
@@ -253,17 +264,22 @@ class Node:
 
     def _evaluate(self, now: int) -> None:
         self._dirty = False
-        self._last_eval_ns = now
         self.listener.forget_expired(now)
         result = self.graph.evaluate(now)
         self.last_result = result
         self.listener.set_estimates(result.poses)
         self.stats.evaluations += 1
         if self.ekf is not None:
+            self.ekf.update(result, self.wall() // 1000)
+
+    def _publish(self, now: int) -> None:
+        """The autopilot's pose from the last evaluation (the EKF's, predicted to now, if enabled)."""
+        assert self.last_result is not None
+        self._last_publish_ns = now
+        result = self.last_result
+        if self.ekf is not None:
             # The autopilot gets the filter's pose predicted to now (stamped now), at its rate.
-            wall_us = self.wall() // 1000
-            self.ekf.update(result, wall_us)
-            result = self.ekf.poses(result, wall_us)
+            result = self.ekf.poses(result, self.wall() // 1000)
         out, status = self.publisher.autopilot(result, now)
         if status is not None:
             lost = status == "pose lost"

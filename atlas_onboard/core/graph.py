@@ -221,6 +221,13 @@ class TransformGraph:
             del self.edges[k]
         return len(dead)
 
+    def next_expiry_ns(self) -> int | None:
+        """The first time at which an edge will have expired (its age exceeds the timeout), or None
+        without edges: until then a new evaluation can only differ by the age of the edges."""
+        if not self.edges:
+            return None
+        return min(e.stamp_ns for e in self.edges.values()) + self.edge_timeout_ns + 1
+
     def live_edges(self, now_ns: int) -> list[Edge]:
         """Edges whose age is at most the timeout (not removed: :meth:`expire` does that)."""
         return [e for e in self.edges.values() if now_ns - e.stamp_ns <= self.edge_timeout_ns]

@@ -62,7 +62,11 @@ class SimAutopilot:
 
     def __post_init__(self) -> None:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM if self.tcp else socket.SOCK_DGRAM)
-        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        if self.tcp:
+            # Only for the TCP server (a restart may find its port in TIME_WAIT). On UDP, SO_REUSEADDR
+            # lets the kernel hand the same "free" port to two endpoints bound to port 0, and one of
+            # them then receives the other's traffic (seen in the swarm: one drone's poses at another's).
+            self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self._sock.bind(("127.0.0.1", self.port))
         if self.tcp:
             self._sock.listen(1)

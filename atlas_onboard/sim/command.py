@@ -16,6 +16,7 @@ from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import report, scenarios
 from atlas_onboard.sim.autopilot import Received
 from atlas_onboard.sim.runner import WARMUP_S, SimOptions, SimRun, run
+from atlas_onboard.sim.world import FRESH_S
 
 
 def autopilot_track(records: list[Received], epoch_s: float) -> report.Track:
@@ -96,7 +97,9 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
         rates[f"world.{sc.mocap.sensor}"] = f"motion capture @ {sc.mocap.rate_hz:g} Hz"
     rep = report.RunReport(sc.name, sim.duration_s, 0, "real time (wall clock); every node a separate process", rates)
     tracks: dict[str, report.Track] = {}
-    expected = {b: sim.world.expected_availability(t0, t1, b) for b in (0.1, 0.5)}
+    # A drone's autopilot needs a pose at most 200 ms old; fused poses go out at 5 Hz (0.5 s).
+    fresh = {"autopilot": FRESH_S, "fused": 0.5, "none": FRESH_S}
+    expected = {f: sim.world.expected_availability(t0, t1, f) for f in set(fresh.values())}
     for name in sc.scored:
         if name in sim.autopilots:
             track = autopilot_track(sim.autopilots[name].snapshot(), sim.epoch_s)
@@ -109,8 +112,8 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
             track, source = report.Track(*(np.zeros((0, k)) for k in (0, 0, 3, 4))), "none"  # type: ignore[arg-type]
             track.capture_s = track.arrival_s = np.zeros(0)
         tracks[name] = track
-        bin_s = 0.1 if source == "autopilot" else 0.5
-        score = report.score(name, source, track, sim.world, t0, t1, expected[bin_s].get(name, 0.0), bin_s)
+        f = fresh[source]
+        score = report.score(name, source, track, sim.world, t0, t1, expected[f].get(name, 0.0), f)
         score.detections_per_s = observations[name] / (t1 - t0)
         rep.entities.append(score)
     for key, limit in sc.bars.items():

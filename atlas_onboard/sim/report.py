@@ -14,7 +14,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.sim.world import SimWorld
+from atlas_onboard.sim.world import FRESH_S, SimWorld, fresh_share
 
 _ROWS, _COLS = np.triu_indices(6)  # MAVLink's row-major upper triangle: (0,0) (0,1) ... (0,5) (1,1) ... (5,5)
 
@@ -96,15 +96,14 @@ def score(
     t0_s: float,
     t1_s: float,
     expected: float,
-    bin_s: float = 0.1,
+    fresh_s: float = FRESH_S,
 ) -> EntityScore:
-    """Errors at each estimate's capture time, availability as the share of ``bin_s`` bins of
-    [t0, t1] in which at least one estimate arrived."""
+    """Errors at each estimate's capture time; availability as the share of [t0, t1] at which the
+    newest estimate that arrived was at most ``fresh_s`` old (:func:`fresh_share`)."""
     inside = (track.arrival_s >= t0_s) & (track.arrival_s <= t1_s)
     cap, arr = track.capture_s[inside], track.arrival_s[inside]
     p, q = track.p_m[inside], track.q_xyzw[inside]
     n = len(cap)
-    bins = max(round((t1_s - t0_s) / bin_s), 1)
     if n == 0:
         return EntityScore(
             entity,
@@ -121,8 +120,6 @@ def score(
     p_true, q_true = world.truth_series(entity, cap)
     err = np.linalg.norm(p - p_true, axis=1)
     att = (Rotation.from_quat(q).inv() * Rotation.from_quat(q_true)).magnitude()
-    hit = np.zeros(bins, dtype=bool)
-    hit[np.clip(((arr - t0_s) / bin_s).astype(int), 0, bins - 1)] = True
     latency_ms = (arr - cap) * 1e3
     gaps = np.diff(np.concatenate(([t0_s], np.sort(arr), [t1_s])))
     nees3 = nees6 = float("nan")
@@ -140,7 +137,7 @@ def score(
         max_error_m=float(err.max()),
         median_error_m=float(np.median(err)),
         attitude_rmse_deg=float(np.degrees(np.sqrt(np.mean(att**2)))),
-        availability=float(hit.mean()),
+        availability=fresh_share(track.arrival_s, t0_s, t1_s, fresh_s),
         expected_availability=expected,
         latency_median_ms=float(np.median(latency_ms)),
         latency_p95_ms=float(np.percentile(latency_ms, 95)),

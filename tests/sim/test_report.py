@@ -9,7 +9,7 @@ from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink.autopilot import covariance_ned_frd, covariance_upper_triangle
 from atlas_onboard.sim import report, scenarios
-from atlas_onboard.sim.world import SimWorld
+from atlas_onboard.sim.world import SimWorld, fresh_share
 
 N = 4000
 
@@ -104,3 +104,16 @@ def test_nees_refuses_a_malformed_triangle_and_marks_a_singular_covariance():
     with pytest.raises(AtlasError, match="shape"):
         report.covariance_from_upper_triangle(np.zeros((2, 20)))
     assert np.isnan(report.nees(np.ones((1, 3)), np.zeros((1, 3, 3))))[0]
+
+
+def test_availability_is_the_share_of_time_with_a_pose_at_most_fresh_s_old():
+    every_100ms = np.arange(0.0, 1.0001, 0.1)  # poses until 1.0 s, then nothing
+    assert fresh_share(every_100ms, 0.0, 2.0, 0.2) == pytest.approx(0.6, abs=0.005)  # fresh until 1.2 s
+    # A 0.5 s hole in a 10 Hz stream: stale from 0.2 s after the last pose until the next one.
+    holed = np.concatenate((np.arange(0.0, 0.95, 0.1), np.arange(1.4, 2.05, 0.1)))
+    assert fresh_share(holed, 0.0, 2.0, 0.2) == pytest.approx(1.0 - 0.3 / 2.0, abs=0.005)
+    # Gaps shorter than fresh_s cost nothing; a pose before t0 counts; none at all gives 0.
+    assert fresh_share(np.arange(-0.1, 2.0, 0.15), 0.0, 2.0, 0.2) == 1.0
+    assert fresh_share(np.zeros(0), 0.0, 2.0, 0.2) == 0.0
+    # Order of arrivals does not matter.
+    assert fresh_share(holed[::-1], 0.0, 2.0, 0.2) == fresh_share(holed, 0.0, 2.0, 0.2)

@@ -29,8 +29,10 @@ def test_occlusions_last_a_tenth_to_six_tenths_of_a_second_and_blank_the_camera(
 
 def test_gaps_expected_availability_counts_the_occlusions_and_the_tags_leaving_the_view():
     sc = scenarios.get("gaps")
-    with_occlusions = SimWorld(sc).expected_availability(1.0, 12.0, 0.1)["drone"]
-    geometry_only = SimWorld(dataclasses.replace(sc, occlusions=())).expected_availability(1.0, 12.0, 0.1)["drone"]
+    # Poses at most 0.1 s old (a 15 Hz camera's every frame): the shortest gaps count too.
+    with_occlusions = SimWorld(sc).expected_availability(1.0, 12.0, fresh_s=0.1)["drone"]
+    no_occlusions = SimWorld(dataclasses.replace(sc, occlusions=()))
+    geometry_only = no_occlusions.expected_availability(1.0, 12.0, fresh_s=0.1)["drone"]
     assert with_occlusions < geometry_only < 1.0
     assert 0.5 < with_occlusions < 0.9
 
