@@ -22,24 +22,26 @@ from atlas_onboard.sim.world import FRESH_S
 def autopilot_track(records: list[Received], epoch_s: float) -> report.Track:
     """What the flight controller received, back in ENU/FLU, with times relative to the epoch."""
     n = len(records)
-    p = np.zeros((n, 3))
-    q = np.zeros((n, 4))
     q_ned = np.zeros((n, 4))
-    for i, r in enumerate(records):
-        if r.q_wxyz is not None:
-            w, x, y, z = r.q_wxyz
-            R_ned_frd = Rotation.from_quat([x, y, z, w])
-        else:
-            roll, pitch, yaw = r.rpy_rad  # type: ignore[misc]
-            R_ned_frd = Rotation.from_euler("ZYX", [yaw, pitch, roll])
-        T = frames.ned_frd_to_enu_flu(RigidTransform.from_components(np.asarray(r.xyz_m), R_ned_frd))
-        p[i], q[i], q_ned[i] = T.translation, T.rotation.as_quat(), R_ned_frd.as_quat()
+    if n:
+        # VISION_POSITION_ESTIMATE carries roll/pitch/yaw, ODOMETRY a quaternion (w first).
+        has_q = np.array([r.q_wxyz is not None for r in records])
+        wxyz = np.array([r.q_wxyz if r.q_wxyz is not None else (1.0, 0.0, 0.0, 0.0) for r in records], dtype=float)
+        rpy = np.array([r.rpy_rad if r.rpy_rad is not None else (0.0, 0.0, 0.0) for r in records], dtype=float)
+        q_ned = np.where(has_q[:, None], wxyz[:, [1, 2, 3, 0]], Rotation.from_euler("ZYX", rpy[:, ::-1]).as_quat())
+    xyz = np.array([r.xyz_m for r in records], dtype=float).reshape(n, 3)
+    if n:
+        T = frames.ned_frd_to_enu_flu(RigidTransform.from_components(xyz, Rotation.from_quat(q_ned)))
+        p, q = T.translation.reshape(n, 3), T.rotation.as_quat().reshape(n, 4)
+        q_ned = Rotation.from_quat(q_ned).as_quat().reshape(n, 4)  # normalized, as before
+    else:
+        p, q = np.zeros((0, 3)), np.zeros((0, 4))
     return report.Track(
         capture_s=np.array([r.usec / 1e6 - epoch_s for r in records]),
         arrival_s=np.array([r.arrival_s - epoch_s for r in records]),
         p_m=p,
         q_xyzw=q,
-        p_ned_m=np.array([r.xyz_m for r in records], dtype=float).reshape(n, 3),
+        p_ned_m=xyz,
         q_ned_frd_xyzw=q_ned,
         covariance_ned_frd=report.covariance_from_upper_triangle(
             np.array([r.covariance for r in records], dtype=float).reshape(n, 21)

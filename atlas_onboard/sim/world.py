@@ -4,7 +4,7 @@ each camera can see (for rendering order and for the expected availability of ea
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,9 +68,14 @@ class Sighting:
 
     sensor: SensorConfig
     marker: MarkerConfig
-    T_sensor_marker: RigidTransform
+    M_sensor_marker: NDArray[np.float64]  # (4, 4) rigid
     corners_px: NDArray[np.float64]  # (4, 2)
     distance_m: float
+
+    @property
+    def T_sensor_marker(self) -> RigidTransform:
+        # A product of rigid matrices is rigid to rounding: no re-orthonormalization needed.
+        return RigidTransform(self.M_sensor_marker, normalize=False, copy=False)
 
 
 class SimWorld:
@@ -80,7 +85,7 @@ class SimWorld:
         self.scenario = scenario
         self.world = world if world is not None else scenario.world()
         self.cameras: dict[int, tuple[SensorConfig, Intrinsics]] = {}
-        self._visibility: dict[tuple[float, float], tuple[NDArray[np.float64], dict[str, NDArray[np.bool_]]]] = {}
+        self._visibility: dict[float, tuple[NDArray[np.float64], dict[str, NDArray[np.bool_]]]] = {}
         for ent in self.world.entities:
             for s in ent.sensors:
                 if s.camera is not None and s.camera.width_px > 0:
@@ -118,16 +123,19 @@ class SimWorld:
             return np.zeros((n, 3)), np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
         return traj.pose(np.asarray(t, dtype=float))
 
-    def sightings(self, sensor_id: int, truth: dict[str, RigidTransform], t_s: float | None = None) -> list[Sighting]:
+    def sightings(
+        self, sensor_id: int, truth: Mapping[str, RigidTransform | NDArray[np.float64]], t_s: float | None = None
+    ) -> list[Sighting]:
         """Markers the camera sees: in the image, facing it, big enough, not hidden by a nearer marker,
         and none while the scenario's occlusions block the camera's view at ``t_s`` (when given).
+        ``truth``: each entity's ``T_world_entity``, as a transform or a 4x4 matrix.
 
         Sorted far to near, the order in which a renderer paints them.
         """
         sensor, intr = self.cameras[sensor_id]
         if t_s is not None and self.scenario.occluded(sensor.entity, sensor.name, t_s):
             return []
-        M_world_sensor = truth[sensor.entity].as_matrix() @ self._T_entity_sensor[sensor_id]
+        M_world_sensor = _matrix(truth[sensor.entity]) @ self._T_entity_sensor[sensor_id]
         M_sensor_world = _rigid_inverse(M_world_sensor)
         M_sensor_entity: dict[str, NDArray[np.float64]] = {}
         candidates = []
@@ -135,7 +143,7 @@ class SimWorld:
             if m.entity == sensor.entity:
                 continue
             if m.entity not in M_sensor_entity:
-                M_sensor_entity[m.entity] = M_sensor_world @ truth[m.entity].as_matrix()
+                M_sensor_entity[m.entity] = M_sensor_world @ _matrix(truth[m.entity])
             M_sm = M_sensor_entity[m.entity] @ M_entity_marker
             R, p = M_sm[:3, :3], M_sm[:3, 3]
             corners = corners_m @ R.T + p
@@ -154,8 +162,7 @@ class SimWorld:
                 continue
             if np.min(np.linalg.norm(px - np.roll(px, -1, axis=0), axis=1)) < MIN_SIDE_PX:
                 continue
-            # A product of rigid matrices is rigid to rounding: no re-orthonormalization needed.
-            candidates.append(Sighting(sensor, m, RigidTransform(M_sm, normalize=False, copy=False), px, distance))
+            candidates.append(Sighting(sensor, m, M_sm, px, distance))
         candidates.sort(key=lambda s: -s.distance_m)
         visible = []
         for i, s in enumerate(candidates):
@@ -165,9 +172,12 @@ class SimWorld:
             visible.append(s)
         return visible
 
-    def observed_edges(self, t: float) -> list[tuple[str, str]]:
-        """(observer entity, observed entity) pairs a camera can see at time t (mocap included)."""
-        truth = self.truth(t)
+    def observed_edges(
+        self, t: float, truth: Mapping[str, RigidTransform | NDArray[np.float64]] | None = None
+    ) -> list[tuple[str, str]]:
+        """(observer entity, observed entity) pairs a camera can see at time t (mocap included);
+        ``truth`` (as :meth:`sightings` takes it) saves computing the poses at t again."""
+        truth = self.truth(t) if truth is None else truth
         edges = [(s.sensor.entity, s.marker.entity) for sid in self.cameras for s in self.sightings(sid, truth, t)]
         if self.scenario.mocap is not None:
             edges += [(WORLD, name) for name in self.scenario.drones]
@@ -185,22 +195,31 @@ class SimWorld:
         frame time (multiples of :meth:`frame_period_s`) at which the entity has a path of visible
         markers to the world, with no delay: what :func:`atlas_onboard.sim.report.score` compares
         the real one against."""
-        frames, reached = self._frame_visibility(max(t0_s - fresh_s, 0.0), t1_s)
+        frames, reached = self._frame_visibility(t1_s)
         return {name: fresh_share(frames[seen], t0_s, t1_s, fresh_s) for name, seen in reached.items()}
 
-    def _frame_visibility(self, t0_s: float, t1_s: float) -> tuple[NDArray[np.float64], dict[str, NDArray[np.bool_]]]:
-        """Frame times in [t0, t1] and, per entity, whether it had a path to the world at each (cached)."""
-        key = (t0_s, t1_s)
-        if key not in self._visibility:
+    def _frame_visibility(self, t1_s: float) -> tuple[NDArray[np.float64], dict[str, NDArray[np.bool_]]]:
+        """Frame times in [0, t1] and, per entity, whether it had a path to the world at each (cached)."""
+        if t1_s not in self._visibility:
             step = self.frame_period_s()
-            frames = np.arange(np.ceil(t0_s / step - 1e-9), np.floor(t1_s / step + 1e-9) + 1) * step
+            frames = np.arange(0, np.floor(t1_s / step + 1e-9) + 1) * step
             names = [n for n in self.world.entity_names if n != WORLD]
             reached = {n: np.zeros(len(frames), dtype=bool) for n in names}
+            # Every trajectory evaluated at all frame times at once, as 4x4 matrices.
+            series = {}
+            for name, traj in self.scenario.trajectories.items():
+                p, q = traj.pose(frames)
+                M = np.tile(np.eye(4), (len(frames), 1, 1))
+                M[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+                M[:, :3, 3] = p
+                series[name] = M
+            eye = np.eye(4)
             for i, t in enumerate(frames):
-                for name in _reachable(self.observed_edges(float(t))) - {WORLD}:
+                truth = {n: series[n][i] if n in series else eye for n in self.world.entity_names}
+                for name in _reachable(self.observed_edges(float(t), truth)) - {WORLD}:
                     reached[name][i] = True
-            self._visibility[key] = (frames, reached)
-        return self._visibility[key]
+            self._visibility[t1_s] = (frames, reached)
+        return self._visibility[t1_s]
 
 
 def fresh_share(times_s: NDArray[np.float64], t0_s: float, t1_s: float, fresh_s: float = FRESH_S) -> float:
@@ -215,6 +234,10 @@ def fresh_share(times_s: NDArray[np.float64], t0_s: float, t1_s: float, fresh_s:
     k = np.searchsorted(t, grid, side="right") - 1  # the newest arrival at or before each instant
     newest = np.where(k >= 0, t[np.maximum(k, 0)], -np.inf)
     return float(np.mean(grid - newest <= fresh_s))
+
+
+def _matrix(T: RigidTransform | NDArray[np.float64]) -> NDArray[np.float64]:
+    return T if isinstance(T, np.ndarray) else T.as_matrix()
 
 
 def _rigid_inverse(M: NDArray[np.float64]) -> NDArray[np.float64]:

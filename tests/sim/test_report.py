@@ -9,6 +9,8 @@ from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink.autopilot import covariance_ned_frd, covariance_upper_triangle
 from atlas_onboard.sim import report, scenarios
+from atlas_onboard.sim.autopilot import Received
+from atlas_onboard.sim.command import autopilot_track
 from atlas_onboard.sim.world import SimWorld, fresh_share
 
 N = 4000
@@ -117,3 +119,27 @@ def test_availability_is_the_share_of_time_with_a_pose_at_most_fresh_s_old():
     assert fresh_share(np.zeros(0), 0.0, 2.0, 0.2) == 0.0
     # Order of arrivals does not matter.
     assert fresh_share(holed[::-1], 0.0, 2.0, 0.2) == fresh_share(holed, 0.0, 2.0, 0.2)
+
+
+def test_autopilot_track_reads_both_messages_back_to_the_enu_pose_sent():
+    rng = np.random.default_rng(5)
+    n = 40
+    T_enu = RigidTransform.from_components(rng.normal(size=(n, 3)), Rotation.random(n, random_state=5))
+    T_ned = frames.enu_flu_to_ned_frd(T_enu)
+    q = T_ned.rotation.as_quat()
+    rpy = T_ned.rotation.as_euler("ZYX")[:, ::-1]
+    records = []
+    for k in range(n):
+        odometry = k % 2 == 1  # ODOMETRY carries a quaternion, VISION_POSITION_ESTIMATE roll/pitch/yaw
+        kind = "ODOMETRY" if odometry else "VISION_POSITION_ESTIMATE"
+        angles = None if odometry else tuple(rpy[k])
+        wxyz = (q[k, 3], *q[k, :3]) if odometry else None
+        xyz = tuple(T_ned.translation[k])
+        records.append(Received(10.0 + k, kind, int((5.0 + k) * 1e6), xyz, angles, wxyz, (0.0,) * 21, 0, 1, 197))
+    track = autopilot_track(records, 2.0)
+    np.testing.assert_allclose(track.p_m, T_enu.translation, atol=1e-12)
+    dq = (Rotation.from_quat(track.q_xyzw).inv() * T_enu.rotation).magnitude()
+    assert dq.max() < 1e-9
+    np.testing.assert_allclose(track.capture_s, 3.0 + np.arange(n))
+    np.testing.assert_allclose(track.arrival_s, 8.0 + np.arange(n))
+    assert autopilot_track([], 0.0).p_m.shape == (0, 3)
