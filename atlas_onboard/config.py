@@ -208,33 +208,50 @@ class WorldConfig:
 # --- YAML with duplicate-key detection ---------------------------------------------------------------
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """A SafeLoader on which a mapping that repeats a key is an error, not a silent override."""
-
-
-def _construct_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-    seen: dict[Any, Any] = {}
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=deep)  # type: ignore[no-untyped-call]
-        if key in seen:
-            raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {key!r} (line {key_node.start_mark.line + 1})", key_node.start_mark
-            )
-        seen[key] = True
-    return loader.construct_mapping(node, deep=deep)
-
-
-_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+def _duplicate_key(node: yaml.Node, path: str = "", seen_nodes: set[int] | None = None) -> tuple[str, str] | None:
+    """The field path and description of the first key a mapping repeats, in the composed YAML tree
+    (a repeated key would otherwise silently override the first), or None. An alias is the node it
+    names: each node is visited once, so a tree of aliases cannot make this walk explode."""
+    seen_nodes = set() if seen_nodes is None else seen_nodes
+    if id(node) in seen_nodes:
+        return None
+    seen_nodes.add(id(node))
+    if isinstance(node, yaml.MappingNode):
+        seen: set[object] = set()
+        for key_node, value_node in node.value:
+            key = key_node.value if isinstance(key_node, yaml.ScalarNode) else id(key_node)
+            child = _join(path, str(key))
+            if key in seen:
+                return child, f"duplicate key {key!r} (line {key_node.start_mark.line + 1})"
+            seen.add(key)
+            found = _duplicate_key(value_node, child, seen_nodes)
+            if found is not None:
+                return found
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            found = _duplicate_key(item, _join(path, i), seen_nodes)
+            if found is not None:
+                return found
+    return None
 
 
 def read_yaml(path: Path) -> Any:
-    """Parse a YAML file; an unreadable or malformed file is a one-line ConfigError."""
+    """Parse a YAML file; an unreadable or malformed file, or a mapping that repeats a key, is a
+    one-line ConfigError."""
     try:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError("", f"cannot read file: {getattr(exc, 'strerror', None) or exc}", str(path)) from None
     try:
-        return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+        tree = yaml.compose(text, Loader=yaml.SafeLoader)
+        if tree is None:
+            return None
+        duplicate = _duplicate_key(tree)
+        if duplicate is not None:
+            raise ConfigError(*duplicate, str(path))
+        return yaml.SafeLoader(text).construct_document(tree)
+    except RecursionError:
+        raise ConfigError("", "invalid YAML: nested too deeply", str(path)) from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""

@@ -1,6 +1,7 @@
 """The world file: normalisation of conventions, and one test per kind of bad input, each asserting the
 field path in the message and (through the CLI) exit status 2 with one line and no traceback."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -10,6 +11,7 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
+from atlas_onboard.cli import main
 from atlas_onboard.config import WORLD, ConfigError, Weighting, load_world, parse_world
 from atlas_onboard.core.geometry import rpy_deg
 
@@ -116,7 +118,13 @@ def test_calibration_path_is_relative_to_the_file(tmp_path):
 
 # One case per kind of bad input: (description, edit of BASE, expected field path, expected words).
 BAD = [
-    ("duplicate entity", BASE + "  drone1: {}\n", "", "duplicate key 'drone1'"),
+    ("duplicate entity", BASE + "  drone1: {}\n", "entities.drone1", "duplicate key 'drone1' (line 18)"),
+    (
+        "duplicate key in a list item",
+        BASE.replace("{id: 0, size_m: 0.18,", "{id: 0, size_m: 0.18, size_m: 0.2,"),
+        "entities.world.markers[0].size_m",
+        "duplicate key 'size_m'",
+    ),
     ("duplicate sensor id", BASE.replace("id: 2,", "id: 1,"), "entities.drone2.sensors[0].id", "duplicate sensor id 1"),
     (
         "duplicate sensor name",
@@ -230,44 +238,84 @@ def test_bad_config_names_the_field(tmp_path, what, text, path, words):
 
 
 def run_cli(*args, cwd=None):
+    """The installed command in its own interpreter (as a user runs it)."""
     return subprocess.run(
         [sys.executable, "-m", "atlas_onboard", *args], capture_output=True, text=True, timeout=60, cwd=cwd, check=False
     )
 
 
+def cli(capsys, *args):
+    """The command's entry point in this process (the same ``main`` as the console script): exit
+    status, stdout, stderr. An uncaught exception would fail the test, as a traceback would."""
+    try:
+        code = main(list(args))
+    except SystemExit as exc:  # argparse's own exits
+        code = exc.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
 @pytest.mark.parametrize(("what", "text", "path", "words"), BAD, ids=[b[0] for b in BAD])
-def test_cli_bad_config_exits_2_with_one_line(tmp_path, what, text, path, words):
+def test_cli_bad_config_exits_2_with_one_line(capsys, tmp_path, what, text, path, words):
     f = tmp_path / "world.yaml"
     f.write_text(text)
-    proc = run_cli("check-config", str(f))
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1, proc.stderr
-    assert "Traceback" not in proc.stderr
+    code, out, err = cli(capsys, "check-config", str(f))
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
     assert (path + ":" if path else "") in lines[0] and words in lines[0]
-    assert proc.stdout == ""
+    assert out == ""
 
 
-@pytest.mark.parametrize("kind", ["missing", "directory", "binary"])
-def test_unreadable_file(tmp_path, kind):
+def test_the_command_in_its_own_process_gives_one_line_and_the_exit_status(tmp_path):
     f = tmp_path / "world.yaml"
+    f.write_text(BASE + "  drone1: {}\n")
+    proc = run_cli("check-config", str(f))
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.strip().splitlines() == [
+        f"atlas-onboard: error: {f}: entities.drone1: duplicate key 'drone1' (line 18)"
+    ]
+    proc = run_cli("check-config")
+    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in proc.stderr
+    proc = run_cli("check-config", str(REPO / "config" / "example.yaml"))
+    assert proc.returncode == 0 and "fingerprint" in proc.stdout, proc.stderr
+
+
+@pytest.mark.parametrize("kind", ["missing", "directory", "binary", "permission"])
+def test_unreadable_file(capsys, monkeypatch, tmp_path, kind):
+    f = tmp_path / "world.yaml"
+    words = {"missing": "No such file", "directory": "Is a directory", "binary": "cannot read file"}.get(kind)
     if kind == "directory":
         f.mkdir()
     elif kind == "binary":
         f.write_bytes(b"\xff\xfe\x00\x01garbage")
-    proc = run_cli("check-config", str(f))
-    assert proc.returncode == 2
-    assert len(proc.stderr.strip().splitlines()) == 1
-    assert str(f) in proc.stderr and "Traceback" not in proc.stderr
+    elif kind == "permission":
+        f.write_text(BASE)
+        f.chmod(0)
+        words = "Permission denied"
+        if os.geteuid() == 0:  # root reads it anyway: make the read fail as it does for anyone else
+            real = Path.read_text
+
+            def denied(self, *args, **kwargs):
+                if self == f:
+                    raise PermissionError(13, "Permission denied", str(self))
+                return real(self, *args, **kwargs)
+
+            monkeypatch.setattr(Path, "read_text", denied)
+    code, out, err = cli(capsys, "check-config", str(f))
+    assert code == 2 and out == ""
+    assert len(err.strip().splitlines()) == 1, err
+    assert str(f) in err and words in err, err
 
 
 @pytest.mark.parametrize("name", ["paper-test1.yaml", "paper-test2.yaml", "example.yaml"])
-def test_shipped_configs_check_ok(name):
-    proc = run_cli("check-config", str(REPO / "config" / name))
-    assert proc.returncode == 0, proc.stderr
+def test_shipped_configs_check_ok(capsys, name):
+    code, out, err = cli(capsys, "check-config", str(REPO / "config" / name))
+    assert code == 0, err
     world = load_world(REPO / "config" / name)
-    assert f"{len(world.markers)} markers" in proc.stdout
-    assert f"fingerprint: {world.fingerprint():08x}" in proc.stdout
+    assert f"{len(world.markers)} markers" in out
+    assert f"fingerprint: {world.fingerprint():08x}" in out
 
 
 def test_paper_replicas_match_the_paper():
@@ -282,9 +330,11 @@ def test_paper_replicas_match_the_paper():
     assert sum(1 for e in t2.entities if e.name.startswith("drone")) == 2
 
 
-def test_usage_error_is_one_line_exit_2():
-    proc = run_cli("check-config")
-    assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
+def test_usage_error_is_one_line_exit_2(capsys):
+    code, _, err = cli(capsys, "check-config")
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    code, _, err = cli(capsys, "check-config", "a.yaml", "--no-such-option")
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
 
 
 # --- node settings ----------------------------------------------------------------------------------
@@ -365,13 +415,13 @@ BAD_NODES = [
 
 
 @pytest.mark.parametrize(("what", "text", "path", "words"), BAD_NODES, ids=[b[0] for b in BAD_NODES])
-def test_bad_node_settings_name_the_field(tmp_path, what, text, path, words):
+def test_bad_node_settings_name_the_field(capsys, tmp_path, what, text, path, words):
     f = tmp_path / "world.yaml"
     f.write_text(text)
-    proc = run_cli("check-config", str(f))
-    assert proc.returncode == 2
-    assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
-    assert f"{path}: " in proc.stderr and words in proc.stderr, proc.stderr
+    code, _, err = cli(capsys, "check-config", str(f))
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1, err
+    assert f"{path}: " in err and words in err, err
 
 
 def test_mounted_cameras_are_the_same_whether_written_in_flu_or_frd():
