@@ -15,8 +15,10 @@ the runner leaves no process and no socket behind, also on Ctrl-C or an error.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import ctypes
+import hashlib
 import json
 import logging
 import os
@@ -156,6 +158,48 @@ def _processes() -> Iterator[dict[str, subprocess.Popen[bytes]]]:
                 p.wait(timeout=5.0)
 
 
+# Frames rendered in this process, reused by a later run of the same scenario, world file and seed
+# that is no longer (frame j is the same image whatever the run's length): the tests run some
+# scenarios twice. Oldest dropped beyond the budget; all removed at exit.
+_FRAME_CACHE: dict[tuple[str, str, int], tuple[Path, float, int]] = {}
+FRAME_CACHE_BYTES = 1_500_000_000
+
+
+def _rendered_frames(
+    scenario: scenarios.Scenario, seed: int, duration_s: float, say: Callable[[str], None]
+) -> Path | None:
+    """A directory with every camera's frames for the run (:func:`prerender`), or None without cameras."""
+    world_path = scenario.world_path()
+    key = (scenario.name, hashlib.sha256(world_path.read_bytes()).hexdigest(), seed)
+    cached = _FRAME_CACHE.get(key)
+    if cached is not None and cached[1] >= duration_s:
+        say("reusing the cameras' images rendered for an earlier run")
+        return cached[0]
+    # Before any thread of ours starts (the renderer forks its workers).
+    say("rendering the cameras' images")
+    directory = Path(tempfile.mkdtemp(prefix=f"atlas-sim-frames-{scenario.name}-"))
+    try:
+        if not prerender(scenario, world_path, seed, duration_s, directory):
+            shutil.rmtree(directory, ignore_errors=True)
+            return None
+    except BaseException:
+        shutil.rmtree(directory, ignore_errors=True)
+        raise
+    if cached is not None:
+        shutil.rmtree(_FRAME_CACHE.pop(key)[0], ignore_errors=True)
+    if not _FRAME_CACHE:
+        atexit.register(_drop_frame_cache)
+    _FRAME_CACHE[key] = (directory, duration_s, sum(f.stat().st_size for f in directory.iterdir()))
+    while len(_FRAME_CACHE) > 1 and sum(v[2] for v in _FRAME_CACHE.values()) > FRAME_CACHE_BYTES:
+        shutil.rmtree(_FRAME_CACHE.pop(next(iter(_FRAME_CACHE)))[0], ignore_errors=True)
+    return directory
+
+
+def _drop_frame_cache() -> None:
+    while _FRAME_CACHE:
+        shutil.rmtree(_FRAME_CACHE.popitem()[1][0], ignore_errors=True)
+
+
 def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> SimRun:
     """Run one scenario to the end and return its records (scoring is :func:`atlas_onboard.sim.report`)."""
     say = progress or (lambda _msg: None)
@@ -166,11 +210,8 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
     run_dir = Path(tempfile.mkdtemp(prefix=f"atlas-sim-{scenario.name}-"))
     frames_dir = None
     if not os.environ.get("ATLAS_SIM_GEOMETRIC"):
-        # Before any thread of ours starts (the renderer forks its workers).
-        say("rendering the cameras' images")
         try:
-            if prerender(scenario, scenario.world_path(), options.seed, duration, run_dir):
-                frames_dir = run_dir
+            frames_dir = _rendered_frames(scenario, options.seed, duration, say)
         except BaseException:
             shutil.rmtree(run_dir, ignore_errors=True)
             raise
