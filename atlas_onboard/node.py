@@ -251,7 +251,7 @@ class Node:
             if due_hold or (self.ekf is not None and now - self._last_publish_ns >= PREDICT_NS):
                 self._publish(now)
         if self.publisher.fused_due(now) and self.last_result is not None:
-            self.transport.send_fused(list(self.last_result.poses.values()), self.world)
+            self.transport.send_fused(fused_poses(self.last_result), self.world)
             self.stats.fused_sent += 1
         self.transport.tick(now)
         if now >= self._next_watchdog_ns:
@@ -342,6 +342,15 @@ class Node:
     def _notify(self, *lines: str) -> None:
         if self.notifier is not None:
             self.notifier.notify(*lines)  # type: ignore[attr-defined]
+
+
+def fused_poses(result: GraphResult) -> list[EntityPose]:
+    """What goes to peers and the GCS: every world pose, then (with ``relative_poses``) the pose of
+    each entity of a group with no path to world relative to the group's first entity (its frame)."""
+    poses = list(result.poses.values())
+    for group in result.relative.values():
+        poses += [p for p in group.values() if p.name != p.frame]
+    return poses
 
 
 def _make_ekf(world: WorldConfig) -> EkfBank | None:
