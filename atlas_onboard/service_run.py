@@ -21,9 +21,17 @@ def choose_entity(path: Path, entity: str | None) -> str:
         return entity
     doc = read_yaml(path)
     nodes = doc.get("nodes") if isinstance(doc, dict) else None
-    names = [n for n in (nodes or {}) if n != "defaults"]
+    if not nodes:
+        raise ConfigError(
+            "nodes", "missing: `atlas-onboard run` needs a nodes section (see config/example.yaml)", str(path)
+        )
+    if not isinstance(nodes, dict):
+        raise ConfigError("nodes", f"expected a mapping of entity names, got {type(nodes).__name__}", str(path))
+    names = [n for n in nodes if n != "defaults"]
     if len(names) != 1:
-        raise ConfigError("nodes", f"give --entity: the file has node settings for {', '.join(names) or 'no entity'}")
+        raise ConfigError(
+            "nodes", f"give --entity: the file has node settings for {', '.join(names) or 'no entity'}", str(path)
+        )
     return names[0]
 
 

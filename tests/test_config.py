@@ -272,14 +272,47 @@ def test_the_command_in_its_own_process_gives_one_line_and_the_exit_status(tmp_p
     f.write_text(BASE + "  drone1: {}\n")
     proc = run_cli("check-config", str(f))
     assert proc.returncode == 2 and proc.stdout == ""
-    assert proc.stderr.strip().splitlines() == [
-        f"atlas-onboard: error: {f}: entities.drone1: duplicate key 'drone1' (line 18)"
-    ]
+    line = f"atlas-onboard: error: {f}: entities.drone1: duplicate key 'drone1' (line 18)"
+    assert proc.stderr.strip().splitlines() == [line]
+    proc = run_cli("run", "--config", str(f))  # what systemd starts: RestartPreventExitStatus=2
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1] == line, proc.stderr
+    assert "Traceback" not in proc.stderr
     proc = run_cli("check-config")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1
     assert "Traceback" not in proc.stderr
     proc = run_cli("check-config", str(REPO / "config" / "example.yaml"))
     assert proc.returncode == 0 and "fingerprint" in proc.stdout, proc.stderr
+
+
+@pytest.mark.parametrize(("what", "text", "path", "words"), BAD, ids=[b[0] for b in BAD])
+def test_run_with_a_bad_config_exits_2_with_one_line(capsys, tmp_path, what, text, path, words):
+    f = tmp_path / "world.yaml"
+    f.write_text(text)
+    code, out, err = cli(capsys, "run", "--config", str(f), "--entity", "drone1")
+    assert code == 2 and out == ""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert (path + ":" if path else "") in lines[0] and words in lines[0]
+
+
+def test_run_without_node_settings_names_what_is_missing(capsys, tmp_path):
+    f = tmp_path / "world.yaml"
+    f.write_text(BASE)
+    code, _, err = cli(capsys, "run", "--config", str(f))
+    missing = f"atlas-onboard: error: {f}: nodes: missing: `atlas-onboard run` needs a nodes section"
+    assert code == 2 and err.strip().splitlines() == [missing + " (see config/example.yaml)"], err
+    code, _, err = cli(capsys, "run", "--config", str(f), "--entity", "drone1")
+    assert code == 2 and err.strip().splitlines() == [missing + " (see config/example.yaml)"], err
+    f.write_text(BASE + "nodes: [drone1]\n")
+    code, _, err = cli(capsys, "run", "--config", str(f))
+    assert code == 2 and err.strip().splitlines() == [
+        f"atlas-onboard: error: {f}: nodes: expected a mapping of entity names, got list"
+    ], err
+    f.write_text(NODES)  # two entities with node settings: which one is this?
+    code, _, err = cli(capsys, "run", "--config", str(f))
+    assert code == 2 and err.strip().splitlines() == [
+        f"atlas-onboard: error: {f}: nodes: give --entity: the file has node settings for drone1, drone2"
+    ], err
 
 
 @pytest.mark.parametrize("kind", ["missing", "directory", "binary", "permission"])
