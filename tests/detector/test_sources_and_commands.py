@@ -10,6 +10,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 import yaml
 
 from atlas_onboard.config import CameraConfig, parse_world
@@ -22,6 +23,7 @@ from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import CameraWorker, Frame, ImageFolder, Source, SourceError
 
 DATA = Path(__file__).resolve().parents[1] / "data"
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_image_folder_stamps_from_names_and_order(tmp_path):
@@ -146,3 +148,24 @@ def test_detect_command_on_a_real_photo(tmp_path):
     assert (tmp_path / "a.png").stat().st_size > 1000
     bad = run_cli("detect", "--config", str(world), "--sensor", "cam", "--image", str(tmp_path / "missing.png"))
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "cannot read" in bad.stderr
+
+
+def test_markers_command_writes_one_svg_per_marker_at_its_size(tmp_path, capsys):
+    from atlas_onboard.cli import main
+    from atlas_onboard.config import load_world
+
+    config = REPO / "config" / "paper-test1.yaml"
+    world = load_world(config)
+    assert main(["markers", "--config", str(config), "--out", str(tmp_path / "print")]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) == len(world.markers)
+    for m in world.markers.values():
+        svg = (tmp_path / "print" / f"{m.family}-{m.id}.svg").read_text()
+        width_mm = float(re.search(r'width="([\d.]+)mm"', svg).group(1))
+        cells = family(m.family).cells
+        assert width_mm == pytest.approx(m.size_m * 1000 * (1 + 2 / cells), abs=1e-3)
+        assert f"id {m.id}" in svg
+    (tmp_path / "file").write_text("")
+    assert main(["markers", "--config", str(config), "--out", str(tmp_path / "file" / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--out: cannot create" in err[0], err
