@@ -63,14 +63,14 @@ def feed(world, peer, n=10, truth=TRUTH, period=0.02, t0_us=None):
     return t0_us
 
 
-def expected_covariance(world):
+def expected_covariance(world, truth=TRUTH):
     """What the pure core makes of the test's observation, in MAVLink's 21 NED/FRD values."""
     from atlas_onboard.listener import Listener, make_graph
     from atlas_onboard.mavlink import autopilot
 
     graph = make_graph(world)
     listener = Listener(world, graph)
-    assert listener.accept(observe(world, TRUTH, 10, 5, sigma_m=0.02, capture_time_us=1), 0) is None
+    assert listener.accept(observe(world, truth, 10, 5, sigma_m=0.02, capture_time_us=1), 0) is None
     cov = graph.evaluate(0).poses["d1"].covariance
     return autopilot.covariance_upper_triangle(autopilot.covariance_ned_frd(cov))
 
@@ -100,8 +100,12 @@ def test_vision_position_estimate_matches_truth_in_ned(rig):
 def test_odometry_matches_truth_in_local_frd(rig):
     world, ap, node, peer = rig
     truth = {"world": RigidTransform.identity(), "d1": pose([-0.5, 1.5, 2.0], [5, -3, 30])}
-    feed(world, peer, truth=truth)
+    t0 = feed(world, peer, truth=truth)
     assert wait_for(lambda: len(ap.snapshot()) >= 5), node.log()
+    for r in ap.snapshot():
+        # pose_covariance: the 6x6 the core propagates, in LOCAL_FRD / BODY_FRD, as for the other message.
+        np.testing.assert_allclose(r.covariance, expected_covariance(world, truth), rtol=1e-4, atol=1e-12)
+        assert t0 <= r.usec <= t0 + 9 * 20000  # capture time of the newest observation
     rec = ap.snapshot()[-1]
     assert rec.kind == "ODOMETRY"
     assert (rec.frame_id, rec.child_frame_id, rec.estimator_type) == (MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, 2)
@@ -144,6 +148,11 @@ def test_bad_input_changes_nothing_and_is_counted(rig):
             peer.send(good, fp, **{field: value})
     peer.send(good, fp, q=[0.0, 0.0, 0.0, 0.0])
     peer.send(good, fp, q=[math.nan, 0.0, 0.0, 1.0])
+    peer.send(good, fp, q=[math.inf, 0.0, 0.0, 1.0])
+    peer.send(good, fp, reprojection_error=-1.0)
+    peer.send(good, fp, ambiguity=2.0)
+    peer.send(good, fp, time_usec=0)  # 1970
+    peer.send(good, fp, time_usec=good.capture_time_us + 10**13)  # four months ahead
     peer.send(good, fp, sigma=-0.1)
     peer.send(good, fp, sensor_id=999)
     peer.send(good, fp, marker_id=999)
@@ -156,7 +165,8 @@ def test_bad_input_changes_nothing_and_is_counted(rig):
     code = node.stop()
     assert code == 0
     c = node.final_counters()
-    assert c["rejected_non_finite"] >= 9  # nan and inf in x, y, z, sigma
+    assert c["rejected_non_finite"] >= 10  # nan and inf in x, y, z, sigma; inf in q
+    assert c["rejected_bad_quality"] == 2 and c["rejected_bad_stamp"] == 2
     assert c["rejected_out_of_range"] >= 3  # 1e30 in x, y, z
     assert c["rejected_zero_quaternion"] == 1
     assert c["rejected_bad_sigma"] == 2  # -0.1 and 1e30

@@ -42,8 +42,10 @@ def test_duplicates_rate_limit_peer_status_and_skew(tmp_path):
         for _ in range(5):
             b.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6)), fp)
             time.sleep(0.05)
-        # An observation stamped 2 s in the past: the clocks disagree.
-        b.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6) - 2_000_000), fp)
+        # An observation stamped 0.5 s in the past: the clocks disagree (warned, still used); one
+        # 3 s in the past is refused.
+        b.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6) - 500_000), fp)
+        b.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6) - 3_000_000), fp)
         time.sleep(0.3)
         assert wait_for(lambda: any(b"peer 250 seen" in t for t in ap.statustexts), 5)
         time.sleep(3.5)  # both peers fall silent for longer than 3 s
@@ -60,7 +62,7 @@ def test_duplicates_rate_limit_peer_status_and_skew(tmp_path):
     passed_max = 50 + 50 * (flood_s + 1.0)
     assert 501 - passed_max <= c["rejected_rate_limited"] <= 501 - 50, (c["rejected_rate_limited"], flood_s)
     assert c["accepted"] == 501 + 6 - c["rejected_rate_limited"]  # every distinct one, less the limited
-    assert c["clock_skew_warnings"] >= 1
+    assert c["clock_skew_warnings"] >= 1 and c["rejected_bad_stamp"] == 1
     assert "sync the clocks" in node.log()
 
 

@@ -24,6 +24,9 @@ class Rejection(StrEnum):
     UNKNOWN_MARKER = "unknown_marker"
     OWN_MARKER = "own_marker"
     OUT_OF_RANGE = "out_of_range"
+    BAD_QUALITY = "bad_quality"
+    """A reprojection error that is negative or infinite, or an ambiguity ratio outside [0, 1]
+    (NaN, unknown, is fine for both): a broken sender, whose record is not trusted."""
     STALE = "stale"
     DUPLICATE = "duplicate"
     OUTLIER = "outlier"
@@ -94,6 +97,9 @@ class MarkerData:
             return Rejection.BAD_SIGMA
         if float(np.linalg.norm(self.p_sensor_marker_m)) > MAX_RANGE_M:
             return Rejection.OUT_OF_RANGE
+        err, ratio = self.reprojection_error_px, self.ambiguity_ratio
+        if not (math.isnan(err) or 0.0 <= err < math.inf) or not (math.isnan(ratio) or 0.0 <= ratio <= 1.0):
+            return Rejection.BAD_QUALITY
         return None
 
     def q_sensor_marker_xyzw(self) -> np.ndarray:

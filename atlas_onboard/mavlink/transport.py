@@ -26,6 +26,7 @@ NS = 1_000_000_000
 MAV_TYPE_ONBOARD_CONTROLLER = autopilot.MAV_TYPE_ONBOARD_CONTROLLER
 MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
 PEER_LOST_NS = 3 * NS
+MAX_STAMP_SKEW_NS = NS  # a peer's capture stamp this far from our wall clock is refused (counted as bad_stamp)
 
 
 class MavlinkTransport:
@@ -212,12 +213,18 @@ class MavlinkTransport:
             self.counters_.inc(f"rejected_{reason}")
             return
         self.peers_seen[origin] = arrival_ns
-        skew = self.gate.check_skew(md, self._wall_ns(), arrival_ns)
+        wall_ns = self._wall_ns()
+        skew = self.gate.check_skew(md, wall_ns, arrival_ns)
         if skew is not None:
             _logger.warning(
                 "peer system %d: capture stamps and arrival disagree by %.0f ms; sync the clocks (chrony)",
                 skew.origin, skew.skew_s * 1e3,
             )  # fmt: skip
+        if abs(wall_ns - md.capture_time_us * 1000) > MAX_STAMP_SKEW_NS:
+            # Years ahead, the stamp would hold the autopilot's output until then (a pose goes out only
+            # for a newer capture); seconds behind, an old view would be fused as a current one.
+            self.counters_.inc("rejected_bad_stamp")
+            return
         if self._deliver is not None:
             self._deliver(md, arrival_ns)
 

@@ -148,9 +148,19 @@ def test_refusals_are_counted_and_nothing_raises(rig):
     s0.raw(s0.observation(seq=104, fingerprint=fp, time_usec=t_us, q=[0.0, 0.0, 0.0, 0.0]))
     s0.raw(s0.observation(seq=105, fingerprint=fp, time_usec=t_us, sigma=-1.0))
     s0.raw(s0.observation(seq=106, fingerprint=fp, time_usec=t_us, sigma=math.inf))
+    s0.raw(s0.observation(seq=108, fingerprint=fp, time_usec=t_us, reprojection_error=-1.0))
+    s0.raw(s0.observation(seq=109, fingerprint=fp, time_usec=t_us, reprojection_error=math.inf))
+    s0.raw(s0.observation(seq=110, fingerprint=fp, time_usec=t_us, ambiguity=1.5))
+    s0.raw(s0.observation(seq=111, fingerprint=fp, time_usec=t_us, ambiguity=-math.inf))
+    s0.raw(s0.observation(seq=112, fingerprint=fp, time_usec=t_us, q=[math.inf, 0.0, 0.0, 1.0]))
+    # Capture stamps: 0.5 s old passes (with a warning); 2 s old, a year ahead, and 0 are refused.
+    s0.raw(s0.observation(seq=113, fingerprint=fp, time_usec=t_us - 500_000))
+    for seq, stamp in ((114, t_us - 2_000_000), (115, t_us + 365 * 86400 * 10**6), (116, 0)):
+        s0.raw(s0.observation(seq=seq, fingerprint=fp, time_usec=stamp))
     s0.raw(s0.observation(seq=107, fingerprint=fp, time_usec=t_us))  # finally a good one
     settle(transport, delivered, 0.3)
     c = transport.counters()
+    assert c["rejected_bad_stamp"] == 3 and c["clock_skew_warnings"] >= 1
     assert c["rejected_wrong_fingerprint"] == 1 and c["rejected_bad_version"] == 1
     assert c["rejected_tunnel_unknown_type"] == 1 and c["rejected_tunnel_bad_length"] == 1
     assert c["peer0_rejected_unknown_id"] >= 1 and c["peer0_rejected_bad_data"] >= 1
@@ -161,6 +171,12 @@ def test_refusals_are_counted_and_nothing_raises(rig):
         104: Rejection.ZERO_QUATERNION,
         105: Rejection.BAD_SIGMA,
         106: Rejection.NON_FINITE,
+        108: Rejection.BAD_QUALITY,
+        109: Rejection.BAD_QUALITY,
+        110: Rejection.BAD_QUALITY,
+        111: Rejection.BAD_QUALITY,
+        112: Rejection.NON_FINITE,
+        113: None,
         107: None,
     }
     assert all(lk.is_open for lk in transport.peers)
@@ -226,7 +242,10 @@ def test_odometry_output(rig):
 def test_clock_skew_is_counted(rig):
     world, transport, _, (s0, _), delivered = rig
     fp = world.fingerprint()
-    s0.raw(s0.observation(seq=1, fingerprint=fp, time_usec=int(WALL_S * 1e6) - 2_000_000))  # 2 s old stamp
+    s0.raw(s0.observation(seq=1, fingerprint=fp, time_usec=int(WALL_S * 1e6) - 400_000))  # 400 ms: warned
     s0.raw(s0.observation(seq=2, fingerprint=fp, time_usec=int(WALL_S * 1e6) - 50_000))  # 50 ms: fine
+    s0.raw(s0.observation(seq=3, fingerprint=fp, time_usec=int(WALL_S * 1e6) - 2_000_000))  # 2 s: refused
     settle(transport, delivered)
-    assert len(delivered) == 2 and transport.counters()["clock_skew_warnings"] == 1
+    assert [md.seq for md in delivered] == [1, 2]
+    c = transport.counters()
+    assert c["clock_skew_warnings"] == 2 and c["rejected_bad_stamp"] == 1
