@@ -151,6 +151,10 @@ def test_bad_input_changes_nothing_and_is_counted(rig):
     peer.send(good, fp, q=[math.inf, 0.0, 0.0, 1.0])
     peer.send(good, fp, reprojection_error=-1.0)
     peer.send(good, fp, ambiguity=2.0)
+    # The other planar solution partly infinite, or NaN beside finite values: ignored, the record
+    # stands on its (good) chosen solution.
+    peer.send(good, fp, x_alt=math.inf, y_alt=0.0, z_alt=1.0, q_alt=[1.0, 0.0, 0.0, 0.0])
+    peer.send(good, fp, x_alt=math.nan, y_alt=0.0, z_alt=1.0, q_alt=[1.0, 0.0, 0.0, 0.0])
     peer.send(good, fp, time_usec=0)  # 1970
     peer.send(good, fp, time_usec=good.capture_time_us + 10**13)  # four months ahead
     peer.send(good, fp, sigma=-0.1)
@@ -167,6 +171,7 @@ def test_bad_input_changes_nothing_and_is_counted(rig):
     c = node.final_counters()
     assert c["rejected_non_finite"] >= 10  # nan and inf in x, y, z, sigma; inf in q
     assert c["rejected_bad_quality"] == 2 and c["rejected_bad_stamp"] == 2
+    assert c["alt_ignored"] == 2
     assert c["rejected_out_of_range"] >= 3  # 1e30 in x, y, z
     assert c["rejected_zero_quaternion"] == 1
     assert c["rejected_bad_sigma"] == 2  # -0.1 and 1e30

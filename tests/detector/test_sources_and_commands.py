@@ -35,6 +35,23 @@ def test_image_folder_stamps_from_names_and_order(tmp_path):
     assert ImageFolder.stamp_from_name("1700000000123456.png") == 1_700_000_000_123_456
 
 
+def photo_detector() -> Detector:
+    """A detector for the swatbotics photo IMG_1368 (tags 13 and 19 among ids 0-19 of 12.7 cm)."""
+    world = parse_world(
+        {
+            "entities": {
+                "world": {
+                    "markers": [{"id": i, "size_m": 0.127, "pose": {"pos": [float(i), 0, 0]}} for i in range(20)]
+                },
+                "cam": {"sensors": [{"name": "c", "id": 1, "pose": {}}]},
+            }
+        }
+    )
+    K = np.array([[765.0, 0, 393.72], [0, 764.18, 304.66], [0, 0, 1]])
+    cal = Calibration(816, 612, K, np.zeros(5))
+    return Detector(world.sensors[1], world, cal, decimate=1.0, track=False, joint=False, max_ambiguity=1.0)
+
+
 def test_camera_worker_survives_a_source_that_dies_and_comes_back(monkeypatch):
     """Open fails twice, then a source gives 3 frames and dies, then one gives 3 more: 6 frames reach
     the detector and the worker keeps running."""
@@ -62,20 +79,7 @@ def test_camera_worker_survives_a_source_that_dies_and_comes_back(monkeypatch):
 
     monkeypatch.setattr(sources, "open_source", fake_open)
     monkeypatch.setattr(sources, "BACKOFF_S", (0.01,))
-    world = parse_world(
-        {
-            "entities": {
-                "world": {
-                    "markers": [{"id": i, "size_m": 0.127, "pose": {"pos": [float(i), 0, 0]}} for i in range(20)]
-                },
-                "cam": {"sensors": [{"name": "c", "id": 1, "pose": {}}]},
-            }
-        }
-    )
-    K = np.array([[765.0, 0, 393.72], [0, 764.18, 304.66], [0, 0, 1]])
-    cal = Calibration(816, 612, K, np.zeros(5))
-    det = Detector(world.sensors[1], world, cal, decimate=1.0, track=False, joint=False, max_ambiguity=1.0)
-    worker = CameraWorker("c", CameraConfig(source="/dev/video9"), det)
+    worker = CameraWorker("c", CameraConfig(source="/dev/video9"), photo_detector())
     got = []
     worker.start(got.append)
     deadline = time.time() + 20
@@ -169,3 +173,69 @@ def test_markers_command_writes_one_svg_per_marker_at_its_size(tmp_path, capsys)
     assert main(["markers", "--config", str(config), "--out", str(tmp_path / "file" / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--out: cannot create" in err[0], err
+
+
+class _MjpegServer:
+    """An HTTP camera (multipart MJPEG, as IP cameras and mjpg-streamer serve it) on 127.0.0.1 that
+    sends ``per_connection[i]`` frames on its i-th connection, then hangs up: a camera that dies."""
+
+    def __init__(self, jpeg: bytes, per_connection: list[int]) -> None:
+        import http.server
+        import threading
+
+        server_self = self
+        self.connections = 0
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            def log_message(self, *args):
+                pass
+
+            def do_GET(self):
+                i = server_self.connections
+                server_self.connections += 1
+                n = per_connection[min(i, len(per_connection) - 1)]
+                self.send_response(200)
+                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+                self.end_headers()
+                try:
+                    for _ in range(n):
+                        self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\n")
+                        self.wfile.write(f"Content-Length: {len(jpeg)}\r\n\r\n".encode() + jpeg + b"\r\n")
+                        self.wfile.flush()
+                        time.sleep(0.05)
+                except OSError:
+                    pass
+
+        self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.httpd.server_address[1]}/stream.mjpg"
+        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def test_an_http_camera_that_hangs_up_is_reopened_and_delivers_again(monkeypatch):
+    """A real stream through OpenCV's FFmpeg backend: 4 frames, the camera hangs up, the worker reopens
+    it (with backoff) and gets 4 more; the detections are the photo's tags, and the worker lives on."""
+    gray = cv2.imread(str(DATA / "swatbotics_mapping" / "IMG_1368.JPG"), cv2.IMREAD_GRAYSCALE)
+    ok, jpeg = cv2.imencode(".jpg", gray, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    assert ok
+    server = _MjpegServer(jpeg.tobytes(), [4, 4, 0])
+    monkeypatch.setattr(sources, "BACKOFF_S", (0.05,))
+    worker = CameraWorker("c", CameraConfig(source=server.url), photo_detector())
+    got = []
+    try:
+        worker.start(got.append)
+        deadline = time.time() + 30
+        while time.time() < deadline and worker.counts["frames"] + worker.counts["frames_dropped"] < 8:
+            time.sleep(0.02)
+        alive = worker._thread.is_alive()
+    finally:
+        worker.stop()
+        server.close()
+    c = worker.counters()
+    assert alive and c["opened"] >= 2 and c["source_failures"] >= 1, c
+    assert c["frames"] + c.get("frames_dropped", 0) == 8, c
+    assert {md.marker_id for md in got} == {13, 19}
