@@ -2,6 +2,7 @@
 damaged; and the numbers in docs/wire-format.md are the generated ones."""
 
 import re
+import sys
 from pathlib import Path
 
 from atlas_onboard.mavlink import codec, dialect
@@ -15,7 +16,10 @@ def test_generated_into_a_cache_keyed_by_the_hash_and_regenerated_when_damaged(t
     module = dialect.load()
     key = dialect.digest()
     path = tmp_path / f"atlas_dialect_{key}.py"
-    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no staging file left behind
+    # No staging file left behind; the bytecode beside it, whatever PYTHONDONTWRITEBYTECODE says.
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, "__pycache__"])
+    pyc = tmp_path / "__pycache__" / f"atlas_dialect_{key}.{sys.implementation.cache_tag}.pyc"
+    assert pyc.is_file() and pyc.stat().st_size > 100_000
     assert module.MAVLink_atlas_observation_message.id == 43100
     assert module.MAVLink_atlas_fused_pose_message.id == 43101
     assert module.MAVLink_tunnel_message.id == 385  # common.xml is included
@@ -25,6 +29,7 @@ def test_generated_into_a_cache_keyed_by_the_hash_and_regenerated_when_damaged(t
     again = dialect.load()
     assert again.MAVLink_atlas_observation_message.crc_extra == module.MAVLink_atlas_observation_message.crc_extra
     assert "this is not python" not in path.read_text(encoding="utf-8")
+    assert pyc.stat().st_mtime >= path.stat().st_mtime  # compiled again from the new file
 
 
 def test_common_xml_is_found_in_the_installed_pymavlink():

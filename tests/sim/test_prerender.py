@@ -26,7 +26,7 @@ def test_frames_are_reused_by_a_run_no_longer_of_the_same_scenario_and_seed(monk
     from atlas_onboard.sim import runner
 
     monkeypatch.setattr(runner, "_FRAME_CACHE", {})
-    sc = scenarios.get("paper-test2")
+    sc = scenarios.get("gaps")  # one 640x480 camera
     said = []
     first = runner._rendered_frames(sc, 4, 1.0, said.append)
     kept = {f.name: np.load(f) for f in first.iterdir()}
