@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
 
-from atlas_onboard.config import ConfigError, NodeConfig, WorldConfig, load_node
+from atlas_onboard.config import WORLD, ConfigError, NodeConfig, WorldConfig, load_node
 from atlas_onboard.core.ekf import EkfSettings
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
@@ -35,6 +35,7 @@ _logger = logging.getLogger(__name__)
 NS = 1_000_000_000
 SETTLE_S = 0.0003  # wait this long for the rest of a burst before evaluating
 MAX_SETTLE_S = 0.0006  # and never longer than this
+COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
 PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
 
 
@@ -153,6 +154,9 @@ class Node:
         self._reload = threading.Event()
         self._dirty = False
         self._last_publish_ns = 0
+        self._last_eval_ns = 0
+        self._urgent = False
+        self._relevant: set[str] | None = None  # entities whose observations are evaluated at once
         self._next_status_ns = 0
         self._next_watchdog_ns = 0
         self.watchdog_interval_ns = NS  # the service layer shortens it to half of WatchdogSec if needed
@@ -224,6 +228,8 @@ class Node:
                 self.stats.peer_observations += 1
             if reason is None:
                 self._dirty = True
+                if not self._urgent:
+                    self._urgent = self._concerns_own_pose(md)
                 _logger.debug(
                     "obs %d/%d cap %d sigma %.4f p %s", md.sensor_id, md.marker_id, md.capture_time_us, md.sigma_m,
                     md.p_sensor_marker_m,
@@ -242,7 +248,8 @@ class Node:
         ``PREDICT_NS``, and a pose held back by the rate cap goes when the cap allows.
         """
         expiry = self.graph.next_expiry_ns()
-        if self._dirty or (expiry is not None and now >= expiry):
+        due = self._dirty and (self._urgent or now - self._last_eval_ns >= COALESCE_NS)
+        if due or (expiry is not None and now >= expiry):
             self._evaluate(now)
             self._publish(now)
         elif self.last_result is not None:
@@ -262,11 +269,30 @@ class Node:
                 self._log_status()
             self._next_status_ns = now + int(self.config.status_interval_s * NS)
 
+    def _concerns_own_pose(self, md: MarkerData) -> bool:
+        """Whether an accepted observation can change this node's own pose right away: it involves
+        the own entity or one of the entities nearer the world (the BFS levels of the last
+        evaluation); every observation when the own entity has no pose or paths are Dijkstra's.
+        Others (a ceiling camera's view of another drone) are evaluated together, ``COALESCE_NS``
+        at most later: in a swarm they are most of a node's input."""
+        relevant = self._relevant
+        if relevant is None:
+            return True
+        sensor, marker = self.world.sensors.get(md.sensor_id), self.world.markers.get(md.marker_id)
+        return sensor is None or marker is None or sensor.entity in relevant or marker.entity in relevant
+
     def _evaluate(self, now: int) -> None:
-        self._dirty = False
+        self._dirty = self._urgent = False
+        self._last_eval_ns = now
         self.listener.forget_expired(now)
         result = self.graph.evaluate(now)
         self.last_result = result
+        own = self.config.entity
+        level = result.levels.get(own)
+        if level is None or self.world.fusion.path != "bfs":
+            self._relevant = None
+        else:  # the world's pose never changes: it is never relevant, not even to the world's node
+            self._relevant = {n for n, lv in result.levels.items() if 1 <= lv < level} | ({own} - {WORLD})
         self.listener.set_estimates(result.poses)
         self.stats.evaluations += 1
         if self.ekf is not None:

@@ -159,3 +159,52 @@ def test_fused_poses_go_to_peers(n):
     assert names == {"world", "d1"}
     d1 = next(p for p in tr.fused[-1] if p.name == "d1")
     np.testing.assert_allclose(d1.p_world_m, TRUTH["d1"].translation, atol=1e-9)
+
+
+WORLD2 = parse_world(
+    {
+        "entities": {
+            "world": {
+                "markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}],
+                "sensors": [{"name": "ceiling", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}],
+            },
+            "d1": {
+                "sensors": [{"name": "down", "id": 1, "pose": {"pos": [0, 0, 0], "rpy_deg": [0, 90, 0]}}],
+                "markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}],
+            },
+            "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+        }
+    }
+)
+TRUTH2 = {"world": RigidTransform.identity(), "d1": pose([0.5, -0.3, 1.2], [0, 0, 30]), "d2": pose([1, 1, 1])}
+
+
+def test_observations_that_cannot_move_the_own_pose_are_evaluated_together():
+    """Driven step by step on a fake clock: the own entity's observations are evaluated at once; a
+    ceiling camera's view of another drone waits up to COALESCE_NS, and is then in the fused poses."""
+    ms = 1_000_000
+    now = [1_000 * ms]
+    tr = FakeTransport(lambda: now[0])
+    cfg = NodeConfig(entity="d1", system_id=7, autopilot=AutopilotConfig(LinkConfig("udpout:127.0.0.1:9")))
+    node = Node(WORLD2, cfg, tr, monotonic_ns=lambda: now[0])
+
+    def at(t_ms, *obs):
+        now[0] = 1_000 * ms + t_ms * ms
+        if obs:
+            node._handle([(md, now[0], False) for md in obs])
+        node._step(now[0])
+        return node.stats.evaluations
+
+    t_us = 1_700_000_000_000_000
+    assert at(0, observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us)) == 1  # d1 sees the floor tag
+    assert len(tr.autopilot) == 1
+    assert at(5, observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 1)) == 1  # the ceiling sees d2
+    assert "d2" not in node.last_result.poses
+    assert at(49) == 1
+    assert at(50) == 2 and "d2" in node.last_result.poses  # at most COALESCE_NS later
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)
+    assert at(60, observe(WORLD2, TRUTH2, 10, 5, capture_time_us=t_us + 2)) == 3  # the ceiling sees d1
+    assert len(tr.autopilot) == 2
+    # Without a pose of its own, every observation is evaluated at once (it may open a path).
+    assert at(600) == 4 and "d1" not in node.last_result.poses  # every edge expired
+    assert at(601, observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 3)) == 5
