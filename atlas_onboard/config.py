@@ -205,6 +205,9 @@ class WorldConfig:
         return int.from_bytes(digest[:4], "little")
 
 
+NO_NODES = "missing: `atlas-onboard run` needs a nodes section (see config/example.yaml)"
+
+
 # --- YAML with duplicate-key detection ---------------------------------------------------------------
 
 
@@ -846,7 +849,7 @@ def parse_node(doc: Any, entity: str, world: WorldConfig, base_dir: Path | None 
         raise ConfigError("", f"unknown entity {entity!r} (the world file has {', '.join(world.entity_names)})")
     raw = doc.get("nodes") if isinstance(doc, Mapping) else None
     if raw is None:
-        raise ConfigError("nodes", "missing: `atlas-onboard run` needs a nodes section (see config/example.yaml)")
+        raise ConfigError("nodes", NO_NODES)
     nodes = _mapping(raw, "nodes", {"defaults", *world.entity_names})
     defaults = nodes.get("defaults") or {}
     own = nodes.get(entity) or {}

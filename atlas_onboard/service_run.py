@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from atlas_onboard.config import WORLD, ConfigError, NodeConfig, WorldConfig, load_node, read_yaml
+from atlas_onboard.config import NO_NODES, WORLD, ConfigError, NodeConfig, WorldConfig, load_node, read_yaml
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.node import Camera, Node, install_signal_handlers
 from atlas_onboard.service import Notifier, watchdog_interval_us
@@ -22,9 +22,7 @@ def choose_entity(path: Path, entity: str | None) -> str:
     doc = read_yaml(path)
     nodes = doc.get("nodes") if isinstance(doc, dict) else None
     if not nodes:
-        raise ConfigError(
-            "nodes", "missing: `atlas-onboard run` needs a nodes section (see config/example.yaml)", str(path)
-        )
+        raise ConfigError("nodes", NO_NODES, str(path))
     if not isinstance(nodes, dict):
         raise ConfigError("nodes", f"expected a mapping of entity names, got {type(nodes).__name__}", str(path))
     names = [n for n in nodes if n != "defaults"]

@@ -104,3 +104,20 @@ def wait_for(predicate, timeout: float = 20.0, step: float = 0.02) -> bool:
             return True
         time.sleep(step)
     return False
+
+
+def start_node_with_peer(tmp: Path, doc_for, entity: str = "d1"):
+    """A simulated autopilot, a world file from ``doc_for(peer_port, autopilot_port)``, the node of
+    ``entity`` and a peer (system 250) on its udpin port, once the node's heartbeat reached the
+    autopilot. Returns (world, autopilot, node, peer); the caller stops them."""
+    from atlas_onboard.config import load_world
+    from atlas_onboard.sim.autopilot import SimAutopilot
+
+    ap = SimAutopilot(system_id=1).start()
+    port = free_udp_port()
+    path = write_world(tmp, doc_for(port, ap.port))
+    world = load_world(path)
+    node = NodeProcess(path, entity)
+    peer = Peer(port, system_id=250)
+    assert wait_for(lambda: ap.heartbeats_from.get((1, 197), 0) > 0), node.log()
+    return world, ap, node, peer

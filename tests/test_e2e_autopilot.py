@@ -10,9 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import load_world
-from atlas_onboard.sim.autopilot import SimAutopilot
-from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.e2e import start_node_with_peer, wait_for
 from tests.helpers import observe, pose
 
 MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD = 20, 12
@@ -39,13 +37,7 @@ def world_doc(peer_port, ap_port, output="vision_position_estimate", extra_node=
 @pytest.fixture
 def rig(tmp_path, request):
     output = getattr(request, "param", "vision_position_estimate")
-    ap = SimAutopilot(system_id=1).start()
-    peer_port = free_udp_port()
-    path = write_world(tmp_path, world_doc(peer_port, ap.port, output))
-    world = load_world(path)
-    node = NodeProcess(path, "d1")
-    peer = Peer(peer_port, system_id=250)
-    assert wait_for(lambda: ap.heartbeats_from.get((1, 197), 0) > 0), node.log()
+    world, ap, node, peer = start_node_with_peer(tmp_path, lambda port, ap_port: world_doc(port, ap_port, output))
     yield world, ap, node, peer
     peer.close()
     node.stop()

@@ -6,9 +6,7 @@ import time
 import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import load_world
-from atlas_onboard.sim.autopilot import SimAutopilot
-from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.e2e import start_node_with_peer
 from tests.helpers import observe, pose
 
 
@@ -41,15 +39,9 @@ TRUTH = {
 
 
 def fused_messages(tmp_path, relative):
-    ap = SimAutopilot(system_id=1).start()
-    port = free_udp_port()
-    path = write_world(tmp_path, world_doc(port, ap.port, relative))
-    world = load_world(path)
-    node = NodeProcess(path, "d1")
-    peer = Peer(port, system_id=250)
+    world, ap, node, peer = start_node_with_peer(tmp_path, lambda port, ap_port: world_doc(port, ap_port, relative))
     got = []
     try:
-        assert wait_for(lambda: ap.heartbeats_from.get((1, 197), 0) > 0), node.log()
         t0 = int(time.time() * 1e6)
         for k in range(15):  # the lead's rear camera sees the follower's tag, 20 Hz
             peer.send(observe(world, TRUTH, 20, 7, sigma_m=0.01, capture_time_us=t0 + k * 50_000), world.fingerprint())

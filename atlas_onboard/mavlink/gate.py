@@ -25,6 +25,10 @@ from atlas_onboard.core.markerdata import MarkerData
 NS = 1_000_000_000
 DEDUPE_WINDOW = 4096
 SKEW_WARN_S = 0.1
+MAX_SKEW_S = 1.0
+"""A capture stamp farther than this from the receiver's wall clock is refused (``bad_stamp``): years
+ahead it would hold back every later pose (a pose goes to the autopilot only for a newer capture);
+seconds behind, an old view would be fused as a current one."""
 SKEW_WARN_EVERY_S = 10.0
 
 
@@ -65,11 +69,13 @@ class PeerGate:
         dedupe_window: int = DEDUPE_WINDOW,
         skew_warn_s: float = SKEW_WARN_S,
         skew_warn_every_s: float = SKEW_WARN_EVERY_S,
+        max_skew_s: float = MAX_SKEW_S,
     ) -> None:
         self.own_system_id = own_system_id
         self.dedupe_window = dedupe_window
         self.skew_warn_s = skew_warn_s
         self.skew_warn_every_ns = int(skew_warn_every_s * NS)
+        self.max_skew_ns = int(max_skew_s * NS)
         self._seen: OrderedDict[tuple[int, int, int, int, int], None] = OrderedDict()
         self._buckets: dict[tuple[int, int], TokenBucket] = {}
         self._skew_reported_ns: dict[int, int] = {}
@@ -115,6 +121,10 @@ class PeerGate:
                 return None
             self._skew_reported_ns[origin] = arrival_ns
         return SkewReport(md.origin, skew_s)
+
+    def stamp_refused(self, md: MarkerData, arrival_wall_ns: int) -> bool:
+        """True when ``md``'s capture stamp is more than ``max_skew_s`` from its arrival on our wall clock."""
+        return abs(arrival_wall_ns - md.capture_time_us * 1000) > self.max_skew_ns
 
     def sizes(self) -> tuple[int, int]:
         """(remembered observations, token buckets): both bounded."""

@@ -26,7 +26,6 @@ NS = 1_000_000_000
 MAV_TYPE_ONBOARD_CONTROLLER = autopilot.MAV_TYPE_ONBOARD_CONTROLLER
 MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
 PEER_LOST_NS = 3 * NS
-MAX_STAMP_SKEW_NS = NS  # a peer's capture stamp this far from our wall clock is refused (counted as bad_stamp)
 
 
 class MavlinkTransport:
@@ -220,9 +219,7 @@ class MavlinkTransport:
                 "peer system %d: capture stamps and arrival disagree by %.0f ms; sync the clocks (chrony)",
                 skew.origin, skew.skew_s * 1e3,
             )  # fmt: skip
-        if abs(wall_ns - md.capture_time_us * 1000) > MAX_STAMP_SKEW_NS:
-            # Years ahead, the stamp would hold the autopilot's output until then (a pose goes out only
-            # for a newer capture); seconds behind, an old view would be fused as a current one.
+        if self.gate.stamp_refused(md, wall_ns):
             self.counters_.inc("rejected_bad_stamp")
             return
         if self._deliver is not None:

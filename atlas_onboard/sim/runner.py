@@ -187,8 +187,6 @@ def _rendered_frames(
         raise
     if cached is not None:
         shutil.rmtree(_FRAME_CACHE.pop(key)[0], ignore_errors=True)
-    if not _FRAME_CACHE:
-        atexit.register(_drop_frame_cache)
     _FRAME_CACHE[key] = (directory, duration_s, sum(f.stat().st_size for f in directory.iterdir()))
     while len(_FRAME_CACHE) > 1 and sum(v[2] for v in _FRAME_CACHE.values()) > FRAME_CACHE_BYTES:
         shutil.rmtree(_FRAME_CACHE.pop(next(iter(_FRAME_CACHE)))[0], ignore_errors=True)
@@ -198,6 +196,9 @@ def _rendered_frames(
 def _drop_frame_cache() -> None:
     while _FRAME_CACHE:
         shutil.rmtree(_FRAME_CACHE.popitem()[1][0], ignore_errors=True)
+
+
+atexit.register(_drop_frame_cache)
 
 
 def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> SimRun:

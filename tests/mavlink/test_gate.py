@@ -78,3 +78,12 @@ def test_skew_is_counted_every_time_and_reported_once_per_interval():
     assert gate.check_skew(md, wall_ns - 3 * NS, 11 * NS).skew_s == -3.0  # the interval has passed
     assert gate.check_skew(obs(origin=251), wall_ns + NS, 11 * NS) is not None  # other peers separately
     assert gate.skew_warnings == 4
+
+
+def test_a_stamp_more_than_a_second_from_our_clock_is_refused():
+    gate = PeerGate(own_system_id=1)
+    wall_ns = 1_700_000_000_000_000_000
+    t_us = wall_ns // 1000
+    for offset_us, refused in ((0, False), (-999_999, False), (999_999, False), (-1_000_001, True),
+                               (1_000_001, True), (-t_us, True), (10**15, True)):  # fmt: skip
+        assert gate.stamp_refused(obs(1, 1, t_us=t_us + offset_us), wall_ns) is refused, offset_us
