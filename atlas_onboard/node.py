@@ -331,7 +331,7 @@ class Node:
             _logger.error("reload refused: entities or node settings changed; restart the service to apply them")
             return
         self.world = world
-        self.graph.edges.clear()
+        self.graph.clear()
         self.graph = make_graph(world)
         self.listener = Listener(world, self.graph)
         self.ekf = _make_ekf(world)

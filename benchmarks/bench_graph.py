@@ -57,7 +57,7 @@ def _T(p, q) -> RigidTransform:
 def naive_evaluate(g: TransformGraph) -> dict[str, RigidTransform]:
     """The anchor: same broad phase, then one scipy call per candidate and one mean per entity."""
     edges = list(g.edges.values())
-    order, level = g.broad_phase(edges)
+    order, level = g.broad_phase()
     pose = {g.index[WORLD]: RigidTransform.identity()}
     for v in order[1:]:
         cands, sig = [], []
@@ -66,7 +66,7 @@ def naive_evaluate(g: TransformGraph) -> dict[str, RigidTransform]:
                 cands.append(pose[e.a] * _T(e.p_a_b, e.q_a_b))
                 sig.append(e.sigma_m)
             elif e.a == v and level.get(e.b) == level[v] - 1:
-                cands.append(pose[e.b] * _T(e.p_b_a, e.q_b_a))
+                cands.append(pose[e.b] * _T(e.p_a_b, e.q_a_b).inv())
                 sig.append(e.sigma_m)
         w = fusion.sigma_min_weights(np.array(sig))
         stack = RigidTransform.concatenate(cands)

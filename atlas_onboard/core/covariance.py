@@ -13,7 +13,7 @@ First-order propagation (derived in docs/covariance.md):
 - a weighted mean of candidates that share a parent: the parent's error is common to all of them
   and does not average out, each edge's own error does.
 
-Everything here is batched over a leading axis (numpy ``einsum``) and pure.
+Everything here is batched over a leading axis (numpy ``matmul``) and pure.
 """
 
 from __future__ import annotations
@@ -22,6 +22,8 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
+
+from atlas_onboard.core import fusion
 
 MIN_ATTITUDE_SIGMA_RAD = math.radians(0.1)
 MAX_ATTITUDE_SIGMA_RAD = math.radians(30.0)
@@ -107,7 +109,7 @@ def inverse_jacobian(p_ab: NDArray[np.float64], R_ab: NDArray[np.float64]) -> ND
 
 def transform(J: NDArray[np.float64], C: NDArray[np.float64]) -> NDArray[np.float64]:
     """``J C J^T``, batched."""
-    return np.einsum("...ij,...jk,...lk->...il", J, C, J)
+    return J @ C @ np.swapaxes(J, -1, -2)
 
 
 def compose_jacobians(
@@ -117,7 +119,7 @@ def compose_jacobians(
     lead = np.shape(p_pc)[:-1]
     Jp = np.zeros((*lead, 6, 6))
     Jp[..., 0:3, 0:3] = np.eye(3)
-    Jp[..., 0:3, 3:6] = -np.einsum("...ij,...jk->...ik", R_wp, skew(p_pc))
+    Jp[..., 0:3, 3:6] = -(R_wp @ skew(p_pc))
     Jp[..., 3:6, 3:6] = np.swapaxes(R_pc, -1, -2)
     Je = np.zeros((*lead, 6, 6))
     Je[..., 0:3, 0:3] = R_wp
@@ -141,15 +143,22 @@ def fuse(
     the mean's error is ``sum_i w_i (Jp_i e_parent + Je_i e_edge_i)``: the edge terms add as
     ``w_i^2``, and each parent's term as ``(sum of w_i Jp_i over its candidates) C_parent (...)^T``.
     """
-    total = np.zeros(n)
-    np.add.at(total, child, weights)
-    w = weights / total[child]
     out = np.zeros((n, 6, 6))
-    np.add.at(out, child, (w**2)[:, None, None] * edge_term)
-    # Group the candidates by (child, parent): their parent Jacobians add before the parent's covariance.
+    if len(child) == 0:
+        return out
+    # Sorted by (child, parent), every sum is a reduceat over contiguous runs.
     base = len(C_parent)
-    keys, inverse = np.unique(child.astype(np.int64) * base + parent, return_inverse=True)
-    A = np.zeros((len(keys), 6, 6))
-    np.add.at(A, inverse.reshape(-1), w[:, None, None] * Jp)
-    np.add.at(out, keys // base, transform(A, C_parent[keys % base]))
+    order, starts, pair = fusion.segments(child.astype(np.int64) * base + parent)
+    kid = pair // base
+    w_sorted = weights[order]
+    # The runs of one child are contiguous too: its candidates' weights, normalised.
+    first = np.flatnonzero(np.concatenate(([True], kid[1:] != kid[:-1])))
+    kid_start = starts[first]
+    per_pair = np.diff(np.append(starts, len(order)))
+    per_kid = np.add.reduceat(per_pair, first)
+    w = w_sorted / np.repeat(np.add.reduceat(w_sorted, kid_start), per_kid)
+    out[kid[first]] = np.add.reduceat((w**2)[:, None, None] * edge_term[order], kid_start)
+    # Candidates sharing a parent: their parent Jacobians add before the parent's covariance.
+    A = np.add.reduceat(w[:, None, None] * Jp[order], starts)
+    out[kid[first]] += np.add.reduceat(transform(A, C_parent[pair % base]), first)
     return out

@@ -112,32 +112,37 @@ def fuse_groups(
         has count 0 and NaN values.
     """
     counts = np.bincount(group, minlength=n_groups)
-    wsum = np.bincount(group, weights=weights, minlength=n_groups)
     pos = np.full((n_groups, 3), np.nan)
     quat = np.full((n_groups, 4), np.nan)
     sig = np.full(n_groups, np.nan)
-    present = counts > 0
-    if not np.any(present):
+    if len(group) == 0:
         return pos, quat, sig, counts
-    for axis in range(3):
-        pos[:, axis] = np.bincount(group, weights=weights * p[:, axis], minlength=n_groups) / np.where(
-            present, wsum, 1.0
-        )
-    pos[~present] = np.nan
-    a = weights / wsum[group]
-    sig = np.sqrt(np.bincount(group, weights=(a * sigmas) ** 2, minlength=n_groups))
-    sig[~present] = np.nan
+    # Sorted by group, every sum is one reduceat over contiguous runs (ufunc.at is far slower).
+    order, starts, ids = segments(group)
+    size = counts[ids]
+    w = weights[order]
+    wsum = np.add.reduceat(w, starts)
+    pos[ids] = np.add.reduceat(w[:, None] * p[order], starts) / wsum[:, None]
+    a = w / np.repeat(wsum, size)
+    sig[ids] = np.sqrt(np.add.reduceat((a * sigmas[order]) ** 2, starts))
     # Pad every group to the largest size with zero-weight identity rotations, then one batched mean.
-    width = int(counts.max())
-    order = np.argsort(group, kind="stable")
-    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
-    slot = np.arange(len(group)) - starts[group[order]]
-    padded_q = np.zeros((n_groups, width, 4))
+    width = int(size.max())
+    row = np.repeat(np.arange(len(ids)), size)
+    slot = np.arange(len(group)) - np.repeat(starts, size)
+    padded_q = np.zeros((len(ids), width, 4))
     padded_q[..., 3] = 1.0
-    padded_w = np.zeros((n_groups, width))
-    padded_q[group[order], slot] = q_xyzw[order]
-    padded_w[group[order], slot] = weights[order] ** 2  # eq. 5: Q Q^T weighs by w_i^2
-    idx = np.flatnonzero(present)
-    mean = Rotation.from_quat(padded_q[idx]).mean(weights=padded_w[idx], axis=1)
-    quat[idx] = np.atleast_2d(mean.as_quat())
+    padded_w = np.zeros((len(ids), width))
+    padded_q[row, slot] = q_xyzw[order]
+    padded_w[row, slot] = w**2  # eq. 5: Q Q^T weighs by w_i^2
+    mean = Rotation.from_quat(padded_q).mean(weights=padded_w, axis=1)
+    quat[ids] = np.atleast_2d(mean.as_quat())
     return pos, quat, sig, counts
+
+
+def segments(group: NDArray[np.intp]) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.intp]]:
+    """A stable sort of ``group`` (non-empty) and its runs: ``(order, starts, ids)`` such that
+    ``group[order]`` holds ``ids[k]`` from ``starts[k]`` to the next start, for ``np.ufunc.reduceat``."""
+    order = np.argsort(group, kind="stable")
+    g = group[order]
+    starts = np.flatnonzero(np.concatenate(([True], g[1:] != g[:-1])))
+    return order, starts, g[starts]

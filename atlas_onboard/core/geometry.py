@@ -79,6 +79,47 @@ def compose_arrays(
     return p_a + R_a.apply(p_b), (R_a * Rotation.from_quat(q_b)).as_quat()
 
 
+def quat_multiply(q_a: NDArray[np.float64], q_b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Batched Hamilton product of x-first quaternions, shape (..., 4): the rotation ``R_a * R_b``.
+
+    The same as ``(Rotation.from_quat(q_a) * Rotation.from_quat(q_b)).as_quat()`` for unit inputs
+    (tested against it), without scipy's per-call overhead, which dominates on the graph's small
+    batches (about 170 us for 100 products against 10 us here).
+    """
+    a, b = np.asarray(q_a, dtype=float), np.asarray(q_b, dtype=float)
+    x1, y1, z1, w1 = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    x2, y2, z2, w2 = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[..., 0] = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
+    out[..., 1] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
+    out[..., 2] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+    out[..., 3] = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
+    return out
+
+
+def quat_matrix(q_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Batched rotation matrices of unit x-first quaternions, shape (..., 4) -> (..., 3, 3).
+
+    The same as ``Rotation.from_quat(q).as_matrix()`` for unit inputs (tested against it); the graph
+    calls it on every stage of every evaluation.
+    """
+    q = np.asarray(q_xyzw, dtype=float)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    out = np.empty((*q.shape[:-1], 3, 3))
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    out[..., 0, 0] = 1 - 2 * (yy + zz)
+    out[..., 0, 1] = 2 * (xy - wz)
+    out[..., 0, 2] = 2 * (xz + wy)
+    out[..., 1, 0] = 2 * (xy + wz)
+    out[..., 1, 1] = 1 - 2 * (xx + zz)
+    out[..., 1, 2] = 2 * (yz - wx)
+    out[..., 2, 0] = 2 * (xz - wy)
+    out[..., 2, 1] = 2 * (yz + wx)
+    out[..., 2, 2] = 1 - 2 * (xx + yy)
+    return out
+
+
 def invert_arrays(
     p: NDArray[np.float64], q_xyzw: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

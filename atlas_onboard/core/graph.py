@@ -11,7 +11,6 @@ nanosecond later it is gone: the paper removes an edge when its age *exceeds* th
 from __future__ import annotations
 
 import heapq
-from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -35,20 +34,22 @@ MAX_RATE_RAD_S = 3.0
 
 @dataclass(slots=True)
 class Edge:
-    """One observation between two entities, traversable both ways (Table 2, Edge)."""
+    """One observation between two entities, traversable both ways (Table 2, Edge).
+
+    The graph keeps its edges' numbers in arrays for evaluation (one row per edge, the inverse
+    included); this record is the edge as it was given, for callers and tests.
+    """
 
     key: EdgeKey
     a: int  # index of the observing entity (the sensor's)
     b: int  # index of the observed entity (the marker's)
     p_a_b: NDArray[np.float64]
     q_a_b: NDArray[np.float64]  # xyzw
-    p_b_a: NDArray[np.float64] | None  # the inverse, filled in at the next evaluation
-    q_b_a: NDArray[np.float64] | None  # xyzw
     sigma_m: float
     stamp_ns: int  # arrival on this node's clock: the edge's age is measured from here
     capture_time_us: int  # when the image was taken, on the observer's clock
-    cov_a_b: NDArray[np.float64] | None = None  # 6x6, see core.covariance
-    cov_b_a: NDArray[np.float64] | None = None  # of the inverse, filled in with it
+    cov_a_b: NDArray[np.float64]  # 6x6, see core.covariance
+    slot: int = -1  # its row in the graph's arrays
 
 
 @dataclass(frozen=True, slots=True)
@@ -127,6 +128,46 @@ class GraphResult:
         return self.poses.get(name)
 
 
+class _EdgeArrays:
+    """The live edges' numbers, one row per edge (and free rows for the next ones), so that an
+    evaluation is a handful of array operations however many edges there are."""
+
+    def __init__(self, capacity: int = 64) -> None:
+        self.used = np.zeros(capacity, dtype=bool)
+        self.a = np.zeros(capacity, dtype=np.intp)
+        self.b = np.zeros(capacity, dtype=np.intp)
+        self.p = np.zeros((2, capacity, 3))  # [0]: T_a_b, [1]: its inverse T_b_a
+        self.q = np.zeros((2, capacity, 4))
+        self.cov = np.zeros((2, capacity, 6, 6))
+        self.inverted = np.zeros(capacity, dtype=bool)
+        self.sigma = np.zeros(capacity)
+        self.stamp = np.zeros(capacity, dtype=np.int64)
+        self.capture = np.zeros(capacity, dtype=np.int64)
+        self.keys: list[EdgeKey | None] = [None] * capacity
+        self.free: list[int] = list(range(capacity - 1, -1, -1))
+
+    def take(self) -> int:
+        if not self.free:
+            self._grow()
+        return self.free.pop()
+
+    def release(self, slot: int) -> None:
+        self.used[slot] = False
+        self.keys[slot] = None
+        self.free.append(slot)
+
+    def _grow(self) -> None:
+        old = len(self.used)
+        for name in ("used", "a", "b", "inverted", "sigma", "stamp", "capture"):
+            arr = getattr(self, name)
+            setattr(self, name, np.concatenate([arr, np.zeros_like(arr)]))
+        for name in ("p", "q", "cov"):
+            arr = getattr(self, name)
+            setattr(self, name, np.concatenate([arr, np.zeros_like(arr)], axis=1))
+        self.keys.extend([None] * old)
+        self.free.extend(range(2 * old - 1, old - 1, -1))
+
+
 class TransformGraph:
     """Vertices fixed at construction; edges added by :meth:`update_edge`, expired by age."""
 
@@ -165,8 +206,9 @@ class TransformGraph:
         self.outlier_gate_sigma = outlier_gate_sigma
         self.keep_candidates = keep_candidates
         self.edges: dict[EdgeKey, Edge] = {}
+        self._arr = _EdgeArrays()
         # The last estimate of each entity per frame root, for the gate: (p, q, sigma, sigma_att, stamp).
-        self._prior: dict[tuple[int, int], tuple[NDArray[np.float64], NDArray[np.float64], float, float, int]] = {}
+        self._prior: dict[tuple[int, int], tuple[NDArray[np.float64], NDArray[np.float64], float, float, int, int]] = {}
         self._gated_stamp: dict[EdgeKey, int] = {}
         self.gated_total = 0  # distinct edge observations the gate rejected (counted once each)
 
@@ -199,26 +241,42 @@ class TransformGraph:
             covariance.attitude_sigma_rad(sigma_m, float(np.linalg.norm(p))) if sigma_att_rad is None else sigma_att_rad
         )
         cov = covariance.diagonal(float(sigma_m), float(att)) if cov_a_b is None else np.asarray(cov_a_b, dtype=float)
-        # The inverse (for walking the edge backwards) is computed at evaluation, for all new edges at once.
-        self.edges[key] = Edge(key, a, b, p, q, None, None, float(sigma_m), int(now_ns), int(capture_time_us), cov)
+        old = self.edges.get(key)
+        arr = self._arr
+        slot = arr.take() if old is None else old.slot
+        arr.used[slot], arr.keys[slot] = True, key
+        arr.a[slot], arr.b[slot] = a, b
+        arr.p[0, slot], arr.q[0, slot], arr.cov[0, slot] = p, q, cov
+        arr.inverted[slot] = False  # the inverse is computed at evaluation, for all new edges at once
+        arr.sigma[slot], arr.stamp[slot], arr.capture[slot] = sigma_m, now_ns, capture_time_us
+        self.edges[key] = Edge(key, a, b, p, q, float(sigma_m), int(now_ns), int(capture_time_us), cov, slot)
 
-    def _invert_new_edges(self, edges: list[Edge]) -> None:
-        new = [e for e in edges if e.p_b_a is None]
-        if not new:
+    def clear(self) -> None:
+        """Forget every edge."""
+        for e in self.edges.values():
+            self._arr.release(e.slot)
+        self.edges.clear()
+
+    def _invert_new_edges(self) -> None:
+        arr = self._arr
+        new = np.flatnonzero(arr.used & ~arr.inverted)
+        if new.size == 0:
             return
-        p_ab = np.array([e.p_a_b for e in new])
-        q_ab = np.array([e.q_a_b for e in new])
-        p_inv, q_inv = geometry.invert_arrays(p_ab, q_ab)
-        J = covariance.inverse_jacobian(p_ab, Rotation.from_quat(q_ab).as_matrix())
-        c_inv = covariance.transform(J, np.array([e.cov_a_b for e in new]))
-        for e, pi, qi, ci in zip(new, p_inv, q_inv, c_inv, strict=True):
-            e.p_b_a, e.q_b_a, e.cov_b_a = pi, qi, ci
+        p_ab, q_ab = arr.p[0, new], arr.q[0, new]
+        R_ab = geometry.quat_matrix(q_ab)
+        arr.p[1, new] = -np.einsum("nji,nj->ni", R_ab, p_ab)
+        arr.q[1, new] = q_ab * [-1.0, -1.0, -1.0, 1.0]
+        arr.cov[1, new] = covariance.transform(covariance.inverse_jacobian(p_ab, R_ab), arr.cov[0, new])
+        arr.inverted[new] = True
 
     def expire(self, now_ns: int) -> int:
         """Remove edges older than the timeout (age > timeout); returns how many were removed."""
-        dead = [k for k, e in self.edges.items() if now_ns - e.stamp_ns > self.edge_timeout_ns]
-        for k in dead:
-            del self.edges[k]
+        arr = self._arr
+        dead = np.flatnonzero(arr.used & (now_ns - arr.stamp > self.edge_timeout_ns))
+        for slot in dead.tolist():
+            key = arr.keys[slot]
+            arr.release(slot)
+            del self.edges[key]
         return len(dead)
 
     def next_expiry_ns(self) -> int | None:
@@ -226,50 +284,79 @@ class TransformGraph:
         without edges: until then a new evaluation can only differ by the age of the edges."""
         if not self.edges:
             return None
-        return min(e.stamp_ns for e in self.edges.values()) + self.edge_timeout_ns + 1
+        return int(self._arr.stamp[self._arr.used].min()) + self.edge_timeout_ns + 1
 
     def live_edges(self, now_ns: int) -> list[Edge]:
         """Edges whose age is at most the timeout (not removed: :meth:`expire` does that)."""
         return [e for e in self.edges.values() if now_ns - e.stamp_ns <= self.edge_timeout_ns]
 
-    def broad_phase(self, edges: Sequence[Edge], root: int | None = None) -> tuple[list[int], dict[int, int]]:
-        """BFS from ``root`` (world by default): the visiting order and each reached vertex's level.
+    def broad_phase(self, root: int | None = None) -> tuple[list[int], dict[int, int]]:
+        """BFS over the current edges from ``root`` (world by default): the visiting order and each
+        reached vertex's level."""
+        slots = np.flatnonzero(self._arr.used)
+        order, level = self._bfs(self._arr.a[slots], self._arr.b[slots], self.index[WORLD] if root is None else root)
+        return order.tolist(), {int(v): int(level[v]) for v in order}
 
-        Neighbours are visited in the order of the world file, so the order is deterministic.
+    def _bfs(self, a: NDArray[np.intp], b: NDArray[np.intp], root: int) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        """Breadth-first search on the edge arrays, one level at a time.
+
+        Returns the visiting order and the level of every vertex (-1: not reached). The order is a
+        queue's: a level's vertices in the order of the parent that found them first, and those of
+        one parent in the order of the world file, so it is deterministic.
         """
-        neighbours = self._neighbours(edges)
-        start = self.index[WORLD] if root is None else root
-        level = {start: 0}
-        order = [start]
-        queue = deque([start])
-        while queue:
-            v = queue.popleft()
-            for child in sorted(neighbours[v]):
-                if child not in level:
-                    level[child] = level[v] + 1
-                    order.append(child)
-                    queue.append(child)
-        return order, level
+        n = len(self.names)
+        level = np.full(n, -1, dtype=np.intp)
+        rank = np.full(n, n, dtype=np.intp)
+        level[root], rank[root] = 0, 0
+        order = [np.array([root], dtype=np.intp)]
+        found, depth = 1, 0
+        while True:
+            la, lb = level[a], level[b]
+            down = (la == depth) & (lb < 0)
+            up = (lb == depth) & (la < 0)
+            child = np.concatenate((b[down], a[up]))
+            if child.size == 0:
+                break
+            parent = np.concatenate((a[down], b[up]))
+            first = np.full(n, n, dtype=np.intp)
+            np.minimum.at(first, child, rank[parent])
+            new = np.unique(child)
+            new = new[np.lexsort((new, first[new]))]
+            depth += 1
+            level[new] = depth
+            rank[new] = np.arange(found, found + new.size)
+            found += new.size
+            order.append(new)
+        return np.concatenate(order), level
 
-    def dijkstra_phase(self, edges: Sequence[Edge], root: int | None = None) -> tuple[list[int], dict[int, float]]:
-        """Shortest paths from ``root`` with each edge's variance (sigma^2) as its length.
+    def dijkstra_phase(self, root: int | None = None) -> tuple[list[int], dict[int, float]]:
+        """Shortest paths over the current edges from ``root`` with each edge's variance (sigma^2)
+        as its length: the visiting order and each reached vertex's distance."""
+        slots = np.flatnonzero(self._arr.used)
+        arr = self._arr
+        order, dist = self._dijkstra(
+            arr.a[slots], arr.b[slots], arr.sigma[slots], self.index[WORLD] if root is None else root
+        )
+        return order.tolist(), {int(v): float(dist[v]) for v in order}
 
-        Variances add along a chain of independent transforms, so the distance of a vertex is the
+    def _dijkstra(
+        self, a: NDArray[np.intp], b: NDArray[np.intp], sigma: NDArray[np.float64], root: int
+    ) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+        """Variances add along a chain of independent transforms, so the distance of a vertex is the
         variance of its best chain: the paper's future work ("use the standard deviation information
-        of the graph as distance ... Dijkstra").
-        """
+        of the graph as distance ... Dijkstra"). Distances are inf for vertices not reached."""
         best: dict[tuple[int, int], float] = {}
-        for e in edges:
-            k = (min(e.a, e.b), max(e.a, e.b))
-            best[k] = min(best.get(k, np.inf), e.sigma_m**2)
+        for u, v, s in zip(a.tolist(), b.tolist(), (sigma**2).tolist(), strict=True):
+            k = (min(u, v), max(u, v))
+            best[k] = min(best.get(k, np.inf), s)
         adj: list[list[tuple[int, float]]] = [[] for _ in self.names]
-        for (a, b), w in best.items():
-            adj[a].append((b, w))
-            adj[b].append((a, w))
-        start = self.index[WORLD] if root is None else root
-        dist = {start: 0.0}
+        for (u, v), w in best.items():
+            adj[u].append((v, w))
+            adj[v].append((u, w))
+        dist = np.full(len(self.names), np.inf)
+        dist[root] = 0.0
         order: list[int] = []
-        heap = [(0.0, start)]
+        heap = [(0.0, root)]
         done: set[int] = set()
         while heap:
             d, v = heapq.heappop(heap)
@@ -279,23 +366,10 @@ class TransformGraph:
             order.append(v)
             for u, w in adj[v]:
                 nd = d + w
-                if u not in done and nd < dist.get(u, np.inf):
+                if u not in done and nd < dist[u]:
                     dist[u] = nd
                     heapq.heappush(heap, (nd, u))
-        return order, dist
-
-    def _sigma(self, e: Edge, now_ns: int) -> float:
-        if self.age_sigma_m_per_s <= 0.0:
-            return e.sigma_m
-        age_s = max(now_ns - e.stamp_ns, 0) / 1e9
-        return float(np.hypot(e.sigma_m, age_s * self.age_sigma_m_per_s))
-
-    def _neighbours(self, edges: Sequence[Edge]) -> list[set[int]]:
-        neighbours: list[set[int]] = [set() for _ in self.names]
-        for e in edges:
-            neighbours[e.a].add(e.b)
-            neighbours[e.b].add(e.a)
-        return neighbours
+        return np.array(order, dtype=np.intp), dist
 
     def evaluate(self, now_ns: int) -> GraphResult:
         """Expire old edges, then run the broad phase and the pose phase (eq. 2) from world.
@@ -310,11 +384,11 @@ class TransformGraph:
         its first entity (in world-file order), and its poses are reported relative to that entity.
         """
         self.expire(now_ns)
-        edges = list(self.edges.values())
-        self._invert_new_edges(edges)
+        self._invert_new_edges()
+        slots = np.flatnonzero(self._arr.used)
         world = self.index[WORLD]
         cands: dict[str, list[Candidate]] | None = {} if self.keep_candidates else None
-        poses, order, levels, gated = self._evaluate_from(edges, world, now_ns, cands)
+        poses, order, levels, gated = self._evaluate_from(slots, world, now_ns, cands)
         reached = set(order)
         unreached = tuple(self.names[v] for v in range(len(self.names)) if v not in reached)
         relative: dict[str, dict[str, EntityPose]] = {}
@@ -322,7 +396,7 @@ class TransformGraph:
             remaining = [v for v in range(len(self.names)) if v not in reached]
             while remaining:
                 root = remaining[0]
-                rel, rel_order, _, g = self._evaluate_from(edges, root, now_ns)
+                rel, rel_order, _, g = self._evaluate_from(slots, root, now_ns)
                 gated += g
                 if len(rel_order) > 1:
                     relative[self.names[root]] = rel
@@ -332,43 +406,60 @@ class TransformGraph:
             order=tuple(self.names[v] for v in order),
             levels={self.names[v]: levels[v] for v in order},
             unreached=unreached,
-            n_edges=len(edges),
+            n_edges=len(slots),
             relative=relative,
             candidates=cands or {},
             gated=gated,
         )
 
     def _evaluate_from(
-        self, edges: list[Edge], root: int, now_ns: int, out: dict[str, list[Candidate]] | None = None
+        self, slots: NDArray[np.intp], root: int, now_ns: int, out: dict[str, list[Candidate]] | None = None
     ) -> tuple[dict[str, EntityPose], list[int], dict[int, int], int]:
         """Poses of every vertex reachable from ``root``, in ``root``'s frame (and how many candidates
         the gate left out). ``out`` collects each entity's candidates when given."""
         n = len(self.names)
-        order, level = self.broad_phase(edges, root)
+        arr = self._arr
+        a, b = arr.a[slots], arr.b[slots]
+        order_arr, level = self._bfs(a, b, root)
+        la, lb = level[a], level[b]
+        reached = (la >= 0) & (lb >= 0)
         if self.path == "dijkstra":
-            d_order, dist = self.dijkstra_phase(edges, root)
-            order = d_order
-
-            def is_parent(u: int, v: int) -> bool:
-                return dist[u] < dist[v]
+            order_arr, dist = self._dijkstra(a, b, arr.sigma[slots], root)
+            down = reached & (dist[a] < dist[b])  # a is b's parent: the edge is walked as given
+            up = reached & (dist[b] < dist[a])  # b is a's parent: the edge is walked backwards
         else:
-
-            def is_parent(u: int, v: int) -> bool:
-                return level[u] == level[v] - 1
-
+            down = reached & (lb == la + 1)
+            up = reached & (la == lb + 1)
+        rank = np.full(n, n, dtype=np.intp)
+        rank[order_arr] = np.arange(order_arr.size)
+        # Every candidate: (edge row, direction); parent and child; sorted by child's rank then edge.
+        row = np.concatenate((slots[down], slots[up]))
+        direction = np.concatenate((np.zeros(down.sum(), dtype=np.intp), np.ones(up.sum(), dtype=np.intp)))
+        parent_all = np.concatenate((a[down], b[up]))
+        child_all = np.concatenate((b[down], a[up]))
         # A vertex's stage is one more than its deepest parent's, so that a whole stage can be
         # composed and fused in one batched call (for BFS the stage is the level).
-        stage = {root: 0}
-        cands_of: dict[int, list[tuple[int, NDArray[np.float64], NDArray[np.float64], float, Edge, NDArray]]] = {}
-        for e in edges:
-            if e.a not in level or e.b not in level:
-                continue
-            if is_parent(e.a, e.b):
-                cands_of.setdefault(e.b, []).append((e.a, e.p_a_b, e.q_a_b, self._sigma(e, now_ns), e, e.cov_a_b))
-            elif is_parent(e.b, e.a):
-                cands_of.setdefault(e.a, []).append((e.b, e.p_b_a, e.q_b_a, self._sigma(e, now_ns), e, e.cov_b_a))
-        for v in order[1:]:
-            stage[v] = 1 + max(stage[c[0]] for c in cands_of[v])
+        if self.path == "dijkstra":
+            stage_of = np.zeros(n, dtype=np.intp)
+            while True:
+                nxt = np.zeros(n, dtype=np.intp)
+                np.maximum.at(nxt, child_all, stage_of[parent_all] + 1)
+                if np.array_equal(nxt, stage_of):
+                    break
+                stage_of = nxt
+        else:
+            stage_of = np.maximum(level, 0)
+        sort = np.lexsort((row, rank[child_all], stage_of[child_all]))
+        row, direction, parent_all, child_all = row[sort], direction[sort], parent_all[sort], child_all[sort]
+        stage_all = stage_of[child_all]
+        sigma_raw = arr.sigma[row]
+        if self.age_sigma_m_per_s > 0.0:
+            age_s = np.maximum(now_ns - arr.stamp[row], 0) / 1e9
+            sigma_all = np.hypot(sigma_raw, age_s * self.age_sigma_m_per_s)
+        else:
+            sigma_all = sigma_raw
+        p_all, q_all, c_all = arr.p[direction, row], arr.q[direction, row], arr.cov[direction, row]
+        t_all = arr.capture[row]
 
         p_world = np.zeros((n, 3))
         q_world = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
@@ -376,50 +467,45 @@ class TransformGraph:
         sigma = np.zeros(n)
         stamp_us = np.zeros(n, dtype=np.int64)
         count = np.zeros(n, dtype=np.intp)
-        by_stage: dict[int, list[int]] = {}
-        for v in order[1:]:
-            by_stage.setdefault(stage[v], []).append(v)
 
         gated = 0
-        for st in sorted(by_stage):
-            cands = [(c[0], v, *c[1:]) for v in by_stage[st] for c in cands_of[v]]
-            m = len(cands)
-            parent = np.fromiter((c[0] for c in cands), dtype=np.intp, count=m)
-            child = np.fromiter((c[1] for c in cands), dtype=np.intp, count=m)
-            p_pc = np.array([c[2] for c in cands])
-            q_pc = np.array([c[3] for c in cands])
-            s_edge = np.fromiter((c[4] for c in cands), dtype=float, count=m)
-            t_edge = np.fromiter((c[5].capture_time_us for c in cands), dtype=np.int64, count=m)
-            c_edge = np.array([c[6] for c in cands])
+        bounds = np.flatnonzero(np.diff(stage_all)) + 1
+        for sel in np.split(np.arange(row.size), bounds) if row.size else []:
+            m = sel.size
+            parent, child = parent_all[sel], child_all[sel]
+            p_pc, q_pc, s_edge, t_edge = p_all[sel], q_all[sel], sigma_all[sel], t_all[sel]
+            c_edge = c_all[sel]
             # eq. 2: each candidate is P_parent * T_parent_child
-            p_cand, q_cand = geometry.compose_arrays(p_world[parent], q_world[parent], p_pc, q_pc)
+            R_wp = geometry.quat_matrix(q_world[parent])
+            p_cand = p_world[parent] + np.einsum("nij,nj->ni", R_wp, p_pc)
+            q_cand = geometry.quat_multiply(q_world[parent], q_pc)
             # The candidate's sigma carries its parent's: variances add along a chain.
             s_cand = np.sqrt(s_edge**2 + sigma[parent] ** 2)
             # Beyond the paper: the full 6x6 covariance along the chain (lever arms included).
             if self.age_sigma_m_per_s > 0.0:
                 c_edge = c_edge.copy()
-                grow = (s_edge**2 - np.fromiter((c[5].sigma_m for c in cands), dtype=float, count=m) ** 2).clip(0.0)
+                grow = (s_edge**2 - sigma_raw[sel] ** 2).clip(0.0)
                 c_edge[:, [0, 1, 2], [0, 1, 2]] += grow[:, None]
-            R_wp = Rotation.from_quat(q_world[parent]).as_matrix()
-            Jp, Je = covariance.compose_jacobians(R_wp, p_pc, Rotation.from_quat(q_pc).as_matrix())
+            Jp, Je = covariance.compose_jacobians(R_wp, p_pc, geometry.quat_matrix(q_pc))
             edge_term = covariance.transform(Je, c_edge)
             keep = np.ones(m, dtype=bool)
             if self.outlier_gate_sigma > 0.0:
                 c_cand = covariance.transform(Jp, cov_world[parent]) + edge_term
                 keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns)
-                for c, k in zip(cands, keep, strict=True):
-                    if not k and self._gated_stamp.get(c[5].key) != c[5].stamp_ns:
-                        self._gated_stamp[c[5].key] = c[5].stamp_ns
+                for slot in row[sel][~keep].tolist():
+                    key, stamp = arr.keys[slot], int(arr.stamp[slot])
+                    if self._gated_stamp.get(key) != stamp:
+                        self._gated_stamp[key] = stamp
                         self.gated_total += 1
                 gated += int(m - keep.sum())
             if out is not None:
-                c_all = covariance.transform(Jp, cov_world[parent]) + edge_term
+                c_full = covariance.transform(Jp, cov_world[parent]) + edge_term
                 for i in np.flatnonzero(keep):
-                    e = cands[i][5]
+                    slot = int(row[sel[i]])
                     out.setdefault(self.names[child[i]], []).append(
                         Candidate(
-                            self.names[child[i]], e.key, e.stamp_ns, int(max(t_edge[i], stamp_us[parent[i]])),
-                            p_cand[i], q_cand[i], c_all[i],
+                            self.names[child[i]], arr.keys[slot], int(arr.stamp[slot]),
+                            int(max(t_edge[i], stamp_us[parent[i]])), p_cand[i], q_cand[i], c_full[i],
                         )
                     )  # fmt: skip
             # A child whose every candidate was gated keeps its last estimate (not re-sent: same stamp).
@@ -428,8 +514,10 @@ class TransformGraph:
                 p_world[v], q_world[v], sigma[v] = prior[0], prior[1], prior[2]
                 cov_world[v] = covariance.diagonal(prior[2], prior[3])
                 stamp_us[v] = prior[5]
-            parent, child, p_cand, q_cand = parent[keep], child[keep], p_cand[keep], q_cand[keep]
-            s_edge, s_cand, t_edge, Jp, edge_term = s_edge[keep], s_cand[keep], t_edge[keep], Jp[keep], edge_term[keep]
+            if not keep.all():
+                parent, child, p_cand, q_cand = parent[keep], child[keep], p_cand[keep], q_cand[keep]
+                s_edge, s_cand, t_edge = s_edge[keep], s_cand[keep], t_edge[keep]
+                Jp, edge_term = Jp[keep], edge_term[keep]
             if len(child) == 0:
                 continue
             # eq. 6-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
@@ -463,21 +551,16 @@ class TransformGraph:
                         int(newest[v]),
                     )
 
+        order = order_arr.tolist()
+        levels, counts, sigmas, stamps = level.tolist(), count.tolist(), sigma.tolist(), stamp_us.tolist()
+        frame = self.names[root]
         poses = {}
-        for rank, v in enumerate(order):
-            poses[self.names[v]] = EntityPose(
-                name=self.names[v],
-                p_world_m=p_world[v].copy(),
-                q_world_xyzw=q_world[v].copy(),
-                level=level[v],
-                order=rank,
-                n_observations=int(count[v]),
-                sigma_m=float(sigma[v]),
-                capture_time_us=int(stamp_us[v]),
-                frame=self.names[root],
-                covariance=cov_world[v].copy(),
+        for rank_v, v in enumerate(order):
+            name = self.names[v]
+            poses[name] = EntityPose(
+                name, p_world[v], q_world[v], levels[v], rank_v, counts[v], sigmas[v], stamps[v], frame, cov_world[v]
             )
-        return poses, order, level, gated
+        return poses, order, {v: levels[v] for v in order}, gated
 
     def _gate(
         self,

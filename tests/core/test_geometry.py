@@ -73,3 +73,28 @@ def test_rotation_from_wxyz_is_w_first():
 def test_angle_between_ignores_quaternion_sign():
     q = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_quat()
     assert geometry.angle_between(Rotation.from_quat(q), Rotation.from_quat(-q)) == pytest.approx(0.0, abs=1e-7)
+
+
+@given(quat, quat)
+def test_quat_multiply_is_scipys_composition(q1, q2):
+    a, b = q1 / np.linalg.norm(q1), q2 / np.linalg.norm(q2)
+    expected = (Rotation.from_quat(a) * Rotation.from_quat(b)).as_quat()
+    got = geometry.quat_multiply(a, b)
+    assert np.linalg.norm(got) == pytest.approx(1.0, abs=1e-12)
+    # Equal as rotations: q and -q are the same one, so compare up to sign.
+    assert min(np.linalg.norm(got - expected), np.linalg.norm(got + expected)) < 1e-12
+
+
+@given(quat)
+def test_quat_matrix_is_scipys_matrix(q):
+    u = q / np.linalg.norm(q)
+    np.testing.assert_allclose(geometry.quat_matrix(u), Rotation.from_quat(u).as_matrix(), atol=1e-12)
+    np.testing.assert_allclose(geometry.quat_matrix(-u), Rotation.from_quat(u).as_matrix(), atol=1e-12)
+
+
+def test_quaternion_helpers_batch_like_scipy():
+    r1, r2 = Rotation.random(50, random_state=1), Rotation.random(50, random_state=2)
+    got = Rotation.from_quat(geometry.quat_multiply(r1.as_quat(), r2.as_quat()))
+    assert np.all((got.inv() * (r1 * r2)).magnitude() < 1e-12)
+    stacked = geometry.quat_matrix(r1.as_quat().reshape(5, 10, 4))
+    np.testing.assert_allclose(stacked.reshape(50, 3, 3), r1.as_matrix(), atol=1e-12)

@@ -236,3 +236,83 @@ def test_relative_poses_of_a_group_without_world():
 def test_relative_off_by_default():
     g, _ = figure4_graph()
     assert g.evaluate(0).relative == {}
+
+
+def _queue_bfs(names, pairs):
+    """The paper's broad phase written the plain way (a queue, neighbours in world-file order)."""
+    from collections import deque
+
+    idx = {n: i for i, n in enumerate(names)}
+    nbrs = {i: set() for i in range(len(names))}
+    for a, b in pairs:
+        nbrs[idx[a]].add(idx[b])
+        nbrs[idx[b]].add(idx[a])
+    level, order, queue = {0: 0}, [0], deque([0])
+    while queue:
+        v = queue.popleft()
+        for c in sorted(nbrs[v]):
+            if c not in level:
+                level[c] = level[v] + 1
+                order.append(c)
+                queue.append(c)
+    return [names[v] for v in order], {names[v]: lv for v, lv in level.items()}
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.integers(2, 12), st.integers(0, 40), st.integers(0, 2**16))
+def test_broad_phase_order_is_a_queues(n, n_edges, seed):
+    """The array BFS visits vertices exactly as a queue-based BFS does, on random graphs."""
+    rng = np.random.default_rng(seed)
+    names = ["world"] + [f"e{i}" for i in range(1, n)]
+    g = TransformGraph(names, 250 * MS)
+    pairs = []
+    for k in range(n_edges):
+        a, b = rng.choice(n, size=2, replace=False)
+        pairs.append((names[a], names[b]))
+        add(g, (k, k), names[a], names[b], pose([1, 0, 0]))
+    order, levels = _queue_bfs(names, pairs)
+    result = g.evaluate(0)
+    assert list(result.order) == order
+    assert result.levels == levels
+
+
+def test_edge_rows_are_reused_and_grow_without_changing_results():
+    """More edges than the initial row capacity, some expired and replaced, then cleared: the poses
+    equal those of a graph built fresh from the same live edges."""
+    names = ["world"] + [f"e{i}" for i in range(1, 40)]
+    rng = np.random.default_rng(3)
+    truth = {"world": RigidTransform.identity()}
+    truth.update({n: pose(rng.uniform(-5, 5, 3), rng.uniform(-60, 60, 3)) for n in names[1:]})
+
+    def edges(first_key, count):
+        out = []
+        for k in range(first_key, first_key + count):
+            a = names[k % 39]
+            b = names[k % 39 + 1]
+            T = truth[a].inv() * truth[b] * pose(rng.normal(0, 0.01, 3))
+            out.append(((k, k), a, b, T, float(rng.uniform(0.01, 0.05))))
+        return out
+
+    g = TransformGraph(names, 250 * MS)
+    old, new = edges(0, 150), edges(150, 100)
+    for key, a, b, T, s in old:
+        add(g, key, a, b, T, sigma=s, now_ns=0)
+    g.evaluate(0)
+    for key, a, b, T, s in new:
+        add(g, key, a, b, T, sigma=s, now_ns=200 * MS)
+    got = g.evaluate(300 * MS)  # the first 150 have expired; their rows are free again
+    assert got.n_edges == 100 and len(g.edges) == 100
+    fresh = TransformGraph(names, 250 * MS)
+    for key, a, b, T, s in new:
+        add(fresh, key, a, b, T, sigma=s, now_ns=200 * MS)
+    ref = fresh.evaluate(300 * MS)
+    assert got.order == ref.order
+    for n in ref.order:
+        np.testing.assert_allclose(got.poses[n].p_world_m, ref.poses[n].p_world_m, atol=1e-12)
+        np.testing.assert_allclose(got.poses[n].covariance, ref.poses[n].covariance, atol=1e-15)
+    for key, a, b, T, s in old[:20]:  # rows reused by new keys
+        add(g, key, a, b, T, sigma=s, now_ns=300 * MS)
+    assert g.evaluate(300 * MS).n_edges == 120
+    g.clear()
+    assert g.edges == {} and g.next_expiry_ns() is None
+    assert g.evaluate(300 * MS).order == ("world",)
