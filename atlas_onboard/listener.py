@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import Weighting, WorldConfig
-from atlas_onboard.core import ambiguity, covariance, fusion
+from atlas_onboard.core import ambiguity, covariance, fusion, geometry
 from atlas_onboard.core.ambiguity import Verdict
 from atlas_onboard.core.graph import EdgeKey, EntityPose, TransformGraph
 from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection
@@ -101,6 +101,9 @@ class Listener:
         self.min_likelihood_ratio = min_likelihood_ratio
         self._sensor = {s.id: (s.entity, s.T_entity_sensor.as_matrix()) for s in world.sensors.values()}
         self._marker = {m.id: (m.entity, m.T_entity_marker.inv().as_matrix()) for m in world.markers.values()}
+        # The same rotations as quaternions: eq. 1's rotation is composed as a quaternion product.
+        self._sensor_q = {s.id: s.T_entity_sensor.rotation.as_quat() for s in world.sensors.values()}
+        self._marker_inv_q = {m.id: m.T_entity_marker.rotation.inv().as_quat() for m in world.markers.values()}
         self._sensor_inv = {s.id: s.T_entity_sensor.inv().as_matrix() for s in world.sensors.values()}
         self._marker_fwd = {m.id: m.T_entity_marker.as_matrix() for m in world.markers.values()}
         self._ema: dict[EdgeKey, _EmaState] = {}
@@ -137,12 +140,16 @@ class Listener:
             return out, notes
         T1 = np.array([self._sensor[md.sensor_id][1] for md in valid])
         T3_inv = np.array([self._marker[md.marker_id][1] for md in valid])
+        q2 = np.array([md.q_sensor_marker_wxyz for md in valid])[:, [1, 2, 3, 0]]
+        q2 /= np.linalg.norm(q2, axis=1)[:, None]
         T2 = np.tile(np.eye(4), (len(valid), 1, 1))
-        T2[:, :3, :3] = Rotation.from_quat(np.array([md.q_sensor_marker_xyzw() for md in valid])).as_matrix()
+        T2[:, :3, :3] = geometry.quat_matrix(q2)
         T2[:, :3, 3] = np.array([md.p_sensor_marker_m for md in valid])
-        unresolved = self._resolve_ambiguity(valid, T2, notes)
+        unresolved = self._resolve_ambiguity(valid, T2, q2, notes)
         T = T1 @ T2 @ T3_inv  # eq. 1
-        q_all = Rotation.from_matrix(T[:, :3, :3]).as_quat()
+        q1 = np.array([self._sensor_q[md.sensor_id] for md in valid])
+        q3_inv = np.array([self._marker_inv_q[md.marker_id] for md in valid])
+        q_all = geometry.quat_multiply(geometry.quat_multiply(q1, q2), q3_inv)  # eq. 1's rotation
         cov = covariance.observation(T1, T2, T3_inv, np.array([md.sigma_m for md in valid]))
         j = 0
         for i, item in enumerate(out):
@@ -157,9 +164,10 @@ class Listener:
         return out, notes
 
     def _resolve_ambiguity(
-        self, valid: list[MarkerData], T2: NDArray[np.float64], notes: list[str]
+        self, valid: list[MarkerData], T2: NDArray[np.float64], q2: NDArray[np.float64], notes: list[str]
     ) -> dict[int, Rejection]:
-        """Resolve the ambiguous observations among ``valid`` in place in ``T2`` (N, 4, 4), batched.
+        """Resolve the ambiguous observations among ``valid`` in place in ``T2`` (N, 4, 4) and its
+        rotations ``q2`` (N, 4, x first), batched.
 
         Returns the rejections by index into ``valid``; appends counter names to ``notes``.
         """
@@ -201,13 +209,15 @@ class Listener:
             np.array([a.sigma_m for _, a, _ in todo]), np.array([b.sigma_m for _, _, b in todo]), att_a, att_b,
         )  # fmt: skip
         verdicts, _, _ = ambiguity.resolve_arrays(
-            p_a, Rotation.from_matrix(T2[idx, :3, :3]).as_quat(), p_b, q_b,
+            p_a, q2[idx], p_b, q_b,
             pred[:, :3, 3], Rotation.from_matrix(pred[:, :3, :3]).as_quat(),
             sigma_rad, sigma_m, self.gate_r2, self.min_likelihood_ratio,
         )  # fmt: skip
         for j, verdict in zip(idx, verdicts, strict=True):
             if verdict is Verdict.ALT:
-                T2[j, :3, :3] = Rotation.from_quat(valid[j].q_sensor_marker_alt_xyzw()).as_matrix()
+                alt = Rotation.from_quat(valid[j].q_sensor_marker_alt_xyzw())
+                T2[j, :3, :3] = alt.as_matrix()
+                q2[j] = alt.as_quat()
                 T2[j, :3, 3] = valid[j].p_sensor_marker_alt_m
                 notes.append("ambiguity_swapped")
             if verdict.decided:

@@ -60,7 +60,8 @@ def world_doc(peer_port: int, ap_port: int) -> dict:
     }  # fmt: skip
 
 
-def observations(world, k: int, t_us: int, seq: int) -> list[MarkerData]:
+def views(world, k: int) -> list[MarkerData]:
+    """Drone k's view of its 4 world markers (constant: the drones hover), capture time and seq 0."""
     T_world_drone = RigidTransform.from_components([1.0 + k % 5, 1.0 + k // 5, 1.5], Rotation.identity())
     s = world.sensors[k + 1]
     out = []
@@ -69,15 +70,21 @@ def observations(world, k: int, t_us: int, seq: int) -> list[MarkerData]:
         T = (T_world_drone * s.T_entity_sensor).inv() * m.T_entity_marker
         x, y, z, w = T.rotation.as_quat()
         p = T.translation
-        out.append(MarkerData(k + 1, m.id, 0.01, (p[0], p[1], p[2]), (w, x, y, z), t_us, origin=50 + k, seq=seq))
+        out.append(MarkerData(k + 1, m.id, 0.01, (p[0], p[1], p[2]), (w, x, y, z), 0, origin=50 + k))
     return out
 
 
 def load(port: int, world, seconds: float, fingerprint: int, stop: threading.Event) -> int:
-    """Send 10 drones x 30 Hz x 4 markers; each drone its own system id. Returns observations sent."""
+    """Send 10 drones x 30 Hz x 4 markers; each drone its own system id. Returns observations sent.
+
+    The views are computed once (the drones hover) and encoded once: each frame only stamps the
+    capture time (now, just before sending) and the sequence number, so the generator measures the
+    node and not its own geometry.
+    """
     d = dialect.load()
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     mavs = [d.MAVLink(None, srcSystem=50 + k, srcComponent=197) for k in range(N_DRONES)]
+    msgs = [[codec.encode_observation(d, md, fingerprint) for md in views(world, k)] for k in range(N_DRONES)]
     period = 1.0 / RATE_HZ
     sent = 0
     t_end = time.time() + seconds
@@ -86,9 +93,9 @@ def load(port: int, world, seconds: float, fingerprint: int, stop: threading.Eve
     while time.time() < t_end and not stop.is_set():
         for k in range(N_DRONES):
             t_us = int(time.time() * 1e6)
-            for md in observations(world, k, t_us, (frame * MARKERS) & 0xFFFF):
-                msg = codec.encode_observation(d, md, fingerprint)
-                sock.sendto(msg.pack(mavs[k]), ("127.0.0.1", port))
+            for j, msg in enumerate(msgs[k]):
+                msg.time_usec, msg.seq = t_us, (frame * MARKERS + j) & 0xFFFF
+                sock.sendto(msg.pack(mavs[k], force_mavlink1=False), ("127.0.0.1", port))
                 sent += 1
         frame += 1
         next_t += period

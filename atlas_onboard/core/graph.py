@@ -11,6 +11,7 @@ nanosecond later it is gone: the paper removes an edge when its age *exceeds* th
 from __future__ import annotations
 
 import heapq
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -234,13 +235,18 @@ class TransformGraph:
         a, b = self.index[observer], self.index[observed]
         if a == b:
             raise GeometryError(f"an edge must join two entities, got {observer!r} twice")
-        p = np.asarray(p_a_b, dtype=float)
-        q = np.asarray(q_a_b_xyzw, dtype=float)
-        q = q / np.linalg.norm(q)
-        att = (
-            covariance.attitude_sigma_rad(sigma_m, float(np.linalg.norm(p))) if sigma_att_rad is None else sigma_att_rad
-        )
-        cov = covariance.diagonal(float(sigma_m), float(att)) if cov_a_b is None else np.asarray(cov_a_b, dtype=float)
+        p = np.array(p_a_b, dtype=float)
+        q = np.array(q_a_b_xyzw, dtype=float)
+        q /= math.sqrt(float(q @ q))
+        if cov_a_b is None:
+            att = (
+                covariance.attitude_sigma_rad(sigma_m, math.sqrt(float(p @ p)))
+                if sigma_att_rad is None
+                else sigma_att_rad
+            )
+            cov = covariance.diagonal(float(sigma_m), float(att))
+        else:
+            cov = np.asarray(cov_a_b, dtype=float)
         old = self.edges.get(key)
         arr = self._arr
         slot = arr.take() if old is None else old.slot

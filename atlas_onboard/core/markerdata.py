@@ -95,7 +95,8 @@ class MarkerData:
             return Rejection.ZERO_QUATERNION
         if not 0.0 < self.sigma_m <= MAX_SIGMA_M:
             return Rejection.BAD_SIGMA
-        if float(np.linalg.norm(self.p_sensor_marker_m)) > MAX_RANGE_M:
+        x, y, z = self.p_sensor_marker_m
+        if math.sqrt(x * x + y * y + z * z) > MAX_RANGE_M:
             return Rejection.OUT_OF_RANGE
         err, ratio = self.reprojection_error_px, self.ambiguity_ratio
         if not (math.isnan(err) or 0.0 <= err < math.inf) or not (math.isnan(ratio) or 0.0 <= ratio <= 1.0):
