@@ -33,8 +33,7 @@ from atlas_onboard.publisher import AutopilotPose, Publisher
 _logger = logging.getLogger(__name__)
 
 NS = 1_000_000_000
-SETTLE_S = 0.0003  # wait this long for the rest of a burst before evaluating
-MAX_SETTLE_S = 0.0006  # and never longer than this
+FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observations
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
 PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
 
@@ -42,8 +41,9 @@ PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least 
 class Transport(Protocol):
     """What the node needs from its MAVLink links (implemented in :mod:`atlas_onboard.mavlink`)."""
 
-    def start(self, deliver: Callable[[MarkerData, int], None]) -> None:
-        """Start the receive threads; ``deliver(md, arrival_ns)`` for every valid peer observation."""
+    def start(self, deliver: Callable[[MarkerData, int], None], may_read: threading.Event | None = None) -> None:
+        """Start the receive threads; ``deliver(md, arrival_ns)`` for every valid peer observation.
+        Peer links read only while ``may_read`` is set (the node holds them while it publishes)."""
 
     def send_observation(self, md: MarkerData) -> None: ...
 
@@ -66,7 +66,8 @@ class Camera(Protocol):
 
     name: str
 
-    def start(self, deliver: Callable[[MarkerData], None]) -> None: ...
+    def start(self, deliver: Callable[[Sequence[MarkerData]], None]) -> None:
+        """Start the camera's thread; ``deliver(detections)`` once per image, with all of its detections."""
 
     def stop(self) -> None: ...
 
@@ -89,6 +90,23 @@ class Inbox:
                 self.dropped += 1
             self._items.append(item)
             self._cond.notify()
+
+    def put_many(self, items: Sequence[tuple[MarkerData, int, bool]]) -> None:
+        """Put several items at once: a consumer never sees part of them."""
+        with self._cond:
+            for item in items:
+                if len(self._items) >= self._capacity:
+                    self._items.popleft()
+                    self.dropped += 1
+                self._items.append(item)
+            self._cond.notify()
+
+    def drain(self) -> list[tuple[MarkerData, int, bool]]:
+        """Everything queued now, without waiting."""
+        with self._cond:
+            items = list(self._items)
+            self._items.clear()
+            return items
 
     def get(self, timeout_s: float) -> tuple[MarkerData, int, bool] | None:
         with self._cond:
@@ -129,6 +147,7 @@ class Node:
         config_path: Path | None = None,
     ) -> None:
         self.world = world
+        self._entity_of = _entity_lookup(world)
         self.config = config
         self.transport = transport
         self.cameras = list(cameras)
@@ -151,6 +170,8 @@ class Node:
         self.last_result: GraphResult | None = None
         self._seq = 0
         self._stop = threading.Event()
+        self._may_read = threading.Event()  # cleared while the own pose is evaluated and published
+        self._may_read.set()
         self._reload = threading.Event()
         self._dirty = False
         self._last_publish_ns = 0
@@ -163,10 +184,16 @@ class Node:
 
     # --- producers (any thread) ---------------------------------------------------------------------
 
-    def deliver_local(self, md: MarkerData) -> None:
-        """A detection from one of this node's cameras: stamped with our system id and a sequence."""
-        self._seq = (self._seq + 1) & 0xFFFF
-        self.inbox.put((replace(md, origin=self.config.system_id, seq=self._seq), self.clock(), True))
+    def deliver_local(self, frame: Sequence[MarkerData]) -> None:
+        """One image's detections from one of this node's cameras, queued together: each stamped with
+        our system id, a sequence number and how many of the image's observations follow it."""
+        now = self.clock()
+        items = []
+        for i, md in enumerate(frame):
+            self._seq = (self._seq + 1) & 0xFFFF
+            stamped = replace(md, origin=self.config.system_id, seq=self._seq, frame_remaining=len(frame) - 1 - i)
+            items.append((stamped, now, True))
+        self.inbox.put_many(items)
 
     def deliver_peer(self, md: MarkerData, arrival_ns: int) -> None:
         """An observation from a peer, already decoded, authenticated and de-duplicated by the link."""
@@ -184,7 +211,7 @@ class Node:
 
     def run(self) -> int:
         """Run until stopped; returns the exit status (0)."""
-        self.transport.start(self.deliver_peer)
+        self.transport.start(self.deliver_peer, self._may_read)
         for cam in self.cameras:
             cam.start(self.deliver_local)
         self._notify("READY=1", f"STATUS=running as {self.config.entity}")
@@ -194,16 +221,7 @@ class Node:
                 item = self.inbox.get(timeout_s=0.01)
                 now = self.clock()
                 if item is not None:
-                    # Observations of one frame arrive as a burst (one datagram each): take what is
-                    # queued, and what follows within SETTLE_S, then accept and evaluate them at once.
-                    batch = [item]
-                    settle_end = time.monotonic() + MAX_SETTLE_S
-                    while not self._stop.is_set() and time.monotonic() < settle_end:
-                        nxt = self.inbox.get(SETTLE_S)
-                        if nxt is None:
-                            break
-                        batch.append(nxt)
-                    self._handle(batch)
+                    self._process(self._collect(item))
                     now = self.clock()
                 self._step(now)
                 if self._reload.is_set():
@@ -217,13 +235,55 @@ class Node:
             self._log_status(final=True)
         return 0
 
-    def _handle(self, batch: list[tuple[MarkerData, int, bool]]) -> None:
+    def _collect(self, first: tuple[MarkerData, int, bool]) -> list[tuple[MarkerData, int, bool]]:
+        """``first`` and everything queued, and then what arrives until every image in the batch is
+        whole (its last observation, ``frame_remaining`` 0, is in), for at most ``FRAME_WAIT_S``: an
+        image's observations are evaluated together, never part of them with the previous image."""
+        batch = [first, *self.inbox.drain()]
+        deadline = time.monotonic() + FRAME_WAIT_S
+        while incomplete_frames(batch) and not self._stop.is_set():
+            left = deadline - time.monotonic()
+            nxt = self.inbox.get(left) if left > 0 else None
+            if nxt is None:
+                break
+            batch.append(nxt)
+            batch += self.inbox.drain()
+        return batch
+
+    def _process(self, batch: list[tuple[MarkerData, int, bool]]) -> None:
+        """Accept a batch. The observations that can move the own pose go first, and the own pose is
+        evaluated and published before the others are even accepted: they can wait (see
+        :meth:`_concerns_own_pose`), the autopilot should not. Meanwhile the peer links hold their
+        reading (their datagrams wait in the sockets), so that this thread has the interpreter."""
+        first = [x for x in batch if self._concerns_own_pose(x[0])]
+        rest = [x for x in batch if not self._concerns_own_pose(x[0])] if len(first) < len(batch) else []
+        local: list[MarkerData] = []
+        if first:
+            self._may_read.clear()
+            try:
+                local = self._handle(first)
+                self._step(self.clock())
+            finally:
+                self._may_read.set()
+        local += self._handle(rest)
+        # Our accepted detections go to peers, each image's last one marked as such.
+        left = Counter((md.sensor_id, md.capture_time_us) for md in local)
+        for md in local:
+            key = (md.sensor_id, md.capture_time_us)
+            left[key] -= 1
+            self.transport.send_observation(replace(md, frame_remaining=left[key]))
+
+    def _handle(self, batch: list[tuple[MarkerData, int, bool]]) -> list[MarkerData]:
+        """Accept observations; returns the local ones that were accepted (for peers)."""
+        if not batch:
+            return []
+        local: list[MarkerData] = []
         reasons = self.listener.accept_many([(md, arrival) for md, arrival, _ in batch])
-        for (md, _, local), reason in zip(batch, reasons, strict=True):
-            if local:
+        for (md, _, is_local), reason in zip(batch, reasons, strict=True):
+            if is_local:
                 self.stats.local_observations += 1
                 if reason is None:
-                    self.transport.send_observation(md)
+                    local.append(md)
             else:
                 self.stats.peer_observations += 1
             if reason is None:
@@ -238,6 +298,7 @@ class Node:
                 _logger.debug(
                     "rejected observation %s from %d: %s", (md.sensor_id, md.marker_id), md.origin, reason.value
                 )
+        return local
 
     def _step(self, now: int) -> None:
         """Evaluate when something changed or an edge has expired, publish what is due.
@@ -278,8 +339,8 @@ class Node:
         relevant = self._relevant
         if relevant is None:
             return True
-        sensor, marker = self.world.sensors.get(md.sensor_id), self.world.markers.get(md.marker_id)
-        return sensor is None or marker is None or sensor.entity in relevant or marker.entity in relevant
+        observer, observed = self._entity_of[0].get(md.sensor_id), self._entity_of[1].get(md.marker_id)
+        return observer is None or observed is None or observer in relevant or observed in relevant
 
     def _evaluate(self, now: int) -> None:
         self._dirty = self._urgent = False
@@ -331,6 +392,7 @@ class Node:
             _logger.error("reload refused: entities or node settings changed; restart the service to apply them")
             return
         self.world = world
+        self._entity_of = _entity_lookup(world)
         self.graph.clear()
         self.graph = make_graph(world)
         self.listener = Listener(world, self.graph)
@@ -370,6 +432,18 @@ class Node:
             self.notifier.notify(*lines)  # type: ignore[attr-defined]
 
 
+def incomplete_frames(batch: Sequence[tuple[MarkerData, int, bool]]) -> bool:
+    """Whether an image in the batch still has observations to come: fewer of its observations (same
+    producer, sensor and capture time) are in than the largest ``frame_remaining`` among them
+    promises (order-proof: datagrams may be reordered)."""
+    frames: dict[tuple[bool, int, int, int], list[int]] = {}
+    for md, _, local in batch:
+        seen = frames.setdefault((local, md.origin, md.sensor_id, md.capture_time_us), [0, 0])
+        seen[0] += 1
+        seen[1] = max(seen[1], md.frame_remaining + 1)
+    return any(have < want for have, want in frames.values())
+
+
 def fused_poses(result: GraphResult) -> list[EntityPose]:
     """What goes to peers and the GCS: every world pose, then (with ``relative_poses``) the pose of
     each entity of a group with no path to world relative to the group's first entity (its frame)."""
@@ -377,6 +451,11 @@ def fused_poses(result: GraphResult) -> list[EntityPose]:
     for group in result.relative.values():
         poses += [p for p in group.values() if p.name != p.frame]
     return poses
+
+
+def _entity_lookup(world: WorldConfig) -> tuple[dict[int, str], dict[int, str]]:
+    """The entity of every sensor id and of every marker id."""
+    return {s.id: s.entity for s in world.sensors.values()}, {m.id: m.entity for m in world.markers.values()}
 
 
 def _make_ekf(world: WorldConfig) -> EkfBank | None:

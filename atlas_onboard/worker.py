@@ -1,14 +1,16 @@
-"""A sensor worker: one thread that produces MarkerData and hands each to a callback (the node's
-``Camera`` protocol). Cameras, simulated cameras and the simulated motion capture derive from it."""
+"""A sensor worker: one thread that produces MarkerData and hands each image's detections to a
+callback at once (the node's ``Camera`` protocol). Cameras, simulated cameras and the simulated
+motion capture derive from it."""
 
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from atlas_onboard.core.markerdata import MarkerData
 
-Deliver = Callable[[MarkerData], None]
+Deliver = Callable[[Sequence[MarkerData]], None]
+"""Called once per image with all of its detections (never with none)."""
 
 
 class SensorWorker:

@@ -94,7 +94,8 @@ def load(port: int, world, seconds: float, fingerprint: int, stop: threading.Eve
         for k in range(N_DRONES):
             t_us = int(time.time() * 1e6)
             for j, msg in enumerate(msgs[k]):
-                msg.time_usec, msg.seq = t_us, (frame * MARKERS + j) & 0xFFFF
+                # As a node sends an image's observations: each says how many of the image follow.
+                msg.time_usec, msg.seq, msg.frame_remaining = t_us, (frame * MARKERS + j) & 0xFFFF, MARKERS - 1 - j
                 sock.sendto(msg.pack(mavs[k], force_mavlink1=False), ("127.0.0.1", port))
                 sent += 1
         frame += 1

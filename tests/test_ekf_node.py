@@ -98,7 +98,7 @@ def moving_feed(node, t_start, duration_s, corrupt=None, at=20):
         md = observe(WORLD, truth, 1, 0, sigma_m=0.005, capture_time_us=now_us)
         if corrupt is not None and k == at:
             md = corrupt(md)
-        node.deliver_local(md)
+        node.deliver_local([md])
         time.sleep(1 / 30)
 
 

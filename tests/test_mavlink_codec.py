@@ -43,9 +43,9 @@ def test_observation_round_trip():
 
 def test_tunnel_round_trip_and_size():
     payload = codec.tunnel_payload(MD, 0xDEADBEEF)
-    assert len(payload) == codec.TUNNEL_STRUCT.size == 87
+    assert len(payload) == codec.TUNNEL_STRUCT.size + 1 == 88
     msg = roundtrip(
-        D.MAVLink_tunnel_message(0, 0, codec.TUNNEL_PAYLOAD_OBSERVATION, len(payload), list(payload) + [0] * (128 - 87))
+        D.MAVLink_tunnel_message(0, 0, codec.TUNNEL_PAYLOAD_OBSERVATION, len(payload), list(payload) + [0] * (128 - 88))
     )
     got = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, 9, 0xDEADBEEF)
     assert_md_equal(got, MD)

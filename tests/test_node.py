@@ -3,6 +3,7 @@ lost and resumes, local observations go to peers, the inbox is bounded, rejectio
 
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -32,7 +33,7 @@ class FakeTransport:
         self.status = []
         self.started = threading.Event()
 
-    def start(self, deliver):
+    def start(self, deliver, may_read=None):
         self.deliver = deliver
         self.started.set()
 
@@ -76,7 +77,7 @@ def test_output_matches_truth_and_local_observations_go_to_peers():
     node, tr, thread = make_node()
     try:
         for k in range(5):
-            node.deliver_local(observe(WORLD, TRUTH, 1, 0, capture_time_us=1000 + k))
+            node.deliver_local([observe(WORLD, TRUTH, 1, 0, capture_time_us=1000 + k)])
             time.sleep(0.01)
         deadline = time.monotonic() + 5
         while len(tr.autopilot) < 1 and time.monotonic() < deadline:
@@ -96,11 +97,11 @@ def test_output_matches_truth_and_local_observations_go_to_peers():
 def test_output_stops_within_edge_timeout_and_resumes():
     node, tr, thread = make_node()
     try:
-        node.deliver_local(observe(WORLD, TRUTH, 1, 0, capture_time_us=1))
+        node.deliver_local([observe(WORLD, TRUTH, 1, 0, capture_time_us=1)])
         last_obs = time.monotonic_ns()
         time.sleep(0.6)  # longer than the 250 ms edge timeout
         n_before = len(tr.autopilot)
-        node.deliver_local(observe(WORLD, TRUTH, 1, 0, capture_time_us=2))
+        node.deliver_local([observe(WORLD, TRUTH, 1, 0, capture_time_us=2)])
         time.sleep(0.1)
     finally:
         node.stop()
@@ -120,7 +121,7 @@ def test_output_stops_within_edge_timeout_and_resumes():
 def test_bad_observations_are_counted_and_change_nothing():
     node, tr, thread = make_node()
     try:
-        node.deliver_local(observe(WORLD, TRUTH, 1, 0, capture_time_us=1))
+        node.deliver_local([observe(WORLD, TRUTH, 1, 0, capture_time_us=1)])
         time.sleep(0.05)
         bad = MarkerData(1, 0, -1.0, (0, 0, 1), (1, 0, 0, 0), 2)
         node.deliver_peer(bad, time.monotonic_ns())
@@ -149,7 +150,7 @@ def test_fused_poses_go_to_peers(n):
     node, tr, thread = make_node()
     try:
         for k in range(n):
-            node.deliver_local(observe(WORLD, TRUTH, 1, 0, capture_time_us=k + 1))
+            node.deliver_local([observe(WORLD, TRUTH, 1, 0, capture_time_us=k + 1)])
         time.sleep(0.3)
     finally:
         node.stop()
@@ -208,3 +209,132 @@ def test_observations_that_cannot_move_the_own_pose_are_evaluated_together():
     # Without a pose of its own, every observation is evaluated at once (it may open a path).
     assert at(600) == 4 and "d1" not in node.last_result.poses  # every edge expired
     assert at(601, observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 3)) == 5
+
+
+WORLD3 = parse_world(
+    {
+        "entities": {
+            "world": {
+                "markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}],
+                "sensors": [{"name": "ceiling", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}],
+            },
+            "d1": {
+                "sensors": [{"name": "down", "id": 1, "pose": {"pos": [0, 0, 0], "rpy_deg": [0, 90, 0]}}],
+                "markers": [
+                    {"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}},
+                    {"id": 7, "size_m": 0.2, "pose": {"pos": [0.2, 0, 0.05]}},
+                    {"id": 8, "size_m": 0.2, "pose": {"pos": [0, 0.2, 0.05]}},
+                ],
+            },
+            "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+        }
+    }
+)
+
+
+def start(node, transport):
+    thread = threading.Thread(target=node.run)
+    thread.start()
+    transport.started.wait(5)
+    return thread
+
+
+def wait_for(predicate, timeout_s=5.0):
+    deadline = time.monotonic() + timeout_s
+    while not predicate() and time.monotonic() < deadline:
+        time.sleep(0.002)
+    return predicate()
+
+
+def ceiling_image(capture_time_us, markers=(5, 7, 8)):
+    """The ceiling camera's observations of d1's markers in one image, each saying how many follow."""
+    obs = [observe(WORLD3, TRUTH2, 10, m, capture_time_us=capture_time_us) for m in markers]
+    return [replace(md, origin=3, seq=i, frame_remaining=len(obs) - 1 - i) for i, md in enumerate(obs)]
+
+
+@pytest.mark.parametrize("last_arrives", [True, False])
+def test_a_peer_image_is_evaluated_whole(last_arrives):
+    """Two of an image's three observations arrive, the third 2 ms later: the autopilot's first pose is
+    fused from all three, not from two with the third's previous edge. If the third never comes, the
+    node goes on with two after FRAME_WAIT_S."""
+    cfg = NodeConfig(entity="d1", system_id=7, autopilot=AutopilotConfig(LinkConfig("udpout:127.0.0.1:9")))
+    tr = FakeTransport(time.monotonic_ns)
+    node = Node(WORLD3, cfg, tr)
+    thread = start(node, tr)
+    try:
+        first, second, third = ceiling_image(1_000)
+        node.deliver_peer(first, time.monotonic_ns())
+        node.deliver_peer(second, time.monotonic_ns())
+        time.sleep(0.002)
+        if last_arrives:
+            node.deliver_peer(third, time.monotonic_ns())
+        assert wait_for(lambda: tr.autopilot)
+    finally:
+        node.stop()
+        thread.join(5)
+    pose_out = tr.autopilot[0][1].pose
+    assert pose_out.n_observations == (3 if last_arrives else 2)
+    assert_pose_close(pose_out.p_world_m, pose_out.q_world_xyzw, TRUTH2["d1"], 1e-9, 1e-9)
+    assert len(tr.autopilot) == 1 and node.stats.evaluations == 1
+
+
+def test_local_images_go_to_peers_marked_with_what_follows():
+    """A camera image of three detections, the middle one invalid: the two accepted go to peers, the
+    first saying one follows, the second that it is the last."""
+    cfg = NodeConfig(entity="d1", system_id=7, autopilot=AutopilotConfig(LinkConfig("udpout:127.0.0.1:9")))
+    tr = FakeTransport(time.monotonic_ns)
+    node = Node(WORLD3, cfg, tr)
+    thread = start(node, tr)
+    try:
+        bad = replace(observe(WORLD3, TRUTH2, 1, 6, capture_time_us=50), sigma_m=-1.0)
+        image = [
+            observe(WORLD3, TRUTH2, 1, 0, capture_time_us=50),
+            bad,
+            observe(WORLD3, TRUTH2, 1, 6, capture_time_us=50),
+        ]
+        node.deliver_local(image)
+        assert wait_for(lambda: len(tr.observations) == 2)
+    finally:
+        node.stop()
+        thread.join(5)
+    assert [(md.marker_id, md.frame_remaining) for md in tr.observations] == [(0, 1), (6, 0)]
+    assert node.counters()["rejected_bad_sigma"] == 1
+
+
+def test_the_own_pose_is_published_before_other_observations_are_accepted():
+    """A batch holding a ceiling camera's view of another drone and the own camera's view of the
+    floor: the own one is accepted, evaluated and sent to the autopilot first."""
+    cfg = NodeConfig(entity="d1", system_id=7, autopilot=AutopilotConfig(LinkConfig("udpout:127.0.0.1:9")))
+
+    class Recording(FakeTransport):
+        def send_autopilot(self, pose):
+            super().send_autopilot(pose)
+            self.accepted_then = node.listener.accepted
+
+    tr = Recording(time.monotonic_ns)
+    node = Node(WORLD3, cfg, tr)
+    thread = start(node, tr)
+    try:
+        node.deliver_local([observe(WORLD3, TRUTH2, 1, 0, capture_time_us=1)])
+        assert wait_for(lambda: tr.autopilot)  # the node knows where it is: others can now wait
+        others = [observe(WORLD3, TRUTH2, 10, 6, capture_time_us=2 + k) for k in range(5)]
+        own = observe(WORLD3, TRUTH2, 1, 0, capture_time_us=10)
+        now = time.monotonic_ns()
+        node.inbox.put_many([*((md, now, False) for md in others), (own, now, True)])
+        assert wait_for(lambda: len(tr.autopilot) == 2 and node.listener.accepted == 7)
+    finally:
+        node.stop()
+        thread.join(5)
+    assert tr.autopilot[1][1].pose.capture_time_us == 10
+    assert tr.accepted_then == 2  # the first image and the own view, not the five others
+
+
+def test_incomplete_frames_counts_per_image_whatever_the_order():
+    from atlas_onboard.node import incomplete_frames
+
+    a, b, c = ceiling_image(1)
+    assert incomplete_frames([(a, 0, False)]) and incomplete_frames([(c, 0, False), (a, 0, False)])
+    assert not incomplete_frames([(c, 0, False), (a, 0, False), (b, 0, False)])
+    assert not incomplete_frames([(c, 0, False)])  # the last one, or a sender without the field
+    other = replace(a, origin=4)  # the same image numbers from another drone are another image
+    assert incomplete_frames([(a, 0, False), (b, 0, False), (other, 0, False), (c, 0, False)])

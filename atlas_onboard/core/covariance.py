@@ -55,7 +55,7 @@ def attitude_sigma_rad(
     """
     r = np.maximum(np.asarray(range_m, dtype=float), 0.05)
     s = ATTITUDE_PER_POSITION * np.asarray(sigma_m, dtype=float) / r
-    return np.clip(s, MIN_ATTITUDE_SIGMA_RAD, MAX_ATTITUDE_SIGMA_RAD)
+    return np.minimum(np.maximum(s, MIN_ATTITUDE_SIGMA_RAD), MAX_ATTITUDE_SIGMA_RAD)
 
 
 def observation(
@@ -71,18 +71,21 @@ def observation(
     """
     R_sm, p_sm = T_s_m[..., :3, :3], T_s_m[..., :3, 3]
     R_ms = np.swapaxes(R_sm, -1, -2)
-    p_ms = -np.einsum("...ij,...j->...i", R_ms, p_sm)
-    rng = np.linalg.norm(p_sm, axis=-1)
-    C_ms = diagonal(sigma_m, attitude_sigma_rad(sigma_m, rng))
-    C_sm = transform(inverse_jacobian(p_ms, R_ms), C_ms)
-    # Left by the fixed T_a_s: positions rotate into a, rotations stay about m's axes.
+    p_ms = -(R_ms @ p_sm[..., None])[..., 0]
+    rng = np.sqrt(np.sum(p_sm * p_sm, axis=-1))
+    sigma = np.asarray(sigma_m, dtype=float)
+    att = attitude_sigma_rad(sigma, rng)
+    # C_ms is diagonal: (sigma^2 x3, att^2 x3). T_a_b's error is M times the detection's error, with M
+    # the inverse's Jacobian (T_m_s -> T_s_m), then left by the fixed T_a_s (positions rotate into a,
+    # rotations stay about m's axes), then right by the fixed T_m_b (the parent part of a composition).
     R_as = T_a_s[..., :3, :3]
-    J_left = np.zeros((*np.shape(sigma_m), 6, 6))
+    J_left = np.zeros((*np.shape(sigma), 6, 6))
     J_left[..., 0:3, 0:3] = R_as
     J_left[..., 3:6, 3:6] = np.eye(3)
-    # Right by the fixed T_m_b: the parent (a -> m) part of a composition.
     J_right, _ = compose_jacobians(R_as @ R_sm, T_m_b[..., :3, 3], T_m_b[..., :3, :3])
-    return transform(J_right @ J_left, C_sm)
+    M = J_right @ J_left @ inverse_jacobian(p_ms, R_ms)
+    d = np.concatenate((np.repeat(sigma[..., None] ** 2, 3, axis=-1), np.repeat(att[..., None] ** 2, 3, axis=-1)), -1)
+    return (M * d[..., None, :]) @ np.swapaxes(M, -1, -2)
 
 
 def diagonal(sigma_m: NDArray[np.float64] | float, sigma_att_rad: NDArray[np.float64] | float) -> NDArray[np.float64]:
@@ -90,16 +93,16 @@ def diagonal(sigma_m: NDArray[np.float64] | float, sigma_att_rad: NDArray[np.flo
     s = np.asarray(sigma_m, dtype=float)
     a = np.broadcast_to(np.asarray(sigma_att_rad, dtype=float), s.shape)
     out = np.zeros((*s.shape, 6, 6))
-    for i in range(3):
-        out[..., i, i] = s**2
-        out[..., 3 + i, 3 + i] = a**2
+    i = np.arange(3)
+    out[..., i, i] = (s**2)[..., None]
+    out[..., i + 3, i + 3] = (a**2)[..., None]
     return out
 
 
 def inverse_jacobian(p_ab: NDArray[np.float64], R_ab: NDArray[np.float64]) -> NDArray[np.float64]:
     """Jacobian of the inverse, shape (..., 6, 6): ``C_ba = Ji C_ab Ji^T``."""
     R_ba = np.swapaxes(R_ab, -1, -2)
-    p_ba = -np.einsum("...ij,...j->...i", R_ba, p_ab)
+    p_ba = -(R_ba @ np.asarray(p_ab, dtype=float)[..., None])[..., 0]
     J = np.zeros((*np.shape(p_ab)[:-1], 6, 6))
     J[..., 0:3, 0:3] = -R_ba
     J[..., 0:3, 3:6] = skew(p_ba)

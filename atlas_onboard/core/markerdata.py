@@ -65,6 +65,9 @@ class MarkerData:
         p_sensor_marker_alt_m: the other planar (IPPE) solution's marker centre in the sensor frame,
             metres, shape (3,); all NaN when the producer has none.
         q_sensor_marker_alt_wxyz: the other planar solution's orientation, w first; all NaN when none.
+        frame_remaining: how many more observations of the same image (same sensor and capture time)
+            follow this one from its producer; 0 for the last one. A receiver evaluates a frame whole:
+            a pose fused from part of a frame and the rest of the previous one would mix two instants.
 
     The other solution is auxiliary: the record stands on its primary solution. An alternative that is
     neither all finite nor all NaN (or has a zero quaternion, or is out of range) is unusable: the
@@ -85,6 +88,7 @@ class MarkerData:
     seq: int = 0
     p_sensor_marker_alt_m: tuple[float, float, float] = _NAN3
     q_sensor_marker_alt_wxyz: tuple[float, float, float, float] = _NAN4
+    frame_remaining: int = 0
 
     def rejection(self) -> Rejection | None:
         """The reason this record is invalid on its own (without a world file), or None if it is valid."""

@@ -15,7 +15,7 @@ import re
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,10 +24,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from atlas_onboard.config import CameraConfig
-from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.worker import SensorWorker
+from atlas_onboard.worker import Deliver, SensorWorker
 
 _logger = logging.getLogger(__name__)
 
@@ -167,7 +166,7 @@ class CameraWorker(SensorWorker):
     def counters(self) -> dict[str, int]:
         return dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}
 
-    def _run(self, deliver: Callable[[MarkerData], None]) -> None:
+    def _run(self, deliver: Deliver) -> None:
         backoff = 0
         while not self._stop.is_set():
             try:
@@ -191,16 +190,17 @@ class CameraWorker(SensorWorker):
             finally:
                 source.close()
 
-    def _detect(self, frame: Frame, deliver: Callable[[MarkerData], None]) -> None:
+    def _detect(self, frame: Frame, deliver: Deliver) -> None:
         self.counts["frames"] += 1
         try:
-            for md in self.detector.detect(frame.gray, frame.capture_time_us):
-                deliver(md)
+            found = list(self.detector.detect(frame.gray, frame.capture_time_us))
+            if found:
+                deliver(found)
         except AtlasError as exc:  # e.g. frames of another size than the calibration
             self.counts["frame_errors"] += 1
             _logger.error("camera %s: %s", self.name, exc)
 
-    def _consume(self, source: Source, deliver: Callable[[MarkerData], None]) -> None:
+    def _consume(self, source: Source, deliver: Deliver) -> None:
         """Files: every frame, in order (paced by the source unless fast). Live sources: a reader
         thread keeps only the newest frame, so a slow detector skips frames (counted), never queues."""
         if not source.live:

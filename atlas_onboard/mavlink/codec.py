@@ -22,10 +22,12 @@ from atlas_onboard.mavlink import autopilot
 FORMAT_VERSION = 1
 TUNNEL_PAYLOAD_OBSERVATION = 43100
 TUNNEL_PAYLOAD_MAX = 128
-# TUNNEL payload of an observation, little endian, 87 bytes (docs/wire-format.md):
+# TUNNEL payload of an observation, little endian, 88 bytes (docs/wire-format.md):
 # time_usec u64, fingerprint u32, x y z f32, q[4] f32, sigma f32, reprojection_error f32, ambiguity f32,
-# x_alt y_alt z_alt f32, q_alt[4] f32, sensor_id u16, marker_id u16, seq u16, format_version u8.
+# x_alt y_alt z_alt f32, q_alt[4] f32, sensor_id u16, marker_id u16, seq u16, format_version u8,
+# then frame_remaining u8 (the extension of ATLAS_OBSERVATION; an 87-byte payload reads it as 0).
 TUNNEL_STRUCT = struct.Struct("<QI3f4f3f3f4fHHHB")
+TUNNEL_EXTENDED_SIZE = TUNNEL_STRUCT.size + 1
 ENTITY_NAME_LEN = 16
 
 MAV_FRAME_LOCAL_FRD = autopilot.MAV_FRAME_LOCAL_FRD
@@ -62,6 +64,7 @@ def observation_fields(md: MarkerData, fingerprint: int) -> dict[str, Any]:
         "marker_id": md.marker_id & 0xFFFF,
         "seq": md.seq & 0xFFFF,
         "format_version": FORMAT_VERSION,
+        "frame_remaining": min(max(int(md.frame_remaining), 0), 255),
     }
 
 
@@ -102,6 +105,7 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
             seq=int(msg.seq),
             p_sensor_marker_alt_m=(float(msg.x_alt), float(msg.y_alt), float(msg.z_alt)),
             q_sensor_marker_alt_wxyz=(q_alt[0], q_alt[1], q_alt[2], q_alt[3]),
+            frame_remaining=int(getattr(msg, "frame_remaining", 0) or 0),
         )
     except (TypeError, ValueError, AttributeError):
         raise RejectionError("malformed") from None
@@ -131,6 +135,7 @@ class _TunnelFields:
     marker_id: int
     seq: int
     format_version: int
+    frame_remaining: int = 0
 
 
 def tunnel_payload(md: MarkerData, fingerprint: int) -> bytes:
@@ -140,7 +145,7 @@ def tunnel_payload(md: MarkerData, fingerprint: int) -> bytes:
         f["time_usec"], f["fingerprint"], f["x"], f["y"], f["z"], *f["q"], f["sigma"], f["reprojection_error"],
         f["ambiguity"], f["x_alt"], f["y_alt"], f["z_alt"], *f["q_alt"], f["sensor_id"], f["marker_id"], f["seq"],
         f["format_version"],
-    )  # fmt: skip
+    ) + bytes([f["frame_remaining"]])  # fmt: skip
 
 
 def tunnel_fields(md: MarkerData, fingerprint: int) -> dict[str, Any]:
@@ -167,14 +172,16 @@ def decode_tunnel(
     ``tunnel_bad_length``, then as :func:`decode_observation`) if it is not ours or is malformed."""
     if payload_type != TUNNEL_PAYLOAD_OBSERVATION:
         raise RejectionError("tunnel_unknown_type")
-    if length != TUNNEL_STRUCT.size or len(payload) < length:
+    if length not in (TUNNEL_STRUCT.size, TUNNEL_EXTENDED_SIZE) or len(payload) < length:
         raise RejectionError("tunnel_bad_length")
     try:
-        v = TUNNEL_STRUCT.unpack(bytes(payload[:length]))
+        raw = bytes(payload[:length])
+        v = TUNNEL_STRUCT.unpack(raw[: TUNNEL_STRUCT.size])
     except (struct.error, TypeError, ValueError):
         raise RejectionError("tunnel_bad_length") from None
+    remaining = raw[TUNNEL_STRUCT.size] if length == TUNNEL_EXTENDED_SIZE else 0
     fields = _TunnelFields(v[0], v[1], v[2], v[3], v[4], v[5:9], v[9], v[10], v[11], v[12], v[13], v[14], v[15:19],
-                           v[19], v[20], v[21], v[22])  # fmt: skip
+                           v[19], v[20], v[21], v[22], remaining)  # fmt: skip
     return decode_observation(fields, origin, fingerprint, check)
 
 

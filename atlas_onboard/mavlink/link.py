@@ -47,6 +47,7 @@ TIMESTAMP_SAVE_EVERY_S = 10.0
 BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
 PROTECTED = frozenset({"ATLAS_OBSERVATION", "ATLAS_FUSED_POSE", "TUNNEL"})  # never accepted unsigned when required
 KEY_LEN = 32
+MAX_HOLD_S = 0.02  # a reader held by the node waits no longer than this
 
 Handler = Callable[["Link", Any, int], None]
 
@@ -149,6 +150,7 @@ class Link:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._handler: Handler | None = None
+        self._may_read: threading.Event | None = None
         self._backoff = 0
         self._next_open_s = 0.0  # monotonic time of the next reopen attempt
         self._last_ts_save = time.monotonic()
@@ -351,15 +353,23 @@ class Link:
 
     # --- thread mode --------------------------------------------------------------------------------
 
-    def start(self, handler: Handler) -> None:
-        """Read in a thread of its own: ``handler(link, msg, arrival_monotonic_ns)`` for each message."""
+    def start(self, handler: Handler, may_read: threading.Event | None = None) -> None:
+        """Read in a thread of its own: ``handler(link, msg, arrival_monotonic_ns)`` for each message.
+
+        With ``may_read``, the thread reads only while it is set (waiting at most ``MAX_HOLD_S``):
+        the node clears it while it evaluates and publishes its own pose, so that decoding the rest
+        of a burst does not take the interpreter from it (the datagrams wait in the socket's buffer).
+        """
         self._handler = handler
+        self._may_read = may_read
         self._try_reopen(0.0)
         self._thread = threading.Thread(target=self._run, name=f"link-{self.name}", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         while not self._stop.is_set():
+            if self._may_read is not None and not self._may_read.is_set():
+                self._may_read.wait(MAX_HOLD_S)
             for msg in self.poll(0.05):
                 if self._handler is None:
                     continue

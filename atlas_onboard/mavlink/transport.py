@@ -62,12 +62,12 @@ class MavlinkTransport:
 
     # --- Transport ------------------------------------------------------------------------------------
 
-    def start(self, deliver: Callable[[MarkerData, int], None]) -> None:
+    def start(self, deliver: Callable[[MarkerData, int], None], may_read: threading.Event | None = None) -> None:
         self._deliver = deliver
         if self.autopilot is not None:
             self.autopilot.start(self._on_autopilot)
         for i, link in enumerate(self.peers):
-            link.start(lambda lk, msg, t, i=i: self._on_peer(i, lk, msg, t))
+            link.start(lambda lk, msg, t, i=i: self._on_peer(i, lk, msg, t), may_read)
 
     def send_observation(self, md: MarkerData) -> None:
         """Our own observation to every peer link (as ATLAS_OBSERVATION, or TUNNEL where configured)."""

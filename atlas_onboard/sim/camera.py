@@ -27,7 +27,7 @@ from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.sim.scenarios import Scenario
 from atlas_onboard.sim.sources import SimContext
 from atlas_onboard.sim.world import Sighting, SimWorld
-from atlas_onboard.worker import SensorWorker
+from atlas_onboard.worker import Deliver, SensorWorker
 
 _logger = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ class SimCameraWorker(SensorWorker):
     def counters(self) -> dict[str, int]:
         return {"frames": self.frames, "frames_skipped": self.skipped, "detections": self.detections}
 
-    def _run(self, deliver: Callable[[MarkerData], None]) -> None:
+    def _run(self, deliver: Deliver) -> None:
         epoch = self.context.wait_epoch(self._stop)
         if epoch is None:
             return
@@ -83,9 +83,9 @@ class SimCameraWorker(SensorWorker):
             except Exception:  # a detector bug must not kill the camera thread; the frame is lost
                 _logger.exception("camera %s: detection failed", self.name)
                 continue
-            for md in found:
-                self.detections += 1
-                deliver(md)
+            if found:
+                self.detections += len(found)
+                deliver(list(found))
 
 
 def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: object, seed: int) -> FrameHandler:

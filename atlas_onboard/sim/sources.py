@@ -13,7 +13,6 @@ import logging
 import os
 import threading
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.world import SimWorld
-from atlas_onboard.worker import SensorWorker
+from atlas_onboard.worker import Deliver, SensorWorker
 
 _logger = logging.getLogger(__name__)
 
@@ -93,7 +92,7 @@ class MocapWorker(SensorWorker):
     def counters(self) -> dict[str, int]:
         return {"observations": self.sent}
 
-    def _run(self, deliver: Callable[[MarkerData], None]) -> None:
+    def _run(self, deliver: Deliver) -> None:
         assert self.mocap is not None
         epoch = self.context.wait_epoch(self._stop)
         if epoch is None:
@@ -110,12 +109,13 @@ class MocapWorker(SensorWorker):
                 continue
             k += 1
             truth = self.sim.truth(t)
+            frame = []
             for m in self.markers:
                 T = T_world_sensor.inv() * truth[m.entity] * m.T_entity_marker
                 p = T.translation + rng.normal(0.0, self.mocap.sigma_m, 3)
                 r = T.rotation * Rotation.from_rotvec(rng.normal(0.0, np.radians(self.mocap.sigma_deg), 3))
                 x, y, z, w = r.as_quat()
-                deliver(
+                frame.append(
                     MarkerData(
                         sensor_id=self.sensor.id,
                         marker_id=m.id,
@@ -125,4 +125,6 @@ class MocapWorker(SensorWorker):
                         capture_time_us=round((epoch + t) * 1e6),
                     )
                 )
-                self.sent += 1
+            if frame:
+                deliver(frame)
+                self.sent += len(frame)

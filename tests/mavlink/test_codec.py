@@ -35,8 +35,8 @@ def f32(v):
 
 
 def assert_md_equal(a, b):
-    assert (a.sensor_id, a.marker_id, a.capture_time_us, a.origin, a.seq) == (
-        b.sensor_id, b.marker_id, b.capture_time_us, b.origin, b.seq,
+    assert (a.sensor_id, a.marker_id, a.capture_time_us, a.origin, a.seq, a.frame_remaining) == (
+        b.sensor_id, b.marker_id, b.capture_time_us, b.origin, b.seq, b.frame_remaining,
     )  # fmt: skip
     got = (*a.p_sensor_marker_m, *a.q_sensor_marker_wxyz, a.sigma_m, a.reprojection_error_px, a.ambiguity_ratio)
     want = (*b.p_sensor_marker_m, *b.q_sensor_marker_wxyz, b.sigma_m, b.reprojection_error_px, b.ambiguity_ratio)
@@ -90,14 +90,32 @@ def test_observation_payload_offsets_match_the_document():
     assert struct.unpack_from("<3f", payload, 40) == (f32(0.0125), f32(0.42), f32(0.8))
     assert all(math.isnan(v) for v in struct.unpack_from("<7f", payload, 52))  # no alternative solution
     assert struct.unpack_from("<HHHB", payload, 80) == (7, 33, 65535, 1)
-    # The TUNNEL payload is the same 87 bytes.
-    assert codec.tunnel_payload(MD, FP) == bytes(payload)
+    # The TUNNEL payload is the same 87 bytes, then frame_remaining (here 0, cut from the message).
+    assert codec.tunnel_payload(MD, FP) == bytes(payload) + b"\x00"
+
+
+@pytest.mark.parametrize("remaining", [1, 3, 255])
+def test_frame_remaining_travels_in_the_extension_and_in_tunnel(remaining):
+    md = replace(MD, frame_remaining=remaining)
+    buf = wire(codec.encode_observation(D, md, FP))
+    payload = buf[10 : 10 + buf[1]]
+    assert len(payload) == 88 and payload[87] == remaining
+    (msg,) = parse(buf)
+    assert codec.decode_observation(msg, 9, FP).frame_remaining == remaining
+    tunnel = codec.tunnel_payload(md, FP)
+    assert len(tunnel) == 88 and tunnel[87] == remaining
+    got = codec.decode_tunnel(43100, 88, list(tunnel) + [0] * 40, 9, FP)
+    assert got.frame_remaining == remaining
+    # A sender without the extension: 87 bytes, read as the last of its frame.
+    assert codec.decode_tunnel(43100, 87, list(tunnel[:87]) + [0] * 41, 9, FP).frame_remaining == 0
+    # Out of the byte's range it is clamped, never an encoding error.
+    assert codec.observation_fields(replace(MD, frame_remaining=1000), FP)["frame_remaining"] == 255
 
 
 def test_tunnel_round_trip():
     msg_obj = codec.encode_tunnel(D, MD, FP)
     (msg,) = parse(wire(msg_obj))
-    assert msg.get_type() == "TUNNEL" and msg.payload_type == 43100 > 32767 and msg.payload_length == 87
+    assert msg.get_type() == "TUNNEL" and msg.payload_type == 43100 > 32767 and msg.payload_length == 88
     assert (msg.target_system, msg.target_component) == (0, 0)
     got = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, 9, FP, check=True)
     assert_md_equal(got, MD)
@@ -105,7 +123,12 @@ def test_tunnel_round_trip():
 
 @pytest.mark.parametrize(
     ("ptype", "length", "reason"),
-    [(1234, 87, "tunnel_unknown_type"), (43100, 86, "tunnel_bad_length"), (43100, 128, "tunnel_bad_length")],
+    [
+        (1234, 88, "tunnel_unknown_type"),
+        (43100, 86, "tunnel_bad_length"),
+        (43100, 89, "tunnel_bad_length"),
+        (43100, 128, "tunnel_bad_length"),
+    ],
 )
 def test_tunnel_rejections(ptype, length, reason):
     with pytest.raises(codec.RejectionError) as info:
@@ -115,7 +138,7 @@ def test_tunnel_rejections(ptype, length, reason):
 
 def test_tunnel_with_a_short_payload_list_is_refused():
     with pytest.raises(codec.RejectionError, match="tunnel_bad_length"):
-        codec.decode_tunnel(43100, 87, [0] * 40, 9, 1)
+        codec.decode_tunnel(43100, 88, [0] * 40, 9, 1)
 
 
 def test_wrong_fingerprint_and_version_are_refused():
