@@ -129,6 +129,7 @@ class Stats:
     evaluations: int = 0
     autopilot_sent: int = 0
     fused_sent: int = 0
+    superseded: int = 0  # parked peer observations replaced by a newer one of the same edge before use
 
 
 class Node:
@@ -177,6 +178,14 @@ class Node:
         self._last_publish_ns = 0
         self._last_eval_ns = 0
         self._urgent = False
+        # Peer observations that cannot move the own pose are parked and accepted together, as often
+        # as the fused poses of others go out (at least every COALESCE_NS, at most every half edge
+        # timeout so that no edge expires while its refresh waits): others' poses are needed no
+        # faster, and one vectorised batch costs far less than dozens of small ones.
+        self._pending: deque[tuple[MarkerData, int, bool]] = deque(maxlen=config.queue_size * 4)
+        self._pending_since_ns = 0
+        timeout_ns = round(world.fusion.edge_timeout_s * NS)
+        self.park_ns = int(min(max(NS / config.fused_rate_hz, COALESCE_NS), timeout_ns // 2))
         self._relevant: set[str] | None = None  # entities whose observations are evaluated at once
         self._next_status_ns = 0
         self._next_watchdog_ns = 0
@@ -240,14 +249,17 @@ class Node:
         whole (its last observation, ``frame_remaining`` 0, is in), for at most ``FRAME_WAIT_S``: an
         image's observations are evaluated together, never part of them with the previous image."""
         batch = [first, *self.inbox.drain()]
+        frames = FrameCount()
+        frames.add(batch)
         deadline = time.monotonic() + FRAME_WAIT_S
-        while incomplete_frames(batch) and not self._stop.is_set():
+        while frames.incomplete and not self._stop.is_set():
             left = deadline - time.monotonic()
             nxt = self.inbox.get(left) if left > 0 else None
             if nxt is None:
                 break
-            batch.append(nxt)
-            batch += self.inbox.drain()
+            more = [nxt, *self.inbox.drain()]
+            frames.add(more)
+            batch += more
         return batch
 
     def _process(self, batch: list[tuple[MarkerData, int, bool]]) -> None:
@@ -265,13 +277,46 @@ class Node:
                 self._step(self.clock())
             finally:
                 self._may_read.set()
-        local += self._handle(rest)
+        # Our own camera's views of others go out at once (they may be urgent for them); a peer's
+        # views that cannot move our pose wait, to be accepted together.
+        local += self._handle([x for x in rest if x[2]])
+        self._park([x for x in rest if not x[2]])
         # Our accepted detections go to peers, each image's last one marked as such.
         left = Counter((md.sensor_id, md.capture_time_us) for md in local)
         for md in local:
             key = (md.sensor_id, md.capture_time_us)
             left[key] -= 1
             self.transport.send_observation(replace(md, frame_remaining=left[key]))
+
+    def _park(self, items: list[tuple[MarkerData, int, bool]]) -> None:
+        if items and not self._pending:
+            self._pending_since_ns = self.clock()
+        overflow = len(self._pending) + len(items) - (self._pending.maxlen or 0)
+        if overflow > 0:  # bounded like the inbox: the oldest go, counted with its drops
+            self.inbox.dropped += overflow
+        self._pending.extend(items)
+
+    def _flush_pending(self) -> None:
+        """Accept the parked observations, except those superseded: one whose edge has meanwhile been
+        refreshed by a newer arrival (taken at once because the own pose's needs changed), and, when
+        each observation simply replaces its edge (the paper's setting: ``ema_alpha`` 1, no
+        ``age_sigma_m_per_s``), every one but the newest of its edge."""
+        pending, self._pending = list(self._pending), deque(maxlen=self._pending.maxlen)
+        f = self.world.fusion
+        if f.ema_alpha == 1.0 and f.age_sigma_m_per_s == 0.0:
+            newest = {(md.sensor_id, md.marker_id): i for i, (md, _, _) in enumerate(pending)}
+            keep = set(newest.values())
+            self.stats.superseded += len(pending) - len(keep)
+            pending = [item for i, item in enumerate(pending) if i in keep]
+        edges = self.graph.edges
+        fresh = []
+        for item in pending:
+            edge = edges.get((item[0].sensor_id, item[0].marker_id))
+            if edge is not None and edge.stamp_ns > item[1]:
+                self.stats.superseded += 1
+            else:
+                fresh.append(item)
+        self._handle(fresh)
 
     def _handle(self, batch: list[tuple[MarkerData, int, bool]]) -> list[MarkerData]:
         """Accept observations; returns the local ones that were accepted (for peers)."""
@@ -308,6 +353,8 @@ class Node:
         most of a node's time in a swarm). With the EKF, the prediction to now is published every
         ``PREDICT_NS``, and a pose held back by the rate cap goes when the cap allows.
         """
+        if self._pending and now - self._pending_since_ns >= self.park_ns:
+            self._flush_pending()
         expiry = self.graph.next_expiry_ns()
         due = self._dirty and (self._urgent or now - self._last_eval_ns >= COALESCE_NS)
         if due or (expiry is not None and now >= expiry):
@@ -393,6 +440,7 @@ class Node:
             return
         self.world = world
         self._entity_of = _entity_lookup(world)
+        self._pending.clear()
         self.graph.clear()
         self.graph = make_graph(world)
         self.listener = Listener(world, self.graph)
@@ -411,6 +459,7 @@ class Node:
             autopilot_sent=self.stats.autopilot_sent,
             autopilot_rate_suppressed=self.publisher.suppressed_rate,
             fused_sent=self.stats.fused_sent,
+            superseded=self.stats.superseded,
             reset_counter=self.publisher.reset_counter,
         )
         out.update(self.listener.counters)  # ambiguity resolved / swapped / undecided, alt ignored
@@ -432,16 +481,31 @@ class Node:
             self.notifier.notify(*lines)  # type: ignore[attr-defined]
 
 
+class FrameCount:
+    """Which images of a batch still have observations to come: fewer of an image's observations
+    (same producer, sensor and capture time) are in than the largest ``frame_remaining`` among them
+    promises (order-proof: datagrams may be reordered). Updated as items arrive."""
+
+    def __init__(self) -> None:
+        self._frames: dict[tuple[bool, int, int, int], list[int]] = {}
+        self.incomplete = 0  # images still waiting for observations
+
+    def add(self, items: Sequence[tuple[MarkerData, int, bool]]) -> None:
+        for md, _, local in items:
+            seen = self._frames.get((local, md.origin, md.sensor_id, md.capture_time_us))
+            if seen is None:
+                seen = self._frames[(local, md.origin, md.sensor_id, md.capture_time_us)] = [0, 0]
+            before = seen[0] < seen[1]
+            seen[0] += 1
+            seen[1] = max(seen[1], md.frame_remaining + 1)
+            self.incomplete += (seen[0] < seen[1]) - before
+
+
 def incomplete_frames(batch: Sequence[tuple[MarkerData, int, bool]]) -> bool:
-    """Whether an image in the batch still has observations to come: fewer of its observations (same
-    producer, sensor and capture time) are in than the largest ``frame_remaining`` among them
-    promises (order-proof: datagrams may be reordered)."""
-    frames: dict[tuple[bool, int, int, int], list[int]] = {}
-    for md, _, local in batch:
-        seen = frames.setdefault((local, md.origin, md.sensor_id, md.capture_time_us), [0, 0])
-        seen[0] += 1
-        seen[1] = max(seen[1], md.frame_remaining + 1)
-    return any(have < want for have, want in frames.values())
+    """Whether an image in the batch still has observations to come (see :class:`FrameCount`)."""
+    frames = FrameCount()
+    frames.add(batch)
+    return frames.incomplete > 0
 
 
 def fused_poses(result: GraphResult) -> list[EntityPose]:

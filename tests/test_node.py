@@ -321,12 +321,14 @@ def test_the_own_pose_is_published_before_other_observations_are_accepted():
         own = observe(WORLD3, TRUTH2, 1, 0, capture_time_us=10)
         now = time.monotonic_ns()
         node.inbox.put_many([*((md, now, False) for md in others), (own, now, True)])
-        assert wait_for(lambda: len(tr.autopilot) == 2 and node.listener.accepted == 7)
+        # The five others are parked; accepted together later, only the newest of their one edge.
+        assert wait_for(lambda: len(tr.autopilot) == 2 and node.listener.accepted == 3)
     finally:
         node.stop()
         thread.join(5)
     assert tr.autopilot[1][1].pose.capture_time_us == 10
     assert tr.accepted_then == 2  # the first image and the own view, not the five others
+    assert node.counters()["superseded"] == 4
 
 
 def test_incomplete_frames_counts_per_image_whatever_the_order():
@@ -338,3 +340,44 @@ def test_incomplete_frames_counts_per_image_whatever_the_order():
     assert not incomplete_frames([(c, 0, False)])  # the last one, or a sender without the field
     other = replace(a, origin=4)  # the same image numbers from another drone are another image
     assert incomplete_frames([(a, 0, False), (b, 0, False), (other, 0, False), (c, 0, False)])
+
+
+def test_peer_views_of_others_are_parked_and_accepted_together():
+    """On a fake clock: a peer's view of another drone waits (not even accepted) until ``park_ns``
+    (here 125 ms, half the edge timeout) after it arrived, then is accepted and evaluated; our own
+    camera's view of another drone is
+    accepted and sent to peers at once; a parked view whose edge was refreshed meanwhile is dropped
+    as superseded, never written over the newer one."""
+    ms = 1_000_000
+    now = [1_000 * ms]
+    tr = FakeTransport(lambda: now[0])
+    cfg = NodeConfig(entity="d1", system_id=7, autopilot=AutopilotConfig(LinkConfig("udpout:127.0.0.1:9")))
+    node = Node(WORLD2, cfg, tr, monotonic_ns=lambda: now[0])
+
+    def at(t_ms, *items):
+        now[0] = 1_000 * ms + t_ms * ms
+        if items:
+            node._process([(md, now[0], local) for md, local in items])
+        node._step(now[0])
+
+    t_us = 1_700_000_000_000_000
+    at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True))  # d1 sees the floor: it has a pose
+    assert node.listener.accepted == 1 and len(tr.autopilot) == 1
+    at(5, (observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 1), False))  # a peer's ceiling sees d2
+    assert node.listener.accepted == 1  # parked
+    at(6, (observe(WORLD2, TRUTH2, 1, 6, capture_time_us=t_us + 2), True))  # our camera sees d2
+    assert node.listener.accepted == 2 and [md.marker_id for md in tr.observations] == [0, 6]
+    assert node.park_ns == 125 * ms
+    at(129)
+    assert node.listener.accepted == 2
+    at(130)
+    assert node.listener.accepted == 3 and "d2" in node.last_result.poses
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)
+    # Superseded: parked at 140, the same edge refreshed at 150 by a newer arrival, flushed at 265.
+    wrong = observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 3, T_noise=pose([0.3, 0, 0]))
+    at(140, (wrong, False))
+    now[0] = 1_150 * ms
+    node._handle([(observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 4), now[0], False)])
+    at(265)
+    assert node.counters()["superseded"] == 1 and node.listener.accepted == 4
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)

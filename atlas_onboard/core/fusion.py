@@ -125,17 +125,15 @@ def fuse_groups(
     pos[ids] = np.add.reduceat(w[:, None] * p[order], starts) / wsum[:, None]
     a = w / np.repeat(wsum, size)
     sig[ids] = np.sqrt(np.add.reduceat((a * sigmas[order]) ** 2, starts))
-    # Pad every group to the largest size with zero-weight identity rotations, then one batched mean.
-    width = int(size.max())
-    row = np.repeat(np.arange(len(ids)), size)
-    slot = np.arange(len(group)) - np.repeat(starts, size)
-    padded_q = np.zeros((len(ids), width, 4))
-    padded_q[..., 3] = 1.0
-    padded_w = np.zeros((len(ids), width))
-    padded_q[row, slot] = q_xyzw[order]
-    padded_w[row, slot] = w**2  # eq. 5: Q Q^T weighs by w_i^2
-    mean = Rotation.from_quat(padded_q).mean(weights=padded_w, axis=1)
-    quat[ids] = np.atleast_2d(mean.as_quat())
+    # Eq. 5 per group: the eigenvector of the largest eigenvalue of Q Q^T = sum_i w_i^2 q_i q_i^T,
+    # the same as scipy's weighted Rotation.mean (tested against it) written out with numpy: scipy's
+    # call took 0.56 ms per evaluation here, 45 % of evaluating a small graph, against 0.07 ms.
+    q = q_xyzw[order]
+    q = q / np.linalg.norm(q, axis=1)[:, None]
+    outer = (w**2)[:, None, None] * (q[:, :, None] * q[:, None, :])
+    _, vectors = np.linalg.eigh(np.add.reduceat(outer, starts))
+    mean = vectors[..., -1]
+    quat[ids] = mean * np.where(mean[:, 3:] < 0.0, -1.0, 1.0)  # the representative with w >= 0
     return pos, quat, sig, counts
 
 

@@ -47,6 +47,7 @@ TIMESTAMP_SAVE_EVERY_S = 10.0
 BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
 PROTECTED = frozenset({"ATLAS_OBSERVATION", "ATLAS_FUSED_POSE", "TUNNEL"})  # never accepted unsigned when required
 KEY_LEN = 32
+DATAGRAMS_PER_POLL = 16
 MAX_HOLD_S = 0.02  # a reader held by the node waits no longer than this
 
 Handler = Callable[["Link", Any, int], None]
@@ -294,8 +295,14 @@ class Link:
             if not conn.select(timeout_s):
                 self._housekeeping(conn)
                 return []
-            data = conn.recv(4096)
-            msgs = conn.mav.parse_buffer(data) if data else None
+            msgs = []
+            # A UDP socket holds one datagram per message: take what is queued (up to a bound) per
+            # wake-up rather than one select per datagram. Streams return many messages per read.
+            for _ in range(DATAGRAMS_PER_POLL if isinstance(conn, mavutil.mavudp) else 1):
+                data = conn.recv(4096)
+                if not data:
+                    break
+                msgs.extend(conn.mav.parse_buffer(data) or ())
         except Exception as exc:  # the device vanished or the peer went away: reopen with backoff
             self.counters.inc("read_errors")
             _logger.warning("%s: link %s failed (%s); reopening", self.name, self.config.url, exc)

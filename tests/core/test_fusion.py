@@ -158,3 +158,18 @@ def test_fuse_groups_matches_per_group_fusion(seed):
         vals = np.sort(np.linalg.eigvalsh(Q @ Q.T))
         if len(vals) < 2 or vals[-1] - vals[-2] > 1e-6:
             assert (Rotation.from_quat(quat[g]).inv() * ref_r).magnitude() < 1e-6
+
+
+@settings(max_examples=60)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 8))
+def test_fuse_groups_rotation_is_scipys_weighted_mean(seed, n):
+    """The batched eq. 5 equals scipy's Rotation.mean with weights w_i^2, whatever each input's sign."""
+    rng = np.random.default_rng(seed)
+    base = Rotation.random(random_state=seed)
+    rots = base * Rotation.from_rotvec(rng.normal(0.0, 0.3, (n, 3)))  # a spread, not antipodal
+    q = rots.as_quat() * rng.choice([-1.0, 1.0], (n, 1))
+    w = rng.uniform(0.1, 1.0, n)
+    _, quat, _, _ = fusion.fuse_groups(np.zeros(n, dtype=np.intp), 1, np.zeros((n, 3)), q, np.full(n, 0.01), w)
+    ref = Rotation.from_quat(q).mean(weights=w**2)
+    assert (Rotation.from_quat(quat[0]).inv() * ref).magnitude() < 1e-9
+    assert quat[0][3] >= 0.0
