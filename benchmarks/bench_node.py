@@ -42,6 +42,11 @@ from atlas_onboard.sim.autopilot import SimAutopilot
 N_DRONES, RATE_HZ, MARKERS = 10, 30, 4
 
 
+def cpu_s(pid: int) -> float:
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -166,8 +171,10 @@ def main() -> int:
             time.sleep(0.05)
         stop = threading.Event()
         t0 = time.time()
+        cpu0 = cpu_s(node.pid)
         sent = load(peer_port, world, args.seconds, world.fingerprint(), stop)
         elapsed = time.time() - t0
+        node_cpu = (cpu_s(node.pid) - cpu0) / elapsed * 100
         time.sleep(0.3)
         node.send_signal(signal.SIGTERM)
         node.wait(timeout=10)
@@ -185,8 +192,10 @@ def main() -> int:
     rate = sent / elapsed
     print(f"load: {N_DRONES} drones x {RATE_HZ} Hz x {MARKERS} markers = {rate:.0f} observations/s for {elapsed:.1f} s")
     dropped = counters.get("inbox_dropped", "?")
-    print(f"node accepted {accepted} of {sent} ({accepted / elapsed:.0f}/s), inbox dropped {dropped},"
-          f" autopilot messages {len(recs)} ({len(recs) / elapsed:.1f}/s)")  # fmt: skip
+    superseded = int(counters.get("superseded", 0))
+    print(f"node received {counters.get('peer0_rx_atlas_observation', '?')} of {sent}: accepted {accepted},"
+          f" superseded {superseded} (a newer one of the same edge came first), inbox dropped {dropped};"
+          f" autopilot messages {len(recs)} ({len(recs) / elapsed:.1f}/s); node CPU {node_cpu:.0f} %")  # fmt: skip
     print(f"{'':28} {'median ms':>10} {'p99 ms':>8}")
     print(f"{'node (observation -> AP)':28} {med:>10.3f} {p99:>8.3f}")
     print(f"{'anchor (decode all, resend)':28} {a_med:>10.3f} {a_p99:>8.3f}")
