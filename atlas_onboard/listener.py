@@ -23,15 +23,16 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import Weighting, WorldConfig
 from atlas_onboard.core import ambiguity, covariance, fusion, geometry
 from atlas_onboard.core.ambiguity import Verdict
-from atlas_onboard.core.graph import EdgeKey, EntityPose, TransformGraph
+from atlas_onboard.core.graph import MAX_RATE_RAD_S, MAX_SPEED_M_S, EdgeKey, EntityPose, TransformGraph
 from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection
 
 _logger = logging.getLogger(__name__)
 
 ESTIMATE_ATTITUDE_SIGMA_RAD = 0.05
 """Per-axis attitude error assumed for an entity's estimate when it resolves an ambiguity (about 3
-degrees: the graph's attitude error plus the motion since the previous evaluation). The root of the
-estimates' frame (``world``) is exact."""
+degrees), grown by the motion the entity may have made since the estimate's capture (the graph's
+MAX_RATE_RAD_S and MAX_SPEED_M_S times the age). The root of the estimates' frame (``world``) is
+exact."""
 
 
 @dataclass(slots=True)
@@ -201,12 +202,22 @@ class Listener:
         p_a = T2[idx, :3, 3]
         p_b = np.array([valid[j].p_sensor_marker_alt_m for j in idx])
         q_b = np.array([valid[j].q_sensor_marker_alt_xyzw() for j in idx])
-        # The estimates' frame root (world) is exact; every other entity has the assumed attitude error.
-        att_a = np.array([0.0 if a.name == a.frame else self.attitude_sigma_rad for _, a, _ in todo])
-        att_b = np.array([0.0 if b.name == b.frame else self.attitude_sigma_rad for _, _, b in todo])
+
+        # The estimates' frame root (world) is exact; every other entity has the assumed attitude error,
+        # plus what it may have turned and moved between its estimate's capture and this observation's
+        # (a stale estimate must not pick the flipped solution: it leaves the observation undecided).
+        def motion(est: EntityPose, md: MarkerData) -> tuple[float, float]:
+            if est.name == est.frame:
+                return 0.0, 0.0
+            age_s = max(md.capture_time_us - est.capture_time_us, 0) / 1e6
+            return float(np.hypot(self.attitude_sigma_rad, MAX_RATE_RAD_S * age_s)), MAX_SPEED_M_S * age_s
+
+        move_a = np.array([motion(a, valid[j]) for j, a, _ in todo])
+        move_b = np.array([motion(b, valid[j]) for j, _, b in todo])
         sigma_rad, sigma_m = ambiguity.prediction_sigmas(
             np.linalg.norm(p_a, axis=1), np.array([valid[j].sigma_m for j in idx]),
-            np.array([a.sigma_m for _, a, _ in todo]), np.array([b.sigma_m for _, _, b in todo]), att_a, att_b,
+            np.hypot([a.sigma_m for _, a, _ in todo], move_a[:, 1]),
+            np.hypot([b.sigma_m for _, _, b in todo], move_b[:, 1]), move_a[:, 0], move_b[:, 0],
         )  # fmt: skip
         verdicts, _, _ = ambiguity.resolve_arrays(
             p_a, q2[idx], p_b, q_b,

@@ -336,8 +336,8 @@ class Node:
                 if not self._urgent:
                     self._urgent = self._concerns_own_pose(md)
                 _logger.debug(
-                    "obs %d/%d cap %d sigma %.4f p %s", md.sensor_id, md.marker_id, md.capture_time_us, md.sigma_m,
-                    md.p_sensor_marker_m,
+                    "obs %d/%d cap %d sigma %.4f err %.3f ambiguity %.3f p %s", md.sensor_id, md.marker_id,
+                    md.capture_time_us, md.sigma_m, md.reprojection_error_px, md.ambiguity_ratio, md.p_sensor_marker_m,
                 )  # fmt: skip
             elif reason is not Rejection.UNKNOWN_MARKER:
                 _logger.debug(

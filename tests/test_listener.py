@@ -318,3 +318,18 @@ def test_a_batch_resolves_exactly_as_one_by_one():
         else:
             np.testing.assert_allclose(x.p_a_b, y.p_a_b, atol=1e-12)
             np.testing.assert_allclose(x.q_a_b_xyzw, y.q_a_b_xyzw, atol=1e-12)
+
+
+@pytest.mark.parametrize(("age_ms", "resolved"), [(0, True), (20, True), (500, False)])
+def test_a_stale_estimate_cannot_resolve_an_ambiguity(age_ms, resolved):
+    """The prediction widens with what the drone may have turned and moved since its estimate was
+    captured (3 rad/s, 3 m/s): a fresh one still picks the true solution, one half a second old
+    leaves the observation undecided (rejected, counted) rather than risk the flip."""
+    _, graph, listener, _, md, bootstrap = ambiguous_scene()
+    listener.accept(bootstrap, now_ns=0)
+    listener.set_estimates(graph.evaluate(0).poses)
+    late = replace(md, capture_time_us=md.capture_time_us + age_ms * 1000)
+    reason = listener.accept(late, 1 * MS)
+    assert (reason is None) == resolved
+    if not resolved:
+        assert reason is Rejection.AMBIGUITY_UNRESOLVED and (1, 5) not in graph.edges

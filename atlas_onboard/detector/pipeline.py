@@ -24,6 +24,7 @@ from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.families import family
 
 MAX_AMBIGUITY = 1.0
+JOINT_MISFIT = 3.0  # a joint fit this many times worse than its worst single square is not used
 """Detections whose IPPE ratio (chosen over other solution's reprojection error) exceeds this are
 dropped (counted ``ambiguous_dropped``). Above ``AMBIGUITY_THRESHOLD`` (0.5) the two planar solutions
 fit almost equally well and the chosen one may be the mirror image (a "flip", tens of degrees off):
@@ -137,9 +138,11 @@ class Detector:
             groups.setdefault(self.entity_of[mid], []).append(mid)
         for ids in groups.values():
             if self.joint and len(ids) > 1:
-                md = self._joint(ids, singles, capture_time_us)
+                md, misfit = self._joint(ids, singles, capture_time_us)
                 if md is not None:
                     out.append(md)
+                    continue
+                if misfit:  # the squares contradict each other: none of them is trusted in this image
                     continue
             for mid in ids:
                 mp = singles[mid][0]
@@ -158,7 +161,9 @@ class Detector:
     def _sigma_px(self, family_name: str) -> float:
         return pose.SIGMA_PX_APRILTAG if family(family_name).is_apriltag else pose.SIGMA_PX_ARUCO
 
-    def _joint(self, ids: list[int], singles: dict, capture_time_us: int) -> MarkerData | None:
+    def _joint(self, ids: list[int], singles: dict, capture_time_us: int) -> tuple[MarkerData | None, bool]:
+        """The entity's observation from all its squares at once; (None, False) when the solve
+        failed (the squares are then reported one by one), (None, True) when they do not fit together."""
         anchor = ids[0]
         T_entity_anchor = self.marker_pose[anchor]
         obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
@@ -174,11 +179,20 @@ class Detector:
         sol = pose.solve_joint(obj, img, self.calibration.K, self._sigma_px(fam), guess)
         if sol is None:
             self.counters["joint_failed"] += 1
-            return None
+            return None, False
         rvec, tvec, err, sigma = sol
+        # Markers that do not fit together as the world file places them (a misplaced marker, a bad
+        # corner, motion blur that moves each square differently) give a joint fit far worse than
+        # each square's own: the joint pose is then wrong in a way no sigma describes (a few degrees
+        # of tilt on paper-test1), and a single square alone may be the flipped one. Nothing of the
+        # entity is reported from this image (counted).
+        worst_single = max(singles[m][0].reprojection_error_px for m in ids)
+        if err > JOINT_MISFIT * max(worst_single, self._sigma_px(fam)):
+            self.counters["joint_misfit"] += 1
+            return None, True
         T = RigidTransform.from_components(tvec, Rotation.from_rotvec(rvec)) * T_entity_anchor
         self.counters["joint"] += 1
-        return self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us)
+        return self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us), False
 
     def _markerdata(
         self,
