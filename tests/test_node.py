@@ -162,38 +162,55 @@ def test_fused_poses_go_to_peers(n):
     np.testing.assert_allclose(d1.p_world_m, TRUTH["d1"].translation, atol=1e-9)
 
 
-WORLD2 = parse_world(
-    {
-        "entities": {
-            "world": {
-                "markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}],
-                "sensors": [{"name": "ceiling", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}],
-            },
-            "d1": {
-                "sensors": [{"name": "down", "id": 1, "pose": {"pos": [0, 0, 0], "rpy_deg": [0, 90, 0]}}],
-                "markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}],
-            },
-            "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+def ceiling_world(d1_markers):
+    """A ceiling camera on the world, d1 with a downward camera and ``d1_markers``, and d2 with one
+    marker (id 6)."""
+    return parse_world(
+        {
+            "entities": {
+                "world": {
+                    "markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}],
+                    "sensors": [{"name": "ceiling", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}],
+                },
+                "d1": {
+                    "sensors": [{"name": "down", "id": 1, "pose": {"pos": [0, 0, 0], "rpy_deg": [0, 90, 0]}}],
+                    "markers": [{"id": i, "size_m": 0.2, "pose": {"pos": p}} for i, p in d1_markers],
+                },
+                "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+            }
         }
-    }
-)
+    )
+
+
+WORLD2 = ceiling_world([(5, [0, 0, 0.05])])
 TRUTH2 = {"world": RigidTransform.identity(), "d1": pose([0.5, -0.3, 1.2], [0, 0, 30]), "d2": pose([1, 1, 1])}
+
+
+def clocked_node(world):
+    """A node of d1 on a fake clock: (node, transport, set_ms), ``set_ms(t)`` moving the clock to
+    1 s + t ms and returning it in ns."""
+    now = [1_000_000_000]
+    tr = FakeTransport(lambda: now[0])
+    cfg = NodeConfig(entity="d1", system_id=7, autopilot=AutopilotConfig(LinkConfig("udpout:127.0.0.1:9")))
+    node = Node(world, cfg, tr, monotonic_ns=lambda: now[0])
+
+    def set_ms(t_ms):
+        now[0] = 1_000_000_000 + t_ms * 1_000_000
+        return now[0]
+
+    return node, tr, set_ms
 
 
 def test_observations_that_cannot_move_the_own_pose_are_evaluated_together():
     """Driven step by step on a fake clock: the own entity's observations are evaluated at once; a
     ceiling camera's view of another drone waits up to COALESCE_NS, and is then in the fused poses."""
-    ms = 1_000_000
-    now = [1_000 * ms]
-    tr = FakeTransport(lambda: now[0])
-    cfg = NodeConfig(entity="d1", system_id=7, autopilot=AutopilotConfig(LinkConfig("udpout:127.0.0.1:9")))
-    node = Node(WORLD2, cfg, tr, monotonic_ns=lambda: now[0])
+    node, tr, set_ms = clocked_node(WORLD2)
 
     def at(t_ms, *obs):
-        now[0] = 1_000 * ms + t_ms * ms
+        t = set_ms(t_ms)
         if obs:
-            node._handle([(md, now[0], False) for md in obs])
-        node._step(now[0])
+            node._handle([(md, t, False) for md in obs])
+        node._step(t)
         return node.stats.evaluations
 
     t_us = 1_700_000_000_000_000
@@ -211,25 +228,7 @@ def test_observations_that_cannot_move_the_own_pose_are_evaluated_together():
     assert at(601, observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 3)) == 5
 
 
-WORLD3 = parse_world(
-    {
-        "entities": {
-            "world": {
-                "markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}],
-                "sensors": [{"name": "ceiling", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}],
-            },
-            "d1": {
-                "sensors": [{"name": "down", "id": 1, "pose": {"pos": [0, 0, 0], "rpy_deg": [0, 90, 0]}}],
-                "markers": [
-                    {"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}},
-                    {"id": 7, "size_m": 0.2, "pose": {"pos": [0.2, 0, 0.05]}},
-                    {"id": 8, "size_m": 0.2, "pose": {"pos": [0, 0.2, 0.05]}},
-                ],
-            },
-            "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
-        }
-    }
-)
+WORLD3 = ceiling_world([(5, [0, 0, 0.05]), (7, [0.2, 0, 0.05]), (8, [0, 0.2, 0.05])])
 
 
 def start(node, transport):
@@ -345,20 +344,16 @@ def test_incomplete_frames_counts_per_image_whatever_the_order():
 def test_peer_views_of_others_are_parked_and_accepted_together():
     """On a fake clock: a peer's view of another drone waits (not even accepted) until ``park_ns``
     (here 125 ms, half the edge timeout) after it arrived, then is accepted and evaluated; our own
-    camera's view of another drone is
-    accepted and sent to peers at once; a parked view whose edge was refreshed meanwhile is dropped
-    as superseded, never written over the newer one."""
+    camera's view of another drone is accepted and sent to peers at once; a parked view whose edge
+    was refreshed meanwhile is dropped as superseded, never written over the newer one."""
     ms = 1_000_000
-    now = [1_000 * ms]
-    tr = FakeTransport(lambda: now[0])
-    cfg = NodeConfig(entity="d1", system_id=7, autopilot=AutopilotConfig(LinkConfig("udpout:127.0.0.1:9")))
-    node = Node(WORLD2, cfg, tr, monotonic_ns=lambda: now[0])
+    node, tr, set_ms = clocked_node(WORLD2)
 
     def at(t_ms, *items):
-        now[0] = 1_000 * ms + t_ms * ms
+        t = set_ms(t_ms)
         if items:
-            node._process([(md, now[0], local) for md, local in items])
-        node._step(now[0])
+            node._process([(md, t, local) for md, local in items])
+        node._step(t)
 
     t_us = 1_700_000_000_000_000
     at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True))  # d1 sees the floor: it has a pose
@@ -376,8 +371,7 @@ def test_peer_views_of_others_are_parked_and_accepted_together():
     # Superseded: parked at 140, the same edge refreshed at 150 by a newer arrival, flushed at 265.
     wrong = observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 3, T_noise=pose([0.3, 0, 0]))
     at(140, (wrong, False))
-    now[0] = 1_150 * ms
-    node._handle([(observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 4), now[0], False)])
+    node._handle([(observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 4), set_ms(150), False)])
     at(265)
     assert node.counters()["superseded"] == 1 and node.listener.accepted == 4
     np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)
