@@ -7,7 +7,8 @@ CPU per node.
     python benchmarks/soak.py [--nodes 10] [--minutes 10]
 
 Bars: memory growth < 5 % (first sample after warm-up to the last), no autopilot gap > 100 ms,
-no observation dropped from a bounded queue.
+no observation dropped from a bounded queue (the node's queues, and its sockets' receive buffers,
+whose drops the kernel counts).
 """
 
 from __future__ import annotations
@@ -177,18 +178,20 @@ def main() -> int:
     warm = warm or samples[0]
     growth = max((last - first) / first * 100 for first, last in zip(warm, samples[-1], strict=True))
     dropped = sum(int(f.get("inbox_dropped", 0)) for f in finals.values())
+    kernel = sum(int(f.get("peer0_kernel_drops", 0)) for f in finals.values())
     print(
         f"load: {sent.value / elapsed:.0f} observations/s into the mesh for {elapsed:.0f} s;"
         " each node receives them all"
     )
     print(f"the hub and the autopilots (this process): {own_cpu:.1f} % CPU")
-    print("node   cpu %  received  accepted  superseded  rejected  inbox_dropped  longest AP gap ms  longest wait ms")
+    print("node   cpu %  received  kernel_drops  accepted  superseded  rejected  inbox_dropped  longest AP gap ms"
+          "  longest wait ms")  # fmt: skip
     for (name, f), gap, wait in zip(finals.items(), gaps, waits, strict=True):
         acc, drop, sup = f.get("accepted", "?"), f.get("inbox_dropped", "?"), f.get("superseded", "?")
-        rx = f.get("peer0_rx_atlas_observation", "?")
+        rx, lost = f.get("peer0_rx_atlas_observation", "?"), f.get("peer0_kernel_drops", "0")
         rej = sum(int(v) for k, v in f.items() if "rejected_" in k)
-        print(f"{name:>5} {cpu[name]:>6.1f} {rx:>9} {acc:>9} {sup:>11} {rej:>9} {drop:>14} {gap * 1000:>18.1f}"
-              f" {wait * 1000:>16.1f}")  # fmt: skip
+        print(f"{name:>5} {cpu[name]:>6.1f} {rx:>9} {lost:>13} {acc:>9} {sup:>11} {rej:>9} {drop:>14}"
+              f" {gap * 1000:>18.1f} {wait * 1000:>16.1f}")  # fmt: skip
     reasons: dict[str, int] = {}
     for f in finals.values():
         for k, v in f.items():
@@ -200,6 +203,7 @@ def main() -> int:
     print(f"BAR soak_memory_growth {growth:.2f} percent 5 {'pass' if growth < 5 else 'fail'}")
     print(f"BAR soak_longest_output_gap {worst_gap:.1f} ms 100 {'pass' if worst_gap <= 100 else 'fail'}")
     print(f"BAR soak_inbox_dropped {dropped} count 0 {'pass' if dropped == 0 else 'fail'}")
+    print(f"BAR soak_socket_dropped {kernel} count 0 {'pass' if kernel == 0 else 'fail'}")
     return 0
 
 

@@ -48,6 +48,7 @@ BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
 PROTECTED = frozenset({"ATLAS_OBSERVATION", "ATLAS_FUSED_POSE", "TUNNEL"})  # never accepted unsigned when required
 KEY_LEN = 32
 DATAGRAMS_PER_POLL = 16
+DROPS_CHECK_S = 1.0  # how often a UDP link reads the kernel's drop count of its socket
 MAX_HOLD_S = 0.02  # a reader held by the node waits no longer than this
 
 Handler = Callable[["Link", Any, int], None]
@@ -79,6 +80,22 @@ class Counters:
 
     def __repr__(self) -> str:
         return f"Counters({self.snapshot()})"
+
+
+def udp_socket_drops(sock: Any) -> int | None:
+    """Datagrams the kernel dropped for this UDP socket because its receive buffer was full (Linux's
+    /proc/net/udp, matched by the socket's inode), or None where that is not available."""
+    try:
+        inode = str(os.fstat(sock.fileno()).st_ino)
+        for table in ("/proc/net/udp", "/proc/net/udp6"):
+            with open(table, encoding="ascii") as f:
+                for line in f:
+                    cols = line.split()
+                    if len(cols) > 12 and cols[9] == inode:
+                        return int(cols[-1])
+    except (OSError, ValueError, AttributeError):
+        return None
+    return None
 
 
 def read_key(path: Path) -> bytes:
@@ -152,6 +169,8 @@ class Link:
         self._thread: threading.Thread | None = None
         self._handler: Handler | None = None
         self._may_read: threading.Event | None = None
+        self._kernel_drops = 0
+        self._next_drops_check_s = 0.0
         self._backoff = 0
         self._next_open_s = 0.0  # monotonic time of the next reopen attempt
         self._last_ts_save = time.monotonic()
@@ -186,6 +205,7 @@ class Link:
         if self._key is not None and self.config.signing is not None:
             self._setup_signing(conn, self.config.signing)
         self._conn = conn
+        self._kernel_drops = 0  # a new socket counts from zero
         self.connected.set()
         if self._opened_before:
             self.counters.inc("reconnects")
@@ -328,6 +348,14 @@ class Link:
         self._backoff = 0
 
     def _housekeeping(self, conn: Any) -> None:
+        now = time.monotonic()
+        if isinstance(conn, mavutil.mavudp) and now >= self._next_drops_check_s:
+            # What never reached us: the kernel drops datagrams when we read too slowly (counted).
+            self._next_drops_check_s = now + DROPS_CHECK_S
+            drops = udp_socket_drops(conn.port)
+            if drops is not None and drops > self._kernel_drops:
+                self.counters.inc("kernel_drops", drops - self._kernel_drops)
+                self._kernel_drops = drops
         if self._key is None:
             return
         with self._send_lock:  # send() advances it too: never write back a value it has passed

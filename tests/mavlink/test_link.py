@@ -422,3 +422,22 @@ def test_connection_strings_reach_pymavlink_as_written(monkeypatch, url, device,
     assert dev == device
     assert kw == {"source_system": 7, "source_component": 197, **kwargs}
     assert link.mav.srcSystem == 7 and link.mav.srcComponent == 197  # our dialect on this connection
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/net/udp"), reason="the kernel's UDP drop counts are Linux's /proc")
+def test_datagrams_the_kernel_dropped_are_counted(closing):
+    """A link that reads too slowly loses datagrams in the kernel: they are counted, not silent."""
+    port = free_port()
+    rx = make_link(f"udpin:127.0.0.1:{port}", 1)
+    closing(rx)
+    rx.open()
+    buf = codec.encode_observation(D, MD, FP).pack(D.MAVLink(None, srcSystem=250, srcComponent=197))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for _ in range(5000):  # far more than a default receive buffer holds, none read meanwhile
+            s.sendto(buf, ("127.0.0.1", port))
+    rx.poll(0.05)
+    dropped = rx.counters["kernel_drops"]
+    received = rx.counters["rx_atlas_observation"]
+    while rx.poll(0.05):
+        received = rx.counters["rx_atlas_observation"]
+    assert dropped > 0 and received + dropped == 5000, (received, dropped)
