@@ -84,12 +84,7 @@ class Inbox:
         self.dropped = 0
 
     def put(self, item: tuple[MarkerData, int, bool]) -> None:
-        with self._cond:
-            if len(self._items) >= self._capacity:
-                self._items.popleft()
-                self.dropped += 1
-            self._items.append(item)
-            self._cond.notify()
+        self.put_many((item,))
 
     def put_many(self, items: Sequence[tuple[MarkerData, int, bool]]) -> None:
         """Put several items at once: a consumer never sees part of them."""
@@ -267,8 +262,9 @@ class Node:
         evaluated and published before the others are even accepted: they can wait (see
         :meth:`_concerns_own_pose`), the autopilot should not. Meanwhile the peer links hold their
         reading (their datagrams wait in the sockets), so that this thread has the interpreter."""
-        first = [x for x in batch if self._concerns_own_pose(x[0])]
-        rest = [x for x in batch if not self._concerns_own_pose(x[0])] if len(first) < len(batch) else []
+        concerns = [self._concerns_own_pose(md) for md, _, _ in batch]
+        first = [x for x, c in zip(batch, concerns, strict=True) if c]
+        rest = [x for x, c in zip(batch, concerns, strict=True) if not c]
         local: list[MarkerData] = []
         if first:
             self._may_read.clear()
@@ -499,13 +495,6 @@ class FrameCount:
             seen[0] += 1
             seen[1] = max(seen[1], md.frame_remaining + 1)
             self.incomplete += (seen[0] < seen[1]) - before
-
-
-def incomplete_frames(batch: Sequence[tuple[MarkerData, int, bool]]) -> bool:
-    """Whether an image in the batch still has observations to come (see :class:`FrameCount`)."""
-    frames = FrameCount()
-    frames.add(batch)
-    return frames.incomplete > 0
 
 
 def fused_poses(result: GraphResult) -> list[EntityPose]:

@@ -34,17 +34,14 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from soak import cpu_s  # the benchmarks folder is on the path when run as a script
+
 from atlas_onboard.config import load_world
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.mavlink import codec, dialect
 from atlas_onboard.sim.autopilot import SimAutopilot
 
 N_DRONES, RATE_HZ, MARKERS = 10, 30, 4
-
-
-def cpu_s(pid: int) -> float:
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def free_port() -> int:

@@ -330,15 +330,22 @@ def test_the_own_pose_is_published_before_other_observations_are_accepted():
     assert node.counters()["superseded"] == 4
 
 
-def test_incomplete_frames_counts_per_image_whatever_the_order():
-    from atlas_onboard.node import incomplete_frames
+def test_frame_count_follows_each_image_whatever_the_order():
+    from atlas_onboard.node import FrameCount
+
+    def incomplete(*arrivals):
+        frames = FrameCount()
+        for md in arrivals:  # one at a time, as _collect adds them
+            frames.add([(md, 0, False)])
+        return frames.incomplete
 
     a, b, c = ceiling_image(1)
-    assert incomplete_frames([(a, 0, False)]) and incomplete_frames([(c, 0, False), (a, 0, False)])
-    assert not incomplete_frames([(c, 0, False), (a, 0, False), (b, 0, False)])
-    assert not incomplete_frames([(c, 0, False)])  # the last one, or a sender without the field
+    assert incomplete(a) == 1 and incomplete(c, a) == 1
+    assert incomplete(c, a, b) == 0
+    assert incomplete(c) == 0  # the last one, or a sender without the field
     other = replace(a, origin=4)  # the same image numbers from another drone are another image
-    assert incomplete_frames([(a, 0, False), (b, 0, False), (other, 0, False), (c, 0, False)])
+    assert incomplete(a, b, other, c) == 1
+    assert incomplete(a, other) == 2
 
 
 def test_peer_views_of_others_are_parked_and_accepted_together():
