@@ -200,7 +200,14 @@ class Node:
         self.inbox.put_many(items)
 
     def deliver_peer(self, md: MarkerData, arrival_ns: int) -> None:
-        """An observation from a peer, already decoded, authenticated and de-duplicated by the link."""
+        """An observation from a peer, already decoded, authenticated and de-duplicated by the link.
+
+        The last observation of an image that can move the own pose also pauses the peer links (see
+        :meth:`_process`): the link's thread stops before its next datagram and leaves the processor
+        to the loop, which would otherwise wait its turn behind the decoding of the rest of a burst.
+        """
+        if md.frame_remaining == 0 and self._relevant is not None and self._concerns_own_pose(md):
+            self._may_read.clear()  # before the put: the loop sets it again once it has published
         self.inbox.put((md, arrival_ns, False))
 
     def stop(self) -> None:
@@ -240,11 +247,12 @@ class Node:
         return 0
 
     def _collect(self, first: tuple[MarkerData, int, bool]) -> list[tuple[MarkerData, int, bool]]:
-        """``first`` and everything queued, and then what arrives until every image in the batch is
-        whole (its last observation, ``frame_remaining`` 0, is in), for at most ``FRAME_WAIT_S``: an
-        image's observations are evaluated together, never part of them with the previous image."""
+        """``first`` and everything queued, and then what arrives until every image in the batch that
+        can move the own pose is whole (its last observation, ``frame_remaining`` 0, is in), for at
+        most ``FRAME_WAIT_S``: an image's observations are evaluated together, never part of them with
+        the previous image. (Images that cannot move it are parked or sent on, not waited for.)"""
         batch = [first, *self.inbox.drain()]
-        frames = FrameCount()
+        frames = FrameCount(self._concerns_own_pose)
         frames.add(batch)
         deadline = time.monotonic() + FRAME_WAIT_S
         while frames.incomplete and not self._stop.is_set():
@@ -270,7 +278,7 @@ class Node:
             self._may_read.clear()
             try:
                 local = self._handle(first)
-                self._step(self.clock())
+                self._evaluate_and_publish(self.clock(), own_first=True)
             finally:
                 self._may_read.set()
         # Our own camera's views of others go out at once (they may be urgent for them); a peer's
@@ -351,16 +359,27 @@ class Node:
         """
         if self._pending and now - self._pending_since_ns >= self.park_ns:
             self._flush_pending()
+        self._evaluate_and_publish(now)
+        self._duties(now)
+
+    def _evaluate_and_publish(self, now: int, own_first: bool = False) -> None:
+        """The part of :meth:`_step` that can give the autopilot a pose. With ``own_first`` (new
+        observations that can move the own pose, :meth:`_process`), only the own pose is evaluated
+        when that is possible (see :meth:`_evaluate`)."""
         expiry = self.graph.next_expiry_ns()
+        expired = expiry is not None and now >= expiry
         due = self._dirty and (self._urgent or now - self._last_eval_ns >= COALESCE_NS)
-        if due or (expiry is not None and now >= expiry):
-            self._evaluate(now)
+        if due or expired:
+            self._evaluate(now, own_only=own_first and not expired)
             self._publish(now)
         elif self.last_result is not None:
             held = self.publisher.next_autopilot_ns()
             due_hold = held is not None and now >= held and self.publisher.has_pose
             if due_hold or (self.ekf is not None and now - self._last_publish_ns >= PREDICT_NS):
                 self._publish(now)
+
+    def _duties(self, now: int) -> None:
+        """The rest: fused poses to peers, the links' periodic messages, systemd, the status line."""
         if self.publisher.fused_due(now) and self.last_result is not None:
             self.transport.send_fused(fused_poses(self.last_result), self.world)
             self.stats.fused_sent += 1
@@ -385,11 +404,23 @@ class Node:
         observer, observed = self._entity_of[0].get(md.sensor_id), self._entity_of[1].get(md.marker_id)
         return observer is None or observed is None or observer in relevant or observed in relevant
 
-    def _evaluate(self, now: int) -> None:
-        self._dirty = self._urgent = False
-        self._last_eval_ns = now
+    def _evaluate(self, now: int, own_only: bool = False) -> None:
+        """Evaluate the graph. With ``own_only``, and when the paper's BFS has placed the own entity
+        (and no filter needs every entity's candidates), only the own pose and those it rests on are
+        computed (the same pose as a full evaluation); the others keep their last poses and are
+        evaluated together within ``COALESCE_NS``."""
+        partial = own_only and self._relevant is not None and self.ekf is None
+        self._urgent = False
         self.listener.forget_expired(now)
-        result = self.graph.evaluate(now)
+        result = self.graph.evaluate(now, target=self.config.entity if partial else None)
+        if result.complete:
+            self._dirty = False
+            self._last_eval_ns = now
+        else:
+            last = self.last_result
+            known = last.poses if last is not None else {}
+            poses = {n: result.poses.get(n) or known[n] for n in result.order if n in result.poses or n in known}
+            result = replace(result, poses=poses, relative=last.relative if last is not None else {})
         self.last_result = result
         own = self.config.entity
         level = result.levels.get(own)
@@ -480,21 +511,28 @@ class Node:
 class FrameCount:
     """Which images of a batch still have observations to come: fewer of an image's observations
     (same producer, sensor and capture time) are in than the largest ``frame_remaining`` among them
-    promises (order-proof: datagrams may be reordered). Updated as items arrive."""
+    promises (order-proof: datagrams may be reordered). Updated as items arrive.
 
-    def __init__(self) -> None:
-        self._frames: dict[tuple[bool, int, int, int], list[int]] = {}
-        self.incomplete = 0  # images still waiting for observations
+    With ``watch``, only images holding an observation for which it is true are waited for (the
+    node waits for those that can move its own pose; the others are parked anyway)."""
+
+    def __init__(self, watch: Callable[[MarkerData], bool] | None = None) -> None:
+        self._frames: dict[tuple[bool, int, int, int], list[int]] = {}  # [seen, expected, watched]
+        self._watch = watch
+        self.incomplete = 0  # watched images still waiting for observations
 
     def add(self, items: Sequence[tuple[MarkerData, int, bool]]) -> None:
         for md, _, local in items:
-            seen = self._frames.get((local, md.origin, md.sensor_id, md.capture_time_us))
+            key = (local, md.origin, md.sensor_id, md.capture_time_us)
+            seen = self._frames.get(key)
             if seen is None:
-                seen = self._frames[(local, md.origin, md.sensor_id, md.capture_time_us)] = [0, 0]
-            before = seen[0] < seen[1]
+                seen = self._frames[key] = [0, 0, 0]
+            before = seen[2] and seen[0] < seen[1]
             seen[0] += 1
             seen[1] = max(seen[1], md.frame_remaining + 1)
-            self.incomplete += (seen[0] < seen[1]) - before
+            if not seen[2] and (self._watch is None or self._watch(md)):
+                seen[2] = 1
+            self.incomplete += (seen[2] and seen[0] < seen[1]) - before
 
 
 def fused_poses(result: GraphResult) -> list[EntityPose]:

@@ -69,23 +69,29 @@ def observation(
     Carried through the fixed mountings it keeps its real geometry: an entity far from the marker
     it is known by inherits the attitude error over that lever arm, and nothing else does.
     """
-    R_sm, p_sm = T_s_m[..., :3, :3], T_s_m[..., :3, 3]
-    R_ms = np.swapaxes(R_sm, -1, -2)
-    p_ms = -(R_ms @ p_sm[..., None])[..., 0]
-    rng = np.sqrt(np.sum(p_sm * p_sm, axis=-1))
-    sigma = np.asarray(sigma_m, dtype=float)
-    att = attitude_sigma_rad(sigma, rng)
     # C_ms is diagonal: (sigma^2 x3, att^2 x3). T_a_b's error is M times the detection's error, with M
     # the inverse's Jacobian (T_m_s -> T_s_m), then left by the fixed T_a_s (positions rotate into a,
     # rotations stay about m's axes), then right by the fixed T_m_b (the parent part of a composition).
-    R_as = T_a_s[..., :3, :3]
-    J_left = np.zeros((*np.shape(sigma), 6, 6))
-    J_left[..., 0:3, 0:3] = R_as
-    J_left[..., 3:6, 3:6] = np.eye(3)
-    J_right, _ = compose_jacobians(R_as @ R_sm, T_m_b[..., :3, 3], T_m_b[..., :3, :3])
-    M = J_right @ J_left @ inverse_jacobian(p_ms, R_ms)
-    d = np.concatenate((np.repeat(sigma[..., None] ** 2, 3, axis=-1), np.repeat(att[..., None] ** 2, 3, axis=-1)), -1)
-    return (M * d[..., None, :]) @ np.swapaxes(M, -1, -2)
+    # Multiplied out (docs/covariance.md), M = [[-R_am, K], [0, -R_bs]] with K = R_as [p_sb]x, so
+    # C = [[sigma^2 I + att^2 K K^T, -att^2 K R_sb], [., att^2 I]]: a handful of products, however
+    # many observations (tested equal to the product of the three Jacobians).
+    R_as, R_sm, p_sm = T_a_s[..., :3, :3], T_s_m[..., :3, :3], T_s_m[..., :3, 3]
+    R_mb, p_mb = T_m_b[..., :3, :3], T_m_b[..., :3, 3]
+    rng = np.sqrt(np.einsum("...i,...i->...", p_sm, p_sm))
+    sigma = np.asarray(sigma_m, dtype=float)
+    var_att = attitude_sigma_rad(sigma, rng) ** 2
+    p_sb = p_sm + (R_sm @ p_mb[..., None])[..., 0]
+    K = R_as @ skew(p_sb)
+    KR = K @ (R_sm @ R_mb)
+    out = np.zeros((*sigma.shape, 6, 6))
+    out[..., :3, :3] = var_att[..., None, None] * (K @ np.swapaxes(K, -1, -2)) + (sigma**2)[..., None, None] * _I3
+    out[..., :3, 3:] = -var_att[..., None, None] * KR
+    out[..., 3:, :3] = np.swapaxes(out[..., :3, 3:], -1, -2)
+    out[..., 3:, 3:] = var_att[..., None, None] * _I3
+    return out
+
+
+_I3 = np.eye(3)
 
 
 def diagonal(sigma_m: NDArray[np.float64] | float, sigma_att_rad: NDArray[np.float64] | float) -> NDArray[np.float64]:
@@ -149,19 +155,35 @@ def fuse(
     out = np.zeros((n, 6, 6))
     if len(child) == 0:
         return out
-    # Sorted by (child, parent), every sum is a reduceat over contiguous runs.
-    base = len(C_parent)
-    order, starts, pair = fusion.segments(child.astype(np.int64) * base + parent)
-    kid = pair // base
-    w_sorted = weights[order]
-    # The runs of one child are contiguous too: its candidates' weights, normalised.
-    first = np.flatnonzero(np.concatenate(([True], kid[1:] != kid[:-1])))
-    kid_start = starts[first]
-    per_pair = np.diff(np.append(starts, len(order)))
-    per_kid = np.add.reduceat(per_pair, first)
-    w = w_sorted / np.repeat(np.add.reduceat(w_sorted, kid_start), per_kid)
-    out[kid[first]] = np.add.reduceat((w**2)[:, None, None] * edge_term[order], kid_start)
-    # Candidates sharing a parent: their parent Jacobians add before the parent's covariance.
-    A = np.add.reduceat(w[:, None, None] * Jp[order], starts)
-    out[kid[first]] += np.add.reduceat(transform(A, C_parent[pair % base]), first)
+    order = np.lexsort((parent, child))
+    kids, pairs = runs_by_parent(child[order], parent[order])
+    out[kids.ids] = fuse_runs(kids, pairs, weights[order], Jp[order], C_parent, edge_term[order])
     return out
+
+
+def runs_by_parent(child: NDArray[np.intp], parent: NDArray[np.intp]) -> tuple[fusion.Runs, fusion.Runs]:
+    """For candidates sorted by child, then parent: the runs of each child, and the runs of each
+    (child, parent) pair (their ``ids`` are the parents; their ``sizes`` count pairs per child)."""
+    kids = fusion.runs_of(child)
+    change = np.concatenate(([True], (child[1:] != child[:-1]) | (parent[1:] != parent[:-1])))
+    starts = np.flatnonzero(change)
+    per_kid = np.add.reduceat(change.astype(np.intp), kids.starts)
+    return kids, fusion.Runs(starts, parent[starts], per_kid)
+
+
+def fuse_runs(
+    kids: fusion.Runs,
+    pairs: fusion.Runs,
+    weights: NDArray[np.float64],
+    Jp: NDArray[np.float64],
+    C_parent: NDArray[np.float64],
+    edge_term: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`fuse` on candidates sorted by child, then parent (:func:`runs_by_parent`): one 6x6
+    covariance per child run."""
+    w = weights / np.repeat(np.add.reduceat(weights, kids.starts), kids.sizes)
+    out = np.add.reduceat((w**2)[:, None, None] * edge_term, kids.starts)
+    # Candidates sharing a parent: their parent Jacobians add before the parent's covariance.
+    A = np.add.reduceat(w[:, None, None] * Jp, pairs.starts)
+    first_pair = np.cumsum(pairs.sizes) - pairs.sizes
+    return out + np.add.reduceat(transform(A, C_parent[pairs.ids]), first_pair)

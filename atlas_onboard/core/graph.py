@@ -11,6 +11,7 @@ nanosecond later it is gone: the paper removes an edge when its age *exceeds* th
 from __future__ import annotations
 
 import heapq
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -124,9 +125,27 @@ class GraphResult:
     relative: dict[str, dict[str, EntityPose]] = field(default_factory=dict)  # root -> poses in root's frame
     candidates: dict[str, list[Candidate]] = field(default_factory=dict)  # only with keep_candidates
     gated: int = 0  # candidates rejected by the outlier gate in this evaluation
+    complete: bool = True  # False: ``poses`` holds only the target of the evaluation and those below it
 
     def pose(self, name: str) -> EntityPose | None:
         return self.poses.get(name)
+
+
+@dataclass(frozen=True, slots=True)
+class _Plan:
+    """What an evaluation does, given which edges exist (not their values): the broad phase's order
+    and levels, and every candidate (edge row, direction, parent, child) sorted by stage, child and
+    parent, with each stage's run. With BFS paths it is kept until an edge appears or goes."""
+
+    order: NDArray[np.intp]
+    level: NDArray[np.intp]
+    stage_of: NDArray[np.intp]
+    row: NDArray[np.intp]
+    direction: NDArray[np.intp]
+    parent: NDArray[np.intp]
+    child: NDArray[np.intp]
+    stages: tuple[slice, ...]
+    runs: tuple[tuple[fusion.Runs, fusion.Runs], ...]  # per stage: runs of each child, of each (child, parent)
 
 
 class _EdgeArrays:
@@ -146,13 +165,16 @@ class _EdgeArrays:
         self.capture = np.zeros(capacity, dtype=np.int64)
         self.keys: list[EdgeKey | None] = [None] * capacity
         self.free: list[int] = list(range(capacity - 1, -1, -1))
+        self.version = 0  # changes whenever an edge appears or goes: the graph's shape, not its values
 
     def take(self) -> int:
         if not self.free:
             self._grow()
+        self.version += 1
         return self.free.pop()
 
     def release(self, slot: int) -> None:
+        self.version += 1
         self.used[slot] = False
         self.keys[slot] = None
         self.free.append(slot)
@@ -208,6 +230,7 @@ class TransformGraph:
         self.keep_candidates = keep_candidates
         self.edges: dict[EdgeKey, Edge] = {}
         self._arr = _EdgeArrays()
+        self._plans: dict[tuple[int, int, int | None], _Plan] = {}
         # The last estimate of each entity per frame root, for the gate: (p, q, sigma, sigma_att, stamp).
         self._prior: dict[tuple[int, int], tuple[NDArray[np.float64], NDArray[np.float64], float, float, int, int]] = {}
         self._gated_stamp: dict[EdgeKey, int] = {}
@@ -377,8 +400,14 @@ class TransformGraph:
                     heapq.heappush(heap, (nd, u))
         return np.array(order, dtype=np.intp), dist
 
-    def evaluate(self, now_ns: int) -> GraphResult:
+    def evaluate(self, now_ns: int, target: str | None = None) -> GraphResult:
         """Expire old edges, then run the broad phase and the pose phase (eq. 2) from world.
+
+        With ``target``, the pose phase computes only what ``target``'s pose depends on: every entity
+        of a lower stage (level), and of its own stage only ``target`` (the node's own pose, when
+        others can wait). Its pose is the one a full evaluation gives (tested); the result says
+        ``complete=False`` and its ``poses`` hold only the entities computed. A target with no path to
+        world gets the full evaluation (relative poses included).
 
         With the paper's method (``path="bfs"``) a vertex's candidates come from every live edge to
         a parent exactly one level lower; edges within a level (cycles such as the paper's A-B) and
@@ -394,8 +423,11 @@ class TransformGraph:
         slots = np.flatnonzero(self._arr.used)
         world = self.index[WORLD]
         cands: dict[str, list[Candidate]] | None = {} if self.keep_candidates else None
-        poses, order, levels, gated = self._evaluate_from(slots, world, now_ns, cands)
+        goal = self.index[target] if target is not None else None
+        poses, order, levels, gated = self._evaluate_from(slots, world, now_ns, cands, goal)
         reached = set(order)
+        if goal is not None and goal not in reached:
+            return self.evaluate(now_ns)
         unreached = tuple(self.names[v] for v in range(len(self.names)) if v not in reached)
         relative: dict[str, dict[str, EntityPose]] = {}
         if self.relative:
@@ -416,13 +448,17 @@ class TransformGraph:
             relative=relative,
             candidates=cands or {},
             gated=gated,
+            complete=goal is None,
         )
 
-    def _evaluate_from(
-        self, slots: NDArray[np.intp], root: int, now_ns: int, out: dict[str, list[Candidate]] | None = None
-    ) -> tuple[dict[str, EntityPose], list[int], dict[int, int], int]:
-        """Poses of every vertex reachable from ``root``, in ``root``'s frame (and how many candidates
-        the gate left out). ``out`` collects each entity's candidates when given."""
+    def _plan(self, slots: NDArray[np.intp], root: int, goal: int | None) -> _Plan:
+        """The plan of an evaluation from ``root`` over the live edges ``slots`` (see :class:`_Plan`).
+        With BFS it depends only on which edges exist, so it is reused until one appears or goes
+        (most evaluations only refresh edges); Dijkstra's depends on the sigmas, so it is made anew."""
+        key = (self._arr.version, root, goal)
+        cached = self._plans.get(key) if self.path == "bfs" else None
+        if cached is not None:
+            return cached
         n = len(self.names)
         arr = self._arr
         a, b = arr.a[slots], arr.b[slots]
@@ -438,7 +474,7 @@ class TransformGraph:
             up = reached & (la == lb + 1)
         rank = np.full(n, n, dtype=np.intp)
         rank[order_arr] = np.arange(order_arr.size)
-        # Every candidate: (edge row, direction); parent and child; sorted by child's rank then edge.
+        # Every candidate: (edge row, direction); parent and child.
         row = np.concatenate((slots[down], slots[up]))
         direction = np.concatenate((np.zeros(down.sum(), dtype=np.intp), np.ones(up.sum(), dtype=np.intp)))
         parent_all = np.concatenate((a[down], b[up]))
@@ -455,9 +491,39 @@ class TransformGraph:
                 stage_of = nxt
         else:
             stage_of = np.maximum(level, 0)
-        sort = np.lexsort((row, rank[child_all], stage_of[child_all]))
+        if goal is not None and level[goal] >= 0:
+            wanted = (stage_of[child_all] < stage_of[goal]) | (child_all == goal)
+            row, direction = row[wanted], direction[wanted]
+            parent_all, child_all = parent_all[wanted], child_all[wanted]
+        # Sorted by stage, then child (evaluation order), then parent, then edge.
+        sort = np.lexsort((row, parent_all, rank[child_all], stage_of[child_all]))
         row, direction, parent_all, child_all = row[sort], direction[sort], parent_all[sort], child_all[sort]
-        stage_all = stage_of[child_all]
+        cuts = [0, *(np.flatnonzero(np.diff(stage_of[child_all])) + 1).tolist(), row.size] if row.size else []
+        stages = tuple(slice(i, j) for i, j in itertools.pairwise(cuts))
+        runs = tuple(covariance.runs_by_parent(child_all[sel], parent_all[sel]) for sel in stages)
+        plan = _Plan(order_arr, level, stage_of, row, direction, parent_all, child_all, stages, runs)
+        if self.path == "bfs":
+            if len(self._plans) >= 8:  # old shapes are never asked for again
+                self._plans.clear()
+            self._plans[key] = plan
+        return plan
+
+    def _evaluate_from(
+        self,
+        slots: NDArray[np.intp],
+        root: int,
+        now_ns: int,
+        out: dict[str, list[Candidate]] | None = None,
+        goal: int | None = None,
+    ) -> tuple[dict[str, EntityPose], list[int], dict[int, int], int]:
+        """Poses of every vertex reachable from ``root``, in ``root``'s frame (and how many candidates
+        the gate left out). ``out`` collects each entity's candidates when given. With ``goal`` (if
+        reached), only the vertices of lower stages and ``goal`` itself get a pose."""
+        n = len(self.names)
+        arr = self._arr
+        plan = self._plan(slots, root, goal)
+        order_arr, level, stage_of = plan.order, plan.level, plan.stage_of
+        row, direction, parent_all, child_all = plan.row, plan.direction, plan.parent, plan.child
         sigma_raw = arr.sigma[row]
         if self.age_sigma_m_per_s > 0.0:
             age_s = np.maximum(now_ns - arr.stamp[row], 0) / 1e9
@@ -475,15 +541,13 @@ class TransformGraph:
         count = np.zeros(n, dtype=np.intp)
 
         gated = 0
-        bounds = np.flatnonzero(np.diff(stage_all)) + 1
-        for sel in np.split(np.arange(row.size), bounds) if row.size else []:
-            m = sel.size
+        for sel, (kids, pairs) in zip(plan.stages, plan.runs, strict=True):
             parent, child = parent_all[sel], child_all[sel]
             p_pc, q_pc, s_edge, t_edge = p_all[sel], q_all[sel], sigma_all[sel], t_all[sel]
             c_edge = c_all[sel]
             # eq. 2: each candidate is P_parent * T_parent_child
             R_wp = geometry.quat_matrix(q_world[parent])
-            p_cand = p_world[parent] + np.einsum("nij,nj->ni", R_wp, p_pc)
+            p_cand = p_world[parent] + (R_wp @ p_pc[:, :, None])[:, :, 0]
             q_cand = geometry.quat_multiply(q_world[parent], q_pc)
             # The candidate's sigma carries its parent's: variances add along a chain.
             s_cand = np.sqrt(s_edge**2 + sigma[parent] ** 2)
@@ -494,7 +558,7 @@ class TransformGraph:
                 c_edge[:, [0, 1, 2], [0, 1, 2]] += grow[:, None]
             Jp, Je = covariance.compose_jacobians(R_wp, p_pc, geometry.quat_matrix(q_pc))
             edge_term = covariance.transform(Je, c_edge)
-            keep = np.ones(m, dtype=bool)
+            keep = None
             if self.outlier_gate_sigma > 0.0:
                 c_cand = covariance.transform(Jp, cov_world[parent]) + edge_term
                 keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns)
@@ -503,65 +567,59 @@ class TransformGraph:
                     if self._gated_stamp.get(key) != stamp:
                         self._gated_stamp[key] = stamp
                         self.gated_total += 1
-                gated += int(m - keep.sum())
+                gated += int(keep.size - keep.sum())
             if out is not None:
                 c_full = covariance.transform(Jp, cov_world[parent]) + edge_term
-                for i in np.flatnonzero(keep):
-                    slot = int(row[sel[i]])
+                rows = row[sel]
+                for i in range(len(child)) if keep is None else np.flatnonzero(keep):
+                    slot = int(rows[i])
                     out.setdefault(self.names[child[i]], []).append(
                         Candidate(
                             self.names[child[i]], arr.keys[slot], int(arr.stamp[slot]),
                             int(max(t_edge[i], stamp_us[parent[i]])), p_cand[i], q_cand[i], c_full[i],
                         )
                     )  # fmt: skip
-            # A child whose every candidate was gated keeps its last estimate (not re-sent: same stamp).
-            for v in set(child[~keep].tolist()) - set(child[keep].tolist()):
-                prior = self._prior[(root, v)]
-                p_world[v], q_world[v], sigma[v] = prior[0], prior[1], prior[2]
-                cov_world[v] = covariance.diagonal(prior[2], prior[3])
-                stamp_us[v] = prior[5]
-            if not keep.all():
+            if keep is not None and not keep.all():
+                # A child whose every candidate was gated keeps its last estimate (not re-sent: same stamp).
+                for v in set(child[~keep].tolist()) - set(child[keep].tolist()):
+                    prior = self._prior[(root, v)]
+                    p_world[v], q_world[v], sigma[v] = prior[0], prior[1], prior[2]
+                    cov_world[v] = covariance.diagonal(prior[2], prior[3])
+                    stamp_us[v] = prior[5]
                 parent, child, p_cand, q_cand = parent[keep], child[keep], p_cand[keep], q_cand[keep]
                 s_edge, s_cand, t_edge = s_edge[keep], s_cand[keep], t_edge[keep]
                 Jp, edge_term = Jp[keep], edge_term[keep]
-            if len(child) == 0:
-                continue
+                if len(child) == 0:
+                    continue
+                kids, pairs = covariance.runs_by_parent(child, parent)
             # eq. 6-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
             # The paper weighs by the sensor's sigma; Dijkstra weighs by the whole chain's.
             s_weigh = s_cand if self.path == "dijkstra" else s_edge
-            s_min = np.full(n, np.inf)
-            np.minimum.at(s_min, child, s_weigh)
-            weights = s_min[child] / s_weigh
+            weights = np.repeat(np.minimum.reduceat(s_weigh, kids.starts), kids.sizes) / s_weigh
             if self.inverse_variance:
                 weights = weights**2
-            p_f, q_f, s_f, counts = fusion.fuse_groups(child, n, p_cand, q_cand, s_cand, weights)
-            c_f = covariance.fuse(child, parent, n, weights, Jp, cov_world, edge_term)
-            got = counts > 0
-            p_world[got] = p_f[got]
-            q_world[got] = q_f[got]
-            sigma[got] = s_f[got]
-            cov_world[got] = c_f[got]
-            count[got] = counts[got]
-            newest = np.zeros(n, dtype=np.int64)
-            np.maximum.at(newest, child, np.maximum(t_edge, stamp_us[parent]))
-            stamp_us[got] = newest[got]
+            ids = kids.ids
+            p_world[ids], q_world[ids], sigma[ids] = fusion.fuse_runs(kids, p_cand, q_cand, s_cand, weights)
+            cov_world[ids] = covariance.fuse_runs(kids, pairs, weights, Jp, cov_world, edge_term)
+            count[ids] = kids.sizes
+            newest = np.maximum.reduceat(np.maximum(t_edge, stamp_us[parent]), kids.starts)
+            stamp_us[ids] = newest
             if self.outlier_gate_sigma > 0.0:
-                for v in np.flatnonzero(got):
-                    att = float(np.sqrt(max(np.trace(c_f[v][3:, 3:]) / 3.0, 0.0)))
-                    self._prior[(root, int(v))] = (
-                        p_f[v].copy(),
-                        q_f[v].copy(),
-                        float(s_f[v]),
-                        att,
-                        now_ns,
-                        int(newest[v]),
-                    )
+                for k, v in enumerate(ids.tolist()):
+                    att = float(np.sqrt(max(np.trace(cov_world[v][3:, 3:]) / 3.0, 0.0)))
+                    self._prior[(root, v)] = (
+                        p_world[v].copy(), q_world[v].copy(), float(sigma[v]), att, now_ns, int(newest[k])
+                    )  # fmt: skip
 
         order = order_arr.tolist()
         levels, counts, sigmas, stamps = level.tolist(), count.tolist(), sigma.tolist(), stamp_us.tolist()
         frame = self.names[root]
         poses = {}
+        below = int(stage_of[goal]) if goal is not None and level[goal] >= 0 else None
+        stages = stage_of.tolist()
         for rank_v, v in enumerate(order):
+            if below is not None and v != goal and stages[v] >= below:
+                continue
             name = self.names[v]
             poses[name] = EntityPose(
                 name, p_world[v], q_world[v], levels[v], rank_v, counts[v], sigmas[v], stamps[v], frame, cov_world[v]

@@ -52,6 +52,8 @@ _M_NED_ENU = frames.R_ENU_NED.as_matrix().T
 _M_FRD_FLU = frames.R_FLU_FRD.as_matrix().T
 _J_NED_FRD_ENU_FLU = np.block([[_M_NED_ENU, np.zeros((3, 3))], [np.zeros((3, 3)), _M_FRD_FLU]])
 _ROWS, _COLS = np.triu_indices(6)  # row-major upper triangle: (0,0) (0,1) ... (0,5) (1,1) ... (5,5)
+_DIAG = np.arange(6)
+_FLOORS = np.array([MIN_SIGMA_M**2] * 3 + [MIN_SIGMA_RAD**2] * 3)
 
 
 def attitude_sigma_rad(sigma_m: float) -> float:
@@ -88,7 +90,7 @@ def covariance_ned_frd(cov_enu_flu: np.ndarray) -> np.ndarray:
     cov = np.asarray(cov_enu_flu, dtype=float)
     if cov.shape != (6, 6):
         raise AtlasError(f"expected a covariance of shape (6, 6), got shape {cov.shape}")
-    if not np.all(np.isfinite(cov)):
+    if not _finite(cov):
         raise AtlasError("expected a finite covariance, got NaN or inf")
     return _J_NED_FRD_ENU_FLU @ cov @ _J_NED_FRD_ENU_FLU.T
 
@@ -102,18 +104,23 @@ def covariance_upper_triangle(cov: np.ndarray) -> list[float]:
     c = np.asarray(cov, dtype=float)
     if c.shape != (6, 6):
         raise AtlasError(f"expected a covariance of shape (6, 6), got shape {c.shape}")
-    if not np.all(np.isfinite(c)):
+    if not _finite(c):
         raise AtlasError("expected a finite covariance, got NaN or inf")
-    scale = max(float(np.max(np.abs(c))), 1e-300)
-    if float(np.max(np.abs(c - c.T))) > 1e-9 * scale:
+    scale = max(float(np.abs(c).max()), 1e-300)
+    if float(np.abs(c - c.T).max()) > 1e-9 * scale:
         raise AtlasError("expected a symmetric covariance")
-    diag = np.diag(c)
-    if np.any(diag < 0.0):
+    diag = c.diagonal()
+    if float(diag.min()) < 0.0:
         raise AtlasError(f"expected non-negative variances, got {diag.tolist()}")
     c = c.copy()
-    floors = np.array([MIN_SIGMA_M**2] * 3 + [MIN_SIGMA_RAD**2] * 3)
-    c[np.diag_indices(6)] = np.maximum(diag, floors)
-    return [float(v) for v in c[_ROWS, _COLS]]
+    c[_DIAG, _DIAG] = np.maximum(diag, _FLOORS)
+    return c[_ROWS, _COLS].tolist()
+
+
+def _finite(a: np.ndarray) -> bool:
+    """Whether every element is finite (one reduction: a NaN or an infinity makes the sum non-finite;
+    so do values near the float's limit, which no pose or covariance has)."""
+    return math.isfinite(float(a.sum()))
 
 
 def quality_percent(sigma_m: float) -> int:
@@ -133,7 +140,7 @@ def _covariance_21(sigma_m: float | None, covariance_enu_flu: np.ndarray | None)
 
 
 def _check_pose(p_ned_m: np.ndarray, R_ned_frd: Rotation, capture_time_us: int) -> None:
-    if not np.all(np.isfinite(p_ned_m)) or not np.all(np.isfinite(R_ned_frd.as_quat())):
+    if not (_finite(np.asarray(p_ned_m, dtype=float)) and _finite(R_ned_frd.as_quat())):
         raise AtlasError("expected a finite pose, got NaN or inf")
     if not 0 <= int(capture_time_us) < 2**64:
         raise AtlasError(f"expected a capture time in [0, 2^64) us, got {capture_time_us}")

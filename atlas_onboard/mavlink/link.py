@@ -305,31 +305,40 @@ class Link:
         Never raises for anything the link or the bytes do: a failed read closes the connection and
         the next calls reopen it with backoff (0.2 s growing to 5 s). Dropped input is counted.
         """
+        return [msg for msgs in self._reads(timeout_s) for msg in msgs]
+
+    def _reads(self, timeout_s: float) -> Iterator[list[Any]]:
+        """The messages that passed, one read (one datagram) at a time, decoded only when asked for:
+        a reader that stops between two reads leaves the rest in the socket, undecoded."""
         conn = self._conn
         if conn is None:
             self._try_reopen(timeout_s)
-            return []
+            return
         try:
             # Raw bytes and pymavlink's parser, not mavutil's recv_match: that one also keeps
             # per-message bookkeeping for interactive tools, which costs more than the decode.
-            if not conn.select(timeout_s):
-                self._housekeeping(conn)
-                return []
-            msgs = []
-            # A UDP socket holds one datagram per message: take what is queued (up to a bound) per
-            # wake-up rather than one select per datagram. Streams return many messages per read.
-            for _ in range(DATAGRAMS_PER_POLL if isinstance(conn, mavutil.mavudp) else 1):
+            ready = conn.select(timeout_s)
+        except Exception as exc:
+            self._failed(exc)
+            return
+        # A UDP socket holds one datagram per message: take what is queued (up to a bound) per
+        # wake-up rather than one select per datagram. Streams return many messages per read.
+        for _ in range(DATAGRAMS_PER_POLL if ready and isinstance(conn, mavutil.mavudp) else int(ready)):
+            try:
                 data = conn.recv(4096)
-                if not data:
-                    break
-                msgs.extend(conn.mav.parse_buffer(data) or ())
-        except Exception as exc:  # the device vanished or the peer went away: reopen with backoff
-            self.counters.inc("read_errors")
-            _logger.warning("%s: link %s failed (%s); reopening", self.name, self.config.url, exc)
-            self._drop()
-            return []
+                msgs = conn.mav.parse_buffer(data) if data else None
+            except Exception as exc:  # the device vanished or the peer went away: reopen with backoff
+                self._failed(exc)
+                return
+            if not data:
+                break
+            yield [m for m in msgs or () if self._accept(m)]
         self._housekeeping(conn)
-        return [m for m in msgs or () if self._accept(m)]
+
+    def _failed(self, exc: Exception) -> None:
+        self.counters.inc("read_errors")
+        _logger.warning("%s: link %s failed (%s); reopening", self.name, self.config.url, exc)
+        self._drop()
 
     def _try_reopen(self, timeout_s: float) -> None:
         wait = self._next_open_s - time.monotonic()
@@ -403,16 +412,22 @@ class Link:
 
     def _run(self) -> None:
         while not self._stop.is_set():
-            if self._may_read is not None and not self._may_read.is_set():
-                self._may_read.wait(MAX_HOLD_S)
-            for msg in self.poll(0.05):
-                if self._handler is None:
-                    continue
-                try:
-                    self._handler(self, msg, time.monotonic_ns())
-                except Exception:  # a bug in a handler must not kill the link's thread
-                    self.counters.inc("handler_errors")
-                    _logger.exception("%s: handler failed on %s", self.name, msg.get_type())
+            self._wait_turn()
+            for msgs in self._reads(0.05):
+                arrival_ns = time.monotonic_ns()
+                for msg in msgs:
+                    if self._handler is None:
+                        continue
+                    try:
+                        self._handler(self, msg, arrival_ns)
+                    except Exception:  # a bug in a handler must not kill the link's thread
+                        self.counters.inc("handler_errors")
+                        _logger.exception("%s: handler failed on %s", self.name, msg.get_type())
+                self._wait_turn()  # between two datagrams: the node may be publishing
+
+    def _wait_turn(self) -> None:
+        if self._may_read is not None and not self._may_read.is_set():
+            self._may_read.wait(MAX_HOLD_S)
 
     def close(self) -> None:
         """Stop the thread (if any), save the signing timestamp and close the connection."""

@@ -183,3 +183,30 @@ def test_gate_off_is_the_paper():
     r = g.evaluate(0)
     np.testing.assert_allclose(r.poses["d"].p_world_m, truth.translation, atol=1e-9)
     assert r.gated == 0 and r.poses["d"].n_observations == 4
+
+
+_quat = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1)
+
+
+@given(st.lists(st.floats(-3, 3), min_size=9, max_size=9), _quat, _quat, _quat, st.floats(0.001, 0.1))
+def test_observation_covariance_is_the_product_of_its_jacobians(xyz, q_as, q_sm, q_mb, sigma):
+    """The closed form of covariance.observation equals the chain it is derived from: the detection's
+    error (camera in the marker frame) through the inverse, then left by T_a_s, right by T_m_b."""
+
+    def matrix(q, p):
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = Rotation.from_quat(q).as_matrix(), p
+        return T
+
+    T_as, T_sm, T_mb = matrix(q_as, xyz[0:3]), matrix(q_sm, xyz[3:6]), matrix(q_mb, xyz[6:9])
+    R_sm, p_sm = T_sm[:3, :3], T_sm[:3, 3]
+    att = covariance.attitude_sigma_rad(sigma, np.linalg.norm(p_sm))
+    C_ms = covariance.diagonal(sigma, att)
+    C_sm = covariance.transform(covariance.inverse_jacobian(-R_sm.T @ p_sm, R_sm.T), C_ms)
+    J_left = np.eye(6)
+    J_left[:3, :3] = T_as[:3, :3]
+    C_am = covariance.transform(J_left, C_sm)
+    J_right, _ = covariance.compose_jacobians(T_as[:3, :3] @ R_sm, T_mb[:3, 3], T_mb[:3, :3])
+    expected = covariance.transform(J_right, C_am)
+    got = covariance.observation(T_as[None], T_sm[None], T_mb[None], np.array([sigma]))[0]
+    np.testing.assert_allclose(got, expected, atol=1e-12 * max(1.0, np.abs(expected).max()))
