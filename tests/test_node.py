@@ -346,6 +346,14 @@ def test_frame_count_follows_each_image_whatever_the_order():
     other = replace(a, origin=4)  # the same image numbers from another drone are another image
     assert incomplete(a, b, other, c) == 1
     assert incomplete(a, other) == 2
+    # Watching only some observations: an image none of whose arrivals is watched is not waited for.
+    watched = FrameCount(lambda md: md.marker_id == 7)
+    watched.add([(a, 0, False)])
+    assert watched.incomplete == 0
+    watched.add([(b, 0, False)])  # marker 7: now the image is waited for
+    assert watched.incomplete == 1
+    watched.add([(c, 0, False)])
+    assert watched.incomplete == 0
 
 
 def test_peer_views_of_others_are_parked_and_accepted_together():
@@ -382,3 +390,52 @@ def test_peer_views_of_others_are_parked_and_accepted_together():
     at(265)
     assert node.counters()["superseded"] == 1 and node.listener.accepted == 4
     np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)
+
+
+def test_the_own_pose_alone_is_evaluated_first_and_the_others_follow():
+    """On a fake clock: an own image evaluates the own pose alone (the others keep their last poses)
+    and the full evaluation follows COALESCE_NS after the previous full one."""
+    node, tr, set_ms = clocked_node(WORLD2)
+    t_us = 1_700_000_000_000_000
+
+    def at(t_ms, *items):
+        t = set_ms(t_ms)
+        if items:
+            node._process([(md, t, local) for md, local in items])
+        node._step(t)
+        return node.stats.evaluations
+
+    assert at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True)) == 1  # no pose yet: full
+    node._handle([(observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 1), set_ms(1), False)])
+    assert at(50) == 2 and node.last_result.complete and "d2" in node.last_result.poses
+    d2_before = node.last_result.poses["d2"]
+    seen = observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us + 2, T_noise=pose([0.01, 0, 0]))
+    assert at(60, (seen, True)) == 3
+    assert not node.last_result.complete and node.last_result.poses["d2"] is d2_before  # kept, not recomputed
+    sent = tr.autopilot[-1][1].pose
+    assert sent.capture_time_us == t_us + 2
+    full = node.graph.evaluate(set_ms(60)).poses["d1"]  # what a full evaluation gives now
+    np.testing.assert_allclose(sent.p_world_m, full.p_world_m, atol=1e-12)
+    np.testing.assert_allclose(sent.covariance, full.covariance, atol=1e-15)
+    assert at(99) == 3
+    assert at(100) == 4 and node.last_result.complete  # COALESCE_NS after the full one at 50 ms
+
+
+def test_links_pause_at_the_last_observation_of_an_image_that_moves_the_own_pose():
+    """The peer links are held from the last observation of such an image until the loop has sent
+    the pose; never before the own entity has a pose, never for others' images."""
+    node, tr, set_ms = clocked_node(WORLD3)
+    node.deliver_peer(ceiling_image(1_000)[2], set_ms(0))
+    assert node._may_read.is_set()  # no own pose yet: every observation is urgent, none pauses
+    node._process(node.inbox.drain())
+    assert node.last_result is not None and "d1" in node.last_result.poses
+    image = ceiling_image(2_000)
+    node.deliver_peer(image[0], set_ms(10))
+    node.deliver_peer(image[1], set_ms(10))
+    assert node._may_read.is_set()  # the image's last observation is still to come
+    node.deliver_peer(replace(observe(WORLD3, TRUTH2, 10, 6, capture_time_us=2_000), origin=3), set_ms(10))
+    assert node._may_read.is_set()  # a view of d2 cannot move d1's pose
+    node.deliver_peer(image[2], set_ms(10))
+    assert not node._may_read.is_set()
+    node._process(node.inbox.drain())
+    assert node._may_read.is_set() and tr.autopilot[-1][1].pose.capture_time_us == 2_000

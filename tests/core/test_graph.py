@@ -316,3 +316,78 @@ def test_edge_rows_are_reused_and_grow_without_changing_results():
     g.clear()
     assert g.edges == {} and g.next_expiry_ns() is None
     assert g.evaluate(300 * MS).order == ("world",)
+
+
+def _noisy_random_graph(n, n_edges, seed, **options):
+    """A random graph of noisy edges with distinct sigmas (several candidates per entity, cycles)."""
+    rng = np.random.default_rng(seed)
+    names = ["world"] + [f"e{i}" for i in range(1, n)]
+    truth = {"world": RigidTransform.identity()}
+    truth.update({v: pose(rng.uniform(-5, 5, 3), rng.uniform(-60, 60, 3)) for v in names[1:]})
+    g = TransformGraph(names, 250 * MS, **options)
+    for k in range(n_edges):
+        a, b = (names[i] for i in rng.choice(n, size=2, replace=False))
+        T = truth[a].inv() * truth[b] * pose(rng.normal(0, 0.02, 3), rng.normal(0, 2, 3))
+        add(g, (k, k), a, b, T, sigma=float(rng.uniform(0.005, 0.05)), now_ns=int(rng.integers(0, 100)) * MS,
+            capture_us=int(rng.integers(0, 10**6)))  # fmt: skip
+    return g, names
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(2, 10), st.integers(1, 30), st.integers(0, 2**16), st.sampled_from(["bfs", "dijkstra"]),
+       st.booleans())  # fmt: skip
+def test_a_targeted_evaluation_gives_the_full_evaluations_pose(n, n_edges, seed, path, gate):
+    """evaluate(target=X) computes X's pose exactly as a full evaluation does (position, attitude,
+    sigma, covariance, level, count, stamp), and the poses of X's lower stages; nothing else."""
+    options = {"path": path, "outlier_gate_sigma": 3.0 if gate else 0.0}
+    g, _ = _noisy_random_graph(n, n_edges, seed, **options)
+    full = g.evaluate(120 * MS)
+    for target in full.order[1:]:
+        g_t, _ = _noisy_random_graph(n, n_edges, seed, **options)  # the gate keeps state: same history
+        got = g_t.evaluate(120 * MS, target=target)
+        assert not got.complete and got.levels == full.levels and got.order == full.order
+        assert target in got.poses and set(got.poses) <= set(full.poses)
+        for name, e in got.poses.items():
+            ref = full.poses[name]
+            np.testing.assert_allclose(e.p_world_m, ref.p_world_m, atol=1e-12)
+            np.testing.assert_allclose(e.q_world_xyzw, ref.q_world_xyzw, atol=1e-12)
+            np.testing.assert_allclose(e.covariance, ref.covariance, atol=1e-15)
+            assert (e.sigma_m, e.level, e.n_observations, e.capture_time_us) == pytest.approx(
+                (ref.sigma_m, ref.level, ref.n_observations, ref.capture_time_us), abs=1e-15
+            )
+    if full.unreached:  # a target with no path to world: a full evaluation
+        assert g.evaluate(120 * MS, target=full.unreached[0]).complete
+
+
+def test_a_kept_plan_never_outlives_the_shape_of_the_graph():
+    """The evaluation plan is kept while only edge values change; an edge that appears, expires or
+    is cleared gives a new plan: each evaluation equals a fresh graph's on the same live edges."""
+    names = ["world", "A", "B", "C"]
+    truth = {"world": RigidTransform.identity(), "A": pose([1, 0, 0]), "B": pose([0, 2, 0], [0, 0, 90]),
+             "C": pose([0, 0, 3], [10, 0, 0])}  # fmt: skip
+    g = TransformGraph(names, 250 * MS)
+
+    def step(now_ms, edges):
+        for key, a, b, noise in edges:
+            add(g, key, a, b, truth[a].inv() * truth[b] * pose(noise), now_ns=now_ms * MS)
+        got = g.evaluate(now_ms * MS)
+        fresh = TransformGraph(names, 250 * MS)
+        for e in g.live_edges(now_ms * MS):
+            fresh.update_edge(e.key, names[e.a], names[e.b], e.p_a_b, e.q_a_b, e.sigma_m, e.stamp_ns)
+        ref = fresh.evaluate(now_ms * MS)
+        assert got.order == ref.order and got.levels == ref.levels
+        for n in ref.poses:
+            np.testing.assert_allclose(got.poses[n].p_world_m, ref.poses[n].p_world_m, atol=1e-12)
+        return got
+
+    r = step(0, [((1, 0), "world", "A", [0.01, 0, 0]), ((2, 0), "A", "B", [0, 0, 0])])
+    assert r.levels == {"world": 0, "A": 1, "B": 2}
+    r = step(10, [((1, 0), "world", "A", [0.02, 0, 0])])  # values only: the kept plan
+    np.testing.assert_allclose(r.poses["A"].p_world_m, [1.02, 0, 0], atol=1e-12)
+    r = step(20, [((3, 0), "world", "B", [0, 0, 0]), ((4, 0), "B", "C", [0, 0, 0])])  # B one level up
+    assert r.levels == {"world": 0, "A": 1, "B": 1, "C": 2}
+    r = step(270, [((3, 0), "world", "B", [0, 0, 0]), ((4, 0), "B", "C", [0, 0, 0])])  # A's edges expire
+    assert r.levels == {"world": 0, "B": 1, "C": 2}
+    g.clear()
+    r = step(280, [((1, 0), "world", "A", [0, 0, 0])])
+    assert r.levels == {"world": 0, "A": 1} and r.unreached == ("B", "C")
