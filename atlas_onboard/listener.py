@@ -142,8 +142,9 @@ class Listener:
         T1 = np.array([self._sensor[md.sensor_id][1] for md in valid])
         T3_inv = np.array([self._marker[md.marker_id][1] for md in valid])
         q2 = np.array([md.q_sensor_marker_wxyz for md in valid])[:, [1, 2, 3, 0]]
-        q2 /= np.linalg.norm(q2, axis=1)[:, None]
-        T2 = np.tile(np.eye(4), (len(valid), 1, 1))
+        q2 /= np.sqrt(np.einsum("ij,ij->i", q2, q2))[:, None]
+        T2 = np.zeros((len(valid), 4, 4))
+        T2[:, 3, 3] = 1.0
         T2[:, :3, :3] = geometry.quat_matrix(q2)
         T2[:, :3, 3] = np.array([md.p_sensor_marker_m for md in valid])
         unresolved = self._resolve_ambiguity(valid, T2, q2, notes)
@@ -289,11 +290,15 @@ class Listener:
             p = fusion.ema_position(state.p, result.p_a_b, alpha)
             q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, alpha)
             sigma = float(np.sqrt(var_old * var_new / (var_old + var_new)))
+        elif self.alpha == 1.0:  # eq. 3 with alpha 1 (the paper's default): the measurement itself
+            p, q = result.p_a_b, result.q_a_b_xyzw
         else:
             p = fusion.ema_position(state.p, result.p_a_b, self.alpha)  # eq. 3
             q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, self.alpha)
         self._ema[key] = _EmaState(p, q, now_ns, sigma)
-        cov = None if result.cov_a_b is None else result.cov_a_b * (sigma / result.sigma_m) ** 2
+        cov = result.cov_a_b
+        if cov is not None and sigma != result.sigma_m:
+            cov = cov * (sigma / result.sigma_m) ** 2
         self.graph.update_edge(
             key, result.observer, result.observed, p, q, sigma, now_ns, md.capture_time_us, cov_a_b=cov
         )

@@ -30,13 +30,14 @@ MAX_ATTITUDE_SIGMA_RAD = math.radians(30.0)
 
 
 def skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Cross-product matrices of vectors, shape (..., 3) -> (..., 3, 3): ``skew(a) @ b == a x b``."""
+    """Cross-product matrices of vectors, shape (..., 3) -> (..., 3, 3): ``skew(a) @ b == a x b``
+    (linear in a: one product with a constant (3, 9) matrix)."""
     v = np.asarray(v, dtype=float)
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
+    return (v @ _SKEW).reshape(*v.shape[:-1], 3, 3)
+
+
+_SKEW = np.zeros((3, 9))
+_SKEW[2, 1], _SKEW[1, 2], _SKEW[2, 3], _SKEW[0, 5], _SKEW[1, 6], _SKEW[0, 7] = -1, 1, 1, -1, -1, 1
 
 
 ATTITUDE_PER_POSITION = 2.0
@@ -126,14 +127,19 @@ def compose_jacobians(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Jacobians (Jp, Je) of ``T_w_c = T_w_p T_p_c`` with respect to the parent's and the edge's errors."""
     lead = np.shape(p_pc)[:-1]
-    Jp = np.zeros((*lead, 6, 6))
-    Jp[..., 0:3, 0:3] = np.eye(3)
+    Jp = np.empty((*lead, 6, 6))
+    Jp[...] = _JP_TEMPLATE
     Jp[..., 0:3, 3:6] = -(R_wp @ skew(p_pc))
     Jp[..., 3:6, 3:6] = np.swapaxes(R_pc, -1, -2)
-    Je = np.zeros((*lead, 6, 6))
+    Je = np.empty((*lead, 6, 6))
+    Je[...] = _JE_TEMPLATE
     Je[..., 0:3, 0:3] = R_wp
-    Je[..., 3:6, 3:6] = np.eye(3)
     return Jp, Je
+
+
+_JP_TEMPLATE = np.eye(6)  # the identity block of Jp, zeros below it (the other blocks are written)
+_JP_TEMPLATE[3:, 3:] = 0.0
+_JE_TEMPLATE = np.eye(6)
 
 
 def fuse(
@@ -175,14 +181,16 @@ def fuse_runs(
     kids: fusion.Runs,
     pairs: fusion.Runs,
     weights: NDArray[np.float64],
-    Jp: NDArray[np.float64],
+    Jp: NDArray[np.float64] | None,
     C_parent: NDArray[np.float64],
     edge_term: NDArray[np.float64],
 ) -> NDArray[np.float64]:
     """:func:`fuse` on candidates sorted by child, then parent (:func:`runs_by_parent`): one 6x6
-    covariance per child run."""
+    covariance per child run. ``Jp`` None: the parents' poses are exact (the root of the graph)."""
     w = weights / np.repeat(np.add.reduceat(weights, kids.starts), kids.sizes)
     out = np.add.reduceat((w**2)[:, None, None] * edge_term, kids.starts)
+    if Jp is None:
+        return out
     # Candidates sharing a parent: their parent Jacobians add before the parent's covariance.
     A = np.add.reduceat(w[:, None, None] * Jp, pairs.starts)
     first_pair = np.cumsum(pairs.sizes) - pairs.sizes

@@ -146,6 +146,7 @@ class _Plan:
     child: NDArray[np.intp]
     stages: tuple[slice, ...]
     runs: tuple[tuple[fusion.Runs, fusion.Runs], ...]  # per stage: runs of each child, of each (child, parent)
+    from_root: tuple[bool, ...]  # per stage: every parent is the root (exact: identity, no covariance)
 
 
 class _EdgeArrays:
@@ -501,7 +502,8 @@ class TransformGraph:
         cuts = [0, *(np.flatnonzero(np.diff(stage_of[child_all])) + 1).tolist(), row.size] if row.size else []
         stages = tuple(slice(i, j) for i, j in itertools.pairwise(cuts))
         runs = tuple(covariance.runs_by_parent(child_all[sel], parent_all[sel]) for sel in stages)
-        plan = _Plan(order_arr, level, stage_of, row, direction, parent_all, child_all, stages, runs)
+        from_root = tuple(bool((parent_all[sel] == root).all()) for sel in stages)
+        plan = _Plan(order_arr, level, stage_of, row, direction, parent_all, child_all, stages, runs, from_root)
         if self.path == "bfs":
             if len(self._plans) >= 8:  # old shapes are never asked for again
                 self._plans.clear()
@@ -534,33 +536,38 @@ class TransformGraph:
         t_all = arr.capture[row]
 
         p_world = np.zeros((n, 3))
-        q_world = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
+        q_world = np.zeros((n, 4))
+        q_world[:, 3] = 1.0
         cov_world = np.zeros((n, 6, 6))
         sigma = np.zeros(n)
         stamp_us = np.zeros(n, dtype=np.int64)
         count = np.zeros(n, dtype=np.intp)
 
         gated = 0
-        for sel, (kids, pairs) in zip(plan.stages, plan.runs, strict=True):
+        for sel, (kids, pairs), from_root in zip(plan.stages, plan.runs, plan.from_root, strict=True):
             parent, child = parent_all[sel], child_all[sel]
             p_pc, q_pc, s_edge, t_edge = p_all[sel], q_all[sel], sigma_all[sel], t_all[sel]
             c_edge = c_all[sel]
-            # eq. 2: each candidate is P_parent * T_parent_child
-            R_wp = geometry.quat_matrix(q_world[parent])
-            p_cand = p_world[parent] + (R_wp @ p_pc[:, :, None])[:, :, 0]
-            q_cand = geometry.quat_multiply(q_world[parent], q_pc)
-            # The candidate's sigma carries its parent's: variances add along a chain.
-            s_cand = np.sqrt(s_edge**2 + sigma[parent] ** 2)
-            # Beyond the paper: the full 6x6 covariance along the chain (lever arms included).
             if self.age_sigma_m_per_s > 0.0:
                 c_edge = c_edge.copy()
                 grow = (s_edge**2 - sigma_raw[sel] ** 2).clip(0.0)
                 c_edge[:, [0, 1, 2], [0, 1, 2]] += grow[:, None]
-            Jp, Je = covariance.compose_jacobians(R_wp, p_pc, geometry.quat_matrix(q_pc))
-            edge_term = covariance.transform(Je, c_edge)
+            Jp: NDArray[np.float64] | None = None
+            if from_root:  # the root's pose is the identity, exactly, with no uncertainty
+                p_cand, q_cand, s_cand, edge_term = p_pc, q_pc, s_edge, c_edge
+            else:
+                # eq. 2: each candidate is P_parent * T_parent_child
+                R_wp = geometry.quat_matrix(q_world[parent])
+                p_cand = p_world[parent] + (R_wp @ p_pc[:, :, None])[:, :, 0]
+                q_cand = geometry.quat_multiply(q_world[parent], q_pc)
+                # The candidate's sigma carries its parent's: variances add along a chain.
+                s_cand = np.sqrt(s_edge**2 + sigma[parent] ** 2)
+                # Beyond the paper: the full 6x6 covariance along the chain (lever arms included).
+                Jp, Je = covariance.compose_jacobians(R_wp, p_pc, geometry.quat_matrix(q_pc))
+                edge_term = covariance.transform(Je, c_edge)
             keep = None
             if self.outlier_gate_sigma > 0.0:
-                c_cand = covariance.transform(Jp, cov_world[parent]) + edge_term
+                c_cand = edge_term if Jp is None else covariance.transform(Jp, cov_world[parent]) + edge_term
                 keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns)
                 for slot in row[sel][~keep].tolist():
                     key, stamp = arr.keys[slot], int(arr.stamp[slot])
@@ -569,7 +576,7 @@ class TransformGraph:
                         self.gated_total += 1
                 gated += int(keep.size - keep.sum())
             if out is not None:
-                c_full = covariance.transform(Jp, cov_world[parent]) + edge_term
+                c_full = edge_term if Jp is None else covariance.transform(Jp, cov_world[parent]) + edge_term
                 rows = row[sel]
                 for i in range(len(child)) if keep is None else np.flatnonzero(keep):
                     slot = int(rows[i])
@@ -588,7 +595,7 @@ class TransformGraph:
                     stamp_us[v] = prior[5]
                 parent, child, p_cand, q_cand = parent[keep], child[keep], p_cand[keep], q_cand[keep]
                 s_edge, s_cand, t_edge = s_edge[keep], s_cand[keep], t_edge[keep]
-                Jp, edge_term = Jp[keep], edge_term[keep]
+                Jp, edge_term = None if Jp is None else Jp[keep], edge_term[keep]
                 if len(child) == 0:
                     continue
                 kids, pairs = covariance.runs_by_parent(child, parent)
