@@ -143,16 +143,17 @@ class Listener:
         T3_inv = np.array([self._marker[md.marker_id][1] for md in valid])
         q2 = np.array([md.q_sensor_marker_wxyz for md in valid])[:, [1, 2, 3, 0]]
         q2 /= np.sqrt(np.einsum("ij,ij->i", q2, q2))[:, None]
-        T2 = np.zeros((len(valid), 4, 4))
-        T2[:, 3, 3] = 1.0
-        T2[:, :3, :3] = geometry.quat_matrix(q2)
-        T2[:, :3, 3] = np.array([md.p_sensor_marker_m for md in valid])
-        unresolved = self._resolve_ambiguity(valid, T2, q2, notes)
-        T = T1 @ T2 @ T3_inv  # eq. 1
+        R2 = geometry.quat_matrix(q2)
+        p2 = np.array([md.p_sensor_marker_m for md in valid])
+        unresolved = self._resolve_ambiguity(valid, R2, p2, q2, notes)
+        # eq. 1, T = T1 T2 T3^-1, its translation: p_a_b = R_a_s (p_s_m + R_s_m p_m_b) + p_a_s
+        R_as, R_mb = T1[:, :3, :3], T3_inv[:, :3, :3]
+        p_sb = p2 + (R2 @ T3_inv[:, :3, 3, None])[:, :, 0]
+        p_ab = T1[:, :3, 3] + (R_as @ p_sb[:, :, None])[:, :, 0]
         q1 = np.array([self._sensor_q[md.sensor_id] for md in valid])
         q3_inv = np.array([self._marker_inv_q[md.marker_id] for md in valid])
         q_all = geometry.quat_multiply(geometry.quat_multiply(q1, q2), q3_inv)  # eq. 1's rotation
-        cov = covariance.observation(T1, T2, T3_inv, np.array([md.sigma_m for md in valid]))
+        cov = covariance.observation_parts(R_as, R2, R_mb, p2, p_sb, np.array([md.sigma_m for md in valid]))
         j = 0
         for i, item in enumerate(out):
             if isinstance(item, MarkerData):
@@ -161,15 +162,20 @@ class Listener:
                 else:
                     observer, observed = self._sensor[item.sensor_id][0], self._marker[item.marker_id][0]
                     key = (item.sensor_id, item.marker_id)
-                    out[i] = EdgeUpdate(key, observer, observed, T[j, :3, 3].copy(), q_all[j], item.sigma_m, cov[j])
+                    out[i] = EdgeUpdate(key, observer, observed, p_ab[j], q_all[j], item.sigma_m, cov[j])
                 j += 1
         return out, notes
 
     def _resolve_ambiguity(
-        self, valid: list[MarkerData], T2: NDArray[np.float64], q2: NDArray[np.float64], notes: list[str]
+        self,
+        valid: list[MarkerData],
+        R2: NDArray[np.float64],
+        p2: NDArray[np.float64],
+        q2: NDArray[np.float64],
+        notes: list[str],
     ) -> dict[int, Rejection]:
-        """Resolve the ambiguous observations among ``valid`` in place in ``T2`` (N, 4, 4) and its
-        rotations ``q2`` (N, 4, x first), batched.
+        """Resolve the ambiguous observations among ``valid`` in place in their detections: rotation
+        matrices ``R2`` (N, 3, 3), positions ``p2`` (N, 3) and rotations ``q2`` (N, 4, x first), batched.
 
         Returns the rejections by index into ``valid``; appends counter names to ``notes``.
         """
@@ -200,7 +206,7 @@ class Listener:
         T1_inv = np.array([self._sensor_inv[valid[j].sensor_id] for j in idx])
         T3 = np.array([self._marker_fwd[valid[j].marker_id] for j in idx])
         pred = T1_inv @ np.linalg.inv(W_a) @ W_b @ T3
-        p_a = T2[idx, :3, 3]
+        p_a = p2[idx]
         p_b = np.array([valid[j].p_sensor_marker_alt_m for j in idx])
         q_b = np.array([valid[j].q_sensor_marker_alt_xyzw() for j in idx])
 
@@ -228,9 +234,9 @@ class Listener:
         for j, verdict in zip(idx, verdicts, strict=True):
             if verdict is Verdict.ALT:
                 alt = Rotation.from_quat(valid[j].q_sensor_marker_alt_xyzw())
-                T2[j, :3, :3] = alt.as_matrix()
+                R2[j] = alt.as_matrix()
                 q2[j] = alt.as_quat()
-                T2[j, :3, 3] = valid[j].p_sensor_marker_alt_m
+                p2[j] = valid[j].p_sensor_marker_alt_m
                 notes.append("ambiguity_swapped")
             if verdict.decided:
                 notes.append("ambiguity_resolved")
@@ -295,7 +301,8 @@ class Listener:
         else:
             p = fusion.ema_position(state.p, result.p_a_b, self.alpha)  # eq. 3
             q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, self.alpha)
-        self._ema[key] = _EmaState(p, q, now_ns, sigma)
+        if self.alpha != 1.0 or self.age_sigma > 0.0:  # the filter's state is read only by the filter
+            self._ema[key] = _EmaState(p, q, now_ns, sigma)
         cov = result.cov_a_b
         if cov is not None and sigma != result.sigma_m:
             cov = cov * (sigma / result.sigma_m) ** 2

@@ -86,15 +86,17 @@ class Inbox:
     def put(self, item: tuple[MarkerData, int, bool]) -> None:
         self.put_many((item,))
 
-    def put_many(self, items: Sequence[tuple[MarkerData, int, bool]]) -> None:
-        """Put several items at once: a consumer never sees part of them."""
+    def put_many(self, items: Sequence[tuple[MarkerData, int, bool]], wake: bool = True) -> None:
+        """Put several items at once: a consumer never sees part of them. With ``wake`` False, a
+        waiting consumer is not woken for them: it takes them with the next items or at its timeout."""
         with self._cond:
             for item in items:
                 if len(self._items) >= self._capacity:
                     self._items.popleft()
                     self.dropped += 1
                 self._items.append(item)
-            self._cond.notify()
+            if wake:
+                self._cond.notify()
 
     def drain(self) -> list[tuple[MarkerData, int, bool]]:
         """Everything queued now, without waiting."""
@@ -206,9 +208,11 @@ class Node:
         :meth:`_process`): the link's thread stops before its next datagram and leaves the processor
         to the loop, which would otherwise wait its turn behind the decoding of the rest of a burst.
         """
-        if md.frame_remaining == 0 and self._relevant is not None and self._concerns_own_pose(md):
+        urgent = self._relevant is None or self._concerns_own_pose(md)
+        if urgent and md.frame_remaining == 0 and self._relevant is not None:
             self._may_read.clear()  # before the put: the loop sets it again once it has published
-        self.inbox.put((md, arrival_ns, False))
+        # Others' views are parked by the loop anyway: they wake it once per image, not per observation.
+        self.inbox.put_many(((md, arrival_ns, False),), wake=urgent or md.frame_remaining == 0)
 
     def stop(self) -> None:
         """Ask the loop to end (safe from a signal handler: it only sets a flag; the loop polls it)."""

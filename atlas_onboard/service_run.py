@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import sys
@@ -101,6 +102,10 @@ def run_node(config_path: Path, entity: str | None) -> int:
     # Link threads decode bursts of datagrams while holding the GIL; with Python's default 5 ms switch
     # interval the main loop would wait up to that long for its turn. Latency matters more here.
     sys.setswitchinterval(0.0002)
+    # Everything built so far (modules, the world, the dialect) lives as long as the process: keep it
+    # out of the cyclic collector's scans, which otherwise grow with it and stall the loop now and then.
+    gc.collect()
+    gc.freeze()
     _logger.info(
         "world %s (fingerprint %08x), entity %s, %d camera(s), %d peer link(s)",
         config_path, world.fingerprint(), name, len(cameras), len(config.peers),

@@ -76,23 +76,31 @@ def observation(
     # Multiplied out (docs/covariance.md), M = [[-R_am, K], [0, -R_bs]] with K = R_as [p_sb]x, so
     # C = [[sigma^2 I + att^2 K K^T, -att^2 K R_sb], [., att^2 I]]: a handful of products, however
     # many observations (tested equal to the product of the three Jacobians).
-    R_as, R_sm, p_sm = T_a_s[..., :3, :3], T_s_m[..., :3, :3], T_s_m[..., :3, 3]
-    R_mb, p_mb = T_m_b[..., :3, :3], T_m_b[..., :3, 3]
+    R_sm, p_sm = T_s_m[..., :3, :3], T_s_m[..., :3, 3]
+    p_sb = p_sm + (R_sm @ T_m_b[..., :3, 3, None])[..., 0]
+    return observation_parts(T_a_s[..., :3, :3], R_sm, T_m_b[..., :3, :3], p_sm, p_sb, sigma_m)
+
+
+def observation_parts(
+    R_as: NDArray[np.float64],
+    R_sm: NDArray[np.float64],
+    R_mb: NDArray[np.float64],
+    p_sm: NDArray[np.float64],
+    p_sb: NDArray[np.float64],
+    sigma_m: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`observation` from the parts eq. 1 computes anyway: the three rotations, the detected
+    position ``p_sm`` and ``p_sb = p_sm + R_sm p_mb`` (b's origin in the sensor frame)."""
     rng = np.sqrt(np.einsum("...i,...i->...", p_sm, p_sm))
     sigma = np.asarray(sigma_m, dtype=float)
     var_att = attitude_sigma_rad(sigma, rng) ** 2
-    p_sb = p_sm + (R_sm @ p_mb[..., None])[..., 0]
+    # With G = [[K], [-R_sb^T]] (6x3), C = att^2 G G^T + sigma^2 diag(1, 1, 1, 0, 0, 0).
     K = R_as @ skew(p_sb)
-    KR = K @ (R_sm @ R_mb)
-    out = np.zeros((*sigma.shape, 6, 6))
-    out[..., :3, :3] = var_att[..., None, None] * (K @ np.swapaxes(K, -1, -2)) + (sigma**2)[..., None, None] * _I3
-    out[..., :3, 3:] = -var_att[..., None, None] * KR
-    out[..., 3:, :3] = np.swapaxes(out[..., :3, 3:], -1, -2)
-    out[..., 3:, 3:] = var_att[..., None, None] * _I3
-    return out
+    G = np.concatenate((K, -np.swapaxes(R_sm @ R_mb, -1, -2)), axis=-2)
+    return var_att[..., None, None] * (G @ np.swapaxes(G, -1, -2)) + (sigma**2)[..., None, None] * _POSITION_BLOCK
 
 
-_I3 = np.eye(3)
+_POSITION_BLOCK = np.diag([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
 
 
 def diagonal(sigma_m: NDArray[np.float64] | float, sigma_att_rad: NDArray[np.float64] | float) -> NDArray[np.float64]:

@@ -90,11 +90,17 @@ _M_Q_NED_FRD = geometry.quat_multiply(
 
 
 def enu_flu_to_ned_frd_arrays(p_enu_m: np.ndarray, q_enu_flu_xyzw: np.ndarray) -> tuple[np.ndarray, Rotation]:
-    """:func:`enu_flu_to_ned_frd` on a position and an x-first quaternion, for the publishing hot path
-    (a 3x3 and a 4x4 product instead of RigidTransform objects or scipy's from_matrix, which checks
-    its input for hundreds of microseconds)."""
-    q_ned_frd = _M_Q_NED_FRD @ np.asarray(q_enu_flu_xyzw, dtype=float)
-    return _M_NED_ENU @ np.asarray(p_enu_m, dtype=float), Rotation.from_quat(q_ned_frd)
+    """:func:`enu_flu_to_ned_frd` on a position and an x-first quaternion (a 3x3 and a 4x4 product
+    instead of RigidTransform objects or scipy's from_matrix, which checks its input for hundreds of
+    microseconds)."""
+    p_ned, q_ned_frd = enu_flu_to_ned_frd_quat(p_enu_m, q_enu_flu_xyzw)
+    return p_ned, Rotation.from_quat(q_ned_frd)
+
+
+def enu_flu_to_ned_frd_quat(p_enu_m: np.ndarray, q_enu_flu_xyzw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`enu_flu_to_ned_frd_arrays` with the attitude as an x-first quaternion (not normalised:
+    as unit as its input), for the publishing hot path."""
+    return _M_NED_ENU @ np.asarray(p_enu_m, dtype=float), _M_Q_NED_FRD @ np.asarray(q_enu_flu_xyzw, dtype=float)
 
 
 def ned_frd_to_enu_flu(T_ned_frd: RigidTransform) -> RigidTransform:

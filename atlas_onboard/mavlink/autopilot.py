@@ -117,6 +117,54 @@ def covariance_upper_triangle(cov: np.ndarray) -> list[float]:
     return c[_ROWS, _COLS].tolist()
 
 
+def covariance_21_from_enu_flu(cov_enu_flu: np.ndarray) -> list[float]:
+    """``covariance_upper_triangle(covariance_ned_frd(cov))`` in one gather: J is a signed
+    permutation, so each NED/FRD triangle entry is one ENU/FLU entry times a sign (tested equal,
+    errors included). The publishing hot path."""
+    c = np.asarray(cov_enu_flu, dtype=float)
+    if c.shape != (6, 6):
+        raise AtlasError(f"expected a covariance of shape (6, 6), got shape {c.shape}")
+    if not _finite(c):
+        raise AtlasError("expected a finite covariance, got NaN or inf")
+    flat = c.reshape(36)
+    upper, lower = flat[_TRI_FROM_ENU] * _TRI_SIGN, flat[_TRI_FROM_ENU_T] * _TRI_SIGN
+    scale = max(float(np.abs(flat).max()), 1e-300)
+    if float(np.abs(upper - lower).max()) > 1e-9 * scale:
+        raise AtlasError("expected a symmetric covariance")
+    diag = upper[_TRI_DIAG]
+    if float(diag.min()) < 0.0:
+        raise AtlasError(f"expected non-negative variances, got {diag.tolist()}")
+    upper[_TRI_DIAG] = np.maximum(diag, _FLOORS)
+    return upper.tolist()
+
+
+def _signed_permutation(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    perm = np.abs(J).argmax(axis=1)
+    return perm, J[np.arange(len(J)), perm]
+
+
+_PERM, _SIGN = _signed_permutation(_J_NED_FRD_ENU_FLU)
+_TRI_FROM_ENU = _PERM[_ROWS] * 6 + _PERM[_COLS]  # (J C J^T)[r, c] = s_r s_c C[perm_r, perm_c]
+_TRI_FROM_ENU_T = _PERM[_COLS] * 6 + _PERM[_ROWS]
+_TRI_SIGN = _SIGN[_ROWS] * _SIGN[_COLS]
+_TRI_DIAG = np.flatnonzero(_ROWS == _COLS)
+
+
+def euler_zyx(q_xyzw: np.ndarray) -> tuple[float, float, float]:
+    """(yaw, pitch, roll), intrinsic Z-Y'-X'' (aerospace), of a non-zero x-first quaternion: what
+    scipy's ``as_euler("ZYX")`` gives (tested), in scalar math for the publishing hot path."""
+    x, y, z, w = (float(v) for v in q_xyzw)
+    n = x * x + y * y + z * z + w * w
+    # n R[2, 0] = -n sin(pitch); n R[2, 1] and n R[2, 2] = n cos(pitch) (sin, cos)(roll): pitch by atan2
+    # keeps its precision next to +-90 degrees, where asin would not.
+    a, b = 2.0 * (w * x + y * z), n - 2.0 * (x * x + y * y)
+    cos_pitch = math.hypot(a, b)
+    pitch = math.atan2(2.0 * (w * y - x * z), cos_pitch)
+    if cos_pitch <= 1e-12 * n:  # gimbal lock: only yaw -/+ roll is defined; roll 0, as scipy does
+        return math.atan2(2.0 * (w * z - x * y), n - 2.0 * (x * x + z * z)), pitch, 0.0
+    return math.atan2(2.0 * (w * z + x * y), n - 2.0 * (y * y + z * z)), pitch, math.atan2(a, b)
+
+
 def _finite(a: np.ndarray) -> bool:
     """Whether every element is finite (one reduction: a NaN or an infinity makes the sum non-finite;
     so do values near the float's limit, which no pose or covariance has)."""
@@ -133,29 +181,33 @@ def quality_percent(sigma_m: float) -> int:
 
 def _covariance_21(sigma_m: float | None, covariance_enu_flu: np.ndarray | None) -> list[float]:
     if covariance_enu_flu is not None:
-        return covariance_upper_triangle(covariance_ned_frd(covariance_enu_flu))
+        return covariance_21_from_enu_flu(covariance_enu_flu)
     if sigma_m is None:
         raise AtlasError("expected a sigma or a 6x6 covariance for the pose, got neither")
     return covariance_upper_triangle(covariance_from_sigma(sigma_m))
 
 
-def _check_pose(p_ned_m: np.ndarray, R_ned_frd: Rotation, capture_time_us: int) -> None:
-    if not (_finite(np.asarray(p_ned_m, dtype=float)) and _finite(R_ned_frd.as_quat())):
+def _check_pose(p_ned_m: np.ndarray, q_ned_frd_xyzw: np.ndarray, capture_time_us: int) -> None:
+    if not (_finite(np.asarray(p_ned_m, dtype=float)) and _finite(q_ned_frd_xyzw)):
         raise AtlasError("expected a finite pose, got NaN or inf")
+    if not float(q_ned_frd_xyzw @ q_ned_frd_xyzw) > 1e-12:
+        raise AtlasError("expected a rotation, got a zero quaternion")
     if not 0 <= int(capture_time_us) < 2**64:
         raise AtlasError(f"expected a capture time in [0, 2^64) us, got {capture_time_us}")
 
 
 def vision_position_estimate_from_ned(
     p_ned_m: np.ndarray,
-    R_ned_frd: Rotation,
+    R_ned_frd: Rotation | np.ndarray,
     capture_time_us: int,
     reset_counter: int,
     covariance_21: Sequence[float],
 ) -> dict[str, Any]:
-    """VISION_POSITION_ESTIMATE fields from a pose already in local NED / body FRD."""
-    _check_pose(p_ned_m, R_ned_frd, capture_time_us)
-    yaw, pitch, roll = R_ned_frd.as_euler("ZYX")  # intrinsic Z-Y'-X'': aerospace yaw, pitch, roll
+    """VISION_POSITION_ESTIMATE fields from a pose already in local NED / body FRD (the attitude as a
+    Rotation or an x-first quaternion)."""
+    q = R_ned_frd.as_quat() if isinstance(R_ned_frd, Rotation) else np.asarray(R_ned_frd, dtype=float)
+    _check_pose(p_ned_m, q, capture_time_us)
+    yaw, pitch, roll = euler_zyx(q)  # intrinsic Z-Y'-X'': aerospace yaw, pitch, roll
     return {
         "usec": int(capture_time_us),
         "x": float(p_ned_m[0]),
@@ -178,7 +230,7 @@ def odometry_from_ned(
     quality: int,
 ) -> dict[str, Any]:
     """ODOMETRY fields (LOCAL_FRD / BODY_FRD, VISION, velocity unknown) from a pose in NED / FRD."""
-    _check_pose(p_ned_m, R_ned_frd, capture_time_us)
+    _check_pose(p_ned_m, R_ned_frd.as_quat(), capture_time_us)
     qx, qy, qz, qw = R_ned_frd.as_quat()
     nan = math.nan
     return {

@@ -237,16 +237,16 @@ def ned_pose(pose: EntityPose) -> tuple[np.ndarray, Rotation]:
 def _pose_covariance_21(pose: EntityPose) -> list[float]:
     """The propagated 6x6 covariance when the pose has one, else the diagonal from its sigma."""
     if pose.covariance is not None:
-        return autopilot.covariance_upper_triangle(autopilot.covariance_ned_frd(pose.covariance))
+        return autopilot.covariance_21_from_enu_flu(pose.covariance)
     return pose_covariance(pose.sigma_m)
 
 
 def vision_position_estimate_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:
     """VISION_POSITION_ESTIMATE fields: usec = capture time of the newest contributing observation
     (or, with the EKF, the time the pose is predicted for)."""
-    p_ned, R_ned_frd = ned_pose(pose)
+    p_ned, q_ned_frd = frames.enu_flu_to_ned_frd_quat(pose.p_world_m, pose.q_world_xyzw)
     cov = _pose_covariance_21(pose)
-    return autopilot.vision_position_estimate_from_ned(p_ned, R_ned_frd, pose.capture_time_us, reset_counter, cov)
+    return autopilot.vision_position_estimate_from_ned(p_ned, q_ned_frd, pose.capture_time_us, reset_counter, cov)
 
 
 def odometry_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:

@@ -188,3 +188,45 @@ def test_origin_fields():
 @pytest.mark.parametrize(("sigma", "quality"), [(0.005, 100), (0.01, 100), (0.1, 41), (0.5, 1), (math.nan, 0)])
 def test_quality(sigma, quality):
     assert autopilot.quality_percent(sigma) == quality
+
+
+@given(st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1))
+def test_euler_zyx_is_scipys(q):
+    """The scalar Euler angles of the hot path are scipy's as_euler("ZYX"), for any non-zero
+    quaternion, either sign; near gimbal lock (where the split of yaw and roll is not unique) they
+    still rebuild the same rotation."""
+    r = Rotation.from_quat(q)
+    got = np.array(autopilot.euler_zyx(np.array(q)))
+    # 1e-8 rad: within 1e-8 of the lock the angles are ill-conditioned (scipy's own round trip is
+    # off by 1.4e-7 rad at q = (1, 1e-7, 1, 0), ours by 2e-9).
+    assert (Rotation.from_euler("ZYX", got).inv() * r).magnitude() < 1e-8
+    assert autopilot.euler_zyx(-np.array(q)) == pytest.approx(tuple(got), abs=1e-12)
+    if abs(got[1]) < np.radians(89.0):
+        wrapped = np.angle(np.exp(1j * (got - r.as_euler("ZYX"))))  # +pi and -pi are one angle
+        np.testing.assert_allclose(wrapped, 0.0, atol=1e-9)
+
+
+@given(st.lists(st.floats(-1, 1), min_size=36, max_size=36), st.floats(1e-8, 1.0))
+def test_covariance_21_from_enu_flu_is_the_two_steps(values, scale):
+    """The one-gather triangle equals covariance_upper_triangle(covariance_ned_frd(C)) for symmetric
+    positive semi-definite C (tiny variances floored alike), and refuses what they refuse."""
+    A = np.array(values).reshape(6, 6) * scale
+    C = A @ A.T
+    expected = autopilot.covariance_upper_triangle(autopilot.covariance_ned_frd(C))
+    np.testing.assert_allclose(autopilot.covariance_21_from_enu_flu(C), expected, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize(
+    ("bad", "message"),
+    [
+        (np.ones((5, 5)), "shape"),
+        (np.full((6, 6), np.nan), "finite"),
+        (np.diag([1, 1, 1, 1, 1, -1.0]), "non-negative"),
+        (np.triu(np.ones((6, 6))), "symmetric"),
+    ],
+)
+def test_covariance_21_from_enu_flu_refuses_bad_matrices(bad, message):
+    with pytest.raises(AtlasError, match=message):
+        autopilot.covariance_upper_triangle(autopilot.covariance_ned_frd(bad) if bad.shape == (6, 6) else bad)
+    with pytest.raises(AtlasError, match=message):
+        autopilot.covariance_21_from_enu_flu(bad)
