@@ -45,7 +45,8 @@ class Transport(Protocol):
         """Start the receive threads; ``deliver(md, arrival_ns)`` for every valid peer observation.
         Peer links read only while ``may_read`` is set (the node holds them while it publishes)."""
 
-    def send_observation(self, md: MarkerData) -> None: ...
+    def send_observations(self, mds: Sequence[MarkerData]) -> None:
+        """Our accepted detections to every peer, together (an image's in one datagram where it fits)."""
 
     def send_fused(self, poses: Sequence[EntityPose], world: WorldConfig) -> None: ...
 
@@ -291,10 +292,13 @@ class Node:
         self._park([x for x in rest if not x[2]])
         # Our accepted detections go to peers, each image's last one marked as such.
         left = Counter((md.sensor_id, md.capture_time_us) for md in local)
+        marked = []
         for md in local:
             key = (md.sensor_id, md.capture_time_us)
             left[key] -= 1
-            self.transport.send_observation(replace(md, frame_remaining=left[key]))
+            marked.append(replace(md, frame_remaining=left[key]))
+        if marked:
+            self.transport.send_observations(marked)
 
     def _park(self, items: list[tuple[MarkerData, int, bool]]) -> None:
         if items and not self._pending:

@@ -10,7 +10,7 @@ graph). Overhead = node - anchor: what the listener, graph and publisher add. No
 the load in alternate blocks (2.5 s each by default), so that a drift of the machine's speed falls
 on both alike; the first 0.5 s of each block is not counted.
 
-    python benchmarks/bench_node.py [--seconds S] [--block S]
+    python benchmarks/bench_node.py [--seconds S] [--block S] [--split]
 
 Bar: overhead <= 2 ms median at 10 drones x 30 Hz x 4 markers.
 """
@@ -79,12 +79,13 @@ def views(world, k: int) -> list[MarkerData]:
     return out
 
 
-def load(port: int, world, seconds: float, fingerprint: int, stop: threading.Event) -> int:
+def load(port: int, world, seconds: float, fingerprint: int, stop: threading.Event, split: bool = False) -> int:
     """Send 10 drones x 30 Hz x 4 markers; each drone its own system id. Returns observations sent.
 
     The views are computed once (the drones hover) and encoded once: each frame only stamps the
     capture time (now, just before sending) and the sequence number, so the generator measures the
-    node and not its own geometry.
+    node and not its own geometry. Each drone's image goes in one datagram, as nodes send them
+    (``split``: one datagram per observation, as nodes sent them before).
     """
     d = dialect.load()
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -98,11 +99,18 @@ def load(port: int, world, seconds: float, fingerprint: int, stop: threading.Eve
     while time.time() < t_end and not stop.is_set():
         for k in range(N_DRONES):
             t_us = int(time.time() * 1e6)
+            image = b""
             for j, msg in enumerate(msgs[k]):
                 # As a node sends an image's observations: each says how many of the image follow.
                 msg.time_usec, msg.seq, msg.frame_remaining = t_us, (frame * MARKERS + j) & 0xFFFF, MARKERS - 1 - j
-                sock.sendto(msg.pack(mavs[k], force_mavlink1=False), ("127.0.0.1", port))
+                packed = msg.pack(mavs[k], force_mavlink1=False)
+                if split:
+                    sock.sendto(packed, ("127.0.0.1", port))
+                else:
+                    image += packed
                 sent += 1
+            if image:
+                sock.sendto(image, ("127.0.0.1", port))
         frame += 1
         next_t += period
         time.sleep(max(next_t - time.time(), 0))
@@ -140,6 +148,7 @@ def main() -> int:
     ap_ = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap_.add_argument("--seconds", type=float, default=10.0, help="load time for each of node and anchor")
     ap_.add_argument("--block", type=float, default=2.5, help="seconds per block (node and anchor alternate)")
+    ap_.add_argument("--split", action="store_true", help="one datagram per observation (default: per image)")
     args = ap_.parse_args()
     # The load generator and the autopilots' receivers share this process: keep the GIL hand-over short
     # (arrivals are stamped by the kernel anyway; both node and anchor are measured the same way).
@@ -176,7 +185,7 @@ def main() -> int:
             for who, port in (("node", peer_port), ("anchor", relay_port)):
                 t0 = time.time()
                 cpu0 = cpu_s(node.pid)
-                sent[who] += load(port, world, args.block, world.fingerprint(), stop)
+                sent[who] += load(port, world, args.block, world.fingerprint(), stop, args.split)
                 t1 = time.time()
                 if who == "node":
                     cpu += cpu_s(node.pid) - cpu0
@@ -201,7 +210,8 @@ def main() -> int:
     rate = sent["node"] / node_s
     node_cpu = cpu / node_s * 100
     print(f"load: {N_DRONES} drones x {RATE_HZ} Hz x {MARKERS} markers = {rate:.0f} observations/s,"
-          f" {n_blocks} blocks of {args.block:.1f} s each for node and anchor, alternating")  # fmt: skip
+          f" {n_blocks} blocks of {args.block:.1f} s each for node and anchor, alternating;"
+          f" {'a datagram per observation' if args.split else 'a datagram per image'}")  # fmt: skip
     dropped = counters.get("inbox_dropped", "?")
     superseded = int(counters.get("superseded", 0))
     print(f"node received {counters.get('peer0_rx_atlas_observation', '?')} of {sent['node']}: accepted {accepted},"

@@ -84,10 +84,14 @@ def load(path: Path, hub_port: int, n: int, per: int, stop: Any, sent: Any, log:
     times: list[list[float]] = []
     while not stop.is_set():
         times.append([0.0] * n)
-        for k, msg in views:
-            seq = (seq + 1) & 0xFFFF
-            msg.time_usec, msg.seq = int(time.time() * 1e6), seq
-            sock.sendto(msg.pack(mavs[k]), ("127.0.0.1", hub_port))
+        for k in range(n):
+            # One datagram per image, as a node sends its accepted detections (Link.send_many).
+            image, t_us = b"", int(time.time() * 1e6)
+            for _, msg in views[k * per : (k + 1) * per]:
+                seq = (seq + 1) & 0xFFFF
+                msg.time_usec, msg.seq = t_us, seq
+                image += msg.pack(mavs[k])
+            sock.sendto(image, ("127.0.0.1", hub_port))
             times[-1][k] = time.time()
         with sent.get_lock():
             sent.value += len(views)

@@ -37,8 +37,8 @@ class FakeTransport:
         self.deliver = deliver
         self.started.set()
 
-    def send_observation(self, md):
-        self.observations.append(md)
+    def send_observations(self, mds):
+        self.observations.extend(mds)
 
     def send_fused(self, poses, world):
         self.fused.append(poses)

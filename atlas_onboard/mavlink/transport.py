@@ -69,20 +69,23 @@ class MavlinkTransport:
         for i, link in enumerate(self.peers):
             link.start(lambda lk, msg, t, i=i: self._on_peer(i, lk, msg, t), may_read)
 
-    def send_observation(self, md: MarkerData) -> None:
-        """Our own observation to every peer link (as ATLAS_OBSERVATION, or TUNNEL where configured)."""
-        plain = tunnel = None
+    def send_observations(self, mds: Sequence[MarkerData]) -> None:
+        """Our own observations to every peer link (as ATLAS_OBSERVATION, or TUNNEL where configured),
+        packed together: an image's detections travel in one datagram where they fit."""
+        encoded: dict[bool, list[Any]] = {}
         for link in self.peers:
-            try:
-                if link.config.tunnel:
-                    tunnel = tunnel or codec.encode_tunnel(link.dialect, md, self.fingerprint)
-                    link.send(tunnel)
-                else:
-                    plain = plain or codec.encode_observation(link.dialect, md, self.fingerprint)
-                    link.send(plain)
-            except Exception as exc:  # a value that does not fit its wire type: counted, never raised
-                self.counters_.inc("tx_observation_encode_errors")
-                _logger.debug("cannot encode observation %s: %s", (md.sensor_id, md.marker_id), exc)
+            tunnel = bool(link.config.tunnel)
+            if tunnel not in encoded:
+                encoded[tunnel] = []
+                for md in mds:
+                    try:
+                        encode = codec.encode_tunnel if tunnel else codec.encode_observation
+                        encoded[tunnel].append(encode(link.dialect, md, self.fingerprint))
+                    except Exception as exc:  # a value that does not fit its wire type: counted, never raised
+                        self.counters_.inc("tx_observation_encode_errors")
+                        _logger.debug("cannot encode observation %s: %s", (md.sensor_id, md.marker_id), exc)
+            if encoded[tunnel]:
+                link.send_many(encoded[tunnel])
 
     def send_fused(self, poses: Sequence[EntityPose], world: WorldConfig) -> None:
         for pose in poses:

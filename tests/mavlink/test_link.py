@@ -1,6 +1,7 @@
 """Links over 127.0.0.1: round trips, signing (unsigned, wrongly signed, replayed, forged timestamps,
 restarts), key files, fuzzed bytes and unknown ids, reconnects after UDP and TCP peers restart."""
 
+import itertools
 import os
 import socket
 import time
@@ -441,3 +442,50 @@ def test_datagrams_the_kernel_dropped_are_counted(closing):
     while rx.poll(0.05):
         received = rx.counters["rx_atlas_observation"]
     assert dropped > 0 and received + dropped == 5000, (received, dropped)
+
+
+@pytest.mark.parametrize("signed", [False, True])
+def test_many_messages_travel_in_few_datagrams(tmp_path, closing, signed):
+    """send_many packs an image's observations into one datagram, and a long batch into datagrams of
+    at most MAX_DATAGRAM_BYTES; the receiving link reads every message, in order, signed or not, with
+    consecutive sequence numbers."""
+    from dataclasses import replace
+
+    from atlas_onboard.mavlink.link import MAX_DATAGRAM_BYTES
+
+    key_file = write_key(tmp_path, os.urandom(32)) if signed else None
+    port = free_port()
+    spy = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # a raw socket first: count the datagrams
+    spy.bind(("127.0.0.1", port))
+    spy.settimeout(0.5)
+    closing(spy)
+    tx = make_link(f"udpout:127.0.0.1:{port}", 250, key_file)
+    closing(tx)
+    tx.open()
+    image = [codec.encode_observation(tx.dialect, replace(MD, marker_id=m, seq=m), FP) for m in range(4)]
+    assert tx.send_many(image)
+    first = spy.recv(65535)
+    one = len(image[0].get_msgbuf())  # every packed observation has the same length
+    assert len(first) == 4 * one  # the image in one datagram
+    if not signed:
+        assert [m.marker_id for m in D.MAVLink(None).parse_buffer(first)] == [0, 1, 2, 3]
+    many = [codec.encode_observation(tx.dialect, replace(MD, marker_id=m % 200, seq=m), FP) for m in range(60)]
+    assert tx.send_many(many)
+    sizes = []
+    with pytest.raises(TimeoutError):
+        while True:
+            sizes.append(len(spy.recv(65535)))
+    # As few datagrams as fit: each full but the last, none over the bound.
+    assert sum(sizes) == 60 * one and max(sizes) <= MAX_DATAGRAM_BYTES
+    assert all(size + one > MAX_DATAGRAM_BYTES for size in sizes[:-1])
+    assert tx.counters["tx_atlas_observation"] == 64
+    # The same through a receiving link (signature checks included).
+    spy.close()
+    rx = make_link(f"udpin:127.0.0.1:{port}", 1, key_file)
+    closing(rx)
+    rx.open()
+    assert tx.send_many(many)
+    msgs = poll_until(rx, lambda m: len(m) >= 60)
+    assert [m.seq for m in msgs] == list(range(60)) and rx.counters["rejected_bad_signature"] == 0
+    header_seqs = [m.get_seq() for m in msgs]
+    assert all((b - a) % 256 == 1 for a, b in itertools.pairwise(header_seqs))
