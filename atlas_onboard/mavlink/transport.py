@@ -88,15 +88,17 @@ class MavlinkTransport:
                 link.send_many(encoded[tunnel])
 
     def send_fused(self, poses: Sequence[EntityPose], world: WorldConfig) -> None:
-        for pose in poses:
-            if pose.name == "world":
-                continue
-            idx = self.entity_index.get(pose.name)
-            frame = self.entity_index.get(pose.frame, 0)
-            if idx is None:
-                continue
-            for link in self.peers:
-                link.send(codec.encode_fused(link.dialect, pose, idx, frame, self.fingerprint))
+        """Every entity's fused pose to every peer link, together (as few datagrams as fit)."""
+        for link in self.peers:
+            msgs = []
+            for pose in poses:
+                idx = self.entity_index.get(pose.name)
+                if pose.name == "world" or idx is None:
+                    continue
+                frame = self.entity_index.get(pose.frame, 0)
+                msgs.append(codec.encode_fused(link.dialect, pose, idx, frame, self.fingerprint))
+            if msgs:
+                link.send_many(msgs)
 
     def send_autopilot(self, pose: AutopilotPose) -> None:
         """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity; a non-finite pose is counted, not sent."""
