@@ -41,9 +41,12 @@ PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least 
 class Transport(Protocol):
     """What the node needs from its MAVLink links (implemented in :mod:`atlas_onboard.mavlink`)."""
 
-    def start(self, deliver: Callable[[MarkerData, int], None], may_read: threading.Event | None = None) -> None:
-        """Start the receive threads; ``deliver(md, arrival_ns)`` for every valid peer observation.
-        Peer links read only while ``may_read`` is set (the node holds them while it publishes)."""
+    def start(
+        self, deliver: Callable[[Sequence[tuple[MarkerData, int]]], None], may_read: threading.Event | None = None
+    ) -> None:
+        """Start the receive threads; ``deliver([(md, arrival_ns), ...])`` with the valid peer
+        observations of each read (a datagram). Peer links read only while ``may_read`` is set (the
+        node holds them while it publishes)."""
 
     def send_observations(self, mds: Sequence[MarkerData]) -> None:
         """Our accepted detections to every peer, together (an image's in one datagram where it fits)."""
@@ -202,18 +205,27 @@ class Node:
             items.append((stamped, now, True))
         self.inbox.put_many(items)
 
-    def deliver_peer(self, md: MarkerData, arrival_ns: int) -> None:
-        """An observation from a peer, already decoded, authenticated and de-duplicated by the link.
+    def deliver_peers(self, items: Sequence[tuple[MarkerData, int]]) -> None:
+        """Observations from a peer (those of one datagram), already decoded, authenticated and
+        de-duplicated by the link, with their arrival times; queued together.
 
         The last observation of an image that can move the own pose also pauses the peer links (see
         :meth:`_process`): the link's thread stops before its next datagram and leaves the processor
         to the loop, which would otherwise wait its turn behind the decoding of the rest of a burst.
+        Others' views are parked by the loop anyway: they wake it once per image, not per observation.
         """
-        urgent = self._relevant is None or self._concerns_own_pose(md)
-        if urgent and md.frame_remaining == 0 and self._relevant is not None:
+        wake = pause = False
+        for md, _ in items:
+            mine = self._relevant is None or self._concerns_own_pose(md)
+            wake |= mine or md.frame_remaining == 0
+            pause |= mine and md.frame_remaining == 0 and self._relevant is not None
+        if pause:
             self._may_read.clear()  # before the put: the loop sets it again once it has published
-        # Others' views are parked by the loop anyway: they wake it once per image, not per observation.
-        self.inbox.put_many(((md, arrival_ns, False),), wake=urgent or md.frame_remaining == 0)
+        self.inbox.put_many([(md, arrival_ns, False) for md, arrival_ns in items], wake=wake)
+
+    def deliver_peer(self, md: MarkerData, arrival_ns: int) -> None:
+        """One observation from a peer (:meth:`deliver_peers`)."""
+        self.deliver_peers(((md, arrival_ns),))
 
     def stop(self) -> None:
         """Ask the loop to end (safe from a signal handler: it only sets a flag; the loop polls it)."""
@@ -227,7 +239,7 @@ class Node:
 
     def run(self) -> int:
         """Run until stopped; returns the exit status (0)."""
-        self.transport.start(self.deliver_peer, self._may_read)
+        self.transport.start(self.deliver_peers, self._may_read)
         for cam in self.cameras:
             cam.start(self.deliver_local)
         self._notify("READY=1", f"STATUS=running as {self.config.entity}")

@@ -170,6 +170,7 @@ class Link:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._handler: Handler | None = None
+        self._read_done: Callable[[Link], None] | None = None
         self._may_read: threading.Event | None = None
         self._kernel_drops = 0
         self._next_drops_check_s = 0.0
@@ -399,14 +400,21 @@ class Link:
 
     # --- thread mode --------------------------------------------------------------------------------
 
-    def start(self, handler: Handler, may_read: threading.Event | None = None) -> None:
-        """Read in a thread of its own: ``handler(link, msg, arrival_monotonic_ns)`` for each message.
+    def start(
+        self,
+        handler: Handler,
+        may_read: threading.Event | None = None,
+        read_done: Callable[[Link], None] | None = None,
+    ) -> None:
+        """Read in a thread of its own: ``handler(link, msg, arrival_monotonic_ns)`` for each message,
+        then ``read_done(link)`` after the messages of each read (a datagram, or a chunk of a stream).
 
         With ``may_read``, the thread reads only while it is set (waiting at most ``MAX_HOLD_S``):
         the node clears it while it evaluates and publishes its own pose, so that decoding the rest
         of a burst does not take the interpreter from it (the datagrams wait in the socket's buffer).
         """
         self._handler = handler
+        self._read_done = read_done
         self._may_read = may_read
         self._try_reopen(0.0)
         self._thread = threading.Thread(target=self._run, name=f"link-{self.name}", daemon=True)
@@ -425,6 +433,12 @@ class Link:
                     except Exception:  # a bug in a handler must not kill the link's thread
                         self.counters.inc("handler_errors")
                         _logger.exception("%s: handler failed on %s", self.name, msg.get_type())
+                if self._read_done is not None:
+                    try:
+                        self._read_done(self)
+                    except Exception:  # likewise
+                        self.counters.inc("handler_errors")
+                        _logger.exception("%s: handler failed after a read", self.name)
                 self._wait_turn()  # between two datagrams: the node may be publishing
 
     def _wait_turn(self) -> None:

@@ -49,7 +49,8 @@ class MavlinkTransport:
             for i, p in enumerate(config.peers)
         ]
         self.entity_index = {name: i for i, name in enumerate(world.entity_names)}
-        self._deliver: Callable[[MarkerData, int], None] | None = None
+        self._deliver: Callable[[Sequence[tuple[MarkerData, int]]], None] | None = None
+        self._read: list[list[tuple[MarkerData, int]]] = [[] for _ in self.peers]  # per link, this read's
         self.gate = PeerGate(config.system_id)  # shared by the receive threads of every peer link
         self._lock = threading.Lock()
         self._next_heartbeat_ns = 0
@@ -62,12 +63,25 @@ class MavlinkTransport:
 
     # --- Transport ------------------------------------------------------------------------------------
 
-    def start(self, deliver: Callable[[MarkerData, int], None], may_read: threading.Event | None = None) -> None:
+    def start(
+        self, deliver: Callable[[Sequence[tuple[MarkerData, int]]], None], may_read: threading.Event | None = None
+    ) -> None:
         self._deliver = deliver
         if self.autopilot is not None:
             self.autopilot.start(self._on_autopilot)
         for i, link in enumerate(self.peers):
-            link.start(lambda lk, msg, t, i=i: self._on_peer(i, lk, msg, t), may_read)
+            link.start(
+                lambda lk, msg, t, i=i: self._on_peer(i, lk, msg, t),
+                may_read,
+                read_done=lambda lk, i=i: self._hand_on(i),
+            )
+
+    def _hand_on(self, index: int) -> None:
+        """The observations of one read of peer link ``index``, to the node together."""
+        items = self._read[index]
+        if items and self._deliver is not None:
+            self._read[index] = []
+            self._deliver(items)
 
     def send_observations(self, mds: Sequence[MarkerData]) -> None:
         """Our own observations to every peer link (as ATLAS_OBSERVATION, or TUNNEL where configured),
@@ -227,8 +241,7 @@ class MavlinkTransport:
         if self.gate.stamp_refused(md, wall_ns):
             self.counters_.inc("rejected_bad_stamp")
             return
-        if self._deliver is not None:
-            self._deliver(md, arrival_ns)
+        self._read[index].append((md, arrival_ns))
 
     def _wall_ns(self) -> int:
         """The wall clock (UNIX epoch) in ns, to the microsecond (the resolution of a float of seconds)."""

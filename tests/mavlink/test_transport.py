@@ -78,10 +78,12 @@ def rig():
     delivered: list = []
     lock = threading.Lock()
 
-    def deliver(md, arrival_ns):
+    def deliver(items):
         with lock:
-            delivered.append(md)
+            delivered.extend(md for md, _ in items)
+            transport.batches.append(len(items))
 
+    transport.batches = []  # how many observations each hand-over carried
     transport.start(deliver)
     senders = [RawSender(p0, 250), RawSender(p1, 250)]
     yield world, transport, ap, senders, delivered
@@ -249,3 +251,18 @@ def test_clock_skew_is_counted(rig):
     assert [md.seq for md in delivered] == [1, 2]
     c = transport.counters()
     assert c["clock_skew_warnings"] == 2 and c["rejected_bad_stamp"] == 1
+
+
+def test_the_observations_of_one_datagram_are_handed_on_together(rig):
+    """An image's observations packed in one datagram (as nodes send them) reach the node in one
+    hand-over, in order; separate datagrams in separate ones."""
+    world, transport, _, (s0, _), delivered = rig
+    fp = world.fingerprint()
+    t_us = int(WALL_S * 1e6)
+    image = [s0.observation(seq=10 + k, fingerprint=fp, time_usec=t_us, frame_remaining=2 - k) for k in range(3)]
+    s0.raw(b"".join(image))
+    settle(transport, delivered)
+    s0.raw(s0.observation(seq=20, fingerprint=fp, time_usec=t_us))
+    settle(transport, delivered)
+    assert [m.seq for m in delivered] == [10, 11, 12, 20] and [m.frame_remaining for m in delivered[:3]] == [2, 1, 0]
+    assert transport.batches == [3, 1]
