@@ -216,7 +216,7 @@ class Node:
         """
         wake = pause = False
         for md, _ in items:
-            mine = self._relevant is None or self._concerns_own_pose(md)
+            mine = self._concerns_own_pose(md)  # every observation while the own entity has no pose
             wake |= mine or md.frame_remaining == 0
             pause |= mine and md.frame_remaining == 0 and self._relevant is not None
         if pause:

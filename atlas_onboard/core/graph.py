@@ -428,7 +428,7 @@ class TransformGraph:
         poses, order, levels, gated = self._evaluate_from(slots, world, now_ns, cands, goal)
         reached = set(order)
         if goal is not None and goal not in reached:
-            return self.evaluate(now_ns)
+            goal = None  # _evaluate_from has evaluated everything: the relative poses follow
         unreached = tuple(self.names[v] for v in range(len(self.names)) if v not in reached)
         relative: dict[str, dict[str, EntityPose]] = {}
         if self.relative:

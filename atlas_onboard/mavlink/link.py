@@ -457,25 +457,11 @@ class Link:
 
     def send(self, msg: Any) -> bool:
         """Send one message (thread-safe); False (counted) when the link is down or the write fails."""
-        conn = self._conn
-        if conn is None:
-            self.counters.inc("tx_dropped_link_down")
-            return False
-        try:
-            with self._send_lock:
-                if self._key is not None:
-                    self._advance_signing_clock(conn)
-                conn.mav.send(msg)
-        except Exception as exc:  # a write error is a dead link: the reader reopens it when its read fails
-            self.counters.inc("tx_errors")
-            _logger.debug("%s: send failed: %s", self.name, exc)
-            return False
-        self.counters.inc(f"tx_{msg.get_type().lower()}")
-        return True
+        return self.send_many((msg,))
 
     def send_many(self, msgs: Sequence[Any]) -> bool:
-        """Send several messages back to back (thread-safe), as :meth:`send` does each (sequence
-        numbers, signing, counters), in as few writes as fit: on UDP, datagrams of up to
+        """Send several messages back to back (thread-safe), each as pymavlink's ``send`` would
+        (sequence numbers, signing, counters), in as few writes as fit: on UDP, datagrams of up to
         ``MAX_DATAGRAM_BYTES`` (below a network's MTU: a lost fragment would lose them all). A peer
         reads them all from one datagram; each costs the sender, the mesh and the receiver a
         datagram less. False (counted) when the link is down or a write fails."""

@@ -103,15 +103,17 @@ class MavlinkTransport:
 
     def send_fused(self, poses: Sequence[EntityPose], world: WorldConfig) -> None:
         """Every entity's fused pose to every peer link, together (as few datagrams as fit)."""
-        for link in self.peers:
-            msgs = []
-            for pose in poses:
-                idx = self.entity_index.get(pose.name)
-                if pose.name == "world" or idx is None:
-                    continue
-                frame = self.entity_index.get(pose.frame, 0)
-                msgs.append(codec.encode_fused(link.dialect, pose, idx, frame, self.fingerprint))
-            if msgs:
+        if not self.peers:
+            return
+        d = self.peers[0].dialect  # one generated dialect module for every link
+        msgs = []
+        for pose in poses:
+            idx = self.entity_index.get(pose.name)
+            if pose.name == "world" or idx is None:
+                continue
+            msgs.append(codec.encode_fused(d, pose, idx, self.entity_index.get(pose.frame, 0), self.fingerprint))
+        if msgs:
+            for link in self.peers:
                 link.send_many(msgs)
 
     def send_autopilot(self, pose: AutopilotPose) -> None:

@@ -231,6 +231,11 @@ def test_relative_poses_of_a_group_without_world():
     assert rel.frame == "D" and rel.level == 1
     assert_pose_close(rel.p_world_m, rel.q_world_xyzw, truth["D"].inv() * truth["E"], 1e-12, 1e-12)
     assert result.poses["A"].frame == "world"
+    # A target with no path to world gets the full evaluation, relative poses included.
+    targeted = g.evaluate(0, target="E")
+    assert targeted.complete and set(targeted.poses) == set(result.poses)
+    rel_t = targeted.relative["D"]["E"]
+    assert_pose_close(rel_t.p_world_m, rel_t.q_world_xyzw, truth["D"].inv() * truth["E"], 1e-12, 1e-12)
 
 
 def test_relative_off_by_default():
