@@ -69,6 +69,9 @@ class FusionConfig:
             first entity (world-file order), and publish those relative poses.
         age_sigma_m_per_s: how fast an edge's information goes stale (about the entities' speed):
             an edge of age a counts with sigma sqrt(sigma^2 + (a * this)^2). 0: the paper's method.
+        age_sigma_deg_per_s: the same for the attitude (about the entities' turn rate, degrees per
+            second): an edge of age a adds (a * this)^2 to its attitude variance. It changes no
+            weight, only the covariance published with the pose. 0: attitudes do not age.
         outlier_gate_sigma: a candidate farther from the consensus of the others than this many
             standard deviations (position or attitude) is rejected and counted. 0: off (the paper).
         filter: ``none`` (the paper: the fused pose of the newest observations is the output) or
@@ -90,6 +93,7 @@ class FusionConfig:
     filter: str = "none"
     ekf_accel_noise: float = 2.0
     ekf_max_predict_s: float = 0.5
+    age_sigma_deg_per_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -367,6 +371,7 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
     if value is None:
         return FusionConfig()
     keys = {"edge_timeout_s", "ema_alpha", "weighting", "path", "relative_poses", "age_sigma_m_per_s"}
+    keys |= {"age_sigma_deg_per_s"}
     keys |= {"outlier_gate_sigma", "filter", "ekf_accel_noise", "ekf_max_predict_s"}
     m = _mapping(value, path, keys)
     default = FusionConfig()
@@ -386,6 +391,11 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
     age = _number(m.get("age_sigma_m_per_s", 0.0), _join(path, "age_sigma_m_per_s"), "m/s")
     if not 0.0 <= age <= 100.0:
         raise ConfigError(_join(path, "age_sigma_m_per_s"), f"expected a speed in [0, 100] m/s, got {age:g}")
+    age_deg = _number(m.get("age_sigma_deg_per_s", 0.0), _join(path, "age_sigma_deg_per_s"), "deg/s")
+    if not 0.0 <= age_deg <= 3600.0:
+        raise ConfigError(
+            _join(path, "age_sigma_deg_per_s"), f"expected a turn rate in [0, 3600] deg/s, got {age_deg:g}"
+        )
     gate = _number(m.get("outlier_gate_sigma", 0.0), _join(path, "outlier_gate_sigma"))
     if gate != 0.0 and not 2.0 <= gate <= 100.0:
         raise ConfigError(_join(path, "outlier_gate_sigma"), f"expected 0 (off) or a gate in [2, 100], got {gate:g}")
@@ -396,7 +406,9 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
     horizon = _number(m.get("ekf_max_predict_s", default.ekf_max_predict_s), _join(path, "ekf_max_predict_s"), "s")
     if not 0.0 < horizon <= 5.0:
         raise ConfigError(_join(path, "ekf_max_predict_s"), f"expected a horizon in (0, 5] s, got {horizon:g}")
-    return FusionConfig(timeout, alpha, Weighting(weighting), graph_path, relative, age, gate, filt, accel, horizon)
+    return FusionConfig(
+        timeout, alpha, Weighting(weighting), graph_path, relative, age, gate, filt, accel, horizon, age_deg
+    )
 
 
 def _read_camera(value: Any, path: str, base_dir: Path | None) -> CameraConfig:

@@ -198,6 +198,12 @@ BAD = [
     ),
     ("non-finite inf", BASE.replace("edge_timeout_s: 0.25", "edge_timeout_s: .inf"), "fusion.edge_timeout_s", "finite"),
     ("bad timeout", BASE.replace("edge_timeout_s: 0.25", "edge_timeout_s: -1"), "fusion.edge_timeout_s", "(0, 10]"),
+    (
+        "bad turn rate",
+        BASE.replace("weighting: sigma_min}", "weighting: sigma_min, age_sigma_deg_per_s: -5}"),
+        "fusion.age_sigma_deg_per_s",
+        "[0, 3600] deg/s",
+    ),
     ("bad convention", BASE.replace("world: ENU", "world: NWU"), "conventions.world", "one of ENU, NED"),
     (
         "bad family",

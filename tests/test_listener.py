@@ -195,6 +195,32 @@ def test_with_age_sigma_each_edge_is_a_kalman_filter():
     assert edge.sigma_m == pytest.approx(np.sqrt(var_old * var_new / (var_old + var_new)))
 
 
+def test_a_record_with_its_own_covariance_replaces_its_edge_and_keeps_it():
+    """A record carrying the detector's 6x6 replaces its edge even with age_sigma (no scalar blend),
+    and the edge's covariance is that 6x6 carried through eq. 1's mountings, not the sigma model."""
+    from atlas_onboard.core import covariance
+    from atlas_onboard.core.markerdata import matrix_to_upper
+
+    world = world_from({**HAND, "fusion": {"age_sigma_m_per_s": 1.0}})
+    graph = make_graph(world)
+    listener = Listener(world, graph)
+    C_sm = np.diag([1e-8, 1e-8, 4e-6, 3e-4, 3e-4, 1e-6])
+    C_sm[0, 4] = C_sm[4, 0] = 1e-6  # a lateral-tilt correlation, to see it carried
+    sharp = MarkerData(1, 5, 0.001, (0.0, 0.0, 2.0), (1.0, 0.0, 0.0, 0.0), 0, covariance=matrix_to_upper(C_sm))
+    second = replace(sharp, sigma_m=0.1, p_sensor_marker_m=(0.0, 0.0, 2.3))
+    listener.accept(sharp, now_ns=0)
+    listener.accept(second, now_ns=20 * MS)
+    edge = graph.edges[(1, 5)]
+    np.testing.assert_allclose(edge.p_a_b, listener.edge_from(second).p_a_b, atol=1e-12)  # replaced
+    T1 = world.sensors[1].T_entity_sensor.as_matrix()
+    T3_inv = world.markers[5].T_entity_marker.inv().as_matrix()
+    expected = covariance.detection(T1[None, :3, :3], T1[None, :3, :3], T3_inv[None, :3, 3], T3_inv[None, :3, :3],
+                                    C_sm[None])[0]  # fmt: skip
+    np.testing.assert_allclose(graph.edges[(1, 5)].cov_a_b, expected, rtol=1e-12, atol=1e-18)
+    model = listener.edge_from(replace(second, covariance=())).cov_a_b
+    assert model[0, 0] > 100 * expected[0, 0]  # the sigma model: the isotropic camera position, far wider
+
+
 # --- planar ambiguity ------------------------------------------------------------------------------
 
 AMB = {

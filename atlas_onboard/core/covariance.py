@@ -103,6 +103,26 @@ def observation_parts(
 _POSITION_BLOCK = np.diag([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
 
 
+def detection(
+    R_as: NDArray[np.float64],
+    R_am: NDArray[np.float64],
+    p_mb: NDArray[np.float64],
+    R_mb: NDArray[np.float64],
+    C_sm: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """Covariances of edges ``T_a_b = T_a_s T_s_m T_m_b`` from the detector's own covariance of
+    ``T_s_m`` (``C_sm``, batched (..., 6, 6): dp in the sensor frame, dtheta about the marker's axes),
+    carried through the fixed mountings: left by ``T_a_s`` the position error turns into frame a,
+    right by ``T_m_b`` the marker's rotation error swings b over the lever arm ``p_mb`` and turns
+    into b's axes. ``J = [[R_as, -R_am [p_mb]x], [0, R_mb^T]]``, ``C_ab = J C_sm J^T``."""
+    n = np.shape(C_sm)[:-2]
+    J = np.zeros((*n, 6, 6))
+    J[..., :3, :3] = R_as
+    J[..., :3, 3:] = -R_am @ skew(p_mb)
+    J[..., 3:, 3:] = np.swapaxes(R_mb, -1, -2)
+    return transform(J, C_sm)
+
+
 def diagonal(sigma_m: NDArray[np.float64] | float, sigma_att_rad: NDArray[np.float64] | float) -> NDArray[np.float64]:
     """Covariances of isotropic position and attitude errors, shape (..., 6, 6)."""
     s = np.asarray(sigma_m, dtype=float)

@@ -204,6 +204,7 @@ class TransformGraph:
         relative: bool = False,
         age_sigma_m_per_s: float = 0.0,
         outlier_gate_sigma: float = 0.0,
+        age_sigma_rad_per_s: float = 0.0,
         keep_candidates: bool = False,
     ) -> None:
         names = list(entity_names)
@@ -225,6 +226,8 @@ class TransformGraph:
         # an edge of age a (s) counts with sigma sqrt(sigma^2 + (a * age_sigma)^2), so fresh
         # observations outvote stale ones (0: the paper's method, every live edge counts as new).
         self.age_sigma_m_per_s = age_sigma_m_per_s
+        # The same for the attitude (rad/s): only the covariance grows, no weight changes.
+        self.age_sigma_rad_per_s = age_sigma_rad_per_s
         # Beyond the paper: a candidate farther than this many sigma from the consensus of the others
         # (or, with fewer than three, from the entity's last estimate) is left out. 0: off.
         self.outlier_gate_sigma = outlier_gate_sigma
@@ -527,8 +530,8 @@ class TransformGraph:
         order_arr, level, stage_of = plan.order, plan.level, plan.stage_of
         row, direction, parent_all, child_all = plan.row, plan.direction, plan.parent, plan.child
         sigma_raw = arr.sigma[row]
+        age_s = np.maximum(now_ns - arr.stamp[row], 0) / 1e9
         if self.age_sigma_m_per_s > 0.0:
-            age_s = np.maximum(now_ns - arr.stamp[row], 0) / 1e9
             sigma_all = np.hypot(sigma_raw, age_s * self.age_sigma_m_per_s)
         else:
             sigma_all = sigma_raw
@@ -548,10 +551,12 @@ class TransformGraph:
             parent, child = parent_all[sel], child_all[sel]
             p_pc, q_pc, s_edge, t_edge = p_all[sel], q_all[sel], sigma_all[sel], t_all[sel]
             c_edge = c_all[sel]
-            if self.age_sigma_m_per_s > 0.0:
+            if self.age_sigma_m_per_s > 0.0 or self.age_sigma_rad_per_s > 0.0:
                 c_edge = c_edge.copy()
                 grow = (s_edge**2 - sigma_raw[sel] ** 2).clip(0.0)
                 c_edge[:, [0, 1, 2], [0, 1, 2]] += grow[:, None]
+                turn = (age_s[sel] * self.age_sigma_rad_per_s) ** 2
+                c_edge[:, [3, 4, 5], [3, 4, 5]] += turn[:, None]
             Jp: NDArray[np.float64] | None = None
             if from_root:  # the root's pose is the identity, exactly, with no uncertainty
                 p_cand, q_cand, s_cand, edge_term = p_pc, q_pc, s_edge, c_edge

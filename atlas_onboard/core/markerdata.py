@@ -32,6 +32,8 @@ class Rejection(StrEnum):
     OUTLIER = "outlier"
     AMBIGUOUS = "ambiguous"
     """The two planar solutions fit almost equally well and the record carries no usable other one."""
+    BAD_COVARIANCE = "bad_covariance"
+    """A detection covariance that is not 21 finite numbers making a positive definite 6x6 matrix."""
     AMBIGUITY_UNRESOLVED = "ambiguity_unresolved"
     """Ambiguous with both solutions, but the current estimates could not say which is right (no
     estimate of the observer or the observed entity, or both solutions far from the prediction, or
@@ -68,6 +70,13 @@ class MarkerData:
         frame_remaining: how many more observations of the same image (same sensor and capture time)
             follow this one from its producer; 0 for the last one. A receiver evaluates a frame whole:
             a pose fused from part of a frame and the rest of the previous one would mix two instants.
+        covariance: the detection's own 6x6 covariance, its upper triangle row by row (21 numbers, the
+            order of MAVLink's covariance arrays), or empty when the producer has none. The 6-vector is
+            ``[dp, dtheta]`` as everywhere in atlas-onboard (:mod:`atlas_onboard.core.covariance`): the
+            marker centre's error in the sensor frame (m) and the marker's rotation error about its own
+            axes (rad). It keeps what a scalar sigma loses: a far marker is placed precisely across
+            the line of sight and poorly in depth and tilt, and its tilt and the camera's position
+            seen from it are correlated. Without it the listener models the covariance from sigma.
 
     The other solution is auxiliary: the record stands on its primary solution. An alternative that is
     neither all finite nor all NaN (or has a zero quaternion, or is out of range) is unusable: the
@@ -89,6 +98,7 @@ class MarkerData:
     p_sensor_marker_alt_m: tuple[float, float, float] = _NAN3
     q_sensor_marker_alt_wxyz: tuple[float, float, float, float] = _NAN4
     frame_remaining: int = 0
+    covariance: tuple[float, ...] = ()
 
     def rejection(self) -> Rejection | None:
         """The reason this record is invalid on its own (without a world file), or None if it is valid."""
@@ -105,7 +115,15 @@ class MarkerData:
         err, ratio = self.reprojection_error_px, self.ambiguity_ratio
         if not (math.isnan(err) or 0.0 <= err < math.inf) or not (math.isnan(ratio) or 0.0 <= ratio <= 1.0):
             return Rejection.BAD_QUALITY
+        if self.covariance and not _positive_definite(self.covariance):
+            return Rejection.BAD_COVARIANCE
         return None
+
+    def covariance_matrix(self) -> np.ndarray | None:
+        """The detection covariance as a symmetric 6x6 array, or None when the record has none."""
+        if not self.covariance:
+            return None
+        return upper_to_matrix(np.asarray(self.covariance, dtype=float))
 
     def q_sensor_marker_xyzw(self) -> np.ndarray:
         """The quaternion in scipy's order (x, y, z, w)."""
@@ -129,6 +147,32 @@ class MarkerData:
         """The other solution's quaternion in scipy's order (x, y, z, w)."""
         w, x, y, z = self.q_sensor_marker_alt_wxyz
         return np.array([x, y, z, w])
+
+
+_UPPER = np.triu_indices(6)
+_FULL_FROM_UPPER = np.zeros((6, 6), dtype=int)
+_FULL_FROM_UPPER[_UPPER] = np.arange(21)
+_FULL_FROM_UPPER.T[_UPPER] = np.arange(21)
+
+
+def upper_to_matrix(upper: np.ndarray) -> np.ndarray:
+    """Symmetric 6x6 matrices from their upper triangles row by row, shape (..., 21) -> (..., 6, 6)."""
+    return np.asarray(upper, dtype=float)[..., _FULL_FROM_UPPER]
+
+
+def matrix_to_upper(C: np.ndarray) -> tuple[float, ...]:
+    """The upper triangle of a 6x6 matrix, row by row (MAVLink's covariance order)."""
+    return tuple(float(v) for v in np.asarray(C, dtype=float)[_UPPER])
+
+
+def _positive_definite(upper: tuple[float, ...]) -> bool:
+    if len(upper) != 21 or not all(math.isfinite(v) for v in upper):
+        return False
+    try:
+        np.linalg.cholesky(upper_to_matrix(np.asarray(upper)))
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 class AltState(StrEnum):

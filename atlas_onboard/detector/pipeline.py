@@ -17,7 +17,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import SensorConfig, WorldConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
-from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
@@ -154,7 +154,7 @@ class Detector:
                 self.counters["ambiguous"] += ambiguous
                 alt = (mp.p_alt_m, mp.q_alt_xyzw) if mp.p_alt_m is not None and mp.q_alt_xyzw is not None else None
                 out.append(self._markerdata(mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px, mp.ambiguity,
-                                            capture_time_us, alt))  # fmt: skip
+                                            capture_time_us, alt, mp.covariance))  # fmt: skip
         self.counters["detections"] += len(out)
         return out
 
@@ -191,8 +191,13 @@ class Detector:
             self.counters["joint_misfit"] += 1
             return None, True
         T = RigidTransform.from_components(tvec, Rotation.from_rotvec(rvec)) * T_entity_anchor
+        # The covariance of the anchor's pose: the same corners, in the anchor's frame.
+        obj_anchor = T_entity_anchor.inv().apply(obj)
+        sigma_px = pose.corner_noise_px(self._sigma_px(fam), float(np.median([_side(singles[m][1]) for m in ids])))
+        cov = pose.pose_covariance(T.rotation.as_matrix(), T.translation, obj_anchor, self.calibration.K, sigma_px, err)
         self.counters["joint"] += 1
-        return self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us), False
+        md = self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us, None, cov)
+        return md, False
 
     def _markerdata(
         self,
@@ -204,8 +209,10 @@ class Detector:
         ambiguity: float,
         capture_time_us: int,
         alt: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+        covariance: NDArray[np.float64] | None = None,
     ) -> MarkerData:
-        """``alt``: the other IPPE solution (p, q_xyzw), carried along for the listener."""
+        """``alt``: the other IPPE solution (p, q_xyzw), carried along for the listener; ``covariance``:
+        the chosen solution's 6x6 (:func:`pose.pose_covariance`; None: the record carries none)."""
         x, y, z, w = q_xyzw
         if alt is None:
             p_alt, q_alt = (math.nan,) * 3, (math.nan,) * 4
@@ -223,6 +230,7 @@ class Detector:
             ambiguity_ratio=float(ambiguity),
             p_sensor_marker_alt_m=p_alt,  # type: ignore[arg-type]
             q_sensor_marker_alt_wxyz=q_alt,  # type: ignore[arg-type]
+            covariance=matrix_to_upper(covariance) if covariance is not None else (),
         )
 
 

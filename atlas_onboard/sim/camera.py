@@ -92,6 +92,8 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
     """Observations from the true corners plus pixel noise, solved by IPPE PnP (no image)."""
     import cv2
 
+    from atlas_onboard.core.markerdata import matrix_to_upper
+    from atlas_onboard.detector.pose import pose_covariance
     from atlas_onboard.sim.world import marker_corners
 
     rng = np.random.default_rng(seed)
@@ -114,6 +116,7 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
             side_px = float(np.mean(np.linalg.norm(np.roll(img, -1, axis=0) - img, axis=1)))
             # Range error of a square seen at side_px pixels with corner noise of NOISE_PX.
             sigma = max(0.001, float(np.linalg.norm(p)) * 2.0 * NOISE_PX / max(side_px, 1.0))
+            cov = pose_covariance(r.as_matrix(), p, obj, K, NOISE_PX, float(e[0]) if len(e) else math.nan)
             out.append(
                 MarkerData(
                     sensor_id=sensor.id,
@@ -125,6 +128,7 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
                     reprojection_error_px=float(e[0]) if len(e) else float("nan"),
                     ambiguity_ratio=float(e[0] / e[1]) if len(e) > 1 and e[1] > 0 else float("nan"),
                     **_alt_fields(rvecs, tvecs),
+                    covariance=matrix_to_upper(cov) if cov is not None else (),
                 )
             )
         return out

@@ -210,3 +210,40 @@ def test_observation_covariance_is_the_product_of_its_jacobians(xyz, q_as, q_sm,
     expected = covariance.transform(J_right, C_am)
     got = covariance.observation(T_as[None], T_sm[None], T_mb[None], np.array([sigma]))[0]
     np.testing.assert_allclose(got, expected, atol=1e-12 * max(1.0, np.abs(expected).max()))
+
+
+def test_detection_covariance_matches_monte_carlo():
+    """covariance.detection carries the detector's own covariance of T_s_m through eq. 1's fixed
+    mountings (left T_a_s, right T_m_b with a long lever arm): against 20 000 perturbed chains."""
+    rng = np.random.default_rng(11)
+    T_as = pose([0.1, 0.0, -0.05], [0, 90, 0])
+    T_sm = pose([0.3, -0.2, 2.5], [170, 10, 30])
+    T_mb = pose([1.5, -0.8, 0.2], [0, 0, 40])  # the entity's origin far from the marker
+    C_sm = random_cov(rng, 0.003, 0.01)
+    predicted = covariance.detection(
+        T_as.rotation.as_matrix()[None],
+        (T_as.rotation * T_sm.rotation).as_matrix()[None],
+        T_mb.translation[None],
+        T_mb.rotation.as_matrix()[None],
+        C_sm[None],
+    )[0]
+    n = 20000
+    E = rng.normal(size=(n, 6)) @ np.linalg.cholesky(C_sm).T
+    got = sampled_cov(error(T_as * T_sm * T_mb, T_as * perturb(T_sm, E) * T_mb))
+    scale = np.sqrt(np.outer(np.diag(predicted), np.diag(predicted)))
+    assert np.max(np.abs(got - predicted) / scale) < 0.05
+
+
+def test_attitude_ages_only_when_asked():
+    """age_sigma_rad_per_s grows an edge's attitude variance by (age x rate)^2 and nothing else."""
+    C = covariance.diagonal(0.01, 0.02)
+    poses = {}
+    for rate in (0.0, 1.5):
+        g = TransformGraph(["world", "d"], 250 * MS, age_sigma_rad_per_s=rate)
+        g.update_edge(("c", 1), "world", "d", np.array([1.0, 0, 0]), np.array([0, 0, 0, 1.0]), 0.01, 0, 0, cov_a_b=C)
+        poses[rate] = g.evaluate(100 * MS).poses["d"]
+    np.testing.assert_allclose(poses[0.0].covariance, C, atol=1e-15)
+    grown = C.copy()
+    grown[[3, 4, 5], [3, 4, 5]] += (0.1 * 1.5) ** 2
+    np.testing.assert_allclose(poses[1.5].covariance, grown, atol=1e-15)
+    np.testing.assert_allclose(poses[1.5].p_world_m, poses[0.0].p_world_m)

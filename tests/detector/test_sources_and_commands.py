@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import CameraConfig, parse_world
 from atlas_onboard.detector import sources
@@ -148,8 +149,12 @@ def test_detect_command_on_a_real_photo(tmp_path):
     assert proc.returncode == 0, proc.stderr
     rows = [json.loads(line) for line in proc.stdout.splitlines()]
     assert [r["marker_id"] for r in rows] == [403]
-    # The source set's derived camera-frame position of marker 403 (IPPE on OpenCV corners).
-    np.testing.assert_allclose(rows[0]["p_sensor_marker_m"], [-0.0278, 0.0162, 0.7835], atol=0.005)
+    # The source's own expectation (fiducial_slam's auto_init_403 test): marker 403 in base_link at
+    # (0.7611, 0.2505, 0.4028) m, with the camera at base_link (x y z yaw pitch roll) below. IPPE
+    # alone was 4.8 mm off (0.7656, 0.2511, 0.4043); refined to the least-squares pose, 0.5 mm.
+    cam = Rotation.from_euler("ZYX", [-1.479119, -0.041544, -1.204205])
+    p_base = cam.apply(rows[0]["p_sensor_marker_m"]) + np.array([0.035, 0.145, 0.14])
+    np.testing.assert_allclose(p_base, [0.7611, 0.2505, 0.4028], atol=0.002)
     assert (tmp_path / "a.png").stat().st_size > 1000
     bad = run_cli("detect", "--config", str(world), "--sensor", "cam", "--image", str(tmp_path / "missing.png"))
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "cannot read" in bad.stderr
