@@ -607,6 +607,16 @@ class TransformGraph:
             # eq. 6-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
             # The paper weighs by the sensor's sigma; Dijkstra weighs by the whole chain's.
             s_weigh = s_cand if self.path == "dijkstra" else s_edge
+            if self.inverse_variance:
+                # Beyond the paper: weights from each candidate's propagated position variance (its
+                # covariance's position block, the detector's own where it reported one, aged), so a
+                # fresh precise view outweighs a stale or a poorly placed one whatever their sigma says.
+                c_weigh = (
+                    edge_term
+                    if Jp is None or self.path != "dijkstra"
+                    else edge_term + covariance.transform(Jp, cov_world[parent])
+                )
+                s_weigh = np.sqrt(np.maximum(np.trace(c_weigh[:, :3, :3], axis1=1, axis2=2) / 3.0, 1e-30))
             weights = np.repeat(np.minimum.reduceat(s_weigh, kids.starts), kids.sizes) / s_weigh
             if self.inverse_variance:
                 weights = weights**2

@@ -116,6 +116,24 @@ def test_inverse_variance_option_changes_weights():
     np.testing.assert_allclose(g.evaluate(0).poses["A"].p_world_m, [0.1, 0, 0], atol=1e-12)
 
 
+def test_inverse_variance_weighs_by_the_candidates_covariances():
+    """Beyond the paper: with inverse_variance, a candidate's weight is its propagated position
+    variance, not its sigma: two views with the same sigma, one placed 3 times more precisely (a
+    ceiling camera's view of a tag), weigh 9 : 1; the paper's sigma_min weighting gives 1 : 1."""
+    from atlas_onboard.core import covariance
+
+    got = {}
+    for inverse in (False, True):
+        g = TransformGraph(["world", "A"], 250 * MS, inverse_variance=inverse)
+        for key, x, s_p in (((1, 1), 0.0, 0.001), ((1, 2), 1.0, 0.003)):
+            T = pose([x, 0, 0])
+            C = covariance.diagonal(s_p, 0.01)
+            g.update_edge(key, "world", "A", T.translation, T.rotation.as_quat(), 0.01, 0, 0, cov_a_b=C)
+        got[inverse] = g.evaluate(0).poses["A"].p_world_m
+    np.testing.assert_allclose(got[False], [0.5, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(got[True], [0.1, 0, 0], atol=1e-12)
+
+
 def test_relay_through_another_drone():
     # The paper's Figure 1: B sees no world marker; A sees the world and B.
     truth = {"world": RigidTransform.identity(), "A": pose([1, 1, 2], [0, 10, 45]), "B": pose([3, 0, 1.5], [0, 0, 180])}
