@@ -36,7 +36,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from soak import cpu_s  # the benchmarks folder is on the path when run as a script
+from soak import cpu_s, detection_covariance  # the benchmarks folder is on the path when run as a script
 
 from atlas_onboard.config import load_world
 from atlas_onboard.core.markerdata import MarkerData
@@ -75,7 +75,8 @@ def views(world, k: int) -> list[MarkerData]:
         T = (T_world_drone * s.T_entity_sensor).inv() * m.T_entity_marker
         x, y, z, w = T.rotation.as_quat()
         p = T.translation
-        out.append(MarkerData(k + 1, m.id, 0.01, (p[0], p[1], p[2]), (w, x, y, z), 0, origin=50 + k))
+        cov = detection_covariance(T, m.size_m)
+        out.append(MarkerData(k + 1, m.id, 0.01, (p[0], p[1], p[2]), (w, x, y, z), 0, origin=50 + k, covariance=cov))
     return out
 
 

@@ -34,7 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import itertools
 
 from atlas_onboard.config import load_world
-from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
+from atlas_onboard.detector import pose
 from atlas_onboard.mavlink import codec, dialect
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.hub import Hub
@@ -47,6 +48,16 @@ def rss_kb(pid: int) -> int:
         if line.startswith("VmRSS:"):
             return int(line.split()[1])
     return 0
+
+
+def detection_covariance(T_sensor_marker: RigidTransform, size_m: float) -> tuple[float, ...]:
+    """The 6x6 covariance a camera's detector reports with such a view (a 640x480 camera, 0.1 px
+    corners), so that the load carries what real observations carry on the wire."""
+    K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+    C = pose.pose_covariance(
+        T_sensor_marker.rotation.as_matrix(), T_sensor_marker.translation, pose.object_corners(size_m), K, 0.1, 0.05
+    )
+    return matrix_to_upper(C) if C is not None else ()
 
 
 def cpu_s(pid: int) -> float:
@@ -77,7 +88,8 @@ def load(path: Path, hub_port: int, n: int, per: int, stop: Any, sent: Any, log:
             m = world.markers[per * k + j]
             T = T_sw * m.T_entity_marker
             x, y, z, w = T.rotation.as_quat()
-            md = MarkerData(k + 1, m.id, 0.01, tuple(T.translation), (w, x, y, z), 0, frame_remaining=per - 1 - j)
+            md = MarkerData(k + 1, m.id, 0.01, tuple(T.translation), (w, x, y, z), 0, frame_remaining=per - 1 - j,
+                            covariance=detection_covariance(T, m.size_m))  # fmt: skip
             views.append((k, codec.encode_observation(d, md, fp)))
     nxt = time.time()
     seq = 0

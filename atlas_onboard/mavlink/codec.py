@@ -65,7 +65,26 @@ def observation_fields(md: MarkerData, fingerprint: int) -> dict[str, Any]:
         "seq": md.seq & 0xFFFF,
         "format_version": FORMAT_VERSION,
         "frame_remaining": min(max(int(md.frame_remaining), 0), 255),
+        "covariance": list(md.covariance) if md.covariance else _NO_COVARIANCE,
     }
+
+
+_NO_COVARIANCE = [0.0] * 21  # none: all zero, which MAVLink 2 cuts from the payload (as a sender without it)
+
+
+def _covariance(values: Sequence[float] | None) -> tuple[float, ...]:
+    """MarkerData.covariance from the wire. None when absent (the TUNNEL form), all 0 (a sender
+    without the extension, or without a covariance) or marked unknown (first element NaN, MAVLink's
+    way); otherwise the 21 numbers as they came (a bad one is the listener's ``bad_covariance``).
+    21 float32 keep the covariance's thin directions (a far marker's lateral offset and tilt
+    correlate at 0.98 and more): a compact code of the correlations in int8 made them thousands of
+    times too narrow for the simulator's ceiling cameras."""
+    if values is None or len(values) != 21:
+        return ()
+    first = float(values[0])
+    if math.isnan(first) or (first == 0.0 and not any(values)):
+        return ()
+    return tuple(values)
 
 
 def encode_observation(dialect: ModuleType, md: MarkerData, fingerprint: int) -> Any:
@@ -106,6 +125,7 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
             p_sensor_marker_alt_m=(float(msg.x_alt), float(msg.y_alt), float(msg.z_alt)),
             q_sensor_marker_alt_wxyz=(q_alt[0], q_alt[1], q_alt[2], q_alt[3]),
             frame_remaining=int(getattr(msg, "frame_remaining", 0) or 0),
+            covariance=_covariance(getattr(msg, "covariance", None)),
         )
     except (TypeError, ValueError, AttributeError):
         raise RejectionError("malformed") from None

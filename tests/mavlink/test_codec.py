@@ -257,3 +257,63 @@ def test_round_trip_is_exact_for_every_representable_record(sensor, marker, sigm
         assert all(math.isnan(v) for v in (*got.p_sensor_marker_alt_m, *got.q_sensor_marker_alt_wxyz))
     else:
         assert (got.p_sensor_marker_alt_m, got.q_sensor_marker_alt_wxyz) == alt
+
+
+def _detection_covariance():
+    """A real single-marker covariance (a 20 cm tag 2.8 m below a ceiling camera): its lateral offset
+    and tilt correlate at 0.985, the case a compact code of the correlations gets wrong."""
+    from atlas_onboard.core.markerdata import matrix_to_upper
+    from atlas_onboard.detector import pose
+
+    K = np.array([[480.0, 0, 480], [0, 480.0, 270], [0, 0, 1]])
+    R = np.diag([1.0, -1.0, -1.0])  # face up, seen from above
+    C = pose.pose_covariance(R, np.array([0.6, -0.3, 2.8]), pose.object_corners(0.2), K, 0.1, 0.05)
+    return C, matrix_to_upper(C)
+
+
+def test_covariance_travels_as_21_float32_and_keeps_its_thin_directions():
+    import scipy.linalg
+
+    C, upper = _detection_covariance()
+    md = replace(MD, covariance=upper)
+    buf = wire(codec.encode_observation(D, md, FP))
+    payload = buf[10 : 10 + buf[1]]
+    assert len(payload) == 172
+    assert struct.unpack_from("<21f", payload, 88) == tuple(f32(v) for v in upper)  # the documented offset
+    (msg,) = parse(buf)
+    got = codec.decode_observation(msg, 9, FP, check=True)
+    assert got.covariance == tuple(f32(v) for v in upper)
+    # Every direction's variance kept: the generalized eigenvalues of C against what arrived are 1.
+    w = scipy.linalg.eigh(C, got.covariance_matrix(), eigvals_only=True)
+    assert np.all(np.abs(w - 1.0) < 1e-4)
+
+
+@pytest.mark.parametrize("how", ["none", "nan_first"])
+def test_no_covariance_is_empty_and_costs_no_bytes(how):
+    md = MD if how == "none" else replace(MD, covariance=(math.nan,) + (0.0,) * 20)
+    fields = codec.observation_fields(md, FP) if how == "none" else None
+    if how == "none":
+        assert fields["covariance"] == [0.0] * 21
+        buf = wire(codec.encode_observation(D, md, FP))
+        assert buf[1] == 87  # all zero: cut from the payload, as from a sender without the extension
+        (msg,) = parse(buf)
+    else:
+        msg = D.MAVLink_atlas_observation_message(
+            **{**codec.observation_fields(MD, FP), "covariance": list(md.covariance)}
+        )
+        (msg,) = parse(wire(msg))
+    assert codec.decode_observation(msg, 9, FP, check=True).covariance == ()
+
+
+def test_a_covariance_that_is_not_positive_definite_is_refused_with_its_reason():
+    _, upper = _detection_covariance()
+    bad = list(upper)
+    bad[0] = -bad[0]  # a negative variance
+    msg = D.MAVLink_atlas_observation_message(**{**codec.observation_fields(MD, FP), "covariance": bad})
+    (msg,) = parse(wire(msg))
+    with pytest.raises(codec.RejectionError) as e:
+        codec.decode_observation(msg, 9, FP, check=True)
+    assert e.value.reason == "bad_covariance"
+    # The TUNNEL form has no room for it: the receiver models the covariance from sigma.
+    tunnel = codec.tunnel_payload(replace(MD, covariance=upper), FP)
+    assert codec.decode_tunnel(43100, len(tunnel), list(tunnel) + [0] * (128 - len(tunnel)), 9, FP).covariance == ()

@@ -54,11 +54,12 @@ def test_the_document_states_the_generated_numbers():
         cls = getattr(d, f"MAVLink_{name.lower()}_message")
         msg_id, crc, _size = rows[name]
         assert (msg_id, crc) == (cls.id, cls.crc_extra), name
-    assert rows["ATLAS_OBSERVATION"][2] + 1 == d.MAVLink_atlas_observation_message.unpacker.size == 88
+    # 87 bytes, then the extensions frame_remaining (1 byte) and covariance (21 floats).
+    assert rows["ATLAS_OBSERVATION"][2] + 1 + 84 == d.MAVLink_atlas_observation_message.unpacker.size == 172
     assert rows["ATLAS_FUSED_POSE"][2] + 16 == d.MAVLink_atlas_fused_pose_message.unpacker.size
     assert 'struct.Struct("<QI3f4f3f3f4fHHHB")' in text and codec.TUNNEL_STRUCT.format == "<QI3f4f3f3f4fHHHB"
     # Every field of the observation table is at the offset the generated layout puts it.
-    offsets = dict(re.findall(r"^\| (\d+) \| (\w+)(?:\[\d+\])? \| (?:uint|float|char)", text, re.M)[:18])
+    offsets = dict(re.findall(r"^\| (\d+) \| (\w+)(?:\[\d+\])? \| (?:uint|float|char)", text, re.M)[:19])
     layout, at = {}, 0
     cls = d.MAVLink_atlas_observation_message
     sizes = {"Q": 8, "I": 4, "f": 4, "H": 2, "B": 1}
