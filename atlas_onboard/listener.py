@@ -139,6 +139,8 @@ class Listener:
             out.append(reason if reason is not None else md)  # type: ignore[arg-type]
             if reason is None:
                 valid.append(md)
+        if any(md.covariance for md in valid):
+            valid = self._positive_definite(valid, out)
         if not valid:
             return out, notes
         T1 = np.array([self._sensor[md.sensor_id][1] for md in valid])
@@ -167,6 +169,20 @@ class Listener:
                     out[i] = EdgeUpdate(key, observer, observed, p_ab[j], q_all[j], item.sigma_m, cov[j])
                 j += 1
         return out, notes
+
+    @staticmethod
+    def _positive_definite(valid: list[MarkerData], out: list[EdgeUpdate | Rejection]) -> list[MarkerData]:
+        """``valid`` without the records whose covariance is not positive definite (one batched
+        eigenvalue call); those become ``bad_covariance`` in ``out``."""
+        have = [md for md in valid if md.covariance]
+        lowest = np.linalg.eigvalsh(upper_to_matrix(np.array([md.covariance for md in have])))[:, 0]
+        bad = {id(md) for md, low in zip(have, lowest.tolist(), strict=True) if not low > 0.0}
+        if not bad:
+            return valid
+        for i, item in enumerate(out):
+            if id(item) in bad:
+                out[i] = Rejection.BAD_COVARIANCE
+        return [md for md in valid if id(md) not in bad]
 
     def _resolve_ambiguity(
         self,

@@ -359,3 +359,19 @@ def test_a_stale_estimate_cannot_resolve_an_ambiguity(age_ms, resolved):
     assert (reason is None) == resolved
     if not resolved:
         assert reason is Rejection.AMBIGUITY_UNRESOLVED and (1, 5) not in graph.edges
+
+
+def test_a_covariance_that_is_not_positive_definite_is_rejected_and_the_rest_of_the_batch_kept():
+    from atlas_onboard.core.markerdata import matrix_to_upper
+
+    _, graph, listener = make(HAND)
+    good = np.diag([1e-6, 1e-6, 4e-6, 1e-4, 1e-4, 1e-6])
+    bad = good.copy()
+    bad[0, 3] = bad[3, 0] = 2e-5  # |correlation| 2: positive variances, not positive definite
+    ok = MarkerData(1, 5, 0.01, (0.0, 0.0, 2.0), (1.0, 0.0, 0.0, 0.0), 0, covariance=matrix_to_upper(good))
+    wrong = replace(ok, seq=1, covariance=matrix_to_upper(bad))
+    assert wrong.rejection() is None  # on its own it looks plausible: the listener checks the matrix
+    reasons = listener.accept_many([(wrong, 0), (ok, 0)])
+    assert reasons == [Rejection.BAD_COVARIANCE, None]
+    assert listener.rejected[Rejection.BAD_COVARIANCE] == 1 and listener.accepted == 1
+    np.testing.assert_allclose(graph.edges[(1, 5)].p_a_b, listener.edge_from(ok).p_a_b)
