@@ -18,7 +18,7 @@ def error(T_est, p_true, R_true):
     return np.concatenate([p_true - T_est[0], Rotation.from_matrix(T_est[1].T @ R_true).as_rotvec()])
 
 
-@pytest.mark.parametrize("angle", [20, 45])
+@pytest.mark.parametrize("angle", [20])  # near face-on, the hard case for the first order
 def test_first_order_covariance_matches_monte_carlo_of_ippe(angle):
     rng = np.random.default_rng(angle)
     R_true = Rotation.from_euler("xz", [180 + angle, 30], degrees=True).as_matrix()
