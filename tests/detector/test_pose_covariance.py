@@ -29,12 +29,12 @@ def test_first_order_covariance_matches_monte_carlo_of_ippe(angle):
     sigma_px = 0.1  # the AprilTag library's corner noise at about 50 px (pose.SIGMA_PX_APRILTAG)
     predicted = pose.pose_covariance(R_true, p_true, obj, K, sigma_px, 0.0)
     errors = []
-    for _ in range(4000):
+    for _ in range(2500):
         mp = pose.solve(clean + rng.normal(0.0, sigma_px, clean.shape), SIZE, K, pose.SIGMA_PX_APRILTAG)
         errors.append(error((mp.p_m, Rotation.from_quat(mp.q_xyzw).as_matrix()), p_true, R_true))
     e = np.array(errors)
     got = e.T @ e / len(e)
-    # Each variance within 10 % (4000 samples: ~2 %), each correlation within 0.05.
+    # Each variance within 10 % (2500 samples: ~3 % sampling error), each correlation within 0.05.
     np.testing.assert_allclose(np.diag(got), np.diag(predicted), rtol=0.10)
     corr = lambda C: C / np.sqrt(np.outer(np.diag(C), np.diag(C)))  # noqa: E731
     assert np.max(np.abs(corr(got) - corr(predicted))) < 0.05
@@ -56,7 +56,7 @@ def test_rendered_detections_have_honest_covariances():
     cautious) nor far above (overconfident)."""
     rng = np.random.default_rng(5)
     nees = []
-    for k in range(48):
+    for k in range(32):
         distance, angle = rng.uniform(0.5, 3.0), rng.uniform(0.0, 60.0)
         rot = Rotation.from_euler("zxz", [rng.uniform(0, 360), 180 + angle, rng.uniform(0, 360)], degrees=True)
         off = rng.uniform(-0.25, 0.25, 2) * distance
@@ -70,6 +70,6 @@ def test_rendered_detections_have_honest_covariances():
             continue
         e = error((mp.p_m, Rotation.from_quat(mp.q_xyzw).as_matrix()), T.translation, T.rotation.as_matrix())
         nees.append(e @ np.linalg.solve(mp.covariance, e))
-    assert len(nees) >= 35
+    assert len(nees) >= 24
     print(f"mean NEES6 {np.mean(nees):.2f}, median {np.median(nees):.2f} over {len(nees)} detections")
     assert 2.0 <= np.mean(nees) <= 15.0
