@@ -314,13 +314,12 @@ class Listener:
             p = fusion.ema_position(state.p, result.p_a_b, alpha)
             q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, alpha)
             sigma = float(np.sqrt(var_old * var_new / (var_old + var_new)))
-            # A record with its own 6x6 covariance is not blended so: a scalar random walk of the
-            # position says nothing of how the observer's turning swings the edge (the world origin
-            # seen from a drone moves metres per radian), and the blend would claim a covariance the
-            # errors do not follow (paper-test1 offline: pose NEES6 2700 blended, 2.7 replaced, with
-            # RMSE 0.98 and 1.02 cm). Such a record replaces the edge, as with alpha 1.
         elif self.alpha == 1.0 or (self.age_sigma > 0.0 and md.covariance):
-            # eq. 3 with alpha 1 (the paper's default): the measurement itself
+            # eq. 3 with alpha 1 (the paper's default): the measurement itself. A record with its own
+            # 6x6 covariance is not blended as above: a scalar random walk of the position says nothing
+            # of how the observer's turning swings the edge (the world origin seen from a drone moves
+            # metres per radian), and the blend would claim a covariance the errors do not follow
+            # (paper-test1 offline: pose NEES6 2700 blended, 2.7 replaced; RMSE 0.98 and 1.02 cm).
             p, q = result.p_a_b, result.q_a_b_xyzw
         else:
             p = fusion.ema_position(state.p, result.p_a_b, self.alpha)  # eq. 3

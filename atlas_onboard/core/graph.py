@@ -530,7 +530,8 @@ class TransformGraph:
         order_arr, level, stage_of = plan.order, plan.level, plan.stage_of
         row, direction, parent_all, child_all = plan.row, plan.direction, plan.parent, plan.child
         sigma_raw = arr.sigma[row]
-        age_s = np.maximum(now_ns - arr.stamp[row], 0) / 1e9
+        ageing = self.age_sigma_m_per_s > 0.0 or self.age_sigma_rad_per_s > 0.0
+        age_s = np.maximum(now_ns - arr.stamp[row], 0) / 1e9 if ageing else None
         if self.age_sigma_m_per_s > 0.0:
             sigma_all = np.hypot(sigma_raw, age_s * self.age_sigma_m_per_s)
         else:
@@ -551,7 +552,7 @@ class TransformGraph:
             parent, child = parent_all[sel], child_all[sel]
             p_pc, q_pc, s_edge, t_edge = p_all[sel], q_all[sel], sigma_all[sel], t_all[sel]
             c_edge = c_all[sel]
-            if self.age_sigma_m_per_s > 0.0 or self.age_sigma_rad_per_s > 0.0:
+            if age_s is not None:
                 c_edge = c_edge.copy()
                 grow = (s_edge**2 - sigma_raw[sel] ** 2).clip(0.0)
                 c_edge[:, [0, 1, 2], [0, 1, 2]] += grow[:, None]
