@@ -33,6 +33,7 @@ from atlas_onboard.publisher import AutopilotPose, Publisher
 _logger = logging.getLogger(__name__)
 
 NS = 1_000_000_000
+LOOP_TICK_S = 0.01  # the loop runs at least this often (expiries, duties, parked observations)
 FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observations
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
 PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
@@ -99,7 +100,7 @@ class Inbox:
                     self._items.popleft()
                     self.dropped += 1
                 self._items.append(item)
-            if wake:
+            if wake or len(self._items) * 2 >= self._capacity:  # half full: take them before any is lost
                 self._cond.notify()
 
     def drain(self) -> list[tuple[MarkerData, int, bool]]:
@@ -212,12 +213,14 @@ class Node:
         The last observation of an image that can move the own pose also pauses the peer links (see
         :meth:`_process`): the link's thread stops before its next datagram and leaves the processor
         to the loop, which would otherwise wait its turn behind the decoding of the rest of a burst.
-        Others' views are parked by the loop anyway: they wake it once per image, not per observation.
+        Others' views do not wake the loop: it parks them anyway, and takes them with the next
+        observations that can move the own pose or at its next tick (every ``LOOP_TICK_S``), so that
+        a swarm's traffic does not switch threads hundreds of times a second.
         """
         wake = pause = False
         for md, _ in items:
             mine = self._concerns_own_pose(md)  # every observation while the own entity has no pose
-            wake |= mine or md.frame_remaining == 0
+            wake |= mine
             pause |= mine and md.frame_remaining == 0 and self._relevant is not None
         if pause:
             self._may_read.clear()  # before the put: the loop sets it again once it has published
@@ -246,7 +249,7 @@ class Node:
         _logger.info("node %s (system %d) running", self.config.entity, self.config.system_id)
         try:
             while not self._stop.is_set():
-                item = self.inbox.get(timeout_s=0.01)
+                item = self.inbox.get(timeout_s=LOOP_TICK_S)
                 now = self.clock()
                 if item is not None:
                     self._process(self._collect(item))

@@ -49,6 +49,7 @@ class Publisher:
     _last_p: np.ndarray | None = None
     _last_fused_ns: int | None = None
     _lost_since_sent: bool = field(default=False)
+    _held: bool = False  # a new pose was held back by the rate cap and has not gone since
 
     def autopilot(self, result: GraphResult, now_ns: int) -> tuple[AutopilotPose | None, str | None]:
         """The pose to send now (or None) and a status change (``"pose lost"``/``"pose found"``) or None."""
@@ -67,7 +68,9 @@ class Publisher:
             return None, status  # nothing new contributed since the last message
         if not self._take_token(now_ns):
             self.suppressed_rate += 1
+            self._held = True
             return None, status
+        self._held = False
         if self._lost_since_sent or (
             self._last_p is not None and float(np.linalg.norm(pose.p_world_m - self._last_p)) > self.reset_jump_m
         ):
@@ -92,8 +95,10 @@ class Publisher:
         return False
 
     def next_autopilot_ns(self) -> int | None:
-        """When a pose held back by the rate cap may go (the node re-evaluates then)."""
-        if self._tokens_ns is None or self._tokens >= 1.0:
+        """When a pose held back by the rate cap may go (the node publishes then); None when none is
+        held (a node that asked after every step would otherwise publish nothing hundreds of times a
+        second once the bucket ran low)."""
+        if not self._held or self._tokens_ns is None or self._tokens >= 1.0:
             return None
         return self._tokens_ns + int((1.0 - self._tokens) * NS / self.rate_hz) + 1
 

@@ -145,6 +145,21 @@ def test_inbox_drops_oldest_when_full():
     assert box.get(0) is None
 
 
+def test_inbox_items_that_need_no_wake_wait_until_it_is_half_full():
+    box = Inbox(8)
+    got = []
+    consumer = threading.Thread(target=lambda: got.append(box.get(timeout_s=60)))
+    consumer.start()
+    items = [(MarkerData(1, 0, 0.01, (0, 0, 1), (1, 0, 0, 0), k), k, False) for k in range(4)]
+    box.put_many(items[:3], wake=False)
+    consumer.join(0.3)
+    assert consumer.is_alive() and not got  # three of eight: left for the consumer's next tick
+    box.put_many(items[3:], wake=False)  # half full: woken, so that none is lost
+    consumer.join(10)
+    assert not consumer.is_alive() and got[0][1] == 0
+    assert [box.get(0)[1] for _ in range(3)] == [1, 2, 3] and box.dropped == 0
+
+
 @pytest.mark.parametrize("n", [1, 3])
 def test_fused_poses_go_to_peers(n):
     node, tr, thread = make_node()

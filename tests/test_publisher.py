@@ -35,6 +35,7 @@ def test_rate_cap_is_a_token_bucket():
     assert pub.autopilot(g.evaluate(0), 0)[0] is not None
     graph_with([0, 0, 0.01], 2, 1 * MS, g)
     assert pub.autopilot(g.evaluate(1 * MS), 1 * MS)[0] is not None  # the burst allows a second
+    assert pub.next_autopilot_ns() is None  # the bucket is empty, but nothing is held back
     graph_with([0, 0, 0.02], 3, 2 * MS, g)
     assert pub.autopilot(g.evaluate(2 * MS), 2 * MS)[0] is None  # the third waits for a token
     assert pub.suppressed_rate == 1
@@ -42,6 +43,7 @@ def test_rate_cap_is_a_token_bucket():
     assert 95 * MS < release <= 101 * MS  # one token refills in 100 ms
     out, _ = pub.autopilot(g.evaluate(release), release)
     assert out is not None and out.pose.capture_time_us == 3
+    assert pub.next_autopilot_ns() is None  # the held pose went: nothing more to wait for
     sent = 0
     for k in range(100):  # a steady 100 Hz of new observations for 1 s: about 10 go out
         t = 200 * MS + k * 10 * MS
