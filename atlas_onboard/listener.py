@@ -139,8 +139,9 @@ class Listener:
             out.append(reason if reason is not None else md)  # type: ignore[arg-type]
             if reason is None:
                 valid.append(md)
+        C_sm = None  # the detection covariances as matrices, when every valid record has one
         if any(md.covariance for md in valid):
-            valid = self._positive_definite(valid, out)
+            valid, C_sm = self._positive_definite(valid, out)
         if not valid:
             return out, notes
         T1 = np.array([self._sensor[md.sensor_id][1] for md in valid])
@@ -157,7 +158,7 @@ class Listener:
         q1 = np.array([self._sensor_q[md.sensor_id] for md in valid])
         q3_inv = np.array([self._marker_inv_q[md.marker_id] for md in valid])
         q_all = geometry.quat_multiply(geometry.quat_multiply(q1, q2), q3_inv)  # eq. 1's rotation
-        cov = _covariances(valid, R_as, R2, T3_inv, p2, p_sb)
+        cov = _covariances(valid, R_as, R2, T3_inv, p2, p_sb, C_sm)
         j = 0
         for i, item in enumerate(out):
             if isinstance(item, MarkerData):
@@ -171,18 +172,25 @@ class Listener:
         return out, notes
 
     @staticmethod
-    def _positive_definite(valid: list[MarkerData], out: list[EdgeUpdate | Rejection]) -> list[MarkerData]:
-        """``valid`` without the records whose covariance is not positive definite (one batched
-        eigenvalue call); those become ``bad_covariance`` in ``out``."""
+    def _positive_definite(
+        valid: list[MarkerData], out: list[EdgeUpdate | Rejection]
+    ) -> tuple[list[MarkerData], NDArray[np.float64] | None]:
+        """``valid`` without the records whose covariance is not positive definite (those become
+        ``bad_covariance`` in ``out``), and the covariances of those kept as matrices when every one
+        has one (else None). One batched Cholesky factorisation, which fails if any does (half the
+        cost of eigenvalues); only then eigenvalues say which."""
         have = [md for md in valid if md.covariance]
-        lowest = np.linalg.eigvalsh(upper_to_matrix(np.array([md.covariance for md in have])))[:, 0]
+        C = upper_to_matrix(np.array([md.covariance for md in have]))
+        try:
+            np.linalg.cholesky(C)
+            return valid, C if len(have) == len(valid) else None
+        except np.linalg.LinAlgError:
+            lowest = np.linalg.eigvalsh(C)[:, 0]
         bad = {id(md) for md, low in zip(have, lowest.tolist(), strict=True) if not low > 0.0}
-        if not bad:
-            return valid
         for i, item in enumerate(out):
             if id(item) in bad:
                 out[i] = Rejection.BAD_COVARIANCE
-        return [md for md in valid if id(md) not in bad]
+        return [md for md in valid if id(md) not in bad], None
 
     def _resolve_ambiguity(
         self,
@@ -348,13 +356,16 @@ def _covariances(
     T_m_b: NDArray[np.float64],
     p_sm: NDArray[np.float64],
     p_sb: NDArray[np.float64],
+    C_sm: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """Each edge's 6x6 covariance: the detector's own, carried through eq. 1's mountings, where the
-    record has one; otherwise modelled from its sigma and range (:func:`covariance.observation_parts`)."""
+    record has one; otherwise modelled from its sigma and range (:func:`covariance.observation_parts`).
+    ``C_sm``: the records' detection covariances as matrices, if already made (every record has one)."""
     have = [i for i, md in enumerate(valid) if md.covariance]
     R_mb = T_m_b[:, :3, :3]
     if len(have) == len(valid):
-        C_sm = upper_to_matrix(np.array([md.covariance for md in valid]))
+        if C_sm is None:
+            C_sm = upper_to_matrix(np.array([md.covariance for md in valid]))
         return covariance.detection(R_as, R_as @ R_sm, T_m_b[:, :3, 3], R_mb, C_sm)
     cov = covariance.observation_parts(R_as, R_sm, R_mb, p_sm, p_sb, np.array([md.sigma_m for md in valid]))
     if have:

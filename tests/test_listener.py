@@ -133,6 +133,11 @@ GOOD = MarkerData(1, 5, 0.01, (0.0, 0.0, 2.0), (1.0, 0.0, 0.0, 0.0), 0)
         (replace(GOOD, sigma_m=-0.01), Rejection.BAD_SIGMA),
         (replace(GOOD, sigma_m=1e30), Rejection.BAD_SIGMA),
         (replace(GOOD, p_sensor_marker_m=(0.0, 0.0, 1e7)), Rejection.OUT_OF_RANGE),
+        (replace(GOOD, p_sensor_marker_m=(1e308, 1e308, 2.0)), Rejection.OUT_OF_RANGE),  # finite, sum is not
+        (replace(GOOD, p_sensor_marker_m=(math.inf, -math.inf, 2.0)), Rejection.NON_FINITE),
+        (replace(GOOD, covariance=(1e-6,) * 20 + (math.inf,)), Rejection.BAD_COVARIANCE),
+        (replace(GOOD, covariance=(1e-6,) * 20 + (math.nan,)), Rejection.BAD_COVARIANCE),
+        (replace(GOOD, covariance=(1e308,) * 21), Rejection.BAD_COVARIANCE),  # finite; singular: the listener's
         (replace(GOOD, sensor_id=77), Rejection.UNKNOWN_SENSOR),
         (replace(GOOD, marker_id=77), Rejection.UNKNOWN_MARKER),
     ],
@@ -375,3 +380,10 @@ def test_a_covariance_that_is_not_positive_definite_is_rejected_and_the_rest_of_
     assert reasons == [Rejection.BAD_COVARIANCE, None]
     assert listener.rejected[Rejection.BAD_COVARIANCE] == 1 and listener.accepted == 1
     np.testing.assert_allclose(graph.edges[(1, 5)].p_a_b, listener.edge_from(ok).p_a_b)
+
+
+def test_a_record_is_judged_on_its_numbers_not_on_whether_their_sum_overflows():
+    # rejection() sums the numbers to test them all at once; a finite but huge sum must not pass
+    # for a non-finite one (the covariance's matrix is the listener's to check: this one is singular).
+    assert replace(GOOD, covariance=(1e308,) * 21).rejection() is None
+    assert replace(GOOD, p_sensor_marker_m=(1e308, 1e308, 0.0)).rejection() is Rejection.OUT_OF_RANGE

@@ -103,14 +103,17 @@ class MarkerData:
 
     def rejection(self) -> Rejection | None:
         """The reason this record is invalid on its own (without a world file), or None if it is valid."""
-        values = (*self.p_sensor_marker_m, *self.q_sensor_marker_wxyz, self.sigma_m)
-        if not all(math.isfinite(v) for v in values):
+        x, y, z = self.p_sensor_marker_m
+        qw, qx, qy, qz = self.q_sensor_marker_wxyz
+        # A finite sum means finite terms (NaN and inf propagate); only then is one call enough.
+        if not math.isfinite(x + y + z + qw + qx + qy + qz + self.sigma_m) and not all(
+            math.isfinite(v) for v in (x, y, z, qw, qx, qy, qz, self.sigma_m)
+        ):
             return Rejection.NON_FINITE
-        if math.fsum(v * v for v in self.q_sensor_marker_wxyz) < 1e-12:
+        if math.fsum((qw * qw, qx * qx, qy * qy, qz * qz)) < 1e-12:
             return Rejection.ZERO_QUATERNION
         if not 0.0 < self.sigma_m <= MAX_SIGMA_M:
             return Rejection.BAD_SIGMA
-        x, y, z = self.p_sensor_marker_m
         if math.sqrt(x * x + y * y + z * z) > MAX_RANGE_M:
             return Rejection.OUT_OF_RANGE
         err, ratio = self.reprojection_error_px, self.ambiguity_ratio
@@ -173,7 +176,9 @@ def _plausible_covariance(upper: tuple[float, ...]) -> bool:
     """21 finite numbers with positive variances: what a record can be checked for on its own, in
     plain Python. Whether they make a positive definite matrix the listener checks for a whole batch
     at once (one numpy call: on every received record, a 6x6 factorisation costs tens of microseconds)."""
-    return len(upper) == 21 and all(math.isfinite(v) for v in upper) and all(upper[i] > 0.0 for i in _DIAGONAL)
+    if len(upper) != 21 or not all(upper[i] > 0.0 for i in _DIAGONAL):
+        return False
+    return math.isfinite(sum(upper)) or all(math.isfinite(v) for v in upper)  # a finite sum: finite terms
 
 
 class AltState(StrEnum):
