@@ -15,7 +15,7 @@ import logging
 import math
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -150,7 +150,12 @@ class Listener:
         q2 /= np.sqrt(np.einsum("ij,ij->i", q2, q2))[:, None]
         R2 = geometry.quat_matrix(q2)
         p2 = np.array([md.p_sensor_marker_m for md in valid])
-        unresolved = self._resolve_ambiguity(valid, R2, p2, q2, notes)
+        unresolved, swapped = self._resolve_ambiguity(valid, R2, p2, q2, notes)
+        if any(valid[j].covariance for j in swapped):
+            # The detector's covariance describes the solution it chose, not the other one (whose
+            # tilt, and so whose spread, differs): a swapped record's edge gets the sigma model.
+            valid = [replace(md, covariance=()) if j in swapped else md for j, md in enumerate(valid)]
+            C_sm = None
         # eq. 1, T = T1 T2 T3^-1, its translation: p_a_b = R_a_s (p_s_m + R_s_m p_m_b) + p_a_s
         R_as = T1[:, :3, :3]
         p_sb = p2 + (R2 @ T3_inv[:, :3, 3, None])[:, :, 0]
@@ -199,13 +204,15 @@ class Listener:
         p2: NDArray[np.float64],
         q2: NDArray[np.float64],
         notes: list[str],
-    ) -> dict[int, Rejection]:
+    ) -> tuple[dict[int, Rejection], set[int]]:
         """Resolve the ambiguous observations among ``valid`` in place in their detections: rotation
         matrices ``R2`` (N, 3, 3), positions ``p2`` (N, 3) and rotations ``q2`` (N, 4, x first), batched.
 
-        Returns the rejections by index into ``valid``; appends counter names to ``notes``.
+        Returns the rejections by index into ``valid`` and the indices swapped to the other
+        solution; appends counter names to ``notes``.
         """
         rejected: dict[int, Rejection] = {}
+        swapped: set[int] = set()
         todo: list[tuple[int, EntityPose, EntityPose]] = []
         for j, md in enumerate(valid):
             state = md.alt_state()
@@ -224,7 +231,7 @@ class Listener:
                 continue
             todo.append((j, est_a, est_b))
         if not todo:
-            return rejected
+            return rejected, swapped
         idx = [j for j, _, _ in todo]
         # Predicted T_sensor_marker = T1^-1 * T_frame_observer^-1 * T_frame_observed * T3 (eq. 1 backwards).
         W_a = _matrices(np.array([a.p_world_m for _, a, _ in todo]), np.array([a.q_world_xyzw for _, a, _ in todo]))
@@ -263,13 +270,14 @@ class Listener:
                 R2[j] = alt.as_matrix()
                 q2[j] = alt.as_quat()
                 p2[j] = valid[j].p_sensor_marker_alt_m
+                swapped.add(j)
                 notes.append("ambiguity_swapped")
             if verdict.decided:
                 notes.append("ambiguity_resolved")
             else:
                 rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
                 notes.append(f"ambiguity_{verdict.value}")
-        return rejected
+        return rejected, swapped
 
     def accept(self, md: MarkerData, now_ns: int) -> Rejection | None:
         """Validate, transform (eq. 1), filter (eq. 3) and insert into the graph; None when accepted."""

@@ -387,3 +387,20 @@ def test_a_record_is_judged_on_its_numbers_not_on_whether_their_sum_overflows():
     # for a non-finite one (the covariance's matrix is the listener's to check: this one is singular).
     assert replace(GOOD, covariance=(1e308,) * 21).rejection() is None
     assert replace(GOOD, p_sensor_marker_m=(1e308, 1e308, 0.0)).rejection() is Rejection.OUT_OF_RANGE
+
+
+def test_a_swapped_record_gets_the_sigma_models_covariance_not_the_one_its_detector_gave_the_other_pose():
+    from atlas_onboard.core.markerdata import matrix_to_upper
+
+    _, graph, listener, _, md, bootstrap = ambiguous_scene()
+    detector_cov = np.diag([1e-8, 1e-8, 1e-6, 1e-6, 1e-6, 1e-8])  # the chosen (flipped) solution's
+    md = replace(md, covariance=matrix_to_upper(detector_cov))
+    listener.accept(bootstrap, now_ns=0)
+    listener.set_estimates(graph.evaluate(0).poses)
+    assert listener.accept_many([(md, 1 * MS)]) == [None] and listener.counters["ambiguity_swapped"] == 1
+    alt = replace(md, ambiguity_ratio=0.0, p_sensor_marker_m=md.p_sensor_marker_alt_m,
+                  q_sensor_marker_wxyz=md.q_sensor_marker_alt_wxyz)  # fmt: skip
+    modelled = listener.edge_from(replace(alt, covariance=())).cov_a_b
+    carried = listener.edge_from(alt).cov_a_b
+    assert not np.allclose(modelled, carried)
+    np.testing.assert_allclose(graph.edges[(1, 5)].cov_a_b, modelled, rtol=1e-12)
