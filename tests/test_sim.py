@@ -131,8 +131,8 @@ def test_gaps_availability_follows_the_expected_gaps():
 
 def test_gaps_the_ekf_keeps_the_pose_through_gaps_the_papers_method_cannot_bridge():
     """The expected availability is what a node publishing every frame in view can reach (the paper's
-    method tracks it, test above); the EKF predicts through gaps of up to ekf_max_predict_s, so its
-    autopilot holds a fresh pose for clearly more of the time, and the predictions stay accurate."""
+    method tracks it, test above); the EKF predicts through the first 0.2 s of a gap, so its autopilot
+    holds a fresh pose for clearly more of the time, and the predictions stay accurate."""
     e, rep = run_and_score("gaps", 8, world_overrides={"fusion": {**PAPER, "filter": "ekf"}})
     print(rep.table())
     d = e["drone"]
