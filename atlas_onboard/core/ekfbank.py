@@ -14,13 +14,16 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from atlas_onboard.core import covariance
 from atlas_onboard.core.ekf import EkfSettings, PoseEkf
-from atlas_onboard.core.graph import WORLD, EdgeKey, EntityPose, GraphResult
+from atlas_onboard.core.graph import WORLD, Candidate, EdgeKey, EntityPose, GraphResult
 
 _TWIST = [3, 4, 5, 9, 10, 11]  # velocity (world) and angular rate (body) in the error state
 
@@ -54,7 +57,10 @@ class EkfBank:
     def update(self, result: GraphResult, now_us: int | None = None) -> None:
         """Feed the new candidates of one evaluation (world-frame poses only); ``now_us`` (capture
         clock) measures how old measurements are when they arrive."""
-        for name, cands in result.candidates.items():
+        # Parents before children (the evaluation's order): a child's candidate is composed with its
+        # parent's filtered pose, updated first.
+        for name in sorted(result.candidates, key=self._rank(result)):
+            cands = result.candidates[name]
             if name == WORLD or name not in result.poses:
                 continue
             ekf = self.filters.get(name)
@@ -68,8 +74,8 @@ class EkfBank:
                 if now_us is not None:
                     lag = float(min(max(now_us - c.capture_time_us, 0), 1_000_000))
                     self.latency_us = lag if self.latency_us is None else 0.9 * self.latency_us + 0.1 * lag
-                cov = 0.5 * (c.covariance + c.covariance.T)
-                outcome = ekf.update(c.capture_time_us / 1e6, c.p_m, Rotation.from_quat(c.q_xyzw), cov)
+                p_m, q, cov = self._measurement(c)
+                outcome = ekf.update(c.capture_time_us / 1e6, p_m, q, 0.5 * (cov + cov.T))
                 self.outcomes[outcome] += 1
             if before is not None and ekf.t_update_s > before:
                 step = min(ekf.t_update_s - before, self.max_predict_s)
@@ -79,6 +85,28 @@ class EkfBank:
         live = {(n, c.key) for n, cands in result.candidates.items() for c in cands}
         for k in [k for k in self._fed if k not in live]:
             del self._fed[k]
+
+    @staticmethod
+    def _rank(result: GraphResult) -> Callable[[str], int]:
+        order = {n: i for i, n in enumerate(result.order)}
+        return lambda name: order.get(name, len(order))
+
+    def _measurement(self, c: Candidate) -> tuple[NDArray[np.float64], Rotation, NDArray[np.float64]]:
+        """A candidate as the filter takes it. One whose parent is an entity (not the root) is the
+        parent's pose times the edge: composed with the parent's filter, not with the graph's fused
+        pose of the parent. The graph's parent pose, fused from whatever edges are live (with the
+        paper's method, stale ones counted as new), errs the same way frame after frame, and a filter
+        fed it as fresh noise each frame grows sure of it: in the relay scenario the chain's drones
+        had a position NEES of 150-170 and more error than without the filter."""
+        parent = self.filters.get(c.parent) if c.parent is not None else None
+        if parent is None or not parent.initialized or c.p_pc is None or c.q_pc is None or c.edge_covariance is None:
+            return c.p_m, Rotation.from_quat(c.q_xyzw), c.covariance
+        p_wp, q_wp, P_wp = parent.pose_at(c.capture_time_us / 1e6)
+        R_wp = q_wp.as_matrix()
+        q_pc = Rotation.from_quat(c.q_pc)
+        Jp, Je = covariance.compose_jacobians(R_wp, c.p_pc, q_pc.as_matrix())
+        cov = Jp @ P_wp @ Jp.T + Je @ c.edge_covariance @ Je.T
+        return p_wp + R_wp @ c.p_pc, q_wp * q_pc, cov
 
     def pose(self, name: str, now_us: int) -> EntityPose | None:
         """The entity's filtered pose, or None when it has no estimate or its last update is older

@@ -60,6 +60,10 @@ class Candidate:
 
     ``covariance`` is 6x6 in the convention of :mod:`atlas_onboard.core.covariance` (position in the
     frame of the result, small rotation about the entity's body axes), including the parent's.
+    ``parent`` is None when the parent is the frame's root (world, exact); otherwise the candidate
+    is the parent's fused pose times the edge ``p_pc``, ``q_pc`` (parent to entity) whose own
+    covariance is ``edge_covariance``, so that a filter can compose it with its own estimate of the
+    parent instead.
     """
 
     entity: str
@@ -69,6 +73,10 @@ class Candidate:
     p_m: NDArray[np.float64]
     q_xyzw: NDArray[np.float64]
     covariance: NDArray[np.float64]
+    parent: str | None = None
+    p_pc: NDArray[np.float64] | None = None
+    q_pc: NDArray[np.float64] | None = None
+    edge_covariance: NDArray[np.float64] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -586,10 +594,12 @@ class TransformGraph:
                 rows = row[sel]
                 for i in range(len(child)) if keep is None else np.flatnonzero(keep):
                     slot = int(rows[i])
+                    via = None if parent[i] == root else self.names[parent[i]]
                     out.setdefault(self.names[child[i]], []).append(
                         Candidate(
                             self.names[child[i]], arr.keys[slot], int(arr.stamp[slot]),
                             int(max(t_edge[i], stamp_us[parent[i]])), p_cand[i], q_cand[i], c_full[i],
+                            via, p_pc[i], q_pc[i], c_edge[i],
                         )
                     )  # fmt: skip
             if keep is not None and not keep.all():
