@@ -582,7 +582,7 @@ class TransformGraph:
             keep = None
             if self.outlier_gate_sigma > 0.0:
                 c_cand = edge_term if Jp is None else covariance.transform(Jp, cov_world[parent]) + edge_term
-                keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns)
+                keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns, np.maximum(t_edge, stamp_us[parent]))
                 for slot in row[sel][~keep].tolist():
                     key, stamp = arr.keys[slot], int(arr.stamp[slot])
                     if self._gated_stamp.get(key) != stamp:
@@ -667,14 +667,18 @@ class TransformGraph:
         q: NDArray[np.float64],
         cov: NDArray[np.float64],
         now_ns: int,
+        capture_us: NDArray[np.int64],
     ) -> NDArray[np.bool_]:
         """Which candidates agree with the consensus of their entity's candidates.
 
         With three or more candidates the reference is their median (position per axis; orientation:
         the candidate nearest to all others), which one wrong candidate cannot move. With fewer, the
         reference is the entity's last estimate if it is younger than the edge timeout, widened by
-        what the entity may have moved since. A candidate is out when its position or attitude is
-        more than ``outlier_gate_sigma`` standard deviations (its own and the reference's) away.
+        what the entity may have moved since (since the estimate was made or since the capture of
+        its newest observation, ``capture_us`` against the estimate's, whichever is longer: an
+        estimate made a moment ago may rest on a frame taken well before). A candidate is out when
+        its position or attitude is more than ``outlier_gate_sigma`` standard deviations (its own
+        and the reference's) away.
         If the median would leave out more than half of the candidates, there is no consensus and
         all are kept; two candidates that both contradict the last estimate but agree with each other
         are kept (the estimate is out of date). A lone candidate against a fresh estimate loses: the
@@ -696,7 +700,8 @@ class TransformGraph:
                 prior = self._prior.get((root, int(v)))
                 if prior is None or now_ns - prior[4] > self.edge_timeout_ns:
                     continue
-                age_s = (now_ns - prior[4]) / 1e9
+                # The swarm's capture clock and the evaluation's clock are not compared, only their gaps.
+                age_s = np.maximum((now_ns - prior[4]) / 1e9, (capture_us[idx] - prior[5]) / 1e6)
                 ref_p, ref_q, ref_s, ref_a = prior[0], Rotation.from_quat(prior[1]), prior[2], prior[3]
                 slack_p, slack_a = MAX_SPEED_M_S * age_s, MAX_RATE_RAD_S * age_s
             d_p = np.linalg.norm(p[idx] - ref_p, axis=1)

@@ -247,3 +247,21 @@ def test_attitude_ages_only_when_asked():
     grown[[3, 4, 5], [3, 4, 5]] += (0.1 * 1.5) ** 2
     np.testing.assert_allclose(poses[1.5].covariance, grown, atol=1e-15)
     np.testing.assert_allclose(poses[1.5].p_world_m, poses[0.0].p_world_m)
+
+
+def test_gate_allows_the_motion_since_the_estimates_frame_not_only_since_the_estimate():
+    # Two ceiling cameras, frames at the same instant: the first camera's frame leads to an
+    # evaluation whose estimate of the drone rests on the second camera's previous frame, 66 ms old;
+    # the second camera's new frame is then evaluated at the same instant. The drone turned 10 deg in
+    # those 66 ms (150 deg/s, within MAX_RATE_RAD_S): kept. A flip of 60 deg is still left out.
+    for turn_deg, kept in ((10.0, True), (60.0, False)):
+        g = TransformGraph(["world", "d"], edge_timeout_ns=250 * MS, outlier_gate_sigma=5.0)
+        before, after = pose([1.0, 2.0, 1.5]), pose([1.0, 2.0, 1.5], [turn_deg, 0, 0])
+        g.update_edge((2, 0), "world", "d", before.translation, before.rotation.as_quat(), 0.001, 0, 1_000_000)
+        g.evaluate(66 * MS)  # the other camera's frame: the estimate made now, from a 66 ms old view
+        g.update_edge((2, 0), "world", "d", after.translation, after.rotation.as_quat(), 0.001, 66 * MS, 1_066_000)
+        r = g.evaluate(66 * MS)
+        assert (r.gated == 0) is kept, (turn_deg, r.gated)
+        q = r.poses["d"].q_world_xyzw
+        expect = after if kept else before
+        assert (Rotation.from_quat(q).inv() * expect.rotation).magnitude() < 1e-9
