@@ -454,7 +454,7 @@ class Node:
         self.listener.set_estimates(result.poses)
         self.stats.evaluations += 1
         if self.ekf is not None:
-            self.ekf.update(result, self.wall() // 1000)
+            self.ekf.update(result, self.wall() // 1000, only=self.config.entity)
 
     def _publish(self, now: int) -> None:
         """The autopilot's pose from the last evaluation (the EKF's, predicted to now, if enabled)."""
@@ -463,7 +463,7 @@ class Node:
         result = self.last_result
         if self.ekf is not None:
             # The autopilot gets the filter's pose predicted to now (stamped now), at its rate.
-            result = self.ekf.poses(result, self.wall() // 1000)
+            result = self.ekf.poses(result, self.wall() // 1000, only=self.config.entity)
         out, status = self.publisher.autopilot(result, now)
         if status is not None:
             lost = status == "pose lost"

@@ -54,14 +54,17 @@ class EkfBank:
     predict_horizon_s: float = 0.2
     _interval: dict[str, float] = field(default_factory=dict)  # smoothed update interval, s
 
-    def update(self, result: GraphResult, now_us: int | None = None) -> None:
+    def update(self, result: GraphResult, now_us: int | None = None, only: str | None = None) -> None:
         """Feed the new candidates of one evaluation (world-frame poses only); ``now_us`` (capture
-        clock) measures how old measurements are when they arrive."""
+        clock) measures how old measurements are when they arrive. With ``only``, just the filters
+        that entity's pose needs: its own and those of the entities its candidates rest on, and
+        theirs (a node filters for its autopilot; the others' filters would be work for nothing)."""
+        wanted = None if only is None else self._ancestry(result, only)
         # Parents before children (the evaluation's order): a child's candidate is composed with its
         # parent's filtered pose, updated first.
         for name in sorted(result.candidates, key=self._rank(result)):
             cands = result.candidates[name]
-            if name == WORLD or name not in result.poses:
+            if name == WORLD or name not in result.poses or (wanted is not None and name not in wanted):
                 continue
             ekf = self.filters.get(name)
             if ekf is None:
@@ -85,6 +88,17 @@ class EkfBank:
         live = {(n, c.key) for n, cands in result.candidates.items() for c in cands}
         for k in [k for k in self._fed if k not in live]:
             del self._fed[k]
+
+    @staticmethod
+    def _ancestry(result: GraphResult, name: str) -> set[str]:
+        """``name`` and every entity its candidates are composed from, recursively."""
+        found, todo = {name}, [name]
+        while todo:
+            for c in result.candidates.get(todo.pop(), ()):
+                if c.parent is not None and c.parent not in found:
+                    found.add(c.parent)
+                    todo.append(c.parent)
+        return found
 
     @staticmethod
     def _rank(result: GraphResult) -> Callable[[str], int]:
@@ -152,9 +166,20 @@ class EkfBank:
             velocity_covariance=ekf.P[np.ix_(_TWIST, _TWIST)].copy(),
         )
 
-    def poses(self, result: GraphResult, now_us: int) -> GraphResult:
+    def poses(self, result: GraphResult, now_us: int, only: str | None = None) -> GraphResult:
         """``result`` with every filtered entity's pose replaced by its prediction at ``now_us``;
-        entities whose filter has lapsed are removed (their pose is lost)."""
+        entities whose filter has lapsed are removed (their pose is lost). With ``only``, just that
+        entity's (the others as the graph gave them): a node's autopilot needs its own, and a
+        prediction costs a filter copy and a few rotations (in a swarm's node, computing all six at
+        every publish was a third of the node's time)."""
+        if only == WORLD:
+            return result
+        if only is not None:
+            out = {n: p for n, p in result.poses.items() if n != only}
+            filtered = self.pose(only, now_us)
+            if filtered is not None:
+                out[only] = filtered
+            return replace(result, poses=out)
         out = {}
         for name, graph_pose in result.poses.items():
             if name == WORLD:

@@ -247,3 +247,27 @@ def test_a_childs_measurement_rests_on_its_parents_filter_not_on_the_graphs_stal
     assert np.mean(graph_err) > 0.02  # the graph's b is off by the stale edge's half
     assert np.linalg.norm(est.p_world_m - (p_a + p_ab)) < 0.006, est.p_world_m
     assert np.mean(nees) < 9.0, np.mean(nees)
+
+
+def test_a_bank_asked_for_one_entity_filters_it_and_what_it_rests_on_only():
+    # world -> a -> b, and c seen from world: the node of b needs b's filter and a's (b's candidates
+    # are composed with it), not c's. Its pose is the same as a bank that filters everything.
+    rng = np.random.default_rng(1)
+    g = TransformGraph(["world", "a", "b", "c"], 250 * MS, keep_candidates=True)
+    full = EkfBank(EkfSettings(max_gap_s=0.5, constant_rate=False))
+    mine = EkfBank(EkfSettings(max_gap_s=0.5, constant_rate=False))
+    ident = np.array([0.0, 0.0, 0.0, 1.0])
+    t0_us = 1_700_000_000_000_000
+    for k in range(1, 31):
+        t_ns, t_us = k * 33_333_333, t0_us + k * 33_333
+        for key, a, b, p in (((1, 1), "world", "a", [1.0, 0, 1]), ((2, 2), "a", "b", [0.5, 0, 0]),
+                             ((3, 3), "world", "c", [3.0, 0, 1])):  # fmt: skip
+            g.update_edge(key, a, b, np.array(p) + rng.normal(size=3) * 0.003, ident, 0.003, t_ns, t_us)
+        result = g.evaluate(t_ns)
+        full.update(result, t_us)
+        mine.update(result, t_us, only="b")
+    assert set(full.filters) == {"a", "b", "c"} and set(mine.filters) == {"a", "b"}
+    now = t0_us + 30 * 33_333
+    np.testing.assert_allclose(mine.poses(result, now, only="b").poses["b"].p_world_m,
+                               full.poses(result, now).poses["b"].p_world_m, atol=1e-12)  # fmt: skip
+    assert mine.poses(result, now, only="world") is result
