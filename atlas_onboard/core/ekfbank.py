@@ -113,9 +113,17 @@ class EkfBank:
         fed it as fresh noise each frame grows sure of it: in the relay scenario the chain's drones
         had a position NEES of 150-170 and more error than without the filter."""
         parent = self.filters.get(c.parent) if c.parent is not None else None
-        if parent is None or not parent.initialized or c.p_pc is None or c.q_pc is None or c.edge_covariance is None:
+        t_s = c.capture_time_us / 1e6
+        if (
+            parent is None
+            or not parent.initialized
+            or t_s - parent.t_update_s > self.max_predict_s  # the parent's filter has lapsed
+            or c.p_pc is None
+            or c.q_pc is None
+            or c.edge_covariance is None
+        ):
             return c.p_m, Rotation.from_quat(c.q_xyzw), c.covariance
-        p_wp, q_wp, P_wp = parent.pose_at(c.capture_time_us / 1e6)
+        p_wp, q_wp, P_wp = parent.pose_at(t_s)
         R_wp = q_wp.as_matrix()
         q_pc = Rotation.from_quat(c.q_pc)
         Jp, Je = covariance.compose_jacobians(R_wp, c.p_pc, q_pc.as_matrix())

@@ -271,3 +271,25 @@ def test_a_bank_asked_for_one_entity_filters_it_and_what_it_rests_on_only():
     np.testing.assert_allclose(mine.poses(result, now, only="b").poses["b"].p_world_m,
                                full.poses(result, now).poses["b"].p_world_m, atol=1e-12)  # fmt: skip
     assert mine.poses(result, now, only="world") is result
+
+
+def test_a_child_falls_back_on_the_graph_when_its_parents_filter_has_lapsed():
+    # a moves at 1 m/s while world sees it, then world's view of a stops (its last edge stays live
+    # in the graph); b keeps being seen by a. Once a's filter has lapsed (max_predict_s), b's
+    # candidates are the graph's again, not a's filter extrapolated on its last velocity.
+    g = TransformGraph(["world", "a", "b"], 10_000 * MS, keep_candidates=True)
+    bank = EkfBank(EkfSettings(max_gap_s=0.5, constant_rate=False), max_predict_s=0.5)
+    ident = np.array([0.0, 0.0, 0.0, 1.0])
+    t0_us = 1_700_000_000_000_000
+    p_ab = np.array([0.5, 0.0, 0.0])
+    for k in range(1, 61):  # 2 s at 30 Hz; world sees a for the first 0.5 s only
+        t = k / 30
+        t_ns, t_us = round(t * 1e9), t0_us + round(t * 1e6)
+        if t <= 0.5:
+            g.update_edge((1, 1), "world", "a", np.array([t, 0.0, 1.0]), ident, 0.002, t_ns, t_us)
+        g.update_edge((2, 2), "a", "b", p_ab, ident, 0.002, t_ns, t_us)
+        result = g.evaluate(t_ns)
+        bank.update(result, t_us, only="b")
+    truth_b = np.array([0.5, 0.0, 1.0]) + p_ab  # a stopped where world last saw it (the graph's a)
+    est = bank.pose("b", t_us)
+    assert np.linalg.norm(est.p_world_m - truth_b) < 0.02, est.p_world_m
