@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -62,7 +61,7 @@ class EkfBank:
         wanted = None if only is None else self._ancestry(result, only)
         # Parents before children (the evaluation's order): a child's candidate is composed with its
         # parent's filtered pose, updated first.
-        for name in sorted(result.candidates, key=self._rank(result)):
+        for name in [n for n in result.order if n in result.candidates]:
             cands = result.candidates[name]
             if name == WORLD or name not in result.poses or (wanted is not None and name not in wanted):
                 continue
@@ -99,11 +98,6 @@ class EkfBank:
                     found.add(c.parent)
                     todo.append(c.parent)
         return found
-
-    @staticmethod
-    def _rank(result: GraphResult) -> Callable[[str], int]:
-        order = {n: i for i, n in enumerate(result.order)}
-        return lambda name: order.get(name, len(order))
 
     def _measurement(self, c: Candidate) -> tuple[NDArray[np.float64], Rotation, NDArray[np.float64]]:
         """A candidate as the filter takes it. One whose parent is an entity (not the root) is the

@@ -558,7 +558,8 @@ class TransformGraph:
         gated = 0
         for sel, (kids, pairs), from_root in zip(plan.stages, plan.runs, plan.from_root, strict=True):
             parent, child = parent_all[sel], child_all[sel]
-            p_pc, q_pc, s_edge, t_edge = p_all[sel], q_all[sel], sigma_all[sel], t_all[sel]
+            p_pc, q_pc, s_edge = p_all[sel], q_all[sel], sigma_all[sel]
+            t_cand = np.maximum(t_all[sel], stamp_us[parent])  # a candidate is as new as its newest part
             c_edge = c_all[sel]
             if age_s is not None:
                 c_edge = c_edge.copy()
@@ -582,7 +583,7 @@ class TransformGraph:
             keep = None
             if self.outlier_gate_sigma > 0.0:
                 c_cand = edge_term if Jp is None else covariance.transform(Jp, cov_world[parent]) + edge_term
-                keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns, np.maximum(t_edge, stamp_us[parent]))
+                keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns, t_cand)
                 for slot in row[sel][~keep].tolist():
                     key, stamp = arr.keys[slot], int(arr.stamp[slot])
                     if self._gated_stamp.get(key) != stamp:
@@ -598,7 +599,7 @@ class TransformGraph:
                     out.setdefault(self.names[child[i]], []).append(
                         Candidate(
                             self.names[child[i]], arr.keys[slot], int(arr.stamp[slot]),
-                            int(max(t_edge[i], stamp_us[parent[i]])), p_cand[i], q_cand[i], c_full[i],
+                            int(t_cand[i]), p_cand[i], q_cand[i], c_full[i],
                             via, p_pc[i], q_pc[i], c_edge[i],
                         )
                     )  # fmt: skip
@@ -610,7 +611,7 @@ class TransformGraph:
                     cov_world[v] = covariance.diagonal(prior[2], prior[3])
                     stamp_us[v] = prior[5]
                 parent, child, p_cand, q_cand = parent[keep], child[keep], p_cand[keep], q_cand[keep]
-                s_edge, s_cand, t_edge = s_edge[keep], s_cand[keep], t_edge[keep]
+                s_edge, s_cand, t_cand = s_edge[keep], s_cand[keep], t_cand[keep]
                 Jp, edge_term = None if Jp is None else Jp[keep], edge_term[keep]
                 if len(child) == 0:
                     continue
@@ -635,7 +636,7 @@ class TransformGraph:
             p_world[ids], q_world[ids], sigma[ids] = fusion.fuse_runs(kids, p_cand, q_cand, s_cand, weights)
             cov_world[ids] = covariance.fuse_runs(kids, pairs, weights, Jp, cov_world, edge_term)
             count[ids] = kids.sizes
-            newest = np.maximum.reduceat(np.maximum(t_edge, stamp_us[parent]), kids.starts)
+            newest = np.maximum.reduceat(t_cand, kids.starts)
             stamp_us[ids] = newest
             if self.outlier_gate_sigma > 0.0:
                 for k, v in enumerate(ids.tolist()):

@@ -105,10 +105,7 @@ class MarkerData:
         """The reason this record is invalid on its own (without a world file), or None if it is valid."""
         x, y, z = self.p_sensor_marker_m
         qw, qx, qy, qz = self.q_sensor_marker_wxyz
-        # A finite sum means finite terms (NaN and inf propagate); only then is one call enough.
-        if not math.isfinite(x + y + z + qw + qx + qy + qz + self.sigma_m) and not all(
-            math.isfinite(v) for v in (x, y, z, qw, qx, qy, qz, self.sigma_m)
-        ):
+        if not _finite((x, y, z, qw, qx, qy, qz, self.sigma_m)):
             return Rejection.NON_FINITE
         if math.fsum((qw * qw, qx * qx, qy * qy, qz * qz)) < 1e-12:
             return Rejection.ZERO_QUATERNION
@@ -178,7 +175,13 @@ def _plausible_covariance(upper: tuple[float, ...]) -> bool:
     at once (one numpy call: on every received record, a 6x6 factorisation costs tens of microseconds)."""
     if len(upper) != 21 or not all(upper[i] > 0.0 for i in _DIAGONAL):
         return False
-    return math.isfinite(sum(upper)) or all(math.isfinite(v) for v in upper)  # a finite sum: finite terms
+    return _finite(upper)
+
+
+def _finite(values: tuple[float, ...]) -> bool:
+    """Whether every number is finite: one sum where that is finite (NaN and inf propagate through
+    it), one test per number only where the sum is not (it may overflow from finite terms)."""
+    return math.isfinite(sum(values)) or all(math.isfinite(v) for v in values)
 
 
 class AltState(StrEnum):
