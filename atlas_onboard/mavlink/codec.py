@@ -107,8 +107,8 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
     if msg.fingerprint != fingerprint & 0xFFFFFFFF:
         raise RejectionError("wrong_fingerprint")
     try:
-        q = tuple(float(v) for v in msg.q)
-        q_alt = tuple(float(v) for v in msg.q_alt)
+        q = tuple(map(float, msg.q))  # map, not a generator: this runs for every peer observation
+        q_alt = tuple(map(float, msg.q_alt))
         if len(q) != 4 or len(q_alt) != 4:
             raise RejectionError("malformed")
         md = MarkerData(
@@ -116,14 +116,14 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
             marker_id=int(msg.marker_id),
             sigma_m=float(msg.sigma),
             p_sensor_marker_m=(float(msg.x), float(msg.y), float(msg.z)),
-            q_sensor_marker_wxyz=(q[0], q[1], q[2], q[3]),
+            q_sensor_marker_wxyz=q,  # type: ignore[arg-type]  # length checked above
             capture_time_us=int(msg.time_usec),
             reprojection_error_px=float(msg.reprojection_error),
             ambiguity_ratio=float(msg.ambiguity),
             origin=int(origin),
             seq=int(msg.seq),
             p_sensor_marker_alt_m=(float(msg.x_alt), float(msg.y_alt), float(msg.z_alt)),
-            q_sensor_marker_alt_wxyz=(q_alt[0], q_alt[1], q_alt[2], q_alt[3]),
+            q_sensor_marker_alt_wxyz=q_alt,  # type: ignore[arg-type]
             frame_remaining=int(getattr(msg, "frame_remaining", 0) or 0),
             covariance=_covariance(getattr(msg, "covariance", None)),
         )

@@ -20,6 +20,7 @@ import tempfile
 import threading
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import pymavlink
 from pymavlink.generator import mavgen
@@ -141,3 +142,89 @@ def load() -> ModuleType:
             except (OSError, SyntaxError, ImportError) as exc:
                 last_error = exc
         raise AtlasError(f"cannot write the generated MAVLink dialect to a cache directory: {last_error}")
+
+
+# --- a faster decode -----------------------------------------------------------------------------------
+
+_MAGIC_V2 = 0xFD
+_IFLAG_SIGNED = 0x01
+_V2_OVERHEAD = 12  # 10-byte header, 2-byte checksum (unsigned)
+
+
+def parser_class(module: ModuleType) -> type:
+    """The dialect's ``MAVLink`` class with a faster :meth:`decode` for unsigned MAVLink 2 frames.
+
+    pymavlink's generated ``decode`` finds each field of a message with arrays by summing the lengths
+    of the fields before it, for every message it decodes: for ATLAS_OBSERVATION (20 fields, three
+    arrays) that is about half of its time, and a node in a swarm decodes every peer's observation.
+    This class computes each message type's field layout once and otherwise does what pymavlink
+    does: the same checks, the same message object (fields, header, payload, checksum). Anything
+    else goes to pymavlink's own ``decode`` unchanged: MAVLink 1, signed frames, any frame while a
+    signing key is set (unsigned frames are then the signing callback's to judge), unknown ids, a
+    wrong length or checksum (pymavlink raises its own error for those). Tested equal to pymavlink's
+    on every message of the dialect.
+    """
+    with _lock:
+        cls = _cache.get("parser")
+        if cls is None or cls.__bases__[0] is not module.MAVLink:
+            cls = _cache["parser"] = type("AtlasMAVLink", (module.MAVLink,), {"decode": _decoder(module)})
+    return cls
+
+
+def _layout(msgtype: Any) -> tuple[list[tuple[int, int]], list[int]]:
+    """Each field's (position in the unpacked tuple, array length or 0 for a scalar or a string), in
+    the message's field order, and which fields are strings (their NUL padding is stripped)."""
+    zero = msgtype.unpacker.unpack(bytes(msgtype.unpacker.size))
+    lengths = msgtype.lengths
+    fields, strings = [], []
+    for i, order in enumerate(msgtype.orders):
+        tip, n = sum(lengths[:order]), lengths[order]
+        text = isinstance(zero[tip], bytes)
+        fields.append((tip, 0 if n == 1 or text else n))
+        if text:
+            strings.append(i)
+    return fields, strings
+
+
+def _decoder(module: ModuleType) -> Any:
+    mavlink_map, header, x25crc = module.mavlink_map, module.MAVLink_header, module.x25crc
+    layouts: dict[int, tuple[list[tuple[int, int]], list[int]]] = {}
+    generic = module.MAVLink.decode
+
+    def decode(self: Any, msgbuf: bytearray) -> Any:
+        n = len(msgbuf)
+        if n < _V2_OVERHEAD or msgbuf[0] != _MAGIC_V2 or msgbuf[2] or self.signing.secret_key is not None:
+            return generic(self, msgbuf)
+        msg_id = msgbuf[7] | msgbuf[8] << 8 | msgbuf[9] << 16
+        msgtype = mavlink_map.get(msg_id)
+        crc = msgbuf[-2] | msgbuf[-1] << 8
+        if msgtype is None or msgbuf[1] != n - _V2_OVERHEAD:
+            return generic(self, msgbuf)
+        crcbuf = msgbuf[1:-2]
+        crcbuf.append(msgtype.crc_extra)
+        if x25crc(crcbuf).crc != crc:
+            return generic(self, msgbuf)
+        layout = layouts.get(msg_id)
+        if layout is None:
+            layout = layouts[msg_id] = _layout(msgtype)
+        fields, strings = layout
+        size = msgtype.unpacker.size
+        payload = msgbuf[10:-2]
+        if len(payload) < size:  # MAVLink 2 drops the payload's trailing zeros
+            payload.extend(bytes(size - len(payload)))
+        t = msgtype.unpacker.unpack(payload[:size])
+        values = [t[tip] if k == 0 else list(t[tip : tip + k]) for tip, k in fields]
+        for i in strings:
+            values[i] = values[i].rstrip(b"\x00")
+        try:
+            m = msgtype(*values)
+        except Exception as exc:
+            raise module.MAVError(f"Unable to instantiate MAVLink message of type {msgtype} : {exc}") from exc
+        m._signed = False
+        m._msgbuf = msgbuf
+        m._payload = msgbuf[6:-2]  # as pymavlink sets it
+        m._crc = crc
+        m._header = header(msg_id, msgbuf[2], msgbuf[3], msgbuf[1], msgbuf[4], msgbuf[5], msgbuf[6])
+        return m
+
+    return decode

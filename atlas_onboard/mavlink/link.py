@@ -199,7 +199,7 @@ class Link:
         else:
             conn = mavutil.mavlink_connection(url, **kwargs)
         # Our dialect (common.xml plus the atlas messages) on this connection only.
-        conn.mav = self.dialect.MAVLink(conn, srcSystem=self.system_id, srcComponent=self.component_id)
+        conn.mav = dialect.parser_class(self.dialect)(conn, srcSystem=self.system_id, srcComponent=self.component_id)
         conn.mav.robust_parsing = True
         # Our dialect speaks MAVLink 2 only; without this, mavutil's protocol auto-switch would replace
         # conn.mav with its global dialect on the first MAVLink 2 byte.

@@ -5,6 +5,11 @@ import re
 import sys
 from pathlib import Path
 
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
 from atlas_onboard.mavlink import codec, dialect
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "wire-format.md"
@@ -68,3 +73,103 @@ def test_the_document_states_the_generated_numbers():
         layout[name] = at
         at += sizes[code] * int(count or 1)
     assert {name: int(off) for off, name in offsets.items()} == layout
+
+
+# --- the faster decode (parser_class): the same messages as pymavlink's, faster ----------------------
+
+
+def _frame(d, msgtype, payload: bytes, seq=7, sysid=42, compid=191, incompat=0) -> bytearray:
+    """A MAVLink 2 frame as a sender writes it (trailing zeros of the payload dropped)."""
+    body = payload.rstrip(b"\x00") or payload[:1]
+    mid = msgtype.id
+    head = bytes([0xFD, len(body), incompat, 0, seq, sysid, compid, mid & 0xFF, (mid >> 8) & 0xFF, mid >> 16])
+    crc = d.x25crc(bytearray(head[1:] + body + bytes([msgtype.crc_extra]))).crc
+    return bytearray(head + body + bytes([crc & 0xFF, crc >> 8]))
+
+
+def _same(a, b) -> None:
+    """Every attribute: the fields, the raw strings, the buffers, the checksum, the header."""
+    assert type(a) is type(b)
+    assert repr({k: v for k, v in vars(a).items() if k != "_header"}) == repr(
+        {k: v for k, v in vars(b).items() if k != "_header"}
+    )
+    assert vars(a._header) == vars(b._header)
+
+
+@pytest.fixture
+def parsers(monkeypatch):
+    """pymavlink's parser and ours, and a count of the frames ours handed to pymavlink's decode."""
+    d = dialect.load()
+    calls = []
+    generic = d.MAVLink.decode
+    monkeypatch.setattr(d.MAVLink, "decode", lambda self, buf: calls.append(1) or generic(self, buf))
+    monkeypatch.setattr(dialect, "_cache", {"module": d})
+    ours = dialect.parser_class(d)(None)
+    theirs = d.MAVLink(None)
+    for mav in (ours, theirs):
+        mav.robust_parsing = True
+    yield d, ours, theirs, calls
+    monkeypatch.undo()
+    dialect._cache.pop("parser", None)
+
+
+def test_parser_decodes_every_message_of_the_dialect_as_pymavlink_does(parsers):
+    d, ours, theirs, calls = parsers
+    rng = np.random.default_rng(3)
+    for msgtype in d.mavlink_map.values():
+        size = msgtype.unpacker.size
+        for payload in (rng.integers(0, 256, size, dtype=np.uint8).tobytes(), bytes(size), bytes(size - 1) + b"\x05"):
+            frame = _frame(d, msgtype, payload)
+            mine = ours.parse_buffer(bytes(frame))
+            assert len(mine) == 1 and mine[0].get_type() == msgtype.msgname, msgtype.msgname
+            _same(mine[0], theirs.parse_buffer(bytes(frame))[0])
+    # pymavlink's decode ran for its own parser only: valid unsigned MAVLink 2 frames never need it.
+    assert len(calls) == 3 * len(d.mavlink_map)
+
+
+@given(payload=st.binary(min_size=0, max_size=300), which=st.sampled_from(["atlas_observation", "atlas_fused_pose"]))
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_parser_matches_pymavlink_on_any_atlas_payload(parsers, payload, which):
+    d, ours, theirs, _ = parsers
+    msgtype = getattr(d, f"MAVLink_{which}_message")
+    payload = (payload + bytes(msgtype.unpacker.size))[: msgtype.unpacker.size]
+    frame = bytes(_frame(d, msgtype, payload))
+    _same(ours.parse_buffer(frame)[0], theirs.parse_buffer(frame)[0])
+
+
+def test_parser_leaves_bad_signed_and_v1_frames_to_pymavlink(parsers):
+    d, ours, theirs, calls = parsers
+    msgtype = d.MAVLink_atlas_observation_message
+    good = _frame(d, msgtype, bytes(range(1, 173)))
+    bad_crc = bytearray(good)
+    bad_crc[-1] ^= 0xFF
+    unknown_flag = _frame(d, msgtype, bytes(range(1, 173)), incompat=0x02)
+    for frame in (bad_crc, unknown_flag):
+        calls.clear()
+        mine, theirs_ = ours.parse_buffer(bytes(frame)), theirs.parse_buffer(bytes(frame))
+        assert [m.get_type() for m in mine] == [m.get_type() for m in theirs_] == ["BAD_DATA"]
+        assert mine[0].reason == theirs_[0].reason
+    calls.clear()
+    with pytest.raises(d.MAVError) as mine_err:  # a wrong length field (decode called directly)
+        ours.decode(good + b"\x00")
+    with pytest.raises(d.MAVError) as theirs_err:
+        theirs.decode(good + b"\x00")
+    assert str(mine_err.value) == str(theirs_err.value) and calls == [1, 1]
+    # MAVLink 1 and signed frames: pymavlink's decode, with its signature checks.
+    v1 = d.MAVLink(None, srcSystem=3)
+    v1.WIRE_PROTOCOL_VERSION = "1.0"
+    hb = d.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3)
+    calls.clear()
+    frame_v1 = hb.pack(v1, force_mavlink1=True)
+    _same(ours.parse_buffer(frame_v1)[0], theirs.parse_buffer(frame_v1)[0])
+    assert calls == [1, 1]
+    key = bytes(range(32))
+    sender = d.MAVLink(None, srcSystem=9)
+    sender.signing.secret_key, sender.signing.sign_outgoing, sender.signing.timestamp = key, True, 1
+    for mav in (ours, theirs):
+        mav.signing.secret_key = key
+    signed = hb.pack(sender)
+    calls.clear()
+    mine, theirs_ = ours.parse_buffer(signed)[0], theirs.parse_buffer(signed)[0]
+    assert mine._signed and theirs_._signed and calls == [1, 1]
+    _same(mine, theirs_)
