@@ -33,7 +33,7 @@ from atlas_onboard.publisher import AutopilotPose, Publisher
 _logger = logging.getLogger(__name__)
 
 NS = 1_000_000_000
-LOOP_TICK_S = 0.01  # the loop runs at least this often (expiries, duties, parked observations)
+LOOP_TICK_S = 0.05  # the loop runs at least this often (links' periodic messages, stop and reload flags)
 FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observations
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
 PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
@@ -214,7 +214,7 @@ class Node:
         :meth:`_process`): the link's thread stops before its next datagram and leaves the processor
         to the loop, which would otherwise wait its turn behind the decoding of the rest of a burst.
         Others' views do not wake the loop: it parks them anyway, and takes them with the next
-        observations that can move the own pose or at its next tick (every ``LOOP_TICK_S``), so that
+        observations that can move the own pose or when something is due (at most ``LOOP_TICK_S``), so that
         a swarm's traffic does not switch threads hundreds of times a second.
         """
         wake = pause = False
@@ -249,7 +249,7 @@ class Node:
         _logger.info("node %s (system %d) running", self.config.entity, self.config.system_id)
         try:
             while not self._stop.is_set():
-                item = self.inbox.get(timeout_s=LOOP_TICK_S)
+                item = self.inbox.get(timeout_s=self._wait_s(self.clock()))
                 now = self.clock()
                 if item is not None:
                     self._process(self._collect(item))
@@ -265,6 +265,28 @@ class Node:
             self.transport.close()
             self._log_status(final=True)
         return 0
+
+    def _wait_s(self, now: int) -> float:
+        """How long the loop may wait for input: until the first thing due (parked observations,
+        coalesced evaluation, an edge's expiry, a held pose, the EKF's prediction, fused poses, the
+        watchdog, the status line), at most ``LOOP_TICK_S``. A node fed at 30 Hz then wakes for its
+        frames and what is due, not a hundred times a second to find nothing to do."""
+        due = [
+            now + int(LOOP_TICK_S * NS),
+            self._next_watchdog_ns,
+            self._next_status_ns,
+            self.publisher.next_fused_ns(),
+        ]
+        if self._pending:
+            due.append(self._pending_since_ns + self.park_ns)
+        if self._dirty:
+            due.append(now if self._urgent else self._last_eval_ns + COALESCE_NS)
+        for t in (self.graph.next_expiry_ns(), self.publisher.next_autopilot_ns()):
+            if t is not None:
+                due.append(t)
+        if self.ekf is not None and self.last_result is not None:
+            due.append(self._last_publish_ns + PREDICT_NS)
+        return max(min(due) - now, 0) / NS
 
     def _collect(self, first: tuple[MarkerData, int, bool]) -> list[tuple[MarkerData, int, bool]]:
         """``first`` and everything queued, and then what arrives until every image in the batch that

@@ -102,6 +102,10 @@ class Publisher:
             return None
         return self._tokens_ns + int((1.0 - self._tokens) * NS / self.rate_hz) + 1
 
+    def next_fused_ns(self) -> int:
+        """When the fused poses go next (0: at once)."""
+        return 0 if self._last_fused_ns is None else self._last_fused_ns + int(NS / self.fused_rate_hz)
+
     def fused_due(self, now_ns: int) -> bool:
         """True when the fused poses of every entity should go to peers now."""
         if self._last_fused_ns is None or now_ns - self._last_fused_ns >= NS / self.fused_rate_hz:

@@ -11,7 +11,7 @@ from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig, parse_world
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.node import Inbox, Node
+from atlas_onboard.node import LOOP_TICK_S, Inbox, Node
 from tests.helpers import assert_pose_close, observe, pose
 
 WORLD = parse_world(
@@ -434,6 +434,32 @@ def test_the_own_pose_alone_is_evaluated_first_and_the_others_follow():
     np.testing.assert_allclose(sent.covariance, full.covariance, atol=1e-15)
     assert at(99) == 3
     assert at(100) == 4 and node.last_result.complete  # COALESCE_NS after the full one at 50 ms
+
+
+def test_the_loop_waits_until_the_first_thing_due():
+    """On a fake clock: the loop waits for input until the first thing is due (parked views' flush,
+    a coalesced evaluation, the fused poses, an edge's expiry), never longer than LOOP_TICK_S."""
+    node, _, set_ms = clocked_node(WORLD2)
+    t_us = 1_700_000_000_000_000
+
+    def at(t_ms, *items):
+        t = set_ms(t_ms)
+        if items:
+            node._process([(md, t, local) for md, local in items])
+        node._step(t)
+
+    at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True))  # d1 sees the floor
+    assert node._wait_s(set_ms(0)) == LOOP_TICK_S  # fused poses at 200 ms, the edge expires at 250
+    at(5, (observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 1), False))  # parked until 130 ms
+    assert node._wait_s(set_ms(100)) == pytest.approx(0.030)
+    at(130)
+    assert node.listener.accepted == 2 and node.last_result.complete
+    node._handle([(observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 2), set_ms(131), False)])
+    assert node._wait_s(set_ms(150)) == pytest.approx(0.030)  # evaluated with others at 180 ms
+    at(180)
+    assert node._wait_s(set_ms(190)) == pytest.approx(0.010)  # the fused poses at 200 ms
+    at(200)
+    assert node._wait_s(set_ms(230)) == pytest.approx(0.020)  # d1's edge expires at 250 ms
 
 
 def test_links_pause_at_the_last_observation_of_an_image_that_moves_the_own_pose():
