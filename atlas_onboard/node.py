@@ -43,11 +43,22 @@ class Transport(Protocol):
     """What the node needs from its MAVLink links (implemented in :mod:`atlas_onboard.mavlink`)."""
 
     def start(
-        self, deliver: Callable[[Sequence[tuple[MarkerData, int]]], None], may_read: threading.Event | None = None
+        self,
+        deliver: Callable[[Sequence[tuple[MarkerData, int]]], None],
+        may_read: threading.Event | None = None,
+        may_wait: Callable[[int, int], bool] | None = None,
     ) -> None:
         """Start the receive threads; ``deliver([(md, arrival_ns), ...])`` with the valid peer
         observations of each read (a datagram). Peer links read only while ``may_read`` is set (the
-        node holds them while it publishes)."""
+        node holds them while it publishes). An observation of an edge (sensor id, marker id) for
+        which ``may_wait`` is true is not delivered: the newest of each such edge is kept, undecoded,
+        for :meth:`take_waiting` (the older are dropped, counted ``waiting_superseded``)."""
+
+    def waiting_since_ns(self) -> int | None:
+        """When the oldest observation kept for :meth:`take_waiting` arrived (monotonic), or None."""
+
+    def take_waiting(self) -> list[tuple[MarkerData, int]]:
+        """The kept observations, checked as delivered ones are, with their arrival times."""
 
     def send_observations(self, mds: Sequence[MarkerData]) -> None:
         """Our accepted detections to every peer, together (an image's in one datagram where it fits)."""
@@ -151,6 +162,7 @@ class Node:
     ) -> None:
         self.world = world
         self._entity_of = _entity_lookup(world)
+        self._supersedes = _supersedes(world)
         self.config = config
         self.transport = transport
         self.cameras = list(cameras)
@@ -242,7 +254,7 @@ class Node:
 
     def run(self) -> int:
         """Run until stopped; returns the exit status (0)."""
-        self.transport.start(self.deliver_peers, self._may_read)
+        self.transport.start(self.deliver_peers, self._may_read, self._may_wait)
         for cam in self.cameras:
             cam.start(self.deliver_local)
         self._notify("READY=1", f"STATUS=running as {self.config.entity}")
@@ -277,8 +289,9 @@ class Node:
             self._next_status_ns,
             self.publisher.next_fused_ns(),
         ]
-        if self._pending:
-            due.append(self._pending_since_ns + self.park_ns)
+        since = self._parked_since_ns()
+        if since is not None:
+            due.append(since + self.park_ns)
         if self._dirty:
             due.append(now if self._urgent else self._last_eval_ns + COALESCE_NS)
         for t in (self.graph.next_expiry_ns(), self.publisher.next_autopilot_ns()):
@@ -346,13 +359,16 @@ class Node:
         self._pending.extend(items)
 
     def _flush_pending(self) -> None:
-        """Accept the parked observations, except those superseded: one whose edge has meanwhile been
-        refreshed by a newer arrival (taken at once because the own pose's needs changed), and, when
-        each observation simply replaces its edge (the paper's setting: ``ema_alpha`` 1, no
-        ``age_sigma_m_per_s``), every one but the newest of its edge."""
+        """Accept the parked observations (and those the transport kept, :meth:`_may_wait`), except
+        those superseded: one whose edge has meanwhile been refreshed by a newer arrival (taken at
+        once because the own pose's needs changed) or already holds a later image of the same sensor
+        (a datagram overtaken on the way), and, when each observation simply replaces its edge (the
+        paper's setting: ``ema_alpha`` 1, no ``age_sigma_m_per_s``), every one but the newest of its edge."""
         pending, self._pending = list(self._pending), deque(maxlen=self._pending.maxlen)
-        f = self.world.fusion
-        if f.ema_alpha == 1.0 and f.age_sigma_m_per_s == 0.0:
+        kept = self.transport.take_waiting()
+        if kept:  # in the order of arrival with the parked ones: the newest of an edge is the last
+            pending = sorted(pending + [(md, arrival_ns, False) for md, arrival_ns in kept], key=lambda x: x[1])
+        if self._supersedes:
             newest = {(md.sensor_id, md.marker_id): i for i, (md, _, _) in enumerate(pending)}
             keep = set(newest.values())
             self.stats.superseded += len(pending) - len(keep)
@@ -361,7 +377,7 @@ class Node:
         fresh = []
         for item in pending:
             edge = edges.get((item[0].sensor_id, item[0].marker_id))
-            if edge is not None and edge.stamp_ns > item[1]:
+            if edge is not None and (edge.stamp_ns > item[1] or edge.capture_time_us > item[0].capture_time_us):
                 self.stats.superseded += 1
             else:
                 fresh.append(item)
@@ -402,7 +418,8 @@ class Node:
         most of a node's time in a swarm). With the EKF, the prediction to now is published every
         ``PREDICT_NS``, and a pose held back by the rate cap goes when the cap allows.
         """
-        if self._pending and now - self._pending_since_ns >= self.park_ns:
+        since = self._parked_since_ns()
+        if since is not None and now - since >= self.park_ns:
             self._flush_pending()
         self._evaluate_and_publish(now)
         self._duties(now)
@@ -448,6 +465,24 @@ class Node:
             return True
         observer, observed = self._entity_of[0].get(md.sensor_id), self._entity_of[1].get(md.marker_id)
         return observer is None or observed is None or observer in relevant or observed in relevant
+
+    def _may_wait(self, sensor_id: int, marker_id: int) -> bool:
+        """For the transport (a link's thread): whether a peer's observation of this edge can wait,
+        undecoded, for the next park period, where only the newest of its edge would be accepted:
+        it cannot move the own pose, and each observation simply replaces its edge (the setting in
+        which :meth:`_flush_pending` supersedes). In a swarm that is most of a node's input, and it
+        then costs little more than pymavlink's parse."""
+        relevant = self._relevant
+        if relevant is None or not self._supersedes:
+            return False
+        observer, observed = self._entity_of[0].get(sensor_id), self._entity_of[1].get(marker_id)
+        return observer is not None and observed is not None and observer not in relevant and observed not in relevant
+
+    def _parked_since_ns(self) -> int | None:
+        """When the oldest parked observation arrived (here or kept by the transport), or None."""
+        since = self._pending_since_ns if self._pending else None
+        kept = self.transport.waiting_since_ns()
+        return kept if since is None else since if kept is None else min(since, kept)
 
     def _evaluate(self, now: int, own_only: bool = False) -> None:
         """Evaluate the graph. With ``own_only``, and when the paper's BFS has placed the own entity
@@ -512,6 +547,7 @@ class Node:
             return
         self.world = world
         self._entity_of = _entity_lookup(world)
+        self._supersedes = _supersedes(world)
         self._pending.clear()
         self.graph.clear()
         self.graph = make_graph(world)
@@ -539,6 +575,7 @@ class Node:
         if self.ekf is not None:
             out.update({f"ekf_{k}": v for k, v in self.ekf.outcomes.items()})
         out.update(self.transport.counters())
+        out["superseded"] += out.pop("waiting_superseded", 0)  # the newest of an edge kept by the transport
         for cam in self.cameras:
             out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})
         return out
@@ -592,6 +629,12 @@ def fused_poses(result: GraphResult) -> list[EntityPose]:
 def _entity_lookup(world: WorldConfig) -> tuple[dict[int, str], dict[int, str]]:
     """The entity of every sensor id and of every marker id."""
     return {s.id: s.entity for s in world.sensors.values()}, {m.id: m.entity for m in world.markers.values()}
+
+
+def _supersedes(world: WorldConfig) -> bool:
+    """Whether each observation simply replaces its edge (the paper's setting: ``ema_alpha`` 1, no
+    ``age_sigma_m_per_s``), so that of several waiting observations of an edge only the newest counts."""
+    return world.fusion.ema_alpha == 1.0 and world.fusion.age_sigma_m_per_s == 0.0
 
 
 def _make_ekf(world: WorldConfig) -> EkfBank | None:

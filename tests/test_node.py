@@ -32,10 +32,20 @@ class FakeTransport:
         self.fused = []
         self.status = []
         self.started = threading.Event()
+        self.waiting = []  # what a test puts here the node takes as kept by the transport
+        self.waiting_since = None
 
-    def start(self, deliver, may_read=None):
+    def start(self, deliver, may_read=None, may_wait=None):
         self.deliver = deliver
+        self.may_wait = may_wait
         self.started.set()
+
+    def waiting_since_ns(self):
+        return self.waiting_since if self.waiting else None
+
+    def take_waiting(self):
+        taken, self.waiting = self.waiting, []
+        return taken
 
     def send_observations(self, mds):
         self.observations.extend(mds)
@@ -177,11 +187,12 @@ def test_fused_poses_go_to_peers(n):
     np.testing.assert_allclose(d1.p_world_m, TRUTH["d1"].translation, atol=1e-9)
 
 
-def ceiling_world(d1_markers):
+def ceiling_world(d1_markers, fusion=None):
     """A ceiling camera on the world, d1 with a downward camera and ``d1_markers``, and d2 with one
-    marker (id 6)."""
+    marker (id 6); ``fusion`` settings if given."""
     return parse_world(
         {
+            **({"fusion": fusion} if fusion else {}),
             "entities": {
                 "world": {
                     "markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}],
@@ -192,7 +203,7 @@ def ceiling_world(d1_markers):
                     "markers": [{"id": i, "size_m": 0.2, "pose": {"pos": p}} for i, p in d1_markers],
                 },
                 "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
-            }
+            },
         }
     )
 
@@ -434,6 +445,44 @@ def test_the_own_pose_alone_is_evaluated_first_and_the_others_follow():
     np.testing.assert_allclose(sent.covariance, full.covariance, atol=1e-15)
     assert at(99) == 3
     assert at(100) == 4 and node.last_result.complete  # COALESCE_NS after the full one at 50 ms
+
+
+def test_peer_views_kept_by_the_transport_are_taken_with_the_parked_ones():
+    """Which peer observations may wait in the transport (undecoded, the newest of each edge): those
+    that cannot move the own pose, once it has one, and only where each observation replaces its
+    edge. On a fake clock, what the transport kept is taken park_ns after its first arrival; one
+    older than the image its edge already holds (overtaken on the way) is superseded, not written."""
+    node, tr, set_ms = clocked_node(WORLD2)
+    t_us = 1_700_000_000_000_000
+
+    def at(t_ms, *items):
+        t = set_ms(t_ms)
+        if items:
+            node._process([(md, t, local) for md, local in items])
+        node._step(t)
+
+    assert not node._may_wait(10, 6)  # no own pose yet: everything is taken at once
+    at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True))  # d1 sees the floor
+    assert node._may_wait(10, 6)  # the ceiling's view of d2
+    assert not any(node._may_wait(s, m) for s, m in ((10, 5), (1, 0), (1, 6), (99, 6), (10, 99)))
+    tr.waiting, tr.waiting_since = [(observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 5), set_ms(5))], set_ms(5)
+    at(129)
+    assert node.listener.accepted == 1 and tr.waiting
+    at(130)
+    assert node.listener.accepted == 2 and not tr.waiting and "d2" in node.last_result.poses
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)
+    late = observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 4, T_noise=pose([0.3, 0, 0]))  # overtaken
+    arrived = 1_000_000_000 + 100_000_000  # at 100 ms on the node's clock: after the other
+    tr.waiting, tr.waiting_since = [(late, arrived)], arrived
+    at(225)
+    assert node.listener.accepted == 2 and node.counters()["superseded"] == 1
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)
+    # An EMA of the edges (every observation counts) or Dijkstra's paths: nothing waits.
+    for fusion in ({"ema_alpha": 0.5}, {"path": "dijkstra"}):
+        other, _, set_other = clocked_node(ceiling_world([(5, [0, 0, 0.05])], fusion))
+        other._process([(observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), set_other(0), True)])
+        other._step(set_other(0))
+        assert "d1" in other.last_result.poses and not other._may_wait(10, 6)
 
 
 def test_the_loop_waits_until_the_first_thing_due():

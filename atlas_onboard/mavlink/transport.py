@@ -60,13 +60,21 @@ class MavlinkTransport:
         self.peers_seen: dict[int, int] = {}  # system id -> last arrival (ns)
         self._peers_alive: set[int] = set()
         self._fingerprint_warned: set[int] = set()
+        # Observations the node takes only every park period: the newest of each edge, undecoded.
+        self._may_wait: Callable[[int, int], bool] | None = None
+        self._waiting: dict[tuple[int, int], tuple[int, Link, Any, int, int]] = {}
+        self._waiting_since_ns: int | None = None
 
     # --- Transport ------------------------------------------------------------------------------------
 
     def start(
-        self, deliver: Callable[[Sequence[tuple[MarkerData, int]]], None], may_read: threading.Event | None = None
+        self,
+        deliver: Callable[[Sequence[tuple[MarkerData, int]]], None],
+        may_read: threading.Event | None = None,
+        may_wait: Callable[[int, int], bool] | None = None,
     ) -> None:
         self._deliver = deliver
+        self._may_wait = may_wait
         if self.autopilot is not None:
             self.autopilot.start(self._on_autopilot)
         for i, link in enumerate(self.peers):
@@ -218,6 +226,49 @@ class MavlinkTransport:
             if kind in ("HEARTBEAT", "ATLAS_FUSED_POSE"):
                 self.peers_seen[origin] = arrival_ns
             return
+        may_wait = self._may_wait
+        if (
+            kind == "ATLAS_OBSERVATION"
+            and may_wait is not None
+            and msg.format_version == codec.FORMAT_VERSION
+            and msg.fingerprint == self.fingerprint & 0xFFFFFFFF
+            and may_wait(msg.sensor_id, msg.marker_id)
+        ):
+            # The node will take it at its next park period, and only the newest of its edge then:
+            # keep that one as it came (decoded and checked when taken) and drop the older. (Another
+            # world file's or version's observation never stands in for one of ours: refused below.)
+            key = (msg.sensor_id, msg.marker_id)
+            with self._lock:
+                old = self._waiting.get(key)
+                if old is None or msg.time_usec > old[2].time_usec:
+                    self._waiting[key] = (index, link, msg, origin, arrival_ns)
+                    if self._waiting_since_ns is None:
+                        self._waiting_since_ns = arrival_ns
+                if old is not None:
+                    self.counters_.inc("waiting_superseded")
+            return
+        md = self._admit(index, link, kind, msg, origin, arrival_ns)
+        if md is not None:
+            self._read[index].append((md, arrival_ns))
+
+    def waiting_since_ns(self) -> int | None:
+        """When the oldest observation kept for :meth:`take_waiting` arrived (monotonic), or None."""
+        return self._waiting_since_ns
+
+    def take_waiting(self) -> list[tuple[MarkerData, int]]:
+        """The observations kept for the node's park period (the newest of each edge), decoded and
+        checked as any other (fingerprint, duplicates, rate, clock), with their arrival times."""
+        with self._lock:
+            waiting, self._waiting, self._waiting_since_ns = self._waiting, {}, None
+        out = []
+        for index, link, msg, origin, arrival_ns in waiting.values():
+            md = self._admit(index, link, "ATLAS_OBSERVATION", msg, origin, arrival_ns)
+            if md is not None:
+                out.append((md, arrival_ns))
+        return out
+
+    def _admit(self, index: int, link: Link, kind: str, msg: Any, origin: int, arrival_ns: int) -> MarkerData | None:
+        """A peer's observation decoded and checked, or None (counted) if it must go no further."""
         try:
             if kind == "TUNNEL":
                 md = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, origin, self.fingerprint)
@@ -227,11 +278,11 @@ class MavlinkTransport:
             self.counters_.inc(f"rejected_{exc.reason}")
             if exc.reason == "wrong_fingerprint":
                 self._warn_fingerprint(origin)
-            return
+            return None
         reason = self.gate.admit(md, index, link.config.rate_limit_hz, arrival_ns)
         if reason is not None:
             self.counters_.inc(f"rejected_{reason}")
-            return
+            return None
         self.peers_seen[origin] = arrival_ns
         wall_ns = self._wall_ns()
         skew = self.gate.check_skew(md, wall_ns, arrival_ns)
@@ -242,8 +293,8 @@ class MavlinkTransport:
             )  # fmt: skip
         if self.gate.stamp_refused(md, wall_ns):
             self.counters_.inc("rejected_bad_stamp")
-            return
-        self._read[index].append((md, arrival_ns))
+            return None
+        return md
 
     def _wall_ns(self) -> int:
         """The wall clock (UNIX epoch) in ns, to the microsecond (the resolution of a float of seconds)."""

@@ -266,3 +266,50 @@ def test_the_observations_of_one_datagram_are_handed_on_together(rig):
     settle(transport, delivered)
     assert [m.seq for m in delivered] == [10, 11, 12, 20] and [m.frame_remaining for m in delivered[:3]] == [2, 1, 0]
     assert transport.batches == [3, 1]
+
+
+def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_when_taken():
+    """An observation the node says may wait (here of marker 5) is not delivered: the newest of its
+    edge is kept, the others dropped (counted), and it is decoded and checked (duplicates, stamps)
+    only when taken; another world file's never stands in for ours; the rest is delivered at once."""
+    world = world_from(
+        {
+            "entities": {
+                "world": {"sensors": [{"name": "cam", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},
+                "d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+                "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+            }
+        }
+    )
+    port = free_port()
+    config = NodeConfig(entity="d1", system_id=1, peers=(LinkConfig(f"udpin:127.0.0.1:{port}"),))
+    transport = MavlinkTransport(world, config, wall_clock=lambda: WALL_S)
+    delivered: list = []
+    transport.start(delivered.extend, may_wait=lambda sensor, marker: marker == 6)
+    sender = RawSender(port, 250)
+    try:
+        fp, t_us = world.fingerprint(), int(WALL_S * 1e6)
+        assert transport.waiting_since_ns() is None
+        for seq, dt in ((1, 0), (2, 1000), (3, -1000)):  # the newest (seq 2) arrives in the middle
+            sender.raw(sender.observation(seq=seq, fingerprint=fp, time_usec=t_us + dt, marker_id=6))
+        sender.raw(sender.observation(seq=4, fingerprint=fp ^ 1, time_usec=t_us + 2000, marker_id=6))
+        sender.raw(sender.observation(seq=5, fingerprint=fp, time_usec=t_us, marker_id=5))  # delivered
+        settle(transport, delivered)
+        assert [(md.marker_id, md.seq) for md, _ in delivered] == [(5, 5)]
+        c = transport.counters()
+        assert c["waiting_superseded"] == 2 and c["rejected_wrong_fingerprint"] == 1
+        since = transport.waiting_since_ns()
+        assert since is not None and since <= time.monotonic_ns()
+        taken = transport.take_waiting()
+        assert [(md.marker_id, md.seq, md.capture_time_us) for md, _ in taken] == [(6, 2, t_us + 1000)]
+        assert taken[0][1] >= since and transport.waiting_since_ns() is None and transport.take_waiting() == []
+        # Checked as any other when taken: the same observation again is a duplicate; a stale one is refused.
+        sender.raw(sender.observation(seq=2, fingerprint=fp, time_usec=t_us + 1000, marker_id=6))
+        settle(transport, delivered)
+        assert transport.take_waiting() == [] and transport.counters()["rejected_duplicate"] == 1
+        sender.raw(sender.observation(seq=6, fingerprint=fp, time_usec=t_us - 5_000_000, marker_id=6))
+        settle(transport, delivered)
+        assert transport.take_waiting() == [] and transport.counters()["rejected_bad_stamp"] == 1
+    finally:
+        transport.close()
+        sender.close()
