@@ -419,8 +419,9 @@ def test_peer_views_of_others_are_parked_and_accepted_together():
 
 
 def test_the_own_pose_alone_is_evaluated_first_and_the_others_follow():
-    """On a fake clock: an own image evaluates the own pose alone (the others keep their last poses)
-    and the full evaluation follows COALESCE_NS after the previous full one."""
+    """On a fake clock: an own image evaluates the own pose alone (the others keep their last poses).
+    A full evaluation follows COALESCE_NS after the previous full one when something the others rest
+    on has changed; not when only the own entity's edges to the world have (it would change nothing)."""
     node, tr, set_ms = clocked_node(WORLD2)
     t_us = 1_700_000_000_000_000
 
@@ -443,8 +444,49 @@ def test_the_own_pose_alone_is_evaluated_first_and_the_others_follow():
     full = node.graph.evaluate(set_ms(60)).poses["d1"]  # what a full evaluation gives now
     np.testing.assert_allclose(sent.p_world_m, full.p_world_m, atol=1e-12)
     np.testing.assert_allclose(sent.covariance, full.covariance, atol=1e-15)
-    assert at(99) == 3
-    assert at(100) == 4 and node.last_result.complete  # COALESCE_NS after the full one at 50 ms
+    assert at(99) == 3 and at(100) == 3 and at(200) == 3  # only d1's edge to the floor changed
+    full = node.graph.evaluate(set_ms(200)).poses["d2"]
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, full.p_world_m, atol=1e-12)
+    # The ceiling's view of d2 changes too: the full evaluation follows (at once: the last was at 50 ms).
+    assert at(210, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us + 3), True)) == 4
+    moved = observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 4, T_noise=pose([0.01, 0, 0]))
+    node._handle([(moved, set_ms(211), False)])
+    assert at(212) == 5 and node.last_result.complete
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1.01, 1, 1], atol=1e-9)
+    # An own image between a view of d2 and the full evaluation: the view still gets evaluated.
+    moved = observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 6, T_noise=pose([0.02, 0, 0]))
+    node._handle([(moved, set_ms(230), False)])
+    assert at(235, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us + 7), True)) == 6
+    assert at(261) == 6 and at(262) == 7 and node.last_result.complete  # COALESCE_NS after 212
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1.02, 1, 1], atol=1e-9)
+
+
+def test_the_others_are_evaluated_again_when_they_rest_on_the_own_pose():
+    """d2, seen only by d1's camera, rests on d1's pose: after an own image that changed only d1's
+    edge to the floor, the full evaluation still follows, and d2 moves with d1."""
+    node, _, set_ms = clocked_node(WORLD2)
+    t_us = 1_700_000_000_000_000
+    first = [observe(WORLD2, TRUTH2, 1, m, capture_time_us=t_us) for m in (0, 6)]
+    node._process([(md, set_ms(0), True) for md in first])
+    node._step(set_ms(0))
+    assert node.last_result.levels["d2"] == 2 and node.stats.evaluations == 1
+    moved = observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us + 1, T_noise=pose([0.02, 0, 0]))
+    node._process([(moved, set_ms(60), True)])
+    node._step(set_ms(60))
+    assert node.stats.evaluations == 3 and node.last_result.complete  # the own pose alone, then all
+    full = node.graph.evaluate(set_ms(60)).poses["d2"]
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, full.p_world_m, atol=1e-12)
+    assert np.linalg.norm(full.p_world_m - np.array([1.0, 1.0, 1.0])) > 0.01  # it did move with d1
+    # With edge ageing the others' sigmas grow between evaluations: the full evaluation follows too.
+    for age, evaluations in ((0.0, 2), (0.5, 3)):
+        node, _, set_ms = clocked_node(ceiling_world([(5, [0, 0, 0.05])], {"age_sigma_m_per_s": age} if age else None))
+        node._process(
+            [(observe(WORLD2, TRUTH2, s, m, capture_time_us=t_us), set_ms(0), True) for s, m in ((1, 0), (10, 6))]
+        )
+        node._step(set_ms(0))
+        node._process([(observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us + 1), set_ms(30), True)])
+        node._step(set_ms(50))
+        assert node.stats.evaluations == evaluations
 
 
 def test_peer_views_kept_by_the_transport_are_taken_with_the_parked_ones():
