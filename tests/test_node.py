@@ -227,6 +227,20 @@ def clocked_node(world):
     return node, tr, set_ms
 
 
+def stepper(node, set_ms):
+    """``at(t_ms, *(md, local), ...)``: the loop's work at ``t_ms`` on the fake clock (those
+    observations processed, then a step); returns how many evaluations the node has made."""
+
+    def at(t_ms, *items):
+        t = set_ms(t_ms)
+        if items:
+            node._process([(md, t, local) for md, local in items])
+        node._step(t)
+        return node.stats.evaluations
+
+    return at
+
+
 def test_observations_that_cannot_move_the_own_pose_are_evaluated_together():
     """Driven step by step on a fake clock: the own entity's observations are evaluated at once; a
     ceiling camera's view of another drone waits up to COALESCE_NS, and is then in the fused poses."""
@@ -390,11 +404,7 @@ def test_peer_views_of_others_are_parked_and_accepted_together():
     ms = 1_000_000
     node, tr, set_ms = clocked_node(WORLD2)
 
-    def at(t_ms, *items):
-        t = set_ms(t_ms)
-        if items:
-            node._process([(md, t, local) for md, local in items])
-        node._step(t)
+    at = stepper(node, set_ms)
 
     t_us = 1_700_000_000_000_000
     at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True))  # d1 sees the floor: it has a pose
@@ -425,12 +435,7 @@ def test_the_own_pose_alone_is_evaluated_first_and_the_others_follow():
     node, tr, set_ms = clocked_node(WORLD2)
     t_us = 1_700_000_000_000_000
 
-    def at(t_ms, *items):
-        t = set_ms(t_ms)
-        if items:
-            node._process([(md, t, local) for md, local in items])
-        node._step(t)
-        return node.stats.evaluations
+    at = stepper(node, set_ms)
 
     assert at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True)) == 1  # no pose yet: full
     node._handle([(observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 1), set_ms(1), False)])
@@ -497,11 +502,7 @@ def test_peer_views_kept_by_the_transport_are_taken_with_the_parked_ones():
     node, tr, set_ms = clocked_node(WORLD2)
     t_us = 1_700_000_000_000_000
 
-    def at(t_ms, *items):
-        t = set_ms(t_ms)
-        if items:
-            node._process([(md, t, local) for md, local in items])
-        node._step(t)
+    at = stepper(node, set_ms)
 
     assert not node._may_wait(10, 6)  # no own pose yet: everything is taken at once
     at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True))  # d1 sees the floor
@@ -533,11 +534,7 @@ def test_the_loop_waits_until_the_first_thing_due():
     node, _, set_ms = clocked_node(WORLD2)
     t_us = 1_700_000_000_000_000
 
-    def at(t_ms, *items):
-        t = set_ms(t_ms)
-        if items:
-            node._process([(md, t, local) for md, local in items])
-        node._step(t)
+    at = stepper(node, set_ms)
 
     at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True))  # d1 sees the floor
     assert node._wait_s(set_ms(0)) == LOOP_TICK_S  # fused poses at 200 ms, the edge expires at 250
