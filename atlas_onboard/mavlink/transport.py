@@ -62,7 +62,7 @@ class MavlinkTransport:
         self._fingerprint_warned: set[int] = set()
         # Observations the node takes only every park period: the newest of each edge, undecoded.
         self._may_wait: Callable[[int, int], bool] | None = None
-        self._waiting: dict[tuple[int, int], tuple[int, Link, Any, int, int]] = {}
+        self._waiting: dict[tuple[int, int], tuple[int, Link, Any, int, int, int]] = {}
         self._waiting_since_ns: int | None = None
 
     # --- Transport ------------------------------------------------------------------------------------
@@ -241,7 +241,7 @@ class MavlinkTransport:
             with self._lock:
                 old = self._waiting.get(key)
                 if old is None or msg.time_usec > old[2].time_usec:
-                    self._waiting[key] = (index, link, msg, origin, arrival_ns)
+                    self._waiting[key] = (index, link, msg, origin, arrival_ns, self._wall_ns())
                     if self._waiting_since_ns is None:
                         self._waiting_since_ns = arrival_ns
                 if old is not None:
@@ -257,18 +257,22 @@ class MavlinkTransport:
 
     def take_waiting(self) -> list[tuple[MarkerData, int]]:
         """The observations kept for the node's park period (the newest of each edge), decoded and
-        checked as any other (fingerprint, duplicates, rate, clock), with their arrival times."""
+        checked as any other (fingerprint, duplicates, rate, and the clock as of their arrival), with
+        their arrival times."""
         with self._lock:
             waiting, self._waiting, self._waiting_since_ns = self._waiting, {}, None
         out = []
-        for index, link, msg, origin, arrival_ns in waiting.values():
-            md = self._admit(index, link, "ATLAS_OBSERVATION", msg, origin, arrival_ns)
+        for index, link, msg, origin, arrival_ns, wall_ns in waiting.values():
+            md = self._admit(index, link, "ATLAS_OBSERVATION", msg, origin, arrival_ns, wall_ns)
             if md is not None:
                 out.append((md, arrival_ns))
         return out
 
-    def _admit(self, index: int, link: Link, kind: str, msg: Any, origin: int, arrival_ns: int) -> MarkerData | None:
-        """A peer's observation decoded and checked, or None (counted) if it must go no further."""
+    def _admit(
+        self, index: int, link: Link, kind: str, msg: Any, origin: int, arrival_ns: int, wall_ns: int | None = None
+    ) -> MarkerData | None:
+        """A peer's observation decoded and checked, or None (counted) if it must go no further.
+        ``wall_ns``: its arrival on the wall clock (now if not given), for the clock checks."""
         try:
             if kind == "TUNNEL":
                 md = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, origin, self.fingerprint)
@@ -284,7 +288,8 @@ class MavlinkTransport:
             self.counters_.inc(f"rejected_{reason}")
             return None
         self.peers_seen[origin] = arrival_ns
-        wall_ns = self._wall_ns()
+        if wall_ns is None:
+            wall_ns = self._wall_ns()
         skew = self.gate.check_skew(md, wall_ns, arrival_ns)
         if skew is not None:
             _logger.warning(

@@ -283,7 +283,8 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
     )
     port = free_port()
     config = NodeConfig(entity="d1", system_id=1, peers=(LinkConfig(f"udpin:127.0.0.1:{port}"),))
-    transport = MavlinkTransport(world, config, wall_clock=lambda: WALL_S)
+    wall = [WALL_S]
+    transport = MavlinkTransport(world, config, wall_clock=lambda: wall[0])
     delivered: list = []
     transport.start(delivered.extend, may_wait=lambda sensor, marker: marker == 6)
     sender = RawSender(port, 250)
@@ -300,10 +301,13 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
         assert c["waiting_superseded"] == 2 and c["rejected_wrong_fingerprint"] == 1
         since = transport.waiting_since_ns()
         assert since is not None and since <= time.monotonic_ns()
+        wall[0] += 0.3  # taken later than it arrived: its clock is checked as of its arrival
         taken = transport.take_waiting()
+        assert transport.counters().get("clock_skew_warnings", 0) == 0
         assert [(md.marker_id, md.seq, md.capture_time_us) for md, _ in taken] == [(6, 2, t_us + 1000)]
         assert taken[0][1] >= since and transport.waiting_since_ns() is None and transport.take_waiting() == []
         # Checked as any other when taken: the same observation again is a duplicate; a stale one is refused.
+        wall[0] = WALL_S
         sender.raw(sender.observation(seq=2, fingerprint=fp, time_usec=t_us + 1000, marker_id=6))
         settle(transport, delivered)
         assert transport.take_waiting() == [] and transport.counters()["rejected_duplicate"] == 1
