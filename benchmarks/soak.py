@@ -1,6 +1,8 @@
 """Soak: N node processes (default 10) on loopback for a set time, fed 30 Hz observations of every
 drone (``--markers`` per frame, default 4) through a hub, each node with a simulated autopilot.
-Every node receives every drone's observations, as on a real mesh. Prints resident memory of every node over time,
+Every node receives every drone's observations, as on a real mesh. The load generator and the hub
+(the mesh) run in processes of their own, the autopilots in this one (they timestamp arrivals in
+the kernel). Prints resident memory of every node over time,
 dropped-message counters, the longest gap between autopilot messages while observations flow, and
 CPU per node.
 
