@@ -464,10 +464,14 @@ class Node:
         evaluation); every observation when the own entity has no pose or paths are Dijkstra's.
         Others (a ceiling camera's view of another drone) are evaluated together, ``COALESCE_NS``
         at most later: in a swarm they are most of a node's input."""
+        return self._edge_concerns_own_pose(md.sensor_id, md.marker_id)
+
+    def _edge_concerns_own_pose(self, sensor_id: int, marker_id: int) -> bool:
+        """:meth:`_concerns_own_pose` of an observation of this edge."""
         relevant = self._relevant
         if relevant is None:
             return True
-        observer, observed = self._entity_of[0].get(md.sensor_id), self._entity_of[1].get(md.marker_id)
+        observer, observed = self._entity_of[0].get(sensor_id), self._entity_of[1].get(marker_id)
         return observer is None or observed is None or observer in relevant or observed in relevant
 
     def _may_wait(self, sensor_id: int, marker_id: int) -> bool:
@@ -476,11 +480,7 @@ class Node:
         it cannot move the own pose, and each observation simply replaces its edge (the setting in
         which :meth:`_flush_pending` supersedes). In a swarm that is most of a node's input, and it
         then costs little more than pymavlink's parse."""
-        relevant = self._relevant
-        if relevant is None or not self._supersedes:
-            return False
-        observer, observed = self._entity_of[0].get(sensor_id), self._entity_of[1].get(marker_id)
-        return observer is not None and observed is not None and observer not in relevant and observed not in relevant
+        return self._supersedes and not self._edge_concerns_own_pose(sensor_id, marker_id)
 
     def _parked_since_ns(self) -> int | None:
         """When the oldest parked observation arrived (here or kept by the transport), or None."""
