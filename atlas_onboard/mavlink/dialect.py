@@ -14,7 +14,9 @@ import io
 import logging
 import os
 import py_compile
+import re
 import shutil
+import struct
 import sys
 import tempfile
 import threading
@@ -149,10 +151,11 @@ def load() -> ModuleType:
 _MAGIC_V2 = 0xFD
 _IFLAG_SIGNED = 0x01
 _V2_OVERHEAD = 12  # 10-byte header, 2-byte checksum (unsigned)
+_V2_HEADER = 10
 
 
 def parser_class(module: ModuleType) -> type:
-    """The dialect's ``MAVLink`` class with a faster :meth:`decode` for unsigned MAVLink 2 frames.
+    """The dialect's ``MAVLink`` class, faster for unsigned MAVLink 2 frames, with deferred decoding.
 
     pymavlink's generated ``decode`` finds each field of a message with arrays by summing the lengths
     of the fields before it, for every message it decodes: for ATLAS_OBSERVATION (20 fields, three
@@ -163,12 +166,118 @@ def parser_class(module: ModuleType) -> type:
     signing key is set (unsigned frames are then the signing callback's to judge), unknown ids, a
     wrong length or checksum (pymavlink raises its own error for those). Tested equal to pymavlink's
     on every message of the dialect.
+
+    ``parse_buffer`` takes a read that starts at a frame (a UDP datagram holds whole frames) a frame
+    at a time, rather than pymavlink's byte-buffer bookkeeping per message; at the first thing that
+    is not a whole, valid, unsigned MAVLink 2 frame of a known id (a partial frame of a stream, bad
+    data, MAVLink 1, a signed frame) it hands the rest of the read to pymavlink's ``parse_buffer``,
+    which then parses it exactly as it would have. Frames of the ids in ``deferred_ids`` come back as
+    :class:`Deferred`: checked as above, decoded only when a field is asked for.
     """
     with _lock:
         cls = _cache.get("parser")
         if cls is None or cls.__bases__[0] is not module.MAVLink:
-            cls = _cache["parser"] = type("AtlasMAVLink", (module.MAVLink,), {"decode": _decoder(module)})
+            decode, parse_buffer = _decoder(module)
+            cls = _cache["parser"] = type(
+                "AtlasMAVLink",
+                (module.MAVLink,),
+                {"decode": decode, "parse_buffer": parse_buffer, "deferred_ids": frozenset()},
+            )
     return cls
+
+
+class Deferred:
+    """A frame that passed every check of a decode (an unsigned MAVLink 2 frame of a known id, its
+    length and checksum right), decoded only when needed: :meth:`decoded` gives pymavlink's message
+    (the same object the parser would have returned), a scalar field read as an attribute
+    (``frame.sensor_id``) is read from the payload alone, any other attribute decodes. A receiver
+    that keeps only the newest of many messages, or needs only their sender, then decodes few."""
+
+    __slots__ = ("_build", "_msg", "_msgbuf", "_msgtype")
+
+    def __init__(self, build: Any, msgbuf: bytearray, msgtype: Any) -> None:
+        self._build = build
+        self._msgbuf = msgbuf
+        self._msgtype = msgtype
+        self._msg: Any = None
+
+    def get_type(self) -> str:
+        return str(self._msgtype.msgname)
+
+    def get_msgId(self) -> int:  # pymavlink's names, from here on
+        return int(self._msgtype.id)
+
+    def get_srcSystem(self) -> int:
+        return self._msgbuf[5]
+
+    def get_srcComponent(self) -> int:
+        return self._msgbuf[6]
+
+    def get_seq(self) -> int:
+        return self._msgbuf[4]
+
+    def decoded(self) -> Any:
+        """pymavlink's message for this frame (decoded once)."""
+        if self._msg is None:
+            self._msg = self._build(self._msgbuf, self._msgtype)
+        return self._msg
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.decoded(), name)
+
+    def __repr__(self) -> str:
+        return f"Deferred({self.get_type()} from {self.get_srcSystem()}/{self.get_srcComponent()})"
+
+
+_deferred: dict[int, type[Deferred]] = {}
+
+
+def _deferred_class(msgtype: Any) -> type[Deferred]:
+    """:class:`Deferred` for ``msgtype``, its scalar number fields as properties that read the payload
+    (a field asked for again reads it again: cheaper than keeping what was read)."""
+    cls = _deferred.get(msgtype.id)
+    if cls is None:
+        props = {name: property(_field(read)) for name, read in _scalar_readers(msgtype).items()}
+        cls = _deferred[msgtype.id] = type(f"Deferred_{msgtype.msgname}", (Deferred,), {"__slots__": (), **props})
+    return cls
+
+
+def _field(read: Any) -> Any:
+    return lambda self: read(self._msgbuf)
+
+
+def _scalar_readers(msgtype: Any) -> dict[str, Any]:
+    """For each scalar number field of ``msgtype``: a function reading it from a frame, as pymavlink's
+    decode would (a payload shortened by MAVLink 2's trailing-zero truncation reads as zeros)."""
+    sizes = {"c": 1, "s": 1, "b": 1, "B": 1, "h": 2, "H": 2, "i": 4, "I": 4, "f": 4, "q": 8, "Q": 8, "d": 8}
+    starts: list[tuple[int, str]] = []  # each item of the unpacked tuple: its payload offset and code
+    at = 0
+    for count, code in re.findall(r"(\d*)([a-zA-Z])", msgtype.unpacker.format):
+        n = int(count or 1)
+        if code == "s":
+            starts.append((at, code))
+        else:
+            starts.extend((at + k * sizes[code], code) for k in range(n))
+        at += n * sizes[code]
+    fields, strings = _layout(msgtype)
+    readers = {}
+    for i, (tip, k) in enumerate(fields):
+        offset, code = starts[tip]
+        if k == 0 and i not in strings and code not in "cs":
+            readers[msgtype.fieldnames[i]] = _reader(struct.Struct("<" + code), _V2_HEADER + offset)
+    return readers
+
+
+def _reader(unpacker: struct.Struct, start: int) -> Any:
+    size = unpacker.size
+
+    def read(msgbuf: bytearray) -> Any:
+        end = len(msgbuf) - 2  # the payload's end (the checksum follows)
+        if start + size <= end:
+            return unpacker.unpack_from(msgbuf, start)[0]
+        return unpacker.unpack(bytes(msgbuf[start:end]).ljust(size, b"\x00"))[0]
+
+    return read
 
 
 def _layout(msgtype: Any) -> tuple[list[tuple[int, int]], list[int]]:
@@ -186,24 +295,15 @@ def _layout(msgtype: Any) -> tuple[list[tuple[int, int]], list[int]]:
     return fields, strings
 
 
-def _decoder(module: ModuleType) -> Any:
+def _decoder(module: ModuleType) -> tuple[Any, Any]:
+    """The parser's ``decode`` and ``parse_buffer`` (see :func:`parser_class`)."""
     mavlink_map, header, x25crc = module.mavlink_map, module.MAVLink_header, module.x25crc
     layouts: dict[int, tuple[list[tuple[int, int]], list[int]]] = {}
-    generic = module.MAVLink.decode
+    generic_decode, generic_parse = module.MAVLink.decode, module.MAVLink.parse_buffer
 
-    def decode(self: Any, msgbuf: bytearray) -> Any:
-        n = len(msgbuf)
-        if n < _V2_OVERHEAD or msgbuf[0] != _MAGIC_V2 or msgbuf[2] or self.signing.secret_key is not None:
-            return generic(self, msgbuf)
-        msg_id = msgbuf[7] | msgbuf[8] << 8 | msgbuf[9] << 16
-        msgtype = mavlink_map.get(msg_id)
-        crc = msgbuf[-2] | msgbuf[-1] << 8
-        if msgtype is None or msgbuf[1] != n - _V2_OVERHEAD:
-            return generic(self, msgbuf)
-        crcbuf = msgbuf[1:-2]
-        crcbuf.append(msgtype.crc_extra)
-        if x25crc(crcbuf).crc != crc:
-            return generic(self, msgbuf)
+    def build(msgbuf: bytearray, msgtype: Any) -> Any:
+        """The message of a frame whose checks have passed."""
+        msg_id = msgtype.id
         layout = layouts.get(msg_id)
         if layout is None:
             layout = layouts[msg_id] = _layout(msgtype)
@@ -223,8 +323,53 @@ def _decoder(module: ModuleType) -> Any:
         m._signed = False
         m._msgbuf = msgbuf
         m._payload = msgbuf[6:-2]  # as pymavlink sets it
-        m._crc = crc
+        m._crc = msgbuf[-2] | msgbuf[-1] << 8
         m._header = header(msg_id, msgbuf[2], msgbuf[3], msgbuf[1], msgbuf[4], msgbuf[5], msgbuf[6])
         return m
 
-    return decode
+    def decode(self: Any, msgbuf: bytearray) -> Any:
+        n = len(msgbuf)
+        if n < _V2_OVERHEAD or msgbuf[0] != _MAGIC_V2 or msgbuf[2] or self.signing.secret_key is not None:
+            return generic_decode(self, msgbuf)
+        msgtype = mavlink_map.get(msgbuf[7] | msgbuf[8] << 8 | msgbuf[9] << 16)
+        if msgtype is None or msgbuf[1] != n - _V2_OVERHEAD:
+            return generic_decode(self, msgbuf)
+        crcbuf = msgbuf[1:-2]
+        crcbuf.append(msgtype.crc_extra)
+        if x25crc(crcbuf).crc != msgbuf[-2] | msgbuf[-1] << 8:
+            return generic_decode(self, msgbuf)
+        return build(msgbuf, msgtype)
+
+    def parse_buffer(self: Any, s: Any) -> list[Any] | None:
+        if self.buf_index != len(self.buf) or self.signing.secret_key is not None or self.callback is not None:
+            return generic_parse(self, s)  # a partial frame is waiting, or signing: pymavlink's way
+        out: list[Any] = []
+        deferred = self.deferred_ids
+        i, n = 0, len(s)
+        while n - i >= _V2_OVERHEAD and s[i] == _MAGIC_V2 and not s[i + 2]:
+            end = i + s[i + 1] + _V2_OVERHEAD
+            msgtype = mavlink_map.get(s[i + 7] | s[i + 8] << 8 | s[i + 9] << 16)
+            if end > n or msgtype is None:
+                break
+            msgbuf = bytearray(s[i:end])
+            crcbuf = msgbuf[1:-2]
+            crcbuf.append(msgtype.crc_extra)
+            if x25crc(crcbuf).crc != msgbuf[-2] | msgbuf[-1] << 8:
+                break
+            if msgtype.id in deferred:
+                out.append(_deferred_class(msgtype)(build, msgbuf, msgtype))
+            else:
+                out.append(build(msgbuf, msgtype))
+            i = end
+        if out:  # the parser's state as pymavlink leaves it after whole frames
+            self.total_bytes_received += i
+            self.total_packets_received += len(out)
+            self.have_prefix_error = False
+            self.expected_length = _V2_OVERHEAD
+        if i < n:
+            rest = generic_parse(self, s[i:] if i else s)
+            if rest:
+                out.extend(rest)
+        return out or None
+
+    return decode, parse_buffer

@@ -29,7 +29,7 @@ import struct
 import threading
 import time
 from collections import Counter as Tally
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -142,6 +142,8 @@ class Link:
         state_dir: where the signing timestamp persists (None: not persisted).
         link_id: the MAVLink signing link id of this connection.
         wall_clock: UNIX time in seconds (signing timestamps); injectable for tests.
+        deferred: names of messages handed on as :class:`dialect.Deferred` (checked, decoded only when
+            a field is read) where the parser can (unsigned MAVLink 2); others are decoded as they come.
     """
 
     def __init__(
@@ -154,6 +156,7 @@ class Link:
         link_id: int = 0,
         *,
         wall_clock: Callable[[], float] = time.time,
+        deferred: Collection[str] = (),
     ) -> None:
         self.config = config
         self.name = name
@@ -163,6 +166,8 @@ class Link:
         self.link_id = link_id
         self.counters = Counters()
         self.dialect = dialect.load()
+        names = set(deferred)
+        self._deferred_ids = frozenset(t.id for t in self.dialect.mavlink_map.values() if t.msgname in names)
         self._wall = wall_clock
         self._key = read_key(config.signing.key_file) if config.signing is not None else None
         self._conn: Any = None
@@ -201,6 +206,7 @@ class Link:
         # Our dialect (common.xml plus the atlas messages) on this connection only.
         conn.mav = dialect.parser_class(self.dialect)(conn, srcSystem=self.system_id, srcComponent=self.component_id)
         conn.mav.robust_parsing = True
+        conn.mav.deferred_ids = self._deferred_ids
         # Our dialect speaks MAVLink 2 only; without this, mavutil's protocol auto-switch would replace
         # conn.mav with its global dialect on the first MAVLink 2 byte.
         conn.WIRE_PROTOCOL_VERSION = "2.0"

@@ -13,7 +13,7 @@ from atlas_onboard.config import NodeConfig, WorldConfig
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mavlink import autopilot, codec
+from atlas_onboard.mavlink import autopilot, codec, dialect
 from atlas_onboard.mavlink.gate import PeerGate, TokenBucket
 from atlas_onboard.mavlink.link import Counters, Link
 from atlas_onboard.publisher import AutopilotPose
@@ -44,8 +44,11 @@ class MavlinkTransport:
             if ap is not None
             else None
         )
+        # A peer's observations are decoded only if the node may use them (most wait for the newest of
+        # their edge, :meth:`take_waiting`); its fused poses only say that it is alive.
+        lazy = ("ATLAS_OBSERVATION", "ATLAS_FUSED_POSE")
         self.peers = [
-            Link(p, f"peer{i}", config.system_id, compid, config.state_dir, link_id=i + 1, wall_clock=wall_clock)
+            Link(p, f"peer{i}", config.system_id, compid, config.state_dir, i + 1, wall_clock=wall_clock, deferred=lazy)
             for i, p in enumerate(config.peers)
         ]
         self.entity_index = {name: i for i, name in enumerate(world.entity_names)}
@@ -274,6 +277,8 @@ class MavlinkTransport:
         """A peer's observation decoded and checked, or None (counted) if it must go no further.
         ``wall_ns``: its arrival on the wall clock (now if not given), for the clock checks."""
         try:
+            if isinstance(msg, dialect.Deferred):
+                msg = msg.decoded()
             if kind == "TUNNEL":
                 md = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, origin, self.fingerprint)
             else:
@@ -282,6 +287,9 @@ class MavlinkTransport:
             self.counters_.inc(f"rejected_{exc.reason}")
             if exc.reason == "wrong_fingerprint":
                 self._warn_fingerprint(origin)
+            return None
+        except link.dialect.MAVError:  # a deferred frame that pymavlink cannot make a message of
+            self.counters_.inc("rejected_bad_data")
             return None
         reason = self.gate.admit(md, index, link.config.rate_limit_hz, arrival_ns)
         if reason is not None:

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.mavlink import codec, dialect
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "wire-format.md"
@@ -173,3 +174,96 @@ def test_parser_leaves_bad_signed_and_v1_frames_to_pymavlink(parsers):
     mine, theirs_ = ours.parse_buffer(signed)[0], theirs.parse_buffer(signed)[0]
     assert mine._signed and theirs_._signed and calls == [1, 1]
     _same(mine, theirs_)
+
+
+# --- whole frames at a time, and deferred decoding ----------------------------------------------------
+
+
+def _pieces(d, rng, kinds):
+    """The bytes of a stream made of ``kinds``: valid frames of random types and payloads, and what a
+    link can also carry (a bad checksum, an unknown incompat flag, a MAVLink 1 frame, a frame cut
+    short, garbage)."""
+    types = sorted(d.mavlink_map.values(), key=lambda t: t.id)
+    out = []
+    for kind in kinds:
+        msgtype = d.MAVLink_atlas_observation_message if kind == "obs" else types[int(rng.integers(len(types)))]
+        payload = rng.integers(0, 256, msgtype.unpacker.size, dtype=np.uint8).tobytes()
+        if rng.random() < 0.5:  # trailing zeros, dropped on the wire
+            payload = payload[: int(rng.integers(1, len(payload) + 1))].ljust(msgtype.unpacker.size, b"\x00")
+        frame = _frame(d, msgtype, payload, seq=int(rng.integers(256)), sysid=int(rng.integers(1, 256)))
+        if kind == "bad_crc":
+            frame[-2] ^= 0x5A
+        elif kind == "flag":
+            frame = _frame(d, msgtype, payload, incompat=0x04)
+        elif kind == "v1":
+            frame = bytearray(d.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3).pack(d.MAVLink(None), force_mavlink1=True))
+        elif kind == "cut":
+            frame = frame[: int(rng.integers(1, len(frame)))]
+        elif kind == "garbage":
+            frame = bytearray(rng.integers(0, 256, int(rng.integers(1, 20)), dtype=np.uint8).tobytes())
+        out.append(bytes(frame))
+    return out
+
+
+def _fields(msg) -> list:
+    """What a receiver sees of a message (a BAD_DATA's reason and bytes; a message's every field)."""
+    if msg.get_type() == "BAD_DATA":
+        return ["BAD_DATA", msg.reason, bytes(msg.data)]
+    return [msg.get_type(), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_seq(), repr(msg.to_dict())]
+
+
+@given(
+    kinds=st.lists(st.sampled_from(["frame", "obs", "frame", "bad_crc", "flag", "v1", "cut", "garbage"]), max_size=12),
+    seed=st.integers(0, 2**32 - 1),
+    stream=st.booleans(),
+    deferred=st.booleans(),
+)
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+def test_whole_frames_parse_as_pymavlink_parses_any_stream(parsers, kinds, seed, stream, deferred):
+    """Any mix of frames and bad data, read as datagrams (one piece per read) or as a stream cut at
+    random places: the same messages, bad data and counters as pymavlink's byte-at-a-time parser, with
+    or without deferred decoding (a deferred frame's fields are those of the message it decodes to)."""
+    d, ours, theirs, _ = parsers
+    rng = np.random.default_rng(seed)
+    ours.deferred_ids = frozenset(t.id for t in d.mavlink_map.values()) if deferred else frozenset()
+    pieces = _pieces(d, rng, kinds)
+    if stream:
+        data = b"".join(pieces)
+        cuts = sorted(int(c) for c in rng.integers(0, len(data) + 1, int(rng.integers(0, 6))))
+        pieces = [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)], strict=True)]
+    got, want = [], []
+    for piece in pieces:
+        got += ours.parse_buffer(piece) or []
+        want += theirs.parse_buffer(piece) or []
+    for mine in got:
+        if isinstance(mine, dialect.Deferred):
+            scalars = {name: getattr(mine, name) for name in dialect._scalar_readers(mine._msgtype)}
+            assert mine._msg is None  # read from the payload, not decoded
+            msg = mine.decoded()
+            assert repr(scalars) == repr({name: getattr(msg, name) for name in scalars})  # NaN included
+    assert [_fields(m) for m in got] == [_fields(m) for m in want]
+    assert deferred or not any(isinstance(m, dialect.Deferred) for m in got)
+    for name in ("total_bytes_received", "total_packets_received", "total_receive_errors", "expected_length"):
+        assert getattr(ours, name) == getattr(theirs, name), name
+    assert ours.buf[ours.buf_index :] == theirs.buf[theirs.buf_index :]
+
+
+def test_a_deferred_frame_reads_its_fields_without_decoding_and_decodes_once(parsers):
+    d, ours, theirs, calls = parsers
+    ours.deferred_ids = frozenset({d.MAVLink_atlas_observation_message.id})
+    sender = d.MAVLink(None, srcSystem=33, srcComponent=197)
+    md = MarkerData(3, 9, 0.01, (0.1, -0.2, 2.0), (1.0, 0.0, 0.0, 0.0), 1_700_000_000_000_000, seq=7)
+    frames = codec.encode_observation(d, md, 0xABCD1234).pack(sender)
+    frames += d.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3).pack(sender)
+    obs, hb = ours.parse_buffer(frames)
+    assert isinstance(obs, dialect.Deferred) and not isinstance(hb, dialect.Deferred)
+    assert (obs.get_type(), obs.get_srcSystem(), obs.get_srcComponent(), obs.get_msgId()) == (
+        "ATLAS_OBSERVATION", 33, 197, 43100,
+    )  # fmt: skip
+    assert (obs.fingerprint, obs.seq, obs.sensor_id, obs.marker_id, obs.format_version) == (
+        0xABCD1234, 7, 3, 9, codec.FORMAT_VERSION,
+    )  # fmt: skip
+    assert obs._msg is None and calls == []
+    assert obs.q == pytest.approx([1.0, 0.0, 0.0, 0.0])  # an array: decodes
+    assert obs.decoded() is obs.decoded() and obs._msg is not None
+    _same(obs.decoded(), theirs.parse_buffer(frames)[0])

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import AutopilotConfig, AutopilotOutput, GlobalOrigin, LinkConfig, NodeConfig
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import Rejection
-from atlas_onboard.mavlink import codec
+from atlas_onboard.mavlink import codec, dialect
 from atlas_onboard.mavlink.transport import MavlinkTransport
 from atlas_onboard.publisher import AutopilotPose
 from tests.helpers import world_from
@@ -268,10 +268,14 @@ def test_the_observations_of_one_datagram_are_handed_on_together(rig):
     assert transport.batches == [3, 1]
 
 
-def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_when_taken():
+def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_when_taken(monkeypatch):
     """An observation the node says may wait (here of marker 5) is not delivered: the newest of its
     edge is kept, the others dropped (counted), and it is decoded and checked (duplicates, stamps)
-    only when taken; another world file's never stands in for ours; the rest is delivered at once."""
+    only when taken; another world file's never stands in for ours; the rest is delivered at once.
+    Those dropped are never decoded, nor is a peer's fused pose (it only says the peer is alive)."""
+    decoded = []
+    real = dialect.Deferred.decoded
+    monkeypatch.setattr(dialect.Deferred, "decoded", lambda self: decoded.append(self.get_type()) or real(self))
     world = world_from(
         {
             "entities": {
@@ -299,12 +303,25 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
         assert [(md.marker_id, md.seq) for md, _ in delivered] == [(5, 5)]
         c = transport.counters()
         assert c["waiting_superseded"] == 2 and c["rejected_wrong_fingerprint"] == 1
+        assert decoded == ["ATLAS_OBSERVATION"] * 2  # the other world file's (refused) and seq 5
+        pose = EntityPose("d2", np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.0, 0.0, 1.0]), 1, 2, 3, 0.01, t_us)
+        peer = RawSender(port, 77)
+        fused = peer.frame(codec.encode_fused(D, pose, 2, 0, fp))
+        made = []  # fused pose messages made from here on (a decode makes one)
+        cls = D.MAVLink_atlas_fused_pose_message
+        monkeypatch.setattr(cls, "__init__", lambda self, *a, init=cls.__init__: made.append(1) or init(self, *a))
+        peer.raw(fused)
+        assert wait_for(lambda: 77 in transport.peers_seen)
+        assert decoded == ["ATLAS_OBSERVATION"] * 2 and not made
+        assert transport.counters()["peer0_rx_atlas_fused_pose"] == 1
+        peer.close()
         since = transport.waiting_since_ns()
         assert since is not None and since <= time.monotonic_ns()
         wall[0] += 0.3  # taken later than it arrived: its clock is checked as of its arrival
         taken = transport.take_waiting()
         assert transport.counters().get("clock_skew_warnings", 0) == 0
         assert [(md.marker_id, md.seq, md.capture_time_us) for md, _ in taken] == [(6, 2, t_us + 1000)]
+        assert decoded == ["ATLAS_OBSERVATION"] * 3  # the one taken
         assert taken[0][1] >= since and transport.waiting_since_ns() is None and transport.take_waiting() == []
         # Checked as any other when taken: the same observation again is a duplicate; a stale one is refused.
         wall[0] = WALL_S
