@@ -8,6 +8,9 @@ CPU per node.
 
     python benchmarks/soak.py [--nodes 10] [--minutes 10]
 
+Also prints each node's 99th percentile wait, and the seconds of the run in which waits over the
+bar began, with how many nodes had one then.
+
 Bars: memory growth < 5 % (first sample after warm-up to the last), no autopilot gap > 100 ms,
 no observation dropped from a bounded queue (the node's queues, and its sockets' receive buffers,
 whose drops the kernel counts).
@@ -207,14 +210,17 @@ def main() -> int:
     # for the next autopilot message. A stall of the load generator (or of the whole machine before
     # anything was sent) shows in the first and not in the second; a node that sits on its input
     # shows in both.
-    gaps, waits = [], []
+    gaps, waits, p99s, late = [], [], [], []
     lo, hi = t0 + 5, t0 + elapsed - 1
     for k, a in enumerate(aps):
         t = np.array(sorted(r.arrival_s for r in a.snapshot() if lo < r.arrival_s < hi))
         gaps.append(max((b - x for x, b in itertools.pairwise(t)), default=float("inf")))
         s_k = sends[:, k][(sends[:, k] > lo) & (sends[:, k] < hi - 0.5)]
         nxt = np.searchsorted(t, s_k)
-        waits.append(float(np.max(t[nxt] - s_k)) if len(s_k) and nxt.max() < len(t) else float("inf"))
+        w = t[nxt] - s_k if len(s_k) and nxt.max() < len(t) else np.array([np.inf])
+        waits.append(float(np.max(w)))
+        p99s.append(float(np.percentile(w, 99)))
+        late += [(round(float(x) - t0, 1), k) for x in s_k[w > 0.1]] if len(w) == len(s_k) else []
         a.stop()
     hub_stop.set()
     hub.join(timeout=5)
@@ -228,13 +234,13 @@ def main() -> int:
     )
     print(f"the hub: {hub_cpu:.1f} % CPU; the autopilots (this process): {own_cpu:.1f} % CPU")
     print("node   cpu %  received  kernel_drops  accepted  superseded  rejected  inbox_dropped  longest AP gap ms"
-          "  longest wait ms")  # fmt: skip
-    for (name, f), gap, wait in zip(finals.items(), gaps, waits, strict=True):
+          "  longest wait ms  p99 wait ms")  # fmt: skip
+    for (name, f), gap, wait, p99 in zip(finals.items(), gaps, waits, p99s, strict=True):
         acc, drop, sup = f.get("accepted", "?"), f.get("inbox_dropped", "?"), f.get("superseded", "?")
         rx, lost = f.get("peer0_rx_atlas_observation", "?"), f.get("peer0_kernel_drops", "0")
         rej = sum(int(v) for k, v in f.items() if "rejected_" in k)
         print(f"{name:>5} {cpu[name]:>6.1f} {rx:>9} {lost:>13} {acc:>9} {sup:>11} {rej:>9} {drop:>14}"
-              f" {gap * 1000:>18.1f} {wait * 1000:>16.1f}")  # fmt: skip
+              f" {gap * 1000:>18.1f} {wait * 1000:>16.1f} {p99 * 1000:>12.1f}")  # fmt: skip
     reasons: dict[str, int] = {}
     for f in finals.values():
         for k, v in f.items():
@@ -242,6 +248,13 @@ def main() -> int:
                 reasons[k] = reasons.get(k, 0) + int(v)
     print("rejections, all nodes:", " ".join(f"{k}={v}" for k, v in sorted(reasons.items())) or "none")
     print(f"longest gap between autopilot messages, any cause: {max(gaps) * 1000:.1f} ms")
+    # Waits over the bar, by the second they began in: how many nodes had one then (all of them at
+    # once points at the machine or the mesh, one alone at that node).
+    when: dict[int, set[int]] = {}
+    for t, k in late:
+        when.setdefault(int(t), set()).add(k)
+    print("waits over 100 ms, by second of the run (nodes):",
+          " ".join(f"{t}s({len(ks)})" for t, ks in sorted(when.items())) or "none")  # fmt: skip
     worst_gap = max(waits) * 1000
     print(f"BAR soak_memory_growth {growth:.2f} percent 5 {'pass' if growth < 5 else 'fail'}")
     print(f"BAR soak_longest_output_gap {worst_gap:.1f} ms 100 {'pass' if worst_gap <= 100 else 'fail'}")
