@@ -479,7 +479,7 @@ class Node:
         undecoded, for the next park period, where only the newest of its edge would be accepted:
         it cannot move the own pose, and each observation simply replaces its edge (the setting in
         which :meth:`_flush_pending` supersedes). In a swarm that is most of a node's input, and it
-        then costs little more than pymavlink's parse."""
+        then costs little more than framing its datagram (it is decoded only if taken)."""
         return self._supersedes and not self._edge_concerns_own_pose(sensor_id, marker_id)
 
     def _parked_since_ns(self) -> int | None:

@@ -301,6 +301,11 @@ def _decoder(module: ModuleType) -> tuple[Any, Any]:
     layouts: dict[int, tuple[list[tuple[int, int]], list[int]]] = {}
     generic_decode, generic_parse = module.MAVLink.decode, module.MAVLink.parse_buffer
 
+    def checksum_ok(msgbuf: bytearray, msgtype: Any) -> bool:
+        crcbuf = msgbuf[1:-2]
+        crcbuf.append(msgtype.crc_extra)
+        return bool(x25crc(crcbuf).crc == msgbuf[-2] | msgbuf[-1] << 8)
+
     def build(msgbuf: bytearray, msgtype: Any) -> Any:
         """The message of a frame whose checks have passed."""
         msg_id = msgtype.id
@@ -332,11 +337,7 @@ def _decoder(module: ModuleType) -> tuple[Any, Any]:
         if n < _V2_OVERHEAD or msgbuf[0] != _MAGIC_V2 or msgbuf[2] or self.signing.secret_key is not None:
             return generic_decode(self, msgbuf)
         msgtype = mavlink_map.get(msgbuf[7] | msgbuf[8] << 8 | msgbuf[9] << 16)
-        if msgtype is None or msgbuf[1] != n - _V2_OVERHEAD:
-            return generic_decode(self, msgbuf)
-        crcbuf = msgbuf[1:-2]
-        crcbuf.append(msgtype.crc_extra)
-        if x25crc(crcbuf).crc != msgbuf[-2] | msgbuf[-1] << 8:
+        if msgtype is None or msgbuf[1] != n - _V2_OVERHEAD or not checksum_ok(msgbuf, msgtype):
             return generic_decode(self, msgbuf)
         return build(msgbuf, msgtype)
 
@@ -352,9 +353,7 @@ def _decoder(module: ModuleType) -> tuple[Any, Any]:
             if end > n or msgtype is None:
                 break
             msgbuf = bytearray(s[i:end])
-            crcbuf = msgbuf[1:-2]
-            crcbuf.append(msgtype.crc_extra)
-            if x25crc(crcbuf).crc != msgbuf[-2] | msgbuf[-1] << 8:
+            if not checksum_ok(msgbuf, msgtype):
                 break
             if msgtype.id in deferred:
                 out.append(_deferred_class(msgtype)(build, msgbuf, msgtype))
