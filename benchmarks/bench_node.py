@@ -41,7 +41,7 @@ from soak import cpu_s, detection_covariance  # the benchmarks folder is on the 
 from atlas_onboard.config import load_world
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.mavlink import codec, dialect
-from atlas_onboard.sim.autopilot import SimAutopilot
+from atlas_onboard.sim.autopilot import SimAutopilot, recording
 
 N_DRONES, RATE_HZ, MARKERS = 10, 30, 4
 WARMUP_S = 0.5
@@ -154,7 +154,7 @@ def main() -> int:
     # The load generator and the autopilots' receivers share this process: keep the GIL hand-over short
     # (arrivals are stamped by the kernel anyway; both node and anchor are measured the same way).
     sys.setswitchinterval(0.0002)
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, recording():
         peer_port, relay_port = free_port(), free_port()
         ap = SimAutopilot(system_id=1).start()
         ap_anchor = SimAutopilot(system_id=1).start()

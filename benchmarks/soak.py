@@ -42,7 +42,7 @@ from atlas_onboard.config import load_world
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
 from atlas_onboard.detector import pose
 from atlas_onboard.mavlink import codec, dialect
-from atlas_onboard.sim.autopilot import SimAutopilot
+from atlas_onboard.sim.autopilot import SimAutopilot, recording
 from atlas_onboard.sim.hub import Hub
 
 RATE_HZ = 30
@@ -155,7 +155,7 @@ def main() -> int:
         ents[f"d{k}"] = {"sensors": [{"name": "down", "id": k + 1, "pose": {"rpy_deg": [0, 90, 0]}}]}
     nodes = {f"d{k}": {"system_id": k + 1, "autopilot": {"url": f"udpout:127.0.0.1:{aps[k].port}"}} for k in range(n)}
     nodes["defaults"] = {"peers": [f"udpout:127.0.0.1:{hub_port.value}"], "status_interval_s": 30, "queue_size": 256}
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, recording():
         path = Path(tmp) / "world.yaml"
         path.write_text(yaml.safe_dump({"entities": ents, "nodes": nodes}))
         load_world(path)  # a bad world file fails here, before any process starts

@@ -39,7 +39,7 @@ import yaml
 from atlas_onboard.config import WORLD
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
-from atlas_onboard.sim.autopilot import SimAutopilot
+from atlas_onboard.sim.autopilot import SimAutopilot, recording
 from atlas_onboard.sim.camera import prerender
 from atlas_onboard.sim.hub import Hub
 from atlas_onboard.sim.sources import SIM_ENV
@@ -239,7 +239,7 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
             }
         )
         entities = list(scenario.drones) + ([WORLD] if scenario.needs_world_node else [])
-        with _processes() as procs:
+        with _processes() as procs, recording():
 
             def spawn(name: str) -> None:
                 with open(run_dir / f"{name}.log", "ab") as log:

@@ -22,3 +22,37 @@ def test_endpoints_bound_to_port_zero_never_share_a_port():
     finally:
         for a in aps:
             a._sock.close()
+
+
+def test_recording_holds_the_cyclic_collector_off_and_restores_it():
+    import gc
+
+    from atlas_onboard.sim.autopilot import recording
+
+    runs: list[int] = []
+
+    def seen(phase: str, info: dict) -> None:
+        if phase == "start":
+            runs.append(info["generation"])
+
+    gc.callbacks.append(seen)
+    try:
+        assert gc.isenabled()
+        with pytest.raises(RuntimeError), recording():
+            assert not gc.isenabled()
+            runs.clear()
+            kept = [[] for _ in range(20 * gc.get_threshold()[0])]  # enough to start many collections
+            assert runs == [] and len(kept) > 0
+            raise RuntimeError
+        assert gc.isenabled()  # restored, also when the block raised
+        more = [[] for _ in range(20 * gc.get_threshold()[0])]
+        assert runs and len(more) > 0  # the same allocations start collections again
+        gc.disable()
+        try:
+            with recording():
+                pass
+            assert not gc.isenabled()  # it was off before: it stays off
+        finally:
+            gc.enable()
+    finally:
+        gc.callbacks.remove(seen)
