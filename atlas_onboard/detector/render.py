@@ -117,7 +117,8 @@ def _marker_box(camera: Camera, view: MarkerView) -> tuple[int, int, int, int] |
     fam = family(view.family)
     h = view.size_m * (fam.cells + 2) / fam.cells / 2
     outline = np.array([[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]])
-    pts = view.T_camera_marker.apply(outline)
+    M = view.T_camera_marker.as_matrix()
+    pts = outline @ M[:3, :3].T + M[:3, 3]
     if np.any(pts[:, 2] <= 0.01):
         return None
     px = _project(camera, pts)
@@ -156,8 +157,10 @@ def draw_marker(
     nx, ny = len(range(0, w + step, step)), len(range(0, hgt + step, step))
     norm = _undistorted_grid(camera, s)[i0 : i0 + ny, j0 : j0 + nx]
     # Ray through each sample hits the marker plane: solve in the marker frame.
-    R = view.T_camera_marker.rotation.as_matrix()
-    t = view.T_camera_marker.translation
+    # The stored matrix (a rigid one already): scipy's .rotation would orthonormalize it again, at
+    # 0.2 ms a marker.
+    M = view.T_camera_marker.as_matrix()
+    R, t = M[:3, :3], M[:3, 3]
     rays = np.concatenate([norm, np.ones((*norm.shape[:2], 1))], axis=-1)  # camera frame directions
     rays_m = rays @ R  # = R^T ray, in marker frame
     origin_m = -R.T @ t
@@ -224,13 +227,14 @@ def render(
             out = cv2.filter2D(src, -1, kernel, borderType=cv2.BORDER_REPLICATE)
             blurred[y0 : y1 + 1, x0 : x1 + 1] = out[y0 - sy0 : y1 - sy0 + 1, x0 - sx0 : x1 - sx0 + 1]
         img = blurred
+    # Round to the nearest grey level (half to even) and saturate to 0..255, as
+    # np.clip(np.rint(img), 0, 255): with noise, in the same pass as the sum.
     if noise_sigma > 0:
         noise = np.empty(img.shape, np.float32)
         cv2.setRNGSeed(seed)
         cv2.randn(noise, 0.0, noise_sigma)
-        img += noise
-    # Round to the nearest grey level and saturate to 0..255 (as np.clip(np.rint(img), 0, 255), in
-    # two passes: convertScaleAbs rounds half to even and saturates, the maximum drops negatives first).
+        return cv2.add(img, noise, dtype=cv2.CV_8U)
+    # convertScaleAbs rounds and saturates the absolute value: the maximum drops negatives first.
     np.maximum(img, 0.0, out=img)
     return cv2.convertScaleAbs(img)
 

@@ -99,6 +99,15 @@ class SimWorld:
         self._markers = [
             (m, m.T_entity_marker.as_matrix(), marker_corners(m.size_m)) for m in self.world.markers.values()
         ]
+        # The same, stacked per entity, for a first test of every marker at once (:meth:`sightings`).
+        self._marker_stacks = {
+            ent: (
+                [k for k, (m, _, _) in enumerate(self._markers) if m.entity == ent],
+                np.stack([M for m, M, _ in self._markers if m.entity == ent]),
+                np.stack([c for m, _, c in self._markers if m.entity == ent]),
+            )
+            for ent in dict.fromkeys(m.entity for m, _, _ in self._markers)
+        }
 
     def truth(self, t: float, names: Collection[str] | None = None) -> dict[str, RigidTransform]:
         """``T_world_entity`` of every entity at time t (entities without a trajectory sit at the origin);
@@ -139,9 +148,8 @@ class SimWorld:
         M_sensor_world = _rigid_inverse(M_world_sensor)
         M_sensor_entity: dict[str, NDArray[np.float64]] = {}
         candidates = []
-        for m, M_entity_marker, corners_m in self._markers:
-            if m.entity == sensor.entity:
-                continue
+        for k in self._in_front(sensor_id, sensor.entity, M_sensor_world, truth):
+            m, M_entity_marker, corners_m = self._markers[k]
             if m.entity not in M_sensor_entity:
                 M_sensor_entity[m.entity] = M_sensor_world @ _matrix(truth[m.entity])
             M_sm = M_sensor_entity[m.entity] @ M_entity_marker
@@ -171,6 +179,34 @@ class SimWorld:
                 continue
             visible.append(s)
         return visible
+
+    def _in_front(
+        self,
+        sensor_id: int,
+        own: str,
+        M_sensor_world: NDArray[np.float64],
+        truth: Mapping[str, RigidTransform | NDArray[np.float64]],
+    ) -> list[int]:
+        """Indices (into ``_markers``, in order) of the markers of other entities whose corners all
+        lie in front of the camera and inside its image, up to a pixel: every marker at once, so that
+        :meth:`sightings` tests one by one only the few that may be seen. The margin covers the
+        rounding of products taken in another order there: this test never drops a marker that
+        :meth:`sightings` would keep."""
+        intr = self.cameras[sensor_id][1]
+        keep: list[int] = []
+        for ent, (index, M_em, corners_m) in self._marker_stacks.items():
+            if ent == own:
+                continue
+            M = (M_sensor_world @ _matrix(truth[ent])) @ M_em  # (k, 4, 4)
+            corners = corners_m @ np.swapaxes(M[:, :3, :3], 1, 2) + M[:, None, :3, 3]  # (k, 4, 3)
+            z = corners[..., 2]
+            ok = np.all(z >= 0.05 - 1e-9, axis=1)
+            px = intr.project(np.where(z[..., None] > 0.01, corners, 1.0).reshape(-1, 3)).reshape(-1, 4, 2)
+            m_ = EDGE_MARGIN_PX - 1.0
+            ok &= np.all((px[..., 0] >= m_) & (px[..., 0] <= intr.width_px - 1 - m_), axis=1)
+            ok &= np.all((px[..., 1] >= m_) & (px[..., 1] <= intr.height_px - 1 - m_), axis=1)
+            keep += [i for i, good in zip(index, ok, strict=True) if good]
+        return sorted(keep)
 
     def observed_edges(
         self, t: float, truth: Mapping[str, RigidTransform | NDArray[np.float64]] | None = None
