@@ -148,7 +148,7 @@ class SimWorld:
         M_sensor_world = _rigid_inverse(M_world_sensor)
         M_sensor_entity: dict[str, NDArray[np.float64]] = {}
         candidates = []
-        for k in self._in_front(sensor_id, sensor.entity, M_sensor_world, truth):
+        for k in self._maybe_in_view(sensor_id, sensor.entity, M_sensor_world, truth):
             m, M_entity_marker, corners_m = self._markers[k]
             if m.entity not in M_sensor_entity:
                 M_sensor_entity[m.entity] = M_sensor_world @ _matrix(truth[m.entity])
@@ -180,7 +180,7 @@ class SimWorld:
             visible.append(s)
         return visible
 
-    def _in_front(
+    def _maybe_in_view(
         self,
         sensor_id: int,
         own: str,

@@ -51,7 +51,7 @@ def test_the_first_test_of_all_markers_at_once_keeps_every_marker_seen():
     seen, kept, others = 0, 0, 0
     for name in scenarios.SCENARIOS:
         sim, sim_all = SimWorld(scenarios.get(name)), SimWorld(scenarios.get(name))
-        first = sim._in_front
+        first = sim._maybe_in_view
 
         def counted(sid, own, M, truth, first=first, sim=sim):
             nonlocal kept, others
@@ -60,8 +60,8 @@ def test_the_first_test_of_all_markers_at_once_keeps_every_marker_seen():
             others += sum(m.entity != own for m, _, _ in sim._markers)
             return k
 
-        sim._in_front = counted  # type: ignore[method-assign]
-        sim_all._in_front = lambda _sid, own, *_, s=sim_all: [  # type: ignore[method-assign]
+        sim._maybe_in_view = counted  # type: ignore[method-assign]
+        sim_all._maybe_in_view = lambda _sid, own, *_, s=sim_all: [  # type: ignore[method-assign]
             k for k, (m, _, _) in enumerate(s._markers) if m.entity != own
         ]
         for t in np.linspace(0.0, 20.0, 31):
