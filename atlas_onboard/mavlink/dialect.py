@@ -229,16 +229,16 @@ class Deferred:
         return f"Deferred({self.get_type()} from {self.get_srcSystem()}/{self.get_srcComponent()})"
 
 
-_deferred: dict[int, type[Deferred]] = {}
+_deferred: dict[Any, type[Deferred]] = {}  # by message class: a regenerated dialect gets its own
 
 
 def _deferred_class(msgtype: Any) -> type[Deferred]:
     """:class:`Deferred` for ``msgtype``, its scalar number fields as properties that read the payload
     (a field asked for again reads it again: cheaper than keeping what was read)."""
-    cls = _deferred.get(msgtype.id)
+    cls = _deferred.get(msgtype)
     if cls is None:
         props = {name: property(_field(read)) for name, read in _scalar_readers(msgtype).items()}
-        cls = _deferred[msgtype.id] = type(f"Deferred_{msgtype.msgname}", (Deferred,), {"__slots__": (), **props})
+        cls = _deferred[msgtype] = type(f"Deferred_{msgtype.msgname}", (Deferred,), {"__slots__": (), **props})
     return cls
 
 
@@ -249,16 +249,15 @@ def _field(read: Any) -> Any:
 def _scalar_readers(msgtype: Any) -> dict[str, Any]:
     """For each scalar number field of ``msgtype``: a function reading it from a frame, as pymavlink's
     decode would (a payload shortened by MAVLink 2's trailing-zero truncation reads as zeros)."""
-    sizes = {"c": 1, "s": 1, "b": 1, "B": 1, "h": 2, "H": 2, "i": 4, "I": 4, "f": 4, "q": 8, "Q": 8, "d": 8}
     starts: list[tuple[int, str]] = []  # each item of the unpacked tuple: its payload offset and code
     at = 0
     for count, code in re.findall(r"(\d*)([a-zA-Z])", msgtype.unpacker.format):
-        n = int(count or 1)
+        n, size = int(count or 1), struct.calcsize("<" + code)
         if code == "s":
             starts.append((at, code))
         else:
-            starts.extend((at + k * sizes[code], code) for k in range(n))
-        at += n * sizes[code]
+            starts.extend((at + k * size, code) for k in range(n))
+        at += n * size
     fields, strings = _layout(msgtype)
     readers = {}
     for i, (tip, k) in enumerate(fields):
