@@ -54,14 +54,92 @@ def _bitmap(name: str, marker_id: int) -> NDArray[np.float32]:
 _backgrounds: dict[tuple[int, int, int], NDArray[np.float32]] = {}
 
 
-def background(camera: Camera, seed: int = 0, mean: float = 140.0, contrast: float = 40.0) -> NDArray[np.float32]:
-    """A smooth random texture (a floor, a wall) of the camera's size (cached: made once per seed)."""
-    key = (camera.width_px, camera.height_px, seed)
+BACKGROUND_STYLES = ("smooth", "concrete")
+
+
+def background(
+    camera: Camera, seed: int = 0, mean: float = 140.0, contrast: float = 40.0, style: str = "smooth"
+) -> NDArray[np.float32]:
+    """A random texture of the camera's size (cached: made once per seed and style).
+
+    ``smooth``: a smooth mottled surface. ``concrete``: a floor as a camera sees one (see
+    :func:`concrete_texture`), which gives the detector edges, corners and false quads to reject.
+    """
+    if style not in BACKGROUND_STYLES:
+        raise ValueError(f"expected a background style in {BACKGROUND_STYLES}, got {style!r}")
+    key = (camera.width_px, camera.height_px, seed, style)
     if key not in _backgrounds:
         if len(_backgrounds) > 8:
             _backgrounds.clear()
-        _backgrounds[key] = _texture(camera, seed, mean, contrast)
+        if style == "concrete":
+            _backgrounds[key] = concrete_texture(camera.width_px, camera.height_px, seed)
+        else:
+            _backgrounds[key] = _texture(camera, seed, mean, contrast)
     return _backgrounds[key].copy()
+
+
+def concrete_texture(
+    width_px: int, height_px: int, seed: int = 0, px_per_m: float = 500.0, mean: float = 128.0
+) -> NDArray[np.float32]:
+    """A grey image (height_px, width_px) of a worn concrete floor seen at ``px_per_m`` pixels per metre.
+
+    Mottling at several scales, aggregate speckle, dark and light stains with soft edges, saw-cut joints
+    (straight dark lines every 1-1.5 m, slightly irregular), scuffs and tyre marks (short dark strokes) and
+    a few bright spots: the edges, corners and near-quads a real floor gives a detector. Values in [15, 240].
+    """
+    rng = np.random.default_rng(seed)
+    h, w = height_px, width_px
+    img = np.zeros((h, w), np.float32)
+    # Mottling: sums of upsampled noise at 0.5 m, 10 cm and 2 cm.
+    for scale_m, amp in ((0.5, 18.0), (0.1, 10.0), (0.02, 6.0)):
+        cell = max(int(scale_m * px_per_m), 2)
+        small = rng.normal(0.0, 1.0, (h // cell + 3, w // cell + 3)).astype(np.float32)
+        img += (
+            amp
+            * cv2.resize(small, (small.shape[1] * cell, small.shape[0] * cell), interpolation=cv2.INTER_CUBIC)[:h, :w]
+        )
+    # Aggregate: fine speckle, a little blurred.
+    img += cv2.GaussianBlur(rng.normal(0.0, 7.0, (h, w)).astype(np.float32), (0, 0), 0.7)
+    area_m2 = w * h / px_per_m**2
+    # Stains: soft-edged blobs, darker (oil, water) or lighter (dust).
+    stains = np.zeros((h, w), np.float32)
+    for _ in range(int(rng.poisson(6.0 * area_m2)) + 2):
+        axes = (int(rng.uniform(0.03, 0.3) * px_per_m), int(rng.uniform(0.02, 0.2) * px_per_m))
+        centre = (int(rng.uniform(0, w)), int(rng.uniform(0, h)))
+        cv2.ellipse(stains, centre, axes, rng.uniform(0, 180), 0, 360, float(rng.choice([-1.0, 0.6])), -1)
+    img += 30.0 * cv2.GaussianBlur(stains, (0, 0), max(0.015 * px_per_m, 1.0))
+    # Saw-cut joints: dark lines in a grid every 1-1.5 m, each wavering by a pixel or two.
+    spacing = rng.uniform(1.0, 1.5) * px_per_m
+    angle = rng.uniform(0.0, np.pi)
+    d = np.array([np.cos(angle), np.sin(angle)])
+    joints = np.zeros((h, w), np.float32)
+    diag = float(np.hypot(w, h))
+    for direction in (d, np.array([-d[1], d[0]])):
+        normal = np.array([-direction[1], direction[0]])
+        offset = rng.uniform(0, spacing)
+        for k in range(-int(diag / spacing) - 1, int(diag / spacing) + 2):
+            c = np.array([w / 2, h / 2]) + normal * (offset + k * spacing)
+            a, b = c - direction * diag, c + direction * diag
+            width = max(round(0.004 * px_per_m), 1)
+            cv2.line(joints, tuple(int(v) for v in a), tuple(int(v) for v in b), 1.0, width, cv2.LINE_AA)
+    img -= 55.0 * cv2.GaussianBlur(joints, (0, 0), 0.6)
+    # Scuffs and tyre marks: short dark strokes, some curved.
+    scuffs = np.zeros((h, w), np.float32)
+    for _ in range(int(rng.poisson(25.0 * area_m2)) + 3):
+        p = np.array([rng.uniform(0, w), rng.uniform(0, h)])
+        heading = rng.uniform(0, 2 * np.pi)
+        length = rng.uniform(0.02, 0.25) * px_per_m
+        turn = rng.normal(0.0, 1.5) / max(length, 1.0)
+        pts = []
+        for s in np.linspace(0.0, length, 12):
+            pts.append(p + s * np.array([np.cos(heading + turn * s), np.sin(heading + turn * s)]))
+        width = int(rng.integers(1, max(int(0.01 * px_per_m), 2) + 1))
+        cv2.polylines(scuffs, [np.array(pts, np.int32)], False, float(rng.uniform(0.3, 1.0)), width, cv2.LINE_AA)
+    img -= 45.0 * cv2.GaussianBlur(scuffs, (0, 0), 0.8)
+    # Bright flecks: exposed aggregate, paint drops.
+    flecks = (rng.random((h, w)) < 2e-4).astype(np.float32)
+    img += 60.0 * cv2.GaussianBlur(flecks, (0, 0), 1.0) * 6.0
+    return np.clip(mean + img, 15.0, 240.0).astype(np.float32)
 
 
 def _texture(camera: Camera, seed: int, mean: float, contrast: float) -> NDArray[np.float32]:
@@ -193,12 +271,14 @@ def render(
     noise_sigma: float = 0.0,
     blur_px: tuple[float, float] = (0.0, 0.0),
     supersample: int = 4,
+    background_style: str = "smooth",
 ) -> NDArray[np.uint8]:
     """A grey image of the markers (drawn far to near) over a textured background.
 
     ``blur_px`` is the motion of the image during the exposure (dx, dy in pixels): a linear blur.
+    ``background_style``: see :func:`background`.
     """
-    img = background(camera, background_seed)
+    img = background(camera, background_seed, style=background_style)
     boxes = []
     for view in sorted(views, key=lambda v: -float(np.linalg.norm(v.T_camera_marker.translation))):
         box = draw_marker(img, camera, view, supersample)
@@ -219,6 +299,8 @@ def render(
         grown = [
             (max(b[0] - k, 0), max(b[1] - k, 0), min(b[2] + k, width - 1), min(b[3] + k, height - 1)) for b in boxes
         ]
+        if background_style != "smooth":  # a textured floor moves in the image too: blur all of it
+            grown = [(0, 0, width - 1, height - 1)]
         blurred = img.copy()
         for x0, y0, x1, y1 in _merged(grown):
             # Source rows and columns k beyond the region (or the image border, replicated).
