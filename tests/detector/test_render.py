@@ -104,7 +104,9 @@ def test_concrete_background_has_the_edges_of_a_real_floor_and_keeps_the_tags_re
 
     assert thin_dark_share(concrete) > 4.0 * thin_dark_share(smooth)
     assert 15.0 <= concrete.min() and concrete.max() <= 240.0
-    view = render.MarkerView("tag36h11", 7, 0.18, RigidTransform.from_translation([0.1, 0.0, 2.0]))
+    view = render.MarkerView(
+        "tag36h11", 7, 0.18, RigidTransform.from_components([0.1, 0.0, 2.0], Rotation.from_euler("x", 180, True))
+    )
     img = render.render(CAM, [view], noise_sigma=2.0, background_style="concrete", background_seed=3)
     ids = [d.tag_id for d in Detector(families="tag36h11").detect(img)]
     assert ids == [7]
