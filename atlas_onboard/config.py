@@ -22,7 +22,6 @@ from enum import StrEnum
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 from scipy.spatial.transform import RigidTransform
 
@@ -616,11 +615,6 @@ def summary(world: WorldConfig) -> str:
     if unseen:
         lines.append(f"warning: entities with neither sensors nor markers can never be localized: {', '.join(unseen)}")
     return "\n".join(lines)
-
-
-def as_array(T: RigidTransform) -> np.ndarray:
-    """4x4 homogeneous matrix of a pose (for the listener's hot path)."""
-    return T.as_matrix()
 
 
 # --- node settings: the `nodes:` section ---------------------------------------------------------------

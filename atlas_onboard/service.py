@@ -8,10 +8,6 @@ to re-read its configuration, ``STATUS=...`` for ``systemctl status``. The addre
 path (``/run/systemd/notify``) or, with a leading ``@``, a name in Linux's abstract socket namespace.
 Without ``$NOTIFY_SOCKET`` (a shell, a test, another supervisor) every call is a no-op.
 
-Signals (:class:`SignalPipe`): the handlers only write the signal's number, one byte, to a socket
-pair; the main loop waits on the other end (``select`` it, or call :meth:`SignalPipe.wait`) and
-acts on what arrived, in order, outside signal context. No work ever runs inside a handler.
-
 Only the standard library is used, so that this module costs nothing to import and can be copied.
 """
 
@@ -19,13 +15,10 @@ from __future__ import annotations
 
 import logging
 import os
-import select
 import signal
 import socket
-import threading
 import time
-from collections.abc import Iterable, Mapping
-from types import FrameType, TracebackType
+from collections.abc import Mapping
 
 from atlas_onboard.errors import AtlasError
 
@@ -194,113 +187,3 @@ def _positive_int(raw: str, name: str, what: str) -> int:
     if value <= 0:
         raise ServiceError(f"{name}: expected a positive integer ({what}), got {raw!r}")
     return value
-
-
-class SignalPipe:
-    """Signals delivered to a loop as events: handlers only write the signal number to a socket pair.
-
-    Use from the main thread (Python runs signal handlers there and only there)::
-
-        with SignalPipe() as signals:
-            while True:
-                for sig in signals.wait(timeout_s=0.5):
-                    if sig == signal.SIGHUP:
-                        reload()
-                    else:
-                        return 0      # SIGTERM or SIGINT: leave the loop, clean up, exit 0
-                do_periodic_work()
-
-    :meth:`fileno` is the read end for a ``select``/``selectors`` loop that waits on other sockets
-    too; after it reports the descriptor readable, :meth:`pending` returns what arrived. Each
-    delivered signal is one byte, so two SIGHUPs are two events and their order is kept; should
-    the pipe ever fill (thousands undrained), further bytes are dropped, never blocking a handler.
-    Leaving the ``with`` block (or :meth:`close`) restores the previous handlers.
-    """
-
-    def __init__(self, signals: Iterable[signal.Signals] = SERVICE_SIGNALS) -> None:
-        self.signals = tuple(signal.Signals(s) for s in signals)
-        if not self.signals:
-            raise ValueError("expected at least one signal to handle, got none")
-        self._read: socket.socket | None = None
-        self._write: socket.socket | None = None
-        self._previous: dict[signal.Signals, object] = {}
-
-    def install(self) -> SignalPipe:
-        """Create the socket pair and install the handlers; returns self. Main thread only."""
-        if threading.current_thread() is not threading.main_thread():
-            raise ServiceError("signal handlers can only be installed from the main thread")
-        if self._read is not None:
-            raise ServiceError("this SignalPipe is already installed")
-        self._read, self._write = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        self._read.setblocking(False)
-        self._write.setblocking(False)
-        try:
-            for sig in self.signals:
-                self._previous[sig] = signal.signal(sig, self._handler)
-        except BaseException:
-            self.close()
-            raise
-        return self
-
-    def _handler(self, signum: int, frame: FrameType | None) -> None:
-        # The whole handler: one byte out, nothing else (no locks, no logging, no allocation to speak of).
-        write = self._write
-        if write is not None:
-            try:
-                write.send(bytes((signum,)))
-            except OSError:  # full (BlockingIOError) or closed: drop rather than block or raise here
-                pass
-
-    def fileno(self) -> int:
-        """The read end's descriptor (readable when a signal has arrived)."""
-        if self._read is None:
-            raise ServiceError("SignalPipe is not installed (call install() or use it in a with block)")
-        return self._read.fileno()
-
-    def pending(self) -> list[signal.Signals]:
-        """The signals that arrived since the last call, oldest first, without waiting."""
-        if self._read is None:
-            raise ServiceError("SignalPipe is not installed (call install() or use it in a with block)")
-        data = b""
-        while True:
-            try:
-                chunk = self._read.recv(4096)
-            except (BlockingIOError, InterruptedError):
-                break
-            if not chunk:
-                break
-            data += chunk
-        return [signal.Signals(b) for b in data]
-
-    def wait(self, timeout_s: float | None = None) -> list[signal.Signals]:
-        """Wait up to ``timeout_s`` seconds (None: for ever) for a signal; return every one that arrived.
-
-        Returns as soon as one has arrived (with any others already queued), or [] on timeout.
-        """
-        if timeout_s is not None and timeout_s < 0:
-            raise ValueError(f"expected a timeout >= 0 s or None, got {timeout_s}")
-        got = self.pending()
-        if got:
-            return got
-        # A signal interrupting select runs its handler first, then select is retried (PEP 475) and
-        # sees the byte the handler wrote: nothing can be lost between pending() and select().
-        select.select([self.fileno()], [], [], timeout_s)
-        return self.pending()
-
-    def close(self) -> None:
-        """Restore the previous handlers and close the socket pair (safe to call twice)."""
-        for sig, previous in self._previous.items():
-            signal.signal(sig, previous)  # type: ignore[arg-type]
-        self._previous.clear()
-        for sock in (self._write, self._read):
-            if sock is not None:
-                sock.close()
-        self._read = self._write = None
-
-    def __enter__(self) -> SignalPipe:
-        return self.install()
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()

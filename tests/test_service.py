@@ -3,21 +3,15 @@ filesystem socket and an abstract one), watchdog settings, and a child process d
 
 import logging
 import os
-import select
-import signal
 import socket
-import subprocess
-import sys
 import tempfile
-import textwrap
-import threading
 import time
 import uuid
 from pathlib import Path
 
 import pytest
 
-from atlas_onboard.service import Notifier, ServiceError, SignalPipe, socket_address, watchdog_interval_us
+from atlas_onboard.service import Notifier, ServiceError, socket_address, watchdog_interval_us
 
 REPO = Path(__file__).resolve().parents[1]
 DEADLINE_S = 20.0  # generous: only a hang reaches it; nothing here measures time
@@ -175,135 +169,3 @@ def test_malformed_watchdog_settings_are_reported(environ, message):
     with pytest.raises(ServiceError) as info:
         watchdog_interval_us(environ, pid=1)
     assert str(info.value) == message
-
-
-def test_signal_pipe_queues_each_signal_in_order_and_restores_handlers():
-    before = {s: signal.getsignal(s) for s in (signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)}
-    with SignalPipe([signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2]) as signals:
-        assert signals.pending() == []
-        assert signals.wait(timeout_s=0) == []
-        # Directed at this (the main) thread, each is delivered, and its handler run, before the next.
-        for sig in (signal.SIGUSR1, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2):
-            signal.pthread_kill(threading.get_ident(), sig)
-        assert signals.wait(timeout_s=DEADLINE_S) == [signal.SIGUSR1, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2]
-        assert signals.pending() == []
-        signal.pthread_kill(threading.get_ident(), signal.SIGHUP)
-        readable, _, _ = select.select([signals], [], [], DEADLINE_S)  # usable with select via fileno()
-        assert readable == [signals]
-        assert signals.pending() == [signal.SIGHUP]
-    assert {s: signal.getsignal(s) for s in before} == before
-
-
-def test_signal_pipe_wakes_a_waiting_loop_from_another_thread():
-    with SignalPipe([signal.SIGUSR1]) as signals:
-        sender = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGUSR1))
-        sender.start()
-        try:
-            assert signals.wait(timeout_s=DEADLINE_S) == [signal.SIGUSR1]
-        finally:
-            sender.join()
-
-
-def test_signal_pipe_needs_the_main_thread_and_one_install():
-    errors = []
-
-    def install():
-        try:
-            SignalPipe([signal.SIGUSR1]).install()
-        except ServiceError as exc:
-            errors.append(str(exc))
-
-    t = threading.Thread(target=install)
-    t.start()
-    t.join()
-    assert errors == ["signal handlers can only be installed from the main thread"]
-    pipe = SignalPipe([signal.SIGUSR1])
-    with pytest.raises(ServiceError, match="not installed"):
-        pipe.pending()
-    with pipe, pytest.raises(ServiceError, match="already installed"):
-        pipe.install()
-    with pytest.raises(ValueError, match="timeout"):
-        SignalPipe([signal.SIGUSR1]).wait(timeout_s=-1)
-
-
-# A minimal service in the shape the node takes: READY, WATCHDOG while idle, RELOADING then READY on
-# SIGHUP, STOPPING and exit status 0 on SIGTERM or SIGINT. It prints each signal as it handles it.
-CHILD = textwrap.dedent(
-    """
-    import signal
-    import sys
-
-    from atlas_onboard.service import Notifier, SignalPipe, watchdog_interval_us
-
-
-    def main(argv):
-        notifier = Notifier.from_environ()
-        interval_us = watchdog_interval_us()
-        with SignalPipe() as signals:
-            notifier.ready("serving")
-            print("ready", flush=True)
-            while True:
-                got = signals.wait(timeout_s=interval_us / 1e6)
-                if not got:
-                    notifier.watchdog()
-                for sig in got:
-                    print(sig.name, flush=True)
-                    if sig == signal.SIGHUP:
-                        notifier.reloading()
-                        notifier.ready("reloaded")
-                    else:
-                        notifier.stopping()
-                        return 0
-
-
-    if __name__ == "__main__":
-        sys.exit(main(sys.argv[1:]))
-    """
-)
-
-
-def _readline(proc: subprocess.Popen, deadline: float) -> str:
-    readable, _, _ = select.select([proc.stdout], [], [], max(deadline - time.monotonic(), 0.0))
-    assert readable, "the child printed nothing before the deadline"
-    return proc.stdout.readline().strip()
-
-
-def _next_event(sock: socket.socket) -> bytes:
-    """The next datagram that is not a watchdog ping."""
-    while True:
-        data = sock.recv(4096)
-        if data != b"WATCHDOG=1":
-            return data
-
-
-@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGINT])
-def test_child_service_lifecycle_under_real_signals(tmp_path, notify_socket, stop):
-    path, sock = notify_socket
-    script = tmp_path / "child.py"
-    script.write_text(CHILD, encoding="utf-8")
-    env = dict(os.environ, NOTIFY_SOCKET=path, WATCHDOG_USEC="100000", PYTHONPATH=str(REPO))
-    env.pop("WATCHDOG_PID", None)
-    proc = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, env=env)
-    try:
-        deadline = time.monotonic() + DEADLINE_S
-        assert _readline(proc, deadline) == "ready"
-        assert sock.recv(4096) == b"READY=1\nSTATUS=serving"
-        assert sock.recv(4096) == b"WATCHDOG=1"  # idle: pings at half of WATCHDOG_USEC
-        proc.send_signal(signal.SIGHUP)
-        assert _readline(proc, deadline) == "SIGHUP"
-        reloading = _next_event(sock).split(b"\n")
-        assert reloading[0] == b"RELOADING=1"
-        assert reloading[1].startswith(b"MONOTONIC_USEC=")
-        assert int(reloading[1].split(b"=")[1]) > 0
-        assert len(reloading) == 2
-        assert _next_event(sock) == b"READY=1\nSTATUS=reloaded"
-        proc.send_signal(stop)
-        assert _readline(proc, deadline) == stop.name
-        assert proc.wait(timeout=DEADLINE_S) == 0  # handled: the default action would end it with -signal
-        assert _next_event(sock) == b"STOPPING=1"
-        assert proc.stdout.read() == ""
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        proc.stdout.close()

@@ -1,6 +1,7 @@
 """Frame conventions: each conversion checked on hand-computed numbers and by property tests."""
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from scipy.spatial.transform import RigidTransform, Rotation
@@ -41,11 +42,25 @@ def test_enu_ned_round_trip(x, y, z, r, p, yaw):
     np.testing.assert_allclose(back.as_matrix(), T.as_matrix(), atol=1e-9)
 
 
-def test_conversion_matrices_are_proper_rotations():
-    for R in (frames.R_ENU_NED, frames.R_FLU_FRD, frames.R_FLU_OPTICAL, frames.R_FRD_OPTICAL):
-        M = R.as_matrix()
-        np.testing.assert_allclose(M @ M.T, np.eye(3), atol=1e-12)
-        assert np.isclose(np.linalg.det(M), 1.0)
+@pytest.mark.parametrize(
+    ("R_name", "axis_from", "axis_to"),
+    [
+        ("R_ENU_NED", [1, 0, 0], [0, 1, 0]),  # north
+        ("R_ENU_NED", [0, 1, 0], [1, 0, 0]),  # east
+        ("R_ENU_NED", [0, 0, 1], [0, 0, -1]),  # down
+        ("R_FLU_FRD", [1, 0, 0], [1, 0, 0]),  # forward
+        ("R_FLU_FRD", [0, 1, 0], [0, -1, 0]),  # right
+        ("R_FLU_FRD", [0, 0, 1], [0, 0, -1]),  # down
+        ("R_FLU_OPTICAL", [0, 0, 1], [1, 0, 0]),  # the optical axis looks forward
+        ("R_FLU_OPTICAL", [1, 0, 0], [0, -1, 0]),  # image right = body right
+        ("R_FLU_OPTICAL", [0, 1, 0], [0, 0, -1]),  # image down = body down
+        ("R_FRD_OPTICAL", [0, 0, 1], [1, 0, 0]),
+        ("R_FRD_OPTICAL", [1, 0, 0], [0, 1, 0]),
+        ("R_FRD_OPTICAL", [0, 1, 0], [0, 0, 1]),
+    ],
+)
+def test_each_conversion_maps_the_named_axes(R_name, axis_from, axis_to):
+    np.testing.assert_allclose(getattr(frames, R_name).apply(axis_from), axis_to, atol=1e-12)
 
 
 def test_optical_frame_of_a_forward_camera():
