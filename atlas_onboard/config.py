@@ -17,7 +17,7 @@ import json
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
@@ -712,6 +712,8 @@ class NodeConfig:
         queue_size: observations waiting for the graph; beyond it the oldest are dropped (counted).
         state_dir: where signing timestamps persist across restarts.
         status_interval_s: period of the health log line.
+        owners: (entity, system id) of every node the world file's ``nodes`` section names: whose
+            observations and fused poses this node accepts from whom (:meth:`owner_system_id`).
     """
 
     entity: str
@@ -723,6 +725,14 @@ class NodeConfig:
     queue_size: int = 256
     state_dir: Path | None = None
     status_interval_s: float = 10.0
+    owners: tuple[tuple[str, int], ...] = ()
+
+    def owner_system_id(self, entity: str) -> int | None:
+        """The system id of the node that runs ``entity``, or None if the world file names none."""
+        for name, sysid in self.owners:
+            if name == entity:
+                return sysid
+        return None
 
 
 _NODE_KEYS = {
@@ -871,7 +881,20 @@ def parse_node(doc: Any, entity: str, world: WorldConfig, base_dir: Path | None 
     path = _join("nodes", entity)
     _read_node(defaults, "nodes.defaults", entity, base_dir, partial=True)
     _read_node(own, path, entity, base_dir, partial=True)
-    return _read_node(_merge(defaults, own), path, entity, base_dir, partial=False)
+    config = _read_node(_merge(defaults, own), path, entity, base_dir, partial=False)
+    return replace(config, owners=_owners(nodes, defaults))
+
+
+def _owners(nodes: Mapping[str, Any], defaults: Mapping[str, Any]) -> tuple[tuple[str, int], ...]:
+    """(entity, system id) of every node named in the ``nodes`` section that has a system id."""
+    out = []
+    for name, own in nodes.items():
+        if name == "defaults":
+            continue
+        merged = _merge(defaults, own or {})
+        if "system_id" in merged:
+            out.append((name, _integer(merged["system_id"], _join(_join("nodes", name), "system_id"), 1, 255)))
+    return tuple(out)
 
 
 def load_node(path: Path | str, entity: str) -> tuple[WorldConfig, NodeConfig]:
