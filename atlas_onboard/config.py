@@ -55,6 +55,13 @@ class Weighting(StrEnum):
     INVERSE_VARIANCE = "inverse_variance"  # w_i = 1 / sigma_i^2
 
 
+OUTLIER_GATE_SIGMA = 5.0
+"""The default gate: a distance between two honest candidates, in units of their combined sigma,
+is beyond 5 with probability about 1e-5 (chi with 3 degrees of freedom) if the sigmas are honest, and
+still rare where they are twice too small; a lie of 1 m with a claimed sigma of 1 mm against a camera
+of 1 cm is 100 sigma out."""
+
+
 @dataclass(frozen=True, slots=True)
 class FusionConfig:
     """Fusion settings shared by every node.
@@ -73,7 +80,9 @@ class FusionConfig:
             second): an edge of age a adds (a * this)^2 to its attitude variance. It changes no
             weight, only the covariance published with the pose. 0: attitudes do not age.
         outlier_gate_sigma: a candidate farther from the consensus of the others than this many
-            standard deviations (position or attitude) is rejected and counted. 0: off (the paper).
+            standard deviations (position or attitude) is rejected and counted; a candidate of a peer
+            that contradicts every candidate of the node's own cameras so is rejected whoever sent it.
+            0: off (the paper). Default ``OUTLIER_GATE_SIGMA``.
         filter: ``none`` (the paper: the fused pose of the newest observations is the output) or
             ``ekf`` (an error-state EKF per entity fed by the graph's candidates, predicting through
             short gaps and gating outliers by Mahalanobis distance).
@@ -92,7 +101,7 @@ class FusionConfig:
     path: str = "bfs"
     relative_poses: bool = False
     age_sigma_m_per_s: float = 0.0
-    outlier_gate_sigma: float = 0.0
+    outlier_gate_sigma: float = OUTLIER_GATE_SIGMA
     filter: str = "none"
     ekf_accel_noise: float = 0.5
     ekf_max_predict_s: float = 0.5
@@ -399,7 +408,7 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
         raise ConfigError(
             _join(path, "age_sigma_deg_per_s"), f"expected a turn rate in [0, 3600] deg/s, got {age_deg:g}"
         )
-    gate = _number(m.get("outlier_gate_sigma", 0.0), _join(path, "outlier_gate_sigma"))
+    gate = _number(m.get("outlier_gate_sigma", OUTLIER_GATE_SIGMA), _join(path, "outlier_gate_sigma"))
     if gate != 0.0 and not 2.0 <= gate <= 100.0:
         raise ConfigError(_join(path, "outlier_gate_sigma"), f"expected 0 (off) or a gate in [2, 100], got {gate:g}")
     filt = _choice(m.get("filter", default.filter), _join(path, "filter"), ("none", "ekf"))

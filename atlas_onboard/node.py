@@ -170,7 +170,7 @@ class Node:
         self.wall = wall_ns  # capture times are on the swarm's wall clock: the EKF predicts to it
         self.notifier = notifier
         self.config_path = config_path
-        self.graph = make_graph(world)
+        self.graph = make_graph(world, config.entity)
         self.listener = Listener(world, self.graph)
         self.ekf = _make_ekf(world)
         ap = config.autopilot
@@ -572,7 +572,7 @@ class Node:
         self._supersedes = _supersedes(world)
         self._pending.clear()
         self.graph.clear()
-        self.graph = make_graph(world)
+        self.graph = make_graph(world, self.config.entity)
         self.listener = Listener(world, self.graph)
         self.ekf = _make_ekf(world)
         _logger.info("reloaded %s (fingerprint %08x)", self.config_path, world.fingerprint())

@@ -163,6 +163,7 @@ class _EdgeArrays:
 
     def __init__(self, capacity: int = 64) -> None:
         self.used = np.zeros(capacity, dtype=bool)
+        self.anchored = np.zeros(capacity, dtype=bool)  # observed by one of the node's own sensors
         self.a = np.zeros(capacity, dtype=np.intp)
         self.b = np.zeros(capacity, dtype=np.intp)
         self.p = np.zeros((2, capacity, 3))  # [0]: T_a_b, [1]: its inverse T_b_a
@@ -190,7 +191,7 @@ class _EdgeArrays:
 
     def _grow(self) -> None:
         old = len(self.used)
-        for name in ("used", "a", "b", "inverted", "sigma", "stamp", "capture"):
+        for name in ("used", "anchored", "a", "b", "inverted", "sigma", "stamp", "capture"):
             arr = getattr(self, name)
             setattr(self, name, np.concatenate([arr, np.zeros_like(arr)]))
         for name in ("p", "q", "cov"):
@@ -214,6 +215,7 @@ class TransformGraph:
         outlier_gate_sigma: float = 0.0,
         age_sigma_rad_per_s: float = 0.0,
         keep_candidates: bool = False,
+        anchor_sensors: frozenset[int] = frozenset(),
     ) -> None:
         names = list(entity_names)
         if WORLD not in names:
@@ -239,6 +241,8 @@ class TransformGraph:
         # Beyond the paper: a candidate farther than this many sigma from the consensus of the others
         # (or, with fewer than three, from the entity's last estimate) is left out. 0: off.
         self.outlier_gate_sigma = outlier_gate_sigma
+        # The node's own sensors: their candidates are the gate's anchor, which no peer's outvotes.
+        self.anchor_sensors = frozenset(anchor_sensors)
         self.keep_candidates = keep_candidates
         self.edges: dict[EdgeKey, Edge] = {}
         self._arr = _EdgeArrays()
@@ -286,6 +290,7 @@ class TransformGraph:
         arr = self._arr
         slot = arr.take() if old is None else old.slot
         arr.used[slot], arr.keys[slot] = True, key
+        arr.anchored[slot] = key[0] in self.anchor_sensors
         arr.a[slot], arr.b[slot] = a, b
         arr.p[0, slot], arr.q[0, slot], arr.cov[0, slot] = p, q, cov
         arr.inverted[slot] = False  # the inverse is computed at evaluation, for all new edges at once
@@ -583,7 +588,10 @@ class TransformGraph:
             keep = None
             if self.outlier_gate_sigma > 0.0:
                 c_cand = edge_term if Jp is None else covariance.transform(Jp, cov_world[parent]) + edge_term
-                keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns, t_cand)
+                rows_sel = row[sel]
+                keep = self._gate(
+                    root, child, p_cand, q_cand, c_cand, now_ns, t_cand, arr.anchored[rows_sel], arr.stamp[rows_sel]
+                )
                 for slot in row[sel][~keep].tolist():
                     key, stamp = arr.keys[slot], int(arr.stamp[slot])
                     if self._gated_stamp.get(key) != stamp:
@@ -669,8 +677,17 @@ class TransformGraph:
         cov: NDArray[np.float64],
         now_ns: int,
         capture_us: NDArray[np.int64],
+        anchored: NDArray[np.bool_] | None = None,
+        arrival_ns: NDArray[np.int64] | None = None,
     ) -> NDArray[np.bool_]:
         """Which candidates agree with the consensus of their entity's candidates.
+
+        First, where some of an entity's candidates rest on the node's own sensors (``anchored``),
+        those are the anchor: any other candidate (a peer's, whoever sent it) that agrees with none of
+        them within ``outlier_gate_sigma`` standard deviations (both candidates', plus what the
+        entity may have moved between their captures, at most between their arrivals: a sender
+        chooses its stamps, not when they arrive) is out, however many such candidates there are and
+        however small their sigma. The rest are then judged among themselves as follows.
 
         With three or more candidates the reference is their median (position per axis; orientation:
         the candidate nearest to all others), which one wrong candidate cannot move. With fewer, the
@@ -691,6 +708,12 @@ class TransformGraph:
         s_att = np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2) / 3.0)
         for v in np.unique(child):
             idx = np.flatnonzero(child == v)
+            if anchored is not None and arrival_ns is not None:
+                own = anchored[idx]
+                if own.any() and not own.all():
+                    agree = self._agrees_with_anchor(idx[~own], idx[own], p, q, s_pos, s_att, capture_us, arrival_ns)
+                    keep[idx[~own][~agree]] = False
+                    idx = idx[own | np.isin(idx, idx[~own][agree])]
             rot = Rotation.from_quat(q[idx])
             if len(idx) >= 3:
                 ref_p = np.median(p[idx], axis=0)
@@ -721,3 +744,26 @@ class TransformGraph:
             else:
                 keep[idx] = ok
         return keep
+
+    def _agrees_with_anchor(
+        self,
+        others: NDArray[np.intp],
+        anchors: NDArray[np.intp],
+        p: NDArray[np.float64],
+        q: NDArray[np.float64],
+        s_pos: NDArray[np.float64],
+        s_att: NDArray[np.float64],
+        capture_us: NDArray[np.int64],
+        arrival_ns: NDArray[np.int64],
+    ) -> NDArray[np.bool_]:
+        """For each of ``others``: whether it is within the gate of at least one of ``anchors``."""
+        k = self.outlier_gate_sigma
+        d_p = np.linalg.norm(p[others][:, None, :] - p[anchors][None, :, :], axis=2)  # (others, anchors)
+        rot_o, rot_a = Rotation.from_quat(q[others]), Rotation.from_quat(q[anchors])
+        d_a = np.array([(rot_a.inv() * rot_o[i]).magnitude() for i in range(len(others))]).reshape(d_p.shape)
+        dt_capture_s = np.abs(capture_us[others][:, None] - capture_us[anchors][None, :]) / 1e6
+        dt_arrival_s = np.abs(arrival_ns[others][:, None] - arrival_ns[anchors][None, :]) / 1e9
+        dt_s = np.minimum(dt_capture_s, dt_arrival_s)
+        ok_p = d_p <= k * np.hypot(s_pos[others][:, None], s_pos[anchors][None, :]) + MAX_SPEED_M_S * dt_s
+        ok_a = d_a <= k * np.hypot(s_att[others][:, None], s_att[anchors][None, :]) + MAX_RATE_RAD_S * dt_s
+        return np.asarray((ok_p & ok_a).any(axis=1))
