@@ -11,7 +11,6 @@ from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
 from tests.helpers import observe, pose
 from tests.test_e2e_autopilot import TRUTH, world_doc
 
-
 TRUTH_D2 = {**TRUTH, "d2": pose([0.0, 2.0, 3.0], [0, 0, 0])}  # 1 m from d1, looking along +x at its tag
 
 
