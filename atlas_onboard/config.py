@@ -591,6 +591,36 @@ def check_nodes(doc: Any, world: WorldConfig, base_dir: Path | None = None) -> t
     return parsed
 
 
+def security_notes(path: Path | str) -> list[str]:
+    """Warnings about who can move a pose, for ``check-config``: each node's peer links that take
+    unsigned observations, and entities with sensors that no node runs (their observations are
+    refused). None for a file without a ``nodes`` section (it runs no node)."""
+    p = Path(path)
+    doc = read_yaml(p)
+    world = parse_world(doc, p, extra_keys={"nodes"})
+    nodes = check_nodes(doc, world, p.parent)
+    notes = []
+    for node in nodes:
+        for i, link in enumerate(node.peers):
+            where = f"nodes.{node.entity}.peers[{i}] ({link.url})"
+            if link.signing is None:
+                notes.append(f"warning: {where} is not signed: any host on the network can move {node.entity}'s pose")
+            elif not link.signing.require:
+                notes.append(
+                    f"warning: {where} accepts unsigned observations (require: false): any host on the network"
+                    f" can move {node.entity}'s pose"
+                )
+    if nodes:
+        run = {n.entity for n in nodes}
+        for ent in world.entities:
+            if ent.sensors and ent.name not in run:
+                notes.append(
+                    f"warning: entity {ent.name} has sensors but no node (system id) in the nodes section:"
+                    f" every node refuses their observations"
+                )
+    return notes
+
+
 def summary(world: WorldConfig) -> str:
     """A human-readable summary: entities, sensors, markers, and which entity can see which."""
     lines = [
