@@ -714,11 +714,10 @@ class TransformGraph:
                     agree = self._agrees_with_anchor(idx[~own], idx[own], p, q, s_pos, s_att, capture_us, arrival_ns)
                     keep[idx[~own][~agree]] = False
                     idx = idx[own | np.isin(idx, idx[~own][agree])]
-            rot = Rotation.from_quat(q[idx])
+            q_v = q[idx]
             if len(idx) >= 3:
                 ref_p = np.median(p[idx], axis=0)
-                angles = np.array([(rot[i].inv() * rot).magnitude().sum() for i in range(len(idx))])
-                ref_q = rot[int(np.argmin(angles))]
+                ref_q = q_v[int(np.argmin(_angles(q_v[:, None, :], q_v[None, :, :]).sum(axis=1)))]
                 ref_s, ref_a, slack_p, slack_a = 0.0, 0.0, 0.0, 0.0
             else:
                 prior = self._prior.get((root, int(v)))
@@ -726,10 +725,10 @@ class TransformGraph:
                     continue
                 # The swarm's capture clock and the evaluation's clock are not compared, only their gaps.
                 age_s = np.maximum((now_ns - prior[4]) / 1e9, (capture_us[idx] - prior[5]) / 1e6)
-                ref_p, ref_q, ref_s, ref_a = prior[0], Rotation.from_quat(prior[1]), prior[2], prior[3]
+                ref_p, ref_q, ref_s, ref_a = prior[0], prior[1], prior[2], prior[3]
                 slack_p, slack_a = MAX_SPEED_M_S * age_s, MAX_RATE_RAD_S * age_s
             d_p = np.linalg.norm(p[idx] - ref_p, axis=1)
-            d_a = (ref_q.inv() * rot).magnitude()
+            d_a = _angles(ref_q, q_v)
             ok = (d_p <= k * np.hypot(s_pos[idx], ref_s) + slack_p) & (d_a <= k * np.hypot(s_att[idx], ref_a) + slack_a)
             if len(idx) >= 3:
                 if ok.sum() * 2 >= len(idx):
@@ -738,7 +737,7 @@ class TransformGraph:
                 # Both contradict the last estimate: if they agree with each other, it is the estimate
                 # that is out of date (kept both); if not, nothing can be trusted (both out).
                 d2 = float(np.linalg.norm(p[idx[0]] - p[idx[1]]))
-                a2 = float((rot[0].inv() * rot[1]).magnitude())
+                a2 = float(_angles(q_v[0], q_v[1]))
                 agree = d2 <= k * np.hypot(s_pos[idx[0]], s_pos[idx[1]]) and a2 <= k * np.hypot(*s_att[idx])
                 keep[idx] = agree
             else:
@@ -759,11 +758,18 @@ class TransformGraph:
         """For each of ``others``: whether it is within the gate of at least one of ``anchors``."""
         k = self.outlier_gate_sigma
         d_p = np.linalg.norm(p[others][:, None, :] - p[anchors][None, :, :], axis=2)  # (others, anchors)
-        rot_o, rot_a = Rotation.from_quat(q[others]), Rotation.from_quat(q[anchors])
-        d_a = np.array([(rot_a.inv() * rot_o[i]).magnitude() for i in range(len(others))]).reshape(d_p.shape)
+        d_a = _angles(q[others][:, None, :], q[anchors][None, :, :])
         dt_capture_s = np.abs(capture_us[others][:, None] - capture_us[anchors][None, :]) / 1e6
         dt_arrival_s = np.abs(arrival_ns[others][:, None] - arrival_ns[anchors][None, :]) / 1e9
         dt_s = np.minimum(dt_capture_s, dt_arrival_s)
         ok_p = d_p <= k * np.hypot(s_pos[others][:, None], s_pos[anchors][None, :]) + MAX_SPEED_M_S * dt_s
         ok_a = d_a <= k * np.hypot(s_att[others][:, None], s_att[anchors][None, :]) + MAX_RATE_RAD_S * dt_s
         return np.asarray((ok_p & ok_a).any(axis=1))
+
+
+def _angles(q_a_xyzw: NDArray[np.float64], q_b_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation angle (rad) between unit quaternions, broadcast over leading axes: what
+    ``(Rotation.from_quat(a).inv() * Rotation.from_quat(b)).magnitude()`` gives, for the gate's many
+    small sets without building Rotation objects (2 acos |a . b|, either sign of a quaternion)."""
+    dot = np.abs(np.sum(np.asarray(q_a_xyzw) * np.asarray(q_b_xyzw), axis=-1))
+    return 2.0 * np.arccos(np.minimum(dot, 1.0))

@@ -23,8 +23,13 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from scipy.spatial.transform import RigidTransform
 
+from atlas_onboard.config import WorldConfig
+from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
+from atlas_onboard.mavlink import codec, dialect
+from atlas_onboard.mavlink.link import signing_timestamp
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.command import autopilot_track
@@ -145,4 +150,69 @@ def start_solo(
     return SoloNode(scenario, entity, system_id, port, autopilot, proc, run_dir, path)
 
 
-__all__ = ["WARMUP_S", "SoloNode", "free_udp_port", "start_solo"]
+def forged_view(
+    world: WorldConfig,
+    sim_world: SimWorld,
+    entity: str,
+    sensor_id: int,
+    marker_id: int,
+    t_s: float,
+    offset_m: tuple[float, float, float],
+    sigma_m: float,
+    capture_time_us: int,
+) -> MarkerData:
+    """What ``sensor_id`` would report of ``marker_id`` at scenario time ``t_s`` if ``entity`` stood
+    ``offset_m`` (world frame) from where it is: a consistent lie, with the claimed ``sigma_m``."""
+    truth = sim_world.truth(t_s)
+    truth[entity] = RigidTransform.from_translation(offset_m) * truth[entity]
+    s, m = world.sensors[sensor_id], world.markers[marker_id]
+    T_sensor_marker = (truth[s.entity] * s.T_entity_sensor).inv() * (truth[m.entity] * m.T_entity_marker)
+    p = T_sensor_marker.translation
+    x, y, z, w = T_sensor_marker.rotation.as_quat()
+    return MarkerData(
+        sensor_id=sensor_id, marker_id=marker_id, sigma_m=sigma_m,
+        p_sensor_marker_m=(float(p[0]), float(p[1]), float(p[2])), q_sensor_marker_wxyz=(float(w), float(x),
+        float(y), float(z)), capture_time_us=capture_time_us,
+    )  # fmt: skip
+
+
+class Radio:
+    """Another host on the node's network: MAVLink frames of the atlas dialect from any system id,
+    signed with any key or not at all, and raw bytes, to one UDP port."""
+
+    def __init__(self, port: int) -> None:
+        self.addr = ("127.0.0.1", port)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.d = dialect.load()
+        self._mavs: dict[tuple[int, bytes | None], Any] = {}
+        self.sent = 0
+
+    def _mav(self, system_id: int, key: bytes | None) -> Any:
+        mav = self._mavs.get((system_id, key))
+        if mav is None:
+            mav = self._mavs[(system_id, key)] = self.d.MAVLink(None, srcSystem=system_id, srcComponent=197)
+            if key is not None:
+                mav.signing.secret_key, mav.signing.sign_outgoing = key, True
+                mav.signing.timestamp = signing_timestamp(time.time())
+        return mav
+
+    def frame(self, msg: Any, system_id: int, key: bytes | None = None) -> bytes:
+        """``msg`` packed as ``system_id`` would send it (signed with ``key`` if given)."""
+        return bytes(msg.pack(self._mav(system_id, key)))
+
+    def observation(
+        self, md: MarkerData, fingerprint: int, system_id: int, key: bytes | None = None, **override: Any
+    ) -> bytes:
+        fields = codec.observation_fields(md, fingerprint)
+        fields.update(override)
+        return self.frame(self.d.MAVLink_atlas_observation_message(**fields), system_id, key)
+
+    def send(self, data: bytes) -> None:
+        self.sock.sendto(data, self.addr)
+        self.sent += 1
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+__all__ = ["WARMUP_S", "Radio", "SoloNode", "forged_view", "free_udp_port", "start_solo"]
