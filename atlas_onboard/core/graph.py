@@ -589,9 +589,10 @@ class TransformGraph:
             if self.outlier_gate_sigma > 0.0:
                 c_cand = edge_term if Jp is None else covariance.transform(Jp, cov_world[parent]) + edge_term
                 rows_sel = row[sel]
-                keep = self._gate(
-                    root, child, p_cand, q_cand, c_cand, now_ns, t_cand, arr.anchored[rows_sel], arr.stamp[rows_sel]
-                )
+                # The anchor: the own cameras' direct views of the root's markers (through another
+                # entity, a candidate also rests on that entity's estimate: a peer's work).
+                anchor = arr.anchored[rows_sel] & (parent == root)
+                keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns, t_cand, anchor, arr.stamp[rows_sel])
                 for slot in row[sel][~keep].tolist():
                     key, stamp = arr.keys[slot], int(arr.stamp[slot])
                     if self._gated_stamp.get(key) != stamp:
@@ -682,12 +683,12 @@ class TransformGraph:
     ) -> NDArray[np.bool_]:
         """Which candidates agree with the consensus of their entity's candidates.
 
-        First, where some of an entity's candidates rest on the node's own sensors (``anchored``),
-        those are the anchor: any other candidate (a peer's, whoever sent it) that agrees with none of
-        them within ``outlier_gate_sigma`` standard deviations (both candidates', plus what the
-        entity may have moved between their captures, at most between their arrivals: a sender
-        chooses its stamps, not when they arrive) is out, however many such candidates there are and
-        however small their sigma. The rest are then judged among themselves as follows.
+        First, where some of an entity's candidates are direct views of the root's markers by the
+        node's own sensors (``anchored``), those are the anchor: any other candidate (a peer's,
+        whoever sent it) that agrees with none of them within ``outlier_gate_sigma`` standard
+        deviations (both candidates', plus what the entity may have moved between their captures, at
+        most between their arrivals: a sender chooses its stamps, not when they arrive) is out,
+        however many such candidates there are and however small their sigma. The rest are then judged among themselves as follows.
 
         With three or more candidates the reference is their median (position per axis; orientation:
         the candidate nearest to all others), which one wrong candidate cannot move. With fewer, the
