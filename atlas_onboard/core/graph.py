@@ -688,7 +688,8 @@ class TransformGraph:
         whoever sent it) that agrees with none of them within ``outlier_gate_sigma`` standard
         deviations (both candidates', plus what the entity may have moved between their captures, at
         most between their arrivals: a sender chooses its stamps, not when they arrive) is out,
-        however many such candidates there are and however small their sigma. The rest are then judged among themselves as follows.
+        however many such candidates there are and however small their sigma. The rest are then
+        judged among themselves as follows.
 
         With three or more candidates the reference is their median (position per axis; orientation:
         the candidate nearest to all others), which one wrong candidate cannot move. With fewer, the
