@@ -192,11 +192,11 @@ class MavlinkTransport:
             alive = now_ns - last <= PEER_LOST_NS
             if alive and sysid not in self._peers_alive:
                 self._peers_alive.add(sysid)
-                _logger.info("peer system %d seen", sysid)
+                self._log(logging.INFO, "peer_seen", "peer system %d seen", sysid)
                 self.send_status(f"atlas: peer {sysid} seen", 6, "peer_seen")
             elif not alive and sysid in self._peers_alive:
                 self._peers_alive.discard(sysid)
-                _logger.warning("peer system %d lost", sysid)
+                self._log(logging.WARNING, "peer_lost", "peer system %d lost", sysid)
                 self.send_status(f"atlas: peer {sysid} lost", 4, "peer_lost")
 
     def counters(self) -> dict[str, int]:
@@ -301,13 +301,16 @@ class MavlinkTransport:
 
     def _warn(self, reason: str, fmt: str, *args: Any) -> None:
         """A warning at most once per ``reason`` per REPORT_EVERY_S, with the count suppressed meanwhile."""
+        self._log(logging.WARNING, reason, fmt, *args)
+
+    def _log(self, level: int, reason: str, fmt: str, *args: Any) -> None:
         suppressed = self._reports.allow(f"log:{reason}", time.monotonic_ns())
         if suppressed is None:
             return
         if suppressed:
-            _logger.warning(fmt + " (%d more of these suppressed)", *args, suppressed)
+            _logger.log(level, fmt + " (%d more of these suppressed)", *args, suppressed)
         else:
-            _logger.warning(fmt, *args)
+            _logger.log(level, fmt, *args)
 
     def _warn_at_start(self) -> None:
         """Once at start: peer links anyone on the network can write to, and sensors bound to no node."""
