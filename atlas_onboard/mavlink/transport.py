@@ -192,12 +192,13 @@ class MavlinkTransport:
             alive = now_ns - last <= PEER_LOST_NS
             if alive and sysid not in self._peers_alive:
                 self._peers_alive.add(sysid)
-                self._log(logging.INFO, "peer_seen", "peer system %d seen", sysid)
-                self.send_status(f"atlas: peer {sysid} seen", 6, "peer_seen")
+                # Per peer: only the world file's nodes become peers, so an attacker cannot multiply these.
+                self._log(logging.INFO, f"peer_seen_{sysid}", "peer system %d seen", sysid)
+                self.send_status(f"atlas: peer {sysid} seen", 6, f"peer_seen_{sysid}")
             elif not alive and sysid in self._peers_alive:
                 self._peers_alive.discard(sysid)
-                self._log(logging.WARNING, "peer_lost", "peer system %d lost", sysid)
-                self.send_status(f"atlas: peer {sysid} lost", 4, "peer_lost")
+                self._log(logging.WARNING, f"peer_lost_{sysid}", "peer system %d lost", sysid)
+                self.send_status(f"atlas: peer {sysid} lost", 4, f"peer_lost_{sysid}")
 
     def counters(self) -> dict[str, int]:
         out = self.counters_.snapshot()
