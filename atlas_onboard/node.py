@@ -596,7 +596,8 @@ class Node:
         out["rejected_outlier"] = out.get("rejected_outlier", 0) + self.graph.gated_total
         if self.ekf is not None:
             out.update({f"ekf_{k}": v for k, v in self.ekf.outcomes.items()})
-        out.update(self.transport.counters())
+        for name, n in self.transport.counters().items():  # a reason both refuse for (unknown_sensor): summed
+            out[name] = out.get(name, 0) + n
         out["superseded"] += out.pop("waiting_superseded", 0)  # the newest of an edge kept by the transport
         for cam in self.cameras:
             out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})

@@ -147,7 +147,10 @@ class OriginRefusal(StrEnum):
     that the world file says runs the sensor's entity."""
     UNBOUND_SENSOR = "unbound_sensor"
     """An observation by a sensor of an entity that the world file's ``nodes`` section gives no node
-    (no system id to bind it to), or by a sensor id the world file does not have."""
+    (no system id to bind it to)."""
+    UNKNOWN_SENSOR = "unknown_sensor"
+    """An observation by a sensor id the world file does not have (the listener's reason of the same
+    name, decided here before decoding)."""
     UNKNOWN_ORIGIN = "unknown_origin"
     """A heartbeat or fused pose from a system id that is no node of the world file."""
     BAD_STAMP = "bad_stamp"
@@ -191,7 +194,7 @@ class OriginBinding:
 
     def observation(self, sensor_id: int, origin: int) -> OriginRefusal | None:
         """None if an observation by ``sensor_id`` may come from system ``origin``; else why not."""
-        sender = self._sender.get(sensor_id, OriginRefusal.UNBOUND_SENSOR)
+        sender = self._sender.get(sensor_id, OriginRefusal.UNKNOWN_SENSOR)
         if isinstance(sender, OriginRefusal):
             return sender
         return None if sender == origin else OriginRefusal.NOT_OWNER

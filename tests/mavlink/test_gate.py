@@ -101,7 +101,7 @@ def test_origin_binding_by_the_world_files_nodes():
     for origin in (1, 2, 250, 77):  # the own entity's sensor: from no one, not even "ourselves"
         assert binding.observation(1, origin) is OriginRefusal.OWN_SENSOR
     assert binding.observation(30, 2) is OriginRefusal.UNBOUND_SENSOR
-    assert binding.observation(999, 2) is OriginRefusal.UNBOUND_SENSOR
+    assert binding.observation(999, 2) is OriginRefusal.UNKNOWN_SENSOR
     assert binding.unbound == ("orphan",)
     assert binding.fused("d2", 2) is None and binding.fused("d1", 2) is OriginRefusal.NOT_OWNER
     assert binding.fused("d2", 77) is OriginRefusal.UNKNOWN_ORIGIN
