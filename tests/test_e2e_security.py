@@ -23,7 +23,7 @@ LIE_M = (1.0, 0.0, 0.0)  # the claim: the drone stands 1 m east of where it is
 OWN_SENSOR, MARKER = 1, 2  # paper-test1: the drone's front camera; a floor tag
 
 
-def attack(duration_s, senders, rate_hz, start_s=2.0):
+def attack(duration_s, senders, rate_hz, start_s=1.0, tail_s=0.3):
     """A solo paper-test1 node; from ``start_s`` for ``duration_s``, each system id of ``senders``
     claims at ``rate_hz`` (sigma 1 mm, fresh stamps, the right fingerprint) that the node's own camera
     sees the drone 1 m off. Returns (node, score before, score during, datagrams sent)."""
@@ -44,33 +44,33 @@ def attack(duration_s, senders, rate_hz, start_s=2.0):
                 radio.send(radio.observation(md, fp, sysid, seq=seq & 0xFFFF))
             next_s += period_s
             time.sleep(max(0.0, next_s - time.time()))
-        time.sleep(1.2)  # the node reads the kernel's drop count once a second
+        time.sleep(tail_s)
     finally:
         radio.close()
         assert node.stop() == 0, node.log[-3000:]
-    before = node.score(1.0, start_s)
+    before = node.score(0.0, start_s)
     during = node.score(start_s, start_s + duration_s)
     return node, before, during, radio.sent
 
 
 def test_the_own_cameras_view_spoofed_from_another_system_changes_nothing():
-    node, before, during, sent = attack(3.0, senders=[2], rate_hz=30)
+    node, before, during, sent = attack(2.0, senders=[2], rate_hz=30)
     c = node.final_counters()
     # Ground truth: the pose during the attack is as good as the camera's alone (about 2.5 cm RMSE here).
-    assert during.messages >= 30 and before.messages >= 15
+    assert during.messages >= 30
     assert during.rmse_m < 0.05 and during.max_error_m < 0.2, (before, during)
-    assert sent >= 60
+    assert sent >= 50
     assert c["peer_observations"] == 0
     assert c["rejected_own_sensor"] == sent and c["refused_from_2"] == sent
 
 
 def test_a_flood_from_fifty_forged_system_ids_changes_nothing():
     senders = list(range(2, 52))
-    node, before, during, sent = attack(3.0, senders=senders, rate_hz=120)
+    node, before, during, sent = attack(2.0, senders=senders, rate_hz=120, tail_s=1.2)  # drops: read every 1 s
     c = node.final_counters()
     assert during.messages >= 30
     assert during.rmse_m < 0.05 and during.max_error_m < 0.2, (before, during)
-    assert sent >= 6_000  # up to 6,000 a second for 3 s, as fast as this process packs them
+    assert sent >= 5_000  # up to 6,000 a second for 2 s, as fast as this process packs them
     refused = c["rejected_own_sensor"]
     assert refused + c.get("peer0_kernel_drops", 0) >= sent * 0.99, (refused, c.get("peer0_kernel_drops"), sent)
     assert c["peer_observations"] == 0 and c.get("inbox_dropped", 0) == 0
