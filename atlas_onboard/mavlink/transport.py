@@ -1,5 +1,7 @@
-"""The node's MAVLink transport: an autopilot link and peer links, with de-duplication, per-peer rate
-limits, clock-skew warnings, heartbeats, TIMESYNC, the EKF origin and every message the node sends."""
+"""The node's MAVLink transport: an autopilot link and peer links, with origin binding (who may send
+which observation, decided before decoding: :class:`~atlas_onboard.mavlink.gate.OriginBinding`),
+de-duplication, per-peer rate limits, clock-skew warnings, heartbeats, TIMESYNC, the EKF origin and
+every message the node sends; STATUSTEXT and warnings at most one per reason per 10 s."""
 
 from __future__ import annotations
 
