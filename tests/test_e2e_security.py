@@ -62,6 +62,7 @@ def test_the_own_cameras_view_spoofed_from_another_system_changes_nothing():
     assert sent >= 50
     assert c["peer_observations"] == 0
     assert c["rejected_own_sensor"] == sent and c["refused_from_2"] == sent
+    assert "is not signed: any host on the network can move this drone's pose" in node.log
 
 
 def test_a_flood_from_fifty_forged_system_ids_changes_nothing():

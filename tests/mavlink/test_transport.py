@@ -208,6 +208,16 @@ def test_timesync_answered_on_the_wall_clock_and_origin_until_known(rig):
     assert len(ap.of("SET_GPS_GLOBAL_ORIGIN")) == 2  # no more once the autopilot has one
 
 
+def test_statustext_at_most_one_per_reason(rig):
+    _, transport, ap, _, _ = rig
+    for _ in range(5):  # e.g. a forged peer appearing again and again
+        transport.send_status("atlas: peer 9 seen", 6, "peer_seen_9")
+    transport.send_status("atlas d1: pose lost", 4)  # another reason goes out
+    ap.pump(0.3)
+    assert [m.text for m in ap.of("STATUSTEXT")] == ["atlas: peer 9 seen", "atlas d1: pose lost"]
+    assert transport.counters()["statustext_suppressed"] == 4
+
+
 def test_autopilot_gets_ned_and_never_a_non_finite_pose(rig):
     _, transport, ap, _, _ = rig
     transport.tick(0)
