@@ -351,3 +351,40 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
     finally:
         transport.close()
         sender.close()
+
+
+def test_a_forged_observation_never_supersedes_the_kept_one():
+    """The DANGER of keeping the newest of an edge: a forged one with a later stamp would evict the
+    real one. From a system id that does not run the sensor, or stamped far ahead, it is refused
+    before it is kept (and never decoded)."""
+    world = world_from(
+        {
+            "entities": {
+                "world": {"sensors": [{"name": "cam", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},
+                "d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+                "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+            }
+        }
+    )
+    port = free_port()
+    config = NodeConfig(entity="d1", system_id=1, peers=(LinkConfig(f"udpin:127.0.0.1:{port}"),),
+                        owners=(("world", 250), ("d1", 1), ("d2", 2)))  # fmt: skip
+    transport = MavlinkTransport(world, config, wall_clock=lambda: WALL_S)
+    delivered: list = []
+    transport.start(delivered.extend, may_wait=lambda sensor, marker: marker == 6)
+    real, forger = RawSender(port, 250), RawSender(port, 2)
+    try:
+        fp, t_us = world.fingerprint(), int(WALL_S * 1e6)
+        real.raw(real.observation(seq=1, fingerprint=fp, time_usec=t_us, marker_id=6))
+        forger.raw(forger.observation(seq=2, fingerprint=fp, time_usec=t_us + 500_000, marker_id=6))  # not its sensor
+        real.raw(real.observation(seq=3, fingerprint=fp, time_usec=t_us + 3_600_000_000, marker_id=6))  # 1 h ahead
+        settle(transport, delivered)
+        taken = transport.take_waiting()
+        assert [(md.seq, md.origin, md.capture_time_us) for md, _ in taken] == [(1, 250, t_us)]
+        c = transport.counters()
+        assert c["rejected_not_owner"] == 1 and c["rejected_bad_stamp"] == 1 and c.get("waiting_superseded", 0) == 0
+        assert c["refused_from_2"] == 1 and c["refused_from_250"] == 1
+    finally:
+        transport.close()
+        real.close()
+        forger.close()
