@@ -28,10 +28,12 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
-    from atlas_onboard.config import load_world, summary
+    from atlas_onboard.config import load_world, security_notes, summary
 
     world = load_world(args.file)
     print(summary(world))
+    for note in security_notes(args.file):
+        print(note)
     return EXIT_OK
 
 

@@ -17,7 +17,7 @@ import json
 import math
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
@@ -54,6 +54,13 @@ class Weighting(StrEnum):
     INVERSE_VARIANCE = "inverse_variance"  # w_i = 1 / sigma_i^2
 
 
+OUTLIER_GATE_SIGMA = 5.0
+"""The default gate: a distance between two honest candidates, in units of their combined sigma,
+is beyond 5 with probability about 1e-5 (chi with 3 degrees of freedom) if the sigmas are honest, and
+still rare where they are twice too small; a lie of 1 m with a claimed sigma of 1 mm against a camera
+of 1 cm is 100 sigma out."""
+
+
 @dataclass(frozen=True, slots=True)
 class FusionConfig:
     """Fusion settings shared by every node.
@@ -72,7 +79,9 @@ class FusionConfig:
             second): an edge of age a adds (a * this)^2 to its attitude variance. It changes no
             weight, only the covariance published with the pose. 0: attitudes do not age.
         outlier_gate_sigma: a candidate farther from the consensus of the others than this many
-            standard deviations (position or attitude) is rejected and counted. 0: off (the paper).
+            standard deviations (position or attitude) is rejected and counted; a candidate of a peer
+            that contradicts every candidate of the node's own cameras so is rejected whoever sent it.
+            0: off (the paper). Default ``OUTLIER_GATE_SIGMA``.
         filter: ``none`` (the paper: the fused pose of the newest observations is the output) or
             ``ekf`` (an error-state EKF per entity fed by the graph's candidates, predicting through
             short gaps and gating outliers by Mahalanobis distance).
@@ -91,7 +100,7 @@ class FusionConfig:
     path: str = "bfs"
     relative_poses: bool = False
     age_sigma_m_per_s: float = 0.0
-    outlier_gate_sigma: float = 0.0
+    outlier_gate_sigma: float = OUTLIER_GATE_SIGMA
     filter: str = "none"
     ekf_accel_noise: float = 0.5
     ekf_max_predict_s: float = 0.5
@@ -398,7 +407,7 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
         raise ConfigError(
             _join(path, "age_sigma_deg_per_s"), f"expected a turn rate in [0, 3600] deg/s, got {age_deg:g}"
         )
-    gate = _number(m.get("outlier_gate_sigma", 0.0), _join(path, "outlier_gate_sigma"))
+    gate = _number(m.get("outlier_gate_sigma", OUTLIER_GATE_SIGMA), _join(path, "outlier_gate_sigma"))
     if gate != 0.0 and not 2.0 <= gate <= 100.0:
         raise ConfigError(_join(path, "outlier_gate_sigma"), f"expected 0 (off) or a gate in [2, 100], got {gate:g}")
     filt = _choice(m.get("filter", default.filter), _join(path, "filter"), ("none", "ekf"))
@@ -581,6 +590,36 @@ def check_nodes(doc: Any, world: WorldConfig, base_dir: Path | None = None) -> t
     return parsed
 
 
+def security_notes(path: Path | str) -> list[str]:
+    """Warnings about who can move a pose, for ``check-config``: each node's peer links that take
+    unsigned observations, and entities with sensors that no node runs (their observations are
+    refused). None for a file without a ``nodes`` section (it runs no node)."""
+    p = Path(path)
+    doc = read_yaml(p)
+    world = parse_world(doc, p, extra_keys={"nodes"})
+    nodes = check_nodes(doc, world, p.parent)
+    notes = []
+    for node in nodes:
+        for i, link in enumerate(node.peers):
+            where = f"nodes.{node.entity}.peers[{i}] ({link.url})"
+            if link.signing is None:
+                notes.append(f"warning: {where} is not signed: any host on the network can move {node.entity}'s pose")
+            elif not link.signing.require:
+                notes.append(
+                    f"warning: {where} accepts unsigned observations (require: false): any host on the network"
+                    f" can move {node.entity}'s pose"
+                )
+    if nodes:
+        run = {n.entity for n in nodes}
+        for ent in world.entities:
+            if ent.sensors and ent.name not in run:
+                notes.append(
+                    f"warning: entity {ent.name} has sensors but no node (system id) in the nodes section:"
+                    f" every node refuses their observations"
+                )
+    return notes
+
+
 def summary(world: WorldConfig) -> str:
     """A human-readable summary: entities, sensors, markers, and which entity can see which."""
     lines = [
@@ -706,6 +745,8 @@ class NodeConfig:
         queue_size: observations waiting for the graph; beyond it the oldest are dropped (counted).
         state_dir: where signing timestamps persist across restarts.
         status_interval_s: period of the health log line.
+        owners: (entity, system id) of every node the world file's ``nodes`` section names: whose
+            observations and fused poses this node accepts from whom (:meth:`owner_system_id`).
     """
 
     entity: str
@@ -717,6 +758,14 @@ class NodeConfig:
     queue_size: int = 256
     state_dir: Path | None = None
     status_interval_s: float = 10.0
+    owners: tuple[tuple[str, int], ...] = ()
+
+    def owner_system_id(self, entity: str) -> int | None:
+        """The system id of the node that runs ``entity``, or None if the world file names none."""
+        for name, sysid in self.owners:
+            if name == entity:
+                return sysid
+        return None
 
 
 _NODE_KEYS = {
@@ -865,7 +914,20 @@ def parse_node(doc: Any, entity: str, world: WorldConfig, base_dir: Path | None 
     path = _join("nodes", entity)
     _read_node(defaults, "nodes.defaults", entity, base_dir, partial=True)
     _read_node(own, path, entity, base_dir, partial=True)
-    return _read_node(_merge(defaults, own), path, entity, base_dir, partial=False)
+    config = _read_node(_merge(defaults, own), path, entity, base_dir, partial=False)
+    return replace(config, owners=_owners(nodes, defaults))
+
+
+def _owners(nodes: Mapping[str, Any], defaults: Mapping[str, Any]) -> tuple[tuple[str, int], ...]:
+    """(entity, system id) of every node named in the ``nodes`` section that has a system id."""
+    out = []
+    for name, own in nodes.items():
+        if name == "defaults":
+            continue
+        merged = _merge(defaults, own or {})
+        if "system_id" in merged:
+            out.append((name, _integer(merged["system_id"], _join(_join("nodes", name), "system_id"), 1, 255)))
+    return tuple(out)
 
 
 def load_node(path: Path | str, entity: str) -> tuple[WorldConfig, NodeConfig]:

@@ -8,7 +8,12 @@ What it writes, all below ``--root`` (default ``/``), nothing outside it:
 - ``etc/atlas-onboard/world.yaml``: the annotated example world file, only if there is none (an
   existing one is kept unless ``--force``);
 - with ``--entity NAME``: ``etc/atlas-onboard/atlas-onboard.env``, which makes the plain unit run
-  that entity's node (kept unless ``--force``, like the world file).
+  that entity's node (kept unless ``--force``, like the world file);
+- ``etc/atlas-onboard/swarm.key``: a new random 32-byte MAVLink signing key (mode 0600), only if
+  there is none (never replaced, not even with ``--force``: the swarm shares one key; copy the
+  first drone's to the others).
+
+``atlas-onboard keygen FILE`` writes such a key anywhere (refusing to replace one without ``--force``).
 
 It then prints the steps that remain (a user, the console script on ``/usr/local/bin``, systemctl,
 journalctl), leaving out those already done under the root. It runs no command and touches no
@@ -20,6 +25,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import secrets
 import shutil
 import sys
 import tempfile
@@ -35,6 +41,8 @@ UNIT_DIR = Path("etc/systemd/system")
 CONF_DIR = Path("etc/atlas-onboard")
 WORLD_FILE = CONF_DIR / "world.yaml"
 ENV_FILE = CONF_DIR / "atlas-onboard.env"
+KEY_FILE = CONF_DIR / "swarm.key"
+KEY_BYTES = 32  # MAVLink 2 signing keys are 32 bytes
 EXEC_PATH = Path("usr/local/bin/atlas-onboard")  # the units' ExecStart
 SERVICE_USER = "atlas"
 # Entity names as the world file allows them (config.py), which are also valid unit instance names.
@@ -84,6 +92,7 @@ def install_service(root: Path, entity: str | None = None, force: bool = False) 
     if entity is not None:
         plan.append((ENV_FILE, env_text(entity), force))
     targets = [(_inside(root, rel), text, replace) for rel, text, replace in plan]  # all checked before any write
+    key_path = _inside(root, KEY_FILE)
     actions = []
     for path, text, replace in targets:
         if not path.exists():
@@ -96,7 +105,32 @@ def install_service(root: Path, entity: str | None = None, force: bool = False) 
             actions.append(Action(path, "updated"))
         else:
             actions.append(Action(path, "kept", "it exists; --force replaces it"))
+    if key_path.exists():
+        actions.append(Action(key_path, "kept", "the swarm's key: every drone needs the same one"))
+    else:
+        write_key(key_path)
+        actions.append(Action(key_path, "wrote", "a new signing key: copy it to every drone of the swarm"))
     return actions
+
+
+def write_key(path: Path, force: bool = False) -> None:
+    """A new random 32-byte signing key at ``path``, mode 0600 from its creation (never readable by
+    others, not even for a moment). AtlasError if it exists (unless ``force``) or cannot be written."""
+    if path.exists() and not force:
+        raise AtlasError(f"keygen: {path} exists; give --force to replace it (every drone needs the new key then)")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, staged = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")  # created 0600
+        try:
+            with os.fdopen(fd, "wb") as f:
+                f.write(secrets.token_bytes(KEY_BYTES))
+            os.chmod(staged, 0o600)
+            os.replace(staged, path)
+        except BaseException:
+            Path(staged).unlink(missing_ok=True)
+            raise
+    except OSError as exc:
+        raise AtlasError(f"keygen: cannot write {path}: {exc.strerror}") from None
 
 
 def _inside(root: Path, rel: Path) -> Path:
@@ -151,6 +185,10 @@ def next_steps(root: Path, entity: str | None, script: str | None) -> list[str]:
             )
             script = None
         steps.append(f"ln -s {script or '/opt/atlas-onboard/bin/atlas-onboard'} /{EXEC_PATH}")
+    steps.append(
+        f"chown {SERVICE_USER}: /{KEY_FILE}   # the service reads it; use one drone's key on every drone"
+        " (docs/signing.md)"
+    )
     steps.append(f"atlas-onboard check-config /{WORLD_FILE}   # after editing it for your swarm and this drone")
     steps.append("systemctl daemon-reload")
     if entity is not None:
@@ -181,8 +219,25 @@ def _cmd_install_service(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_keygen(args: argparse.Namespace) -> int:
+    path = Path(args.file)
+    write_key(path, args.force)
+    print(f"wrote a new {KEY_BYTES}-byte signing key to {path} (mode 600); name it in the peer links' signing.key_file")
+    return 0
+
+
 def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Register ``install-service``."""
+    """Register ``install-service`` and ``keygen``."""
+    p = sub.add_parser(
+        "keygen",
+        help="write a new MAVLink signing key for the swarm",
+        description="Write 32 random bytes to FILE with mode 600: the swarm's MAVLink 2 signing key"
+        " (docs/signing.md). Refuses to replace an existing file without --force.",
+    )
+    p.add_argument("file", help="the key file to write, e.g. /etc/atlas-onboard/swarm.key")
+    p.add_argument("--force", action="store_true", help="replace an existing key file")
+    p.set_defaults(func=_cmd_keygen)
+
     p = sub.add_parser(
         "install-service",
         help="install the systemd units and an example world file",

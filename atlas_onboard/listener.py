@@ -57,8 +57,10 @@ class EdgeUpdate:
     cov_a_b: NDArray[np.float64] | None = None  # 6x6, core.covariance convention
 
 
-def make_graph(world: WorldConfig) -> TransformGraph:
-    """The transform graph a world file describes: its entities and fusion settings."""
+def make_graph(world: WorldConfig, own_entity: str | None = None) -> TransformGraph:
+    """The transform graph a world file describes: its entities and fusion settings. The candidates
+    of ``own_entity``'s sensors (the node's own cameras) are the outlier gate's anchor."""
+    own = world.entity(own_entity).sensors if own_entity is not None else ()
     f = world.fusion
     return TransformGraph(
         world.entity_names,
@@ -70,6 +72,7 @@ def make_graph(world: WorldConfig) -> TransformGraph:
         age_sigma_rad_per_s=math.radians(f.age_sigma_deg_per_s),
         outlier_gate_sigma=f.outlier_gate_sigma,
         keep_candidates=f.filter == "ekf",
+        anchor_sensors=frozenset(s.id for s in own),
     )
 
 

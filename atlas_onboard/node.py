@@ -170,7 +170,7 @@ class Node:
         self.wall = wall_ns  # capture times are on the swarm's wall clock: the EKF predicts to it
         self.notifier = notifier
         self.config_path = config_path
-        self.graph = make_graph(world)
+        self.graph = make_graph(world, config.entity)
         self.listener = Listener(world, self.graph)
         self.ekf = _make_ekf(world)
         ap = config.autopilot
@@ -572,7 +572,7 @@ class Node:
         self._supersedes = _supersedes(world)
         self._pending.clear()
         self.graph.clear()
-        self.graph = make_graph(world)
+        self.graph = make_graph(world, self.config.entity)
         self.listener = Listener(world, self.graph)
         self.ekf = _make_ekf(world)
         _logger.info("reloaded %s (fingerprint %08x)", self.config_path, world.fingerprint())
@@ -596,7 +596,8 @@ class Node:
         out["rejected_outlier"] = out.get("rejected_outlier", 0) + self.graph.gated_total
         if self.ekf is not None:
             out.update({f"ekf_{k}": v for k, v in self.ekf.outcomes.items()})
-        out.update(self.transport.counters())
+        for name, n in self.transport.counters().items():  # a reason both refuse for (unknown_sensor): summed
+            out[name] = out.get(name, 0) + n
         out["superseded"] += out.pop("waiting_superseded", 0)  # the newest of an edge kept by the transport
         for cam in self.cameras:
             out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})

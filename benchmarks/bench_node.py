@@ -54,15 +54,21 @@ def free_port() -> int:
 
 
 def world_doc(peer_port: int, ap_port: int) -> dict:
+    """Drones d1..d9 see world markers with their cameras (sensors 2..10, nodes 51..59); d0, the node
+    under test, is seen by a ceiling camera (sensor 1, the world's node 50): a node accepts no
+    observation of its own cameras from the network, so d0's views come from another's camera."""
     markers = [{"id": i, "size_m": 0.2, "pose": {"pos": [float(i % 8), float(i // 8), 0.0]}} for i in range(40)]
-    ents: dict = {"world": {"markers": markers}}
-    for k in range(N_DRONES):
+    ceiling = {"name": "ceiling", "id": 1, "pose": {"pos": [1.0, 1.0, 4.0], "rpy_deg": [0, 90, 0]}}
+    ents: dict = {"world": {"markers": markers, "sensors": [ceiling]}}
+    ents["d0"] = {"markers": [{"id": 100 + j, "size_m": 0.1, "pose": {"pos": [0.1 * (j % 2), 0.1 * (j // 2), 0.05]}}
+                              for j in range(MARKERS)]}  # fmt: skip
+    for k in range(1, N_DRONES):
         ents[f"d{k}"] = {"sensors": [{"name": "down", "id": k + 1, "pose": {"rpy_deg": [0, 90, 0]}}]}
-    return {
-        "entities": ents,
-        "nodes": {"d0": {"system_id": 1, "autopilot": {"url": f"udpout:127.0.0.1:{ap_port}"},
-                         "peers": [f"udpin:127.0.0.1:{peer_port}"], "status_interval_s": 60}},
-    }  # fmt: skip
+    nodes: dict = {"d0": {"system_id": 1, "autopilot": {"url": f"udpout:127.0.0.1:{ap_port}"},
+                          "peers": [f"udpin:127.0.0.1:{peer_port}"], "status_interval_s": 60},
+                   "world": {"system_id": 50}}  # fmt: skip
+    nodes.update({f"d{k}": {"system_id": 50 + k} for k in range(1, N_DRONES)})
+    return {"entities": ents, "nodes": nodes}
 
 
 def views(world, k: int) -> list[MarkerData]:
@@ -71,8 +77,12 @@ def views(world, k: int) -> list[MarkerData]:
     s = world.sensors[k + 1]
     out = []
     for j in range(MARKERS):
-        m = world.markers[(4 * k + j) % 40]
-        T = (T_world_drone * s.T_entity_sensor).inv() * m.T_entity_marker
+        if k == 0:  # the ceiling camera sees d0's markers
+            m = world.markers[100 + j]
+            T = s.T_entity_sensor.inv() * T_world_drone * m.T_entity_marker
+        else:
+            m = world.markers[(4 * k + j) % 40]
+            T = (T_world_drone * s.T_entity_sensor).inv() * m.T_entity_marker
         x, y, z, w = T.rotation.as_quat()
         p = T.translation
         cov = detection_covariance(T, m.size_m)

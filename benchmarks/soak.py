@@ -46,6 +46,8 @@ from atlas_onboard.sim.autopilot import SimAutopilot, recording
 from atlas_onboard.sim.hub import Hub
 
 RATE_HZ = 30
+WORLD_SYSTEM_ID = 100  # the world's node: the ceiling cameras' observations come from it
+DRONE_MARKERS = 300  # drone k's markers are DRONE_MARKERS + per * k + j
 
 
 def rss_kb(pid: int) -> int:
@@ -76,9 +78,9 @@ def load(path: Path, hub_port: int, n: int, per: int, stop: Any, sent: Any, log:
     world = load_world(path)
     d = dialect.load()
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    # Each drone's camera is its own peer system (100 + k), as in a real mesh (one system id for all
-    # would hit the per-peer rate limit).
-    mavs = [d.MAVLink(None, srcSystem=100 + k, srcComponent=197) for k in range(n)]
+    # Drone k is seen by ceiling camera k, run by the world's node (system 100): a node accepts no
+    # observation of its own cameras from the network, so its own pose comes from another's camera.
+    mavs = [d.MAVLink(None, srcSystem=WORLD_SYSTEM_ID, srcComponent=197)] * n
     fp = world.fingerprint()
     period = 1.0 / RATE_HZ
     # The drones hover: what each camera sees is computed once (computing it for every frame made
@@ -88,10 +90,10 @@ def load(path: Path, hub_port: int, n: int, per: int, stop: Any, sent: Any, log:
     views = []
     for k in range(n):
         T_wd = RigidTransform.from_components([1.0 + k % 5, 1.0 + k // 5, 1.5], Rotation.identity())
-        T_sw = (T_wd * world.sensors[k + 1].T_entity_sensor).inv()
+        T_sw = world.sensors[k + 1].T_entity_sensor.inv()
         for j in range(per):
-            m = world.markers[per * k + j]
-            T = T_sw * m.T_entity_marker
+            m = world.markers[DRONE_MARKERS + per * k + j]
+            T = T_sw * T_wd * m.T_entity_marker
             x, y, z, w = T.rotation.as_quat()
             md = MarkerData(k + 1, m.id, 0.01, tuple(T.translation), (w, x, y, z), 0, frame_remaining=per - 1 - j,
                             covariance=detection_covariance(T, m.size_m))  # fmt: skip
@@ -150,11 +152,18 @@ def main() -> int:
     aps = [SimAutopilot(system_id=k + 1).start() for k in range(n)]
     per = args.markers
     markers = [{"id": i, "size_m": 0.2, "pose": {"pos": [float(i % 8), float(i // 8), 0.0]}} for i in range(per * n)]
-    ents: dict = {"world": {"markers": markers}}
+    ceilings = [{"name": f"ceiling{k}", "id": k + 1, "pose": {"pos": [1.0 + k % 5, 1.0 + k // 5, 4.0],
+                 "rpy_deg": [0, 90, 0]}} for k in range(n)]  # fmt: skip
+    ents: dict = {"world": {"markers": markers, "sensors": ceilings}}
     for k in range(n):
-        ents[f"d{k}"] = {"sensors": [{"name": "down", "id": k + 1, "pose": {"rpy_deg": [0, 90, 0]}}]}
+        on_top = [{"id": DRONE_MARKERS + per * k + j, "size_m": 0.1, "pose": {"pos": [0.12 * j - 0.2, 0.0, 0.05]}}
+                  for j in range(per)]  # fmt: skip
+        ents[f"d{k}"] = {"markers": on_top}
     nodes = {f"d{k}": {"system_id": k + 1, "autopilot": {"url": f"udpout:127.0.0.1:{aps[k].port}"}} for k in range(n)}
-    nodes["defaults"] = {"peers": [f"udpout:127.0.0.1:{hub_port.value}"], "status_interval_s": 30, "queue_size": 256}
+    nodes["world"] = {"system_id": WORLD_SYSTEM_ID}
+    # Every camera's observations come from the one world node: its rate is every drone's together.
+    peer = {"url": f"udpout:127.0.0.1:{hub_port.value}", "rate_limit_hz": 10 * RATE_HZ * per * n}
+    nodes["defaults"] = {"peers": [peer], "status_interval_s": 30, "queue_size": 256}
     with tempfile.TemporaryDirectory() as tmp, recording():
         path = Path(tmp) / "world.yaml"
         path.write_text(yaml.safe_dump({"entities": ents, "nodes": nodes}))

@@ -504,3 +504,38 @@ def test_mounted_cameras_are_the_same_whether_written_in_flu_or_frd():
     R = b.sensors[2].T_entity_sensor.rotation
     np.testing.assert_allclose(R.apply([0, 0, 1]), [0, 0, -1], atol=1e-12)
     np.testing.assert_allclose(R.apply([0, -1, 0]), [1, 0, 0], atol=1e-12)
+
+
+def test_check_config_says_who_can_move_a_pose(capsys, tmp_path):
+    doc = {
+        "entities": {
+            "world": {"sensors": [{"name": "cam", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},
+            "d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+        },
+        "nodes": {
+            "d1": {
+                "system_id": 1,
+                "peers": [
+                    "udpin:0.0.0.0:14600",
+                    {"url": "udpout:10.0.0.2:14600", "signing": {"key_file": "k", "require": False}},
+                    {"url": "udpout:10.0.0.3:14600", "signing": {"key_file": "k"}},
+                ],
+            }
+        },
+    }
+    f = tmp_path / "w.yaml"
+    f.write_text(yaml.safe_dump(doc))
+    code, out, err = cli(capsys, "check-config", str(f))
+    assert code == 0, err
+    assert [line for line in out.splitlines() if line.startswith("warning:")] == [
+        "warning: nodes.d1.peers[0] (udpin:0.0.0.0:14600) is not signed: any host on the network can move d1's pose",
+        "warning: nodes.d1.peers[1] (udpout:10.0.0.2:14600) accepts unsigned observations (require: false): any"
+        " host on the network can move d1's pose",
+        "warning: entity world has sensors but no node (system id) in the nodes section: every node refuses their"
+        " observations",
+    ]
+    doc["nodes"]["d1"]["peers"] = doc["nodes"]["d1"]["peers"][2:]
+    doc["nodes"]["world"] = {"system_id": 250}
+    f.write_text(yaml.safe_dump(doc))
+    code, out, err = cli(capsys, "check-config", str(f))
+    assert code == 0 and "warning:" not in out, (out, err)

@@ -29,7 +29,8 @@ def world_doc(peer_port, ap_port, output="vision_position_estimate", extra_node=
                 "autopilot": {"url": f"udpout:127.0.0.1:{ap_port}", "output": output},
                 "peers": [{"url": f"udpin:127.0.0.1:{peer_port}", **(extra_node or {})}],
                 "status_interval_s": 1,
-            }
+            },
+            "world": {"system_id": 250},  # the node of the ceiling camera: the tests' peer
         },
     }
 

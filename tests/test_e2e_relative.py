@@ -25,7 +25,8 @@ def world_doc(peer_port, ap_port, relative):
                 "autopilot": {"url": f"udpout:127.0.0.1:{ap_port}"},
                 "peers": [{"url": f"udpin:127.0.0.1:{peer_port}"}],
                 "fused_rate_hz": 10,
-            }
+            },
+            "lead": {"system_id": 250},  # the tests' peer runs the lead, whose rear camera sees the follower
         },
     }
 

@@ -65,6 +65,8 @@ def test_unsigned_wrongly_signed_and_replayed_observations_change_nothing(tmp_pa
     assert c["peer0_rejected_unsigned_or_bad_signature"] >= 10  # 5 unsigned + 5 wrongly signed
     assert c["peer0_rejected_bad_signature"] >= 15  # those 10, and the 5 replays
     assert c["accepted"] == 5
+    # Decoded: the five signed ones; no unsigned, wrongly signed or replayed frame got that far.
+    assert c["peer0_rx_atlas_observation"] == 5
     assert list((tmp_path / "state").glob("signing-*.json")), "signing timestamp not persisted"
 
 

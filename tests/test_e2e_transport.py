@@ -8,8 +8,10 @@ from atlas_onboard.config import load_world
 from atlas_onboard.mavlink import dialect
 from atlas_onboard.sim.autopilot import SimAutopilot
 from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
-from tests.helpers import observe
+from tests.helpers import observe, pose
 from tests.test_e2e_autopilot import TRUTH, world_doc
+
+TRUTH_D2 = {**TRUTH, "d2": pose([0.0, 2.0, 3.0], [0, 0, 0])}  # 1 m from d1, looking along +x at its tag
 
 
 def start(tmp_path, extra_node=None, autopilot_extra=None):
@@ -17,6 +19,9 @@ def start(tmp_path, extra_node=None, autopilot_extra=None):
     port = free_udp_port()
     doc = world_doc(port, ap.port, extra_node=extra_node)
     doc["nodes"]["d1"]["autopilot"].update(autopilot_extra or {})
+    # A second peer (system 251) runs d2, whose camera sees d1's tag too.
+    doc["entities"]["d2"] = {"sensors": [{"name": "cam", "id": 11, "pose": {"pos": [0.1, 0, 0], "rpy_deg": [0, 0, 0]}}]}
+    doc["nodes"]["d2"] = {"system_id": 251}
     path = write_world(tmp_path, doc)
     world = load_world(path)
     node = NodeProcess(path, "d1")
@@ -40,12 +45,12 @@ def test_duplicates_rate_limit_peer_status_and_skew(tmp_path):
             a.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6) + k), fp)
         flood_s = time.monotonic() - t_flood
         for _ in range(5):
-            b.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6)), fp)
+            b.send(observe(world, TRUTH_D2, 11, 5, capture_time_us=int(time.time() * 1e6)), fp)
             time.sleep(0.05)
         # An observation stamped 0.5 s in the past: the clocks disagree (warned, still used); one
         # 3 s in the past is refused.
-        b.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6) - 500_000), fp)
-        b.send(observe(world, TRUTH, 10, 5, capture_time_us=int(time.time() * 1e6) - 3_000_000), fp)
+        b.send(observe(world, TRUTH_D2, 11, 5, capture_time_us=int(time.time() * 1e6) - 500_000), fp)
+        b.send(observe(world, TRUTH_D2, 11, 5, capture_time_us=int(time.time() * 1e6) - 3_000_000), fp)
         time.sleep(0.3)
         assert wait_for(lambda: any(b"peer 250 seen" in t for t in ap.statustexts), 5)
         time.sleep(3.5)  # both peers fall silent for longer than 3 s

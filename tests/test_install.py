@@ -19,6 +19,7 @@ REPO = Path(__file__).resolve().parents[1]
 UNIT_FILES = {"etc/systemd/system/atlas-onboard.service", "etc/systemd/system/atlas-onboard@.service"}
 WORLD = "etc/atlas-onboard/world.yaml"
 ENV = "etc/atlas-onboard/atlas-onboard.env"
+KEY = "etc/atlas-onboard/swarm.key"
 SCRIPT = "/opt/atlas-onboard/bin/atlas-onboard"
 
 
@@ -109,13 +110,15 @@ def test_install_service_writes_the_shipped_files_and_nothing_else(tmp_path):
         (tmp_path / "etc/systemd/system/atlas-onboard.service", "wrote"),
         (tmp_path / "etc/systemd/system/atlas-onboard@.service", "wrote"),
         (tmp_path / WORLD, "wrote"),
+        (tmp_path / KEY, "wrote"),
     ]
-    assert files_under(tmp_path) == UNIT_FILES | {WORLD}
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY}
     for name in UNITS:
         assert (tmp_path / "etc/systemd/system" / name).read_bytes() == (REPO / "systemd" / name).read_bytes()
     assert (tmp_path / WORLD).read_text(encoding="utf-8") == shipped("example.yaml")
     for rel in files_under(tmp_path):
-        assert (tmp_path / rel).stat().st_mode & 0o777 == 0o644, rel
+        assert (tmp_path / rel).stat().st_mode & 0o777 == (0o600 if rel == KEY else 0o644), rel
+    assert len((tmp_path / KEY).read_bytes()) == 32
     assert (tmp_path / "etc/atlas-onboard").stat().st_mode & 0o777 == 0o755
 
 
@@ -123,7 +126,8 @@ def test_install_service_keeps_the_world_file_and_updates_the_units(tmp_path):
     install_service(tmp_path)
     world = tmp_path / WORLD
     unit = tmp_path / "etc/systemd/system/atlas-onboard.service"
-    assert [a.what for a in install_service(tmp_path)] == ["unchanged"] * 3
+    key = (tmp_path / KEY).read_bytes()
+    assert [a.what for a in install_service(tmp_path)] == ["unchanged"] * 3 + ["kept"]
     world.write_text("entities: {mine: {}}\n", encoding="utf-8")
     unit.write_text("[Service]\nExecStart=/bin/true\n", encoding="utf-8")
     actions = {a.path: (a.what, a.note) for a in install_service(tmp_path)}
@@ -134,13 +138,14 @@ def test_install_service_keeps_the_world_file_and_updates_the_units(tmp_path):
     actions = {a.path: (a.what, a.note) for a in install_service(tmp_path, force=True)}
     assert actions[world] == ("updated", "")
     assert world.read_text(encoding="utf-8") == shipped("example.yaml")
-    assert files_under(tmp_path) == UNIT_FILES | {WORLD}  # no staging files left behind
+    assert (tmp_path / KEY).read_bytes() == key  # the swarm's key is never replaced, not even by --force
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY}  # no staging files left behind
 
 
 def test_entity_environment_file(tmp_path):
     env = tmp_path / ENV
     install_service(tmp_path, entity="drone1")
-    assert files_under(tmp_path) == UNIT_FILES | {WORLD, ENV}
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, ENV, KEY}
     assert env.read_text(encoding="utf-8").splitlines()[-1] == "ATLAS_ONBOARD_ARGS=--entity drone1"
     assert {a.path: a.what for a in install_service(tmp_path, entity="drone2")}[env] == "kept"
     assert env.read_text(encoding="utf-8").splitlines()[-1] == "ATLAS_ONBOARD_ARGS=--entity drone1"
@@ -183,11 +188,18 @@ def test_a_missing_root_is_refused(tmp_path):
     assert str(info.value) == f"--root: {tmp_path / 'nowhere'} is not a directory"
 
 
+CHOWN_KEY = (
+    "chown atlas: /etc/atlas-onboard/swarm.key   # the service reads it; use one drone's key on every drone"
+    " (docs/signing.md)"
+)
+
+
 def test_next_steps_leave_out_what_is_done(tmp_path):
     assert next_steps(tmp_path, "drone1", SCRIPT) == [
         "useradd --system --user-group --groups video,dialout --home-dir /var/lib/atlas-onboard --no-create-home"
         " --shell /usr/sbin/nologin atlas",
         f"ln -s {SCRIPT} /usr/local/bin/atlas-onboard",
+        CHOWN_KEY,
         "atlas-onboard check-config /etc/atlas-onboard/world.yaml   # after editing it for your swarm and this drone",
         "systemctl daemon-reload",
         "systemctl enable --now atlas-onboard.service",
@@ -200,6 +212,7 @@ def test_next_steps_leave_out_what_is_done(tmp_path):
     (tmp_path / "usr/local/bin").mkdir(parents=True)
     (tmp_path / "usr/local/bin/atlas-onboard").symlink_to(SCRIPT)  # dangling here, present on the target
     assert next_steps(tmp_path, None, SCRIPT) == [
+        CHOWN_KEY,
         "atlas-onboard check-config /etc/atlas-onboard/world.yaml   # after editing it for your swarm and this drone",
         "systemctl daemon-reload",
         "systemctl enable --now atlas-onboard@ENTITY.service   # ENTITY: this drone's name in the file",
@@ -228,11 +241,32 @@ def test_install_service_command(tmp_path, capsys, monkeypatch):
         f"wrote     {tmp_path}/etc/systemd/system/atlas-onboard@.service",
         f"wrote     {tmp_path}/{WORLD}",
         f"wrote     {tmp_path}/{ENV}",
+        f"wrote     {tmp_path}/{KEY} (a new signing key: copy it to every drone of the swarm)",
         "",
         "Next, as root:",
         *(f"  {i}. {step}" for i, step in enumerate(steps, start=1)),
     ]
-    assert len(steps) == 6
+    assert len(steps) == 7
+
+
+def test_keygen_writes_a_private_key_and_never_replaces_one_unasked(tmp_path, capsys):
+    parser = argparse.ArgumentParser(prog="atlas-onboard")
+    install.add_commands(parser.add_subparsers(dest="command", required=True))
+    path = tmp_path / "keys" / "swarm.key"
+    args = parser.parse_args(["keygen", str(path)])
+    assert args.func(args) == 0
+    first = path.read_bytes()
+    assert len(first) == 32 and path.stat().st_mode & 0o777 == 0o600
+    from atlas_onboard.mavlink.link import read_key
+
+    assert read_key(path) == first  # what a node accepts
+    with pytest.raises(AtlasError, match="exists; give --force"):
+        args.func(args)
+    assert path.read_bytes() == first
+    args = parser.parse_args(["keygen", "--force", str(path)])
+    assert args.func(args) == 0
+    assert path.read_bytes() != first and path.stat().st_mode & 0o777 == 0o600
+    assert files_under(tmp_path) == {"keys/swarm.key"}  # no staging file left
 
 
 def test_the_cli_installs_a_world_file_that_validates_and_reports_errors_in_one_line(tmp_path):
@@ -241,7 +275,7 @@ def test_the_cli_installs_a_world_file_that_validates_and_reports_errors_in_one_
         [*run, "install-service", "--root", str(tmp_path)], capture_output=True, text=True, check=False
     )
     assert proc.returncode == 0, proc.stderr
-    assert files_under(tmp_path) == UNIT_FILES | {WORLD}
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY}
     proc = subprocess.run([*run, "check-config", str(tmp_path / WORLD)], capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr
     proc = subprocess.run(

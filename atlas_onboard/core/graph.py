@@ -163,6 +163,7 @@ class _EdgeArrays:
 
     def __init__(self, capacity: int = 64) -> None:
         self.used = np.zeros(capacity, dtype=bool)
+        self.anchored = np.zeros(capacity, dtype=bool)  # observed by one of the node's own sensors
         self.a = np.zeros(capacity, dtype=np.intp)
         self.b = np.zeros(capacity, dtype=np.intp)
         self.p = np.zeros((2, capacity, 3))  # [0]: T_a_b, [1]: its inverse T_b_a
@@ -190,7 +191,7 @@ class _EdgeArrays:
 
     def _grow(self) -> None:
         old = len(self.used)
-        for name in ("used", "a", "b", "inverted", "sigma", "stamp", "capture"):
+        for name in ("used", "anchored", "a", "b", "inverted", "sigma", "stamp", "capture"):
             arr = getattr(self, name)
             setattr(self, name, np.concatenate([arr, np.zeros_like(arr)]))
         for name in ("p", "q", "cov"):
@@ -214,6 +215,7 @@ class TransformGraph:
         outlier_gate_sigma: float = 0.0,
         age_sigma_rad_per_s: float = 0.0,
         keep_candidates: bool = False,
+        anchor_sensors: frozenset[int] = frozenset(),
     ) -> None:
         names = list(entity_names)
         if WORLD not in names:
@@ -239,6 +241,8 @@ class TransformGraph:
         # Beyond the paper: a candidate farther than this many sigma from the consensus of the others
         # (or, with fewer than three, from the entity's last estimate) is left out. 0: off.
         self.outlier_gate_sigma = outlier_gate_sigma
+        # The node's own sensors: their candidates are the gate's anchor, which no peer's outvotes.
+        self.anchor_sensors = frozenset(anchor_sensors)
         self.keep_candidates = keep_candidates
         self.edges: dict[EdgeKey, Edge] = {}
         self._arr = _EdgeArrays()
@@ -286,6 +290,7 @@ class TransformGraph:
         arr = self._arr
         slot = arr.take() if old is None else old.slot
         arr.used[slot], arr.keys[slot] = True, key
+        arr.anchored[slot] = key[0] in self.anchor_sensors
         arr.a[slot], arr.b[slot] = a, b
         arr.p[0, slot], arr.q[0, slot], arr.cov[0, slot] = p, q, cov
         arr.inverted[slot] = False  # the inverse is computed at evaluation, for all new edges at once
@@ -583,7 +588,11 @@ class TransformGraph:
             keep = None
             if self.outlier_gate_sigma > 0.0:
                 c_cand = edge_term if Jp is None else covariance.transform(Jp, cov_world[parent]) + edge_term
-                keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns, t_cand)
+                rows_sel = row[sel]
+                # The anchor: the own cameras' direct views of the root's markers (through another
+                # entity, a candidate also rests on that entity's estimate: a peer's work).
+                anchor = arr.anchored[rows_sel] & (parent == root)
+                keep = self._gate(root, child, p_cand, q_cand, c_cand, now_ns, t_cand, anchor, arr.stamp[rows_sel])
                 for slot in row[sel][~keep].tolist():
                     key, stamp = arr.keys[slot], int(arr.stamp[slot])
                     if self._gated_stamp.get(key) != stamp:
@@ -669,8 +678,18 @@ class TransformGraph:
         cov: NDArray[np.float64],
         now_ns: int,
         capture_us: NDArray[np.int64],
+        anchored: NDArray[np.bool_] | None = None,
+        arrival_ns: NDArray[np.int64] | None = None,
     ) -> NDArray[np.bool_]:
         """Which candidates agree with the consensus of their entity's candidates.
+
+        First, where some of an entity's candidates are direct views of the root's markers by the
+        node's own sensors (``anchored``), those are the anchor: any other candidate (a peer's,
+        whoever sent it) that agrees with none of them within ``outlier_gate_sigma`` standard
+        deviations (both candidates', plus what the entity may have moved between their captures, at
+        most between their arrivals: a sender chooses its stamps, not when they arrive) is out,
+        however many such candidates there are and however small their sigma. The rest are then
+        judged among themselves as follows.
 
         With three or more candidates the reference is their median (position per axis; orientation:
         the candidate nearest to all others), which one wrong candidate cannot move. With fewer, the
@@ -691,11 +710,16 @@ class TransformGraph:
         s_att = np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2) / 3.0)
         for v in np.unique(child):
             idx = np.flatnonzero(child == v)
-            rot = Rotation.from_quat(q[idx])
+            if anchored is not None and arrival_ns is not None:
+                own = anchored[idx]
+                if own.any() and not own.all():
+                    agree = self._agrees_with_anchor(idx[~own], idx[own], p, q, s_pos, s_att, capture_us, arrival_ns)
+                    keep[idx[~own][~agree]] = False
+                    idx = idx[own | np.isin(idx, idx[~own][agree])]
+            q_v = q[idx]
             if len(idx) >= 3:
                 ref_p = np.median(p[idx], axis=0)
-                angles = np.array([(rot[i].inv() * rot).magnitude().sum() for i in range(len(idx))])
-                ref_q = rot[int(np.argmin(angles))]
+                ref_q = q_v[int(np.argmin(_angles(q_v[:, None, :], q_v[None, :, :]).sum(axis=1)))]
                 ref_s, ref_a, slack_p, slack_a = 0.0, 0.0, 0.0, 0.0
             else:
                 prior = self._prior.get((root, int(v)))
@@ -703,10 +727,10 @@ class TransformGraph:
                     continue
                 # The swarm's capture clock and the evaluation's clock are not compared, only their gaps.
                 age_s = np.maximum((now_ns - prior[4]) / 1e9, (capture_us[idx] - prior[5]) / 1e6)
-                ref_p, ref_q, ref_s, ref_a = prior[0], Rotation.from_quat(prior[1]), prior[2], prior[3]
+                ref_p, ref_q, ref_s, ref_a = prior[0], prior[1], prior[2], prior[3]
                 slack_p, slack_a = MAX_SPEED_M_S * age_s, MAX_RATE_RAD_S * age_s
             d_p = np.linalg.norm(p[idx] - ref_p, axis=1)
-            d_a = (ref_q.inv() * rot).magnitude()
+            d_a = _angles(ref_q, q_v)
             ok = (d_p <= k * np.hypot(s_pos[idx], ref_s) + slack_p) & (d_a <= k * np.hypot(s_att[idx], ref_a) + slack_a)
             if len(idx) >= 3:
                 if ok.sum() * 2 >= len(idx):
@@ -715,9 +739,39 @@ class TransformGraph:
                 # Both contradict the last estimate: if they agree with each other, it is the estimate
                 # that is out of date (kept both); if not, nothing can be trusted (both out).
                 d2 = float(np.linalg.norm(p[idx[0]] - p[idx[1]]))
-                a2 = float((rot[0].inv() * rot[1]).magnitude())
+                a2 = float(_angles(q_v[0], q_v[1]))
                 agree = d2 <= k * np.hypot(s_pos[idx[0]], s_pos[idx[1]]) and a2 <= k * np.hypot(*s_att[idx])
                 keep[idx] = agree
             else:
                 keep[idx] = ok
         return keep
+
+    def _agrees_with_anchor(
+        self,
+        others: NDArray[np.intp],
+        anchors: NDArray[np.intp],
+        p: NDArray[np.float64],
+        q: NDArray[np.float64],
+        s_pos: NDArray[np.float64],
+        s_att: NDArray[np.float64],
+        capture_us: NDArray[np.int64],
+        arrival_ns: NDArray[np.int64],
+    ) -> NDArray[np.bool_]:
+        """For each of ``others``: whether it is within the gate of at least one of ``anchors``."""
+        k = self.outlier_gate_sigma
+        d_p = np.linalg.norm(p[others][:, None, :] - p[anchors][None, :, :], axis=2)  # (others, anchors)
+        d_a = _angles(q[others][:, None, :], q[anchors][None, :, :])
+        dt_capture_s = np.abs(capture_us[others][:, None] - capture_us[anchors][None, :]) / 1e6
+        dt_arrival_s = np.abs(arrival_ns[others][:, None] - arrival_ns[anchors][None, :]) / 1e9
+        dt_s = np.minimum(dt_capture_s, dt_arrival_s)
+        ok_p = d_p <= k * np.hypot(s_pos[others][:, None], s_pos[anchors][None, :]) + MAX_SPEED_M_S * dt_s
+        ok_a = d_a <= k * np.hypot(s_att[others][:, None], s_att[anchors][None, :]) + MAX_RATE_RAD_S * dt_s
+        return np.asarray((ok_p & ok_a).any(axis=1))
+
+
+def _angles(q_a_xyzw: NDArray[np.float64], q_b_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation angle (rad) between unit quaternions, broadcast over leading axes: what
+    ``(Rotation.from_quat(a).inv() * Rotation.from_quat(b)).magnitude()`` gives, for the gate's many
+    small sets without building Rotation objects (2 acos |a . b|, either sign of a quaternion)."""
+    dot = np.abs(np.sum(np.asarray(q_a_xyzw) * np.asarray(q_b_xyzw), axis=-1))
+    return 2.0 * np.arccos(np.minimum(dot, 1.0))

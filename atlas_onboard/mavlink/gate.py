@@ -1,5 +1,8 @@
 """The peer gate: what a received observation must pass before it is handed to the node, by origin.
 
+:class:`OriginBinding` decides first, from fields read without decoding: who may send an observation
+by a given sensor (the node of the sensor's entity, never anyone for our own entity's sensors).
+
 Pure apart from a lock (several link threads share one gate): the times are passed in. In order:
 
 1. ``own_echo``: our own observation coming back (a mesh or a router echoes broadcasts);
@@ -18,7 +21,9 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from collections.abc import Mapping
 from dataclasses import dataclass
+from enum import StrEnum
 
 from atlas_onboard.core.markerdata import MarkerData
 
@@ -130,3 +135,105 @@ class PeerGate:
         """(remembered observations, token buckets): both bounded."""
         with self._lock:
             return len(self._seen), len(self._buckets)
+
+
+class OriginRefusal(StrEnum):
+    """Why a peer's message is refused for its origin (counted as ``rejected_<value>``, and per origin)."""
+
+    OWN_SENSOR = "own_sensor"
+    """An observation by a sensor of this node's own entity: only our own cameras make those."""
+    NOT_OWNER = "not_owner"
+    """An observation by a sensor (or a fused pose of an entity) from a system id other than the node
+    that the world file says runs the sensor's entity."""
+    UNBOUND_SENSOR = "unbound_sensor"
+    """An observation by a sensor of an entity that the world file's ``nodes`` section gives no node
+    (no system id to bind it to)."""
+    UNKNOWN_SENSOR = "unknown_sensor"
+    """An observation by a sensor id the world file does not have (the listener's reason of the same
+    name, decided here before decoding)."""
+    UNKNOWN_ORIGIN = "unknown_origin"
+    """A heartbeat or fused pose from a system id that is no node of the world file."""
+    BAD_STAMP = "bad_stamp"
+    """A capture stamp more than ``MAX_SKEW_S`` from its arrival on our wall clock, refused before it
+    is kept for the node (a forged future stamp must not supersede the real observation)."""
+
+
+class OriginBinding:
+    """Which system id may send what, from the world file's ``nodes`` section (pure; read-only after
+    construction, so link threads share it without a lock).
+
+    An observation by sensor ``s`` is accepted only from the system id of the node that runs the
+    entity ``s`` is mounted on (a world sensor: from the world's node); never an observation by a
+    sensor of this node's own entity, whoever claims to send it; never one by a sensor of an entity
+    with no node in the file (nothing to bind it to: refused, and :attr:`unbound` lists them for the
+    start-up warning). A fused pose of entity ``e`` is the pose of ``e`` only from ``e``'s node.
+    """
+
+    def __init__(
+        self,
+        sensor_entity: Mapping[int, str],
+        owners: Mapping[str, int],
+        own_entity: str,
+    ) -> None:
+        self.own_entity = own_entity
+        self.owners = dict(owners)
+        self.node_ids = frozenset(self.owners.values())
+        # sensor id -> the one system id it may come from, or the reason it may come from none
+        self._sender: dict[int, int | OriginRefusal] = {}
+        unbound: set[str] = set()
+        for sensor_id, entity in sensor_entity.items():
+            owner = self.owners.get(entity)
+            if entity == own_entity:
+                self._sender[sensor_id] = OriginRefusal.OWN_SENSOR
+            elif owner is None:
+                self._sender[sensor_id] = OriginRefusal.UNBOUND_SENSOR
+                unbound.add(entity)
+            else:
+                self._sender[sensor_id] = owner
+        self.unbound: tuple[str, ...] = tuple(sorted(unbound))
+
+    def observation(self, sensor_id: int, origin: int) -> OriginRefusal | None:
+        """None if an observation by ``sensor_id`` may come from system ``origin``; else why not."""
+        sender = self._sender.get(sensor_id, OriginRefusal.UNKNOWN_SENSOR)
+        if isinstance(sender, OriginRefusal):
+            return sender
+        return None if sender == origin else OriginRefusal.NOT_OWNER
+
+    def fused(self, entity: str, origin: int) -> OriginRefusal | None:
+        """None if a fused pose of ``entity`` from system ``origin`` is that entity's own node's."""
+        if origin not in self.node_ids:
+            return OriginRefusal.UNKNOWN_ORIGIN
+        return None if self.owners.get(entity) == origin else OriginRefusal.NOT_OWNER
+
+    def is_node(self, origin: int) -> bool:
+        """Whether ``origin`` is the system id of a node of the world file (a peer, not a stranger)."""
+        return origin in self.node_ids
+
+
+class ReportLimiter:
+    """At most one report per key (a reason) per ``every_s``, with the count of those suppressed
+    since the last one: for STATUSTEXT and log lines that an attacker could otherwise multiply.
+    Thread-safe; the time (monotonic, ns) is passed in; at most ``max_keys`` keys are remembered."""
+
+    def __init__(self, every_s: float = 10.0, max_keys: int = 1024) -> None:
+        self.every_ns = int(every_s * NS)
+        self.max_keys = max_keys
+        self._last_ns: dict[str, int] = {}
+        self._suppressed: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self.suppressed_total = 0
+
+    def allow(self, key: str, now_ns: int) -> int | None:
+        """The number of reports of ``key`` suppressed since the last one if this one may go out, else
+        None (counted)."""
+        with self._lock:
+            last = self._last_ns.get(key)
+            if last is not None and now_ns - last < self.every_ns:
+                self._suppressed[key] = self._suppressed.get(key, 0) + 1
+                self.suppressed_total += 1
+                return None
+            if last is None and len(self._last_ns) >= self.max_keys:
+                self._last_ns.clear()  # bounded whatever keys an attacker makes us see
+                self._suppressed.clear()
+            self._last_ns[key] = now_ns
+            return self._suppressed.pop(key, 0)

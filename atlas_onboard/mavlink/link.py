@@ -24,6 +24,7 @@ import hmac
 import json
 import logging
 import os
+import socket
 import stat
 import struct
 import threading
@@ -52,6 +53,15 @@ DATAGRAMS_PER_POLL = 16
 DROPS_CHECK_S = 1.0  # how often a UDP link reads the kernel's drop count of its socket
 MAX_HOLD_S = 0.02  # a reader held by the node waits no longer than this
 MAX_DATAGRAM_BYTES = 1400  # several messages in one UDP datagram, below a network's MTU
+RCVBUF_BYTES = 512 * 1024
+"""The receive buffer asked for on a UDP link (Linux caps it at net.core.rmem_max; the node logs what
+it got). Sized for what is worth keeping: a swarm's traffic for one edge timeout. 16 drones, each
+sending a datagram per camera frame at 30 Hz plus fused poses and heartbeats, make about 600
+datagrams a second; 250 ms of it at the kernel's ~2 KiB accounting per small datagram is ~300 KiB.
+A larger buffer would only hold datagrams older than the edge timeout when a flood fills it; a
+smaller one drops the real peers' first under a burst. What does not fit is dropped by the kernel
+(``kernel_drops``); the node refuses a forged datagram for its origin before decoding it, so a
+flood costs it a header read per datagram, never its own camera's path."""
 
 Handler = Callable[["Link", Any, int], None]
 
@@ -178,6 +188,7 @@ class Link:
         self._read_done: Callable[[Link], None] | None = None
         self._may_read: threading.Event | None = None
         self._kernel_drops = 0
+        self._bad_signature = False  # the frame being decoded was signed and failed the check
         self._next_drops_check_s = 0.0
         self._backoff = 0
         self._next_open_s = 0.0  # monotonic time of the next reopen attempt
@@ -213,6 +224,8 @@ class Link:
         conn.first_byte = False
         if self._key is not None and self.config.signing is not None:
             self._setup_signing(conn, self.config.signing)
+        if isinstance(conn, mavutil.mavudp):
+            self._size_receive_buffer(conn.port)
         self._conn = conn
         self._kernel_drops = 0  # a new socket counts from zero
         self.connected.set()
@@ -221,10 +234,24 @@ class Link:
             _logger.info("%s: link %s open again", self.name, url)
         self._opened_before = True
 
+    def _size_receive_buffer(self, sock: socket.socket) -> None:
+        """Ask for RCVBUF_BYTES; log what the kernel gave (Linux reports twice the usable size)."""
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
+            got = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
+        except OSError as exc:
+            _logger.warning("%s: cannot size the receive buffer of %s: %s", self.name, self.config.url, exc.strerror)
+            return
+        if not self._opened_before:
+            _logger.info("%s: %s receive buffer %d bytes (asked %d)", self.name, self.config.url, got, RCVBUF_BYTES)
+
     def _setup_signing(self, conn: Any, signing: SigningConfig) -> None:
         def allow_unsigned(_mav: Any, msg_id: int) -> bool:
-            """Called by pymavlink for unsigned (or badly signed) messages: True lets one through."""
-            if not signing.require:
+            """Called by pymavlink for unsigned (or badly signed) messages, before their payload is
+            decoded: True lets one through. A protected message that was signed but failed the check
+            (another key, a replay) is refused even without ``require``: it is no unsigned peer's."""
+            bad_signature, self._bad_signature = self._bad_signature, False
+            if not signing.require and not bad_signature:
                 return True
             if getattr(self.dialect.mavlink_map.get(msg_id), "msgname", "") in PROTECTED:
                 self.counters.inc("rejected_unsigned_or_bad_signature")
@@ -249,6 +276,7 @@ class Link:
         low, high = struct.unpack("<IH", bytes(msgbuf[-12:-6]))
         timestamp = low + (high << 32)
         digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+        self._bad_signature = True  # until it passes: read by the allow_unsigned callback that follows
         if not hmac.compare_digest(digest, bytes(msgbuf[-6:])):
             self.counters.inc("signature_mismatch")
             return False
@@ -260,6 +288,7 @@ class Link:
         if last is None and timestamp + STREAM_MAX_BEHIND_TICKS < signing.timestamp:
             self.counters.inc("signature_stream_too_old")
             return False
+        self._bad_signature = False
         signing.stream_timestamps[stream] = timestamp
         signing.timestamp = max(signing.timestamp, timestamp)
         return True

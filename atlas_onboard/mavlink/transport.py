@@ -1,5 +1,7 @@
-"""The node's MAVLink transport: an autopilot link and peer links, with de-duplication, per-peer rate
-limits, clock-skew warnings, heartbeats, TIMESYNC, the EKF origin and every message the node sends."""
+"""The node's MAVLink transport: an autopilot link and peer links, with origin binding (who may send
+which observation, decided before decoding: :class:`~atlas_onboard.mavlink.gate.OriginBinding`),
+de-duplication, per-peer rate limits, clock-skew warnings, heartbeats, TIMESYNC, the EKF origin and
+every message the node sends; STATUSTEXT and warnings at most one per reason per 10 s."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, dialect
-from atlas_onboard.mavlink.gate import PeerGate, TokenBucket
+from atlas_onboard.mavlink.gate import OriginBinding, OriginRefusal, PeerGate, ReportLimiter, TokenBucket
 from atlas_onboard.mavlink.link import Counters, Link
 from atlas_onboard.publisher import AutopilotPose
 
@@ -26,6 +28,7 @@ NS = 1_000_000_000
 MAV_TYPE_ONBOARD_CONTROLLER = autopilot.MAV_TYPE_ONBOARD_CONTROLLER
 MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
 PEER_LOST_NS = 3 * NS
+REPORT_EVERY_S = 10.0  # a STATUSTEXT or a warning of one reason goes out at most this often
 
 
 class MavlinkTransport:
@@ -55,6 +58,11 @@ class MavlinkTransport:
         self._deliver: Callable[[Sequence[tuple[MarkerData, int]]], None] | None = None
         self._read: list[list[tuple[MarkerData, int]]] = [[] for _ in self.peers]  # per link, this read's
         self.gate = PeerGate(config.system_id)  # shared by the receive threads of every peer link
+        self.binding = OriginBinding(
+            {s.id: s.entity for s in world.sensors.values()}, dict(config.owners), config.entity
+        )
+        self._refused_by_origin: dict[int, int] = {}  # system id -> its messages refused here
+        self._reports = ReportLimiter(REPORT_EVERY_S)  # STATUSTEXT and warnings, per reason
         self._lock = threading.Lock()
         self._next_heartbeat_ns = 0
         self._next_origin_ns = 0
@@ -78,6 +86,7 @@ class MavlinkTransport:
     ) -> None:
         self._deliver = deliver
         self._may_wait = may_wait
+        self._warn_at_start()
         if self.autopilot is not None:
             self.autopilot.start(self._on_autopilot)
         for i, link in enumerate(self.peers):
@@ -147,7 +156,15 @@ class MavlinkTransport:
         if speed is not None:
             self.autopilot.send(speed)  # with the EKF: its velocity, for EK3_SRC1_VELXY=6 / EKF2_EV_CTRL bit 2
 
-    def send_status(self, text: str, severity: int) -> None:
+    def send_status(self, text: str, severity: int, reason: str | None = None) -> None:
+        """STATUSTEXT on every link, at most one per ``reason`` (default: the text) per REPORT_EVERY_S;
+        the next one that goes out says how many were suppressed meanwhile."""
+        suppressed = self._reports.allow(f"status:{reason or text}", time.monotonic_ns())
+        if suppressed is None:
+            self.counters_.inc("statustext_suppressed")
+            return
+        if suppressed:
+            text = f"{text} (+{suppressed})"
         for link in self._links():
             link.send(
                 link.dialect.MAVLink_statustext_message(
@@ -177,16 +194,19 @@ class MavlinkTransport:
             alive = now_ns - last <= PEER_LOST_NS
             if alive and sysid not in self._peers_alive:
                 self._peers_alive.add(sysid)
-                _logger.info("peer system %d seen", sysid)
-                self.send_status(f"atlas: peer {sysid} seen", 6)
+                # Per peer: only the world file's nodes become peers, so an attacker cannot multiply these.
+                self._log(logging.INFO, f"peer_seen_{sysid}", "peer system %d seen", sysid)
+                self.send_status(f"atlas: peer {sysid} seen", 6, f"peer_seen_{sysid}")
             elif not alive and sysid in self._peers_alive:
                 self._peers_alive.discard(sysid)
-                _logger.warning("peer system %d lost", sysid)
-                self.send_status(f"atlas: peer {sysid} lost", 4)
+                self._log(logging.WARNING, f"peer_lost_{sysid}", "peer system %d lost", sysid)
+                self.send_status(f"atlas: peer {sysid} lost", 4, f"peer_lost_{sysid}")
 
     def counters(self) -> dict[str, int]:
         out = self.counters_.snapshot()
         out["clock_skew_warnings"] = self.gate.skew_warnings
+        with self._lock:
+            out.update({f"refused_from_{sysid}": n for sysid, n in self._refused_by_origin.items()})
         for link in self._links():
             out.update({f"{link.name}_{k}": v for k, v in link.counters.items()})
         return out
@@ -226,9 +246,20 @@ class MavlinkTransport:
         kind = msg.get_type()
         origin = msg.get_srcSystem()
         if kind not in ("ATLAS_OBSERVATION", "TUNNEL"):
-            if kind in ("HEARTBEAT", "ATLAS_FUSED_POSE"):
-                self.peers_seen[origin] = arrival_ns
+            if kind == "HEARTBEAT" and self.binding.is_node(origin):
+                self.peers_seen[origin] = arrival_ns  # a stranger's heartbeat makes no peer
+            elif kind == "ATLAS_FUSED_POSE":
+                self._on_fused(msg, origin, arrival_ns)
             return
+        if kind == "ATLAS_OBSERVATION":
+            # Who sent it and when it was taken, read from the frame without decoding it, before it can
+            # be kept for the node (a forged one must never supersede the real one) or cost a decode.
+            refusal = self.binding.observation(msg.sensor_id, origin)
+            if refusal is None and abs(self._wall_ns() - msg.time_usec * 1000) > self.gate.max_skew_ns:
+                refusal = OriginRefusal.BAD_STAMP
+            if refusal is not None:
+                self._refuse(refusal, origin)
+                return
         may_wait = self._may_wait
         if (
             kind == "ATLAS_OBSERVATION"
@@ -253,6 +284,55 @@ class MavlinkTransport:
         md = self._admit(index, link, kind, msg, origin, arrival_ns)
         if md is not None:
             self._read[index].append((md, arrival_ns))
+
+    def _on_fused(self, msg: Any, origin: int, arrival_ns: int) -> None:
+        """A peer's fused pose only says that its sender is alive; it is the pose of its entity only
+        from that entity's node (every node also sends the poses it fused of the others: not counted)."""
+        index = msg.entity_index
+        entity = self.world.entity_names[index] if index < len(self.world.entity_names) else ""
+        refusal = self.binding.fused(entity, origin)
+        if refusal is None:
+            self.peers_seen[origin] = arrival_ns
+        elif refusal is OriginRefusal.UNKNOWN_ORIGIN:
+            self._refuse(refusal, origin)
+
+    def _refuse(self, reason: str, origin: int) -> None:
+        """Count a refused peer message by reason and by origin (at most 256 origins)."""
+        self.counters_.inc(f"rejected_{reason}")
+        with self._lock:
+            self._refused_by_origin[origin & 0xFF] = self._refused_by_origin.get(origin & 0xFF, 0) + 1
+
+    def _warn(self, reason: str, fmt: str, *args: Any) -> None:
+        """A warning at most once per ``reason`` per REPORT_EVERY_S, with the count suppressed meanwhile."""
+        self._log(logging.WARNING, reason, fmt, *args)
+
+    def _log(self, level: int, reason: str, fmt: str, *args: Any) -> None:
+        suppressed = self._reports.allow(f"log:{reason}", time.monotonic_ns())
+        if suppressed is None:
+            return
+        if suppressed:
+            _logger.log(level, fmt + " (%d more of these suppressed)", *args, suppressed)
+        else:
+            _logger.log(level, fmt, *args)
+
+    def _warn_at_start(self) -> None:
+        """Once at start: peer links anyone on the network can write to, and sensors bound to no node."""
+        for link in self.peers:
+            if link.config.signing is None:
+                _logger.warning(
+                    "peer link %s is not signed: any host on the network can move this drone's pose"
+                    " (atlas-onboard keygen, then signing.key_file; docs/signing.md)", link.config.url,
+                )  # fmt: skip
+            elif not link.config.signing.require:
+                _logger.warning(
+                    "peer link %s accepts unsigned observations (signing.require: false): any host on the"
+                    " network can move this drone's pose", link.config.url,
+                )  # fmt: skip
+        if self.peers and self.binding.unbound:
+            _logger.warning(
+                "no node (system id) in the world file's nodes section for %s: observations by their"
+                " sensors are refused from every peer", ", ".join(self.binding.unbound),
+            )  # fmt: skip
 
     def waiting_since_ns(self) -> int | None:
         """When the oldest observation kept for :meth:`take_waiting` arrived (monotonic), or None."""
@@ -284,28 +364,32 @@ class MavlinkTransport:
             else:
                 md = codec.decode_observation(msg, origin, self.fingerprint)
         except codec.RejectionError as exc:
-            self.counters_.inc(f"rejected_{exc.reason}")
+            self._refuse(exc.reason, origin)
             if exc.reason == "wrong_fingerprint":
                 self._warn_fingerprint(origin)
             return None
         except link.dialect.MAVError:  # a deferred frame that pymavlink cannot make a message of
-            self.counters_.inc("rejected_bad_data")
+            self._refuse("bad_data", origin)
+            return None
+        refusal = self.binding.observation(md.sensor_id, origin)  # TUNNEL's is known only now
+        if refusal is not None:
+            self._refuse(refusal, origin)
             return None
         reason = self.gate.admit(md, index, link.config.rate_limit_hz, arrival_ns)
         if reason is not None:
-            self.counters_.inc(f"rejected_{reason}")
+            self._refuse(reason, origin)
             return None
         self.peers_seen[origin] = arrival_ns
         if wall_ns is None:
             wall_ns = self._wall_ns()
         skew = self.gate.check_skew(md, wall_ns, arrival_ns)
         if skew is not None:
-            _logger.warning(
-                "peer system %d: capture stamps and arrival disagree by %.0f ms; sync the clocks (chrony)",
-                skew.origin, skew.skew_s * 1e3,
+            self._warn(
+                "clock_skew", "peer system %d: capture stamps and arrival disagree by %.0f ms; sync the clocks"
+                " (chrony)", skew.origin, skew.skew_s * 1e3,
             )  # fmt: skip
         if self.gate.stamp_refused(md, wall_ns):
-            self.counters_.inc("rejected_bad_stamp")
+            self._refuse(OriginRefusal.BAD_STAMP, origin)
             return None
         return md
 
@@ -318,4 +402,5 @@ class MavlinkTransport:
             first = origin not in self._fingerprint_warned
             self._fingerprint_warned.add(origin & 0xFF)
         if first:
-            _logger.error("peer system %d uses another world file (fingerprint differs): refused", origin)
+            self._warn("wrong_fingerprint", "peer system %d uses another world file (fingerprint differs): refused",
+                       origin)  # fmt: skip

@@ -265,3 +265,42 @@ def test_gate_allows_the_motion_since_the_estimates_frame_not_only_since_the_est
         q = r.poses["d"].q_world_xyzw
         expect = after if kept else before
         assert (Rotation.from_quat(q).inv() * expect.rotation).magnitude() < 1e-9
+
+
+def _liar_scene(n_liars):
+    """The drone's own camera (sensor 1) sees a floor tag; ``n_liars`` peer sensors (world cameras
+    10, 11, ...) claim the drone is 1 m east, with a sigma of 1 mm and fresh stamps."""
+    g = TransformGraph(["world", "d"], edge_timeout_ns=250 * MS, outlier_gate_sigma=5.0, anchor_sensors={1})
+    truth = pose([1.0, 2.0, 1.5], [0, 0, 30])
+    lie = pose([2.0, 2.0, 1.5], [0, 0, 30])
+    good = truth.inv()
+    for t in range(0, 400, 33):  # every frame for 0.4 s: longer than the edge timeout
+        now = t * MS
+        g.update_edge((1, 0), "d", "world", good.translation, good.rotation.as_quat(), 0.01, now, t * 1000)
+        for k in range(n_liars):
+            g.update_edge((10 + k, 5), "world", "d", lie.translation, lie.rotation.as_quat(), 0.001, now, t * 1000)
+        r = g.evaluate(now)
+        np.testing.assert_allclose(r.poses["d"].p_world_m, truth.translation, atol=1e-9)
+        assert r.poses["d"].n_observations == 1
+    return g
+
+
+@pytest.mark.parametrize("n_liars", [1, 3])
+def test_gate_refuses_a_confident_liar_against_the_own_camera_however_many(n_liars):
+    # Without the anchor, one liar and the camera are two candidates that disagree (both out, the
+    # estimate held until it expires, then the 1 mm one outweighs the camera ten to one); three
+    # liars make the median theirs.
+    g = _liar_scene(n_liars)
+    assert g.gated_total == 13 * n_liars  # each refused observation counted once
+
+
+def test_gate_keeps_a_peer_that_agrees_with_the_own_camera():
+    g = TransformGraph(["world", "d"], edge_timeout_ns=250 * MS, outlier_gate_sigma=5.0, anchor_sensors={1})
+    truth = pose([1.0, 2.0, 1.5], [0, 0, 30])
+    peer = pose([1.02, 2.0, 1.5], [0, 0, 30])  # 2 cm off with sigma 1 cm against the camera's 1 cm: 1.4 sigma
+    good = truth.inv()
+    g.update_edge((1, 0), "d", "world", good.translation, good.rotation.as_quat(), 0.01, 0, 0)
+    g.update_edge((10, 5), "world", "d", peer.translation, peer.rotation.as_quat(), 0.01, 0, 0)
+    r = g.evaluate(0)
+    assert r.poses["d"].n_observations == 2 and g.gated_total == 0
+    np.testing.assert_allclose(r.poses["d"].p_world_m, [1.01, 2.0, 1.5], atol=1e-9)

@@ -87,3 +87,36 @@ def test_a_stamp_more_than_a_second_from_our_clock_is_refused():
     for offset_us, refused in ((0, False), (-999_999, False), (999_999, False), (-1_000_001, True),
                                (1_000_001, True), (-t_us, True), (10**15, True)):  # fmt: skip
         assert gate.stamp_refused(obs(1, 1, t_us=t_us + offset_us), wall_ns) is refused, offset_us
+
+
+def test_origin_binding_by_the_world_files_nodes():
+    from atlas_onboard.mavlink.gate import OriginBinding, OriginRefusal
+
+    # sensors: 1 on d1 (this node's entity), 2 on d2 (system 2), 10 on world (system 250), 30 on an
+    # entity that no node runs
+    binding = OriginBinding({1: "d1", 2: "d2", 10: "world", 30: "orphan"}, {"d1": 1, "d2": 2, "world": 250}, "d1")
+    assert binding.observation(2, 2) is None and binding.observation(10, 250) is None
+    assert binding.observation(2, 250) is OriginRefusal.NOT_OWNER
+    assert binding.observation(10, 2) is OriginRefusal.NOT_OWNER
+    for origin in (1, 2, 250, 77):  # the own entity's sensor: from no one, not even "ourselves"
+        assert binding.observation(1, origin) is OriginRefusal.OWN_SENSOR
+    assert binding.observation(30, 2) is OriginRefusal.UNBOUND_SENSOR
+    assert binding.observation(999, 2) is OriginRefusal.UNKNOWN_SENSOR
+    assert binding.unbound == ("orphan",)
+    assert binding.fused("d2", 2) is None and binding.fused("d1", 2) is OriginRefusal.NOT_OWNER
+    assert binding.fused("d2", 77) is OriginRefusal.UNKNOWN_ORIGIN
+    assert binding.is_node(250) and not binding.is_node(77)
+
+
+def test_report_limiter_one_per_reason_per_period_with_the_count():
+    from atlas_onboard.mavlink.gate import ReportLimiter
+
+    limiter = ReportLimiter(every_s=10.0, max_keys=3)
+    assert limiter.allow("a", 0) == 0
+    assert [limiter.allow("a", k * NS) for k in range(1, 10)] == [None] * 9
+    assert limiter.allow("b", 5 * NS) == 0  # another reason is not held back
+    assert limiter.allow("a", 10 * NS) == 9  # the next one says how many were suppressed
+    assert limiter.allow("a", 11 * NS) is None and limiter.suppressed_total == 10
+    for key in ("c", "d", "e", "f"):  # bounded: an attacker's many reasons cannot grow it
+        limiter.allow(key, 12 * NS)
+    assert len(limiter._last_ns) <= 3

@@ -73,6 +73,7 @@ def rig():
         autopilot=AutopilotConfig(LinkConfig(f"udpout:127.0.0.1:{ap.port}"), origin=GlobalOrigin(47.1, 8.5, 400.0)),
         peers=(LinkConfig(f"udpin:127.0.0.1:{p0}"), LinkConfig(f"udpin:127.0.0.1:{p1}", tunnel=True)),
         heartbeat_hz=2.0,
+        owners=(("world", 250), ("d1", 1)),  # the senders below are the world's node
     )
     transport = MavlinkTransport(world, config, wall_clock=lambda: WALL_S)
     delivered: list = []
@@ -207,6 +208,16 @@ def test_timesync_answered_on_the_wall_clock_and_origin_until_known(rig):
     assert len(ap.of("SET_GPS_GLOBAL_ORIGIN")) == 2  # no more once the autopilot has one
 
 
+def test_statustext_at_most_one_per_reason(rig):
+    _, transport, ap, _, _ = rig
+    for _ in range(5):  # e.g. a forged peer appearing again and again
+        transport.send_status("atlas: peer 9 seen", 6, "peer_seen_9")
+    transport.send_status("atlas d1: pose lost", 4)  # another reason goes out
+    ap.pump(0.3)
+    assert [m.text for m in ap.of("STATUSTEXT")] == ["atlas: peer 9 seen", "atlas d1: pose lost"]
+    assert transport.counters()["statustext_suppressed"] == 4
+
+
 def test_autopilot_gets_ned_and_never_a_non_finite_pose(rig):
     _, transport, ap, _, _ = rig
     transport.tick(0)
@@ -250,7 +261,8 @@ def test_clock_skew_is_counted(rig):
     settle(transport, delivered)
     assert [md.seq for md in delivered] == [1, 2]
     c = transport.counters()
-    assert c["clock_skew_warnings"] == 2 and c["rejected_bad_stamp"] == 1
+    # The 2 s one is refused on its stamp before anything else (never kept, never decoded): not a skew warning.
+    assert c["clock_skew_warnings"] == 1 and c["rejected_bad_stamp"] == 1
 
 
 def test_the_observations_of_one_datagram_are_handed_on_together(rig):
@@ -286,7 +298,12 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
         }
     )
     port = free_port()
-    config = NodeConfig(entity="d1", system_id=1, peers=(LinkConfig(f"udpin:127.0.0.1:{port}"),))
+    config = NodeConfig(
+        entity="d1",
+        system_id=1,
+        peers=(LinkConfig(f"udpin:127.0.0.1:{port}"),),
+        owners=(("world", 250), ("d1", 1), ("d2", 77)),
+    )
     wall = [WALL_S]
     transport = MavlinkTransport(world, config, wall_clock=lambda: wall[0])
     delivered: list = []
@@ -334,3 +351,40 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
     finally:
         transport.close()
         sender.close()
+
+
+def test_a_forged_observation_never_supersedes_the_kept_one():
+    """The DANGER of keeping the newest of an edge: a forged one with a later stamp would evict the
+    real one. From a system id that does not run the sensor, or stamped far ahead, it is refused
+    before it is kept (and never decoded)."""
+    world = world_from(
+        {
+            "entities": {
+                "world": {"sensors": [{"name": "cam", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},
+                "d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+                "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+            }
+        }
+    )
+    port = free_port()
+    config = NodeConfig(entity="d1", system_id=1, peers=(LinkConfig(f"udpin:127.0.0.1:{port}"),),
+                        owners=(("world", 250), ("d1", 1), ("d2", 2)))  # fmt: skip
+    transport = MavlinkTransport(world, config, wall_clock=lambda: WALL_S)
+    delivered: list = []
+    transport.start(delivered.extend, may_wait=lambda sensor, marker: marker == 6)
+    real, forger = RawSender(port, 250), RawSender(port, 2)
+    try:
+        fp, t_us = world.fingerprint(), int(WALL_S * 1e6)
+        real.raw(real.observation(seq=1, fingerprint=fp, time_usec=t_us, marker_id=6))
+        forger.raw(forger.observation(seq=2, fingerprint=fp, time_usec=t_us + 500_000, marker_id=6))  # not its sensor
+        real.raw(real.observation(seq=3, fingerprint=fp, time_usec=t_us + 3_600_000_000, marker_id=6))  # 1 h ahead
+        settle(transport, delivered)
+        taken = transport.take_waiting()
+        assert [(md.seq, md.origin, md.capture_time_us) for md, _ in taken] == [(1, 250, t_us)]
+        c = transport.counters()
+        assert c["rejected_not_owner"] == 1 and c["rejected_bad_stamp"] == 1 and c.get("waiting_superseded", 0) == 0
+        assert c["refused_from_2"] == 1 and c["refused_from_250"] == 1
+    finally:
+        transport.close()
+        real.close()
+        forger.close()
