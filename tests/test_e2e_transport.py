@@ -68,6 +68,26 @@ def test_duplicates_rate_limit_peer_status_and_skew(tmp_path):
     assert "sync the clocks" in node.log()
 
 
+def test_timesync_answers_only_the_autopilot_and_names_it(tmp_path):
+    """Behind a router a GCS's TIMESYNC request reaches the node on the autopilot link too: only the
+    autopilot's is answered, and the answer names the autopilot (system 1, component 1)."""
+    ap, _, _, node = start(tmp_path)
+    d = dialect.load()
+    try:
+        assert wait_for(lambda: node.proc.poll() is None and "autopilot found" in node.log(), 10), node.log()
+        ap.send(d.MAVLink_timesync_message(tc1=0, ts1=111), source=(255, 190))  # a GCS, through a router
+        ap.send(d.MAVLink_timesync_message(tc1=0, ts1=222))  # the autopilot itself
+        assert wait_for(lambda: any(r[1] == 222 for r in ap.timesync_replies), 5), node.log()
+        time.sleep(0.3)
+    finally:
+        node.stop()
+        ap.stop()
+    answered = {r[1]: r for r in ap.timesync_replies}
+    assert 111 not in answered, "the GCS's request was answered"
+    assert answered[222][2:] == (1, 1), answered[222]
+    assert node.final_counters()["timesync_not_from_autopilot"] == 1
+
+
 def test_timesync_is_answered_and_origin_sent_until_known(tmp_path):
     origin = {"lat_deg": 49.6116, "lon_deg": 6.1319, "alt_m": 300.0}
     ap, _, _, node = start(tmp_path, autopilot_extra={"origin": origin})

@@ -313,16 +313,25 @@ def heartbeat_fields() -> dict[str, Any]:
     }
 
 
-def timesync_reply(tc1: int, ts1: int, now_wall_ns: int) -> dict[str, Any] | None:
-    """The answer to a TIMESYNC request, or None when the message is not a request.
+def timesync_reply(
+    tc1: int, ts1: int, now_wall_ns: int, requester: tuple[int, int], own_system: int, target_system: int = 0
+) -> dict[str, Any] | None:
+    """The answer to a TIMESYNC request, addressed to its sender, or None when there is none to give.
 
-    A request has ``tc1 == 0`` and the sender's time in ``ts1``; the answer echoes ``ts1`` and puts our
-    time in ``tc1``, in nanoseconds of the clock our ``usec`` stamps use (UNIX epoch): PX4 estimates
-    the offset between the two clocks from it and applies it to every VISION_POSITION_ESTIMATE.usec.
+    A request has ``tc1 == 0`` and the sender's time in ``ts1``; the answer echoes ``ts1``, puts our
+    time in ``tc1`` (nanoseconds of the clock our ``usec`` stamps use, UNIX epoch: PX4 estimates the
+    offset between the two clocks from it) and names the requester (system, component) in its
+    target fields. A reply (``tc1 != 0``) or a request addressed to another system than
+    ``own_system`` (``target_system`` 0 is a broadcast) is not answered.
     """
-    if tc1 != 0:
+    if tc1 != 0 or target_system not in (0, own_system):
         return None
-    return {"tc1": int(now_wall_ns), "ts1": int(ts1)}
+    return {
+        "tc1": int(now_wall_ns),
+        "ts1": int(ts1),
+        "target_system": int(requester[0]) & 0xFF,
+        "target_component": int(requester[1]) & 0xFF,
+    }
 
 
 def set_gps_global_origin_fields(

@@ -67,6 +67,8 @@ def _generate(target: Path) -> None:
         for name in ("common.xml", "standard.xml", "minimal.xml"):  # common.xml includes the other two
             if (definitions / name).exists():
                 shutil.copy(definitions / name, work / name)
+        common = work / "common.xml"
+        common.write_text(patch_common(common.read_text(encoding="utf-8")), encoding="utf-8")
         shutil.copy(XML, work / "atlas.xml")
         out = work / "atlas_dialect.py"
         opts = mavgen.Opts(str(out), wire_protocol="2.0", language="Python3", validate=True)
@@ -82,9 +84,28 @@ def _generate(target: Path) -> None:
         os.replace(staged, target)
 
 
+# TIMESYNC's extension fields (common.xml since 2023; pymavlink 2.4.x ships the description without
+# them): a reply names the requester. Extensions leave the CRC extra unchanged, so a peer without
+# them reads the same message.
+_TIMESYNC_TARGETS = (
+    '<extensions/><field type="uint8_t" name="target_system">Target system id.</field>'
+    '<field type="uint8_t" name="target_component">Target component id.</field>'
+)
+_TIMESYNC_RE = re.compile(r'(<message id="111" name="TIMESYNC">.*?)(</message>)', re.S)
+
+
+def patch_common(text: str) -> str:
+    """common.xml as the node needs it: TIMESYNC with its target fields where the shipped file lacks them."""
+    m = _TIMESYNC_RE.search(text)
+    if m is None or 'name="target_system"' in m.group(1):
+        return text
+    return text[: m.start(2)] + _TIMESYNC_TARGETS + text[m.start(2) :]
+
+
 def digest() -> str:
-    """The cache key: atlas.xml, common.xml and pymavlink's version (any change regenerates)."""
+    """The cache key: atlas.xml, common.xml (as patched) and pymavlink's version (any change regenerates)."""
     h = hashlib.sha256(XML.read_bytes())
+    h.update(_TIMESYNC_TARGETS.encode())
     h.update((definitions_dir() / "common.xml").read_bytes())
     h.update(pymavlink.__version__.encode())
     return h.hexdigest()[:16]

@@ -59,7 +59,9 @@ class MavlinkTransport:
         self._next_heartbeat_ns = 0
         self._next_origin_ns = 0
         self.origin_known = False
-        self.autopilot_system: int | None = None
+        self.autopilot_system: int | None = None  # from the autopilot's HEARTBEAT
+        self.autopilot_component: int | None = None
+        self.autopilot_type: int | None = None  # MAV_AUTOPILOT_* (PX4 12, ArduPilot 3)
         self.peers_seen: dict[int, int] = {}  # system id -> last arrival (ns)
         self._peers_alive: set[int] = set()
         self._fingerprint_warned: set[int] = set()
@@ -204,17 +206,29 @@ class MavlinkTransport:
         kind = msg.get_type()
         if kind == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
             if self.autopilot_system is None:
-                _logger.info("autopilot found: system %d, component %d", msg.get_srcSystem(), msg.get_srcComponent())
+                _logger.info(
+                    "autopilot found: system %d, component %d, autopilot type %d",
+                    msg.get_srcSystem(), msg.get_srcComponent(), msg.autopilot,
+                )  # fmt: skip
                 if msg.get_srcSystem() != self.config.system_id:
                     _logger.warning(
                         "autopilot's system id %d differs from system_id %d in the node settings",
                         msg.get_srcSystem(), self.config.system_id,
                     )  # fmt: skip
             self.autopilot_system = msg.get_srcSystem()
+            self.autopilot_component = msg.get_srcComponent()
+            self.autopilot_type = msg.autopilot
         elif kind == "TIMESYNC":
-            # Answer the autopilot's time-sync request (PX4 trusts our usec only once this converges),
-            # on the wall clock: the clock of the capture times we send as usec.
-            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, self._wall_ns())
+            # Answer only the autopilot's own requests (PX4 trusts our usec once this converges), on
+            # the wall clock of our usec stamps, addressed to it: behind a router a GCS's or MAVSDK's
+            # request also arrives here, and an answer to it would reach PX4 as a bogus reply.
+            requester = (msg.get_srcSystem(), msg.get_srcComponent())
+            if requester != (self.autopilot_system, self.autopilot_component):
+                if msg.tc1 == 0:
+                    self.counters_.inc("timesync_not_from_autopilot")
+                return
+            target = getattr(msg, "target_system", 0)
+            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, self._wall_ns(), requester, link.system_id, target)
             if reply is not None:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind == "GPS_GLOBAL_ORIGIN":

@@ -77,6 +77,7 @@ class SimAutopilot:
     received: list[Received] = field(default_factory=list)
     heartbeats_from: dict[tuple[int, int], int] = field(default_factory=dict)
     timesync_answered: int = 0
+    timesync_replies: list[tuple[int, int, int, int]] = field(default_factory=list)  # tc1, ts1, target sys, comp
     other: dict[str, int] = field(default_factory=dict)
     statustexts: list[bytes] = field(default_factory=list)
     last: dict[str, object] = field(default_factory=dict)  # the last message of each other kind
@@ -125,17 +126,19 @@ class SimAutopilot:
         with self._lock:
             return list(self.received)
 
-    def send(self, msg: mavlink.MAVLink_message) -> None:
-        """Send a message to the node (e.g. a TIMESYNC request or GPS_GLOBAL_ORIGIN), from the autopilot."""
-        self._send(msg)
+    def send(self, msg: mavlink.MAVLink_message, source: tuple[int, int] | None = None) -> None:
+        """Send a message to the node (e.g. a TIMESYNC request or GPS_GLOBAL_ORIGIN), from the autopilot,
+        or with ``source`` (system, component) from another program behind it (a GCS through a router)."""
+        self._send(msg, source)
 
-    def _send(self, msg: mavlink.MAVLink_message) -> None:
+    def _send(self, msg: mavlink.MAVLink_message, source: tuple[int, int] | None = None) -> None:
+        mav = self._mav if source is None else mavlink.MAVLink(None, srcSystem=source[0], srcComponent=source[1])
         try:
             if self.tcp:
                 if self._client is not None:
-                    self._client.sendall(msg.pack(self._mav))
+                    self._client.sendall(msg.pack(mav))
             elif self._peer is not None:
-                self._sock.sendto(msg.pack(self._mav), self._peer)
+                self._sock.sendto(msg.pack(mav), self._peer)
         except OSError:
             pass
 
@@ -202,6 +205,10 @@ class SimAutopilot:
             self.timesync_answered += 1
         elif kind == "TIMESYNC":
             self.last[kind] = msg  # the node's answer to our request
+            # Its target fields are extensions this pymavlink's common.xml lacks: read from the
+            # payload (after tc1 and ts1; MAVLink 2 trims trailing zero bytes).
+            payload = bytes(msg.get_msgbuf()[10 : 10 + msg.get_msgbuf()[1]]).ljust(18, b"\0")
+            self.timesync_replies.append((msg.tc1, msg.ts1, payload[16], payload[17]))
         elif kind == "VISION_POSITION_ESTIMATE":
             rec = Received(
                 arrival,

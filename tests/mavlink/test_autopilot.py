@@ -170,10 +170,16 @@ def test_heartbeat_fields():
     assert autopilot.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY == d.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY == 197
 
 
-def test_timesync_answers_requests_only_on_the_given_clock():
-    reply = autopilot.timesync_reply(tc1=0, ts1=123_456_789, now_wall_ns=1_700_000_000_123_456_789)
-    assert reply == {"tc1": 1_700_000_000_123_456_789, "ts1": 123_456_789}
-    assert autopilot.timesync_reply(tc1=5, ts1=1, now_wall_ns=9) is None  # a reply, not a request
+def test_timesync_answers_requests_only_on_the_given_clock_addressed_to_the_requester():
+    reply = autopilot.timesync_reply(0, 123_456_789, 1_700_000_000_123_456_789, requester=(7, 1), own_system=7)
+    assert reply == {"tc1": 1_700_000_000_123_456_789, "ts1": 123_456_789, "target_system": 7, "target_component": 1}
+    assert autopilot.timesync_reply(5, 1, 9, (7, 1), 7) is None  # a reply, not a request
+    assert autopilot.timesync_reply(0, 1, 9, (7, 1), 7, target_system=9) is None  # a request to another system
+    assert autopilot.timesync_reply(0, 1, 9, (7, 1), 7, target_system=7) is not None
+    d = dialect.load()  # the dialect carries TIMESYNC's target extension fields, on the wire and back
+    mav = d.MAVLink(None, srcSystem=7, srcComponent=197)
+    back = d.MAVLink(None).parse_char(d.MAVLink_timesync_message(**reply).pack(mav))
+    assert (back.tc1, back.ts1, back.target_system, back.target_component) == (reply["tc1"], 123_456_789, 7, 1)
 
 
 def test_origin_fields():
