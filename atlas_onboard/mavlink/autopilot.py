@@ -36,6 +36,10 @@ MAV_FRAME_LOCAL_FRD = 20
 MAV_ESTIMATOR_TYPE_VISION = 2
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_AUTOPILOT_INVALID = 8
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAV_AUTOPILOT_PX4 = 12
+MAV_CMD_REQUEST_MESSAGE = 512
+MSG_GPS_GLOBAL_ORIGIN = 49
 MAV_STATE_ACTIVE = 4
 MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
 
@@ -349,4 +353,21 @@ def set_gps_global_origin_fields(
         "longitude": round(lon_deg * 1e7),
         "altitude": round(alt_m * 1000.0),
         "time_usec": max(int(time_usec), 0),
+    }
+
+
+def request_message_fields(target_system: int, target_component: int, message_id: int) -> dict[str, Any]:
+    """COMMAND_LONG MAV_CMD_REQUEST_MESSAGE: ask the target to send message ``message_id`` once."""
+    return {
+        "target_system": int(target_system) & 0xFF,
+        "target_component": int(target_component) & 0xFF,
+        "command": MAV_CMD_REQUEST_MESSAGE,
+        "confirmation": 0,
+        "param1": float(message_id),
+        "param2": 0.0,
+        "param3": 0.0,
+        "param4": 0.0,
+        "param5": 0.0,
+        "param6": 0.0,
+        "param7": 0.0,
     }

@@ -26,6 +26,9 @@ NS = 1_000_000_000
 MAV_TYPE_ONBOARD_CONTROLLER = autopilot.MAV_TYPE_ONBOARD_CONTROLLER
 MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
 PEER_LOST_NS = 3 * NS
+MAV_AUTOPILOT_PX4 = autopilot.MAV_AUTOPILOT_PX4
+ORIGIN_REQUEST_NS = NS // 2  # GPS_GLOBAL_ORIGIN asked for this often until the autopilot reports one
+ORIGIN_UNANSWERED = 2  # requests unanswered before SET_GPS_GLOBAL_ORIGIN (then twice as many each time)
 
 
 class MavlinkTransport:
@@ -58,6 +61,9 @@ class MavlinkTransport:
         self._lock = threading.Lock()
         self._next_heartbeat_ns = 0
         self._next_origin_ns = 0
+        self._origin_unanswered = 0  # origin requests since the last SET_GPS_GLOBAL_ORIGIN, unanswered
+        self._origin_sets = 0
+        self._origin_skipped = False
         self.origin_known = False
         self.autopilot_system: int | None = None  # from the autopilot's HEARTBEAT
         self.autopilot_component: int | None = None
@@ -163,15 +169,46 @@ class MavlinkTransport:
             self._next_heartbeat_ns = now_ns + int(NS / self.config.heartbeat_hz)
             for link in self._links():
                 link.send(link.dialect.MAVLink_heartbeat_message(**autopilot.heartbeat_fields()))
+        self._origin_tick(now_ns)
+
+    def _origin_tick(self, now_ns: int) -> None:
+        """The EKF origin: asked for (MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) every
+        ORIGIN_REQUEST_NS until the autopilot reports one; set (SET_GPS_GLOBAL_ORIGIN) only after
+        ORIGIN_UNANSWERED requests went unanswered, each later set after twice as many. ArduPilot
+        with an origin ignores SET_GPS_GLOBAL_ORIGIN without a word, so sending it blindly would only
+        repeat. PX4 needs no origin to hold position, and v1.16 shifts its local height by a new
+        origin's altitude once height is initialised (ekf2 ``setAltOrigin``): it gets one only with
+        ``origin.send_to_px4``, and then at altitude 0, where neither branch of that rule moves the
+        local frame (an origin altitude of 0 or none)."""
         ap = self.config.autopilot
-        if ap is not None and ap.origin is not None and not self.origin_known and now_ns >= self._next_origin_ns:
-            self._next_origin_ns = now_ns + NS
-            if self.autopilot is not None:
-                fields = autopilot.set_gps_global_origin_fields(
-                    self.autopilot_system or self.config.system_id, ap.origin.lat_deg, ap.origin.lon_deg,
-                    ap.origin.alt_m, int(self.wall() * 1e6),
-                )  # fmt: skip
-                self.autopilot.send(self.autopilot.dialect.MAVLink_set_gps_global_origin_message(**fields))
+        if ap is None or ap.origin is None or self.origin_known or self.autopilot is None:
+            return
+        if self.autopilot_type is None or now_ns < self._next_origin_ns:
+            return  # the autopilot's HEARTBEAT first: what to send depends on which autopilot it is
+        px4 = self.autopilot_type == MAV_AUTOPILOT_PX4
+        if px4 and not ap.origin.send_to_px4:
+            if not self._origin_skipped:
+                self._origin_skipped = True
+                _logger.info("PX4 needs no EKF origin to hold position: autopilot.origin not sent (see send_to_px4)")
+            return
+        self._next_origin_ns = now_ns + ORIGIN_REQUEST_NS
+        target = self.autopilot_system if self.autopilot_system is not None else self.config.system_id
+        d = self.autopilot.dialect
+        if self._origin_unanswered >= ORIGIN_UNANSWERED << min(self._origin_sets, 4):
+            alt_m = 0.0 if px4 else ap.origin.alt_m
+            fields = autopilot.set_gps_global_origin_fields(
+                target, ap.origin.lat_deg, ap.origin.lon_deg, alt_m, int(self.wall() * 1e6)
+            )
+            self.autopilot.send(d.MAVLink_set_gps_global_origin_message(**fields))
+            self.counters_.inc("origin_set_sent")
+            self._origin_sets += 1
+            self._origin_unanswered = 0
+            _logger.info("autopilot reports no EKF origin: SET_GPS_GLOBAL_ORIGIN sent (altitude %.1f m)", alt_m)
+        fields = autopilot.request_message_fields(
+            target, self.autopilot_component or 0, autopilot.MSG_GPS_GLOBAL_ORIGIN
+        )
+        self.autopilot.send(d.MAVLink_command_long_message(**fields))
+        self._origin_unanswered += 1
 
     def _peer_changes(self, now_ns: int) -> None:
         """STATUSTEXT and a log line when a peer appears or falls silent for PEER_LOST_S."""
@@ -233,7 +270,10 @@ class MavlinkTransport:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind == "GPS_GLOBAL_ORIGIN":
             if not self.origin_known:
-                _logger.info("autopilot reports its EKF origin; no more SET_GPS_GLOBAL_ORIGIN")
+                _logger.info(
+                    "autopilot reports its EKF origin (%.7f, %.7f, %.1f m): not set by this node",
+                    msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3,
+                )  # fmt: skip
             self.origin_known = True
 
     def _on_peer(self, index: int, link: Link, msg: Any, arrival_ns: int) -> None:
