@@ -29,6 +29,7 @@ from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.listener import Listener, make_graph
 from atlas_onboard.publisher import AutopilotPose, Publisher
+from atlas_onboard.state import ResetCounterStore
 
 _logger = logging.getLogger(__name__)
 
@@ -180,6 +181,8 @@ class Node:
             fused_rate_hz=config.fused_rate_hz,
             reset_jump_m=ap.reset_jump_m if ap else 0.5,
         )
+        self._reset_store = ResetCounterStore(config.state_dir, config.entity)
+        self.publisher.reset_counter = self._reset_store.initial(self.wall())  # a restart is a reset
         self.inbox = Inbox(config.queue_size)
         self.stats = Stats()
         self.last_result: GraphResult | None = None
@@ -553,6 +556,7 @@ class Node:
             _logger.debug("pose cap %d p %s n %d", pose.capture_time_us, pose.p_world_m, pose.n_observations)
             self.transport.send_autopilot(out)
             self.stats.autopilot_sent += 1
+            self._reset_store.save(out.reset_counter)
 
     def _do_reload(self) -> None:
         """SIGHUP: switch to the re-read world file only if it is valid and has the same entities."""

@@ -84,7 +84,7 @@ def test_vision_position_estimate_matches_truth_in_ned(rig):
         assert np.all(cov[[15, 18, 20]] > 0) and np.all(np.isfinite(cov))
         assert t0 <= rec.usec <= t0 + 9 * 20000  # capture time of the newest observation, not send time
         assert (rec.src_system, rec.src_component) == (1, 197)
-        assert rec.reset_counter == 0
+        assert rec.reset_counter == ap.snapshot()[0].reset_counter  # no reset within one stream
     assert ap.heartbeats_from[(1, 197)] >= 1
 
 
@@ -118,9 +118,10 @@ def test_output_stops_when_the_peer_goes_silent_and_resumes(rig):
     during = [r for r in ap.snapshot() if r.arrival_s > silent_from + 0.25 + 0.05]
     assert during == [], "the node kept sending a pose it no longer has"
     n_before = len(ap.snapshot())
+    first = ap.snapshot()[0].reset_counter
     feed(world, peer, n=5)
     assert wait_for(lambda: len(ap.snapshot()) > n_before), "output did not resume"
-    assert ap.snapshot()[-1].reset_counter == 1  # lost then found: the autopilot is told to reset
+    assert ap.snapshot()[-1].reset_counter == (first + 1) % 256  # lost then found: the autopilot is told to reset
     assert ap.other.get("STATUSTEXT", 0) >= 2  # pose found, pose lost, (pose found)
 
 
@@ -170,3 +171,36 @@ def test_bad_input_changes_nothing_and_is_counted(rig):
     assert c["rejected_unknown_sensor"] == 1 and c["rejected_unknown_marker"] == 1
     assert c["rejected_wrong_fingerprint"] == 1 and c["rejected_bad_version"] == 1
     assert c["peer0_rejected_bad_data"] >= 1
+
+
+def test_reset_counter_signals_a_restart(tmp_path):
+    """A restarted node (same state_dir) starts one past the counter the autopilot last saw, so the
+    autopilot resets to vision instead of fusing a jump across the restart as a measurement."""
+    from atlas_onboard.config import load_world
+    from atlas_onboard.sim.autopilot import SimAutopilot
+    from tests.e2e import NodeProcess, Peer, free_udp_port, write_world
+
+    ap = SimAutopilot(system_id=1).start()
+    port = free_udp_port()
+    doc = world_doc(port, ap.port)
+    doc["nodes"]["d1"]["state_dir"] = str(tmp_path / "state")
+    path = write_world(tmp_path, doc)
+    world = load_world(path)
+    counters = []
+    try:
+        for _ in range(2):
+            n_before = len(ap.snapshot())
+            node = NodeProcess(path, "d1")
+            peer = Peer(port, system_id=250)
+            try:
+                assert wait_for(lambda: node.proc.poll() is None and "running" in node.log(), 10), node.log()
+                feed(world, peer, n=5)
+                assert wait_for(lambda: len(ap.snapshot()) >= n_before + 3), node.log()
+            finally:
+                peer.close()
+                assert node.stop() == 0
+            counters.append({r.reset_counter for r in ap.snapshot()[n_before:]})
+    finally:
+        ap.stop()
+    (first,), (second,) = counters  # one counter per process: no reset within a stream
+    assert second == (first + 1) % 256
