@@ -193,9 +193,9 @@ def test_reset_counter_signals_a_restart(tmp_path):
             node = NodeProcess(path, "d1")
             peer = Peer(port, system_id=250)
             try:
-                assert wait_for(lambda: node.proc.poll() is None and "running" in node.log(), 10), node.log()
+                assert wait_for(lambda n=node: n.proc.poll() is None and "running" in n.log(), 10), node.log()
                 feed(world, peer, n=5)
-                assert wait_for(lambda: len(ap.snapshot()) >= n_before + 3), node.log()
+                assert wait_for(lambda k=n_before: len(ap.snapshot()) >= k + 3), node.log()
             finally:
                 peer.close()
                 assert node.stop() == 0
