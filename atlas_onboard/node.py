@@ -276,6 +276,9 @@ class Node:
                     self._do_reload()
         finally:
             self._notify("STOPPING=1")
+            if self.publisher.has_pose:  # the autopilot and the GCS hear it from us, not from a timeout
+                _logger.warning("%s: pose lost (node stopping)", self.config.entity)
+                self.transport.send_status(f"atlas {self.config.entity}: pose lost (stopping)", 4)
             for cam in self.cameras:
                 cam.stop()
             self.transport.close()

@@ -204,3 +204,26 @@ def test_reset_counter_signals_a_restart(tmp_path):
         ap.stop()
     (first,), (second,) = counters  # one counter per process: no reset within a stream
     assert second == (first + 1) % 256
+
+
+def test_a_stopping_node_says_pose_lost(rig):
+    """SIGTERM while the pose is fresh (observations still arriving): "pose lost" goes out."""
+    import threading
+
+    world, ap, node, peer = rig
+    stop = threading.Event()
+
+    def keep_feeding():
+        while not stop.is_set():
+            feed(world, peer, n=1, period=0.02)
+
+    feeder = threading.Thread(target=keep_feeding, daemon=True)
+    feeder.start()
+    try:
+        assert wait_for(lambda: any(b"pose found" in t for t in ap.statustexts), 10), node.log()
+        assert node.stop() == 0
+        assert wait_for(lambda: any(b"pose lost" in t for t in ap.statustexts), 2), ap.statustexts
+    finally:
+        stop.set()
+        feeder.join(2)
+    assert "pose lost (node stopping)" in node.log()
