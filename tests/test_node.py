@@ -120,7 +120,8 @@ def test_output_stops_within_edge_timeout_and_resumes():
     late = [t for t, _ in tr.autopilot[:n_before] if t - last_obs > 250_000_000]
     assert late == []
     texts = [t for _, t in tr.status]
-    assert texts == ["atlas d1: pose found", "atlas d1: pose lost", "atlas d1: pose found"]
+    assert texts[:3] == ["atlas d1: pose found", "atlas d1: pose lost", "atlas d1: pose found"]
+    assert texts[3:] in ([], ["atlas d1: pose lost (stopping)"])  # the stop may come before or after expiry
     lost_at = tr.status[1][0]
     assert lost_at - last_obs <= 250_000_000 + 40_000_000  # noticed within one loss check of expiry
     # ...and output resumed by itself, with the reset counter raised.
