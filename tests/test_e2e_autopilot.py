@@ -227,3 +227,50 @@ def test_a_stopping_node_says_pose_lost(rig):
         stop.set()
         feeder.join(2)
     assert "pose lost (node stopping)" in node.log()
+
+
+def test_ground_station_sees_pose_state_and_named_values(tmp_path):
+    """HEARTBEAT system_status STANDBY before the first pose, ACTIVE with it, CRITICAL once lost;
+    NAMED_VALUE_FLOAT on the peer (GCS) link with the pose's sigma, detections/s, latency, peers."""
+    import threading
+
+    from atlas_onboard.listener import Listener, make_graph
+    from tests.e2e import start_node_with_peer
+
+    def doc_for(port, ap_port):
+        doc = world_doc(port, ap_port)
+        doc["nodes"]["d1"]["heartbeat_hz"] = 5
+        return doc
+
+    world, ap, node, peer = start_node_with_peer(tmp_path, doc_for)
+    states = lambda: [s for key, s in ap.heartbeat_states if key == (1, 197)]  # noqa: E731
+    stop = threading.Event()
+    feeder = threading.Thread(target=lambda: [feed(world, peer, n=1) for _ in iter(stop.is_set, True)], daemon=True)
+    values: dict[str, float] = {}
+    try:
+        assert wait_for(lambda: 3 in states(), 5), states()
+        feeder.start()
+        assert wait_for(lambda: 4 in states(), 5), (states(), node.log())
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not (
+            math.isfinite(values.get("atl_sigma", math.nan)) and values.get("atl_peers")
+        ):
+            msg = peer.conn.recv_match(type="NAMED_VALUE_FLOAT", blocking=True, timeout=0.2)
+            if msg is not None:
+                values[msg.name] = msg.value
+        stop.set()
+        feeder.join(2)
+        assert wait_for(lambda: states()[-1] == 5, 5), states()
+    finally:
+        stop.set()
+        peer.close()
+        node.stop()
+        ap.stop()
+    s = states()
+    assert s[0] == 3 and s.index(3) < s.index(4) < len(s) - 1 - s[::-1].index(5)  # standby, active, critical
+    graph = make_graph(world)
+    assert Listener(world, graph).accept(observe(world, TRUTH, 10, 5, sigma_m=0.02, capture_time_us=1), 0) is None
+    assert values["atl_sigma"] == pytest.approx(graph.evaluate(0).poses["d1"].sigma_m, rel=1e-5)
+    assert values["atl_det_hz"] == 0.0  # no camera of its own: the observations are the peer's
+    assert values["atl_peers"] == 1.0
+    assert set(values) == {"atl_sigma", "atl_det_hz", "atl_lat_ms", "atl_peers"}

@@ -31,6 +31,8 @@ class FakeTransport:
         self.observations = []
         self.fused = []
         self.status = []
+        self.pose_states = []
+        self.telemetry = []
         self.started = threading.Event()
         self.waiting = []  # what a test puts here the node takes as kept by the transport
         self.waiting_since = None
@@ -61,6 +63,12 @@ class FakeTransport:
 
     def tick(self, now_ns):
         pass
+
+    def set_pose_state(self, state):
+        self.pose_states.append(state)
+
+    def send_telemetry(self, telemetry):
+        self.telemetry.append(telemetry)
 
     def counters(self):
         return {"link_fake": 1}

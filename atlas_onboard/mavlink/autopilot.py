@@ -302,8 +302,10 @@ def odometry_fields(
     return odometry_from_ned(T_ned_frd.translation, T_ned_frd.rotation, capture_time_us, reset_counter, cov, quality)
 
 
-def heartbeat_fields() -> dict[str, Any]:
-    """HEARTBEAT of a companion computer: MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, active.
+def heartbeat_fields(system_status: int = MAV_STATE_ACTIVE) -> dict[str, Any]:
+    """HEARTBEAT of a companion computer: MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, and
+    ``system_status`` the own pose's state: MAV_STATE_STANDBY (3) before the first pose,
+    MAV_STATE_ACTIVE (4) while a fresh pose goes out, MAV_STATE_CRITICAL (5) once it is lost.
 
     The system and component ids are the link's (the autopilot's system id, component 197 by default).
     """
@@ -312,9 +314,34 @@ def heartbeat_fields() -> dict[str, Any]:
         "autopilot": MAV_AUTOPILOT_INVALID,
         "base_mode": 0,
         "custom_mode": 0,
-        "system_status": MAV_STATE_ACTIVE,
+        "system_status": int(system_status),
         "mavlink_version": 3,
     }
+
+
+TELEMETRY_NAMES = ("atl_sigma", "atl_det_hz", "atl_lat_ms", "atl_peers")
+"""NAMED_VALUE_FLOAT names (MAVLink allows 10 characters): the own pose's position sigma (m, NaN
+without a pose), the own cameras' observations per second, the mean capture-to-send latency of the
+poses sent to the autopilot (ms, NaN when none was sent) and the peers heard within 3 s."""
+
+
+def telemetry_values(sigma_m: float, detections_hz: float, latency_ms: float, peers: int) -> list[tuple[str, float]]:
+    """The (name, value) pairs of the ground-station telemetry, in TELEMETRY_NAMES order."""
+    return list(
+        zip(TELEMETRY_NAMES, (float(sigma_m), float(detections_hz), float(latency_ms), float(peers)), strict=True)
+    )
+
+
+def quality_from_covariance(cov: np.ndarray) -> int:
+    """ODOMETRY.quality (percent) of a pose with a 6x6 covariance (x y z first, m^2): the mapping of
+    :func:`quality_percent` applied to the position's standard deviation along its worst direction
+    (the square root of the largest eigenvalue of the 3x3 position block). 0 (unknown) for a
+    covariance that is not finite or not positive semi-definite; never -1 (failed) for a pose."""
+    c = np.asarray(cov, dtype=float)
+    if c.shape != (6, 6) or not _finite(c):
+        return 0
+    worst = float(np.linalg.eigvalsh(0.5 * (c[:3, :3] + c[:3, :3].T))[-1])
+    return quality_percent(math.sqrt(worst)) if worst > 0.0 else 0
 
 
 def timesync_reply(

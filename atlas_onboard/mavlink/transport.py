@@ -16,7 +16,7 @@ from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, dialect
 from atlas_onboard.mavlink.gate import PeerGate, TokenBucket
 from atlas_onboard.mavlink.link import Counters, Link
-from atlas_onboard.publisher import AutopilotPose
+from atlas_onboard.publisher import AutopilotPose, PoseState, Telemetry
 
 _logger = logging.getLogger(__name__)
 
@@ -65,6 +65,8 @@ class MavlinkTransport:
         self._origin_sets = 0
         self._origin_skipped = False
         self.origin_known = False
+        self.pose_state = PoseState.NONE
+        self._start_ns = time.monotonic_ns()
         self.autopilot_system: int | None = None  # from the autopilot's HEARTBEAT
         self.autopilot_component: int | None = None
         self.autopilot_type: int | None = None  # MAV_AUTOPILOT_* (PX4 12, ArduPilot 3)
@@ -163,12 +165,29 @@ class MavlinkTransport:
                 )
             )
 
+    def set_pose_state(self, state: PoseState) -> None:
+        """The HEARTBEAT's system_status from now on (STANDBY, ACTIVE, CRITICAL)."""
+        self.pose_state = state
+
+    def send_telemetry(self, telemetry: Telemetry) -> None:
+        """NAMED_VALUE_FLOAT on every peer link (the ground station's): names in TELEMETRY_NAMES."""
+        time_boot_ms = (time.monotonic_ns() - self._start_ns) // 1_000_000 & 0xFFFFFFFF
+        values = autopilot.telemetry_values(
+            telemetry.sigma_m, telemetry.detections_hz, telemetry.latency_ms, len(self._peers_alive)
+        )
+        for link in self.peers:
+            msgs = [
+                link.dialect.MAVLink_named_value_float_message(time_boot_ms, name.encode("ascii"), value)
+                for name, value in values
+            ]
+            link.send_many(msgs)
+
     def tick(self, now_ns: int) -> None:
         self._peer_changes(now_ns)
         if now_ns >= self._next_heartbeat_ns:
             self._next_heartbeat_ns = now_ns + int(NS / self.config.heartbeat_hz)
             for link in self._links():
-                link.send(link.dialect.MAVLink_heartbeat_message(**autopilot.heartbeat_fields()))
+                link.send(link.dialect.MAVLink_heartbeat_message(**autopilot.heartbeat_fields(int(self.pose_state))))
         self._origin_tick(now_ns)
 
     def _origin_tick(self, now_ns: int) -> None:

@@ -84,6 +84,7 @@ class SimAutopilot:
     autopilot_type: int = mavlink.MAV_AUTOPILOT_PX4
     received: list[Received] = field(default_factory=list)
     heartbeats_from: dict[tuple[int, int], int] = field(default_factory=dict)
+    heartbeat_states: list[tuple[tuple[int, int], int]] = field(default_factory=list)  # (sender, system_status)
     timesync_answered: int = 0
     timesync_replies: list[tuple[int, int, int, int]] = field(default_factory=list)  # tc1, ts1, target sys, comp
     other: dict[str, int] = field(default_factory=dict)
@@ -212,6 +213,7 @@ class SimAutopilot:
         if kind == "HEARTBEAT":
             key = (msg.get_srcSystem(), msg.get_srcComponent())
             self.heartbeats_from[key] = self.heartbeats_from.get(key, 0) + 1
+            self.heartbeat_states.append((key, msg.system_status))
         elif kind == "TIMESYNC" and msg.tc1 == 0:
             self._send(self._mav.timesync_encode(time.monotonic_ns(), msg.ts1))
             self.timesync_answered += 1
