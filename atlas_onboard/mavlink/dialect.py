@@ -64,7 +64,7 @@ def _generate(target: Path) -> None:
     definitions = definitions_dir()
     with tempfile.TemporaryDirectory(prefix="atlas-mavgen-") as tmp:
         work = Path(tmp)
-        for name in ("common.xml", "standard.xml", "minimal.xml"):  # common.xml includes the other two
+        for name in _INCLUDED:
             if (definitions / name).exists():
                 shutil.copy(definitions / name, work / name)
         common = work / "common.xml"
@@ -84,6 +84,20 @@ def _generate(target: Path) -> None:
         os.replace(staged, target)
 
 
+_INCLUDED = ("development.xml", "common.xml", "standard.xml", "minimal.xml")  # each includes the next
+
+# TIME_ESTIMATE_TO_TARGET (common.xml, CRC extra 232), which PX4 streams at 1 Hz and pymavlink 2.4.x
+# lacks: added where the shipped file has no message 380.
+_TIME_ESTIMATE_TO_TARGET = """<message id="380" name="TIME_ESTIMATE_TO_TARGET">
+      <description>Time/duration estimates for various events and actions given the current vehicle state and position.</description>
+      <field type="int32_t" name="safe_return" units="s">Estimated time to complete the safe return action (-1: none).</field>
+      <field type="int32_t" name="land" units="s">Estimated time to complete the LAND action (-1: none).</field>
+      <field type="int32_t" name="mission_next_item" units="s">Estimated time for the active mission item (-1: none).</field>
+      <field type="int32_t" name="mission_end" units="s">Estimated time for the current mission (-1: none).</field>
+      <field type="int32_t" name="commanded_action" units="s">Estimated time for the commanded action (-1: none).</field>
+    </message>
+  """
+
 # TIMESYNC's extension fields (common.xml since 2023; pymavlink 2.4.x ships the description without
 # them): a reply names the requester. Extensions leave the CRC extra unchanged, so a peer without
 # them reads the same message.
@@ -95,17 +109,39 @@ _TIMESYNC_RE = re.compile(r'(<message id="111" name="TIMESYNC">.*?)(</message>)'
 
 
 def patch_common(text: str) -> str:
-    """common.xml as the node needs it: TIMESYNC with its target fields where the shipped file lacks them."""
+    """common.xml as the node needs it: TIMESYNC with its target fields and TIME_ESTIMATE_TO_TARGET,
+    where the shipped file lacks them."""
     m = _TIMESYNC_RE.search(text)
-    if m is None or 'name="target_system"' in m.group(1):
-        return text
-    return text[: m.start(2)] + _TIMESYNC_TARGETS + text[m.start(2) :]
+    if m is not None and 'name="target_system"' not in m.group(1):
+        text = text[: m.start(2)] + _TIMESYNC_TARGETS + text[m.start(2) :]
+    if '<message id="380"' not in text and "</messages>" in text:
+        end = text.rindex("</messages>")
+        text = text[:end] + _TIME_ESTIMATE_TO_TARGET + text[end:]
+    return text
+
+
+_known_elsewhere: frozenset[int] | None = None
+
+
+def known_elsewhere() -> frozenset[int]:
+    """Message ids that some dialect shipped with pymavlink defines (ardupilotmega.xml's AHRS,
+    EKF_STATUS_REPORT, ...): what an autopilot of that dialect sends and ours does not decode. An
+    unknown id outside them is one no public dialect of this pymavlink defines. Read once."""
+    global _known_elsewhere
+    if _known_elsewhere is None:
+        ids: set[int] = set()
+        for path in definitions_dir().glob("*.xml"):
+            with contextlib.suppress(OSError, UnicodeDecodeError):
+                ids.update(int(i) for i in re.findall(r'<message id="(\d+)"', path.read_text(encoding="utf-8")))
+        _known_elsewhere = frozenset(ids)
+    return _known_elsewhere
 
 
 def digest() -> str:
     """The cache key: atlas.xml, common.xml (as patched) and pymavlink's version (any change regenerates)."""
     h = hashlib.sha256(XML.read_bytes())
-    h.update(_TIMESYNC_TARGETS.encode())
+    h.update(_TIMESYNC_TARGETS.encode() + _TIME_ESTIMATE_TO_TARGET.encode())
+    h.update((definitions_dir() / "development.xml").read_bytes())
     h.update((definitions_dir() / "common.xml").read_bytes())
     h.update(pymavlink.__version__.encode())
     return h.hexdigest()[:16]
