@@ -89,12 +89,12 @@ _INCLUDED = ("development.xml", "common.xml", "standard.xml", "minimal.xml")  # 
 # TIME_ESTIMATE_TO_TARGET (common.xml, CRC extra 232), which PX4 streams at 1 Hz and pymavlink 2.4.x
 # lacks: added where the shipped file has no message 380.
 _TIME_ESTIMATE_TO_TARGET = """<message id="380" name="TIME_ESTIMATE_TO_TARGET">
-      <description>Time/duration estimates for various events and actions given the current vehicle state and position.</description>
-      <field type="int32_t" name="safe_return" units="s">Estimated time to complete the safe return action (-1: none).</field>
-      <field type="int32_t" name="land" units="s">Estimated time to complete the LAND action (-1: none).</field>
-      <field type="int32_t" name="mission_next_item" units="s">Estimated time for the active mission item (-1: none).</field>
-      <field type="int32_t" name="mission_end" units="s">Estimated time for the current mission (-1: none).</field>
-      <field type="int32_t" name="commanded_action" units="s">Estimated time for the commanded action (-1: none).</field>
+      <description>Time estimates for events and actions given the current vehicle state.</description>
+      <field type="int32_t" name="safe_return" units="s">Time to complete the safe return (-1: none).</field>
+      <field type="int32_t" name="land" units="s">Time to complete LAND (-1: none).</field>
+      <field type="int32_t" name="mission_next_item" units="s">Time for the active mission item (-1: none).</field>
+      <field type="int32_t" name="mission_end" units="s">Time for the current mission (-1: none).</field>
+      <field type="int32_t" name="commanded_action" units="s">Time for the commanded action (-1: none).</field>
     </message>
   """
 
@@ -120,21 +120,19 @@ def patch_common(text: str) -> str:
     return text
 
 
-_known_elsewhere: frozenset[int] | None = None
-
-
 def known_elsewhere() -> frozenset[int]:
     """Message ids that some dialect shipped with pymavlink defines (ardupilotmega.xml's AHRS,
     EKF_STATUS_REPORT, ...): what an autopilot of that dialect sends and ours does not decode. An
     unknown id outside them is one no public dialect of this pymavlink defines. Read once."""
-    global _known_elsewhere
-    if _known_elsewhere is None:
-        ids: set[int] = set()
-        for path in definitions_dir().glob("*.xml"):
-            with contextlib.suppress(OSError, UnicodeDecodeError):
-                ids.update(int(i) for i in re.findall(r'<message id="(\d+)"', path.read_text(encoding="utf-8")))
-        _known_elsewhere = frozenset(ids)
-    return _known_elsewhere
+    with _lock:
+        known = _cache.get("known_elsewhere")
+        if known is None:
+            ids: set[int] = set()
+            for path in definitions_dir().glob("*.xml"):
+                with contextlib.suppress(OSError, UnicodeDecodeError):
+                    ids.update(int(i) for i in re.findall(r'<message id="(\d+)"', path.read_text(encoding="utf-8")))
+            known = _cache["known_elsewhere"] = frozenset(ids)
+    return known
 
 
 def digest() -> str:
