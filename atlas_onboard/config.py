@@ -34,9 +34,12 @@ WORLD = "world"
 
 SCHEMA_VERSION = 1
 
-# The families the detector reads (OpenCV has no tagCircle/tagStandard/tagCustom families, and the
-# config refuses what no node could ever see).
-APRILTAG_FAMILIES = ("tag36h11", "tag25h9", "tag16h5")
+# The families the detector reads: every AprilTag 3 family of the C library (pupil-apriltags), and
+# OpenCV's ArUco dictionaries (the config refuses what no node could ever see).
+APRILTAG_FAMILIES = (
+    "tag36h11", "tag25h9", "tag16h5",
+    "tagStandard41h12", "tagStandard52h13", "tagCircle21h7", "tagCircle49h12", "tagCustom48h12",
+)  # fmt: skip
 ARUCO_DICTIONARIES = (
     *(f"DICT_{bits}X{bits}_{n}" for bits in (4, 5, 6, 7) for n in (50, 100, 250, 1000)),
     "DICT_ARUCO_ORIGINAL",
