@@ -155,7 +155,7 @@ class MavlinkTransport:
             return
         self.autopilot.send(msg)
         if speed is not None:
-            self.autopilot.send(speed)  # with the EKF: its velocity, for EK3_SRC1_VELXY=6 / EKF2_EV_CTRL bit 2
+            self.autopilot.send(speed)  # the EKF velocity, for ArduPilot (EK3_SRC1_VELXY=6); PX4 ignores it
 
     def send_status(self, text: str, severity: int) -> None:
         for link in self._links():
