@@ -62,11 +62,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     from atlas_onboard.detector.commands import add_commands as add_detector
     from atlas_onboard.install import add_commands as add_install
+    from atlas_onboard.params import add_commands as add_params
     from atlas_onboard.sim.command import add_commands as add_sim
 
     add_sim(sub)
     add_detector(sub)
     add_install(sub)
+    add_params(sub)
     return parser
 
 
