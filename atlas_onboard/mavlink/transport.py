@@ -290,7 +290,7 @@ class MavlinkTransport:
         elif kind == "GPS_GLOBAL_ORIGIN":
             if not self.origin_known:
                 _logger.info(
-                    "autopilot reports its EKF origin (%.7f, %.7f, %.1f m): not set by this node",
+                    "autopilot reports its EKF origin (%.7f, %.7f, %.1f m): no more requests",
                     msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3,
                 )  # fmt: skip
             self.origin_known = True
