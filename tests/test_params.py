@@ -34,6 +34,15 @@ def run(tmp_path, world, *args):
     return proc.stdout
 
 
+def inproc(tmp_path, world, autopilot):
+    """The same file made in this process (the variants; the subprocess runs check the command)."""
+    from atlas_onboard.config import load_node
+    from atlas_onboard.params import parameters, render
+
+    w, node = load_node(write_world(tmp_path, world), "d1")
+    return render(parameters(w, node, autopilot), autopilot, node, w)
+
+
 def qgc(text):
     """QGroundControl's rows (vehicle, component, name, value, type), comments skipped."""
     rows = [line.split("\t") for line in text.splitlines() if line and not line.startswith("#")]
@@ -56,8 +65,8 @@ def test_px4_values_follow_the_world_file(tmp_path):
     assert offset == pytest.approx((0.02, 0.01, -0.05))
     assert p["EKF2_EV_CTRL"][2:] == (11.0, 6) and p["EKF2_HGT_REF"][2] == 3 and p["EKF2_EV_DELAY"][2:] == (25.0, 9)
     # Velocity fusion only where PX4 can get it: the EKF filter and ODOMETRY output.
-    assert qgc(run(tmp_path, doc(filt="ekf"), "--autopilot", "px4"))["EKF2_EV_CTRL"][2] == 11
-    both = qgc(run(tmp_path, doc(filt="ekf", output="odometry"), "--autopilot", "px4"))
+    assert qgc(inproc(tmp_path, doc(filt="ekf"), "px4"))["EKF2_EV_CTRL"][2] == 11
+    both = qgc(inproc(tmp_path, doc(filt="ekf", output="odometry"), "px4"))
     assert both["EKF2_EV_CTRL"][2] == 15 and both["EKF2_EV_DELAY"][2] == 0.0  # not measured: PX4's default
 
 
@@ -68,4 +77,4 @@ def test_ardupilot_values_follow_the_world_file(tmp_path):
     assert a["SYSID_THISMAV"] == 3 and a["VISO_TYPE"] == 1 and a["EK3_SRC1_POSXY"] == 6 and a["EK3_SRC1_YAW"] == 6
     assert (a["VISO_POS_X"], a["VISO_POS_Y"], a["VISO_POS_Z"]) == pytest.approx((0.02, 0.01, -0.05))
     assert a["EK3_SRC1_VELXY"] == 0 and a["VISO_DELAY_MS"] == 10  # no filter: no velocity; delay not measured
-    assert mission_planner(run(tmp_path, doc(filt="ekf"), "--autopilot", "ardupilot"))["EK3_SRC1_VELXY"] == 6
+    assert mission_planner(inproc(tmp_path, doc(filt="ekf"), "ardupilot"))["EK3_SRC1_VELXY"] == 6
