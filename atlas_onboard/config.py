@@ -719,7 +719,7 @@ class NodeConfig:
         fused_rate_hz: how often the fused poses of every entity go to peers and the GCS.
         heartbeat_hz: HEARTBEAT rate on every link.
         queue_size: observations waiting for the graph; beyond it the oldest are dropped (counted).
-        state_dir: where signing timestamps persist across restarts.
+        state_dir: where signing timestamps and the autopilot's reset counter persist across restarts.
         status_interval_s: period of the health log line.
     """
 
