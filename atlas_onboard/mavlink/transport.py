@@ -27,6 +27,7 @@ MAV_TYPE_ONBOARD_CONTROLLER = autopilot.MAV_TYPE_ONBOARD_CONTROLLER
 MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
 PEER_LOST_NS = 3 * NS
 MAV_AUTOPILOT_PX4 = autopilot.MAV_AUTOPILOT_PX4
+MAV_COMP_ID_AUTOPILOT1 = 1
 ORIGIN_REQUEST_NS = NS // 2  # GPS_GLOBAL_ORIGIN asked for this often until the autopilot reports one
 ORIGIN_UNANSWERED = 2  # requests unanswered before SET_GPS_GLOBAL_ORIGIN (then twice as many each time)
 
@@ -261,6 +262,10 @@ class MavlinkTransport:
     def _on_autopilot(self, link: Link, msg: Any, arrival_ns: int) -> None:
         kind = msg.get_type()
         if kind == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
+            source = (msg.get_srcSystem(), msg.get_srcComponent())
+            if self.autopilot_system is not None and source != (self.autopilot_system, self.autopilot_component):
+                if source[1] != MAV_COMP_ID_AUTOPILOT1:
+                    return  # another component of the vehicle (a gimbal, a camera): the autopilot stays
             if self.autopilot_system is None:
                 _logger.info(
                     "autopilot found: system %d, component %d, autopilot type %d",
