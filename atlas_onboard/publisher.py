@@ -40,11 +40,12 @@ class PoseState(enum.IntEnum):
 
 @dataclass(frozen=True, slots=True)
 class Telemetry:
-    """What the ground station graphs (NAMED_VALUE_FLOAT, docs/deployment.md), over the last period.
+    """What the ground station graphs (NAMED_VALUE_FLOAT, docs/wire-format.md), over the last period.
 
     ``sigma_m``: the own pose's position sigma (NaN without a pose); ``detections_hz``: the own
     cameras' observations per second; ``latency_ms``: mean capture-to-send time of the poses sent
-    to the autopilot (NaN when none was sent).
+    to the autopilot, from the stamp they carry (with the EKF, the time predicted for; NaN when none
+    was sent).
     """
 
     sigma_m: float
