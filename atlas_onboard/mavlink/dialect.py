@@ -86,9 +86,11 @@ def _generate(target: Path) -> None:
 
 _INCLUDED = ("development.xml", "common.xml", "standard.xml", "minimal.xml")  # each includes the next
 
-# TIME_ESTIMATE_TO_TARGET (common.xml, CRC extra 232), which PX4 streams at 1 Hz and pymavlink 2.4.x
-# lacks: added where the shipped file has no message 380.
-_TIME_ESTIMATE_TO_TARGET = """<message id="380" name="TIME_ESTIMATE_TO_TARGET">
+# Messages of common.xml that PX4 sends on every link and pymavlink 2.4.x's copy lacks (they would
+# count as unknown ids): TIME_ESTIMATE_TO_TARGET (1 Hz), EVENT and CURRENT_EVENT_SEQUENCE (every
+# 3 s). Added where the shipped file has no message of that id; CRC extras 232, 160, 106 (tested).
+_COMMON_ADDITIONS = {
+    380: """<message id="380" name="TIME_ESTIMATE_TO_TARGET">
       <description>Time estimates for events and actions given the current vehicle state.</description>
       <field type="int32_t" name="safe_return" units="s">Time to complete the safe return (-1: none).</field>
       <field type="int32_t" name="land" units="s">Time to complete LAND (-1: none).</field>
@@ -96,7 +98,25 @@ _TIME_ESTIMATE_TO_TARGET = """<message id="380" name="TIME_ESTIMATE_TO_TARGET">
       <field type="int32_t" name="mission_end" units="s">Time for the current mission (-1: none).</field>
       <field type="int32_t" name="commanded_action" units="s">Time for the commanded action (-1: none).</field>
     </message>
-  """
+  """,
+    410: """<message id="410" name="EVENT">
+      <description>Event message (the events interface).</description>
+      <field type="uint8_t" name="destination_component">Component ID</field>
+      <field type="uint8_t" name="destination_system">System ID</field>
+      <field type="uint32_t" name="id">Event ID (as defined in the component metadata)</field>
+      <field type="uint32_t" name="event_time_boot_ms" units="ms">Time since boot when the event happened.</field>
+      <field type="uint16_t" name="sequence">Sequence number.</field>
+      <field type="uint8_t" name="log_levels">Log levels (internal, external).</field>
+      <field type="uint8_t[40]" name="arguments">Arguments (depend on event ID).</field>
+    </message>
+  """,
+    411: """<message id="411" name="CURRENT_EVENT_SEQUENCE">
+      <description>Regular broadcast of the current event sequence number.</description>
+      <field type="uint16_t" name="sequence">Sequence number.</field>
+      <field type="uint8_t" name="flags">Flag bitset.</field>
+    </message>
+  """,
+}
 
 # TIMESYNC's extension fields (common.xml since 2023; pymavlink 2.4.x ships the description without
 # them): a reply names the requester. Extensions leave the CRC extra unchanged, so a peer without
@@ -109,14 +129,15 @@ _TIMESYNC_RE = re.compile(r'(<message id="111" name="TIMESYNC">.*?)(</message>)'
 
 
 def patch_common(text: str) -> str:
-    """common.xml as the node needs it: TIMESYNC with its target fields and TIME_ESTIMATE_TO_TARGET,
-    where the shipped file lacks them."""
+    """common.xml as the node needs it: TIMESYNC with its target fields and the messages of
+    _COMMON_ADDITIONS, where the shipped file lacks them."""
     m = _TIMESYNC_RE.search(text)
     if m is not None and 'name="target_system"' not in m.group(1):
         text = text[: m.start(2)] + _TIMESYNC_TARGETS + text[m.start(2) :]
-    if '<message id="380"' not in text and "</messages>" in text:
-        end = text.rindex("</messages>")
-        text = text[:end] + _TIME_ESTIMATE_TO_TARGET + text[end:]
+    for msg_id, xml in _COMMON_ADDITIONS.items():
+        if f'<message id="{msg_id}"' not in text and "</messages>" in text:
+            end = text.rindex("</messages>")
+            text = text[:end] + xml + text[end:]
     return text
 
 
@@ -138,7 +159,7 @@ def known_elsewhere() -> frozenset[int]:
 def digest() -> str:
     """The cache key: atlas.xml, common.xml (as patched) and pymavlink's version (any change regenerates)."""
     h = hashlib.sha256(XML.read_bytes())
-    h.update(_TIMESYNC_TARGETS.encode() + _TIME_ESTIMATE_TO_TARGET.encode())
+    h.update(_TIMESYNC_TARGETS.encode() + "".join(_COMMON_ADDITIONS.values()).encode())
     h.update((definitions_dir() / "development.xml").read_bytes())
     h.update((definitions_dir() / "common.xml").read_bytes())
     h.update(pymavlink.__version__.encode())

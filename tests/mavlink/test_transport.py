@@ -417,8 +417,9 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
 
 
 def test_what_px4_and_ardupilot_stream_is_not_counted_as_unknown_ids(rig):
-    """PX4 builds with development.xml and streams CURRENT_MODE, AVAILABLE_MODES (development.xml)
-    and TIME_ESTIMATE_TO_TARGET (common.xml, newer than pymavlink 2.4.50's copy): decoded. An
+    """PX4 builds with development.xml and streams CURRENT_MODE, AVAILABLE_MODES (development.xml),
+    TIME_ESTIMATE_TO_TARGET, EVENT and CURRENT_EVENT_SEQUENCE (common.xml, newer than pymavlink
+    2.4.50's copy): decoded. An
     ArduPilot message (AHRS, id 163, ardupilotmega.xml) is counted as another dialect's; only an id
     no public dialect defines is an unknown id."""
     _, transport, ap, _, _ = rig
@@ -427,6 +428,11 @@ def test_what_px4_and_ardupilot_stream_is_not_counted_as_unknown_ids(rig):
     ap.send(D.MAVLink_current_mode_message(0, 0, 0))
     ap.send(D.MAVLink_available_modes_message(1, 1, 0, 0, 0, b"POSCTL"))
     ap.send(D.MAVLink_time_estimate_to_target_message(-1, -1, -1, -1, -1))
+    ap.send(D.MAVLink_current_event_sequence_message(7, 0))
+    ap.send(D.MAVLink_event_message(0, 0, 1234, 5000, 7, 0x66, [0] * 40))
+    # Those added to pymavlink's common.xml carry upstream's CRC extras (MAVLink's C headers).
+    assert [m.crc_extra for m in (D.MAVLink_time_estimate_to_target_message, D.MAVLink_event_message,
+                                  D.MAVLink_current_event_sequence_message)] == [232, 160, 106]  # fmt: skip
     for msg_id in (163, 45000):
         frame = bytearray(D.MAVLink_heartbeat_message(2, 3, 0, 0, 3, 3).pack(ap.mav))
         frame[7:10] = msg_id.to_bytes(3, "little")
@@ -437,3 +443,4 @@ def test_what_px4_and_ardupilot_stream_is_not_counted_as_unknown_ids(rig):
     c = transport.counters()
     assert (c["autopilot_rx_current_mode"], c["autopilot_rx_available_modes"]) == (1, 1)
     assert c["autopilot_rx_time_estimate_to_target"] == 1 and c["autopilot_rx_other_dialect"] == 1
+    assert (c["autopilot_rx_event"], c["autopilot_rx_current_event_sequence"]) == (1, 1)
