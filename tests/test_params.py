@@ -1,5 +1,5 @@
 """``atlas-onboard params``: the values written against the world file they come from, in the formats
-QGroundControl and Mission Planner load, from a real subprocess."""
+QGroundControl and Mission Planner load (the command itself run once, in a real subprocess)."""
 
 import subprocess
 import sys
@@ -34,13 +34,13 @@ def run(tmp_path, world, *args):
     return proc.stdout
 
 
-def inproc(tmp_path, world, autopilot):
+def inproc(tmp_path, world, autopilot, **kw):
     """The same file made in this process (the variants; the subprocess runs check the command)."""
     from atlas_onboard.config import load_node
     from atlas_onboard.params import parameters, render
 
     w, node = load_node(write_world(tmp_path, world), "d1")
-    return render(parameters(w, node, autopilot), autopilot, node, w)
+    return render(parameters(w, node, autopilot, **kw), autopilot, node, w)
 
 
 def qgc(text):
@@ -72,8 +72,7 @@ def test_px4_values_follow_the_world_file(tmp_path):
 
 def test_ardupilot_values_follow_the_world_file(tmp_path):
     # In an FRD world file the same centre of gravity is written (-0.02, -0.01, 0.05).
-    a = mission_planner(run(tmp_path, doc(body="FRD", system_id=3), "--autopilot", "ardupilot", "--cog-m",
-                            "-0.02", "-0.01", "0.05"))  # fmt: skip
+    a = mission_planner(inproc(tmp_path, doc(body="FRD", system_id=3), "ardupilot", cog_m=(-0.02, -0.01, 0.05)))
     assert a["SYSID_THISMAV"] == 3 and a["VISO_TYPE"] == 1 and a["EK3_SRC1_POSXY"] == 6 and a["EK3_SRC1_YAW"] == 6
     assert (a["VISO_POS_X"], a["VISO_POS_Y"], a["VISO_POS_Z"]) == pytest.approx((0.02, 0.01, -0.05))
     assert a["EK3_SRC1_VELXY"] == 0 and a["VISO_DELAY_MS"] == 10  # no filter: no velocity; delay not measured

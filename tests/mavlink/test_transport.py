@@ -217,7 +217,7 @@ def test_timesync_answered_on_the_wall_clock_and_origin_until_known(rig):
     assert len([m for m in ap.of("COMMAND_LONG") if m.command == 512]) == 3
 
 
-def _origin_run(sim, origin, seconds=6.0):
+def _origin_run(sim, origin, seconds=3.0):
     """A transport with ``origin`` against the simulated autopilot ``sim``, ticked every 0.1 s of
     its clock for ``seconds`` (20 ms apart in real time, for the answers to arrive)."""
     world = world_from({"entities": {"d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}]}}})
