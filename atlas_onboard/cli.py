@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -17,6 +18,8 @@ from atlas_onboard.errors import AtlasError
 
 EXIT_OK = 0
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE
 
 
 class _Parser(argparse.ArgumentParser):
@@ -61,16 +64,41 @@ def build_parser() -> argparse.ArgumentParser:
 
     from atlas_onboard.detector.commands import add_commands as add_detector
     from atlas_onboard.install import add_commands as add_install
+    from atlas_onboard.params import add_commands as add_params
     from atlas_onboard.sim.command import add_commands as add_sim
 
     add_sim(sub)
     add_detector(sub)
     add_install(sub)
+    add_params(sub)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point: parse ``argv``, run the subcommand, map known errors to one line and exit status 2."""
+    """Entry point: parse ``argv``, run the subcommand, map known errors to one line and exit status 2.
+
+    A reader that closes the pipe early (``atlas-onboard check-config FILE | head -1``) ends the
+    command quietly with status 141 (as SIGPIPE would); Ctrl-C with one line and status 130.
+    """
+    try:
+        try:
+            try:
+                code = _main(argv)
+            except SystemExit as exc:  # argparse's --help, --version and usage errors
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else EXIT_USAGE)
+            sys.stdout.flush()  # here, not at exit, where a closed pipe could only be reported
+            return code
+        except BrokenPipeError:
+            # Python's recipe: point stdout at /dev/null so the interpreter's final flush is silent.
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            return EXIT_BROKEN_PIPE
+    except KeyboardInterrupt:
+        sys.stderr.write("atlas-onboard: interrupted\n")
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = (logging.INFO if args.command in ("run", "sim") else logging.WARNING) - 10 * min(args.verbose, 1)
@@ -80,5 +108,3 @@ def main(argv: Sequence[str] | None = None) -> int:
     except AtlasError as exc:
         sys.stderr.write(f"atlas-onboard: error: {exc}\n")
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        return 130

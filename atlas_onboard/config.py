@@ -33,9 +33,12 @@ WORLD = "world"
 
 SCHEMA_VERSION = 1
 
-# The families the detector reads (OpenCV has no tagCircle/tagStandard/tagCustom families, and the
-# config refuses what no node could ever see).
-APRILTAG_FAMILIES = ("tag36h11", "tag25h9", "tag16h5")
+# The families the detector reads: every AprilTag 3 family of the C library (pupil-apriltags), and
+# OpenCV's ArUco dictionaries (the config refuses what no node could ever see).
+APRILTAG_FAMILIES = (
+    "tag36h11", "tag25h9", "tag16h5",
+    "tagStandard41h12", "tagStandard52h13", "tagCircle21h7", "tagCircle49h12", "tagCustom48h12",
+)  # fmt: skip
 ARUCO_DICTIONARIES = (
     *(f"DICT_{bits}X{bits}_{n}" for bits in (4, 5, 6, 7) for n in (50, 100, 250, 1000)),
     "DICT_ARUCO_ORIGINAL",
@@ -702,11 +705,17 @@ class LinkConfig:
 
 @dataclass(frozen=True, slots=True)
 class GlobalOrigin:
-    """The EKF origin sent with SET_GPS_GLOBAL_ORIGIN until the autopilot reports one."""
+    """The EKF origin given to an autopilot that has none (asked first with MAV_CMD_REQUEST_MESSAGE).
+
+    ``send_to_px4``: PX4 needs no origin to hold position, and v1.16 moves its local height when an
+    origin's altitude arrives after height initialisation; it gets one only when this is true, and
+    then with altitude 0 m, which leaves its local height alone (docs/px4.md).
+    """
 
     lat_deg: float
     lon_deg: float
     alt_m: float
+    send_to_px4: bool = False
 
 
 @dataclass(frozen=True, slots=True)
@@ -719,7 +728,7 @@ class AutopilotConfig:
         rate_hz: most pose messages per second (one per new observation of the own entity, capped).
         component_id: MAVLink component id of this node (197: MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).
         reset_jump_m: a jump of the published position larger than this increments reset_counter.
-        origin: SET_GPS_GLOBAL_ORIGIN to send until GPS_GLOBAL_ORIGIN arrives (ArduPilot needs it).
+        origin: the EKF origin for an autopilot that reports none (ArduPilot needs one; PX4 only if asked).
     """
 
     link: LinkConfig
@@ -743,7 +752,7 @@ class NodeConfig:
         fused_rate_hz: how often the fused poses of every entity go to peers and the GCS.
         heartbeat_hz: HEARTBEAT rate on every link.
         queue_size: observations waiting for the graph; beyond it the oldest are dropped (counted).
-        state_dir: where signing timestamps persist across restarts.
+        state_dir: where signing timestamps and the autopilot's reset counter persist across restarts.
         status_interval_s: period of the health log line.
         owners: (entity, system id) of every node the world file's ``nodes`` section names: whose
             observations and fused poses this node accepts from whom (:meth:`owner_system_id`).
@@ -855,13 +864,20 @@ def _read_autopilot(value: Any, path: str, base_dir: Path | None, partial: bool 
     origin = None
     if "origin" in m:
         opath = _join(path, "origin")
-        o = _mapping(m["origin"], opath, {"lat_deg", "lon_deg", "alt_m"}, {"lat_deg", "lon_deg", "alt_m"})
+        o = _mapping(
+            m["origin"], opath, {"lat_deg", "lon_deg", "alt_m", "send_to_px4"}, {"lat_deg", "lon_deg", "alt_m"}
+        )
         lat, lon = _number(o["lat_deg"], _join(opath, "lat_deg")), _number(o["lon_deg"], _join(opath, "lon_deg"))
         if not -90.0 <= lat <= 90.0:
             raise ConfigError(_join(opath, "lat_deg"), f"expected a latitude in [-90, 90] degrees, got {lat:g}")
         if not -180.0 <= lon <= 180.0:
             raise ConfigError(_join(opath, "lon_deg"), f"expected a longitude in [-180, 180] degrees, got {lon:g}")
-        origin = GlobalOrigin(lat, lon, _number(o["alt_m"], _join(opath, "alt_m"), "metres"))
+        origin = GlobalOrigin(
+            lat,
+            lon,
+            _number(o["alt_m"], _join(opath, "alt_m"), "metres"),
+            _bool(o.get("send_to_px4", False), _join(opath, "send_to_px4")),
+        )
     return AutopilotConfig(
         link,
         output,

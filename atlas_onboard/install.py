@@ -11,7 +11,11 @@ What it writes, all below ``--root`` (default ``/``), nothing outside it:
   that entity's node (kept unless ``--force``, like the world file);
 - ``etc/atlas-onboard/swarm.key``: a new random 32-byte MAVLink signing key (mode 0600), only if
   there is none (never replaced, not even with ``--force``: the swarm shares one key; copy the
-  first drone's to the others).
+  first drone's to the others);
+- when the world file (as installed) has a network link (udp or tcp to a host other than this one):
+  the drop-in ``network-online.conf`` of both units, ordering them after network-online.target. The
+  units themselves do not wait for the network: a serial autopilot needs none, and a drone that
+  boots without WiFi would wait up to two minutes. Removed again when the world file has none.
 
 ``atlas-onboard keygen FILE`` writes such a key anywhere (refusing to replace one without ``--force``).
 
@@ -33,6 +37,8 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+import yaml
+
 from atlas_onboard.errors import AtlasError
 
 UNITS = ("atlas-onboard.service", "atlas-onboard@.service")
@@ -43,6 +49,15 @@ WORLD_FILE = CONF_DIR / "world.yaml"
 ENV_FILE = CONF_DIR / "atlas-onboard.env"
 KEY_FILE = CONF_DIR / "swarm.key"
 KEY_BYTES = 32  # MAVLink 2 signing keys are 32 bytes
+DROP_IN = "network-online.conf"
+DROP_IN_TEXT = (
+    "# Written by atlas-onboard install-service: the world file has a network link, so the node starts once\n"
+    "# the network is up. Removed by install-service when the world file has none.\n"
+    "[Unit]\n"
+    "Wants=network-online.target\n"
+    "After=network-online.target\n"
+)
+_LOCAL_HOSTS = ("127.", "localhost")
 EXEC_PATH = Path("usr/local/bin/atlas-onboard")  # the units' ExecStart
 SERVICE_USER = "atlas"
 # Entity names as the world file allows them (config.py), which are also valid unit instance names.
@@ -93,6 +108,7 @@ def install_service(root: Path, entity: str | None = None, force: bool = False) 
         plan.append((ENV_FILE, env_text(entity), force))
     targets = [(_inside(root, rel), text, replace) for rel, text, replace in plan]  # all checked before any write
     key_path = _inside(root, KEY_FILE)
+    drop_ins = [_inside(root, UNIT_DIR / f"{name}.d" / DROP_IN) for name in UNITS]
     actions = []
     for path, text, replace in targets:
         if not path.exists():
@@ -110,6 +126,17 @@ def install_service(root: Path, entity: str | None = None, force: bool = False) 
     else:
         write_key(key_path)
         actions.append(Action(key_path, "wrote", "a new signing key: copy it to every drone of the swarm"))
+    network = has_network_link(root / WORLD_FILE)
+    for path in drop_ins:
+        if network and not path.exists():
+            _write(root, path, DROP_IN_TEXT)
+            actions.append(Action(path, "wrote", "the world file has a network link"))
+        elif network and path.read_text(encoding="utf-8") != DROP_IN_TEXT:
+            _write(root, path, DROP_IN_TEXT)
+            actions.append(Action(path, "updated", "the world file has a network link"))
+        elif not network and path.exists() and path.read_text(encoding="utf-8") == DROP_IN_TEXT:
+            path.unlink()
+            actions.append(Action(path, "removed", "the world file has no network link"))
     return actions
 
 
@@ -131,6 +158,32 @@ def write_key(path: Path, force: bool = False) -> None:
             raise
     except OSError as exc:
         raise AtlasError(f"keygen: cannot write {path}: {exc.strerror}") from None
+
+
+def has_network_link(world_file: Path) -> bool:
+    """Whether any node of the world file has a udp or tcp link (autopilot or peer) to a host other
+    than this one (``udpin:0.0.0.0`` listens on the network). False for a file that cannot be read:
+    the node refuses it at start anyway."""
+    try:
+        doc = yaml.safe_load(world_file.read_text(encoding="utf-8"))
+    except (OSError, yaml.YAMLError, UnicodeDecodeError):
+        return False
+    nodes = doc.get("nodes") if isinstance(doc, dict) else None
+    urls: list[str] = []
+    for node in (nodes or {}).values() if isinstance(nodes, dict) else ():
+        if not isinstance(node, dict):
+            continue
+        links = [node.get("autopilot"), *(node.get("peers") or [])] if isinstance(node.get("peers") or [], list) else []
+        for link in links:
+            url = link.get("url") if isinstance(link, dict) else link
+            if isinstance(url, str):
+                urls.append(url)
+    for url in urls:
+        scheme, _, rest = url.partition(":")
+        host = rest.rpartition(":")[0]
+        if scheme.startswith(("udp", "tcp")) and not host.startswith(_LOCAL_HOSTS):
+            return True
+    return False
 
 
 def _inside(root: Path, rel: Path) -> Path:

@@ -28,7 +28,8 @@ from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.publisher import AutopilotPose, Publisher
+from atlas_onboard.publisher import AutopilotPose, PoseState, Publisher, Telemetry
+from atlas_onboard.state import ResetCounterStore
 
 _logger = logging.getLogger(__name__)
 
@@ -37,6 +38,7 @@ LOOP_TICK_S = 0.05  # the loop runs at least this often (links' periodic message
 FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observations
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
 PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
+TELEMETRY_NS = NS  # graphable values to the ground station once a second
 
 
 class Transport(Protocol):
@@ -68,6 +70,12 @@ class Transport(Protocol):
     def send_autopilot(self, pose: AutopilotPose) -> None: ...
 
     def send_status(self, text: str, severity: int) -> None: ...
+
+    def set_pose_state(self, state: PoseState) -> None:
+        """The own pose's state, for the HEARTBEAT's system_status."""
+
+    def send_telemetry(self, telemetry: Telemetry) -> None:
+        """Graphable values for the ground station (about once a second)."""
 
     def tick(self, now_ns: int) -> None:
         """Periodic duties (heartbeats, TIMESYNC, origin, reconnects), called by the main loop."""
@@ -180,6 +188,8 @@ class Node:
             fused_rate_hz=config.fused_rate_hz,
             reset_jump_m=ap.reset_jump_m if ap else 0.5,
         )
+        self._reset_store = ResetCounterStore(config.state_dir, config.entity)
+        self.publisher.reset_counter = self._reset_store.initial(self.wall())  # a restart is a reset
         self.inbox = Inbox(config.queue_size)
         self.stats = Stats()
         self.last_result: GraphResult | None = None
@@ -203,6 +213,9 @@ class Node:
         self.park_ns = int(min(max(NS / config.fused_rate_hz, COALESCE_NS), timeout_ns // 2))
         self._relevant: set[str] | None = None  # entities whose observations are evaluated at once
         self._next_status_ns = 0
+        self._next_telemetry_ns = 0
+        self._telemetry_since = (0, 0)  # (monotonic ns, local observations) at the last telemetry
+        self._latency_sum_ms, self._latency_n = 0.0, 0
         self._next_watchdog_ns = 0
         self.watchdog_interval_ns = NS  # the service layer shortens it to half of WatchdogSec if needed
 
@@ -256,6 +269,8 @@ class Node:
     def run(self) -> int:
         """Run until stopped; returns the exit status (0)."""
         self.transport.start(self.deliver_peers, self._may_read, self._may_wait)
+        self.transport.set_pose_state(PoseState.NONE)
+        self._telemetry_since = (self.clock(), 0)
         for cam in self.cameras:
             cam.start(self.deliver_local)
         self._notify("READY=1", f"STATUS=running as {self.config.entity}")
@@ -273,6 +288,9 @@ class Node:
                     self._do_reload()
         finally:
             self._notify("STOPPING=1")
+            if self.publisher.has_pose:  # the autopilot and the GCS hear it from us, not from a timeout
+                _logger.warning("%s: pose lost (node stopping)", self.config.entity)
+                self.transport.send_status(f"atlas {self.config.entity}: pose lost (stopping)", 4)
             for cam in self.cameras:
                 cam.stop()
             self.transport.close()
@@ -449,6 +467,9 @@ class Node:
         if self.publisher.fused_due(now) and self.last_result is not None:
             self.transport.send_fused(fused_poses(self.last_result), self.world)
             self.stats.fused_sent += 1
+        if now >= self._next_telemetry_ns:
+            self._next_telemetry_ns = now + TELEMETRY_NS
+            self._send_telemetry(now)
         self.transport.tick(now)
         if now >= self._next_watchdog_ns:
             self._notify("WATCHDOG=1")
@@ -548,11 +569,31 @@ class Node:
             lost = status == "pose lost"
             _logger.log(logging.WARNING if lost else logging.INFO, "%s: %s", self.config.entity, status)
             self.transport.send_status(f"atlas {self.config.entity}: {status}", 4 if lost else 6)  # WARNING / INFO
+            self.transport.set_pose_state(PoseState.LOST if lost else PoseState.ACTIVE)
         if out is not None and self.config.autopilot is not None:
             pose = out.pose
             _logger.debug("pose cap %d p %s n %d", pose.capture_time_us, pose.p_world_m, pose.n_observations)
             self.transport.send_autopilot(out)
             self.stats.autopilot_sent += 1
+            self._reset_store.save(out.reset_counter)
+            self._latency_sum_ms += (self.wall() // 1000 - pose.capture_time_us) / 1000.0
+            self._latency_n += 1
+
+    def _send_telemetry(self, now: int) -> None:
+        """The ground station's graphable values over the period since the last call."""
+        since_ns, since_local = self._telemetry_since
+        self._telemetry_since = (now, self.stats.local_observations)
+        period_s = (now - since_ns) / NS
+        pose = self.last_result.poses.get(self.config.entity) if self.last_result is not None else None
+        latency = self._latency_sum_ms / self._latency_n if self._latency_n else float("nan")
+        self._latency_sum_ms, self._latency_n = 0.0, 0
+        self.transport.send_telemetry(
+            Telemetry(
+                sigma_m=pose.sigma_m if pose is not None and self.publisher.has_pose else float("nan"),
+                detections_hz=(self.stats.local_observations - since_local) / period_s if period_s > 0 else 0.0,
+                latency_ms=latency,
+            )
+        )
 
     def _do_reload(self) -> None:
         """SIGHUP: switch to the re-read world file only if it is valid and has the same entities."""

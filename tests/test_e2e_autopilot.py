@@ -85,7 +85,7 @@ def test_vision_position_estimate_matches_truth_in_ned(rig):
         assert np.all(cov[[15, 18, 20]] > 0) and np.all(np.isfinite(cov))
         assert t0 <= rec.usec <= t0 + 9 * 20000  # capture time of the newest observation, not send time
         assert (rec.src_system, rec.src_component) == (1, 197)
-        assert rec.reset_counter == 0
+        assert rec.reset_counter == ap.snapshot()[0].reset_counter  # no reset within one stream
     assert ap.heartbeats_from[(1, 197)] >= 1
 
 
@@ -119,9 +119,10 @@ def test_output_stops_when_the_peer_goes_silent_and_resumes(rig):
     during = [r for r in ap.snapshot() if r.arrival_s > silent_from + 0.25 + 0.05]
     assert during == [], "the node kept sending a pose it no longer has"
     n_before = len(ap.snapshot())
+    first = ap.snapshot()[0].reset_counter
     feed(world, peer, n=5)
     assert wait_for(lambda: len(ap.snapshot()) > n_before), "output did not resume"
-    assert ap.snapshot()[-1].reset_counter == 1  # lost then found: the autopilot is told to reset
+    assert ap.snapshot()[-1].reset_counter == (first + 1) % 256  # lost then found: the autopilot is told to reset
     assert ap.other.get("STATUSTEXT", 0) >= 2  # pose found, pose lost, (pose found)
 
 
@@ -171,3 +172,106 @@ def test_bad_input_changes_nothing_and_is_counted(rig):
     assert c["rejected_unknown_sensor"] == 1 and c["rejected_unknown_marker"] == 1
     assert c["rejected_wrong_fingerprint"] == 1 and c["rejected_bad_version"] == 1
     assert c["peer0_rejected_bad_data"] >= 1
+
+
+def test_reset_counter_signals_a_restart(tmp_path):
+    """A restarted node (same state_dir) starts one past the counter the autopilot last saw, so the
+    autopilot resets to vision instead of fusing a jump across the restart as a measurement."""
+    from atlas_onboard.config import load_world
+    from atlas_onboard.sim.autopilot import SimAutopilot
+    from tests.e2e import NodeProcess, Peer, free_udp_port, write_world
+
+    ap = SimAutopilot(system_id=1).start()
+    port = free_udp_port()
+    doc = world_doc(port, ap.port)
+    doc["nodes"]["d1"]["state_dir"] = str(tmp_path / "state")
+    path = write_world(tmp_path, doc)
+    world = load_world(path)
+    counters = []
+    try:
+        for _ in range(2):
+            n_before = len(ap.snapshot())
+            node = NodeProcess(path, "d1")
+            peer = Peer(port, system_id=250)
+            try:
+                assert wait_for(lambda n=node: n.proc.poll() is None and "running" in n.log(), 10), node.log()
+                feed(world, peer, n=5)
+                assert wait_for(lambda k=n_before: len(ap.snapshot()) >= k + 3), node.log()
+            finally:
+                peer.close()
+                assert node.stop() == 0
+            counters.append({r.reset_counter for r in ap.snapshot()[n_before:]})
+    finally:
+        ap.stop()
+    (first,), (second,) = counters  # one counter per process: no reset within a stream
+    assert second == (first + 1) % 256
+
+
+def test_a_stopping_node_says_pose_lost(rig):
+    """SIGTERM while the pose is fresh (observations still arriving): "pose lost" goes out."""
+    import threading
+
+    world, ap, node, peer = rig
+    stop = threading.Event()
+
+    def keep_feeding():
+        while not stop.is_set():
+            feed(world, peer, n=1, period=0.02)
+
+    feeder = threading.Thread(target=keep_feeding, daemon=True)
+    feeder.start()
+    try:
+        assert wait_for(lambda: any(b"pose found" in t for t in ap.statustexts), 10), node.log()
+        assert node.stop() == 0
+        assert wait_for(lambda: any(b"pose lost" in t for t in ap.statustexts), 2), ap.statustexts
+    finally:
+        stop.set()
+        feeder.join(2)
+    assert "pose lost (node stopping)" in node.log()
+
+
+def test_ground_station_sees_pose_state_and_named_values(tmp_path):
+    """HEARTBEAT system_status STANDBY before the first pose, ACTIVE with it, CRITICAL once lost;
+    NAMED_VALUE_FLOAT on the peer (GCS) link with the pose's sigma, detections/s, latency, peers."""
+    import threading
+
+    from atlas_onboard.listener import Listener, make_graph
+    from tests.e2e import start_node_with_peer
+
+    def doc_for(port, ap_port):
+        doc = world_doc(port, ap_port)
+        doc["nodes"]["d1"]["heartbeat_hz"] = 5
+        return doc
+
+    world, ap, node, peer = start_node_with_peer(tmp_path, doc_for)
+    states = lambda: [s for key, s in ap.heartbeat_states if key == (1, 197)]  # noqa: E731
+    stop = threading.Event()
+    feeder = threading.Thread(target=lambda: [feed(world, peer, n=1) for _ in iter(stop.is_set, True)], daemon=True)
+    values: dict[str, float] = {}
+    try:
+        assert wait_for(lambda: 3 in states(), 5), states()
+        feeder.start()
+        assert wait_for(lambda: 4 in states(), 5), (states(), node.log())
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and not (
+            math.isfinite(values.get("atl_sigma", math.nan)) and values.get("atl_peers")
+        ):
+            msg = peer.conn.recv_match(type="NAMED_VALUE_FLOAT", blocking=True, timeout=0.2)
+            if msg is not None:
+                values[msg.name] = msg.value
+        stop.set()
+        feeder.join(2)
+        assert wait_for(lambda: states()[-1] == 5, 5), states()
+    finally:
+        stop.set()
+        peer.close()
+        node.stop()
+        ap.stop()
+    s = states()
+    assert s[0] == 3 and s.index(3) < s.index(4) < len(s) - 1 - s[::-1].index(5)  # standby, active, critical
+    graph = make_graph(world)
+    assert Listener(world, graph).accept(observe(world, TRUTH, 10, 5, sigma_m=0.02, capture_time_us=1), 0) is None
+    assert values["atl_sigma"] == pytest.approx(graph.evaluate(0).poses["d1"].sigma_m, rel=1e-5)
+    assert values["atl_det_hz"] == 0.0  # no camera of its own: the observations are the peer's
+    assert values["atl_peers"] == 1.0
+    assert set(values) == {"atl_sigma", "atl_det_hz", "atl_lat_ms", "atl_peers"}

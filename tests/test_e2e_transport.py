@@ -14,8 +14,8 @@ from tests.test_e2e_autopilot import TRUTH, world_doc
 TRUTH_D2 = {**TRUTH, "d2": pose([0.0, 2.0, 3.0], [0, 0, 0])}  # 1 m from d1, looking along +x at its tag
 
 
-def start(tmp_path, extra_node=None, autopilot_extra=None):
-    ap = SimAutopilot(system_id=1).start()
+def start(tmp_path, extra_node=None, autopilot_extra=None, autopilot_type=12):
+    ap = SimAutopilot(system_id=1, autopilot_type=autopilot_type).start()
     port = free_udp_port()
     doc = world_doc(port, ap.port, extra_node=extra_node)
     doc["nodes"]["d1"]["autopilot"].update(autopilot_extra or {})
@@ -73,11 +73,31 @@ def test_duplicates_rate_limit_peer_status_and_skew(tmp_path):
     assert "sync the clocks" in node.log()
 
 
+def test_timesync_answers_only_the_autopilot_and_names_it(tmp_path):
+    """Behind a router a GCS's TIMESYNC request reaches the node on the autopilot link too: only the
+    autopilot's is answered, and the answer names the autopilot (system 1, component 1)."""
+    ap, _, _, node = start(tmp_path)
+    d = dialect.load()
+    try:
+        assert wait_for(lambda: node.proc.poll() is None and "autopilot found" in node.log(), 10), node.log()
+        ap.send(d.MAVLink_timesync_message(tc1=0, ts1=111), source=(255, 190))  # a GCS, through a router
+        ap.send(d.MAVLink_timesync_message(tc1=0, ts1=222))  # the autopilot itself
+        assert wait_for(lambda: any(r[1] == 222 for r in ap.timesync_replies), 5), node.log()
+        time.sleep(0.3)
+    finally:
+        node.stop()
+        ap.stop()
+    answered = {r[1]: r for r in ap.timesync_replies}
+    assert 111 not in answered, "the GCS's request was answered"
+    assert answered[222][2:] == (1, 1), answered[222]
+    assert node.final_counters()["timesync_not_from_autopilot"] == 1
+
+
 def test_timesync_is_answered_and_origin_sent_until_known(tmp_path):
     origin = {"lat_deg": 49.6116, "lon_deg": 6.1319, "alt_m": 300.0}
-    ap, _, _, node = start(tmp_path, autopilot_extra={"origin": origin})
+    ap, _, _, node = start(tmp_path, autopilot_extra={"origin": origin}, autopilot_type=3)  # ArduPilot, no origin
     try:
-        assert wait_for(lambda: ap.other.get("SET_GPS_GLOBAL_ORIGIN", 0) >= 2, 5), node.log()
+        assert wait_for(lambda: ap.other.get("SET_GPS_GLOBAL_ORIGIN", 0) >= 1, 5), node.log()
         msg = ap.last["SET_GPS_GLOBAL_ORIGIN"]
         assert (msg.latitude, msg.longitude, msg.altitude) == (496116000, 61319000, 300000)
         d = dialect.load()
@@ -85,13 +105,8 @@ def test_timesync_is_answered_and_origin_sent_until_known(tmp_path):
         ap.send(d.MAVLink_timesync_message(tc1=0, ts1=ts1))
         assert wait_for(lambda: "TIMESYNC" in ap.last and ap.last["TIMESYNC"].ts1 == ts1, 5)
         assert ap.last["TIMESYNC"].tc1 > 0  # the node's time, answered
-        ap.send(
-            d.MAVLink_gps_global_origin_message(latitude=496116000, longitude=61319000, altitude=300000, time_usec=0)
-        )
-        time.sleep(0.3)
-        n = ap.other["SET_GPS_GLOBAL_ORIGIN"]
-        time.sleep(2.2)
-        assert ap.other["SET_GPS_GLOBAL_ORIGIN"] == n, "the origin kept coming after GPS_GLOBAL_ORIGIN"
+        time.sleep(2.0)  # the autopilot has an origin now (and said so): nothing more
+        assert ap.other["SET_GPS_GLOBAL_ORIGIN"] == 1, "the origin kept coming after GPS_GLOBAL_ORIGIN"
     finally:
         node.stop()
         ap.stop()

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from atlas_onboard import install
 from atlas_onboard.errors import AtlasError
@@ -17,6 +18,10 @@ from atlas_onboard.install import UNITS, install_service, next_steps, shipped
 
 REPO = Path(__file__).resolve().parents[1]
 UNIT_FILES = {"etc/systemd/system/atlas-onboard.service", "etc/systemd/system/atlas-onboard@.service"}
+# The example world file has network links (udpin:0.0.0.0 peers): both units get the drop-in.
+DROP_INS = {
+    f"etc/systemd/system/{u}.d/network-online.conf" for u in ("atlas-onboard.service", "atlas-onboard@.service")
+}
 WORLD = "etc/atlas-onboard/world.yaml"
 ENV = "etc/atlas-onboard/atlas-onboard.env"
 KEY = "etc/atlas-onboard/swarm.key"
@@ -98,6 +103,34 @@ def test_unit_contract(name, exec_start, environment_file):
         assert f"char-{cls} rw" in d["DeviceAllow"], cls
 
 
+def test_the_units_load_device_modules_first_and_do_not_wait_for_the_network():
+    for name in UNITS:
+        d = directives(shipped(name))
+        modules = ["modprobe@videodev.service", "modprobe@mc.service", "modprobe@cdc_acm.service",
+                   "modprobe@usbserial.service"]  # fmt: skip
+        assert d["Wants"] == [" ".join(modules)] and d["After"] == ["time-sync.target", " ".join(modules)]
+        assert "network-online.target" not in " ".join(d["Wants"] + d["After"])
+
+
+@pytest.mark.parametrize(
+    ("links", "network"),
+    [
+        ({"autopilot": {"url": "/dev/ttyAMA0,921600"}}, False),
+        ({"autopilot": "/dev/ttyACM0", "peers": ["udpout:127.0.0.1:14600"]}, False),
+        ({"autopilot": {"url": "tcp:localhost:5760"}}, False),
+        ({"autopilot": {"url": "/dev/ttyAMA0,921600"}, "peers": [{"url": "udpin:0.0.0.0:14600"}]}, True),
+        ({"peers": ["udpout:10.0.0.2:14550"]}, True),
+    ],
+)
+def test_the_network_drop_in_follows_the_world_files_links(tmp_path, links, network):
+    (tmp_path / "etc/atlas-onboard").mkdir(parents=True)
+    (tmp_path / WORLD).write_text(
+        yaml.safe_dump({"entities": {"d1": {}}, "nodes": {"d1": {"system_id": 1, **links}}}), encoding="utf-8"
+    )
+    install_service(tmp_path)
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY} | (DROP_INS if network else set())
+
+
 def test_the_two_units_differ_only_in_how_they_name_the_entity():
     plain, template = (directives(shipped(n)) for n in UNITS)
     differing = {k for k in plain.keys() | template.keys() if plain.get(k) != template.get(k)}
@@ -111,8 +144,11 @@ def test_install_service_writes_the_shipped_files_and_nothing_else(tmp_path):
         (tmp_path / "etc/systemd/system/atlas-onboard@.service", "wrote"),
         (tmp_path / WORLD, "wrote"),
         (tmp_path / KEY, "wrote"),
+        *((tmp_path / f"etc/systemd/system/{u}.d/network-online.conf", "wrote") for u in UNITS),
     ]
-    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY}
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY} | DROP_INS
+    for name in DROP_INS:
+        assert (tmp_path / name).read_text(encoding="utf-8") == install.DROP_IN_TEXT
     for name in UNITS:
         assert (tmp_path / "etc/systemd/system" / name).read_bytes() == (REPO / "systemd" / name).read_bytes()
     assert (tmp_path / WORLD).read_text(encoding="utf-8") == shipped("example.yaml")
@@ -133,19 +169,20 @@ def test_install_service_keeps_the_world_file_and_updates_the_units(tmp_path):
     actions = {a.path: (a.what, a.note) for a in install_service(tmp_path)}
     assert actions[world] == ("kept", "it exists; --force replaces it")
     assert actions[unit] == ("updated", "")
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY}  # a world without network links: no drop-in
     assert world.read_text(encoding="utf-8") == "entities: {mine: {}}\n"
     assert unit.read_text(encoding="utf-8") == shipped("atlas-onboard.service")
     actions = {a.path: (a.what, a.note) for a in install_service(tmp_path, force=True)}
     assert actions[world] == ("updated", "")
     assert world.read_text(encoding="utf-8") == shipped("example.yaml")
     assert (tmp_path / KEY).read_bytes() == key  # the swarm's key is never replaced, not even by --force
-    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY}  # no staging files left behind
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY} | DROP_INS  # no staging files left behind
 
 
 def test_entity_environment_file(tmp_path):
     env = tmp_path / ENV
     install_service(tmp_path, entity="drone1")
-    assert files_under(tmp_path) == UNIT_FILES | {WORLD, ENV, KEY}
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, ENV, KEY} | DROP_INS
     assert env.read_text(encoding="utf-8").splitlines()[-1] == "ATLAS_ONBOARD_ARGS=--entity drone1"
     assert {a.path: a.what for a in install_service(tmp_path, entity="drone2")}[env] == "kept"
     assert env.read_text(encoding="utf-8").splitlines()[-1] == "ATLAS_ONBOARD_ARGS=--entity drone1"
@@ -242,6 +279,7 @@ def test_install_service_command(tmp_path, capsys, monkeypatch):
         f"wrote     {tmp_path}/{WORLD}",
         f"wrote     {tmp_path}/{ENV}",
         f"wrote     {tmp_path}/{KEY} (a new signing key: copy it to every drone of the swarm)",
+        *(f"wrote     {tmp_path}/{d} (the world file has a network link)" for d in sorted(DROP_INS)),
         "",
         "Next, as root:",
         *(f"  {i}. {step}" for i, step in enumerate(steps, start=1)),
@@ -275,7 +313,7 @@ def test_the_cli_installs_a_world_file_that_validates_and_reports_errors_in_one_
         [*run, "install-service", "--root", str(tmp_path)], capture_output=True, text=True, check=False
     )
     assert proc.returncode == 0, proc.stderr
-    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY}
+    assert files_under(tmp_path) == UNIT_FILES | {WORLD, KEY} | DROP_INS
     proc = subprocess.run([*run, "check-config", str(tmp_path / WORLD)], capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr
     proc = subprocess.run(

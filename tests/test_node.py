@@ -31,6 +31,8 @@ class FakeTransport:
         self.observations = []
         self.fused = []
         self.status = []
+        self.pose_states = []
+        self.telemetry = []
         self.started = threading.Event()
         self.waiting = []  # what a test puts here the node takes as kept by the transport
         self.waiting_since = None
@@ -61,6 +63,12 @@ class FakeTransport:
 
     def tick(self, now_ns):
         pass
+
+    def set_pose_state(self, state):
+        self.pose_states.append(state)
+
+    def send_telemetry(self, telemetry):
+        self.telemetry.append(telemetry)
 
     def counters(self):
         return {"link_fake": 1}
@@ -120,12 +128,13 @@ def test_output_stops_within_edge_timeout_and_resumes():
     late = [t for t, _ in tr.autopilot[:n_before] if t - last_obs > 250_000_000]
     assert late == []
     texts = [t for _, t in tr.status]
-    assert texts == ["atlas d1: pose found", "atlas d1: pose lost", "atlas d1: pose found"]
+    assert texts[:3] == ["atlas d1: pose found", "atlas d1: pose lost", "atlas d1: pose found"]
+    assert texts[3:] in ([], ["atlas d1: pose lost (stopping)"])  # the stop may come before or after expiry
     lost_at = tr.status[1][0]
     assert lost_at - last_obs <= 250_000_000 + 40_000_000  # noticed within one loss check of expiry
     # ...and output resumed by itself, with the reset counter raised.
     assert len(tr.autopilot) == n_before + 1
-    assert tr.autopilot[-1][1].reset_counter == 1
+    assert tr.autopilot[-1][1].reset_counter == (tr.autopilot[0][1].reset_counter + 1) % 256
 
 
 def test_bad_observations_are_counted_and_change_nothing():

@@ -8,6 +8,7 @@ only ids present in the world file are returned (the others are counted and drop
 
 from __future__ import annotations
 
+import ctypes
 from collections import Counter
 from dataclasses import dataclass
 
@@ -15,7 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from atlas_onboard.detector.families import family, opencv_dictionary
+from atlas_onboard.detector.families import family, library_family, library_family_type, opencv_dictionary
 from atlas_onboard.detector.refine import refine_corners
 from atlas_onboard.errors import AtlasError
 
@@ -36,6 +37,10 @@ def _library_detector(families: str, threads: int, decimate: float) -> object:
     pupil-apriltags 1.0.4 can crash (SIGSEGV) when a detector is destroyed after it has found tags,
     which would take the node down with it. A detector is not thread-safe either, so each backend
     (each camera thread) gets its own; they live as long as the process (a few hundred kB each).
+
+    pupil-apriltags adds every family with 2-bit error correction, whose decoding table grows with
+    codes x bits^2: gigabytes for tagStandard52h13. Families whose table would pass
+    MAX_DECODE_ENTRIES are added here with fewer bits (:func:`correction_bits`).
     """
     try:
         import pupil_apriltags
@@ -46,7 +51,45 @@ def _library_detector(families: str, threads: int, decimate: float) -> object:
         def __del__(self) -> None:  # never destroyed: see above
             pass
 
-    return _Kept(families=families, nthreads=threads, quad_decimate=decimate, refine_edges=1)
+    # pupil-apriltags 1.0.4 adds only the first family it recognises (an if/elif chain): the others,
+    # and every family that needs fewer correction bits, are added here through its C library.
+    names = families.split()
+    first = names[0] if names and correction_bits(names[0]) == 2 else "tag16h5"
+    det = _Kept(families=first, nthreads=threads, quad_decimate=decimate, refine_edges=1)
+    det.atlas_families = []  # the families added here, kept alive with the detector
+    if first not in names:
+        det.libc.apriltag_detector_remove_family(det.tag_detector_ptr, det.tag_families[first])
+    for name in names:
+        if name == first:
+            continue
+        create = getattr(det.libc, f"{name}_create")
+        create.restype = ctypes.POINTER(library_family_type())
+        ptr = create()
+        det.libc.apriltag_detector_add_family_bits(det.tag_detector_ptr, ptr, correction_bits(name))
+        det.atlas_families.append(ptr)
+    return det
+
+
+MAX_DECODE_ENTRIES = 500_000
+"""Largest decoding table (codes x error patterns) a family gets 2-bit correction with; beyond it 1
+bit, and beyond 6 times it none (about 50 bytes an entry in the C library)."""
+
+
+def correction_bits(name: str) -> int:
+    """Bits of error correction the detector uses for the AprilTag family ``name``: 2 (the library's
+    default) unless its decoding table would exceed MAX_DECODE_ENTRIES (tagStandard41h12: 1;
+    tagStandard52h13, tagCircle49h12, tagCustom48h12: 1 or 0)."""
+    fam = library_family(name)
+    n, bits = int(fam.ncodes), int(fam.nbits)
+    if n * (1 + bits + bits * (bits - 1) // 2) <= MAX_DECODE_ENTRIES:
+        return 2
+    return 1 if n * (1 + bits) <= 6 * MAX_DECODE_ENTRIES else 0
+
+
+def _min_hamming(name: str) -> int:
+    """The family's minimum Hamming distance between codes, from its name (tag36h11: 11)."""
+    digits = name.rpartition("h")[2]
+    return int(digits) if digits.isdigit() else 0
 
 
 class AprilTagBackend:
@@ -61,12 +104,9 @@ class AprilTagBackend:
         det = self._detectors.get(float(decimate or self.decimate)) or self._detectors[self.decimate]
         out = []
         for r in det.detect(np.ascontiguousarray(gray)):
-            if (
-                r.hamming > 0
-                and family(r.tag_family.decode() if isinstance(r.tag_family, bytes) else r.tag_family).cells < 7
-            ):
-                continue  # small families with bit errors give false ids too easily
             fam = r.tag_family.decode() if isinstance(r.tag_family, bytes) else str(r.tag_family)
+            if r.hamming > 0 and _min_hamming(fam) < 9:
+                continue  # families of small code distance (16h5, 21h7) give false ids with bit errors
             # The library's corners start at the tag's bottom-left and use the pixel-corner origin.
             corners = np.asarray(r.corners, dtype=float)[[3, 2, 1, 0]] - 0.5
             out.append(Detection(int(r.tag_id), fam, corners, float(r.decision_margin)))

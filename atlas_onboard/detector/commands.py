@@ -108,17 +108,19 @@ def _cmd_markers(args: argparse.Namespace) -> int:
 
 def marker_svg(family_name: str, marker_id: int, size_m: float) -> str:
     """One marker at its exact physical size (print at 100 %): the black square is ``size_m`` wide,
-    inside a white quiet zone of one cell, with the id and family printed below."""
+    inside a white quiet zone of one cell, with the id and family printed below. (For the AprilTag 3
+    families whose data bits lie outside that square, the printed pattern is larger than it.)"""
     fam = family(family_name)
     bmp = fam.bitmap(marker_id, cell_px=1, quiet_zone_cells=0)  # one pixel a cell, black border included
+    cells = bmp.shape[0]
     cell_mm = size_m * 1000 / fam.cells
     quiet = cell_mm
-    side = size_m * 1000 + 2 * quiet
+    side = cells * cell_mm + 2 * quiet
     height = side + 12
     cell = f'width="{cell_mm:.4f}" height="{cell_mm:.4f}"'
     rects = [
         f'<rect x="{quiet + c * cell_mm:.4f}" y="{quiet + r * cell_mm:.4f}" {cell}/>'
-        for r in range(fam.cells) for c in range(fam.cells) if bmp[r, c] < 128
+        for r in range(cells) for c in range(cells) if bmp[r, c] < 128
     ]  # fmt: skip
     return (
         f'<svg xmlns="http://www.w3.org/2000/svg" width="{side:.4f}mm" height="{height:.4f}mm"'

@@ -193,7 +193,7 @@ def prepare(camera: Camera, supersample: int = 4) -> None:
 def _marker_box(camera: Camera, view: MarkerView) -> tuple[int, int, int, int] | None:
     """The pixel box (x0, y0, x1, y1, inclusive) the marker with its quiet zone covers, or None."""
     fam = family(view.family)
-    h = view.size_m * (fam.cells + 2) / fam.cells / 2
+    h = view.size_m * fam.printed_cells / fam.cells / 2
     outline = np.array([[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]])
     M = view.T_camera_marker.as_matrix()
     pts = outline @ M[:3, :3].T + M[:3, 3]
@@ -220,7 +220,7 @@ def draw_marker(
     bmp = _bitmap(view.family, view.marker_id)
     fam = family(view.family)
     n_px = bmp.shape[0]  # bitmap side in pixels, quiet zone included
-    side_m = view.size_m * (fam.cells + 2) / fam.cells  # printed size with the quiet zone
+    side_m = view.size_m * fam.printed_cells / fam.cells  # printed size with the quiet zone
     h = side_m / 2
     s, step = supersample, GRID_STEP
     # Start the region on a point of the cached grid: sample 0 of the region is global sample x0 * s,

@@ -182,7 +182,10 @@ class CameraWorker(SensorWorker):
             try:
                 self._consume(source, deliver)
                 if not source.live:
-                    _logger.info("camera %s: end of %s", self.name, self.camera.source)
+                    if self._stop.is_set():  # asked to stop, not out of frames
+                        _logger.info("camera %s: stopped", self.name)
+                    else:
+                        _logger.info("camera %s: end of %s", self.name, self.camera.source)
                     return
             except SourceError as exc:
                 self.counts["source_failures"] += 1

@@ -36,6 +36,10 @@ MAV_FRAME_LOCAL_FRD = 20
 MAV_ESTIMATOR_TYPE_VISION = 2
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_AUTOPILOT_INVALID = 8
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAV_AUTOPILOT_PX4 = 12
+MAV_CMD_REQUEST_MESSAGE = 512
+MSG_GPS_GLOBAL_ORIGIN = 49
 MAV_STATE_ACTIVE = 4
 MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
 
@@ -298,8 +302,10 @@ def odometry_fields(
     return odometry_from_ned(T_ned_frd.translation, T_ned_frd.rotation, capture_time_us, reset_counter, cov, quality)
 
 
-def heartbeat_fields() -> dict[str, Any]:
-    """HEARTBEAT of a companion computer: MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, active.
+def heartbeat_fields(system_status: int = MAV_STATE_ACTIVE) -> dict[str, Any]:
+    """HEARTBEAT of a companion computer: MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, and
+    ``system_status`` the own pose's state: MAV_STATE_STANDBY (3) before the first pose,
+    MAV_STATE_ACTIVE (4) while a fresh pose goes out, MAV_STATE_CRITICAL (5) once it is lost.
 
     The system and component ids are the link's (the autopilot's system id, component 197 by default).
     """
@@ -308,21 +314,55 @@ def heartbeat_fields() -> dict[str, Any]:
         "autopilot": MAV_AUTOPILOT_INVALID,
         "base_mode": 0,
         "custom_mode": 0,
-        "system_status": MAV_STATE_ACTIVE,
+        "system_status": int(system_status),
         "mavlink_version": 3,
     }
 
 
-def timesync_reply(tc1: int, ts1: int, now_wall_ns: int) -> dict[str, Any] | None:
-    """The answer to a TIMESYNC request, or None when the message is not a request.
+TELEMETRY_NAMES = ("atl_sigma", "atl_det_hz", "atl_lat_ms", "atl_peers")
+"""NAMED_VALUE_FLOAT names (MAVLink allows 10 characters): the own pose's position sigma (m, NaN
+without a pose), the own cameras' observations per second, the mean capture-to-send latency of the
+poses sent to the autopilot (ms, NaN when none was sent) and the peers heard within 3 s."""
 
-    A request has ``tc1 == 0`` and the sender's time in ``ts1``; the answer echoes ``ts1`` and puts our
-    time in ``tc1``, in nanoseconds of the clock our ``usec`` stamps use (UNIX epoch): PX4 estimates
-    the offset between the two clocks from it and applies it to every VISION_POSITION_ESTIMATE.usec.
+
+def telemetry_values(sigma_m: float, detections_hz: float, latency_ms: float, peers: int) -> list[tuple[str, float]]:
+    """The (name, value) pairs of the ground-station telemetry, in TELEMETRY_NAMES order."""
+    return list(
+        zip(TELEMETRY_NAMES, (float(sigma_m), float(detections_hz), float(latency_ms), float(peers)), strict=True)
+    )
+
+
+def quality_from_covariance(cov: np.ndarray) -> int:
+    """ODOMETRY.quality (percent) of a pose with a 6x6 covariance (x y z first, m^2): the mapping of
+    :func:`quality_percent` applied to the position's standard deviation along its worst direction
+    (the square root of the largest eigenvalue of the 3x3 position block). 0 (unknown) for a
+    covariance that is not finite or not positive semi-definite; never -1 (failed) for a pose."""
+    c = np.asarray(cov, dtype=float)
+    if c.shape != (6, 6) or not _finite(c):
+        return 0
+    worst = float(np.linalg.eigvalsh(0.5 * (c[:3, :3] + c[:3, :3].T))[-1])
+    return quality_percent(math.sqrt(worst)) if worst > 0.0 else 0
+
+
+def timesync_reply(
+    tc1: int, ts1: int, now_wall_ns: int, requester: tuple[int, int], own_system: int, target_system: int = 0
+) -> dict[str, Any] | None:
+    """The answer to a TIMESYNC request, addressed to its sender, or None when there is none to give.
+
+    A request has ``tc1 == 0`` and the sender's time in ``ts1``; the answer echoes ``ts1``, puts our
+    time in ``tc1`` (nanoseconds of the clock our ``usec`` stamps use, UNIX epoch: PX4 estimates the
+    offset between the two clocks from it) and names the requester (system, component) in its
+    target fields. A reply (``tc1 != 0``) or a request addressed to another system than
+    ``own_system`` (``target_system`` 0 is a broadcast) is not answered.
     """
-    if tc1 != 0:
+    if tc1 != 0 or target_system not in (0, own_system):
         return None
-    return {"tc1": int(now_wall_ns), "ts1": int(ts1)}
+    return {
+        "tc1": int(now_wall_ns),
+        "ts1": int(ts1),
+        "target_system": int(requester[0]) & 0xFF,
+        "target_component": int(requester[1]) & 0xFF,
+    }
 
 
 def set_gps_global_origin_fields(
@@ -340,4 +380,21 @@ def set_gps_global_origin_fields(
         "longitude": round(lon_deg * 1e7),
         "altitude": round(alt_m * 1000.0),
         "time_usec": max(int(time_usec), 0),
+    }
+
+
+def request_message_fields(target_system: int, target_component: int, message_id: int) -> dict[str, Any]:
+    """COMMAND_LONG MAV_CMD_REQUEST_MESSAGE: ask the target to send message ``message_id`` once."""
+    return {
+        "target_system": int(target_system) & 0xFF,
+        "target_component": int(target_component) & 0xFF,
+        "command": MAV_CMD_REQUEST_MESSAGE,
+        "confirmation": 0,
+        "param1": float(message_id),
+        "param2": 0.0,
+        "param3": 0.0,
+        "param4": 0.0,
+        "param5": 0.0,
+        "param6": 0.0,
+        "param7": 0.0,
     }

@@ -275,7 +275,10 @@ def odometry_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:
     estimates them, else NaN (unknown)."""
     p_ned, R_ned_frd = ned_pose(pose)
     cov = _pose_covariance_21(pose)
-    quality = quality_percent(pose.sigma_m)
+    # quality from the covariance's worst position axis when the pose has one (EKF2_EV_QMIN reads it)
+    quality = autopilot.quality_from_covariance(pose.covariance) if pose.covariance is not None else None
+    if not quality:
+        quality = quality_percent(pose.sigma_m)
     fields = autopilot.odometry_from_ned(p_ned, R_ned_frd, pose.capture_time_us, reset_counter, cov, quality)
     if pose.velocity_m_s is not None:
         M_frd_ned = R_ned_frd.as_matrix().T

@@ -64,9 +64,11 @@ def _generate(target: Path) -> None:
     definitions = definitions_dir()
     with tempfile.TemporaryDirectory(prefix="atlas-mavgen-") as tmp:
         work = Path(tmp)
-        for name in ("common.xml", "standard.xml", "minimal.xml"):  # common.xml includes the other two
+        for name in _INCLUDED:
             if (definitions / name).exists():
                 shutil.copy(definitions / name, work / name)
+        common = work / "common.xml"
+        common.write_text(patch_common(common.read_text(encoding="utf-8")), encoding="utf-8")
         shutil.copy(XML, work / "atlas.xml")
         out = work / "atlas_dialect.py"
         opts = mavgen.Opts(str(out), wire_protocol="2.0", language="Python3", validate=True)
@@ -82,9 +84,83 @@ def _generate(target: Path) -> None:
         os.replace(staged, target)
 
 
+_INCLUDED = ("development.xml", "common.xml", "standard.xml", "minimal.xml")  # each includes the next
+
+# Messages of common.xml that PX4 sends on every link and pymavlink 2.4.x's copy lacks (they would
+# count as unknown ids): TIME_ESTIMATE_TO_TARGET (1 Hz), EVENT and CURRENT_EVENT_SEQUENCE (every
+# 3 s). Added where the shipped file has no message of that id; CRC extras 232, 160, 106 (tested).
+_COMMON_ADDITIONS = {
+    380: """<message id="380" name="TIME_ESTIMATE_TO_TARGET">
+      <description>Time estimates for events and actions given the current vehicle state.</description>
+      <field type="int32_t" name="safe_return" units="s">Time to complete the safe return (-1: none).</field>
+      <field type="int32_t" name="land" units="s">Time to complete LAND (-1: none).</field>
+      <field type="int32_t" name="mission_next_item" units="s">Time for the active mission item (-1: none).</field>
+      <field type="int32_t" name="mission_end" units="s">Time for the current mission (-1: none).</field>
+      <field type="int32_t" name="commanded_action" units="s">Time for the commanded action (-1: none).</field>
+    </message>
+  """,
+    410: """<message id="410" name="EVENT">
+      <description>Event message (the events interface).</description>
+      <field type="uint8_t" name="destination_component">Component ID</field>
+      <field type="uint8_t" name="destination_system">System ID</field>
+      <field type="uint32_t" name="id">Event ID (as defined in the component metadata)</field>
+      <field type="uint32_t" name="event_time_boot_ms" units="ms">Time since boot when the event happened.</field>
+      <field type="uint16_t" name="sequence">Sequence number.</field>
+      <field type="uint8_t" name="log_levels">Log levels (internal, external).</field>
+      <field type="uint8_t[40]" name="arguments">Arguments (depend on event ID).</field>
+    </message>
+  """,
+    411: """<message id="411" name="CURRENT_EVENT_SEQUENCE">
+      <description>Regular broadcast of the current event sequence number.</description>
+      <field type="uint16_t" name="sequence">Sequence number.</field>
+      <field type="uint8_t" name="flags">Flag bitset.</field>
+    </message>
+  """,
+}
+
+# TIMESYNC's extension fields (common.xml since 2023; pymavlink 2.4.x ships the description without
+# them): a reply names the requester. Extensions leave the CRC extra unchanged, so a peer without
+# them reads the same message.
+_TIMESYNC_TARGETS = (
+    '<extensions/><field type="uint8_t" name="target_system">Target system id.</field>'
+    '<field type="uint8_t" name="target_component">Target component id.</field>'
+)
+_TIMESYNC_RE = re.compile(r'(<message id="111" name="TIMESYNC">.*?)(</message>)', re.S)
+
+
+def patch_common(text: str) -> str:
+    """common.xml as the node needs it: TIMESYNC with its target fields and the messages of
+    _COMMON_ADDITIONS, where the shipped file lacks them."""
+    m = _TIMESYNC_RE.search(text)
+    if m is not None and 'name="target_system"' not in m.group(1):
+        text = text[: m.start(2)] + _TIMESYNC_TARGETS + text[m.start(2) :]
+    for msg_id, xml in _COMMON_ADDITIONS.items():
+        if f'<message id="{msg_id}"' not in text and "</messages>" in text:
+            end = text.rindex("</messages>")
+            text = text[:end] + xml + text[end:]
+    return text
+
+
+def known_elsewhere() -> frozenset[int]:
+    """Message ids that some dialect shipped with pymavlink defines (ardupilotmega.xml's AHRS,
+    EKF_STATUS_REPORT, ...): what an autopilot of that dialect sends and ours does not decode. An
+    unknown id outside them is one no public dialect of this pymavlink defines. Read once."""
+    with _lock:
+        known = _cache.get("known_elsewhere")
+        if known is None:
+            ids: set[int] = set()
+            for path in definitions_dir().glob("*.xml"):
+                with contextlib.suppress(OSError, UnicodeDecodeError):
+                    ids.update(int(i) for i in re.findall(r'<message id="(\d+)"', path.read_text(encoding="utf-8")))
+            known = _cache["known_elsewhere"] = frozenset(ids)
+    return known
+
+
 def digest() -> str:
-    """The cache key: atlas.xml, common.xml and pymavlink's version (any change regenerates)."""
+    """The cache key: atlas.xml, common.xml (as patched) and pymavlink's version (any change regenerates)."""
     h = hashlib.sha256(XML.read_bytes())
+    h.update(_TIMESYNC_TARGETS.encode() + "".join(_COMMON_ADDITIONS.values()).encode())
+    h.update((definitions_dir() / "development.xml").read_bytes())
     h.update((definitions_dir() / "common.xml").read_bytes())
     h.update(pymavlink.__version__.encode())
     return h.hexdigest()[:16]

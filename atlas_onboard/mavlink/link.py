@@ -419,8 +419,11 @@ class Link:
             self.counters.inc("rejected_bad_signature" if "signature" in reason else "rejected_bad_data")
             return False
         if type(msg).__name__ == "MAVLink_unknown" or kind.startswith("UNKNOWN"):
-            # pymavlink returns unknown ids before any CRC or signature check: never trust them.
-            self.counters.inc("rejected_unknown_id")
+            # pymavlink returns unknown ids before any CRC or signature check: never trust them. An id
+            # another public dialect defines (ArduPilot's AHRS, ...) is only not ours to read.
+            msg_id = kind.rpartition("_")[2]  # pymavlink names it UNKNOWN_<id>
+            other = msg_id.isdigit() and int(msg_id) in dialect.known_elsewhere()
+            self.counters.inc("rx_other_dialect" if other else "rejected_unknown_id")
             return False
         self.counters.inc(f"rx_{kind.lower()}")
         return True

@@ -18,7 +18,7 @@ from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, dialect
 from atlas_onboard.mavlink.gate import OriginBinding, OriginRefusal, PeerGate, ReportLimiter, TokenBucket
 from atlas_onboard.mavlink.link import Counters, Link
-from atlas_onboard.publisher import AutopilotPose
+from atlas_onboard.publisher import AutopilotPose, PoseState, Telemetry
 
 _logger = logging.getLogger(__name__)
 
@@ -29,6 +29,10 @@ MAV_TYPE_ONBOARD_CONTROLLER = autopilot.MAV_TYPE_ONBOARD_CONTROLLER
 MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
 PEER_LOST_NS = 3 * NS
 REPORT_EVERY_S = 10.0  # a STATUSTEXT or a warning of one reason goes out at most this often
+MAV_AUTOPILOT_PX4 = autopilot.MAV_AUTOPILOT_PX4
+MAV_COMP_ID_AUTOPILOT1 = 1
+ORIGIN_REQUEST_NS = NS // 2  # GPS_GLOBAL_ORIGIN asked for this often until the autopilot reports one
+ORIGIN_UNANSWERED = 2  # requests unanswered before SET_GPS_GLOBAL_ORIGIN (then twice as many each time)
 
 
 class MavlinkTransport:
@@ -66,8 +70,15 @@ class MavlinkTransport:
         self._lock = threading.Lock()
         self._next_heartbeat_ns = 0
         self._next_origin_ns = 0
+        self._origin_unanswered = 0  # origin requests since the last SET_GPS_GLOBAL_ORIGIN, unanswered
+        self._origin_sets = 0
+        self._origin_skipped = False
         self.origin_known = False
-        self.autopilot_system: int | None = None
+        self.pose_state = PoseState.NONE
+        self._start_ns = time.monotonic_ns()
+        self.autopilot_system: int | None = None  # from the autopilot's HEARTBEAT
+        self.autopilot_component: int | None = None
+        self.autopilot_type: int | None = None  # MAV_AUTOPILOT_* (PX4 12, ArduPilot 3)
         self.peers_seen: dict[int, int] = {}  # system id -> last arrival (ns)
         self._peers_alive: set[int] = set()
         self._fingerprint_warned: set[int] = set()
@@ -154,7 +165,7 @@ class MavlinkTransport:
             return
         self.autopilot.send(msg)
         if speed is not None:
-            self.autopilot.send(speed)  # with the EKF: its velocity, for EK3_SRC1_VELXY=6 / EKF2_EV_CTRL bit 2
+            self.autopilot.send(speed)  # the EKF velocity, for ArduPilot (EK3_SRC1_VELXY=6); PX4 ignores it
 
     def send_status(self, text: str, severity: int, reason: str | None = None) -> None:
         """STATUSTEXT on every link, at most one per ``reason`` (default: the text) per REPORT_EVERY_S;
@@ -172,21 +183,69 @@ class MavlinkTransport:
                 )
             )
 
+    def set_pose_state(self, state: PoseState) -> None:
+        """The HEARTBEAT's system_status from now on (STANDBY, ACTIVE, CRITICAL)."""
+        self.pose_state = state
+
+    def send_telemetry(self, telemetry: Telemetry) -> None:
+        """NAMED_VALUE_FLOAT on every peer link (the ground station's): names in TELEMETRY_NAMES."""
+        time_boot_ms = (time.monotonic_ns() - self._start_ns) // 1_000_000 & 0xFFFFFFFF
+        values = autopilot.telemetry_values(
+            telemetry.sigma_m, telemetry.detections_hz, telemetry.latency_ms, len(self._peers_alive)
+        )
+        for link in self.peers:
+            msgs = [
+                link.dialect.MAVLink_named_value_float_message(time_boot_ms, name.encode("ascii"), value)
+                for name, value in values
+            ]
+            link.send_many(msgs)
+
     def tick(self, now_ns: int) -> None:
         self._peer_changes(now_ns)
         if now_ns >= self._next_heartbeat_ns:
             self._next_heartbeat_ns = now_ns + int(NS / self.config.heartbeat_hz)
             for link in self._links():
-                link.send(link.dialect.MAVLink_heartbeat_message(**autopilot.heartbeat_fields()))
+                link.send(link.dialect.MAVLink_heartbeat_message(**autopilot.heartbeat_fields(int(self.pose_state))))
+        self._origin_tick(now_ns)
+
+    def _origin_tick(self, now_ns: int) -> None:
+        """The EKF origin: asked for (MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) every
+        ORIGIN_REQUEST_NS until the autopilot reports one; set (SET_GPS_GLOBAL_ORIGIN) only after
+        ORIGIN_UNANSWERED requests went unanswered, each later set after twice as many. ArduPilot
+        with an origin ignores SET_GPS_GLOBAL_ORIGIN without a word, so sending it blindly would only
+        repeat. PX4 needs no origin to hold position, and v1.16 shifts its local height by a new
+        origin's altitude once height is initialised (ekf2 ``setAltOrigin``): it gets one only with
+        ``origin.send_to_px4``, and then at altitude 0, where neither branch of that rule moves the
+        local frame (an origin altitude of 0 or none)."""
         ap = self.config.autopilot
-        if ap is not None and ap.origin is not None and not self.origin_known and now_ns >= self._next_origin_ns:
-            self._next_origin_ns = now_ns + NS
-            if self.autopilot is not None:
-                fields = autopilot.set_gps_global_origin_fields(
-                    self.autopilot_system or self.config.system_id, ap.origin.lat_deg, ap.origin.lon_deg,
-                    ap.origin.alt_m, int(self.wall() * 1e6),
-                )  # fmt: skip
-                self.autopilot.send(self.autopilot.dialect.MAVLink_set_gps_global_origin_message(**fields))
+        if ap is None or ap.origin is None or self.origin_known or self.autopilot is None:
+            return
+        if self.autopilot_type is None or now_ns < self._next_origin_ns:
+            return  # the autopilot's HEARTBEAT first: what to send depends on which autopilot it is
+        px4 = self.autopilot_type == MAV_AUTOPILOT_PX4
+        if px4 and not ap.origin.send_to_px4:
+            if not self._origin_skipped:
+                self._origin_skipped = True
+                _logger.info("PX4 needs no EKF origin to hold position: autopilot.origin not sent (see send_to_px4)")
+            return
+        self._next_origin_ns = now_ns + ORIGIN_REQUEST_NS
+        target = self.autopilot_system if self.autopilot_system is not None else self.config.system_id
+        d = self.autopilot.dialect
+        if self._origin_unanswered >= ORIGIN_UNANSWERED << min(self._origin_sets, 4):
+            alt_m = 0.0 if px4 else ap.origin.alt_m
+            fields = autopilot.set_gps_global_origin_fields(
+                target, ap.origin.lat_deg, ap.origin.lon_deg, alt_m, int(self.wall() * 1e6)
+            )
+            self.autopilot.send(d.MAVLink_set_gps_global_origin_message(**fields))
+            self.counters_.inc("origin_set_sent")
+            self._origin_sets += 1
+            self._origin_unanswered = 0
+            _logger.info("autopilot reports no EKF origin: SET_GPS_GLOBAL_ORIGIN sent (altitude %.1f m)", alt_m)
+        fields = autopilot.request_message_fields(
+            target, self.autopilot_component or 0, autopilot.MSG_GPS_GLOBAL_ORIGIN
+        )
+        self.autopilot.send(d.MAVLink_command_long_message(**fields))
+        self._origin_unanswered += 1
 
     def _peer_changes(self, now_ns: int) -> None:
         """STATUSTEXT and a log line when a peer appears or falls silent for PEER_LOST_S."""
@@ -223,23 +282,42 @@ class MavlinkTransport:
     def _on_autopilot(self, link: Link, msg: Any, arrival_ns: int) -> None:
         kind = msg.get_type()
         if kind == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
+            source = (msg.get_srcSystem(), msg.get_srcComponent())
+            if self.autopilot_system is not None and source != (self.autopilot_system, self.autopilot_component):
+                if source[1] != MAV_COMP_ID_AUTOPILOT1:
+                    return  # another component of the vehicle (a gimbal, a camera): the autopilot stays
             if self.autopilot_system is None:
-                _logger.info("autopilot found: system %d, component %d", msg.get_srcSystem(), msg.get_srcComponent())
+                _logger.info(
+                    "autopilot found: system %d, component %d, autopilot type %d",
+                    msg.get_srcSystem(), msg.get_srcComponent(), msg.autopilot,
+                )  # fmt: skip
                 if msg.get_srcSystem() != self.config.system_id:
                     _logger.warning(
                         "autopilot's system id %d differs from system_id %d in the node settings",
                         msg.get_srcSystem(), self.config.system_id,
                     )  # fmt: skip
             self.autopilot_system = msg.get_srcSystem()
+            self.autopilot_component = msg.get_srcComponent()
+            self.autopilot_type = msg.autopilot
         elif kind == "TIMESYNC":
-            # Answer the autopilot's time-sync request (PX4 trusts our usec only once this converges),
-            # on the wall clock: the clock of the capture times we send as usec.
-            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, self._wall_ns())
+            # Answer only the autopilot's own requests (PX4 trusts our usec once this converges), on
+            # the wall clock of our usec stamps, addressed to it: behind a router a GCS's or MAVSDK's
+            # request also arrives here, and an answer to it would reach PX4 as a bogus reply.
+            requester = (msg.get_srcSystem(), msg.get_srcComponent())
+            if requester != (self.autopilot_system, self.autopilot_component):
+                if msg.tc1 == 0:
+                    self.counters_.inc("timesync_not_from_autopilot")
+                return
+            target = getattr(msg, "target_system", 0)
+            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, self._wall_ns(), requester, link.system_id, target)
             if reply is not None:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind == "GPS_GLOBAL_ORIGIN":
             if not self.origin_known:
-                _logger.info("autopilot reports its EKF origin; no more SET_GPS_GLOBAL_ORIGIN")
+                _logger.info(
+                    "autopilot reports its EKF origin (%.7f, %.7f, %.1f m): no more requests",
+                    msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3,
+                )  # fmt: skip
             self.origin_known = True
 
     def _on_peer(self, index: int, link: Link, msg: Any, arrival_ns: int) -> None:

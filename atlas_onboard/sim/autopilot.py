@@ -5,6 +5,13 @@ HEARTBEAT at 1 Hz from its system id (component 1), answers TIMESYNC requests, a
 VISION_POSITION_ESTIMATE and ODOMETRY it receives with the arrival time, the sender and the fields.
 It speaks plain ``common.xml`` MAVLink 2 through pymavlink's parser: it is the stand-in for another
 program, so it deliberately shares no code with the node's transport.
+
+The EKF origin as each autopilot handles it (``autopilot_type``): it answers MAV_CMD_REQUEST_MESSAGE
+for GPS_GLOBAL_ORIGIN (id 49) when it has an origin. ArduPilot takes SET_GPS_GLOBAL_ORIGIN only
+while it has none and ignores it silently afterwards (4.8). PX4 takes every one, and moves its
+local frame as ekf2's ``setAltOrigin`` (v1.16) does: with an origin altitude already set (0 once
+height is initialised on vision), a new altitude A shifts local z (NED) by A minus the old one;
+with none set, the local height is kept (``local_z_shift_m`` accumulates the shift).
 """
 
 from __future__ import annotations
@@ -12,6 +19,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import logging
+import math
 import socket
 import struct
 import sys
@@ -76,10 +84,16 @@ class SimAutopilot:
     autopilot_type: int = mavlink.MAV_AUTOPILOT_PX4
     received: list[Received] = field(default_factory=list)
     heartbeats_from: dict[tuple[int, int], int] = field(default_factory=dict)
+    heartbeat_states: list[tuple[tuple[int, int], int]] = field(default_factory=list)  # (sender, system_status)
     timesync_answered: int = 0
+    timesync_replies: list[tuple[int, int, int, int]] = field(default_factory=list)  # tc1, ts1, target sys, comp
     other: dict[str, int] = field(default_factory=dict)
     statustexts: list[bytes] = field(default_factory=list)
     last: dict[str, object] = field(default_factory=dict)  # the last message of each other kind
+    origin: tuple[float, float, float] | None = None  # the EKF origin (lat deg, lon deg, alt m)
+    px4_origin_alt_m: float = 0.0  # PX4's origin altitude (NaN: none yet); 0 once height is set on vision
+    local_z_shift_m: float = 0.0  # how far the origin's altitude moved PX4's local frame (NED z)
+    origin_requests: int = 0  # MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN received
 
     def __post_init__(self) -> None:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM if self.tcp else socket.SOCK_DGRAM)
@@ -125,17 +139,19 @@ class SimAutopilot:
         with self._lock:
             return list(self.received)
 
-    def send(self, msg: mavlink.MAVLink_message) -> None:
-        """Send a message to the node (e.g. a TIMESYNC request or GPS_GLOBAL_ORIGIN), from the autopilot."""
-        self._send(msg)
+    def send(self, msg: mavlink.MAVLink_message, source: tuple[int, int] | None = None) -> None:
+        """Send a message to the node (e.g. a TIMESYNC request or GPS_GLOBAL_ORIGIN), from the autopilot,
+        or with ``source`` (system, component) from another program behind it (a GCS through a router)."""
+        self._send(msg, source)
 
-    def _send(self, msg: mavlink.MAVLink_message) -> None:
+    def _send(self, msg: mavlink.MAVLink_message, source: tuple[int, int] | None = None) -> None:
+        mav = self._mav if source is None else mavlink.MAVLink(None, srcSystem=source[0], srcComponent=source[1])
         try:
             if self.tcp:
                 if self._client is not None:
-                    self._client.sendall(msg.pack(self._mav))
+                    self._client.sendall(msg.pack(mav))
             elif self._peer is not None:
-                self._sock.sendto(msg.pack(self._mav), self._peer)
+                self._sock.sendto(msg.pack(mav), self._peer)
         except OSError:
             pass
 
@@ -197,11 +213,16 @@ class SimAutopilot:
         if kind == "HEARTBEAT":
             key = (msg.get_srcSystem(), msg.get_srcComponent())
             self.heartbeats_from[key] = self.heartbeats_from.get(key, 0) + 1
+            self.heartbeat_states.append((key, msg.system_status))
         elif kind == "TIMESYNC" and msg.tc1 == 0:
             self._send(self._mav.timesync_encode(time.monotonic_ns(), msg.ts1))
             self.timesync_answered += 1
         elif kind == "TIMESYNC":
             self.last[kind] = msg  # the node's answer to our request
+            # Its target fields are extensions this pymavlink's common.xml lacks: read from the
+            # payload (after tc1 and ts1; MAVLink 2 trims trailing zero bytes).
+            payload = bytes(msg.get_msgbuf()[10 : 10 + msg.get_msgbuf()[1]]).ljust(18, b"\0")
+            self.timesync_replies.append((msg.tc1, msg.ts1, payload[16], payload[17]))
         elif kind == "VISION_POSITION_ESTIMATE":
             rec = Received(
                 arrival,
@@ -239,6 +260,27 @@ class SimAutopilot:
         else:
             self.other[kind] = self.other.get(kind, 0) + 1
             self.last[kind] = msg
+            if kind == "SET_GPS_GLOBAL_ORIGIN" and msg.target_system == self.system_id:
+                self._set_origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+            elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == 49:
+                self.origin_requests += 1
+                self._send_origin()
             if kind == "STATUSTEXT":
                 text = msg.text
                 self.statustexts.append(text.encode() if isinstance(text, str) else bytes(text))
+
+    def _set_origin(self, lat_deg: float, lon_deg: float, alt_m: float) -> None:
+        if self.autopilot_type == mavlink.MAV_AUTOPILOT_PX4:
+            if math.isfinite(self.px4_origin_alt_m):  # setAltOrigin: the origin moves, the state does not
+                self.local_z_shift_m += alt_m - self.px4_origin_alt_m
+            self.px4_origin_alt_m = alt_m
+            self.origin = (lat_deg, lon_deg, alt_m)
+            self._send_origin()  # PX4 answers with GPS_GLOBAL_ORIGIN
+        elif self.origin is None:  # ArduPilot: only while it has none, silently ignored afterwards
+            self.origin = (lat_deg, lon_deg, alt_m)
+            self._send_origin()
+
+    def _send_origin(self) -> None:
+        if self.origin is not None:
+            lat, lon, alt = self.origin
+            self._send(self._mav.gps_global_origin_encode(round(lat * 1e7), round(lon * 1e7), round(alt * 1e3), 0))

@@ -246,3 +246,29 @@ def test_an_http_camera_that_hangs_up_is_reopened_and_delivers_again(monkeypatch
     assert c["frames"] + c.get("frames_dropped", 0) == 8, c
     assert got and all(sorted(md.marker_id for md in image) == [13, 19] for image in got)
     assert all(len({md.capture_time_us for md in image}) == 1 for image in got)
+
+
+@pytest.mark.parametrize("stopped", [True, False])
+def test_a_file_source_says_end_only_when_it_ran_out(monkeypatch, caplog, stopped):
+    """A worker stopped while reading a folder or video logs "stopped", not "end of" the source."""
+    gray = np.zeros((48, 64), np.uint8)
+
+    class Folder(Source):
+        live = False
+
+        def frames(self):
+            for k in range(1000 if stopped else 3):
+                time.sleep(0.01)
+                yield Frame(gray, k)
+
+    monkeypatch.setattr(sources, "open_source", lambda camera, fast=False, start_us=None: Folder())
+    worker = CameraWorker("c", CameraConfig(source="/data/frames"), photo_detector())
+    with caplog.at_level("INFO", logger="atlas_onboard.detector.sources"):
+        worker.start(lambda image: None)
+        if stopped:
+            time.sleep(0.1)
+            worker.stop()
+        worker._thread.join(5)
+    said = [r.getMessage() for r in caplog.records]
+    assert ("camera c: stopped" in said) == stopped
+    assert ("camera c: end of /data/frames" in said) == (not stopped)

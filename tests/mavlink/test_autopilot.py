@@ -170,10 +170,16 @@ def test_heartbeat_fields():
     assert autopilot.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY == d.MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY == 197
 
 
-def test_timesync_answers_requests_only_on_the_given_clock():
-    reply = autopilot.timesync_reply(tc1=0, ts1=123_456_789, now_wall_ns=1_700_000_000_123_456_789)
-    assert reply == {"tc1": 1_700_000_000_123_456_789, "ts1": 123_456_789}
-    assert autopilot.timesync_reply(tc1=5, ts1=1, now_wall_ns=9) is None  # a reply, not a request
+def test_timesync_answers_requests_only_on_the_given_clock_addressed_to_the_requester():
+    reply = autopilot.timesync_reply(0, 123_456_789, 1_700_000_000_123_456_789, requester=(7, 1), own_system=7)
+    assert reply == {"tc1": 1_700_000_000_123_456_789, "ts1": 123_456_789, "target_system": 7, "target_component": 1}
+    assert autopilot.timesync_reply(5, 1, 9, (7, 1), 7) is None  # a reply, not a request
+    assert autopilot.timesync_reply(0, 1, 9, (7, 1), 7, target_system=9) is None  # a request to another system
+    assert autopilot.timesync_reply(0, 1, 9, (7, 1), 7, target_system=7) is not None
+    d = dialect.load()  # the dialect carries TIMESYNC's target extension fields, on the wire and back
+    mav = d.MAVLink(None, srcSystem=7, srcComponent=197)
+    back = d.MAVLink(None).parse_char(d.MAVLink_timesync_message(**reply).pack(mav))
+    assert (back.tc1, back.ts1, back.target_system, back.target_component) == (reply["tc1"], 123_456_789, 7, 1)
 
 
 def test_origin_fields():
@@ -230,3 +236,28 @@ def test_covariance_21_from_enu_flu_refuses_bad_matrices(bad, message):
         autopilot.covariance_upper_triangle(autopilot.covariance_ned_frd(bad) if bad.shape == (6, 6) else bad)
     with pytest.raises(AtlasError, match=message):
         autopilot.covariance_21_from_enu_flu(bad)
+
+
+def test_quality_from_covariance_follows_the_worst_position_axis():
+    iso_1cm = np.diag([1e-4] * 3 + [1e-3] * 3)
+    assert autopilot.quality_from_covariance(iso_1cm) == 100
+    tall = np.diag([1e-4, 1e-4, 0.1**2] + [1e-3] * 3)  # 1 cm across, 10 cm along z
+    assert autopilot.quality_from_covariance(tall) == autopilot.quality_percent(0.1) == 41
+    # A correlated block: its worst direction is the largest eigenvalue's, not any diagonal entry.
+    R = Rotation.from_euler("z", 45, degrees=True).as_matrix()
+    rotated = np.eye(6) * 1e-3
+    rotated[:3, :3] = R @ np.diag([0.2**2, 0.01**2, 0.01**2]) @ R.T
+    assert max(rotated[0, 0], rotated[1, 1]) < 0.2**2 * 0.51  # each diagonal entry is about half of it
+    assert autopilot.quality_from_covariance(rotated) == autopilot.quality_percent(0.2)
+    assert autopilot.quality_from_covariance(np.full((6, 6), np.nan)) == 0  # unknown, never -1
+
+
+def test_odometry_quality_comes_from_the_covariance():
+    cov = np.diag([1e-4, 1e-4, 0.3**2] + [1e-3] * 3)  # the pose's sigma says 1 cm; z is 30 cm
+    p = EntityPose("d1", np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), 1, 1, 1, 0.01, 5, covariance=cov)
+    assert codec.odometry_fields(p, 0)["quality"] == autopilot.quality_percent(0.3) < 100
+
+
+def test_heartbeat_status_follows_the_pose():
+    assert [autopilot.heartbeat_fields(s)["system_status"] for s in (3, 4, 5)] == [3, 4, 5]
+    assert all(len(name) <= 10 for name in autopilot.TELEMETRY_NAMES)

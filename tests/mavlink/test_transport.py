@@ -187,25 +187,105 @@ def test_refusals_are_counted_and_nothing_raises(rig):
 
 def test_timesync_answered_on_the_wall_clock_and_origin_until_known(rig):
     _, transport, ap, _, _ = rig
-    for now_ns in (0, 400_000_000, 1_000_000_000):  # origin at 1 Hz, heartbeats at 2 Hz
+    transport.tick(0)
+    ap.pump(0.2)
+    ap.send(D.MAVLink_heartbeat_message(2, 3, 0, 0, 3, 3))  # ArduPilot (MAV_AUTOPILOT_ARDUPILOTMEGA)
+    assert wait_for(lambda: transport.autopilot_type == 3)
+    # Asked for every 0.5 s; set after two requests went unanswered, together with a third request.
+    for now_ns in (400_000_000, 1_000_000_000, 1_500_000_000):  # heartbeats at 2 Hz
         transport.tick(now_ns)
     ap.pump(0.3)
-    assert len(ap.of("HEARTBEAT")) == 2  # at 0 and 1 s (0.4 s is before the 0.5 s period)
+    assert len(ap.of("HEARTBEAT")) == 3  # at 0, 1 and 1.5 s (0.4 s is within the 0.5 s period)
     hb = ap.of("HEARTBEAT")[0]
     assert (hb.type, hb.autopilot, hb.get_srcSystem(), hb.get_srcComponent()) == (18, 8, 1, 197)
+    requests = [m for m in ap.of("COMMAND_LONG") if m.command == 512]
+    assert [(m.param1, m.target_system, m.target_component) for m in requests] == [(49.0, 1, 1)] * 3
     origins = ap.of("SET_GPS_GLOBAL_ORIGIN")
     assert [(o.latitude, o.longitude, o.altitude, o.target_system) for o in origins] == [
         (471000000, 85000000, 400000, 1)
-    ] * 2
+    ]
     ap.send(D.MAVLink_timesync_message(0, 987_654_321))
     ap.send(D.MAVLink_gps_global_origin_message(471000000, 85000000, 400000, 0))
     ap.pump(0.3)
     (reply,) = ap.of("TIMESYNC")
     assert (reply.tc1, reply.ts1) == (1_700_000_000_250_000_000, 987_654_321)  # the wall clock of usec, in ns
+    assert (reply.target_system, reply.target_component) == (1, 1)
     assert transport.origin_known
-    transport.tick(2_000_000_000)
+    for now_ns in range(2_000_000_000, 10_000_000_000, 500_000_000):
+        transport.tick(now_ns)
     ap.pump(0.2)
-    assert len(ap.of("SET_GPS_GLOBAL_ORIGIN")) == 2  # no more once the autopilot has one
+    assert len(ap.of("SET_GPS_GLOBAL_ORIGIN")) == 1  # no more once the autopilot has one
+    assert len([m for m in ap.of("COMMAND_LONG") if m.command == 512]) == 3
+
+
+def _origin_run(sim, origin, seconds=3.0):
+    """A transport with ``origin`` against the simulated autopilot ``sim``, ticked every 0.1 s of
+    its clock for ``seconds`` (20 ms apart in real time, for the answers to arrive)."""
+    world = world_from({"entities": {"d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}]}}})
+    config = NodeConfig(
+        entity="d1",
+        system_id=1,
+        autopilot=AutopilotConfig(LinkConfig(f"udpout:127.0.0.1:{sim.port}"), origin=origin),
+    )
+    transport = MavlinkTransport(world, config)
+    transport.start(lambda items: None)
+    try:
+        transport.tick(0)  # a heartbeat: the simulated autopilot learns where the node is
+        assert wait_for(lambda: sim._peer is not None)
+        sim.send(sim._mav.heartbeat_encode(2, sim.autopilot_type, 0, 0, 3))
+        assert wait_for(lambda: transport.autopilot_type == sim.autopilot_type)
+        for k in range(1, int(seconds * 10)):
+            transport.tick(k * 100_000_000)
+            time.sleep(0.02)
+        time.sleep(0.1)
+    finally:
+        transport.close()
+    return transport
+
+
+def test_origin_after_a_restart_against_ardupilot_that_has_one_is_asked_for_never_set():
+    from atlas_onboard.sim.autopilot import SimAutopilot
+
+    sim = SimAutopilot(system_id=1, autopilot_type=3, origin=(47.1, 8.5, 400.0)).start()
+    try:
+        transport = _origin_run(sim, GlobalOrigin(49.6, 6.1, 300.0))  # the node's is another: ignored
+    finally:
+        sim.stop()
+    assert transport.origin_known
+    assert sim.other.get("SET_GPS_GLOBAL_ORIGIN", 0) == 0
+    assert sim.origin_requests == 1 and sim.origin == (47.1, 8.5, 400.0)
+
+
+def test_origin_set_once_on_ardupilot_without_one():
+    from atlas_onboard.sim.autopilot import SimAutopilot
+
+    sim = SimAutopilot(system_id=1, autopilot_type=3).start()
+    try:
+        transport = _origin_run(sim, GlobalOrigin(49.6116, 6.1319, 300.0))
+    finally:
+        sim.stop()
+    assert transport.origin_known and sim.other.get("SET_GPS_GLOBAL_ORIGIN", 0) == 1
+    assert sim.origin == pytest.approx((49.6116, 6.1319, 300.0), abs=1e-6)
+
+
+@pytest.mark.parametrize("send_to_px4", [False, True])
+def test_origin_never_moves_px4s_local_frame(send_to_px4):
+    """PX4 v1.16 (``setAltOrigin``, modelled by the simulated autopilot): an origin altitude set after
+    height initialisation shifts local z by it. The node sends none to PX4 unless asked, and then
+    one that leaves the local height where it is."""
+    from atlas_onboard.sim.autopilot import SimAutopilot
+
+    sim = SimAutopilot(system_id=1, autopilot_type=12).start()  # height initialised on vision: origin alt 0
+    try:
+        _origin_run(sim, GlobalOrigin(47.397742, 8.545594, 489.4, send_to_px4=send_to_px4), seconds=2.5)
+    finally:
+        sim.stop()
+    assert sim.local_z_shift_m == 0.0
+    if send_to_px4:
+        assert sim.other.get("SET_GPS_GLOBAL_ORIGIN", 0) == 1
+        assert sim.origin[:2] == pytest.approx((47.397742, 8.545594), abs=1e-6)
+    else:
+        assert sim.other.get("SET_GPS_GLOBAL_ORIGIN", 0) == 0 and sim.origin_requests == 0
 
 
 def test_statustext_at_most_one_per_reason(rig):
@@ -388,3 +468,33 @@ def test_a_forged_observation_never_supersedes_the_kept_one():
         transport.close()
         real.close()
         forger.close()
+
+
+def test_what_px4_and_ardupilot_stream_is_not_counted_as_unknown_ids(rig):
+    """PX4 builds with development.xml and streams CURRENT_MODE, AVAILABLE_MODES (development.xml),
+    TIME_ESTIMATE_TO_TARGET, EVENT and CURRENT_EVENT_SEQUENCE (common.xml, newer than pymavlink
+    2.4.50's copy): decoded. An
+    ArduPilot message (AHRS, id 163, ardupilotmega.xml) is counted as another dialect's; only an id
+    no public dialect defines is an unknown id."""
+    _, transport, ap, _, _ = rig
+    transport.tick(0)
+    ap.pump(0.2)
+    ap.send(D.MAVLink_current_mode_message(0, 0, 0))
+    ap.send(D.MAVLink_available_modes_message(1, 1, 0, 0, 0, b"POSCTL"))
+    ap.send(D.MAVLink_time_estimate_to_target_message(-1, -1, -1, -1, -1))
+    ap.send(D.MAVLink_current_event_sequence_message(7, 0))
+    ap.send(D.MAVLink_event_message(0, 0, 1234, 5000, 7, 0x66, [0] * 40))
+    # Those added to pymavlink's common.xml carry upstream's CRC extras (MAVLink's C headers).
+    assert [m.crc_extra for m in (D.MAVLink_time_estimate_to_target_message, D.MAVLink_event_message,
+                                  D.MAVLink_current_event_sequence_message)] == [232, 160, 106]  # fmt: skip
+    for msg_id in (163, 45000):
+        frame = bytearray(D.MAVLink_heartbeat_message(2, 3, 0, 0, 3, 3).pack(ap.mav))
+        frame[7:10] = msg_id.to_bytes(3, "little")
+        ap.sock.sendto(bytes(frame), ap.node_addr)
+    assert wait_for(lambda: transport.counters().get("autopilot_rejected_unknown_id", 0) == 1), sorted(
+        transport.counters().items()
+    )
+    c = transport.counters()
+    assert (c["autopilot_rx_current_mode"], c["autopilot_rx_available_modes"]) == (1, 1)
+    assert c["autopilot_rx_time_estimate_to_target"] == 1 and c["autopilot_rx_other_dialect"] == 1
+    assert (c["autopilot_rx_event"], c["autopilot_rx_current_event_sequence"]) == (1, 1)

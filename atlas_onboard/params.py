@@ -1,0 +1,192 @@
+"""``atlas-onboard params``: the autopilot's parameter file for one entity, derived from the world file.
+
+PX4: a QGroundControl parameter file (``Vehicle-Id Component-Id Name Value Type``, tab separated,
+``#`` comments; Vehicle Setup > Parameters > Tools > Load from file). ArduPilot: a Mission Planner
+``.param`` file (``NAME,VALUE``, ``#`` comments; Config > Full Parameter List > Load from file).
+Every value carries a comment saying where it comes from; docs/px4.md and docs/ardupilot.md explain
+each parameter.
+
+Derived from the world file: the system id, the sources (vision position, height and yaw; velocity
+only with ``fusion.filter: ekf``, and on PX4 only with ODOMETRY, the one message whose velocity PX4
+reads) and the vision sensor's offset (``EKF2_EV_POS_*`` / ``VISO_POS_*``). The node sends the pose
+of the *entity frame*, not a camera's, so the offset is where the entity frame's origin lies relative
+to the centre of gravity: zero when the world file's body frame is centred there, else ``cog_m`` (the
+centre of gravity in the entity frame, in the world file's body axes). The delay cannot be derived:
+it is ``delay_ms`` as measured (docs/px4.md section 5, docs/ardupilot.md section 3), or the
+autopilot's default with a comment saying so.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from atlas_onboard.config import AutopilotOutput, NodeConfig, WorldConfig, load_node
+from atlas_onboard.core import frames
+from atlas_onboard.errors import AtlasError
+
+AUTOPILOTS = ("px4", "ardupilot")
+MAV_PARAM_TYPE_INT32 = 6
+MAV_PARAM_TYPE_REAL32 = 9
+PX4_EV_DELAY_DEFAULT_MS = 0.0  # EKF2_EV_DELAY's default
+ARDUPILOT_VISO_DELAY_DEFAULT_MS = 10.0  # VISO_DELAY_MS's default
+
+
+@dataclass(frozen=True, slots=True)
+class Param:
+    """One parameter: name, value, whether it is an integer, and the comment written above it."""
+
+    name: str
+    value: float
+    integer: bool
+    comment: str
+
+
+def vision_offset_frd_m(world: WorldConfig, cog_m: Sequence[float]) -> np.ndarray:
+    """Position of the entity frame's origin relative to the centre of gravity, body FRD, m, shape (3,).
+
+    ``cog_m``: the centre of gravity in the entity frame, in the world file's body axes (FLU or FRD).
+    """
+    cog = np.asarray(cog_m, dtype=float)
+    if cog.shape != (3,) or not np.all(np.isfinite(cog)):
+        raise AtlasError(f"--cog-m: expected three finite numbers (metres), got {list(cog_m)!r}")
+    cog_flu = cog if world.body_convention is frames.BodyConvention.FLU else frames.R_FLU_FRD.apply(cog)
+    return frames.R_FLU_FRD.inv().apply(-cog_flu)
+
+
+def parameters(
+    world: WorldConfig,
+    node: NodeConfig,
+    autopilot: str,
+    delay_ms: float | None = None,
+    cog_m: Sequence[float] = (0.0, 0.0, 0.0),
+) -> list[Param]:
+    """The parameters of ``node``'s autopilot (``px4`` or ``ardupilot``) for vision-only flight indoors."""
+    if autopilot not in AUTOPILOTS:
+        raise AtlasError(f"--autopilot: expected one of {', '.join(AUTOPILOTS)}, got {autopilot!r}")
+    if delay_ms is not None and not 0.0 <= delay_ms <= (300.0 if autopilot == "px4" else 250.0):
+        raise AtlasError(f"--delay-ms: expected 0-{300 if autopilot == 'px4' else 250} ms, got {delay_ms:g}")
+    ekf = world.fusion.filter == "ekf"
+    odometry = node.autopilot is not None and node.autopilot.output is AutopilotOutput.ODOMETRY
+    x, y, z = (round(float(v), 4) + 0.0 for v in vision_offset_frd_m(world, cog_m))  # + 0.0: never "-0"
+    where = "the entity frame's origin relative to the centre of gravity, FRD, m"
+    measured = "measured (--delay-ms)" if delay_ms is not None else "NOT MEASURED: the default; measure it"
+    if autopilot == "px4":
+        vel = ekf and odometry
+        return [
+            Param("MAV_SYS_ID", node.system_id, True, "the node's system_id (nodes section of the world file)"),
+            Param(
+                "EKF2_EV_CTRL", 15 if vel else 11, True,
+                "vision horizontal position (1) + vertical position (2) + yaw (8)"
+                + (" + velocity (4): fusion.filter ekf with ODOMETRY output" if vel else
+                   "; no velocity (4): sent only with fusion.filter ekf, and PX4 reads it only from ODOMETRY"),
+            ),
+            Param("EKF2_HGT_REF", 3, True, "height from vision (reboot required)"),
+            Param("EKF2_GPS_CTRL", 0, True, "no GNSS indoors"),
+            Param("EKF2_MAG_TYPE", 5, True, "no magnetometer: yaw from vision (reboot required)"),
+            Param("SYS_HAS_MAG", 0, True, "so that the preflight checks do not require a magnetometer"),
+            Param("EKF2_EV_NOISE_MD", 0, True, "use the variances the node sends, EKF2_EVP/EVA_NOISE as floors"),
+            Param("EKF2_EV_QMIN", 0, True, "accept every quality (VISION_POSITION_ESTIMATE has none)"),
+            Param(
+                "EKF2_EV_DELAY", PX4_EV_DELAY_DEFAULT_MS if delay_ms is None else delay_ms, False,
+                f"ms, {measured} (docs/px4.md section 5; reboot required)",
+            ),
+            Param("EKF2_EV_POS_X", x, False, where),
+            Param("EKF2_EV_POS_Y", y, False, where),
+            Param("EKF2_EV_POS_Z", z, False, where),
+        ]  # fmt: skip
+    return [
+        Param("SYSID_THISMAV", node.system_id, True, "the node's system_id (MAV_SYSID from 4.7)"),
+        Param("AHRS_EKF_TYPE", 3, True, "EKF3"),
+        Param("EK3_ENABLE", 1, True, "EKF3"),
+        Param("VISO_TYPE", 1, True, "MAVLink visual odometry (reboot required)"),
+        Param("EK3_SRC1_POSXY", 6, True, "horizontal position from external nav"),
+        Param("EK3_SRC1_POSZ", 6, True, "height from external nav"),
+        Param(
+            "EK3_SRC1_VELXY", 6 if ekf else 0, True,
+            "velocity from external nav (fusion.filter ekf sends it)" if ekf else "no velocity: the node sends none",
+        ),
+        Param("EK3_SRC1_VELZ", 0, True, "no vertical velocity source"),
+        Param("EK3_SRC1_YAW", 6, True, "yaw from external nav"),
+        Param("COMPASS_USE", 0, True, "no compass: yaw from vision"),
+        Param("COMPASS_USE2", 0, True, "no compass: yaw from vision"),
+        Param("COMPASS_USE3", 0, True, "no compass: yaw from vision"),
+        Param("GPS1_TYPE", 0, True, "no GNSS indoors (GPS_TYPE in 4.5 and before)"),
+        Param("VISO_SCALE", 1, False, "metric positions"),
+        Param("VISO_QUAL_MIN", 0, True, "VISION_POSITION_ESTIMATE arrives with quality 0 (unknown)"),
+        Param(
+            "VISO_DELAY_MS", ARDUPILOT_VISO_DELAY_DEFAULT_MS if delay_ms is None else round(delay_ms), True,
+            f"ms, {measured} (docs/ardupilot.md section 3)",
+        ),
+        Param("VISO_POS_X", x, False, where),
+        Param("VISO_POS_Y", y, False, where),
+        Param("VISO_POS_Z", z, False, where),
+    ]  # fmt: skip
+
+
+def _number(p: Param) -> str:
+    return str(int(p.value)) if p.integer else f"{float(p.value):.6g}"
+
+
+def render(params: list[Param], autopilot: str, node: NodeConfig, world: WorldConfig) -> str:
+    """The file's text: QGroundControl's format for PX4, Mission Planner's for ArduPilot."""
+    head = [
+        f"# atlas-onboard parameters for {autopilot}, entity {node.entity} (system {node.system_id}),"
+        f" from {world.source or 'the world file'}",
+        "# Check each value before loading; reboot the flight controller afterwards.",
+    ]
+    cams = [s for s in world.sensors.values() if s.entity == node.entity]
+    for s in cams:  # for reference: the node accounts for the cameras' offsets itself
+        p = s.T_entity_sensor.translation
+        head.append(f"# camera {s.name} at [{p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}] m in the entity frame (FLU)")
+    lines = list(head)
+    if autopilot == "px4":
+        lines += ["#", "# Vehicle-Id\tComponent-Id\tName\tValue\tType"]
+        for p in params:
+            kind = MAV_PARAM_TYPE_INT32 if p.integer else MAV_PARAM_TYPE_REAL32
+            lines += [f"# {p.name}: {p.comment}", f"{node.system_id}\t1\t{p.name}\t{_number(p)}\t{kind}"]
+    else:
+        for p in params:
+            lines += [f"# {p.name}: {p.comment}", f"{p.name},{_number(p)}"]
+    return "\n".join(lines) + "\n"
+
+
+def _cmd_params(args: argparse.Namespace) -> int:
+    from atlas_onboard.service_run import choose_entity
+
+    world, node = load_node(args.config, choose_entity(args.config, args.entity))
+    params = parameters(world, node, args.autopilot, args.delay_ms, args.cog_m)
+    text = render(params, args.autopilot, node, world)
+    if args.out is None:
+        print(text, end="")
+        return 0
+    try:
+        Path(args.out).write_text(text, encoding="utf-8")
+    except OSError as exc:
+        raise AtlasError(f"--out: cannot write {args.out}: {exc.strerror}") from None
+    print(f"wrote {args.out}: {len(params)} parameters for {args.autopilot}")
+    return 0
+
+
+def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    """Register ``params``."""
+    p = sub.add_parser(
+        "params",
+        help="the autopilot's parameter file (QGroundControl / Mission Planner) for one entity",
+        description="Write the PX4 (QGroundControl) or ArduPilot (Mission Planner) parameters for vision-only flight"
+        " of ENTITY's drone, derived from the world file, each with a comment.",
+    )
+    p.add_argument("--autopilot", required=True, choices=AUTOPILOTS)
+    p.add_argument("--config", required=True, type=Path, help="world file with a nodes section")
+    p.add_argument("--entity", help="the drone's entity (default: the only one with node settings)")
+    p.add_argument("--delay-ms", type=float, help="the measured vision delay, ms (default: the autopilot's default)")
+    p.add_argument(
+        "--cog-m", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
+        help="the centre of gravity in the entity frame, world file's body axes, m (default: its origin)",
+    )  # fmt: skip
+    p.add_argument("--out", type=Path, help="write the file here (default: standard output)")
+    p.set_defaults(func=_cmd_params)

@@ -1,0 +1,40 @@
+"""The command line in a real subprocess: a reader that closes the pipe early and Ctrl-C end any
+subcommand with one line at most and a conventional status, never a traceback."""
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "atlas_onboard" / "data" / "example.yaml"
+
+
+@pytest.mark.parametrize(("args", "status"), [(["check-config", str(EXAMPLE)], 141)])
+def test_a_closed_pipe_ends_the_command_quietly(args, status):
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "atlas_onboard", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    proc.stdout.close()  # the reader is gone before the command writes anything (as `| head -0`)
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) == status, err
+    assert "Traceback" not in err and "BrokenPipeError" not in err and err == "", err
+
+
+def test_ctrl_c_is_one_line_and_status_130():
+    # A subcommand that blocks (check-config made to wait), interrupted as a terminal's Ctrl-C would.
+    code = (
+        "import sys, time\n"
+        "import atlas_onboard.cli as cli\n"
+        "def wait(args):\n"
+        "    sys.stderr.write('ready\\n'); sys.stderr.flush(); time.sleep(60)\n"
+        "cli._cmd_check_config = wait\n"
+        "sys.exit(cli.main(['check-config', 'x.yaml']))\n"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    assert proc.stderr.readline() == b"ready\n"
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 130
+    assert err.decode() == "atlas-onboard: interrupted\n" and out == b""

@@ -1,0 +1,79 @@
+"""``atlas-onboard params``: the values written against the world file they come from, in the formats
+QGroundControl and Mission Planner load (the command itself run once, in a real subprocess)."""
+
+import subprocess
+import sys
+
+import pytest
+
+from tests.e2e import write_world
+
+
+def doc(body="FLU", filt="none", output="vision_position_estimate", system_id=7):
+    return {
+        "conventions": {"world": "ENU", "body": body},
+        "fusion": {"filter": filt},
+        "entities": {
+            "world": {"markers": [{"id": 1, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}]},
+            "d1": {
+                "sensors": [{"name": "down", "id": 10, "pose": {"pos": [0.05, 0, -0.03], "rpy_deg": [0, 90, 0]}}],
+                "markers": [{"id": 5, "size_m": 0.1, "pose": {"pos": [0, 0, 0.04]}}],
+            },
+        },
+        "nodes": {"d1": {"system_id": system_id, "autopilot": {"url": "/dev/ttyAMA0,921600", "output": output}}},
+    }
+
+
+def run(tmp_path, world, *args):
+    path = write_world(tmp_path, world)
+    proc = subprocess.run(
+        [sys.executable, "-m", "atlas_onboard", "params", "--config", str(path), "--entity", "d1", *args],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout
+
+
+def inproc(tmp_path, world, autopilot, **kw):
+    """The same file made in this process (the variants; the subprocess runs check the command)."""
+    from atlas_onboard.config import load_node
+    from atlas_onboard.params import parameters, render
+
+    w, node = load_node(write_world(tmp_path, world), "d1")
+    return render(parameters(w, node, autopilot, **kw), autopilot, node, w)
+
+
+def qgc(text):
+    """QGroundControl's rows (vehicle, component, name, value, type), comments skipped."""
+    rows = [line.split("\t") for line in text.splitlines() if line and not line.startswith("#")]
+    assert all(len(r) == 5 for r in rows)
+    return {r[2]: (int(r[0]), int(r[1]), float(r[3]), int(r[4])) for r in rows}
+
+
+def mission_planner(text):
+    rows = [line.split(",") for line in text.splitlines() if line and not line.startswith("#")]
+    assert all(len(r) == 2 for r in rows)
+    return {name: float(value) for name, value in rows}
+
+
+def test_px4_values_follow_the_world_file(tmp_path):
+    # The centre of gravity 2 cm behind, 1 cm left of and 5 cm below the entity origin (FLU): the
+    # origin is 2 cm ahead (FRD x +0.02), 1 cm right (FRD y +0.01) and 5 cm above (FRD z -0.05) of it.
+    p = qgc(run(tmp_path, doc(), "--autopilot", "px4", "--delay-ms", "25", "--cog-m", "-0.02", "0.01", "-0.05"))
+    assert p["MAV_SYS_ID"] == (7, 1, 7.0, 6)
+    offset = (p["EKF2_EV_POS_X"][2], p["EKF2_EV_POS_Y"][2], p["EKF2_EV_POS_Z"][2])
+    assert offset == pytest.approx((0.02, 0.01, -0.05))
+    assert p["EKF2_EV_CTRL"][2:] == (11.0, 6) and p["EKF2_HGT_REF"][2] == 3 and p["EKF2_EV_DELAY"][2:] == (25.0, 9)
+    # Velocity fusion only where PX4 can get it: the EKF filter and ODOMETRY output.
+    assert qgc(inproc(tmp_path, doc(filt="ekf"), "px4"))["EKF2_EV_CTRL"][2] == 11
+    both = qgc(inproc(tmp_path, doc(filt="ekf", output="odometry"), "px4"))
+    assert both["EKF2_EV_CTRL"][2] == 15 and both["EKF2_EV_DELAY"][2] == 0.0  # not measured: PX4's default
+
+
+def test_ardupilot_values_follow_the_world_file(tmp_path):
+    # In an FRD world file the same centre of gravity is written (-0.02, -0.01, 0.05).
+    a = mission_planner(inproc(tmp_path, doc(body="FRD", system_id=3), "ardupilot", cog_m=(-0.02, -0.01, 0.05)))
+    assert a["SYSID_THISMAV"] == 3 and a["VISO_TYPE"] == 1 and a["EK3_SRC1_POSXY"] == 6 and a["EK3_SRC1_YAW"] == 6
+    assert (a["VISO_POS_X"], a["VISO_POS_Y"], a["VISO_POS_Z"]) == pytest.approx((0.02, 0.01, -0.05))
+    assert a["EK3_SRC1_VELXY"] == 0 and a["VISO_DELAY_MS"] == 10  # no filter: no velocity; delay not measured
+    assert mission_planner(inproc(tmp_path, doc(filt="ekf"), "ardupilot"))["EK3_SRC1_VELXY"] == 6
