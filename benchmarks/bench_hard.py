@@ -169,7 +169,9 @@ def main(argv: list[str] | None = None) -> int:
         t = time.monotonic()
         print(f"[{i}/{len(names)}] {name} ...", file=sys.stderr, flush=True)
         results.append(run_one(name, args.duration))
-        print(f"[{i}/{len(names)}] {name}: {results[-1].error or 'done'} ({time.monotonic() - t:.0f} s)", file=sys.stderr)
+        print(
+            f"[{i}/{len(names)}] {name}: {results[-1].error or 'done'} ({time.monotonic() - t:.0f} s)", file=sys.stderr
+        )
     anchor = next((r for r in results if r.name == "paper" and not r.error), None)
     print(f"scenario {SCENARIO}: {scenarios.get(SCENARIO).description}; {args.duration:g} s per run, scored from"
           f" {WARMUP_S:g} s; anchor: the paper's method (run `paper`) on the same frames")  # fmt: skip
@@ -201,8 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     if moved is not None and not moved.error:
         print()
         named = [line for line in moved.log_lines if re.search(rf"\b{MOVED_MARKER}\b", line)]
-        print(f"moved_marker: marker {MOVED_MARKER} moved by {MOVED_BY_M} m in the nodes' world file;"
-              f" {len(moved.log_lines)} log line(s) about markers, {len(named)} naming marker {MOVED_MARKER}:")  # fmt: skip
+        print(f"moved_marker: marker {MOVED_MARKER} moved by {MOVED_BY_M} m in the nodes' world file;")
+        print(f"  {len(moved.log_lines)} log line(s) about markers, {len(named)} naming marker {MOVED_MARKER}:")
         for line in moved.log_lines[:8]:
             print(f"    {line}")
         print(f"BAR moved_marker.named {len(named)} lines 1 {'pass' if named else 'fail'}")
@@ -211,7 +213,9 @@ def main(argv: list[str] | None = None) -> int:
         for key, unit, limit, op in BARS:
             value = math.nan if r.error else bar_value(r, key)
             ok = (value <= limit) if op == "<=" else (value >= limit)
-            print(f"BAR {r.name}.{key} {value:.4g} {unit} {limit:g} {'pass' if ok and math.isfinite(value) else 'fail'}")
+            print(
+                f"BAR {r.name}.{key} {value:.4g} {unit} {limit:g} {'pass' if ok and math.isfinite(value) else 'fail'}"
+            )
     return 0
 
 
