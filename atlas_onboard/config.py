@@ -62,7 +62,7 @@ class FusionConfig:
     Attributes:
         edge_timeout_s: an edge not refreshed for this long is removed (the paper: typically 250 ms).
         ema_alpha: EMA smoothing of each edge, eq. 3, in (0, 1]; 1 passes measurements through.
-        weighting: candidate weights (the paper's sigma_min / sigma_i by default).
+        weighting: candidate weights: ``inverse_variance`` (1 / sigma_i^2) or ``sigma_min`` (the paper).
         path: ``bfs`` (the paper: parents exactly one level lower) or ``dijkstra`` (parents with a
             smaller chain variance, weighted by the whole chain's sigma).
         relative_poses: also evaluate groups of entities with no path to world, relative to their
@@ -88,14 +88,16 @@ class FusionConfig:
             key the world file does not set takes the paper's value, :data:`PAPER_FUSION`).
     """
 
+    # The defaults are the best combination measured (benchmarks/compare_methods.py, bench_hard.py):
+    # accurate, with an honest covariance, and predicting through short gaps. PAPER_FUSION is the paper's.
     edge_timeout_s: float = 0.25
     ema_alpha: float = 1.0
-    weighting: Weighting = Weighting.SIGMA_MIN
-    path: str = "bfs"
+    weighting: Weighting = Weighting.INVERSE_VARIANCE
+    path: str = "dijkstra"
     relative_poses: bool = False
-    age_sigma_m_per_s: float = 0.0
+    age_sigma_m_per_s: float = 1.0
     outlier_gate_sigma: float = 0.0
-    filter: str = "none"
+    filter: str = "ekf"
     ekf_accel_noise: float = 0.5
     ekf_max_predict_s: float = 0.5
     age_sigma_deg_per_s: float = 0.0

@@ -32,23 +32,21 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from atlas_onboard.config import FusionConfig
+from atlas_onboard.config import PAPER_FUSION, FusionConfig
 
 SCENARIOS = ("paper-test1", "paper-test2", "relay", "swarm", "paths", "gaps", "hard")
 
-# fusion.method: paper gives every key not set the paper's value (config.PAPER_FUSION).
-PAPER: dict[str, Any] = {"method": "paper"}
+
+
+def _explicit(fusion: FusionConfig) -> dict[str, Any]:
+    """Every key of a fusion section, so that no key of a scenario's own world file stays in force."""
+    return {k: str(v) if isinstance(v, str) else v for k, v in asdict(fusion).items()}
+
+
+PAPER: dict[str, Any] = _explicit(PAPER_FUSION)  # the paper's method (fusion.method: paper)
 METHODS: dict[str, dict[str, Any]] = {
     "paper": PAPER,
-    # The defaults of a world file with no fusion keys (the scenario files' own keys overridden).
-    "default": {
-        "method": "default",
-        **{
-            k: v
-            for k, v in asdict(FusionConfig()).items()
-            if k not in ("method", "ekf_accel_noise", "ekf_max_predict_s")
-        },
-    },
+    "default": _explicit(FusionConfig()),  # a world file's defaults, whatever the scenario's file sets
     "dijkstra": {**PAPER, "path": "dijkstra"},
     "inverse_variance": {**PAPER, "weighting": "inverse_variance"},
     "age": {**PAPER, "age_sigma_m_per_s": 1.0},
@@ -60,6 +58,15 @@ METHODS: dict[str, dict[str, Any]] = {
         "path": "dijkstra",
         "weighting": "inverse_variance",
         "age_sigma_m_per_s": 1.0,
+        "outlier_gate_sigma": 5,
+        "filter": "ekf",
+    },
+    "all_deg": {
+        **PAPER,
+        "path": "dijkstra",
+        "weighting": "inverse_variance",
+        "age_sigma_m_per_s": 1.0,
+        "age_sigma_deg_per_s": 30.0,
         "outlier_gate_sigma": 5,
         "filter": "ekf",
     },
