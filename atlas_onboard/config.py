@@ -89,7 +89,7 @@ class FusionConfig:
     """
 
     # The defaults are the best combination measured (benchmarks/compare_methods.py, bench_hard.py):
-    # accurate, with an honest covariance, and predicting through short gaps. PAPER_FUSION is the paper's.
+    # accurate and with an honest covariance. PAPER_FUSION is the paper's method.
     edge_timeout_s: float = 0.25
     ema_alpha: float = 1.0
     weighting: Weighting = Weighting.INVERSE_VARIANCE
@@ -97,7 +97,7 @@ class FusionConfig:
     relative_poses: bool = False
     age_sigma_m_per_s: float = 1.0
     outlier_gate_sigma: float = 0.0
-    filter: str = "ekf"
+    filter: str = "none"
     ekf_accel_noise: float = 0.5
     ekf_max_predict_s: float = 0.5
     age_sigma_deg_per_s: float = 0.0

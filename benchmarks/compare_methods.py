@@ -52,6 +52,7 @@ METHODS: dict[str, dict[str, Any]] = {
     "age": {**PAPER, "age_sigma_m_per_s": 1.0},
     "gate": {**PAPER, "outlier_gate_sigma": 5},
     "ekf": {**PAPER, "filter": "ekf"},
+    "age_dijkstra": {**PAPER, "age_sigma_m_per_s": 1.0, "path": "dijkstra"},
     "ekf_age": {**PAPER, "filter": "ekf", "age_sigma_m_per_s": 1.0, "age_sigma_deg_per_s": 30.0},
     "all": {
         **PAPER,
