@@ -62,7 +62,7 @@ class FusionConfig:
     Attributes:
         edge_timeout_s: an edge not refreshed for this long is removed (the paper: typically 250 ms).
         ema_alpha: EMA smoothing of each edge, eq. 3, in (0, 1]; 1 passes measurements through.
-        weighting: candidate weights: ``inverse_variance`` (1 / sigma_i^2) or ``sigma_min`` (the paper).
+        weighting: candidate weights: ``sigma_min`` (the paper's sigma_min / sigma_i) or ``inverse_variance``.
         path: ``bfs`` (the paper: parents exactly one level lower) or ``dijkstra`` (parents with a
             smaller chain variance, weighted by the whole chain's sigma).
         relative_poses: also evaluate groups of entities with no path to world, relative to their
@@ -92,7 +92,7 @@ class FusionConfig:
     # accurate and with an honest covariance. PAPER_FUSION is the paper's method.
     edge_timeout_s: float = 0.25
     ema_alpha: float = 1.0
-    weighting: Weighting = Weighting.INVERSE_VARIANCE
+    weighting: Weighting = Weighting.SIGMA_MIN
     path: str = "dijkstra"
     relative_poses: bool = False
     age_sigma_m_per_s: float = 1.0
