@@ -4,8 +4,11 @@ Each run is the ordinary command line, ``atlas-onboard sim --scenario S --durati
 fusion.KEY=VALUE ...`` (real node processes, rendered cameras, simulated autopilots), and the table
 shows what it reported against ground truth: position RMSE, max error, availability (and the
 availability the geometry allows), and the mean position NEES of the covariance the node published
-(consistent at about 3). Methods are sets of fusion overrides: ``paper`` is the paper's method, each
-other method is one option on top of it, and ``all`` is every option together.
+(consistent at about 3). Methods are sets of fusion overrides naming every key (so that no key of a
+scenario's own file stays in force): ``paper`` is the paper's method (``fusion.method: paper``),
+``default`` a world file's defaults, each other method one or more options on top of the paper's, and
+``all`` every option together. The runs are made in this process, so that the cameras' images are
+rendered once per scenario; the printed commands are what each run is.
 
 Bars (one ``BAR name value unit limit pass|fail`` line each, computed from the runs; NaN and fail
 when a run they need was not made or failed):
