@@ -40,7 +40,6 @@ from atlas_onboard.config import PAPER_FUSION, FusionConfig
 SCENARIOS = ("paper-test1", "paper-test2", "relay", "swarm", "paths", "gaps", "hard")
 
 
-
 def _explicit(fusion: FusionConfig) -> dict[str, Any]:
     """Every key of a fusion section, so that no key of a scenario's own world file stays in force."""
     return {k: str(v) if isinstance(v, str) else v for k, v in asdict(fusion).items()}
