@@ -100,9 +100,9 @@ def test_a_marker_cut_by_the_border_is_drawn(render):
 
 
 def test_a_short_run_of_the_hard_scenario_against_ground_truth():
-    """5 s of the hard scene through the real node with the default settings: what holds today (the
+    """4 s of the hard scene through the real node with the default settings: what holds today (the
     bars of issue 19 are the benchmark's, benchmarks/bench_hard.py)."""
-    sim = run(SimOptions(scenario="hard", duration_s=5))
+    sim = run(SimOptions(scenario="hard", duration_s=4))
     rep, _ = score_run(sim)
     print(rep.table())
     (d,) = rep.entities
