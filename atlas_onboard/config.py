@@ -71,7 +71,7 @@ class FusionConfig:
     Attributes:
         edge_timeout_s: an edge not refreshed for this long is removed (the paper: typically 250 ms).
         ema_alpha: EMA smoothing of each edge, eq. 3, in (0, 1]; 1 passes measurements through.
-        weighting: candidate weights (the paper's sigma_min / sigma_i by default).
+        weighting: candidate weights: ``sigma_min`` (the paper's sigma_min / sigma_i) or ``inverse_variance``.
         path: ``bfs`` (the paper: parents exactly one level lower) or ``dijkstra`` (parents with a
             smaller chain variance, weighted by the whole chain's sigma).
         relative_poses: also evaluate groups of entities with no path to world, relative to their
@@ -95,19 +95,42 @@ class FusionConfig:
         ekf_max_predict_s: the EKF holds a pose at most this long past its last update; then the
             pose is lost, as without the filter (it extrapolates only the first 0.2 s of a gap,
             ``EkfBank.predict_horizon_s``).
+        method: ``default`` (the defaults above: the best measured combination) or ``paper`` (every
+            key the world file does not set takes the paper's value, :data:`PAPER_FUSION`).
     """
 
+    # The defaults are the best combination measured (benchmarks/compare_methods.py, bench_hard.py):
+    # accurate and with an honest covariance. PAPER_FUSION is the paper's method.
     edge_timeout_s: float = 0.25
     ema_alpha: float = 1.0
     weighting: Weighting = Weighting.SIGMA_MIN
-    path: str = "bfs"
+    path: str = "dijkstra"
     relative_poses: bool = False
-    age_sigma_m_per_s: float = 0.0
+    age_sigma_m_per_s: float = 1.0
     outlier_gate_sigma: float = OUTLIER_GATE_SIGMA
     filter: str = "none"
     ekf_accel_noise: float = 0.5
     ekf_max_predict_s: float = 0.5
     age_sigma_deg_per_s: float = 0.0
+    method: str = "default"
+
+
+# The paper's method exactly: BFS levels, w_i = sigma_min / sigma_i, every live edge as new (no ageing),
+# no outlier gate, no filter beyond eq. 3's EMA of each edge. The paper does not state its alpha; 1
+# passes each measurement through (eq. 3 with alpha = 1), as the replicas of its tests always ran.
+PAPER_FUSION = FusionConfig(
+    edge_timeout_s=0.25,
+    ema_alpha=1.0,
+    weighting=Weighting.SIGMA_MIN,
+    path="bfs",
+    relative_poses=False,
+    age_sigma_m_per_s=0.0,
+    outlier_gate_sigma=0.0,
+    filter="none",
+    age_sigma_deg_per_s=0.0,
+    method="paper",
+)
+FUSION_METHODS = ("default", "paper")
 
 
 @dataclass(frozen=True, slots=True)
@@ -386,9 +409,10 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
         return FusionConfig()
     keys = {"edge_timeout_s", "ema_alpha", "weighting", "path", "relative_poses", "age_sigma_m_per_s"}
     keys |= {"age_sigma_deg_per_s"}
-    keys |= {"outlier_gate_sigma", "filter", "ekf_accel_noise", "ekf_max_predict_s"}
+    keys |= {"outlier_gate_sigma", "filter", "ekf_accel_noise", "ekf_max_predict_s", "method"}
     m = _mapping(value, path, keys)
-    default = FusionConfig()
+    method = _choice(m.get("method", "default"), _join(path, "method"), FUSION_METHODS)
+    default = PAPER_FUSION if method == "paper" else FusionConfig()
     timeout = _number(m.get("edge_timeout_s", default.edge_timeout_s), _join(path, "edge_timeout_s"), "seconds")
     if not 0.0 < timeout <= 10.0:
         raise ConfigError(_join(path, "edge_timeout_s"), f"expected a timeout in (0, 10] seconds, got {timeout}")
@@ -399,18 +423,20 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
         m.get("weighting", default.weighting.value), _join(path, "weighting"), tuple(w.value for w in Weighting)
     )
     graph_path = _choice(m.get("path", default.path), _join(path, "path"), ("bfs", "dijkstra"))
-    relative = m.get("relative_poses", False)
+    relative = m.get("relative_poses", default.relative_poses)
     if not isinstance(relative, bool):
         raise ConfigError(_join(path, "relative_poses"), f"expected true or false, got {_describe(relative)}")
-    age = _number(m.get("age_sigma_m_per_s", 0.0), _join(path, "age_sigma_m_per_s"), "m/s")
+    age = _number(m.get("age_sigma_m_per_s", default.age_sigma_m_per_s), _join(path, "age_sigma_m_per_s"), "m/s")
     if not 0.0 <= age <= 100.0:
         raise ConfigError(_join(path, "age_sigma_m_per_s"), f"expected a speed in [0, 100] m/s, got {age:g}")
-    age_deg = _number(m.get("age_sigma_deg_per_s", 0.0), _join(path, "age_sigma_deg_per_s"), "deg/s")
+    age_deg = _number(
+        m.get("age_sigma_deg_per_s", default.age_sigma_deg_per_s), _join(path, "age_sigma_deg_per_s"), "deg/s"
+    )
     if not 0.0 <= age_deg <= 3600.0:
         raise ConfigError(
             _join(path, "age_sigma_deg_per_s"), f"expected a turn rate in [0, 3600] deg/s, got {age_deg:g}"
         )
-    gate = _number(m.get("outlier_gate_sigma", OUTLIER_GATE_SIGMA), _join(path, "outlier_gate_sigma"))
+    gate = _number(m.get("outlier_gate_sigma", default.outlier_gate_sigma), _join(path, "outlier_gate_sigma"))
     if gate != 0.0 and not 2.0 <= gate <= 100.0:
         raise ConfigError(_join(path, "outlier_gate_sigma"), f"expected 0 (off) or a gate in [2, 100], got {gate:g}")
     filt = _choice(m.get("filter", default.filter), _join(path, "filter"), ("none", "ekf"))
@@ -421,7 +447,7 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
     if not 0.0 < horizon <= 5.0:
         raise ConfigError(_join(path, "ekf_max_predict_s"), f"expected a horizon in (0, 5] s, got {horizon:g}")
     return FusionConfig(
-        timeout, alpha, Weighting(weighting), graph_path, relative, age, gate, filt, accel, horizon, age_deg
+        timeout, alpha, Weighting(weighting), graph_path, relative, age, gate, filt, accel, horizon, age_deg, method
     )
 
 

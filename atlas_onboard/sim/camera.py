@@ -165,12 +165,21 @@ class FrameRenderer:
         self.fps = sensor.camera.fps if sensor.camera.fps > 0 else 30.0
         self._M_entity_sensor = sensor.T_entity_sensor.as_matrix()
         prepare(self.cam, SUPERSAMPLE)  # the renderer's per-camera tables, before the first frame
+        self.room = None
+        if scenario.room is not None:
+            from atlas_onboard.sim.room import RoomRenderer
+
+            self.room = RoomRenderer(
+                scenario.room, world, sensor, self.intr, self.optics.noise_sigma, self.optics.exposure_s
+            )
 
     def __call__(self, index: int) -> NDArray[np.uint8]:
         from atlas_onboard.detector.render import MarkerView, render
 
         t = index / self.fps
         sensor, dt = self.sensor, 1e-3
+        if self.room is not None:
+            return self._in_room(t)
         sightings = self.sim.sightings(sensor.id, self.sim.truth(t), t)
         views = [MarkerView(s.marker.family, s.marker.id, s.marker.size_m, s.T_sensor_marker) for s in sightings]
         # Motion blur: how far the image of the marker centres moves during the exposure.
@@ -193,6 +202,19 @@ class FrameRenderer:
             blur_px=blur,
             supersample=SUPERSAMPLE,
         )
+
+    def _in_room(self, t: float) -> NDArray[np.uint8]:
+        """The frame at ``t`` rendered by the scenario's room (every marker, world-space floor)."""
+        assert self.room is not None
+        half = self.optics.exposure_s / 2.0
+        M = {}
+        for k, tk in enumerate((t, t - half, t + half)):
+            truth = self.sim.truth(tk, None if k == 0 else {self.sensor.entity})
+            M[k] = truth[self.sensor.entity].as_matrix() @ self._M_entity_sensor
+            if k == 0:
+                entities = {name: T.as_matrix() for name, T in truth.items()}
+        seed = self.seed * 100_003 + round(t * self.fps) + 1
+        return self.room.render(M[0], M[1], M[2], entities, seed)
 
 
 def rendered_detector(context: SimContext, world: WorldConfig, sensor: SensorConfig, seed: int) -> FrameHandler:

@@ -46,6 +46,7 @@ def autopilot_track(records: list[Received], epoch_s: float) -> report.Track:
         covariance_ned_frd=report.covariance_from_upper_triangle(
             np.array([r.covariance for r in records], dtype=float).reshape(n, 21)
         ),
+        reset_counter=np.array([r.reset_counter for r in records], dtype=np.int64),
     )
 
 

@@ -14,7 +14,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.sim.world import FRESH_S, SimWorld, fresh_share
+from atlas_onboard.sim.world import FRESH_S, FRESH_STEP_S, SimWorld, fresh_share
 
 _ROWS, _COLS = np.triu_indices(6)  # MAVLink's row-major upper triangle: (0,0) (0,1) ... (0,5) (1,1) ... (5,5)
 
@@ -33,6 +33,7 @@ class Track:
     p_ned_m: NDArray[np.float64] | None = None  # (N, 3)
     q_ned_frd_xyzw: NDArray[np.float64] | None = None  # (N, 4)
     covariance_ned_frd: NDArray[np.float64] | None = None  # (N, 6, 6)
+    reset_counter: NDArray[np.int64] | None = None  # (N,) the message's reset_counter
 
 
 @dataclass
@@ -56,6 +57,11 @@ class EntityScore:
     # about 3 (position) and 6 (pose) when the covariance is honest; NaN when it is unknown.
     position_nees: float = float("nan")
     pose_nees: float = float("nan")
+    p95_error_m: float = float("nan")
+    # Share of messages whose error on each axis (x y z of local NED) is within 3 sigma of the
+    # covariance sent with them; NaN where it was unknown.
+    within_3sigma: tuple[float, float, float] = (float("nan"), float("nan"), float("nan"))
+    reset_changes: int = 0  # changes of reset_counter between consecutive messages
 
 
 @dataclass
@@ -128,6 +134,12 @@ def score(
         cov = track.covariance_ned_frd[inside]
         nees3 = _mean_known(nees(e[:, :3], cov[:, :3, :3]))
         nees6 = _mean_known(nees(e, cov))
+        within = within_sigma(e[:, :3], cov[:, :3, :3], 3.0)
+    else:
+        within = (float("nan"),) * 3
+    resets = 0
+    if track.reset_counter is not None:
+        resets = int(np.count_nonzero(np.diff(track.reset_counter[inside])))
     return EntityScore(
         entity=entity,
         source=source,
@@ -144,7 +156,67 @@ def score(
         longest_gap_s=float(gaps.max()),
         position_nees=nees3,
         pose_nees=nees6,
+        p95_error_m=float(np.percentile(err, 95)),
+        within_3sigma=within,  # type: ignore[arg-type]
+        reset_changes=resets,
     )
+
+
+def within_sigma(errors: NDArray[np.float64], covariances: NDArray[np.float64], k: float = 3.0) -> tuple[float, ...]:
+    """Per axis, the share of rows whose error (N, d) is within ``k`` standard deviations of the
+    covariance (N, d, d); rows with an unknown (non-finite) or non-positive variance are left out."""
+    e = np.atleast_2d(np.asarray(errors, dtype=float))
+    var = np.diagonal(np.asarray(covariances, dtype=float), axis1=1, axis2=2)
+    out = []
+    for a in range(e.shape[1]):
+        ok = np.isfinite(var[:, a]) & (var[:, a] > 0) & np.isfinite(e[:, a])
+        out.append(float(np.mean(np.abs(e[ok, a]) <= k * np.sqrt(var[ok, a]))) if np.any(ok) else float("nan"))
+    return tuple(out)
+
+
+def coverage(
+    arrival_s: NDArray[np.float64], ideal_s: NDArray[np.float64], t0_s: float, t1_s: float, fresh_s: float = FRESH_S
+) -> float:
+    """The share of the time an ideal node holds a fresh pose (``ideal_s``: the frame times at which a
+    camera sees a path to the world) during which the receiver held one too (``arrival_s``): availability
+    against the time a tag is in view, on the 5 ms grid of :func:`fresh_share`. NaN if never in view."""
+    grid = np.arange(t0_s, t1_s, FRESH_STEP_S)
+    want = _fresh_mask(np.asarray(ideal_s, dtype=float), grid, fresh_s)
+    have = _fresh_mask(np.asarray(arrival_s, dtype=float), grid, fresh_s)
+    return float(np.mean(have[want])) if np.any(want) else float("nan")
+
+
+def _fresh_mask(times_s: NDArray[np.float64], grid: NDArray[np.float64], fresh_s: float) -> NDArray[np.bool_]:
+    t = np.sort(times_s)
+    if len(t) == 0:
+        return np.zeros(len(grid), dtype=bool)
+    k = np.searchsorted(t, grid, side="right") - 1
+    newest = np.where(k >= 0, t[np.maximum(k, 0)], -np.inf)
+    return grid - newest <= fresh_s
+
+
+def reset_changes_at_gaps(
+    capture_s: NDArray[np.float64], reset_counter: NDArray[np.int64], ideal_s: NDArray[np.float64], min_gap_s: float
+) -> tuple[int, int, int]:
+    """Reset-counter changes against real re-acquisitions: (changes, changes at a re-acquisition,
+    re-acquisitions). A re-acquisition is the end of a stretch of at least ``min_gap_s`` in which no
+    camera saw a path to the world (``ideal_s``: the frame times at which one did); a change between
+    two messages is at one when such a stretch lies between their capture times."""
+    cap = np.asarray(capture_s, dtype=float)
+    rc = np.asarray(reset_counter)
+    ideal = np.sort(np.asarray(ideal_s, dtype=float))
+    gaps = np.diff(ideal)
+    long_ = gaps >= min_gap_s
+    gap_start, gap_end = ideal[:-1][long_], ideal[1:][long_]
+    changed = np.flatnonzero(np.diff(rc) != 0) + 1
+    justified = 0
+    for i in changed:
+        a, b = cap[i - 1], cap[i]
+        # the invisible stretch (gap_start, gap_end) must overlap the interval between the messages
+        if np.any((gap_start < b) & (gap_end > a)):
+            justified += 1
+    inside = (gap_end > cap[0]) & (gap_end <= cap[-1]) if len(cap) else np.zeros(0, dtype=bool)
+    return len(changed), justified, int(np.count_nonzero(inside))
 
 
 def covariance_from_upper_triangle(values: NDArray[np.float64]) -> NDArray[np.float64]:

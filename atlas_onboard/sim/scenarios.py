@@ -33,6 +33,34 @@ class Optics:
 
 
 @dataclass(frozen=True)
+class Room:
+    """An axis-aligned box room in world coordinates (ENU, metres) inside which the cameras' images are
+    rendered (:mod:`atlas_onboard.sim.room`), and how its camera images look.
+
+    Attributes:
+        lo_m, hi_m: opposite corners of the box (x, y, z); the floor is z = lo_m[2].
+        floor_px_per_m, wall_px_per_m: texture resolution of the floor and of the walls and ceiling.
+        seed: seed of the textures.
+        vignetting: relative illumination lost at the image corners (0: none).
+        exposure_gain: grey level per unit of reflected light (255 = white paper at the centre).
+        black_level: grey level of no light.
+        shot_noise: photon noise, variance in grey levels per grey level (read noise is the optics').
+        jpeg_quality: JPEG quality of the delivered frame (0: uncompressed).
+    """
+
+    lo_m: tuple[float, float, float] = (-3.0, -2.5, 0.0)
+    hi_m: tuple[float, float, float] = (3.0, 2.5, 3.0)
+    floor_px_per_m: float = 400.0
+    wall_px_per_m: float = 200.0
+    seed: int = 0
+    vignetting: float = 0.3
+    exposure_gain: float = 0.85
+    black_level: float = 8.0
+    shot_noise: float = 0.06
+    jpeg_quality: int = 85
+
+
+@dataclass(frozen=True)
 class Mocap:
     """A motion-capture system (the paper's OptiTrack) reporting rigid bodies as observations."""
 
@@ -91,6 +119,7 @@ class Scenario:
     mocap: Mocap | None = None
     bars: dict[str, float] = field(default_factory=dict)  # e.g. {"drone_c.rmse_m": 0.10}
     occlusions: tuple[Occlusions, ...] = ()
+    room: Room | None = None  # render the cameras' images inside this room (see atlas_onboard.sim.room)
 
     def world(self) -> WorldConfig:
         return load_world(self.world_path())
@@ -249,7 +278,30 @@ def _gaps() -> Scenario:
     )
 
 
-SCENARIOS = {s.name: s for s in (_paper_test1(), _paper_test2(), _relay(), _swarm(), _paths(), _gaps())}
+def _hard() -> Scenario:
+    # A figure-eight (x at 1/15 Hz, y at 2/15 Hz: two figures in 30 s, up to 0.8 m/s) with yaw swings
+    # of +-70 deg (up to 50 deg/s) and a controller's oscillation and vibration.
+    drone = tj.Quadrotor(
+        path=tj.lissajous((0.0, 0.0, 1.35), (1.8, 1.0, 0.2), (1 / 15, 2 / 15, 0.1)),
+        yaw=tj.slow_yaw(0.0, 70.0, 9.0),
+        oscillation=tj.Oscillation((0.02, 0.02, 0.01), 1.1, 0.8, seed=60),
+    )
+    return Scenario(
+        name="hard",
+        description="a figure-eight over a concrete floor with few tags, wide-angle 640x480 camera pitched down",
+        world_file="hard.yaml",
+        duration_s=30.0,
+        trajectories={"drone": drone},
+        drones=("drone",),
+        scored=("drone",),
+        # Barrel distortion of a cheap wide-angle lens (about 106 deg across), the blur of a 8 ms
+        # exposure and a webcam's read noise; the room adds shot noise, vignetting and JPEG.
+        optics={"drone.front": Optics(90.0, (-0.28, 0.08, 0.0, 0.0, 0.0), noise_sigma=2.0, exposure_s=0.008)},
+        room=Room(),
+    )
+
+
+SCENARIOS = {s.name: s for s in (_paper_test1(), _paper_test2(), _relay(), _swarm(), _paths(), _gaps(), _hard())}
 DEFAULT = "swarm"
 
 

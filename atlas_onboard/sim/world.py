@@ -234,6 +234,11 @@ class SimWorld:
         frames, reached = self._frame_visibility(t1_s)
         return {name: fresh_share(frames[seen], t0_s, t1_s, fresh_s) for name, seen in reached.items()}
 
+    def visible_frames(self, name: str, t1_s: float) -> NDArray[np.float64]:
+        """Frame times in [0, t1] at which ``name`` has a path of visible markers to the world."""
+        frames, reached = self._frame_visibility(t1_s)
+        return frames[reached[name]] if name in reached else np.zeros(0)
+
     def _frame_visibility(self, t1_s: float) -> tuple[NDArray[np.float64], dict[str, NDArray[np.bool_]]]:
         """Frame times in [0, t1] and, per entity, whether it had a path to the world at each (cached)."""
         if t1_s not in self._visibility:
