@@ -104,7 +104,7 @@ class FusionConfig:
     edge_timeout_s: float = 0.25
     ema_alpha: float = 1.0
     weighting: Weighting = Weighting.SIGMA_MIN
-    path: str = "dijkstra"
+    path: str = "bfs"
     relative_poses: bool = False
     age_sigma_m_per_s: float = 1.0
     outlier_gate_sigma: float = OUTLIER_GATE_SIGMA

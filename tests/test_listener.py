@@ -15,7 +15,8 @@ MS = 1_000_000
 
 
 def make(doc, alpha=1.0):
-    doc = {"fusion": {"ema_alpha": alpha}, **doc}
+    # The paper's filter (eq. 3): without edge ageing, whose inverse-variance filter is tested apart.
+    doc = {"fusion": {"ema_alpha": alpha, "age_sigma_m_per_s": 0}, **doc}
     world = world_from(doc)
     graph = make_graph(world)
     return world, graph, Listener(world, graph)

@@ -198,10 +198,11 @@ def test_fused_poses_go_to_peers(n):
 
 def ceiling_world(d1_markers, fusion=None):
     """A ceiling camera on the world, d1 with a downward camera and ``d1_markers``, and d2 with one
-    marker (id 6); ``fusion`` settings if given."""
+    marker (id 6); ``fusion`` settings if given, else no edge ageing (whose evaluations follow the
+    clock: tested apart)."""
     return parse_world(
         {
-            **({"fusion": fusion} if fusion else {}),
+            "fusion": fusion if fusion is not None else {"age_sigma_m_per_s": 0},
             "entities": {
                 "world": {
                     "markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}],
