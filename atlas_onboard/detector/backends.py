@@ -56,9 +56,13 @@ class AprilTagBackend:
         self.families = families
         self._detectors = {d: _library_detector(" ".join(families), threads, d) for d in sorted({1.0, float(decimate)})}
         self.decimate = float(decimate)
+        self._threads = threads
 
     def detect(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:
-        det = self._detectors.get(float(decimate or self.decimate)) or self._detectors[self.decimate]
+        d = float(decimate or self.decimate)
+        if d not in self._detectors:  # another decimation (the tracker's hunt): a detector of its own
+            self._detectors[d] = _library_detector(" ".join(self.families), self._threads, d)
+        det = self._detectors[d]
         out = []
         for r in det.detect(np.ascontiguousarray(gray)):
             if (
