@@ -450,6 +450,9 @@ class Node:
             self.transport.send_fused(fused_poses(self.last_result), self.world)
             self.stats.fused_sent += 1
         self.transport.tick(now)
+        for cam in self.cameras:  # a camera's detector's warnings (a marker that disagrees), rate-limited there
+            for text in getattr(cam, "take_status", tuple)():
+                self.transport.send_status(text, 4)  # WARNING
         if now >= self._next_watchdog_ns:
             self._notify("WATCHDOG=1")
             self._next_watchdog_ns = now + self.watchdog_interval_ns

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -124,7 +124,7 @@ class Detector:
         self._tile = self.sensor.id % (TILES[0] * TILES[1])
         self.report = FrameReport()
         self.disagreements: Counter[int] = Counter()  # marker id -> images in which it disagreed
-        self._status: list[str] = []
+        self._status: deque[str] = deque()
         self._last_status_us: int | None = None
         self._last_log_us: int | None = None
 
@@ -274,7 +274,9 @@ class Detector:
 
     def take_status(self) -> list[str]:
         """STATUSTEXT lines to send (at most one a minute), emptied by the call."""
-        out, self._status = self._status, []
+        out = []
+        while self._status:  # a deque: the camera thread appends while the node's thread takes
+            out.append(self._status.popleft())
         return out
 
     def _sigma_px(self, family_name: str) -> float:

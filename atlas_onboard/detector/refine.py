@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 SAMPLES_PER_SIDE = 12
 HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
 STEP_PX = 0.25
+MIN_CONTRAST = 20.0  # grey levels between a profile's ends for an edge to be placed on it
 
 
 def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -121,15 +122,7 @@ def refine_corners_undistorted(
             px = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
         px = px.reshape(len(ts), len(offsets), 2).astype(np.float32)
         prof = cv2.remap(img, px[..., 0], px[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        grad = np.abs(np.diff(prof, axis=1))
-        k = np.argmax(grad, axis=1)
-        ok = (k > 0) & (k < grad.shape[1] - 1)
-        edge = []
-        for row in np.flatnonzero(ok):
-            g0, g1, g2 = grad[row, k[row] - 1], grad[row, k[row]], grad[row, k[row] + 1]
-            denom = g0 - 2 * g1 + g2
-            frac = 0.5 * (g0 - g2) / denom if denom < 0 else 0.0
-            edge.append(base[row] + (offsets[0] + (k[row] + 0.5 + frac) * STEP_PX) * n)
+        edge = [base[row] + off * n for row, off in enumerate(_half_level(prof, offsets)) if np.isfinite(off)]
         if len(edge) < SAMPLES_PER_SIDE // 2:
             return None
         e = np.array(edge)
@@ -150,3 +143,25 @@ def refine_corners_undistorted(
         return None
     scatter2 = ss / max(sum(npts) - 8, 1)  # two parameters a line
     return out, float(np.sqrt(7.1 * scatter2 / float(np.mean(npts))))
+
+
+def _half_level(prof: NDArray[np.float32], offsets: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Where each profile (rows: dark marker border inside, light quiet zone outside) crosses halfway
+    between its two ends, as an offset; NaN where it has too little contrast or no single crossing.
+
+    Motion blur and defocus spread an edge into a ramp whose gradient is a plateau: its peak wanders
+    with the noise, while the half-level crossing of a symmetric blur stays on the edge.
+    """
+    lo = prof[:, :2].mean(axis=1)
+    hi = prof[:, -2:].mean(axis=1)
+    level = (lo + hi) / 2.0
+    above = prof > level[:, None]
+    out = np.full(len(prof), np.nan)
+    for row in np.flatnonzero(hi - lo >= MIN_CONTRAST):
+        cross = np.flatnonzero(~above[row, :-1] & above[row, 1:])
+        if len(cross) != 1:
+            continue
+        j = cross[0]
+        a, b = prof[row, j], prof[row, j + 1]
+        out[row] = offsets[j] + (level[row] - a) / (b - a) * (offsets[j + 1] - offsets[j])
+    return out
