@@ -42,11 +42,13 @@ fit almost equally well and the chosen one may be the mirror image (a "flip", te
 such detections are kept with both solutions (counted ``ambiguous``) for the listener to resolve with
 the current estimates (:mod:`atlas_onboard.core.ambiguity`). 1.0 keeps them all."""
 SCAN_EVERY = 4  # frames between whole-image searches while tracking (between them, only tracked regions)
+TILE_EVERY = 2  # frames between full-resolution tiles while tracking
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
 ROI_MARGIN = 0.6  # a region is the marker's box grown by this fraction of its size on each side
 HUNT_DECIMATE = 3.0  # the whole-image search's decimation (a marker of 30 px or more is found at it)
 TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (columns, rows)
-BORDER_MARGIN_PX = 3.0  # corners closer than this (or one cell of the marker) to an image or region border
+TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
+BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
 STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagreeing markers
 LOG_INTERVAL_US = 5_000_000
 
@@ -116,7 +118,7 @@ class Detector:
         self.entity_of = {m.id: m.entity for m in others}
         self.marker_pose = {m.id: m.T_entity_marker for m in others}
         wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
-        self.finder = MarkerFinder(wanted, self.decimate)
+        self.finder = MarkerFinder(wanted, self.decimate, extra=(HUNT_DECIMATE,) if self.track else ())
         self._last: list[NDArray[np.float64]] = []  # boxes (x0, y0, x1, y1) of the previous frame's markers
         # Whole-image searches and tiles in a phase of their own for each sensor: the cameras of one
         # node do not all search at once (their frames come at the same instants).
@@ -131,64 +133,70 @@ class Detector:
     def find(self, gray: NDArray[np.uint8]) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.
 
-        Every frame, the regions around the markers of the previous frame are searched at full
-        resolution (as precise as decimate 1, on a fraction of the pixels). When nothing is tracked
-        (hunting), and every ``SCAN_EVERY`` frames while tracking, the whole image is searched at
-        ``HUNT_DECIMATE`` and the next tile of a ``TILES`` grid at full resolution, so that new and
-        small markers are found too; small markers found decimated are searched again at full resolution.
+        Every frame, the regions around the markers of the previous frame are searched, at a
+        decimation that keeps the marker at least ``SMALL_SIDE_PX`` wide (the library fits the edges
+        at full resolution whatever the decimation). When nothing is tracked (hunting) the whole image
+        is searched at ``HUNT_DECIMATE`` and the next tile of a ``TILES`` grid at full resolution, so
+        that small markers are found within a grid's worth of frames; while tracking, the same happens
+        every ``SCAN_EVERY`` frames, and a tile every ``TILE_EVERY`` frames.
         """
         if not self.track or self.decimate <= 1.0:
-            return self._checked(self.finder.find(gray, 1.0), gray.shape, None)
+            return self.finder.find(gray, 1.0)
         h, w = gray.shape[:2]
         found: dict[int, Detection] = {}
         hunting = not self._last
         if not hunting:
             self._roi_search(gray, self._last, found)
-        if hunting or self._frame % SCAN_EVERY == 0 or not found:
+        if hunting or not found or self._frame % SCAN_EVERY == 0:
             small = []
-            for d in self._checked(self.finder.find(gray, HUNT_DECIMATE), gray.shape, None):
+            for d in self.finder.find(gray, HUNT_DECIMATE):
                 if d.marker_id not in found:
                     found[d.marker_id] = d
-                    if _side(d.corners_px) < SMALL_SIDE_PX:
-                        small.append(_box(d.corners_px))
+                    small.append(_box(d.corners_px))  # found again at the region's own decimation
             self._roi_search(gray, small, found)
-            self._roi_search(gray, [self._next_tile(w, h)], found, only_new=True)
             self.counters["hunts" if hunting else "scans"] += 1
+        if hunting or not found or self._frame % TILE_EVERY == 0:
+            self._roi_search(gray, [self._next_tile(w, h)], found, only_new=True)
         self._frame += 1
         self._last = [_box(d.corners_px) for d in found.values()]
         return list(found.values())
 
+    @property
+    def tracking(self) -> bool:
+        """Whether markers of the previous frame are tracked (False: the next frame is a hunt)."""
+        return bool(self._last)
+
     def _next_tile(self, w: int, h: int) -> NDArray[np.float64]:
-        """The next tile of the grid, grown by an eighth of the image so that no marker is cut on every tile."""
+        """The next tile of the grid, grown so that every small marker (the decimated search finds
+        the others) lies wholly inside one tile."""
         cols, rows = TILES
         k = self._tile % (cols * rows)
         self._tile += 1
         tx, ty = k % cols, k // cols
-        mx, my = w // 8, h // 8
+        m = TILE_OVERLAP_PX / 2
         return np.array(
-            [tx * w // cols - mx, ty * h // rows - my, (tx + 1) * w // cols + mx, (ty + 1) * h // rows + my], float
+            [tx * w // cols - m, ty * h // rows - m, (tx + 1) * w // cols + m, (ty + 1) * h // rows + m], float
         )
 
     def _checked(
-        self, found: list[Detection], shape: tuple[int, ...], region: tuple[int, int, int, int] | None
+        self, found: list[Detection], shape: tuple[int, ...], region: tuple[int, int, int, int]
     ) -> list[Detection]:
-        """``found`` without the detections whose corners touch the image's border or, for a search of a
-        ``region`` (x0, y0, x1, y1) of it, the region's border: the marker may be cut there, and edges
-        fitted on a cut or extrapolated quad gave poses off by many of their sigmas (counted by reason)."""
+        """``found`` in a ``region`` (x0, y0, x1, y1) of the image without the detections whose corners
+        touch a border of the region inside the image: the marker may be cut there (counted; it is found
+        again when the whole image is searched)."""
         h, w = shape[:2]
-        x0, y0, x1, y1 = region if region is not None else (0, 0, w, h)
+        x0, y0, x1, y1 = region
+        m = BORDER_MARGIN_PX
         out = []
         for d in found:
-            c = d.corners_px
-            cell = _side(c) / max(family(d.family).cells, 1)
-            m = max(BORDER_MARGIN_PX, cell)
-            lo, hi = c.min(axis=0), c.max(axis=0)
-            if lo[0] < m or lo[1] < m or hi[0] > w - 1 - m or hi[1] > h - 1 - m:
-                self.counters["dropped_image_border"] += 1
-                self.report.dropped[d.marker_id] = "at the image border"
-                continue
-            if region is not None and (lo[0] < x0 + m or lo[1] < y0 + m or hi[0] > x1 - 1 - m or hi[1] > y1 - 1 - m):
-                self.counters["dropped_region_border"] += 1  # found again when the whole image is searched
+            lo, hi = d.corners_px.min(axis=0), d.corners_px.max(axis=0)
+            if (
+                (x0 > 0 and lo[0] < x0 + m)
+                or (y0 > 0 and lo[1] < y0 + m)
+                or (x1 < w and hi[0] > x1 - 1 - m)
+                or (y1 < h and hi[1] > y1 - 1 - m)
+            ):
+                self.counters["dropped_region_border"] += 1
                 continue
             out.append(d)
         return out
@@ -200,10 +208,11 @@ class Detector:
         found: dict[int, Detection],
         only_new: bool = False,
     ) -> None:
+        """Search each region (boxes (x0, y0, x1, y1[, decimate]), merged where they overlap)."""
         h, w = gray.shape[:2]
-        for x0, y0, x1, y1 in _merge(boxes, w, h):
+        for x0, y0, x1, y1, decimate in _merge(boxes, w, h):
             shifted = []
-            for d in self.finder.find(np.ascontiguousarray(gray[y0:y1, x0:x1]), 1.0):
+            for d in self.finder.find(np.ascontiguousarray(gray[y0:y1, x0:x1]), decimate):
                 if only_new and d.marker_id in found:
                     continue
                 c = d.corners_px + np.array([x0, y0], dtype=float)
@@ -228,6 +237,12 @@ class Detector:
         singles: dict[int, _Single] = {}
         for d in self.find(gray):
             self.report.found.append(d.marker_id)
+            if _at_border(d.corners_px, w, h):
+                # A marker cut by the border, or one whose corner is extrapolated or nearly outside: its
+                # edges cannot be fitted, and such poses were off by many of their sigmas.
+                self.counters["dropped_image_border"] += 1
+                self.report.dropped[d.marker_id] = "at the image border"
+                continue
             corners = pose.undistort(d.corners_px, K, cal.dist, cal.fisheye)
             refined = refine_corners_undistorted(gray, corners, K, cal.dist, cal.fisheye)
             measured_px = 0.0
@@ -433,26 +448,41 @@ class Detector:
         )
 
 
+def _at_border(c: NDArray[np.float64], w: int, h: int) -> bool:
+    """Whether any corner (c: (4, 2) pixels) lies within ``BORDER_MARGIN_PX`` of the image's border or outside."""
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    m = BORDER_MARGIN_PX
+    return bool(lo[0] < m or lo[1] < m or hi[0] > w - 1 - m or hi[1] > h - 1 - m)
+
+
 def _side(c: NDArray[np.float64]) -> float:
     return float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
 
 
 def _box(c: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The region (x0, y0, x1, y1, decimate) to search for a marker with corners ``c`` in the next
+    frame: its box grown by ``ROI_MARGIN``, decimated while the marker stays ``SMALL_SIDE_PX`` wide
+    (at most ``HUNT_DECIMATE``)."""
     lo, hi = c.min(axis=0), c.max(axis=0)
     grow = (hi - lo) * ROI_MARGIN + 8
-    return np.concatenate([lo - grow, hi + grow])
+    decimate = float(min(max(math.floor(_side(c) / (1.5 * SMALL_SIDE_PX)), 1), HUNT_DECIMATE))
+    return np.concatenate([lo - grow, hi + grow, [decimate]])
 
 
-def _merge(boxes: list[NDArray[np.float64]], w: int, h: int) -> list[tuple[int, int, int, int]]:
-    """Clip boxes to the image and merge overlapping ones (so no marker is cut in two)."""
-    rects = [[max(int(b[0]), 0), max(int(b[1]), 0), min(int(b[2]) + 1, w), min(int(b[3]) + 1, h)] for b in boxes]
+def _merge(boxes: list[NDArray[np.float64]], w: int, h: int) -> list[tuple[int, int, int, int, float]]:
+    """Clip boxes (x0, y0, x1, y1[, decimate]; 1 if not given) to the image and merge overlapping ones
+    (so no marker is cut in two), a merged region at the smallest of its decimations."""
+    rects = [
+        [max(int(b[0]), 0), max(int(b[1]), 0), min(int(b[2]) + 1, w), min(int(b[3]) + 1, h), b[4] if len(b) > 4 else 1]
+        for b in boxes
+    ]
     rects = [r for r in rects if r[2] - r[0] >= 16 and r[3] - r[1] >= 16]
-    merged: list[list[int]] = []
+    merged: list[list[float]] = []
     for r in sorted(rects):
         for m in merged:
             if r[0] <= m[2] and r[2] >= m[0] and r[1] <= m[3] and r[3] >= m[1]:
-                m[:] = [min(m[0], r[0]), min(m[1], r[1]), max(m[2], r[2]), max(m[3], r[3])]
+                m[:] = [min(m[0], r[0]), min(m[1], r[1]), max(m[2], r[2]), max(m[3], r[3]), min(m[4], r[4])]
                 break
         else:
             merged.append(r)
-    return [(a, b, c, d) for a, b, c, d in merged]
+    return [(int(a), int(b), int(c), int(d), float(e)) for a, b, c, d, e in merged]
