@@ -1,9 +1,10 @@
 """Frame in, MarkerData out: find the configured markers, undistort their corners, solve their poses.
 
-Speed beyond the library: the whole image is searched at ``HUNT_DECIMATE`` (nine times fewer pixels)
-plus one tile of a grid at full resolution (a different tile each time, so small markers are found
-within a grid's worth of frames), and the regions where markers were last seen are searched at full
-resolution every frame: the recall of decimate 1 at a fraction of its cost, with nothing tracked too.
+Speed beyond the library: with nothing tracked, frames alternate between the whole image at ``decimate``
+(2: four times fewer pixels) and one tile of a grid at full resolution (a different tile each time, so
+small markers are found within two grids' worth of frames); the regions where markers were last seen
+are searched every frame, at a decimation that keeps each marker wide enough; the whole image and the
+tiles now and then: the recall of decimate 1 after a few frames, at a fraction of its cost.
 
 Trust: a marker whose corners touch the image border (or the border of the region it was found in) is
 dropped (counted by reason), since its edges cannot be fitted; the corners of the others are refitted
@@ -41,11 +42,10 @@ dropped (counted ``ambiguous_dropped``). Above ``AMBIGUITY_THRESHOLD`` (0.5) the
 fit almost equally well and the chosen one may be the mirror image (a "flip", tens of degrees off):
 such detections are kept with both solutions (counted ``ambiguous``) for the listener to resolve with
 the current estimates (:mod:`atlas_onboard.core.ambiguity`). 1.0 keeps them all."""
-SCAN_EVERY = 4  # frames between whole-image searches while tracking (between them, only tracked regions)
-TILE_EVERY = 2  # frames between full-resolution tiles while tracking
+SCAN_EVERY = 4  # frames between whole-image searches while tracking (a tile half-way between them)
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
 ROI_MARGIN = 0.6  # a region is the marker's box grown by this fraction of its size on each side
-HUNT_DECIMATE = 3.0  # the whole-image search's decimation (a marker of 30 px or more is found at it)
+MAX_REGION_DECIMATE = 3.0  # the largest decimation of a tracked marker's region (the library's own cap: none)
 TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (columns, rows)
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
 BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
@@ -118,7 +118,7 @@ class Detector:
         self.entity_of = {m.id: m.entity for m in others}
         self.marker_pose = {m.id: m.T_entity_marker for m in others}
         wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
-        self.finder = MarkerFinder(wanted, self.decimate, extra=(HUNT_DECIMATE,) if self.track else ())
+        self.finder = MarkerFinder(wanted, self.decimate, extra=(MAX_REGION_DECIMATE,) if self.track else ())
         self._last: list[NDArray[np.float64]] = []  # boxes (x0, y0, x1, y1) of the previous frame's markers
         # Whole-image searches and tiles in a phase of their own for each sensor: the cameras of one
         # node do not all search at once (their frames come at the same instants).
@@ -134,28 +134,33 @@ class Detector:
         """Markers in the frame, tracked from the previous one.
 
         Every frame, the regions around the markers of the previous frame are searched, at a
-        decimation that keeps the marker at least ``SMALL_SIDE_PX`` wide (the library fits the edges
-        at full resolution whatever the decimation). When nothing is tracked (hunting) the whole image
-        is searched at ``HUNT_DECIMATE`` and the next tile of a ``TILES`` grid at full resolution, so
-        that small markers are found within a grid's worth of frames; while tracking, the same happens
-        every ``SCAN_EVERY`` frames, and a tile every ``TILE_EVERY`` frames.
+        decimation that keeps the marker at least 1.5 ``SMALL_SIDE_PX`` wide (the library fits the
+        edges at full resolution whatever the decimation). When nothing is tracked (hunting), frames
+        alternate between the whole image at ``decimate`` and the next tile of a ``TILES`` grid at full
+        resolution, so that small markers are found within two grids' worth of frames at about the
+        cost of one decimated search a frame; while tracking, the whole image is searched every
+        ``SCAN_EVERY`` frames (and when every tracked marker is lost) and a tile half-way between.
         """
         if not self.track or self.decimate <= 1.0:
             return self.finder.find(gray, 1.0)
         h, w = gray.shape[:2]
         found: dict[int, Detection] = {}
         hunting = not self._last
-        if not hunting:
+        k = self._frame
+        if hunting:
+            whole, tile = k % 2 == 0, k % 2 == 1
+        else:
             self._roi_search(gray, self._last, found)
-        if hunting or not found or self._frame % SCAN_EVERY == 0:
-            small = []
-            for d in self.finder.find(gray, HUNT_DECIMATE):
+            whole, tile = k % SCAN_EVERY == 0 or not found, k % SCAN_EVERY == SCAN_EVERY // 2
+        if whole:
+            new = []
+            for d in self.finder.find(gray, self.decimate):
                 if d.marker_id not in found:
                     found[d.marker_id] = d
-                    small.append(_box(d.corners_px))  # found again at the region's own decimation
-            self._roi_search(gray, small, found)
+                    new.append(_box(d.corners_px))  # found again at the region's own decimation
+            self._roi_search(gray, new, found)
             self.counters["hunts" if hunting else "scans"] += 1
-        if hunting or not found or self._frame % TILE_EVERY == 0:
+        if tile:
             self._roi_search(gray, [self._next_tile(w, h)], found, only_new=True)
         self._frame += 1
         self._last = [_box(d.corners_px) for d in found.values()]
@@ -462,10 +467,10 @@ def _side(c: NDArray[np.float64]) -> float:
 def _box(c: NDArray[np.float64]) -> NDArray[np.float64]:
     """The region (x0, y0, x1, y1, decimate) to search for a marker with corners ``c`` in the next
     frame: its box grown by ``ROI_MARGIN``, decimated while the marker stays ``SMALL_SIDE_PX`` wide
-    (at most ``HUNT_DECIMATE``)."""
+    (at most ``MAX_REGION_DECIMATE``)."""
     lo, hi = c.min(axis=0), c.max(axis=0)
     grow = (hi - lo) * ROI_MARGIN + 8
-    decimate = float(min(max(math.floor(_side(c) / (1.5 * SMALL_SIDE_PX)), 1), HUNT_DECIMATE))
+    decimate = float(min(max(math.floor(_side(c) / (1.5 * SMALL_SIDE_PX)), 1), MAX_REGION_DECIMATE))
     return np.concatenate([lo - grow, hi + grow, [decimate]])
 
 

@@ -193,3 +193,54 @@ def test_detect_command_says_why_it_printed_nothing(tmp_path):
     assert "markers 1 and 5 disagree by " in two.stdout
     none = detect("none.png")
     assert none.returncode == 0 and none.stdout.strip() == "frame 0: no tag found"
+
+
+def test_the_node_sends_a_cameras_warning_as_statustext():
+    """The node's small hook: what a camera's detector has to say (a disagreeing marker) goes out as a
+    STATUSTEXT with WARNING severity, once."""
+    import threading
+    import time
+
+    from atlas_onboard.config import NodeConfig
+    from atlas_onboard.node import Node
+    from tests.test_node import WORLD, FakeTransport
+
+    class Cam:
+        name = "c"
+
+        def __init__(self):
+            self.pending = ["atlas world: marker 5 disagrees by 10.1 cm"]
+
+        def start(self, deliver):
+            pass
+
+        def stop(self):
+            pass
+
+        def counters(self):
+            return {}
+
+        def take_status(self):
+            out, self.pending = self.pending, []
+            return out
+
+    sent = []
+
+    class Transport(FakeTransport):
+        def send_status(self, text, severity):
+            sent.append((text, severity))
+
+    transport = Transport(time.monotonic_ns)
+    node = Node(WORLD, NodeConfig(entity="d1", system_id=7), transport, cameras=[Cam()])
+    thread = threading.Thread(target=node.run)
+    thread.start()
+    try:
+        transport.started.wait(5)
+        deadline = time.monotonic() + 5
+        while not sent and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.1)
+    finally:
+        node.stop()
+        thread.join(5)
+    assert sent == [("atlas world: marker 5 disagrees by 10.1 cm", 4)]
