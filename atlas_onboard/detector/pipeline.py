@@ -1,9 +1,9 @@
 """Frame in, MarkerData out: find the configured markers, undistort their corners, solve their poses.
 
-Speed beyond the library: with nothing tracked, frames alternate between the whole image at ``decimate``
-(2: four times fewer pixels) and one tile of a grid at full resolution (a different tile each time, so
-small markers are found within two grids' worth of frames); the regions where markers were last seen
-are searched every frame, at a decimation that keeps each marker wide enough; the whole image and the
+Speed beyond the library: with nothing tracked, each frame searches the whole image at decimate 3 (nine
+times fewer pixels) and one tile of a grid at full resolution (a different tile each time, so small
+markers are found within a grid's worth of frames); the regions where markers were last seen are
+searched every frame, at a decimation that keeps each marker wide enough, and the whole image and the
 tiles now and then: the recall of decimate 1 after a few frames, at a fraction of its cost.
 
 Trust: a marker whose corners touch the image border (or the border of the region it was found in) is
@@ -42,10 +42,10 @@ dropped (counted ``ambiguous_dropped``). Above ``AMBIGUITY_THRESHOLD`` (0.5) the
 fit almost equally well and the chosen one may be the mirror image (a "flip", tens of degrees off):
 such detections are kept with both solutions (counted ``ambiguous``) for the listener to resolve with
 the current estimates (:mod:`atlas_onboard.core.ambiguity`). 1.0 keeps them all."""
-SCAN_EVERY = 4  # frames between whole-image searches while tracking (a tile half-way between them)
+SCAN_EVERY = 4  # frames between whole-image searches while tracking
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
 ROI_MARGIN = 0.6  # a region is the marker's box grown by this fraction of its size on each side
-MAX_REGION_DECIMATE = 3.0  # the largest decimation of a tracked marker's region (the library's own cap: none)
+MAX_REGION_DECIMATE = 3.0  # the hunt's decimation and the largest of a tracked marker's region
 TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (columns, rows)
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
 BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
@@ -135,11 +135,11 @@ class Detector:
 
         Every frame, the regions around the markers of the previous frame are searched, at a
         decimation that keeps the marker at least 1.5 ``SMALL_SIDE_PX`` wide (the library fits the
-        edges at full resolution whatever the decimation). When nothing is tracked (hunting), frames
-        alternate between the whole image at ``decimate`` and the next tile of a ``TILES`` grid at full
-        resolution, so that small markers are found within two grids' worth of frames at about the
-        cost of one decimated search a frame; while tracking, the whole image is searched every
-        ``SCAN_EVERY`` frames (and when every tracked marker is lost) and a tile half-way between.
+        edges at full resolution whatever the decimation). When nothing is tracked (hunting), every
+        frame searches the whole image at ``MAX_REGION_DECIMATE`` (large markers) and the next tile of
+        a ``TILES`` grid at full resolution (small ones, found within a grid's worth of frames); while
+        tracking, the whole image is searched at ``decimate`` every ``SCAN_EVERY`` frames (and when
+        every tracked marker is lost), and a tile every other frame.
         """
         if not self.track or self.decimate <= 1.0:
             return self.finder.find(gray, 1.0)
@@ -148,13 +148,14 @@ class Detector:
         hunting = not self._last
         k = self._frame
         if hunting:
-            whole, tile = k % 2 == 0, k % 2 == 1
+            decimate, tile = MAX_REGION_DECIMATE, True
         else:
             self._roi_search(gray, self._last, found)
-            whole, tile = k % SCAN_EVERY == 0 or not found, k % SCAN_EVERY == SCAN_EVERY // 2
-        if whole:
+            decimate = self.decimate if k % SCAN_EVERY == 0 or not found else 0.0
+            tile = k % 2 == 1
+        if decimate:
             new = []
-            for d in self.finder.find(gray, self.decimate):
+            for d in self.finder.find(gray, decimate):
                 if d.marker_id not in found:
                     found[d.marker_id] = d
                     new.append(_box(d.corners_px))  # found again at the region's own decimation
