@@ -95,11 +95,6 @@ def refine_corners_undistorted(
     img = gray.astype(np.float32)
     Kinv = np.linalg.inv(K)
     center = corners_und.mean(axis=0)
-    side = float(np.mean(np.linalg.norm(corners_und - np.roll(corners_und, 1, axis=0), axis=1)))
-    # Inside the black border lie the data cells, outside it one white cell then the background: search
-    # at most half a cell each way (a marker is 8 to 10 cells across its black border).
-    half = float(np.clip(side / 10.0 * 0.5, 1.0, HALF_WIDTH_PX))
-    offsets = np.arange(-half, half + 1e-9, STEP_PX)
     ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
     lines = []
     ss, npts = 0.0, []
@@ -113,6 +108,12 @@ def refine_corners_undistorted(
         n = np.array([-u[1], u[0]])
         if n @ (center - a) > 0:  # normal pointing out of the marker
             n = -n
+        # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
+        # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
+        # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
+        depth = min(abs(float(n @ (corners_und[(i + k) % 4] - a))) for k in (2, 3))
+        half = float(np.clip(0.1 * depth, 1.0, 2 * HALF_WIDTH_PX))
+        offsets = np.arange(-half, half + 1e-9, STEP_PX)
         base = a[None, :] + ts[:, None] * d[None, :]
         pts = (base[:, None, :] + offsets[None, :, None] * n[None, None, :]).reshape(-1, 2)
         rays = np.column_stack([pts, np.ones(len(pts))]) @ Kinv.T  # normalized, z = 1
