@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from atlas_onboard.config import parse_world
 from atlas_onboard.core import ambiguity
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
+from atlas_onboard.core.markerdata import upper_to_matrix
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, _library_detector
 from atlas_onboard.detector.calibration import Calibration
@@ -170,6 +171,42 @@ def _angle_deg(a: RigidTransform, b: RigidTransform) -> float:
     return float(np.degrees((a.rotation.inv() * b.rotation).magnitude()))
 
 
+def covariance_check(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Single markers anywhere in a 640x480 image with strong barrel distortion (k1 = -0.3), 0.4-3 m,
+    0-70 degrees, half of them with motion blur, noise 3 grey levels, over concrete: the detector's
+    reported 6x6 covariance against the truth. Returns NEES3 (position), NEES6 and the share within
+    3 sigma per axis [dp, dtheta]."""
+    K = np.array([[460.0, 0.0, 319.5], [0.0, 460.0, 239.5], [0.0, 0.0, 1.0]])
+    dist = np.array([-0.3, 0.08, 0.0, 0.0, 0.0])
+    cam = Camera(640, 480, K, dist)
+    world = parse_world({"entities": {"world": {"markers": [{"id": 7, "size_m": SIZE, "pose": {}}]},
+                                      "cam": {"sensors": [{"name": "c", "id": 1, "pose": {}}]}}})  # fmt: skip
+    det = Detector(world.sensors[1], world, Calibration(640, 480, K, dist), decimate=1.0, track=False)
+    rng = np.random.default_rng(42)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+    errs = []
+    for k in range(n):
+        distance, angle = rng.uniform(0.4, 3.0), rng.uniform(0.0, 70.0)
+        rot = Rotation.from_euler("zxz", [rng.uniform(0, 360), 180 + angle, rng.uniform(0, 360)], degrees=True)
+        uv = np.array([[[rng.uniform(20, 620), rng.uniform(20, 460)]]])
+        xy = cv2.undistortPoints(uv, K, dist, None, None, criteria=crit).ravel()
+        T = RigidTransform.from_components([xy[0] * distance, xy[1] * distance, distance], rot)
+        blur = tuple(rng.uniform(0, 3, 2)) if rng.random() < 0.5 else (0.0, 0.0)
+        img = render(cam, [MarkerView("tag36h11", 7, SIZE, T)], noise_sigma=3.0, blur_px=blur, seed=k,
+                     background_style="concrete", background_seed=k % 7)  # fmt: skip
+        for md in det.detect(img, k):
+            if md.ambiguity_ratio > AMBIGUITY_THRESHOLD:  # both solutions go downstream
+                continue
+            w, x, y, z = md.q_sensor_marker_wxyz
+            e = np.concatenate([T.translation - np.array(md.p_sensor_marker_m),
+                                (Rotation.from_quat([x, y, z, w]).inv() * T.rotation).as_rotvec()])  # fmt: skip
+            errs.append((e, upper_to_matrix(np.array(md.covariance))))
+    nees3 = np.array([e[:3] @ np.linalg.solve(C[:3, :3], e[:3]) for e, C in errs])
+    nees6 = np.array([e @ np.linalg.solve(C, e) for e, C in errs])
+    within = np.mean([np.abs(e) <= 3 * np.sqrt(np.diag(C)) for e, C in errs], axis=0)
+    return nees3, nees6, within
+
+
 def stats(t: list[float]) -> str:
     if not t:
         return f"{'-':>7} {'-':>7} {'-':>7}"
@@ -179,6 +216,7 @@ def stats(t: list[float]) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=20, help="frames per sequence")
+    ap.add_argument("--covariance-frames", type=int, default=200, help="frames of the covariance check")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     lib1 = _library_detector("tag36h11", 1, 1.0)
@@ -281,6 +319,13 @@ def main() -> int:
         f"poses: {a['flips']} of {len(a['errs'])}"
     )
     err = statistics.median(a["errs"])
+    nees3, nees6, within = covariance_check(args.covariance_frames)
+    print(
+        f"single-marker covariance, 640x480 k1 -0.3, whole image, blur and noise, {len(nees3)} detections: "
+        f"NEES3 mean {nees3.mean():.2f} median {np.median(nees3):.2f} (ideal 3, 2.37), NEES6 mean "
+        f"{nees6.mean():.2f} median {np.median(nees6):.2f} (ideal 6, 5.35); within 3 sigma per axis "
+        f"[dp x y z, dtheta x y z] {np.round(within, 3).tolist()} (ideal 0.997)"
+    )
     for r in ("640x480", "1280x720"):
         mine = times[(r, "hunting", "atlas")] + times[(r, "tracking", "atlas")]
         d2 = times[(r, "hunting", "library d2")] + times[(r, "tracking", "library d2")]
@@ -295,6 +340,12 @@ def main() -> int:
     print(f"BAR detector_false_ids {a['false']} count 0 {'pass' if a['false'] == 0 else 'fail'}")
     print(f"BAR detector_flips {flips:.2f} percent 1.0 {'pass' if flips <= 1.0 else 'fail'}")
     print(f"BAR detector_median_translation_error {err:.3f} percent_of_distance 0.5 {'pass' if err <= 0.5 else 'fail'}")
+    w = float(within.min())
+    print(f"BAR single_marker_within_3_sigma_worst_axis {w:.3f} fraction 0.99 {'pass' if w >= 0.99 else 'fail'}")
+    m3, m6 = float(nees3.mean()), float(nees6.mean())
+    # About their dimension: overconfidence (above) is the danger, a covariance far too large (below) wastes it.
+    print(f"BAR single_marker_nees3_mean {m3:.2f} nees 1.5-4.5 {'pass' if 1.5 <= m3 <= 4.5 else 'fail'}")
+    print(f"BAR single_marker_nees6_mean {m6:.2f} nees 3-9 {'pass' if 3.0 <= m6 <= 9.0 else 'fail'}")
     return 0
 
 
