@@ -95,9 +95,6 @@ class _Single:
     stretch: NDArray[np.float64] | None
     measured_px: float
 
-    def __getitem__(self, i: int) -> object:  # (pose, corners), as a pair
-        return (self.pose, self.corners)[i]
-
 
 @dataclass
 class Detector:
@@ -278,7 +275,7 @@ class Detector:
                 if used is None:  # the squares contradict each other: none of them is trusted in this image
                     continue
             for mid in ids:
-                mp = singles[mid][0]
+                mp = singles[mid].pose
                 ambiguous = mp.ambiguity > AMBIGUITY_THRESHOLD
                 if mp.ambiguity > self.max_ambiguity or (ambiguous and mp.p_alt_m is None):
                     # Too poor a fit, or nothing downstream could resolve it: drop it here.
@@ -304,7 +301,7 @@ class Detector:
         return pose.SIGMA_PX_APRILTAG if family(family_name).is_apriltag else pose.SIGMA_PX_ARUCO
 
     def _robust_joint(
-        self, entity: str, ids: list[int], singles: dict, capture_time_us: int
+        self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int
     ) -> tuple[MarkerData | None, list[int] | None]:
         """The entity's observation from the markers that fit together, and the ids used.
 
@@ -345,14 +342,14 @@ class Detector:
             self._log_disagreement(entity, f"markers {a} and {b} disagree", offset, capture_time_us)
         return None, None
 
-    def _offset_m(self, m: int, others: list[int], singles: dict) -> float:
+    def _offset_m(self, m: int, others: list[int], singles: dict[int, _Single]) -> float:
         """How far marker ``m``'s own square is from where the joint pose of ``others`` puts it (m)."""
         sol = self._joint_solution(others, singles)
         if sol is None:
             return math.nan
         T_cam_entity = RigidTransform.from_components(sol[1], Rotation.from_rotvec(sol[0]))
         predicted = (T_cam_entity * self.marker_pose[m]).translation
-        return float(np.linalg.norm(singles[m][0].p_m - predicted))
+        return float(np.linalg.norm(singles[m].pose.p_m - predicted))
 
     def _disagrees(self, entity: str, m: int, offset_m: float, capture_time_us: int) -> None:
         self.counters["marker_disagrees"] += 1
@@ -369,13 +366,13 @@ class Detector:
             self._last_status_us = capture_time_us
             self._status.append(f"atlas {text}"[:50])
 
-    def _joint_solution(self, ids: list[int], singles: dict) -> tuple | None:
+    def _joint_solution(self, ids: list[int], singles: dict[int, _Single]) -> tuple | None:
         """rvec, tvec (T_camera_entity), RMS error and sigma of the joint solve of ``ids``, or None."""
         obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
-        img = np.vstack([singles[m][1] for m in ids])
+        img = np.vstack([singles[m].corners for m in ids])
         # Start from the least ambiguous single solution, moved to the entity frame.
-        best = min(ids, key=lambda m: singles[m][0].ambiguity if np.isfinite(singles[m][0].ambiguity) else 1.0)
-        mp = singles[best][0]
+        best = min(ids, key=lambda m: singles[m].pose.ambiguity if np.isfinite(singles[m].pose.ambiguity) else 1.0)
+        mp = singles[best].pose
         T_cam_entity = (
             RigidTransform.from_components(mp.p_m, Rotation.from_quat(mp.q_xyzw)) * self.marker_pose[best].inv()
         )
@@ -384,7 +381,12 @@ class Detector:
         return pose.solve_joint(obj, img, self.calibration.K, self._sigma_px(fam), guess)
 
     def _joint(
-        self, ids: list[int], singles: dict, capture_time_us: int, count: bool = True, with_error: bool = False
+        self,
+        ids: list[int],
+        singles: dict[int, _Single],
+        capture_time_us: int,
+        count: bool = True,
+        with_error: bool = False,
     ) -> tuple:
         """The entity's observation from all its squares at once; (None, False) when the solve
         failed (the squares are then reported one by one), (None, True) when they do not fit together.
@@ -400,7 +402,7 @@ class Detector:
         # Markers that do not fit together as the world file places them (a misplaced marker, a bad
         # corner, motion blur that moves each square differently) give a joint fit far worse than
         # each square's own: the joint pose is then wrong in a way no sigma describes.
-        worst_single = max(singles[m][0].reprojection_error_px for m in ids)
+        worst_single = max(singles[m].pose.reprojection_error_px for m in ids)
         limit = JOINT_MISFIT * max(worst_single, self._sigma_px(fam))
         if err > limit:
             self.counters["joint_misfit"] += count
@@ -409,8 +411,9 @@ class Detector:
         # The covariance of the anchor's pose: the same corners, in the anchor's frame.
         obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
         obj_anchor = T_entity_anchor.inv().apply(obj)
-        model_px = pose.corner_noise_px(self._sigma_px(fam), float(np.median([_side(singles[m][1]) for m in ids])))
-        sigma_px = max(model_px, *(singles[m].measured_px for m in ids))
+        model_px = pose.corner_noise_px(self._sigma_px(fam), float(np.median([_side(singles[m].corners) for m in ids])))
+        measured = [singles[m].measured_px for m in ids]
+        sigma_px = math.hypot(max(measured), pose.CORNER_FLOOR_PX) if min(measured) > 0 else model_px
         stretches = [singles[m].stretch for m in ids]
         stretch = None if any(x is None for x in stretches) else np.concatenate(stretches)
         R = T.rotation.as_matrix()

@@ -199,9 +199,9 @@ def solve(
 ) -> MarkerPose | None:
     """IPPE on undistorted corners of one square; None if OpenCV finds no solution in front.
 
-    The corner noise is the model's (``sigma_px`` at a 50 px side, :func:`corner_noise_px`) or the
-    ``measured_sigma_px`` of the corners' edge fit (:func:`refine.refine_corners_undistorted`) with
-    ``CORNER_FLOOR_PX``, the larger.
+    The corner noise is the ``measured_sigma_px`` of the corners' edge fit
+    (:func:`refine.refine_corners_undistorted`) with ``CORNER_FLOOR_PX`` when given, otherwise the
+    model's (``sigma_px`` at a 50 px side, :func:`corner_noise_px`).
 
     ``stretch``: :func:`undistortion_jacobian` of the corners (None: an undistorted camera); the
     corner noise ``sigma_px``, the marker's side and the reprojection error are then in image pixels."""
@@ -232,11 +232,11 @@ def solve(
     side_px = float(np.mean(np.linalg.norm(np.diff(np.vstack([corners_px, corners_px[:1]]), axis=0), axis=1)))
     if stretch is not None:  # the side in image pixels: undistorted lengths shrunk by the local scale
         side_px /= float(np.sqrt(np.mean(np.abs(np.linalg.det(stretch)))))
-    # The model's corner noise or, when larger, the edge fit's own scatter with what no scatter shows
-    # (CORNER_FLOOR_PX): the scatter alone is overconfident for small markers seen at grazing angles.
-    sigma_px = corner_noise_px(sigma_px, side_px)
+    # The edge fit's measured corner noise with what no scatter shows (CORNER_FLOOR_PX), or the model's.
     if measured_sigma_px > 0:
-        sigma_px = max(sigma_px, math.hypot(measured_sigma_px, CORNER_FLOOR_PX))
+        sigma_px = math.hypot(measured_sigma_px, CORNER_FLOOR_PX)
+    else:
+        sigma_px = corner_noise_px(sigma_px, side_px)
     sigma = camera_position_sigma(r0, t0, obj, K, sigma_px, float(e[0]), stretch)
     # Face-on, the first order says nothing about tilt; second order bounds it.
     z = float(np.linalg.norm(t0))

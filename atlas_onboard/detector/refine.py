@@ -90,7 +90,8 @@ def refine_corners_undistorted(
 
     The noise: a line fitted through n points spread evenly over the middle 70 % of an edge and
     extrapolated to its end has the variance 7.1 s^2 / n across it (s: the points' scatter, pooled over
-    the four edges), and a corner lies on two nearly perpendicular lines; blur and pixel noise raise s.
+    the four edges), and a corner lies on two lines crossing at an angle phi, which adds 1 / sin(phi);
+    blur and pixel noise raise s.
     """
     img = gray.astype(np.float32)
     Kinv = np.linalg.inv(K)
@@ -143,7 +144,11 @@ def refine_corners_undistorted(
     if np.abs(out - corners_und).max() > 2.0:
         return None
     scatter2 = ss / max(sum(npts) - 8, 1)  # two parameters a line
-    return out, float(np.sqrt(7.1 * scatter2 / float(np.mean(npts))))
+    # Two lines crossing at an angle phi place their crossing 1 / sin(phi) less precisely than
+    # perpendicular ones (a marker seen obliquely has sharp corners in the image).
+    dirs = [d for _, d in lines]
+    sin_min = min(abs(float(a[0] * b[1] - a[1] * b[0])) for a, b in zip(dirs, dirs[1:] + dirs[:1], strict=True))
+    return out, float(np.sqrt(7.1 * scatter2 / float(np.mean(npts)))) / max(sin_min, 0.2)
 
 
 def _half_level(prof: NDArray[np.float32], offsets: NDArray[np.float64]) -> NDArray[np.float64]:
