@@ -19,6 +19,12 @@ scalar cannot carry: a marker seen from afar is placed within a fraction of a mi
 line of sight, a few millimetres in depth, and poorly in tilt, and its tilt and the camera's position
 seen from it are correlated, so a ceiling camera's view of a drone's tag is far more precise than
 the camera's position relative to that tag. The listener carries it through eq. 1.
+
+Honest at the image edge and on hard frames: corner noise is isotropic in the image, so with lens
+distortion it is carried through the undistortion's Jacobian (:func:`undistortion_jacobian`); when the
+detector refits the corners on the edges it measures their noise and passes it in (``measured_sigma_px``,
+used instead of the model); and a single square's covariance adds the second moment of the other IPPE
+solution, weighted by how well it fits (:func:`_flip_moment`), which the first order alone ignores.
 """
 
 from __future__ import annotations
