@@ -44,7 +44,7 @@ such detections are kept with both solutions (counted ``ambiguous``) for the lis
 the current estimates (:mod:`atlas_onboard.core.ambiguity`). 1.0 keeps them all."""
 SCAN_EVERY = 4  # frames between whole-image searches while tracking
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
-ROI_MARGIN = 0.6  # a region is the marker's box grown by this fraction of its size on each side
+ROI_MARGIN = 0.4  # a region is the marker's predicted box grown by this fraction of its size on each side
 MAX_REGION_DECIMATE = 3.0  # the hunt's decimation and the largest of a tracked marker's region
 TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (columns, rows)
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
@@ -116,7 +116,8 @@ class Detector:
         self.marker_pose = {m.id: m.T_entity_marker for m in others}
         wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
         self.finder = MarkerFinder(wanted, self.decimate, extra=(MAX_REGION_DECIMATE,) if self.track else ())
-        self._last: list[NDArray[np.float64]] = []  # boxes (x0, y0, x1, y1) of the previous frame's markers
+        self._last: list[NDArray[np.float64]] = []  # regions (x0, y0, x1, y1, decimate) to search next
+        self._corners: dict[int, NDArray[np.float64]] = {}  # the previous frame's markers' corners
         # Whole-image searches and tiles in a phase of their own for each sensor: the cameras of one
         # node do not all search at once (their frames come at the same instants).
         self._frame = self.sensor.id % SCAN_EVERY
@@ -130,7 +131,8 @@ class Detector:
     def find(self, gray: NDArray[np.uint8]) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.
 
-        Every frame, the regions around the markers of the previous frame are searched, at a
+        Every frame, the regions where the markers of the previous frame are predicted to be (moved on
+        by their last motion in the image) are searched, at a
         decimation that keeps the marker at least 1.5 ``SMALL_SIDE_PX`` wide (the library fits the
         edges at full resolution whatever the decimation). When nothing is tracked (hunting), every
         frame searches the whole image at ``MAX_REGION_DECIMATE`` (large markers) and the next tile of
@@ -161,7 +163,10 @@ class Detector:
         if tile:
             self._roi_search(gray, [self._next_tile(w, h)], found, only_new=True)
         self._frame += 1
-        self._last = [_box(d.corners_px) for d in found.values()]
+        # Where each marker will be: moved on by its last motion in the image (constant velocity).
+        previous = self._corners
+        self._corners = {i: d.corners_px for i, d in found.items()}
+        self._last = [_box(2 * c - previous[i] if i in previous else c) for i, c in self._corners.items()]
         return list(found.values())
 
     @property
