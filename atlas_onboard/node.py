@@ -471,6 +471,9 @@ class Node:
             self._next_telemetry_ns = now + TELEMETRY_NS
             self._send_telemetry(now)
         self.transport.tick(now)
+        for cam in self.cameras:  # a camera's detector's warnings (a marker that disagrees), rate-limited there
+            for text in getattr(cam, "take_status", tuple)():
+                self.transport.send_status(text, 4)  # WARNING
         if now >= self._next_watchdog_ns:
             self._notify("WATCHDOG=1")
             self._next_watchdog_ns = now + self.watchdog_interval_ns

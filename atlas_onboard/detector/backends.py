@@ -95,13 +95,21 @@ def _min_hamming(name: str) -> int:
 class AprilTagBackend:
     """The AprilTag 3 library. ``decimate`` > 1 is faster and misses small markers."""
 
-    def __init__(self, families: list[str], decimate: float = 1.0, threads: int = 1) -> None:
+    def __init__(
+        self, families: list[str], decimate: float = 1.0, threads: int = 1, extra: tuple[float, ...] = ()
+    ) -> None:
+        """``extra``: other decimations to be ready for (a detector takes milliseconds to make)."""
         self.families = families
-        self._detectors = {d: _library_detector(" ".join(families), threads, d) for d in sorted({1.0, float(decimate)})}
+        wanted = sorted({1.0, float(decimate), *map(float, extra)})
+        self._detectors = {d: _library_detector(" ".join(families), threads, d) for d in wanted}
         self.decimate = float(decimate)
+        self._threads = threads
 
     def detect(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:
-        det = self._detectors.get(float(decimate or self.decimate)) or self._detectors[self.decimate]
+        d = float(decimate or self.decimate)
+        if d not in self._detectors:  # another decimation (the tracker's hunt): a detector of its own
+            self._detectors[d] = _library_detector(" ".join(self.families), self._threads, d)
+        det = self._detectors[d]
         out = []
         for r in det.detect(np.ascontiguousarray(gray)):
             fam = r.tag_family.decode() if isinstance(r.tag_family, bytes) else str(r.tag_family)
@@ -136,14 +144,14 @@ class ArucoBackend:
 class MarkerFinder:
     """All backends a world file's markers need, filtered to the configured ids."""
 
-    def __init__(self, wanted: dict[int, str], decimate: float = 1.0) -> None:
+    def __init__(self, wanted: dict[int, str], decimate: float = 1.0, extra: tuple[float, ...] = ()) -> None:
         """``wanted`` maps each configured marker id to its family."""
         self.wanted = wanted
         fams = sorted(set(wanted.values()))
         april = [f for f in fams if family(f).is_apriltag]
         self.backends: list[AprilTagBackend | ArucoBackend] = []
         if april:
-            self.backends.append(AprilTagBackend(april, decimate))
+            self.backends.append(AprilTagBackend(april, decimate, extra=extra))
         self.backends += [ArucoBackend(f) for f in fams if not family(f).is_apriltag]
         self.dropped: Counter[str] = Counter()
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -50,6 +51,9 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         found = detector.detect(gray, stamp)
         for md in found:
             print(json.dumps(_as_dict(md, k)) if args.json else _as_line(md, k), flush=True)
+        report = detector.report
+        if not found or report.dropped:  # say why nothing, or not everything, was printed (JSON: on stderr)
+            print(f"frame {k}: {report.explain()}", file=sys.stderr if args.json else sys.stdout, flush=True)
         if args.annotate and k == 0:
             _annotate(Path(args.annotate), gray, found, detector)
         if args.frames and k + 1 >= args.frames:

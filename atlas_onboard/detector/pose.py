@@ -19,6 +19,12 @@ scalar cannot carry: a marker seen from afar is placed within a fraction of a mi
 line of sight, a few millimetres in depth, and poorly in tilt, and its tilt and the camera's position
 seen from it are correlated, so a ceiling camera's view of a drone's tag is far more precise than
 the camera's position relative to that tag. The listener carries it through eq. 1.
+
+Honest at the image edge and on hard frames: corner noise is isotropic in the image, so with lens
+distortion it is carried through the undistortion's Jacobian (:func:`undistortion_jacobian`); when the
+detector refits the corners on the edges it measures their noise and passes it in (``measured_sigma_px``,
+used instead of the model); and a single square's covariance adds the second moment of the other IPPE
+solution, weighted by how well it fits (:func:`_flip_moment`), which the first order alone ignores.
 """
 
 from __future__ import annotations
@@ -31,9 +37,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
+from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
+
 SIGMA_PX_APRILTAG = 0.08  # corner noise at a 50 px side, scaled by sqrt(50 / side): corner_noise_px
 SIGMA_PX_ARUCO = 0.2
 MIN_SIGMA_M = 0.0001
+# Corner error that no edge fit's scatter shows: the residual of the lens model and of the calibration,
+# added in quadrature to the measured corner noise.
+CORNER_FLOOR_PX = 0.05
 
 
 @dataclass(frozen=True)
@@ -56,18 +67,54 @@ def object_corners(size_m: float) -> NDArray[np.float64]:
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
 
 
+# cv2.undistortPoints stops after 5 iterations by default: with strong barrel distortion (k1 = -0.3 at
+# 640x480) that leaves corners near the image edge off by 0.1-0.5 px, many times the corner noise.
+UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+JACOBIAN_STEP_PX = 0.5
+
+
 def undistort(
     corners_px: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
 ) -> NDArray[np.float64]:
-    """Corners moved to where an ideal pinhole camera with the same K would see them."""
+    """Corners (N, 2) moved to where an ideal pinhole camera with the same K would see them."""
     pts = np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 1, 2)
     if fisheye:
-        out = cv2.fisheye.undistortPoints(pts, K, dist, P=K)
+        out = cv2.fisheye.undistortPoints(pts, K, dist, P=K, criteria=UNDISTORT_CRITERIA)
     elif np.any(dist):
-        out = cv2.undistortPoints(pts, K, dist, P=K)
+        out = cv2.undistortPoints(pts, K, dist, None, None, K, criteria=UNDISTORT_CRITERIA)
     else:
         return pts.reshape(-1, 2)
     return out.reshape(-1, 2)
+
+
+def undistortion_jacobian(
+    corners_px: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> NDArray[np.float64] | None:
+    """d(undistorted pixel) / d(image pixel) at each corner, (N, 2, 2); None without distortion.
+
+    Corner noise is isotropic in the image, not in undistorted pixels: barrel distortion compresses the
+    image's edge, so undistortion stretches a corner's noise there (radially more than tangentially).
+    Central differences of :func:`undistort`.
+    """
+    if not np.any(dist):
+        return None
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 2)
+    h = JACOBIAN_STEP_PX
+    steps = np.array([[h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]])
+    moved = undistort((c[:, None, :] + steps[None]).reshape(-1, 2), K, dist, fisheye).reshape(-1, 4, 2)
+    A = np.empty((len(c), 2, 2))
+    A[:, :, 0] = (moved[:, 0] - moved[:, 1]) / (2 * h)
+    A[:, :, 1] = (moved[:, 2] - moved[:, 3]) / (2 * h)
+    return A
+
+
+def _whiten(J: NDArray[np.float64], stretch: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """Rows of J ((2N, k), undistorted pixels per unit) scaled to image pixels: each corner's two rows by
+    the inverse of its undistortion Jacobian, so that corner noise is isotropic again."""
+    if stretch is None:
+        return J
+    Jc = J.reshape(len(stretch), 2, -1)
+    return np.linalg.solve(stretch, Jc).reshape(J.shape)
 
 
 def camera_position_sigma(
@@ -77,10 +124,12 @@ def camera_position_sigma(
     K: NDArray[np.float64],
     sigma_px: float,
     err_px: float,
+    stretch: NDArray[np.float64] | None = None,
 ) -> float:
-    """First-order standard deviation of the camera's position in the object's frame (metres)."""
+    """First-order standard deviation of the camera's position in the object's frame (metres).
+    ``stretch``: :func:`undistortion_jacobian` of the corners (None: no distortion)."""
     _, J = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, K, None)
-    J = J[:, :6]  # d(pixels) / d(rvec, tvec)
+    J = _whiten(J[:, :6], stretch)  # d(image pixels) / d(rvec, tvec)
     try:
         cov = sigma_px**2 * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
@@ -104,14 +153,17 @@ def pose_covariance(
     K: NDArray[np.float64],
     sigma_px: float,
     err_px: float,
+    stretch: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64] | None:
     """First-order 6x6 covariance of a marker's pose ``T_s_m = (p_sm, R_sm)`` found from the corners
-    ``obj_m`` ((N, 3), marker frame) seen by an undistorted pinhole camera ``K`` with independent
-    corner noise ``sigma_px``: ``sigma_px^2 (J^T J)^-1``, with J the corners' pixels with respect to
-    atlas-onboard's error vector ``[dp, dtheta]`` (dp in the camera frame, dtheta about the marker's
-    own axes: :mod:`atlas_onboard.core.covariance`). A corner X moves by ``dp - R [X]x dtheta``, and
-    its pixel by the pinhole's derivative. A poor fit inflates it as sigma is inflated
-    (``1 + (err / sigma_px)^2``). None if J is singular (fewer than three distinct corners)."""
+        ``obj_m`` ((N, 3), marker frame) seen by an undistorted pinhole camera ``K`` with independent
+        corner noise ``sigma_px``: ``sigma_px^2 (J^T J)^-1``, with J the corners' pixels with respect to
+        atlas-onboard's error vector ``[dp, dtheta]`` (dp in the camera frame, dtheta about the marker's
+        own axes: :mod:`atlas_onboard.core.covariance`). A corner X moves by ``dp - R [X]x dtheta``, and
+        its pixel by the pinhole's derivative. A poor fit inflates it as sigma is inflated
+        (``1 + (err / sigma_px)^2``). ``stretch``: :func:`undistortion_jacobian` of the corners, whose
+    noise is ``sigma_px`` in the distorted image (None: no distortion). None if J is singular (fewer
+    than three distinct corners)."""
     X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
     P = X @ R_sm.T + p_sm
     z = P[:, 2]
@@ -127,7 +179,7 @@ def pose_covariance(
     hat[:, 0, 1], hat[:, 0, 2], hat[:, 1, 2] = -X[:, 2], X[:, 1], -X[:, 0]
     hat[:, 1, 0], hat[:, 2, 0], hat[:, 2, 1] = X[:, 2], -X[:, 1], X[:, 0]
     dP[:, :, 3:] = -R_sm @ hat
-    J = (D @ dP).reshape(-1, 6)
+    J = _whiten((D @ dP).reshape(-1, 6), stretch)
     A = J.T @ J
     if len(X) < 3 or np.linalg.cond(A) > 1e14:
         return None
@@ -143,8 +195,22 @@ def corner_noise_px(base_px: float, side_px: float) -> float:
     return float(np.clip(base_px * math.sqrt(50.0 / max(side_px, 1.0)), 0.02, 0.5))
 
 
-def solve(corners_px: NDArray[np.float64], size_m: float, K: NDArray[np.float64], sigma_px: float) -> MarkerPose | None:
-    """IPPE on undistorted corners of one square; None if OpenCV finds no solution in front."""
+def solve(
+    corners_px: NDArray[np.float64],
+    size_m: float,
+    K: NDArray[np.float64],
+    sigma_px: float,
+    stretch: NDArray[np.float64] | None = None,
+    measured_sigma_px: float = 0.0,
+) -> MarkerPose | None:
+    """IPPE on undistorted corners of one square; None if OpenCV finds no solution in front.
+
+    The corner noise is the ``measured_sigma_px`` of the corners' edge fit
+    (:func:`refine.refine_corners_undistorted`) with ``CORNER_FLOOR_PX`` when given, otherwise the
+    model's (``sigma_px`` at a 50 px side, :func:`corner_noise_px`).
+
+    ``stretch``: :func:`undistortion_jacobian` of the corners (None: an undistorted camera); the
+    corner noise ``sigma_px``, the marker's side and the reprojection error are then in image pixels."""
     obj = object_corners(size_m)
     img = np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 1, 2)
     ok, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE)
@@ -167,17 +233,56 @@ def solve(corners_px: NDArray[np.float64], size_m: float, K: NDArray[np.float64]
     r0, t0 = cv2.solvePnPRefineLM(obj, img, K, None, r0.reshape(3, 1).copy(), t0.reshape(3, 1).copy())
     r0, t0 = r0.ravel(), t0.ravel()
     proj, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), r0, t0, K, None)
-    e[0] = min(float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img.reshape(-1, 2)) ** 2, axis=1)))), e[0])
+    residual = _whiten((proj.reshape(-1, 2) - img.reshape(-1, 2)).reshape(-1, 1), stretch)
+    e[0] = float(np.sqrt(np.sum(residual**2) / 4))
     side_px = float(np.mean(np.linalg.norm(np.diff(np.vstack([corners_px, corners_px[:1]]), axis=0), axis=1)))
-    sigma_px = corner_noise_px(sigma_px, side_px)
-    sigma = camera_position_sigma(r0, t0, obj, K, sigma_px, float(e[0]))
+    if stretch is not None:  # the side in image pixels: undistorted lengths shrunk by the local scale
+        side_px /= float(np.sqrt(np.mean(np.abs(np.linalg.det(stretch)))))
+    # The edge fit's measured corner noise with what no scatter shows (CORNER_FLOOR_PX), or the model's.
+    if measured_sigma_px > 0:
+        sigma_px = math.hypot(measured_sigma_px, CORNER_FLOOR_PX)
+    else:
+        sigma_px = corner_noise_px(sigma_px, side_px)
+    sigma = camera_position_sigma(r0, t0, obj, K, sigma_px, float(e[0]), stretch)
     # Face-on, the first order says nothing about tilt; second order bounds it.
     z = float(np.linalg.norm(t0))
     cap = z * math.sqrt((sigma_px / side_px) ** 2 + 2.0 * sigma_px / side_px)
     fit = math.sqrt(1.0 + (e[0] / sigma_px) ** 2)
     sigma = max(min(sigma, cap * fit), MIN_SIGMA_M)
-    cov = pose_covariance(cv2.Rodrigues(r0)[0], t0, obj, K, sigma_px, float(e[0]))
+    R0 = cv2.Rodrigues(r0)[0]
+    cov = pose_covariance(R0, t0, obj, K, sigma_px, float(e[0]), stretch)
+    if cov is not None and alt[0] is not None and ambiguity <= AMBIGUITY_THRESHOLD:
+        cov = cov + _flip_moment(R0, t0, alt[0], alt[1], obj, img, K, sigma_px, float(e[0]), stretch)
     return MarkerPose(t0, Rotation.from_rotvec(r0).as_quat(), float(e[0]), alt[0], alt[1], ambiguity, sigma, cov)
+
+
+def _flip_moment(
+    R0: NDArray[np.float64],
+    t0: NDArray[np.float64],
+    p_alt: NDArray[np.float64],
+    q_alt_xyzw: NDArray[np.float64],
+    obj: NDArray[np.float64],
+    img: NDArray[np.float64],
+    K: NDArray[np.float64],
+    sigma_px: float,
+    err_px: float,
+    stretch: NDArray[np.float64] | None,
+) -> NDArray[np.float64]:
+    """The second moment, about the chosen solution, that the other planar solution adds: w d d^T.
+
+    A small or near face-on square has two poses that fit its corners almost equally (IPPE's pair,
+    mirrored in tilt). The first-order covariance describes the neighbourhood of the chosen one only;
+    with the corner noise, the other is the truth with the posterior weight
+    w = 1 / (1 + exp((chi2_alt - chi2_chosen) / 2)), chi2 = sum of squared residuals / sigma_px^2, and
+    d its offset in the error convention [dp, dtheta] of :func:`pose_covariance`.
+    """
+    R1 = Rotation.from_quat(q_alt_xyzw).as_matrix()
+    proj = (obj @ R1.T + p_alt) @ K.T
+    res = _whiten((proj[:, :2] / proj[:, 2:] - img.reshape(-1, 2)).reshape(-1, 1), stretch)
+    dchi2 = (float(np.sum(res**2)) - 4.0 * err_px**2) / sigma_px**2
+    w = 1.0 / (1.0 + math.exp(min(max(dchi2, 0.0) / 2.0, 700.0)))
+    d = np.concatenate([p_alt - t0, Rotation.from_matrix(R0.T @ R1).as_rotvec()])
+    return w * np.outer(d, d)
 
 
 def solve_joint(

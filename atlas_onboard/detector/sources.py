@@ -166,6 +166,10 @@ class CameraWorker(SensorWorker):
     def counters(self) -> dict[str, int]:
         return dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}
 
+    def take_status(self) -> list[str]:
+        """The detector's STATUSTEXT lines since the last call (thread-safe: a list swap)."""
+        return self.detector.take_status()
+
     def _run(self, deliver: Deliver) -> None:
         backoff = 0
         while not self._stop.is_set():
