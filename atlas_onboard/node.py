@@ -37,6 +37,11 @@ LOOP_TICK_S = 0.05  # the loop runs at least this often (links' periodic message
 FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observations
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
 PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
+# An own camera's observation older than this when the loop takes it is late: beyond what the
+# autopilots compensate (PX4 EKF2_EV_DELAY <= 300 ms; ArduPilot marks vision older than 300 ms
+# unhealthy). It is still used and its pose still published, stamped with its capture time.
+LATE_S = 0.3
+LATE_REPORT_NS = 10 * NS  # at most one log line and one STATUSTEXT about lateness per 10 s
 
 
 class Transport(Protocol):
@@ -143,6 +148,7 @@ class Stats:
     autopilot_sent: int = 0
     fused_sent: int = 0
     superseded: int = 0  # parked peer observations replaced by a newer one of the same edge before use
+    late_observations: int = 0  # own camera's observations older than LATE_S when taken (still used)
 
 
 class Node:
@@ -203,6 +209,7 @@ class Node:
         self.park_ns = int(min(max(NS / config.fused_rate_hz, COALESCE_NS), timeout_ns // 2))
         self._relevant: set[str] | None = None  # entities whose observations are evaluated at once
         self._next_status_ns = 0
+        self._next_late_report_ns = 0
         self._next_watchdog_ns = 0
         self.watchdog_interval_ns = NS  # the service layer shortens it to half of WatchdogSec if needed
 
@@ -390,11 +397,16 @@ class Node:
             return []
         local: list[MarkerData] = []
         reasons = self.listener.accept_many([(md, arrival) for md, arrival, _ in batch])
+        wall_us = self.wall() // 1000
+        late, oldest_us = 0, 0
         for (md, _, is_local), reason in zip(batch, reasons, strict=True):
             if is_local:
                 self.stats.local_observations += 1
                 if reason is None:
                     local.append(md)
+                    age_us = wall_us - md.capture_time_us
+                    if age_us > LATE_S * 1e6:
+                        late, oldest_us = late + 1, max(oldest_us, age_us)
             else:
                 self.stats.peer_observations += 1
             if reason is None:
@@ -412,7 +424,25 @@ class Node:
                 _logger.debug(
                     "rejected observation %s from %d: %s", (md.sensor_id, md.marker_id), md.origin, reason.value
                 )
+        if late:
+            self.stats.late_observations += late
+            self._report_late(oldest_us / 1e6)
         return local
+
+    def _report_late(self, age_s: float) -> None:
+        """Own observations arrive late (a file replayed every frame, a detector that cannot keep up):
+        counted always, said at most every ``LATE_REPORT_NS`` in the log and as a STATUSTEXT. They are
+        used all the same: a pose stamped with its capture time is still valid."""
+        now = self.clock()
+        if now < self._next_late_report_ns:
+            return
+        self._next_late_report_ns = now + LATE_REPORT_NS
+        _logger.warning(
+            "%s: camera observations arrive %.2f s after capture (more than the autopilot compensates, %.1f s):"
+            " the detector or a replay cannot keep up; poses still go out, stamped with their capture time",
+            self.config.entity, age_s, LATE_S,
+        )  # fmt: skip
+        self.transport.send_status(f"atlas {self.config.entity}: vision {age_s:.1f} s late", 4)  # WARNING
 
     def _step(self, now: int) -> None:
         """Evaluate when something changed or an edge has expired, publish what is due.
@@ -590,6 +620,7 @@ class Node:
             autopilot_rate_suppressed=self.publisher.suppressed_rate,
             fused_sent=self.stats.fused_sent,
             superseded=self.stats.superseded,
+            late_observations=self.stats.late_observations,
             reset_counter=self.publisher.reset_counter,
         )
         out.update(self.listener.counters)  # ambiguity resolved / swapped / undecided, alt ignored
