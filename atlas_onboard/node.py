@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Protocol
 
 from atlas_onboard.config import WORLD, ConfigError, NodeConfig, WorldConfig, load_node
-from atlas_onboard.core.ekf import EkfSettings
+from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_TIME_S, EkfSettings
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
@@ -696,7 +696,14 @@ def _make_ekf(world: WorldConfig) -> EkfBank | None:
         return None
     # The attitude is held between updates (see EkfSettings.constant_rate): the autopilot's gyros
     # know the rates far better than a camera does.
-    settings = EkfSettings(accel_noise=f.ekf_accel_noise, max_gap_s=f.ekf_max_predict_s, constant_rate=False)
+    settings = EkfSettings(
+        accel_noise=f.ekf_accel_noise,
+        max_gap_s=f.ekf_max_predict_s,
+        constant_rate=False,
+        manoeuvre_accel_sigma=MANOEUVRE_ACCEL_SIGMA,
+        manoeuvre_time_s=MANOEUVRE_TIME_S,
+        estimate_accel=False,
+    )
     return EkfBank(settings, max_predict_s=f.ekf_max_predict_s)
 
 
