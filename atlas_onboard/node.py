@@ -37,11 +37,13 @@ LOOP_TICK_S = 0.05  # the loop runs at least this often (links' periodic message
 FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observations
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
 PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
-# An own camera's observation older than this when the loop takes it is late: beyond what the
-# autopilots compensate (PX4 EKF2_EV_DELAY <= 300 ms; ArduPilot marks vision older than 300 ms
-# unhealthy). It is still used and its pose still published, stamped with its capture time.
+# An own camera's observation is late when it is older, as the loop takes it, than this beyond the
+# smallest age seen (the pipeline's fixed delay; under a simulator or a test, the offset of its
+# clock): beyond what the autopilots compensate (PX4 EKF2_EV_DELAY <= 300 ms; ArduPilot marks vision
+# older than 300 ms unhealthy). It is still used, its pose published, stamped with its capture time.
 LATE_S = 0.3
 LATE_REPORT_NS = 10 * NS  # at most one log line and one STATUSTEXT about lateness per 10 s
+LATE_STREAK = 3  # said once this many images in a row were late (one late image is a hiccup, not a lag)
 
 
 class Transport(Protocol):
@@ -210,6 +212,8 @@ class Node:
         self._relevant: set[str] | None = None  # entities whose observations are evaluated at once
         self._next_status_ns = 0
         self._next_late_report_ns = 0
+        self._min_age_us: int | None = None  # the smallest age of an own observation seen (see LATE_S)
+        self._late_streak = 0  # own images in a row with a late observation
         self._next_watchdog_ns = 0
         self.watchdog_interval_ns = NS  # the service layer shortens it to half of WatchdogSec if needed
 
@@ -405,8 +409,10 @@ class Node:
                 if reason is None:
                     local.append(md)
                     age_us = wall_us - md.capture_time_us
-                    if age_us > LATE_S * 1e6:
-                        late, oldest_us = late + 1, max(oldest_us, age_us)
+                    if self._min_age_us is None or age_us < self._min_age_us:
+                        self._min_age_us = age_us
+                    if age_us - self._min_age_us > LATE_S * 1e6:
+                        late, oldest_us = late + 1, max(oldest_us, age_us - self._min_age_us)
             else:
                 self.stats.peer_observations += 1
             if reason is None:
@@ -426,19 +432,23 @@ class Node:
                 )
         if late:
             self.stats.late_observations += late
-            self._report_late(oldest_us / 1e6)
+            self._late_streak += 1
+            if self._late_streak >= LATE_STREAK:
+                self._report_late(oldest_us / 1e6)
+        elif local:
+            self._late_streak = 0
         return local
 
     def _report_late(self, age_s: float) -> None:
-        """Own observations arrive late (a file replayed every frame, a detector that cannot keep up):
-        counted always, said at most every ``LATE_REPORT_NS`` in the log and as a STATUSTEXT. They are
-        used all the same: a pose stamped with its capture time is still valid."""
+        """Own observations arrive ``age_s`` later than the promptest did (a file replayed every frame, a
+        detector that cannot keep up): counted always, said at most every ``LATE_REPORT_NS`` in the log
+        and as a STATUSTEXT. They are used all the same: a pose stamped with its capture time is valid."""
         now = self.clock()
         if now < self._next_late_report_ns:
             return
         self._next_late_report_ns = now + LATE_REPORT_NS
         _logger.warning(
-            "%s: camera observations arrive %.2f s after capture (more than the autopilot compensates, %.1f s):"
+            "%s: camera observations arrive %.2f s late (more than the autopilot compensates, %.1f s):"
             " the detector or a replay cannot keep up; poses still go out, stamped with their capture time",
             self.config.entity, age_s, LATE_S,
         )  # fmt: skip
