@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
 CHI2_6DOF_999 = 22.458  # chi-square, 6 degrees of freedom, 99.9 %: the default gate
@@ -123,9 +122,8 @@ class PoseEkf:
         # Error-state transition F (first order for the attitude) and process noise Q.
         F = np.eye(N)
         Q = np.zeros((N, N))
-        for (i, j), value in np.ndenumerate(Phi):
-            F[_TRANS[i] : _TRANS[i] + 3, _TRANS[j] : _TRANS[j] + 3] = np.eye(3) * value
-            Q[_TRANS[i] : _TRANS[i] + 3, _TRANS[j] : _TRANS[j] + 3] = np.eye(3) * Qt[i, j]
+        F[_TRANS_IX] = np.kron(Phi, _I3)
+        Q[_TRANS_IX] = np.kron(Qt, _I3)
         F[6:9, 6:9] = Rotation.from_rotvec(-self.w * dt).as_matrix()
         F[6:9, 9:12] = np.eye(3) * dt
         if self.settings.constant_rate:
@@ -205,23 +203,37 @@ class PoseEkf:
         return shadow.p, shadow.q, cov
 
 
-_TRANS = (0, 3, 12)  # where p, v and a sit in the error state
+_TRANS_IX = np.ix_(np.r_[0:6, 12:15], np.r_[0:6, 12:15])  # p, v and a in the error state
+_I3 = np.eye(3)
 
 
 def _translation_model(settings: EkfSettings, dt: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Per axis, the transition Phi (3, 3) and process noise Q (3, 3) of [p, v, a] over ``dt`` (s):
     dp = v, dv = a + white acceleration (density ``accel_noise``), da = -a / tau + white noise of
-    density sqrt(2 sigma^2 / tau) (Singer; stationary spread sigma = ``manoeuvre_accel_sigma``). Exact,
-    by Van Loan's matrix exponential; with sigma 0 the acceleration stays zero."""
+    density sqrt(2 sigma^2 / tau) (Singer; stationary spread sigma = ``manoeuvre_accel_sigma``); with
+    sigma 0 the acceleration stays zero. Phi in closed form; Q = int_0^dt Phi(u) Qc Phi(u)^T du by
+    5-point Gauss-Legendre (exact for the polynomial part, to 1e-9 relative for the exponential)."""
     sigma, tau = settings.manoeuvre_accel_sigma, settings.manoeuvre_time_s
-    A = np.zeros((3, 3))
-    A[0, 1] = 1.0
-    if sigma > 0.0:
-        A[1, 2], A[2, 2] = 1.0, -1.0 / tau
+    u = 0.5 * dt * (_GL_X + 1.0)
+    Phi_u = _singer_phi(u, sigma, tau)
     Qc = np.diag([0.0, settings.accel_noise**2, 2.0 * sigma**2 / tau if sigma > 0.0 else 0.0])
-    M = np.zeros((6, 6))
-    M[:3, :3], M[:3, 3:], M[3:, 3:] = -A, Qc, A.T
-    E = expm(M * dt)
-    Phi = E[3:, 3:].T
-    Q = Phi @ E[:3, 3:]
-    return Phi, 0.5 * (Q + Q.T)
+    Q = np.einsum("k,kij,jl,kml->im", 0.5 * dt * _GL_W, Phi_u, Qc, Phi_u)
+    return _singer_phi(np.array([dt]), sigma, tau)[0], 0.5 * (Q + Q.T)
+
+
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(5)
+
+
+def _singer_phi(u: NDArray[np.float64], sigma: float, tau: float) -> NDArray[np.float64]:
+    """Transitions of [p, v, a] over the spans ``u`` (k,), shape (k, 3, 3)."""
+    Phi = np.zeros((len(u), 3, 3))
+    Phi[:, 0, 0] = Phi[:, 1, 1] = 1.0
+    Phi[:, 0, 1] = u
+    if sigma > 0.0:
+        decay = np.exp(-u / tau)
+        Phi[:, 0, 2] = tau**2 * (decay - 1.0 + u / tau)
+        Phi[:, 1, 2] = tau * (1.0 - decay)
+        Phi[:, 2, 2] = decay
+    else:
+        Phi[:, 2, 2] = 1.0
+    return Phi
