@@ -57,6 +57,13 @@ class EkfBank:
     # delivers measurements that are old but new to the filter; they are published (stamped with
     # their capture time, the lateness reported by the node), never withheld for their age.
     _arrival_us: dict[str, int] = field(default_factory=dict)
+    # How old each filter's newest update was when it arrived, and the least such age seen: a newest
+    # update that arrived later than the promptest by more than ``predict_after_s`` comes from a
+    # source running behind (a replay, a detector that cannot keep up). Its missing frames are not
+    # a gap but still to come, stamped in sequence: the pose is not predicted past them (a
+    # prediction stamped ahead would make every one of them too old to publish).
+    _lag_us: dict[str, int] = field(default_factory=dict)
+    _min_lag_us: dict[str, int] = field(default_factory=dict)
 
     def update(self, result: GraphResult, now_us: int | None = None, only: str | None = None) -> None:
         """Feed the new candidates of one evaluation (world-frame poses only); ``now_us`` (capture
@@ -86,6 +93,9 @@ class EkfBank:
                 self.outcomes[outcome] += 1
             if now_us is not None and ekf.initialized and (before is None or ekf.t_update_s > before):
                 self._arrival_us[name] = now_us
+                lag = now_us - round(ekf.t_update_s * 1e6)
+                self._lag_us[name] = lag
+                self._min_lag_us[name] = min(self._min_lag_us.get(name, lag), lag)
             if before is not None and ekf.t_update_s > before:
                 step = min(ekf.t_update_s - before, self.max_predict_s)
                 old = self._interval.get(name)
@@ -157,7 +167,8 @@ class EkfBank:
         if t - ekf.t_update_s > self.max_predict_s:
             return None
         interval = self._interval.get(name)
-        if interval is None or t - ekf.t_update_s <= max(self.gap_factor * interval, self.predict_after_s):
+        behind = self._lag_us.get(name, 0) - self._min_lag_us.get(name, 0) > self.predict_after_s * 1e6
+        if interval is None or behind or t - ekf.t_update_s <= max(self.gap_factor * interval, self.predict_after_s):
             t = ekf.t_update_s  # detections flow: the filtered pose at the newest one
         else:
             # A gap: predicted to the last frame time that was due (the stamps advance at the camera's
