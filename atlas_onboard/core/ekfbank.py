@@ -64,6 +64,10 @@ class EkfBank:
     # prediction stamped ahead would make every one of them too old to publish).
     _lag_us: dict[str, int] = field(default_factory=dict)
     _min_lag_us: dict[str, int] = field(default_factory=dict)
+    # The smoothed wall-clock spacing of the updates' arrivals, s: a gap is a pause of the arrivals,
+    # counted in their own spacing (a replay's frames stamped 1 ms apart but detected 45 ms apart
+    # are not 45 missing frames each).
+    _spacing: dict[str, float] = field(default_factory=dict)
 
     def update(self, result: GraphResult, now_us: int | None = None, only: str | None = None) -> None:
         """Feed the new candidates of one evaluation (world-frame poses only); ``now_us`` (capture
@@ -92,6 +96,11 @@ class EkfBank:
                 outcome = ekf.update(c.capture_time_us / 1e6, p_m, q, 0.5 * (cov + cov.T))
                 self.outcomes[outcome] += 1
             if now_us is not None and ekf.initialized and (before is None or ekf.t_update_s > before):
+                last_arrival = self._arrival_us.get(name)
+                if before is not None and last_arrival is not None:
+                    spacing = min(max(now_us - last_arrival, 0) / 1e6, self.max_predict_s)
+                    old_spacing = self._spacing.get(name)
+                    self._spacing[name] = spacing if old_spacing is None else 0.9 * old_spacing + 0.1 * spacing
                 self._arrival_us[name] = now_us
                 lag = now_us - round(ekf.t_update_s * 1e6)
                 self._lag_us[name] = lag
@@ -168,12 +177,19 @@ class EkfBank:
             return None
         interval = self._interval.get(name)
         behind = self._lag_us.get(name, 0) - self._min_lag_us.get(name, 0) > self.predict_after_s * 1e6
-        if interval is None or behind or t - ekf.t_update_s <= max(self.gap_factor * interval, self.predict_after_s):
+        spacing = self._spacing.get(name, interval)
+        elapsed = t - ekf.t_update_s  # wall time since the newest update arrived
+        if (
+            interval is None
+            or spacing is None
+            or behind
+            or elapsed <= max(self.gap_factor * spacing, self.predict_after_s)
+        ):
             t = ekf.t_update_s  # detections flow: the filtered pose at the newest one
         else:
             # A gap: predicted to the last frame time that was due (the stamps advance at the camera's
             # rate, not the caller's), no further than the horizon.
-            k = min(math.floor((t - ekf.t_update_s) / interval), math.floor(self.predict_horizon_s / interval + 1e-9))
+            k = min(math.floor(elapsed / max(spacing, interval)), math.floor(self.predict_horizon_s / interval + 1e-9))
             t = ekf.t_update_s + max(k, 0) * interval
         t = max(t, ekf.t_s)
         p, q, cov = ekf.pose_at(t)
