@@ -133,6 +133,11 @@ PAPER_FUSION = FusionConfig(
 FUSION_METHODS = ("default", "paper")
 
 
+REPLAY_REALTIME = "realtime"
+REPLAY_EVERY_FRAME = "every_frame"
+REPLAY_MODES = (REPLAY_REALTIME, REPLAY_EVERY_FRAME)
+
+
 @dataclass(frozen=True, slots=True)
 class CameraConfig:
     """How a node reads a sensor's camera. All optional: a sensor fed only by peers needs none.
@@ -143,6 +148,10 @@ class CameraConfig:
         width_px, height_px, fps: requested capture format (0: the device's default).
         fourcc: four-character pixel format for V4L2, e.g. ``MJPG`` ("" for the default).
         latency_ms: fixed delay between exposure and the frame's arrival, subtracted from its stamp.
+        replay: how a file source plays: ``realtime`` (like a camera: paced on the file's time, frames
+            it cannot keep up with dropped) or ``every_frame`` (each frame, in order, falling behind
+            if the detector is slow); "" for the default of the source's kind (a video file realtime,
+            an image folder every_frame). Ignored for live sources.
     """
 
     source: str = ""
@@ -152,6 +161,7 @@ class CameraConfig:
     fps: float = 0.0
     fourcc: str = ""
     latency_ms: float = 0.0
+    replay: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -452,7 +462,8 @@ def _read_fusion(value: Any, path: str) -> FusionConfig:
 
 
 def _read_camera(value: Any, path: str, base_dir: Path | None) -> CameraConfig:
-    m = _mapping(value, path, {"source", "calibration", "width_px", "height_px", "fps", "fourcc", "latency_ms"})
+    keys = {"source", "calibration", "width_px", "height_px", "fps", "fourcc", "latency_ms", "replay"}
+    m = _mapping(value, path, keys)
     source = m.get("source", "")
     if isinstance(source, int) and not isinstance(source, bool):
         source = str(source)
@@ -473,7 +484,10 @@ def _read_camera(value: Any, path: str, base_dir: Path | None) -> CameraConfig:
     latency = _number(m.get("latency_ms", 0.0), _join(path, "latency_ms"), "milliseconds")
     if not 0.0 <= latency <= 1000.0:
         raise ConfigError(_join(path, "latency_ms"), f"expected a latency in [0, 1000] ms, got {latency}")
-    return CameraConfig(source, calibration, width, height, fps, fourcc, latency)
+    replay = _string(m.get("replay", ""), _join(path, "replay"))
+    if replay not in ("", *REPLAY_MODES):
+        raise ConfigError(_join(path, "replay"), f"expected one of {', '.join(REPLAY_MODES)}, got {replay!r}")
+    return CameraConfig(source, calibration, width, height, fps, fourcc, latency, replay)
 
 
 def _read_entity(

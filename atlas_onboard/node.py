@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Protocol
 
 from atlas_onboard.config import WORLD, ConfigError, NodeConfig, WorldConfig, load_node
-from atlas_onboard.core.ekf import EkfSettings
+from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_TIME_S, EkfSettings
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
@@ -39,6 +39,15 @@ FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observ
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
 PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
 TELEMETRY_NS = NS  # graphable values to the ground station once a second
+
+
+# An own camera's observation is late when it is older, as the loop takes it, than this beyond the
+# smallest age seen (the pipeline's fixed delay; under a simulator or a test, the offset of its
+# clock): beyond what the autopilots compensate (PX4 EKF2_EV_DELAY <= 300 ms; ArduPilot marks vision
+# older than 300 ms unhealthy). It is still used, its pose published, stamped with its capture time.
+LATE_S = 0.3
+LATE_REPORT_NS = 10 * NS  # at most one log line and one STATUSTEXT about lateness per 10 s
+LATE_STREAK = 3  # said once this many images in a row were late (one late image is a hiccup, not a lag)
 
 
 class Transport(Protocol):
@@ -151,6 +160,7 @@ class Stats:
     autopilot_sent: int = 0
     fused_sent: int = 0
     superseded: int = 0  # parked peer observations replaced by a newer one of the same edge before use
+    late_observations: int = 0  # own camera's observations older than LATE_S when taken (still used)
 
 
 class Node:
@@ -216,6 +226,10 @@ class Node:
         self._next_telemetry_ns = 0
         self._telemetry_since = (0, 0)  # (monotonic ns, local observations) at the last telemetry
         self._latency_sum_ms, self._latency_n = 0.0, 0
+
+        self._next_late_report_ns = 0
+        self._min_age_us: int | None = None  # the smallest age of an own observation seen (see LATE_S)
+        self._late_streak = 0  # own images in a row with a late observation
         self._next_watchdog_ns = 0
         self.watchdog_interval_ns = NS  # the service layer shortens it to half of WatchdogSec if needed
 
@@ -408,11 +422,18 @@ class Node:
             return []
         local: list[MarkerData] = []
         reasons = self.listener.accept_many([(md, arrival) for md, arrival, _ in batch])
+        wall_us = self.wall() // 1000
+        late, oldest_us = 0, 0
         for (md, _, is_local), reason in zip(batch, reasons, strict=True):
             if is_local:
                 self.stats.local_observations += 1
                 if reason is None:
                     local.append(md)
+                    age_us = wall_us - md.capture_time_us
+                    if self._min_age_us is None or age_us < self._min_age_us:
+                        self._min_age_us = age_us
+                    if age_us - self._min_age_us > LATE_S * 1e6:
+                        late, oldest_us = late + 1, max(oldest_us, age_us - self._min_age_us)
             else:
                 self.stats.peer_observations += 1
             if reason is None:
@@ -430,7 +451,29 @@ class Node:
                 _logger.debug(
                     "rejected observation %s from %d: %s", (md.sensor_id, md.marker_id), md.origin, reason.value
                 )
+        if late:
+            self.stats.late_observations += late
+            self._late_streak += 1
+            if self._late_streak >= LATE_STREAK:
+                self._report_late(oldest_us / 1e6)
+        elif local:
+            self._late_streak = 0
         return local
+
+    def _report_late(self, age_s: float) -> None:
+        """Own observations arrive ``age_s`` later than the promptest did (a file replayed every frame, a
+        detector that cannot keep up): counted always, said at most every ``LATE_REPORT_NS`` in the log
+        and as a STATUSTEXT. They are used all the same: a pose stamped with its capture time is valid."""
+        now = self.clock()
+        if now < self._next_late_report_ns:
+            return
+        self._next_late_report_ns = now + LATE_REPORT_NS
+        _logger.warning(
+            "%s: camera observations arrive %.2f s late (more than the autopilot compensates, %.1f s):"
+            " the detector or a replay cannot keep up; poses still go out, stamped with their capture time",
+            self.config.entity, age_s, LATE_S,
+        )  # fmt: skip
+        self.transport.send_status(f"atlas {self.config.entity}: vision {age_s:.1f} s late", 4)  # WARNING
 
     def _step(self, now: int) -> None:
         """Evaluate when something changed or an edge has expired, publish what is due.
@@ -634,6 +677,7 @@ class Node:
             autopilot_rate_suppressed=self.publisher.suppressed_rate,
             fused_sent=self.stats.fused_sent,
             superseded=self.stats.superseded,
+            late_observations=self.stats.late_observations,
             reset_counter=self.publisher.reset_counter,
         )
         out.update(self.listener.counters)  # ambiguity resolved / swapped / undecided, alt ignored
@@ -710,7 +754,14 @@ def _make_ekf(world: WorldConfig) -> EkfBank | None:
         return None
     # The attitude is held between updates (see EkfSettings.constant_rate): the autopilot's gyros
     # know the rates far better than a camera does.
-    settings = EkfSettings(accel_noise=f.ekf_accel_noise, max_gap_s=f.ekf_max_predict_s, constant_rate=False)
+    settings = EkfSettings(
+        accel_noise=f.ekf_accel_noise,
+        max_gap_s=f.ekf_max_predict_s,
+        constant_rate=False,
+        manoeuvre_accel_sigma=MANOEUVRE_ACCEL_SIGMA,
+        manoeuvre_time_s=MANOEUVRE_TIME_S,
+        estimate_accel=False,
+    )
     return EkfBank(settings, max_predict_s=f.ekf_max_predict_s)
 
 

@@ -1,13 +1,18 @@
 """An error-state EKF per entity: the paper's last item of future work.
 
-State: position p and velocity v in the world frame, the body orientation as a nominal quaternion
-with a 3-vector error state in the body frame, and the body angular rate w. Motion model: constant
-velocity and constant angular rate, driven by white acceleration and angular-acceleration noise.
+State: position p, velocity v and acceleration a in the world frame, the body orientation as a
+nominal quaternion with a 3-vector error state in the body frame, and the body angular rate w.
+Motion model: velocity driven by white acceleration noise plus, optionally, a manoeuvre acceleration
+modelled as Singer's first-order Gauss-Markov process (a stationary random acceleration of a given
+spread and correlation time: a craft's manoeuvres last a while and are bounded, so the error of a
+prediction grows with the square of its horizon, as a real manoeuvre's does); constant angular rate
+or a held attitude.
 Measurements: a full pose (position and orientation) with a 6x6 covariance, stamped with the image's
 capture time. Each update is gated by its Mahalanobis distance, so one wrong pose cannot yank the
 estimate. Time is passed in (seconds on the stamps' clock); nothing here reads a clock.
 
-Error state x = [dp (3), dv (3), dtheta (3), dw (3)]; the true orientation is q_nom * Exp(dtheta).
+Error state x = [dp (3), dv (3), dtheta (3), dw (3), da (3)]; the true orientation is
+q_nom * Exp(dtheta).
 """
 
 from __future__ import annotations
@@ -20,6 +25,15 @@ from scipy.spatial.transform import Rotation
 
 CHI2_6DOF_999 = 22.458  # chi-square, 6 degrees of freedom, 99.9 %: the default gate
 CHI2_6DOF_99 = 16.812
+N = 15  # error-state size
+# A quadrotor's manoeuvres: tilting about 9 degrees accelerates it by about 1.5 m/s^2 (the simulated
+# scenarios' drones: 0.4-1.5 m/s^2 RMS per axis), and a turn or a stop lasts about half a second. The
+# node's filter considers them (Singer, not estimated): a prediction through a gap then carries the
+# uncertainty of an acceleration that may have changed, growing with the square of the horizon as a
+# real manoeuvre's error does, where white acceleration noise alone grows it with the power 1.5 and
+# is overconfident at the end of a gap.
+MANOEUVRE_ACCEL_SIGMA = 1.5  # m/s^2 per axis
+MANOEUVRE_TIME_S = 0.5
 
 
 @dataclass
@@ -37,6 +51,14 @@ class EkfSettings:
             the rate state stays zero. A quadrotor's attitude jitters at several hertz, faster than a
             30 Hz camera can follow: extrapolating a rate estimated from it does more harm than good.
         angular_rate_noise: the random walk's rate noise density (with ``constant_rate`` False).
+        manoeuvre_accel_sigma: spread of the manoeuvre acceleration (Singer model), m/s^2 per axis; 0
+            for the plain constant-velocity model (no acceleration state).
+        manoeuvre_time_s: its correlation time, s (how long a manoeuvre's acceleration lasts).
+        estimate_accel: True: the acceleration is estimated and extrapolated; False: it is only
+            "considered" (Schmidt): never estimated, the mean predicted at constant velocity, but its
+            uncertainty carried in the covariance. A quadrotor's acceleration follows its tilt, which
+            jitters faster than a 30 Hz camera can follow (as its attitude rate does): extrapolating
+            an estimate of it predicts worse than holding the velocity.
     """
 
     accel_noise: float = 1.0
@@ -46,6 +68,9 @@ class EkfSettings:
     max_lag_s: float = 0.1
     constant_rate: bool = True
     angular_rate_noise: float = 1.0
+    manoeuvre_accel_sigma: float = 0.0
+    manoeuvre_time_s: float = 0.5
+    estimate_accel: bool = True
 
 
 @dataclass
@@ -57,7 +82,7 @@ class PoseEkf:
     v: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     q: Rotation = field(default_factory=Rotation.identity)
     w: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
-    P: NDArray[np.float64] = field(default_factory=lambda: np.eye(12))
+    P: NDArray[np.float64] = field(default_factory=lambda: np.eye(N))
     t_s: float = 0.0
     initialized: bool = False
     t_update_s: float = 0.0
@@ -66,16 +91,18 @@ class PoseEkf:
     late: int = 0
     resets: int = 0
     last_nis: float = float("nan")
+    a: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
 
     def reset(self, t_s: float, p: NDArray[np.float64], q: Rotation, R: NDArray[np.float64]) -> None:
         """Start from a measurement: its pose and covariance, zero velocity with a wide prior."""
         self.p, self.q = np.array(p, dtype=float), q
-        self.v, self.w = np.zeros(3), np.zeros(3)
-        self.P = np.zeros((12, 12))
+        self.v, self.w, self.a = np.zeros(3), np.zeros(3), np.zeros(3)
+        self.P = np.zeros((N, N))
         self.P[0:3, 0:3] = R[0:3, 0:3]
         self.P[6:9, 6:9] = R[3:6, 3:6]
         self.P[3:6, 3:6] = np.eye(3) * 1.0**2  # up to ~1 m/s unknown
         self.P[9:12, 9:12] = np.eye(3) * (1.0**2 if self.settings.constant_rate else 0.0)  # ~1 rad/s unknown
+        self.P[12:15, 12:15] = np.eye(3) * self.settings.manoeuvre_accel_sigma**2  # its stationary spread
         self.t_s = self.t_update_s = t_s
         self.initialized = True
         self.resets += 1
@@ -85,23 +112,26 @@ class PoseEkf:
         dt = t_s - self.t_s
         if not self.initialized or dt <= 0.0:
             return
-        # Nominal state: constant velocity, constant body rate.
-        self.p = self.p + self.v * dt
+        # Translation, per axis [p, v, a]: its exact transition and process noise (Van Loan).
+        Phi, Qt = _translation_model(self.settings, dt)
+        self.p = self.p + Phi[0, 1] * self.v + Phi[0, 2] * self.a
+        self.v = self.v + Phi[1, 2] * self.a
+        self.a = Phi[2, 2] * self.a
+        # Attitude: constant body rate (or held).
         self.q = self.q * Rotation.from_rotvec(self.w * dt)
-        # Error-state transition F (first order) and process noise Q (white acceleration inputs).
-        F = np.eye(12)
-        F[0:3, 3:6] = np.eye(3) * dt
+        # Error-state transition F (first order for the attitude) and process noise Q.
+        F = np.eye(N)
+        Q = np.zeros((N, N))
+        F[_TRANS_IX] = np.kron(Phi, _I3)
+        Q[_TRANS_IX] = np.kron(Qt, _I3)
         F[6:9, 6:9] = Rotation.from_rotvec(-self.w * dt).as_matrix()
         F[6:9, 9:12] = np.eye(3) * dt
-        qa, qw = self.settings.accel_noise**2, self.settings.angular_accel_noise**2
-        Q = np.zeros((12, 12))
-        blocks = ((0, qa), (6, qw)) if self.settings.constant_rate else ((0, qa),)
-        for i0, q_ in blocks:
-            Q[i0 : i0 + 3, i0 : i0 + 3] = np.eye(3) * q_ * dt**3 / 3
-            Q[i0 : i0 + 3, i0 + 3 : i0 + 6] = np.eye(3) * q_ * dt**2 / 2
-            Q[i0 + 3 : i0 + 6, i0 : i0 + 3] = np.eye(3) * q_ * dt**2 / 2
-            Q[i0 + 3 : i0 + 6, i0 + 3 : i0 + 6] = np.eye(3) * q_ * dt
-        if not self.settings.constant_rate:
+        if self.settings.constant_rate:
+            qw = self.settings.angular_accel_noise**2
+            Q[6:9, 6:9] = np.eye(3) * qw * dt**3 / 3
+            Q[6:9, 9:12] = Q[9:12, 6:9] = np.eye(3) * qw * dt**2 / 2
+            Q[9:12, 9:12] = np.eye(3) * qw * dt
+        else:
             # Attitude as a random walk: the rate state is pinned at zero with zero variance.
             F[6:9, 9:12] = 0.0
             Q[6:9, 6:9] = np.eye(3) * self.settings.angular_rate_noise**2 * dt
@@ -111,9 +141,9 @@ class PoseEkf:
     def innovation(
         self, p_meas: NDArray[np.float64], q_meas: Rotation
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Innovation y (6,) = [p_meas - p, Log(q^-1 q_meas)] and its Jacobian H (6, 12)."""
+        """Innovation y (6,) = [p_meas - p, Log(q^-1 q_meas)] and its Jacobian H (6, 15)."""
         y = np.concatenate([np.asarray(p_meas, dtype=float) - self.p, (self.q.inv() * q_meas).as_rotvec()])
-        H = np.zeros((6, 12))
+        H = np.zeros((6, N))
         H[0:3, 0:3] = np.eye(3)
         H[3:6, 6:9] = np.eye(3)
         return y, H
@@ -128,7 +158,7 @@ class PoseEkf:
             self.late += 1
             return "late"
         # Predict a copy first: a gated measurement leaves the filter exactly as it was.
-        saved = (self.p, self.v, self.q, self.w, self.P, self.t_s)
+        saved = (self.p, self.v, self.q, self.w, self.a, self.P, self.t_s)
         self.predict(t_s)
         y, H = self.innovation(p_meas, q_meas)
         S = H @ self.P @ H.T + R
@@ -139,17 +169,20 @@ class PoseEkf:
         nis = float(y @ S_inv_y) if S_inv_y is not None else float("inf")
         self.last_nis = nis
         if nis > self.settings.gate_chi2:
-            self.p, self.v, self.q, self.w, self.P, self.t_s = saved
+            self.p, self.v, self.q, self.w, self.a, self.P, self.t_s = saved
             self.gated += 1
             return "gated"
         K = np.linalg.solve(S, H @ self.P).T  # K = P H^T S^-1 (S symmetric)
+        if not self.settings.estimate_accel:
+            K[12:15] = 0.0  # Schmidt: a considered state is not updated (Joseph form holds for any K)
         dx = K @ y
         self.p = self.p + dx[0:3]
         self.v = self.v + dx[3:6]
         self.q = self.q * Rotation.from_rotvec(dx[6:9])
         self.w = self.w + dx[9:12]
+        self.a = self.a + dx[12:15]
         # Joseph form keeps P symmetric and positive definite.
-        I_KH = np.eye(12) - K @ H
+        I_KH = np.eye(N) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
         self.t_update_s = max(self.t_update_s, t_s)
         self.accepted += 1
@@ -157,16 +190,50 @@ class PoseEkf:
 
     def pose_at(self, t_s: float) -> tuple[NDArray[np.float64], Rotation, NDArray[np.float64]]:
         """Predicted position, orientation and 6x6 pose covariance at ``t_s``, without changing the filter."""
-        dt = max(t_s - self.t_s, 0.0)
-        p = self.p + self.v * dt
-        q = self.q * Rotation.from_rotvec(self.w * dt)
         shadow = PoseEkf(
-            self.settings, self.p.copy(), self.v.copy(), self.q, self.w.copy(), self.P.copy(), self.t_s, True
-        )
+            self.settings, self.p.copy(), self.v.copy(), self.q, self.w.copy(), self.P.copy(), self.t_s, True,
+            a=self.a.copy(),
+        )  # fmt: skip
         shadow.predict(t_s)
         cov = np.zeros((6, 6))
         cov[0:3, 0:3] = shadow.P[0:3, 0:3]
         cov[3:6, 3:6] = shadow.P[6:9, 6:9]
         cov[0:3, 3:6] = shadow.P[0:3, 6:9]
         cov[3:6, 0:3] = shadow.P[6:9, 0:3]
-        return p, q, cov
+        return shadow.p, shadow.q, cov
+
+
+_TRANS_IX = np.ix_(np.r_[0:6, 12:15], np.r_[0:6, 12:15])  # p, v and a in the error state
+_I3 = np.eye(3)
+
+
+def _translation_model(settings: EkfSettings, dt: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Per axis, the transition Phi (3, 3) and process noise Q (3, 3) of [p, v, a] over ``dt`` (s):
+    dp = v, dv = a + white acceleration (density ``accel_noise``), da = -a / tau + white noise of
+    density sqrt(2 sigma^2 / tau) (Singer; stationary spread sigma = ``manoeuvre_accel_sigma``); with
+    sigma 0 the acceleration stays zero. Phi in closed form; Q = int_0^dt Phi(u) Qc Phi(u)^T du by
+    5-point Gauss-Legendre (exact for the polynomial part, to 1e-9 relative for the exponential)."""
+    sigma, tau = settings.manoeuvre_accel_sigma, settings.manoeuvre_time_s
+    u = 0.5 * dt * (_GL_X + 1.0)
+    Phi_u = _singer_phi(u, sigma, tau)
+    Qc = np.diag([0.0, settings.accel_noise**2, 2.0 * sigma**2 / tau if sigma > 0.0 else 0.0])
+    Q = np.einsum("k,kij,jl,kml->im", 0.5 * dt * _GL_W, Phi_u, Qc, Phi_u)
+    return _singer_phi(np.array([dt]), sigma, tau)[0], 0.5 * (Q + Q.T)
+
+
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(5)
+
+
+def _singer_phi(u: NDArray[np.float64], sigma: float, tau: float) -> NDArray[np.float64]:
+    """Transitions of [p, v, a] over the spans ``u`` (k,), shape (k, 3, 3)."""
+    Phi = np.zeros((len(u), 3, 3))
+    Phi[:, 0, 0] = Phi[:, 1, 1] = 1.0
+    Phi[:, 0, 1] = u
+    if sigma > 0.0:
+        decay = np.exp(-u / tau)
+        Phi[:, 0, 2] = tau**2 * (decay - 1.0 + u / tau)
+        Phi[:, 1, 2] = tau * (1.0 - decay)
+        Phi[:, 2, 2] = decay
+    else:
+        Phi[:, 2, 2] = 1.0
+    return Phi

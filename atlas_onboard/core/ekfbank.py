@@ -37,7 +37,7 @@ class EkfBank:
     outcomes: Counter[str] = field(default_factory=Counter)
     _fed: dict[tuple[str, EdgeKey], int] = field(default_factory=dict)
     _last: dict[str, EntityPose] = field(default_factory=dict)
-    latency_us: float | None = None  # smoothed capture-to-filter delay of the measurements
+    latency_us: float | None = None  # smoothed capture-to-filter delay of the measurements (unbounded)
     gap_factor: float = 1.5  # a gap: the last update is this many usual intervals old, and ...
     # ... at least this old. A prediction is worse than the filtered pose it follows (offline, on
     # paper-test1's frames with processing stalls emulated, predictions started 0.1 s, 0.15 s and
@@ -52,6 +52,22 @@ class EkfBank:
     # no filter's, while 0.2 s still bridges the autopilot's 200 ms freshness limit across gaps of 0.4 s.
     predict_horizon_s: float = 0.2
     _interval: dict[str, float] = field(default_factory=dict)  # smoothed update interval, s
+    # When (``now_us`` of :meth:`update`) each filter's newest update arrived: a pose's age is how long
+    # ago that was, not how old its capture stamp is. A replay or a detector that runs seconds late
+    # delivers measurements that are old but new to the filter; they are published (stamped with
+    # their capture time, the lateness reported by the node), never withheld for their age.
+    _arrival_us: dict[str, int] = field(default_factory=dict)
+    # How old each filter's newest update was when it arrived, and the least such age seen: a newest
+    # update that arrived later than the promptest by more than ``predict_after_s`` comes from a
+    # source running behind (a replay, a detector that cannot keep up). Its missing frames are not
+    # a gap but still to come, stamped in sequence: the pose is not predicted past them (a
+    # prediction stamped ahead would make every one of them too old to publish).
+    _lag_us: dict[str, int] = field(default_factory=dict)
+    _min_lag_us: dict[str, int] = field(default_factory=dict)
+    # The smoothed wall-clock spacing of the updates' arrivals, s: a gap is a pause of the arrivals,
+    # counted in their own spacing (a replay's frames stamped 1 ms apart but detected 45 ms apart
+    # are not 45 missing frames each).
+    _spacing: dict[str, float] = field(default_factory=dict)
 
     def update(self, result: GraphResult, now_us: int | None = None, only: str | None = None) -> None:
         """Feed the new candidates of one evaluation (world-frame poses only); ``now_us`` (capture
@@ -74,11 +90,21 @@ class EkfBank:
             for c in sorted(fresh, key=lambda c: c.capture_time_us):
                 self._fed[(name, c.key)] = c.stamp_ns
                 if now_us is not None:
-                    lag = float(min(max(now_us - c.capture_time_us, 0), 1_000_000))
+                    lag = float(max(now_us - c.capture_time_us, 0))
                     self.latency_us = lag if self.latency_us is None else 0.9 * self.latency_us + 0.1 * lag
                 p_m, q, cov = self._measurement(c)
                 outcome = ekf.update(c.capture_time_us / 1e6, p_m, q, 0.5 * (cov + cov.T))
                 self.outcomes[outcome] += 1
+            if now_us is not None and ekf.initialized and (before is None or ekf.t_update_s > before):
+                last_arrival = self._arrival_us.get(name)
+                if before is not None and last_arrival is not None:
+                    spacing = min(max(now_us - last_arrival, 0) / 1e6, self.max_predict_s)
+                    old_spacing = self._spacing.get(name)
+                    self._spacing[name] = spacing if old_spacing is None else 0.9 * old_spacing + 0.1 * spacing
+                self._arrival_us[name] = now_us
+                lag = now_us - round(ekf.t_update_s * 1e6)
+                self._lag_us[name] = lag
+                self._min_lag_us[name] = min(self._min_lag_us.get(name, lag), lag)
             if before is not None and ekf.t_update_s > before:
                 step = min(ekf.t_update_s - before, self.max_predict_s)
                 old = self._interval.get(name)
@@ -132,26 +158,38 @@ class EkfBank:
         capture time: filtered, not extrapolated (a quadrotor's attitude jitters faster than a
         30 Hz camera can follow, so extrapolating between frames costs more than it gives). Once
         the last update is older than ``gap_factor`` usual intervals and ``predict_after_s``, the
-        pose is predicted to the last frame time due by ``now_us`` less the measurements' usual
-        latency, advancing by the usual interval up to ``predict_horizon_s`` past the last update,
-        then held. Either
-        way the stamp is a capture-clock time of the usual age, so the autopilot's delay setting
-        (EKF2_EV_DELAY, VISO_DELAY_MS) is the same with and without the filter.
+        pose is predicted to the last frame time due by ``now_us`` (the newest update's capture time
+        plus the time since it arrived), advancing by the usual interval up to ``predict_horizon_s``
+        past the last update, then held. Either way the stamp is a capture-clock time of the usual
+        age, so the autopilot's delay setting (EKF2_EV_DELAY, VISO_DELAY_MS) is the same with and
+        without the filter; measurements that arrive late keep their age, and still go out.
         """
         ekf = self.filters.get(name)
         last = self._last.get(name)
         if ekf is None or last is None or not ekf.initialized:
             return None
-        t = (now_us - (self.latency_us or 0.0)) / 1e6
+        arrival = self._arrival_us.get(name)
+        if arrival is not None:  # the capture-clock time that corresponds to now: the newest update's, aged
+            t = ekf.t_update_s + max(now_us - arrival, 0) / 1e6
+        else:
+            t = (now_us - (self.latency_us or 0.0)) / 1e6
         if t - ekf.t_update_s > self.max_predict_s:
             return None
         interval = self._interval.get(name)
-        if interval is None or t - ekf.t_update_s <= max(self.gap_factor * interval, self.predict_after_s):
+        behind = self._lag_us.get(name, 0) - self._min_lag_us.get(name, 0) > self.predict_after_s * 1e6
+        spacing = self._spacing.get(name, interval)
+        elapsed = t - ekf.t_update_s  # wall time since the newest update arrived
+        if (
+            interval is None
+            or spacing is None
+            or behind
+            or elapsed <= max(self.gap_factor * spacing, self.predict_after_s)
+        ):
             t = ekf.t_update_s  # detections flow: the filtered pose at the newest one
         else:
             # A gap: predicted to the last frame time that was due (the stamps advance at the camera's
             # rate, not the caller's), no further than the horizon.
-            k = min(math.floor((t - ekf.t_update_s) / interval), math.floor(self.predict_horizon_s / interval + 1e-9))
+            k = min(math.floor(elapsed / max(spacing, interval)), math.floor(self.predict_horizon_s / interval + 1e-9))
             t = ekf.t_update_s + max(k, 0) * interval
         t = max(t, ekf.t_s)
         p, q, cov = ekf.pose_at(t)

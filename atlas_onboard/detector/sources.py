@@ -1,11 +1,20 @@
 """Camera sources and the camera worker: frames in, MarkerData out, one thread per camera.
 
 Sources: a V4L2 device (index or path, with width, height, fps and fourcc), a video file, a folder of
-images (in name order; a number in the name that looks like a time stamp is used as such), or an
-RTSP/HTTP URL through OpenCV. File sources are paced at their frame rate unless ``fast``, and stamp
-each frame from its position in the file; live sources stamp the capture time minus the configured
-fixed latency. A source that fails or stops delivering is reopened with backoff; the worker reports
-it and keeps running. A slow detector drops frames (counted); it never builds a queue.
+images (in name order; a number in the name that looks like a time stamp is used as its file time),
+or an RTSP/HTTP URL through OpenCV. Live sources stamp the capture time minus the configured fixed
+latency. File sources stamp each frame with its file time mapped onto the wall clock at the moment
+the first frame is read (not when the source is opened: listing a large folder or opening a video
+takes a while), and play in one of two modes (``camera.replay``):
+
+- ``realtime`` (the default for a video file): like a camera, paced on the file's own time; a frame
+  whose time has passed before it could be read is skipped, and a frame the detector had no time for
+  is dropped (both counted), so the stamps stay as fresh as a live camera's;
+- ``every_frame`` (the default for an image folder): every frame, in order, paced no faster than its
+  file time; a slow detector falls behind, and its stamps grow old (the node reports that).
+
+A source that fails or stops delivering is reopened with backoff; the worker reports it and keeps
+running. A live camera's slow detector drops frames (counted); it never builds a queue.
 """
 
 from __future__ import annotations
@@ -15,7 +24,7 @@ import re
 import threading
 import time
 from collections import Counter
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,7 +32,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from atlas_onboard.config import CameraConfig
+from atlas_onboard.config import REPLAY_EVERY_FRAME, REPLAY_REALTIME, CameraConfig
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.worker import Deliver, SensorWorker
@@ -45,9 +54,16 @@ class Frame:
 
 
 class Source:
-    """Base: ``frames()`` yields frames until the source ends or fails (then raises SourceError)."""
+    """Base: ``frames()`` yields frames until the source ends or fails (then raises SourceError).
+
+    ``live``: a device or stream, reopened when it stops. ``keeps_newest``: the worker keeps only the
+    newest frame and drops the others (a live camera, or a file replayed in real time); otherwise it
+    detects every frame in order. ``skipped`` counts the frames a real-time replay passed over
+    because their time had gone by before they could be read."""
 
     live = True
+    keeps_newest = True
+    skipped = 0
 
     def frames(self) -> Iterator[Frame]:  # pragma: no cover - interface
         raise NotImplementedError
@@ -60,19 +76,64 @@ def _gray(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
 
 
+def default_replay(source: str) -> str:
+    """The replay mode of a file source whose camera block names none: an image folder is a set of
+    stills that a user wants each of (``every_frame``); a video file is a recorded camera stream,
+    played as the camera delivered it (``realtime``)."""
+    return REPLAY_EVERY_FRAME if Path(source).is_dir() else REPLAY_REALTIME
+
+
+class ReplayClock:
+    """File time mapped onto the wall clock at the moment the replay starts (the first frame read).
+
+    ``start()`` is called just before the first frame is read; ``stamp_us(file_s)`` is then the wall
+    time (us) of a frame ``file_s`` seconds into the file, and ``wait(file_s)`` sleeps until it is due
+    (returns at once when ``paced`` is False). ``behind(file_s)``: that time has already passed."""
+
+    def __init__(
+        self,
+        paced: bool,
+        start_us: int | None = None,
+        wall_us: Callable[[], int] = lambda: time.time_ns() // 1000,
+        monotonic_s: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.paced = paced
+        self._start_us = start_us
+        self._wall_us = wall_us
+        self._monotonic_s = monotonic_s
+        self.start_us = 0
+        self._t0_s = 0.0
+
+    def start(self) -> None:
+        self.start_us = self._wall_us() if self._start_us is None else self._start_us
+        self._t0_s = self._monotonic_s()
+
+    def stamp_us(self, file_s: float) -> int:
+        return self.start_us + round(file_s * 1e6)
+
+    def behind(self, file_s: float) -> bool:
+        return self._monotonic_s() > self._t0_s + file_s
+
+    def wait(self, file_s: float) -> None:
+        if self.paced:
+            time.sleep(max(self._t0_s + file_s - self._monotonic_s(), 0.0))
+
+
 class ImageFolder(Source):
-    """Images of a folder in name order; stamps from a number of 10+ digits in the name (us, ms or s
-    since the epoch by magnitude), else from the position at ``fps``."""
+    """Images of a folder in name order. A frame's file time comes from a number of 10+ digits in
+    its name (us, ms or s since the epoch by magnitude), relative to the first such name, else from
+    its position at ``fps``."""
 
     live = False
 
-    def __init__(self, path: Path, fps: float, fast: bool, start_us: int) -> None:
+    def __init__(self, path: Path, fps: float, replay: str, clock: ReplayClock) -> None:
         self.files = sorted(p for p in Path(path).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
         if not self.files:
             raise SourceError(f"{path}: no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
         self.fps = fps or 10.0
-        self.fast = fast
-        self.start_us = start_us
+        self.keeps_newest = replay == REPLAY_REALTIME
+        self.clock = clock
+        self.skipped = 0
 
     @staticmethod
     def stamp_from_name(name: str) -> int | None:
@@ -83,24 +144,35 @@ class ImageFolder(Source):
         digits = len(m.group(1))
         return v * 1_000_000 if digits <= 10 else v * 1000 if digits <= 13 else v if digits <= 16 else v // 1000
 
+    def file_times_s(self) -> list[float]:
+        """Each image's time in the file, seconds (from its name's stamp, else its position)."""
+        named = [self.stamp_from_name(p.name) for p in self.files]
+        first = next((s for s in named if s is not None), None)
+        return [(s - first) / 1e6 if s is not None and first is not None else k / self.fps for k, s in enumerate(named)]
+
     def frames(self) -> Iterator[Frame]:
-        t0 = time.monotonic()
-        for k, path in enumerate(self.files):
+        times = self.file_times_s()
+        self.clock.start()
+        for k, (path, file_s) in enumerate(zip(self.files, times, strict=True)):
+            # Real time: an image whose successor is already due is passed over unread, like a
+            # camera's frame that nobody fetched in time.
+            if self.keeps_newest and k + 1 < len(times) and self.clock.behind(times[k + 1]):
+                self.skipped += 1
+                continue
+            self.clock.wait(file_s)
             img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
             if img is None:
                 raise SourceError(f"{path}: not a readable image")
-            if not self.fast:
-                time.sleep(max(t0 + k / self.fps - time.monotonic(), 0.0))
-            stamp = self.stamp_from_name(path.name)
-            yield Frame(img, stamp if stamp is not None else self.start_us + round(k * 1e6 / self.fps))
+            yield Frame(img, self.clock.stamp_us(file_s))
 
 
 class Capture(Source):
     """An OpenCV VideoCapture: V4L2 device, video file or stream URL."""
 
-    def __init__(self, camera: CameraConfig, fast: bool, start_us: int) -> None:
+    def __init__(self, camera: CameraConfig, replay: str, clock: ReplayClock) -> None:
         src = camera.source
         self.live = not Path(src).is_file()
+        self.keeps_newest = self.live or replay == REPLAY_REALTIME
         index = int(src) if src.isdigit() else None
         self.cap = cv2.VideoCapture(index if index is not None else src)
         if not self.cap.isOpened():
@@ -113,15 +185,24 @@ class Capture(Source):
         if camera.fps:
             self.cap.set(cv2.CAP_PROP_FPS, camera.fps)
         self.fps = self.cap.get(cv2.CAP_PROP_FPS) or camera.fps or 30.0
-        self.fast = fast
-        self.start_us = start_us
+        self.clock = clock
+        self.skipped = 0
         self.latency_us = round(camera.latency_ms * 1000)
         self.name = src
 
     def frames(self) -> Iterator[Frame]:
-        t0 = time.monotonic()
+        if not self.live:
+            self.clock.start()
         k = 0
         while True:
+            file_s = k / self.fps
+            if not self.live and self.keeps_newest and self.clock.behind((k + 1) / self.fps):
+                # Real time: the next frame is already due; this one is passed over undecoded.
+                if not self.cap.grab():
+                    return
+                self.skipped += 1
+                k += 1
+                continue
             ok, img = self.cap.read()
             if not ok or img is None:
                 if self.live:
@@ -130,9 +211,8 @@ class Capture(Source):
             if self.live:
                 stamp = int(time.time() * 1e6) - self.latency_us
             else:
-                stamp = self.start_us + round(k * 1e6 / self.fps)
-                if not self.fast:
-                    time.sleep(max(t0 + k / self.fps - time.monotonic(), 0.0))
+                self.clock.wait(file_s)
+                stamp = self.clock.stamp_us(file_s)
             k += 1
             yield Frame(_gray(img), stamp)
 
@@ -141,12 +221,15 @@ class Capture(Source):
 
 
 def open_source(camera: CameraConfig, fast: bool = False, start_us: int | None = None) -> Source:
-    """The source a camera block describes (``sim`` is handled by the simulator)."""
-    start = int(time.time() * 1e6) if start_us is None else start_us
+    """The source a camera block describes (``sim`` is handled by the simulator). ``fast``: a file's
+    every frame, unpaced (the detect command). ``start_us``: the wall time a file's first frame is
+    stamped with (default: the wall clock when it is read)."""
     path = Path(camera.source)
+    replay = REPLAY_EVERY_FRAME if fast else camera.replay or default_replay(camera.source)
+    clock = ReplayClock(paced=not fast, start_us=start_us)
     if path.is_dir():
-        return ImageFolder(path, camera.fps, fast, start)
-    return Capture(camera, fast, start)
+        return ImageFolder(path, camera.fps, replay, clock)
+    return Capture(camera, replay, clock)
 
 
 class CameraWorker(SensorWorker):
@@ -208,9 +291,10 @@ class CameraWorker(SensorWorker):
             _logger.error("camera %s: %s", self.name, exc)
 
     def _consume(self, source: Source, deliver: Deliver) -> None:
-        """Files: every frame, in order (paced by the source unless fast). Live sources: a reader
-        thread keeps only the newest frame, so a slow detector skips frames (counted), never queues."""
-        if not source.live:
+        """Every frame, in order (a file replayed ``every_frame``, paced by the source unless fast), or
+        (a live camera, a real-time replay) a reader thread keeps only the newest frame, so a slow
+        detector skips frames (counted ``frames_dropped``), never queues."""
+        if not source.keeps_newest:
             for frame in source.frames():
                 if self._stop.is_set():
                     return
@@ -220,6 +304,7 @@ class CameraWorker(SensorWorker):
         done = threading.Event()
 
         def read() -> None:
+            skipped = 0
             try:
                 for frame in source.frames():
                     if self._stop.is_set():
@@ -228,10 +313,14 @@ class CameraWorker(SensorWorker):
                         if self._latest is not None:
                             self.counts["frames_dropped"] += 1
                         self._latest = frame
+                        self.counts["frames_skipped"] += source.skipped - skipped
+                        skipped = source.skipped
                     self._have.set()
             except SourceError as exc:
                 reader_error.append(exc)
             finally:
+                with self._lock:
+                    self.counts["frames_skipped"] += source.skipped - skipped
                 done.set()
                 self._have.set()
 

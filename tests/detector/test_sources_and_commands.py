@@ -28,10 +28,14 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def test_image_folder_stamps_from_names_and_order(tmp_path):
+    """A name's stamp is the image's file time (relative to the first named image), mapped onto the
+    replay's start like every file time; unnamed images count by position."""
     for name in ("b_1700000000123.png", "a_1700000000100.png", "c_noise.png"):
         cv2.imwrite(str(tmp_path / name), np.zeros((8, 8), np.uint8))
-    frames = list(ImageFolder(tmp_path, fps=10, fast=True, start_us=5_000_000).frames())
-    assert [f.capture_time_us for f in frames] == [1_700_000_000_100_000, 1_700_000_000_123_000, 5_000_000 + 200_000]
+    frames = list(
+        sources.open_source(CameraConfig(source=str(tmp_path), fps=10), fast=True, start_us=5_000_000).frames()
+    )
+    assert [f.capture_time_us for f in frames] == [5_000_000, 5_000_000 + 23_000, 5_000_000 + 200_000]
     assert ImageFolder.stamp_from_name("x_1700000000.jpg") == 1_700_000_000_000_000
     assert ImageFolder.stamp_from_name("1700000000123456.png") == 1_700_000_000_123_456
 
@@ -272,3 +276,93 @@ def test_a_file_source_says_end_only_when_it_ran_out(monkeypatch, caplog, stoppe
     said = [r.getMessage() for r in caplog.records]
     assert ("camera c: stopped" in said) == stopped
     assert ("camera c: end of /data/frames" in said) == (not stopped)
+
+
+def _slow_listing(monkeypatch, delay_s: float) -> None:
+    """Listing a folder takes ``delay_s`` (a large folder on an SD card)."""
+    listing = Path.iterdir
+
+    def slow(self):
+        time.sleep(delay_s)
+        return listing(self)
+
+    monkeypatch.setattr(Path, "iterdir", slow)
+
+
+@pytest.mark.parametrize("replay", ["every_frame", "realtime"])
+def test_file_source_stamps_from_when_the_first_frame_is_read(tmp_path, monkeypatch, replay):
+    """A slow listing (or a slow video open) must not age the stamps: the first frame is stamped no
+    earlier than the moment the source was ready, and later ones follow the file's time from it."""
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"f{k}.png"), np.zeros((8, 8), np.uint8))
+    _slow_listing(monkeypatch, 0.3)
+    source = sources.open_source(CameraConfig(source=str(tmp_path), fps=20, replay=replay))
+    ready_us = time.time_ns() // 1000
+    frames = list(source.frames())
+    done_us = time.time_ns() // 1000
+    assert len(frames) + source.skipped == 3
+    assert ready_us <= frames[0].capture_time_us <= done_us
+    assert all(f.capture_time_us - frames[0].capture_time_us in (50_000, 100_000) for f in frames[1:])
+
+
+def test_video_file_stamps_from_when_the_first_frame_is_read(tmp_path):
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (32, 24))
+    for k in range(4):
+        writer.write(np.full((24, 32, 3), 40 * k, np.uint8))
+    writer.release()
+    source = sources.open_source(CameraConfig(source=str(path), replay="every_frame"))
+    ready_us = time.time_ns() // 1000
+    frames = list(source.frames())
+    assert len(frames) == 4 and ready_us <= frames[0].capture_time_us
+    assert [f.capture_time_us - frames[0].capture_time_us for f in frames] == [0, 40_000, 80_000, 120_000]
+
+
+class _SlowDetector:
+    """Stands in for a detector that needs ``delay_s`` per frame; records the stamps it saw."""
+
+    def __init__(self, delay_s: float) -> None:
+        self.delay_s = delay_s
+        self.counters: dict[str, int] = {}
+        self.stamps: list[int] = []
+
+    def detect(self, gray, capture_time_us):
+        self.stamps.append(capture_time_us)
+        time.sleep(self.delay_s)
+        return []
+
+
+def _replay(tmp_path, replay: str, n: int, fps: float, delay_s: float) -> tuple[CameraWorker, _SlowDetector, int]:
+    for k in range(n):
+        cv2.imwrite(str(tmp_path / f"img{k:03d}.png"), np.zeros((8, 8), np.uint8))
+    det = _SlowDetector(delay_s)
+    worker = CameraWorker("c", CameraConfig(source=str(tmp_path), fps=fps, replay=replay), det)  # type: ignore[arg-type]
+    start_us = time.time_ns() // 1000
+    worker.start(lambda found: None)
+    worker._thread.join(timeout=30)
+    assert not worker._thread.is_alive()
+    return worker, det, start_us
+
+
+def test_realtime_replay_drops_what_it_cannot_keep_up_with(tmp_path):
+    """A detector 4x slower than the file's 40 Hz: a real-time replay keeps to the file's time (every
+    frame accounted for as detected, dropped or skipped; each stamp the file time of its frame), and
+    fewer frames reach the detector than the file holds."""
+    n, fps = 24, 40.0
+    worker, det, start_us = _replay(tmp_path, "realtime", n, fps, 0.1)
+    c = worker.counters()
+    assert c["frames"] == len(det.stamps) < n
+    assert c["frames"] + c.get("frames_dropped", 0) + c.get("frames_skipped", 0) == n
+    assert c.get("frames_dropped", 0) + c.get("frames_skipped", 0) > 0
+    grid_us = 1e6 / fps
+    offsets = [(s - det.stamps[0]) / grid_us for s in det.stamps]
+    assert all(abs(o - round(o)) < 1e-6 for o in offsets) and det.stamps[0] >= start_us
+    assert np.all(np.diff(offsets) >= 1)
+
+
+def test_every_frame_replay_detects_every_frame_in_order(tmp_path):
+    n, fps = 8, 40.0
+    worker, det, _ = _replay(tmp_path, "every_frame", n, fps, 0.05)
+    c = worker.counters()
+    assert c["frames"] == n and not c.get("frames_dropped") and not c.get("frames_skipped")
+    assert [s - det.stamps[0] for s in det.stamps] == [round(k * 1e6 / fps) for k in range(n)]

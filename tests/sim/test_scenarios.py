@@ -4,6 +4,7 @@
 import dataclasses
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import WORLD
 from atlas_onboard.sim import scenarios
@@ -76,3 +77,24 @@ def test_the_first_test_of_all_markers_at_once_keeps_every_marker_seen():
                 seen += len(got)
     # Not vacuous: markers were seen, and the first test dropped most of the others (out of view).
     assert seen > 300 and kept < others / 2, (seen, kept, others)
+
+
+def test_relay_ages_its_edges_at_its_drones_own_speed_and_turn_rate():
+    """The relay's followers rest on their leaders' poses, whose edges are up to a frame old: the world
+    file's ageing rates must be the drones' real ones (between half and 1.5 times the largest RMS
+    per-axis speed and turn rate of its drones, from their trajectories), or the 6x6 covariance the
+    followers publish is too sure of the attitude (no attitude ageing) or too cautious (1 m/s)."""
+    scenario = scenarios.get("relay")
+    world = SimWorld(scenario)
+    fusion = scenario.world().fusion
+    t = np.arange(1.0, 12.0, 0.01)
+    speed, turn = 0.0, 0.0
+    for name in scenario.drones:
+        p, q = world.truth_series(name, t)
+        R = Rotation.from_quat(q)
+        v = np.diff(p, axis=0) / 0.01
+        w = (R[:-1].inv() * R[1:]).as_rotvec() / 0.01
+        speed = max(speed, float(np.sqrt(np.mean(v**2, axis=0)).max()))
+        turn = max(turn, float(np.degrees(np.sqrt(np.mean(w**2, axis=0)).max())))
+    assert 0.5 * speed <= fusion.age_sigma_m_per_s <= 1.5 * speed, (fusion.age_sigma_m_per_s, speed)
+    assert 0.5 * turn <= fusion.age_sigma_deg_per_s <= 1.5 * turn, (fusion.age_sigma_deg_per_s, turn)
