@@ -59,11 +59,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     from atlas_onboard.detector.commands import add_commands as add_detector
     from atlas_onboard.install import add_commands as add_install
+    from atlas_onboard.mapping.command import add_commands as add_mapping
     from atlas_onboard.sim.command import add_commands as add_sim
 
     add_sim(sub)
     add_detector(sub)
     add_install(sub)
+    add_mapping(sub)
     return parser
 
 
