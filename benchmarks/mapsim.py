@@ -20,8 +20,9 @@ def world_doc(scenario: scenarios.Scenario) -> dict:
     return yaml.safe_load(scenario.world_path().read_text(encoding="utf-8"))
 
 
-def edit_marker(doc: dict, marker_id: int, *, move_m: tuple[float, float, float] | None = None,
-                size_m: float | None = None) -> dict:
+def edit_marker(
+    doc: dict, marker_id: int, *, move_m: tuple[float, float, float] | None = None, size_m: float | None = None
+) -> dict:
     """A copy of a world document with one world marker moved or resized."""
     import copy
 
@@ -35,8 +36,15 @@ def edit_marker(doc: dict, marker_id: int, *, move_m: tuple[float, float, float]
     return out
 
 
-def record(scenario_name: str, doc: dict, sensor_ids: tuple[int, ...], duration_s: float, seed: int,
-           out_dir: Path, detect: bool = True) -> dict[int, Path]:
+def record(
+    scenario_name: str,
+    doc: dict,
+    sensor_ids: tuple[int, ...],
+    duration_s: float,
+    seed: int,
+    out_dir: Path,
+    detect: bool = True,
+) -> dict[int, Path]:
     """Render the scenario's cameras as the world ``doc`` has it and write one recording per sensor."""
     scenario = scenarios.get(scenario_name)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -60,8 +68,15 @@ def record(scenario_name: str, doc: dict, sensor_ids: tuple[int, ...], duration_
 
                 det = Detector(sensor, world, cal, decimate=2.0)
             rec = out_dir / f"rec-{sensor.entity}-s{seed}"
-            writer = RecordingWriter(rec, cal, sensor_name=sensor.name, sensor_id=sid, entity=sensor.entity,
-                                     p_body_camera_m=tuple(p), q_body_camera_wxyz=(q[3], q[0], q[1], q[2]))
+            writer = RecordingWriter(
+                rec,
+                cal,
+                sensor_name=sensor.name,
+                sensor_id=sid,
+                entity=sensor.entity,
+                p_body_camera_m=tuple(p),
+                q_body_camera_wxyz=(q[3], q[0], q[1], q[2]),
+            )
             n = int(duration_s * fps)
             for j in range(n):
                 t = j / fps

@@ -51,9 +51,7 @@ def marker_corners(size_m: float) -> NDArray[np.float64]:
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
 
 
-def project(
-    lens_params: NDArray[np.float64], P_cam: NDArray[np.float64]
-) -> NDArray[np.float64]:
+def project(lens_params: NDArray[np.float64], P_cam: NDArray[np.float64]) -> NDArray[np.float64]:
     """Pixels (..., 2) of points ``P_cam`` (..., 3) in the optical frame; ``lens_params`` (..., 12):
     fx fy cx cy k1 k2 p1 p2 k3 k4 k5 k6, broadcast against the points."""
     fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 = np.moveaxis(lens_params, -1, 0)
@@ -283,9 +281,12 @@ def solve(
         return sp.csr_matrix((np.concatenate(data), (jac_rows, jac_cols)), shape=shape)
 
     x0 = np.zeros(layout.n_params)
+    analytic = jacobian == "analytic"
+    # x_scale="jac" equalises the columns (radians and metres of cameras and markers) for lsmr.
     res = least_squares(
-        residuals, x0, jac=jac if jacobian == "analytic" else "2-point", jac_sparsity=None if jacobian == "analytic" else sparsity, loss=loss, f_scale=f_scale_px, x_scale=1.0, method="trf",
-        tr_solver="lsmr", tr_options={"atol": 1e-8, "btol": 1e-8, "maxiter": 300}, max_nfev=max_nfev, xtol=1e-10, ftol=1e-9,
+        residuals, x0, jac=jac if analytic else "2-point", jac_sparsity=None if analytic else sparsity, loss=loss,
+        f_scale=f_scale_px, x_scale="jac", method="trf", tr_solver="lsmr",
+        tr_options={"atol": 1e-8, "btol": 1e-8, "maxiter": 300}, max_nfev=max_nfev, xtol=1e-10, ftol=1e-9,
     )  # fmt: skip
     R_cw, t_cw, R_wm, t_wm, _ = unpack(res.x)
     M_cw = np.tile(np.eye(4), (F, 1, 1))
@@ -296,6 +297,7 @@ def solve(
     sigma0 = float(np.sqrt(2.0 * res.cost / dof))
     cov = np.zeros((M, 6, 6))
     cov[layout.free_markers] = marker_covariance(sp.csr_matrix(res.jac), F, len(layout.free_markers)) * sigma0**2
+    cov[~np.isfinite(cov)] = np.inf
     r_px = res.fun[: 8 * N].reshape(N, 4, 2)
     return Solution(M_wm, M_cw, cov, r_px, sigma0, float(res.cost), int(res.nfev), int(res.status))
 
@@ -337,6 +339,14 @@ def marker_covariance(J: sp.csr_matrix, n_frames: int, n_markers: int) -> NDArra
     Hcc_inv = sp.csr_matrix((inv.reshape(n_frames, 36).ravel(), (rows, cols)), shape=(nc, nc))
     Hcm = H[:nc, nc:]
     S = H[nc:, nc:].toarray() - (Hcm.T @ Hcc_inv @ Hcm).toarray()
-    C = np.linalg.pinv((S + S.T) / 2.0, hermitian=True)
+    lam, V = np.linalg.eigh((S + S.T) / 2.0)
+    # Directions the corners do not determine (a marker seen only where nothing else fixes the camera)
+    # have no finite covariance: the markers they involve get an infinite one.
+    weak = lam <= 1e-9 * max(float(lam.max(initial=0.0)), 1e-300)
+    C = (V[:, ~weak] / lam[~weak]) @ V[:, ~weak].T
     idx = np.arange(6 * n_markers).reshape(n_markers, 6)
-    return C[idx[:, :, None], idx[:, None, :]]
+    out = C[idx[:, :, None], idx[:, None, :]]
+    if weak.any():
+        involved = np.abs(V[:, weak]).max(axis=1).reshape(n_markers, 6).max(axis=1) > 1e-6
+        out[involved] = np.diag(np.full(6, np.inf))
+    return out

@@ -395,7 +395,9 @@ def _components(pairs: set[tuple[int, int]], nodes: set[int]) -> list[set[int]]:
     return out
 
 
-def _initialise(geo: _Geometry, anchors: dict[int, NDArray[np.float64]], active: set[int]) -> dict[int, NDArray[np.float64]]:
+def _initialise(
+    geo: _Geometry, anchors: dict[int, NDArray[np.float64]], active: set[int]
+) -> dict[int, NDArray[np.float64]]:
     """Marker poses from the anchors outwards, one ring of co-visible markers at a time."""
     known = dict(anchors)
     while True:
@@ -433,7 +435,9 @@ def build_map(obs: Observations, world: WorldConfig, options: MapOptions) -> Map
     seen_ids = set(obs.obs_marker_id)
     missing = [a for a in anchor_ids if a not in seen_ids]
     if len(missing) == len(anchor_ids):
-        raise MapError(f"no anchor seen: marker {', '.join(map(str, missing))} is in none of the {obs.frames_read} frames")
+        raise MapError(
+            f"no anchor seen: marker {', '.join(map(str, missing))} is in none of the {obs.frames_read} frames"
+        )
     geo = _Geometry(obs, sizes)
     # Co-visibility counts: frames in which a marker is seen with another.
     with_other: Counter[int] = Counter()
@@ -512,7 +516,9 @@ def build_map(obs: Observations, world: WorldConfig, options: MapOptions) -> Map
             rep.status = "anchor"
         elif rep.view_spread_deg < DEGENERATE_SPREAD_DEG:
             rep.status = "degenerate"
-            rep.detail = f"all views within {rep.view_spread_deg:.1f} deg of each other: depth and tilt weakly determined"
+            rep.detail = (
+                f"all views within {rep.view_spread_deg:.1f} deg of each other: depth and tilt weakly determined"
+            )
     frame_rms = np.sqrt(np.mean(np.sum(r**2, axis=-1).reshape(len(r), 4), axis=1))
     per_frame = np.zeros(len(frame_ids))
     counts = np.zeros(len(frame_ids))
@@ -635,7 +641,10 @@ def _check_marker(
     if dist > MOVE_MIN_M and z > MOVE_Z:
         a, b = P[:k], P[k:]
         # Both groups tight around their own centre: a move. Otherwise test for two interleaved places.
-        tight = max(np.median(np.linalg.norm(a - np.median(a, 0), axis=1)), np.median(np.linalg.norm(b - np.median(b, 0), axis=1)))
+        tight = max(
+            np.median(np.linalg.norm(a - np.median(a, 0), axis=1)),
+            np.median(np.linalg.norm(b - np.median(b, 0), axis=1)),
+        )
         if tight < dist / 3:
             return "moved", f"moved by {dist * 100:.1f} cm after frame {k} of {n} in which it was checked", z
     # Two places at once (a duplicated id): 2-medians on the positions, the groups interleaved in time.
@@ -678,10 +687,14 @@ def _check_marker(
     scale, sigma_s = float(fit.x[6]), float(math.sqrt(max(cov[6, 6], 0.0)))
     zs = abs(scale - 1.0) / max(sigma_s, 1e-9)
     if abs(scale - 1.0) > SIZE_MIN_REL and zs > SIZE_Z:
-        return "wrong_size", (
-            f"its corners fit a marker of {size * scale * 1000:.1f} mm (+/- {size * sigma_s * 1000:.1f}),"
-            f" not the world file's {size * 1000:.1f} mm"
-        ), zs
+        return (
+            "wrong_size",
+            (
+                f"its corners fit a marker of {size * scale * 1000:.1f} mm (+/- {size * sigma_s * 1000:.1f}),"
+                f" not the world file's {size * 1000:.1f} mm"
+            ),
+            zs,
+        )
     return "ok", "", 0.0
 
 

@@ -152,7 +152,9 @@ def report_json(result: MapResult) -> str:
         "frames_read": result.frames_read, "frames_used": result.frames_used, "observations": result.observations,
         "sigma0_px": result.sigma0_px, "timings_s": result.timings_s,
         "markers": [marker(result.markers[m]) for m in sorted(result.markers)],
-        "images": [{"image": n, "rms_px": float(v)} for n, v in zip(result.frame_names, result.frame_rms_px, strict=True)],
+        "images": [
+            {"image": n, "rms_px": float(v)} for n, v in zip(result.frame_names, result.frame_rms_px, strict=True)
+        ],
         "unknown_ids": {str(k): v for k, v in result.unknown_ids.items()},
     }  # fmt: skip
     return json.dumps(doc, indent=1)
@@ -214,7 +216,8 @@ def _cmd_map(args: argparse.Namespace) -> int:
     anchors = f"gravity anchor {args.gravity_anchor}" if args.gravity_anchor is not None else (
         "anchors " + ", ".join(map(str, options.anchors)))  # fmt: skip
     header = (
-        f"Markers of the world entity mapped by atlas-onboard map on {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}"
+        "Markers of the world entity mapped by atlas-onboard map on "
+        f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}"
         f"\nfrom {', '.join(str(p) for p in args.inputs)} ({anchors})"
     )
     fixed = args.gravity_anchor is None and (args.anchor_sigma_mm <= 0 or args.anchor_sigma_deg <= 0)
@@ -270,7 +273,10 @@ def _cmd_record(args: argparse.Namespace) -> int:
     out = Path(args.out)
     parent = out.parent if not out.exists() else out
     if parent.is_dir() and disk_free_bytes(parent) < args.max_mb * 1e6:
-        print(f"atlas-onboard record: warning: {disk_free_bytes(parent) / 1e6:.0f} MB free, less than --max-mb", file=sys.stderr)
+        print(
+            f"atlas-onboard record: warning: {disk_free_bytes(parent) / 1e6:.0f} MB free, less than --max-mb",
+            file=sys.stderr,
+        )
     p, q = sensor.T_entity_sensor.translation, sensor.T_entity_sensor.rotation.as_quat()
     writer = RecordingWriter(
         out, cal, sensor_name=sensor.name, sensor_id=sensor.id, entity=sensor.entity,

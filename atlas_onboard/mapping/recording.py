@@ -130,13 +130,14 @@ class RecordingWriter:
             (self.directory / "frames").mkdir(parents=True, exist_ok=True)
             write_opencv(self.directory / CALIBRATION, calibration)
             meta = {
-                "format": FORMAT, "version": VERSION, "sensor": {"name": sensor_name, "id": sensor_id, "entity": entity},
+                "format": FORMAT, "version": VERSION,
+                "sensor": {"name": sensor_name, "id": sensor_id, "entity": entity},
                 "p_body_camera_m": list(p_body_camera_m) if p_body_camera_m is not None else None,
                 "q_body_camera_wxyz": list(q_body_camera_wxyz) if q_body_camera_wxyz is not None else None,
                 "calibration": CALIBRATION, "image_format": image_format,
             }  # fmt: skip
             (self.directory / META).write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
-            self._index = open(self.directory / INDEX, "a", encoding="utf-8")  # noqa: SIM115 - closed in close()
+            self._index = open(self.directory / INDEX, "a", encoding="utf-8")
         except OSError as exc:
             raise self._os_error(exc) from None
         self.bytes_written = sum(p.stat().st_size for p in self.directory.iterdir() if p.is_file())
@@ -161,11 +162,15 @@ class RecordingWriter:
         if not ok:
             raise RecordingError(f"{self.directory}: frame {index}: cannot encode the image")
         line = json.dumps(
-            _json_safe({
-                "frame": index, "file": f"frames/{index:06d}{ext}", "capture_time_us": int(capture_time_us),
-                "q_level_body_wxyz": list(q_level_body_wxyz) if q_level_body_wxyz is not None else None,
-                "markers": [_markerdata_dict(m) for m in markers],
-            })  # fmt: skip
+            _json_safe(
+                {
+                    "frame": index,
+                    "file": f"frames/{index:06d}{ext}",
+                    "capture_time_us": int(capture_time_us),
+                    "q_level_body_wxyz": list(q_level_body_wxyz) if q_level_body_wxyz is not None else None,
+                    "markers": [_markerdata_dict(m) for m in markers],
+                }
+            )
         )
         size = len(buf) + len(line) + 1
         if self.bytes_written + size > self.max_bytes:
@@ -243,7 +248,9 @@ def read_info(path: Path) -> RecordingInfo:
     try:
         meta = json.loads((path / META).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"{path}: not a readable recording ({META}: {getattr(exc, 'strerror', None) or exc})") from None
+        raise RecordingError(
+            f"{path}: not a readable recording ({META}: {getattr(exc, 'strerror', None) or exc})"
+        ) from None
     except json.JSONDecodeError:
         raise RecordingError(f"{path}: {META} is not valid JSON") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:

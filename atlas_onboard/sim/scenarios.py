@@ -264,7 +264,10 @@ def _map() -> Scenario:
         description="two drones survey a room of 22 markers on the floor and walls (record, map, fly on the map)",
         world_file="map.yaml",
         duration_s=60.0,
-        trajectories={"mapper1": drone(0, (0.0, 0.0, 1.4), (1.6, 1.1, 0.3)), "mapper2": drone(1, (0.1, -0.1, 1.3), (1.5, 1.2, 0.2))},
+        trajectories={
+            "mapper1": drone(0, (0.0, 0.0, 1.4), (1.6, 1.1, 0.3)),
+            "mapper2": drone(1, (0.1, -0.1, 1.3), (1.5, 1.2, 0.2)),
+        },
         drones=("mapper1", "mapper2"),
         scored=("mapper1", "mapper2"),
         optics={"mapper1.cam": cam, "mapper2.cam": cam},

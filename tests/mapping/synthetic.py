@@ -90,3 +90,69 @@ def make_problem(
 def _perturb(rng: np.random.Generator, M: np.ndarray, err: float) -> np.ndarray:
     R = Rotation.from_rotvec(rng.normal(0.0, err, 3)).as_matrix() @ M[:3, :3]
     return pose(R, M[:3, 3] + rng.normal(0.0, err, 3))
+
+
+def make_observations(
+    seed: int,
+    n_frames: int = 120,
+    noise_px: float = 0.3,
+    moved: tuple[int, float] | None = None,
+    true_size: tuple[int, float] | None = None,
+    hidden: set[int] = frozenset(),
+):
+    """Observations of the synthetic room as :func:`atlas_onboard.mapping.build.collect` gives them,
+    and a world file listing its markers (ids 0..11, all world markers). ``moved``: (marker, metres)
+    moved along world x after the first half of the frames; ``true_size``: (marker, size) printed at
+    another size than the world file says; ``hidden``: markers that are never seen."""
+    from atlas_onboard.config import parse_world
+    from atlas_onboard.detector.calibration import Calibration
+    from atlas_onboard.mapping.build import FrameInfo, Observations
+
+    rng = np.random.default_rng(seed)
+    M_wm, sizes = truth_markers(np.random.default_rng(0))
+    M_cw = camera_poses(rng, n_frames, M_wm)
+    lens_row = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], DIST, [0.0, 0.0, 0.0]])
+    obs = Observations(lenses=[Calibration(640, 480, K, DIST)], sources=["synthetic"], mountings=[None])
+    obs.frames_read = n_frames
+    for f, Mc in enumerate(M_cw):
+        dets = []
+        for m, Mm in enumerate(M_wm):
+            if m in hidden:
+                continue
+            Mm = Mm.copy()
+            size = sizes[m]
+            if moved is not None and m == moved[0] and f >= n_frames // 2:
+                Mm[0, 3] += moved[1]
+            if true_size is not None and m == true_size[0]:
+                size = true_size[1]
+            X = marker_corners(size) @ Mm[:3, :3].T + Mm[:3, 3]
+            P = X @ Mc[:3, :3].T + Mc[:3, 3]
+            if np.any(P[:, 2] < 0.3):
+                continue
+            normal_c = Mc[:3, :3] @ Mm[:3, 2]
+            centre = P.mean(axis=0)
+            if normal_c @ (-centre / np.linalg.norm(centre)) < np.cos(np.radians(70)):
+                continue
+            px = project(lens_row, P)
+            if np.any(px < 5) or np.any(px[:, 0] > 634) or np.any(px[:, 1] > 474):
+                continue
+            dets.append((m, px + rng.normal(0.0, noise_px, (4, 2))))
+        if not dets:
+            continue
+        obs.frames.append(FrameInfo(0, f, round(f * 1e6 / 15), 0))
+        for m, c in dets:
+            obs.obs_frame.append(len(obs.frames) - 1)
+            obs.obs_marker_id.append(m)
+            obs.corners_px.append(c)
+    markers = []
+    for m, Mm in enumerate(M_wm):
+        x, y, z, w = Rotation.from_matrix(Mm[:3, :3]).as_quat()
+        markers.append(
+            {
+                "id": m,
+                "size_m": float(sizes[m]),
+                "pose": {"pos": [float(v) for v in Mm[:3, 3]], "rot": {"w": w, "x": x, "y": y, "z": z}},
+            }
+        )
+    world = parse_world({"entities": {"world": {"markers": markers}}})
+    return obs, world, M_wm
