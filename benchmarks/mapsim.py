@@ -47,6 +47,9 @@ def record(
 ) -> dict[int, Path]:
     """Render the scenario's cameras as the world ``doc`` has it and write one recording per sensor."""
     scenario = scenarios.get(scenario_name)
+    done = {sid: out_dir / f"rec-{scenario.world().sensors[sid].entity}-s{seed}" for sid in sensor_ids}
+    if all((p / "index.jsonl").is_file() for p in done.values()):
+        return done  # recorded by an earlier run (--keep)
     out_dir.mkdir(parents=True, exist_ok=True)
     world_file = out_dir / "truth-world.yaml"
     world_file.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
