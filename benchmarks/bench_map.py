@@ -76,7 +76,9 @@ def compare(label: str, result: mb.MapResult, truth: dict[int, np.ndarray]) -> t
         rows.append((mid, rep.status, np.linalg.norm(dp) * 1000, ang, np.linalg.norm(sig) * 1000,
                      float(np.sum(dp**2 / np.maximum(sig**2, 1e-12))), np.linalg.norm(rep.sigma_deg)))  # fmt: skip
     print(f"\n== {label}: {len(rows)} markers mapped besides the anchor ==")
-    print(f"{'marker':>6} {'status':<10} {'err_mm':>7} {'sigma3d_mm':>10} {'err/sigma':>9} {'err_deg':>8} {'sigma_deg':>9}")
+    print(
+        f"{'marker':>6} {'status':<10} {'err_mm':>7} {'sigma3d_mm':>10} {'err/sigma':>9} {'err_deg':>8} {'sigma_deg':>9}"
+    )
     for mid, status, e, a, s, _, sd in rows:
         print(f"{mid:>6} {status:<10} {e:7.2f} {s:10.2f} {e / max(s, 1e-9):9.2f} {a:8.3f} {sd:9.3f}")
     e = np.array([r[2] for r in rows])
@@ -119,7 +121,9 @@ def main() -> int:
     obs1 = mb.collect([rec1], world)
     res1 = mb.build_map(obs1, world, options)
     total_s = time.perf_counter() - t
-    print(f"\nmap of {obs1.frames_read} frames, {len(set(obs1.obs_marker_id))} markers seen: {total_s:.1f} s on one core")
+    print(
+        f"\nmap of {obs1.frames_read} frames, {len(set(obs1.obs_marker_id))} markers seen: {total_s:.1f} s on one core"
+    )
     for k, v in res1.timings_s.items():
         print(f"  {k}: {v:.2f}")
     pmax1, amax1 = compare("one drone (mapper1), anchored on marker 4", res1, truth)
@@ -155,9 +159,19 @@ def main() -> int:
 
     # 4. A marker moved between the recordings; a marker of the wrong size.
     res_moved = mb.build_map(mb.collect([rec1, rec2_moved], world), world, options)
-    named = {m: (r.status, r.detail) for m, r in res_moved.markers.items() if r.status in ("moved", "duplicated", "wrong_size")}
+    named = {
+        m: (r.status, r.detail)
+        for m, r in res_moved.markers.items()
+        if r.status in ("moved", "duplicated", "wrong_size")
+    }
     print(f"\n== marker {MOVED} moved by 10 cm between the recordings: named {named}")
-    bar("moved_marker_named", float(named.get(MOVED, ("",))[0] == "moved"), "bool", 1.0, named.get(MOVED, ("",))[0] == "moved")
+    bar(
+        "moved_marker_named",
+        float(named.get(MOVED, ("",))[0] == "moved"),
+        "bool",
+        1.0,
+        named.get(MOVED, ("",))[0] == "moved",
+    )
     bar("moved_no_other_marker_named", float(len(set(named) - {MOVED})), "markers", 0.0, not set(named) - {MOVED})
     wrong_doc = copy.deepcopy(doc)
     for m in wrong_doc["entities"]["world"]["markers"]:
@@ -167,11 +181,21 @@ def main() -> int:
     wrong_file.write_text(yaml.safe_dump(wrong_doc, sort_keys=False), encoding="utf-8")
     wrong_world = load_world(wrong_file)
     res_wrong = mb.build_map(mb.collect([rec1], wrong_world), wrong_world, options)
-    named = {m: (r.status, r.detail) for m, r in res_wrong.markers.items() if r.status in ("moved", "duplicated", "wrong_size")}
+    named = {
+        m: (r.status, r.detail)
+        for m, r in res_wrong.markers.items()
+        if r.status in ("moved", "duplicated", "wrong_size")
+    }
     print(f"== marker {WRONG_SIZE} printed at 160 mm, the world file says 200 mm: named {named}")
     got = named.get(WRONG_SIZE, ("",))[0] == "wrong_size"
     bar("wrong_size_marker_named", float(got), "bool", 1.0, got)
-    bar("wrong_size_no_other_marker_named", float(len(set(named) - {WRONG_SIZE})), "markers", 0.0, not set(named) - {WRONG_SIZE})
+    bar(
+        "wrong_size_no_other_marker_named",
+        float(len(set(named) - {WRONG_SIZE})),
+        "markers",
+        0.0,
+        not set(named) - {WRONG_SIZE},
+    )
 
     # 5. Fly on the built map (two drones merged) and on the true map.
     if not args.skip_fly:
@@ -193,7 +217,10 @@ def fly(result: mb.MapResult, doc: dict) -> None:
             continue
         x, y, z, w = Rotation.from_matrix(M[:3, :3]).as_quat()
         entry = {k: m[k] for k in ("id", "size_m", "family") if k in m}
-        entry["pose"] = {"pos": [float(v) for v in M[:3, 3]], "rot": {"w": float(w), "x": float(x), "y": float(y), "z": float(z)}}
+        entry["pose"] = {
+            "pos": [float(v) for v in M[:3, 3]],
+            "rot": {"w": float(w), "x": float(x), "y": float(y), "z": float(z)},
+        }
         markers.append(entry)
     rmse = {}
     for label, overrides in (("true map", {}), ("built map", {"entities": {"world": {"markers": markers}}})):

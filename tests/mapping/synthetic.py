@@ -99,11 +99,13 @@ def make_observations(
     moved: tuple[int, float] | None = None,
     true_size: tuple[int, float] | None = None,
     hidden: set[int] = frozenset(),
+    attitude: bool = False,
 ):
     """Observations of the synthetic room as :func:`atlas_onboard.mapping.build.collect` gives them,
     and a world file listing its markers (ids 0..11, all world markers). ``moved``: (marker, metres)
     moved along world x after the first half of the frames; ``true_size``: (marker, size) printed at
-    another size than the world file says; ``hidden``: markers that are never seen."""
+    another size than the world file says; ``hidden``: markers that are never seen; ``attitude``: each
+    frame carries the camera's attitude (the body is the camera) in a level frame turned by 30 deg."""
     from atlas_onboard.config import parse_world
     from atlas_onboard.detector.calibration import Calibration
     from atlas_onboard.mapping.build import FrameInfo, Observations
@@ -112,7 +114,9 @@ def make_observations(
     M_wm, sizes = truth_markers(np.random.default_rng(0))
     M_cw = camera_poses(rng, n_frames, M_wm)
     lens_row = np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], DIST, [0.0, 0.0, 0.0]])
-    obs = Observations(lenses=[Calibration(640, 480, K, DIST)], sources=["synthetic"], mountings=[None])
+    obs = Observations(lenses=[Calibration(640, 480, K, DIST)], sources=["synthetic"],
+                       mountings=[np.eye(4) if attitude else None])  # fmt: skip
+    R_level_world = Rotation.from_euler("z", 30, degrees=True).as_matrix()
     obs.frames_read = n_frames
     for f, Mc in enumerate(M_cw):
         dets = []
@@ -139,7 +143,11 @@ def make_observations(
             dets.append((m, px + rng.normal(0.0, noise_px, (4, 2))))
         if not dets:
             continue
-        obs.frames.append(FrameInfo(0, f, round(f * 1e6 / 15), 0))
+        q = None
+        if attitude:
+            x, y, z, w = Rotation.from_matrix(R_level_world @ Mc[:3, :3].T).as_quat()
+            q = (w, x, y, z)
+        obs.frames.append(FrameInfo(0, f, round(f * 1e6 / 15), 0, q))
         for m, c in dets:
             obs.obs_frame.append(len(obs.frames) - 1)
             obs.obs_marker_id.append(m)

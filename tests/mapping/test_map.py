@@ -41,6 +41,29 @@ def test_a_marker_printed_at_the_wrong_size_is_named_with_its_size() -> None:
     assert [m for m, r in res.markers.items() if r.status in ("moved", "wrong_size", "duplicated")] == [7]
 
 
+def test_gravity_anchor_makes_its_marker_the_origin_and_up_the_vertical() -> None:
+    """Marker 2 lies on the floor, turned about the vertical: the map's world has its origin and
+    heading, and is level by the attitudes (not by the anchor's own tilt, which its few corners give
+    to a fraction of a degree only)."""
+    obs, world, M_true = make_observations(4, n_frames=60, attitude=True)
+    res = build_map(obs, world, MapOptions(gravity_anchor=2))
+    M_anchor_world = np.linalg.inv(M_true[2])
+    assert np.allclose(res.markers[2].M_world_marker[:3, 3], 0.0, atol=1e-12)
+    tilts = []
+    for m, M in res.mapped().items():
+        expected = M_anchor_world @ M_true[m]
+        sigma = np.linalg.norm(res.markers[m].sigma_m)
+        assert np.linalg.norm(M[:3, 3] - expected[:3, 3]) < 4 * sigma + 0.002, m
+        if m < 9:  # the floor markers: their faces look straight up
+            tilts.append(np.degrees(np.arccos(np.clip(M[2, 2], -1, 1))))
+    assert np.median(tilts) < 0.4, tilts
+    # The same data anchored on marker 2 alone (its own tilt taken as level) tilts the whole floor.
+    fixed = build_map(obs, world, MapOptions(anchors=(2,)))
+    tilts_fixed = [np.degrees(np.arccos(np.clip((M_anchor_world @ M)[2, 2], -1, 1)))
+                   for m, M in fixed.mapped().items() if m < 9 and m != 2]  # fmt: skip
+    assert np.median(tilts_fixed) > np.median(tilts), (tilts_fixed, tilts)
+
+
 def test_no_anchor_seen_is_refused() -> None:
     obs, world, _ = make_observations(2, n_frames=40, hidden={0})
     with pytest.raises(MapError, match="no anchor seen"):
