@@ -77,7 +77,8 @@ def compare(label: str, result: mb.MapResult, truth: dict[int, np.ndarray]) -> t
                      float(np.sum(dp**2 / np.maximum(sig**2, 1e-12))), np.linalg.norm(rep.sigma_deg)))  # fmt: skip
     print(f"\n== {label}: {len(rows)} markers mapped besides the anchor ==")
     print(
-        f"{'marker':>6} {'status':<10} {'err_mm':>7} {'sigma3d_mm':>10} {'err/sigma':>9} {'err_deg':>8} {'sigma_deg':>9}"
+        f"{'marker':>6} {'status':<10} {'err_mm':>7} {'sigma3d_mm':>10} {'err/sigma':>9} {'err_deg':>8}"
+        f" {'sigma_deg':>9}"
     )
     for mid, status, e, a, s, _, sd in rows:
         print(f"{mid:>6} {status:<10} {e:7.2f} {s:10.2f} {e / max(s, 1e-9):9.2f} {a:8.3f} {sd:9.3f}")
@@ -117,15 +118,19 @@ def main() -> int:
     options = mb.MapOptions(anchors=(ANCHOR,))
 
     # 1. One drone, one surveyed marker; timed on one core.
-    t = time.perf_counter()
+    # Timed in CPU seconds of this single-threaded process (the machine is shared: its wall clock is not
+    # one core's time); the wall clock is printed beside.
+    t, c = time.perf_counter(), time.process_time()
     obs1 = mb.collect([rec1], world)
+    c_detect = time.process_time() - c
     res1 = mb.build_map(obs1, world, options)
-    total_s = time.perf_counter() - t
+    total_s, wall_s = time.process_time() - c, time.perf_counter() - t
     print(
-        f"\nmap of {obs1.frames_read} frames, {len(set(obs1.obs_marker_id))} markers seen: {total_s:.1f} s on one core"
+        f"\nmap of {obs1.frames_read} frames, {len(set(obs1.obs_marker_id))} markers seen: {total_s:.1f} CPU s"
+        f" (detection {c_detect:.1f} CPU s, the rest {total_s - c_detect:.1f} CPU s); {wall_s:.1f} s wall clock"
     )
     for k, v in res1.timings_s.items():
-        print(f"  {k}: {v:.2f}")
+        print(f"  wall {k}: {v:.2f}")
     pmax1, amax1 = compare("one drone (mapper1), anchored on marker 4", res1, truth)
     bar("map_one_drone_position_max_err", pmax1, "mm", 5.0, pmax1 <= 5.0)
     bar("map_one_drone_orientation_max_err", amax1, "deg", 0.5, amax1 <= 0.5)
@@ -134,21 +139,21 @@ def main() -> int:
     geo = mb._Geometry(obs1, {m.id: m.size_m for m in world.markers.values()})
     seen = set(obs1.obs_marker_id)
     anchor_pose = {ANCHOR: truth_world.markers[ANCHOR].T_entity_marker.as_matrix()}
-    t = time.perf_counter()
+    t = time.process_time()
     init = mb._initialise(geo, anchor_pose, seen)
-    init_s = time.perf_counter() - t
+    init_s = time.process_time() - t
     problem, _, _ = mb._problem(geo, init, seen, anchor_pose, options)
-    t = time.perf_counter()
+    t = time.process_time()
     ba.solve(copy.deepcopy(problem), jacobian="analytic")
-    analytic_s = time.perf_counter() - t
-    t = time.perf_counter()
+    analytic_s = time.process_time() - t
+    t = time.process_time()
     ba.solve(copy.deepcopy(problem), jacobian="numeric")
-    numeric_s = time.perf_counter() - t
+    numeric_s = time.process_time() - t
     print(f"\ntiming anchors ({len(problem.M_cam_world)} frames, {len(problem.obs_frame)} sightings):"
-          f" whole map {total_s:.1f} s = {total_s / init_s:.0f} x the initialisation ({init_s:.2f} s);"
+          f" whole map {total_s:.1f} CPU s = {total_s / init_s:.0f} x the initialisation ({init_s:.2f} CPU s);"
           f" adjustment, analytic Jacobian {analytic_s:.1f} s = {analytic_s / numeric_s:.2f} x the finite-difference"
           f" Jacobian over jac_sparsity ({numeric_s:.1f} s)")  # fmt: skip
-    bar("map_time_900_frames_one_core", total_s, "s", 60.0, total_s <= 60.0)
+    bar("map_time_900_frames_one_core", total_s, "cpu_s", 60.0, total_s <= 60.0)
 
     # 2. Two drones merged.
     obs12 = mb.collect([rec1, rec2], world)
