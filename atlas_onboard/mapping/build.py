@@ -511,12 +511,16 @@ def build_map(obs: Observations, world: WorldConfig, options: MapOptions) -> Map
             continue
         k = marker_index[mid]
         rep.M_world_marker = R_fix @ sol.M_world_marker[k]
-        C = sol.covariance[k]
+        sel = om == k
+        rep.rms_px = float(np.sqrt(np.mean(np.sum(r[sel] ** 2, axis=-1)))) if sel.any() else math.nan
+        # A marker whose corners fit worse than the map's average (a worse print, a harder view, another
+        # family's corners) is as much less certain: its covariance takes its own residual variance.
+        # (rms_px is a corner's 2-D error, sigma0 one coordinate's.)
+        inflate = max(1.0, rep.rms_px**2 / max(2 * sol.sigma0_px**2, 1e-18)) if math.isfinite(rep.rms_px) else 1.0
+        C = sol.covariance[k] * inflate
         R3 = R_fix[:3, :3]
         rep.sigma_m = tuple(np.sqrt(np.maximum(np.diag(R3 @ C[3:, 3:] @ R3.T), 0.0)).tolist())  # type: ignore[assignment]
         rep.sigma_deg = tuple(np.degrees(np.sqrt(np.maximum(np.diag(R3 @ C[:3, :3] @ R3.T), 0.0))).tolist())  # type: ignore[assignment]
-        sel = om == k
-        rep.rms_px = float(np.sqrt(np.mean(np.sum(r[sel] ** 2, axis=-1)))) if sel.any() else math.nan
         rep.view_spread_deg = _view_spread(sol, problem, k)
         if mid in anchor_pose:
             rep.status = "anchor"
