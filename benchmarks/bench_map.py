@@ -36,7 +36,7 @@ from pathlib import Path  # noqa: E402
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import yaml  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
+from scipy.spatial.transform import RigidTransform, Rotation  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -202,7 +202,9 @@ def main() -> int:
         not set(named) - {WRONG_SIZE},
     )
 
-    # 5. Fly on the built map (two drones merged) and on the true map.
+    # 5. Localise from every third frame of the other drone's flight on the map built from the first
+    # drone alone and on the true map (the node's detector, deterministic), then fly (real time).
+    localise(res1, doc, rec2)
     if not args.skip_fly:
         fly(res12, doc)
     print()
@@ -211,10 +213,8 @@ def main() -> int:
     return 0
 
 
-def fly(result: mb.MapResult, doc: dict) -> None:
-    from atlas_onboard.sim.command import score_run
-    from atlas_onboard.sim.runner import SimOptions, run
-
+def built_markers(result: mb.MapResult, doc: dict) -> list[dict]:
+    """The world file's marker entries with the map's poses (markers the map does not give: left out)."""
     markers = []
     for m in doc["entities"]["world"]["markers"]:
         M = result.mapped().get(m["id"])
@@ -227,6 +227,57 @@ def fly(result: mb.MapResult, doc: dict) -> None:
             "rot": {"w": float(w), "x": float(x), "y": float(y), "z": float(z)},
         }
         markers.append(entry)
+    return markers
+
+
+def localise(result: mb.MapResult, doc: dict, recording: Path) -> None:
+    """The camera's position from each frame (the node's detector: all markers of the world solved
+    together) against the truth, on the true map and on the built one."""
+    from atlas_onboard.config import parse_world
+    from atlas_onboard.detector.pipeline import Detector
+    from atlas_onboard.mapping.recording import read_frames, read_info
+    from atlas_onboard.sim import scenarios
+    from atlas_onboard.sim.world import SimWorld
+
+    scenario = scenarios.get("map")
+    built_doc = copy.deepcopy(doc)
+    built_doc["entities"]["world"]["markers"] = built_markers(result, doc)
+    info = read_info(recording)
+    sim = SimWorld(scenario)
+    errors: dict[str, list[float]] = {"true map": [], "built map": []}
+    for label, world in (("true map", scenario.world()), ("built map", parse_world(built_doc))):
+        sensor = world.sensors[info.sensor_id]
+        det = Detector(sensor, world, info.calibration, decimate=1.0, track=False)
+        poses = {m.id: m.T_entity_marker for m in world.markers.values()}
+        for frame in read_frames(recording):
+            if frame.index % 3:
+                continue
+            t = frame.capture_time_us / 1e6
+            truth = (sim.truth(t, {sensor.entity})[sensor.entity] * sensor.T_entity_sensor).translation
+            for md in det.detect(frame.gray, frame.capture_time_us):
+                if md.marker_id not in poses:
+                    continue
+                w, x, y, z = md.q_sensor_marker_wxyz
+                T_sm = RigidTransform.from_components(md.p_sensor_marker_m, Rotation.from_quat([x, y, z, w]))
+                est = (poses[md.marker_id] * T_sm.inv()).translation
+                errors[label].append(float(np.linalg.norm(est - truth)))
+                break  # one observation of the world a frame (the joint solve)
+    print("\n== localising from the other drone's frames (every third), map of one drone vs the true map ==")
+    rmse = {}
+    for label, e in errors.items():
+        a = np.array(e) * 1000
+        rmse[label] = float(np.sqrt(np.mean(a**2)))
+        print(f"{label}: {len(a)} poses, position error mm: RMSE {rmse[label]:.2f}  {stats(a)}")
+    ratio = rmse["built map"] / rmse["true map"]
+    print(f"RMSE on the built map / on the true map: {ratio:.3f}")
+    bar("localise_rmse_ratio_built_over_true", ratio, "ratio", 1.2, ratio <= 1.2)
+
+
+def fly(result: mb.MapResult, doc: dict) -> None:
+    from atlas_onboard.sim.command import score_run
+    from atlas_onboard.sim.runner import SimOptions, run
+
+    markers = built_markers(result, doc)
     rmse = {}
     for label, overrides in (("true map", {}), ("built map", {"entities": {"world": {"markers": markers}}})):
         sim = run(SimOptions(scenario="map", duration_s=FLY_S, seed=5, world_overrides=overrides))
