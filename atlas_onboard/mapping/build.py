@@ -85,7 +85,8 @@ class Observations:
         corners_px: (N, 4, 2) raw corners (distorted pixels, OpenCV order).
         sources: a name per input; mountings: the camera's pose on the body per input (or None).
         duplicates: per marker id, how many frames showed it more than once.
-        unknown: per id of a marker not in the world file, how many frames showed it.
+        unknown: per id of a marker the world file does not list (in a family it uses), how many frames
+            showed it.
         detect_s: time spent reading and detecting.
     """
 
@@ -187,7 +188,13 @@ def collect(
                 if (n - 1) % stride:
                     continue
                 cal.check_size(gray.shape[1], gray.shape[0], str(path))
-                found = finder.find(gray, 1.0)
+                found = []
+                for backend in finder.backends:  # the finder's own filter, counting the ids it drops
+                    for d in backend.detect(gray, 1.0):
+                        if wanted_all.get(d.marker_id) == d.family:
+                            found.append(d)
+                        else:
+                            obs.unknown[d.marker_id] += 1
                 ids = Counter(d.marker_id for d in found)
                 dets = []
                 for d in found:
