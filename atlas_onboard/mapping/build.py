@@ -524,6 +524,10 @@ def build_map(obs: Observations, world: WorldConfig, options: MapOptions) -> Map
         # family's corners) is as much less certain: its covariance takes its own residual variance.
         # (rms_px is a corner's 2-D error, sigma0 one coordinate's.)
         inflate = max(1.0, rep.rms_px**2 / max(2 * sol.sigma0_px**2, 1e-18)) if math.isfinite(rep.rms_px) else 1.0
+        # Successive frames see a marker from nearly the same place, so their corner errors are alike,
+        # not independent: the variance of their mean grows by (1 + rho) / (1 - rho) for a lag-one
+        # correlation rho (an AR(1) model of the error along the flight).
+        inflate *= _correlation_inflation(r[sel], problem.obs_frame[sel], [obs.frames[f] for f in frame_ids])
         C = sol.covariance[k] * inflate
         R3 = R_fix[:3, :3]
         rep.sigma_m = tuple(np.sqrt(np.maximum(np.diag(R3 @ C[3:, 3:] @ R3.T), 0.0)).tolist())  # type: ignore[assignment]
@@ -595,6 +599,20 @@ def _problem(
         anchors=[ba.Anchor(midx[a], sigma_m, sigma_rad) for a in anchor_pose if a in midx],
     )
     return problem, frame_ids, marker_ids
+
+
+def _correlation_inflation(r: NDArray[np.float64], frames: NDArray[np.int64], infos: list[FrameInfo]) -> float:
+    """(1 + rho) / (1 - rho) for the lag-one correlation rho of one marker's corner residuals ``r``
+    (n, 4, 2) between successive frames of one input (``frames``: their adjusted-frame indices)."""
+    v = r.reshape(len(r), -1)
+    num = den = 0.0
+    for i in range(len(v) - 1):
+        a, b = infos[frames[i]], infos[frames[i + 1]]
+        if a.source == b.source and 0 < b.index - a.index <= 2:
+            num += float(v[i] @ v[i + 1])
+            den += 0.5 * float(v[i] @ v[i] + v[i + 1] @ v[i + 1])
+    rho = min(max(num / den, 0.0), 0.95) if den > 0 else 0.0
+    return (1.0 + rho) / (1.0 - rho)
 
 
 def _view_spread(sol: ba.Solution, problem: ba.Problem, k: int) -> float:
