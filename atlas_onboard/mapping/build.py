@@ -701,7 +701,7 @@ def _check_marker(
     n = len(found)
     fit = _MarkerFit(geo, mid, cams, dets)
     everything = np.ones(n, dtype=bool)
-    M_all, _, _, rms_all = fit.fit(everything)
+    _, _, _, rms_all = fit.fit(everything)
     cost_all = float(np.sum(rms_all**2))
     # Candidate partitions: the split in time that separates the per-frame positions most, and the
     # two places the positions cluster at (2-medians); each group fitted on its own.
@@ -754,7 +754,6 @@ def _check_marker(
             ),
             zs,
         )
-    del M_all
     return "ok", "", 0.0
 
 
