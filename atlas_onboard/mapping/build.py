@@ -58,6 +58,7 @@ SIZE_MIN_REL = 0.03  # a marker whose fitted scale is off by more than this has 
 SIZE_Z = 6.0  # ... and off by more than this many standard errors
 DEGENERATE_SPREAD_DEG = 10.0  # views of a marker all within this angle of each other: a weak depth
 MAX_CHECK_ROUNDS = 4
+MAX_LAG_FRAMES = 30  # the residuals' autocorrelation is summed over at most this many frames
 
 
 class MapError(AtlasError):
@@ -525,8 +526,7 @@ def build_map(obs: Observations, world: WorldConfig, options: MapOptions) -> Map
         # (rms_px is a corner's 2-D error, sigma0 one coordinate's.)
         inflate = max(1.0, rep.rms_px**2 / max(2 * sol.sigma0_px**2, 1e-18)) if math.isfinite(rep.rms_px) else 1.0
         # Successive frames see a marker from nearly the same place, so their corner errors are alike,
-        # not independent: the variance of their mean grows by (1 + rho) / (1 - rho) for a lag-one
-        # correlation rho (an AR(1) model of the error along the flight).
+        # not independent: the variance grows by the errors' integrated autocorrelation time.
         inflate *= _correlation_inflation(r[sel], problem.obs_frame[sel], [obs.frames[f] for f in frame_ids])
         C = sol.covariance[k] * inflate
         R3 = R_fix[:3, :3]
@@ -601,18 +601,29 @@ def _problem(
     return problem, frame_ids, marker_ids
 
 
-def _correlation_inflation(r: NDArray[np.float64], frames: NDArray[np.int64], infos: list[FrameInfo]) -> float:
-    """(1 + rho) / (1 - rho) for the lag-one correlation rho of one marker's corner residuals ``r``
-    (n, 4, 2) between successive frames of one input (``frames``: their adjusted-frame indices)."""
+def _correlation_inflation(
+    r: NDArray[np.float64], frames: NDArray[np.int64], infos: list[FrameInfo], max_lag: int = MAX_LAG_FRAMES
+) -> float:
+    """The integrated autocorrelation time ``1 + 2 sum_k rho_k`` of one marker's corner residuals ``r``
+    (n, 4, 2) along the frames of each input (``frames``: their adjusted-frame indices), summed over
+    lags of 1, 2, ... frames while the correlation stays positive (at most ``max_lag``): how many
+    times fewer independent errors the marker's sightings hold than their count."""
     v = r.reshape(len(r), -1)
-    num = den = 0.0
-    for i in range(len(v) - 1):
-        a, b = infos[frames[i]], infos[frames[i + 1]]
-        if a.source == b.source and 0 < b.index - a.index <= 2:
-            num += float(v[i] @ v[i + 1])
-            den += 0.5 * float(v[i] @ v[i] + v[i + 1] @ v[i + 1])
-    rho = min(max(num / den, 0.0), 0.95) if den > 0 else 0.0
-    return (1.0 + rho) / (1.0 - rho)
+    var = float(np.mean(np.sum(v * v, axis=1)))
+    if var <= 0.0:
+        return 1.0
+    row = {(infos[f].source, infos[f].index): i for i, f in enumerate(frames)}
+    tau = 1.0
+    for lag in range(1, max_lag + 1):
+        pairs = [(i, row[(s, k + lag)]) for (s, k), i in row.items() if (s, k + lag) in row]
+        if len(pairs) < 5:
+            break
+        a, b = np.array(pairs).T
+        rho = float(np.mean(np.sum(v[a] * v[b], axis=1))) / var
+        if rho <= 0.0:
+            break
+        tau += 2.0 * rho
+    return tau
 
 
 def _view_spread(sol: ba.Solution, problem: ba.Problem, k: int) -> float:
