@@ -64,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from atlas_onboard.detector.commands import add_commands as add_detector
     from atlas_onboard.install import add_commands as add_install
+    from atlas_onboard.mapping.command import add_commands as add_mapping
     from atlas_onboard.params import add_commands as add_params
     from atlas_onboard.sim.command import add_commands as add_sim
 
@@ -71,6 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_detector(sub)
     add_install(sub)
     add_params(sub)
+    add_mapping(sub)
     return parser
 
 

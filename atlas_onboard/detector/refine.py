@@ -42,7 +42,9 @@ def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDA
         xs = pts[..., 0].astype(np.float32)
         ys = pts[..., 1].astype(np.float32)
         prof = cv2.remap(img, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        grad = np.abs(np.diff(prof, axis=1))  # between consecutive samples along the normal
+        # Dark (the black border) to bright (the quiet zone) outwards: the signed gradient, so that the
+        # edge of a white data cell inside the border (the other polarity) is never taken for it.
+        grad = np.maximum(np.diff(prof, axis=1), 0.0)  # between consecutive samples along the normal
         k = np.argmax(grad, axis=1)
         ok = (k > 0) & (k < grad.shape[1] - 1)
         edge = []

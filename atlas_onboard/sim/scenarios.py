@@ -301,7 +301,34 @@ def _hard() -> Scenario:
     )
 
 
-SCENARIOS = {s.name: s for s in (_paper_test1(), _paper_test2(), _relay(), _swarm(), _paths(), _gaps(), _hard())}
+def _map() -> Scenario:
+    # Issue 21: two drones survey a room (floor and walls) for the mapper; yaw sweeps so every wall is seen.
+    def drone(k: int, center: tuple[float, float, float], amp: tuple[float, float, float]) -> tj.Quadrotor:
+        return tj.Quadrotor(
+            path=tj.lissajous(center, amp, (0.043 + 0.01 * k, 0.067, 0.05), (0.0, k * 1.3, 0.5)),
+            yaw=tj.slow_yaw(90.0 * k, 180.0, 40.0 - 7.0 * k),
+            oscillation=tj.Oscillation((0.02, 0.02, 0.01), 0.9 + 0.2 * k, 0.5, seed=60 + k),
+        )
+
+    cam = Optics(hfov_deg=80.0, distortion=(-0.12, 0.03, 0.0, 0.0, 0.0))
+    return Scenario(
+        name="map",
+        description="two drones survey a room of 22 markers on the floor and walls (record, map, fly on the map)",
+        world_file="map.yaml",
+        duration_s=60.0,
+        trajectories={
+            "mapper1": drone(0, (0.0, 0.0, 1.4), (1.6, 1.1, 0.3)),
+            "mapper2": drone(1, (0.1, -0.1, 1.3), (1.5, 1.2, 0.2)),
+        },
+        drones=("mapper1", "mapper2"),
+        scored=("mapper1", "mapper2"),
+        optics={"mapper1.cam": cam, "mapper2.cam": cam},
+    )
+
+
+SCENARIOS = {
+    s.name: s for s in (_paper_test1(), _paper_test2(), _relay(), _swarm(), _paths(), _gaps(), _hard(), _map())
+}
 DEFAULT = "swarm"
 
 

@@ -1,0 +1,1 @@
+"""Marker maps from flights: the recording format, bundle adjustment, and the record and map commands."""

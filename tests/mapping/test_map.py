@@ -1,0 +1,248 @@
+"""Building a map: markers that do not fit are named, bad input is one line and exit 2 with nothing
+written, and a rendered flight goes through record -> map -> a world file close to the truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from atlas_onboard.cli import main
+from atlas_onboard.config import load_world
+from atlas_onboard.mapping.build import MapError, MapOptions, build_map
+from tests.mapping.synthetic import make_observations
+
+MAP_WORLD = Path(__file__).resolve().parents[2] / "atlas_onboard" / "sim" / "scenarios" / "map.yaml"
+
+
+def test_a_marker_moved_during_the_recording_is_named_and_left_out() -> None:
+    obs, world, M_true = make_observations(1, n_frames=80, moved=(5, 0.10))
+    res = build_map(obs, world, MapOptions(anchors=(0,)))
+    assert res.markers[5].status == "moved"
+    assert "moved by" in res.markers[5].detail
+    assert 5 not in res.mapped()
+    bad = [m for m, r in res.markers.items() if r.status in ("moved", "wrong_size", "duplicated")]
+    assert bad == [5]
+    # The others are mapped as if it had not been there: each within what its sigma says.
+    for m, M in res.mapped().items():
+        sigma = np.linalg.norm(res.markers[m].sigma_m)
+        assert np.linalg.norm(M[:3, 3] - M_true[m][:3, 3]) < 4 * sigma + 0.001, m
+
+
+def test_a_marker_printed_at_the_wrong_size_is_named_with_its_size() -> None:
+    obs, world, _ = make_observations(1, n_frames=80, true_size=(7, 0.19))  # the world file says 160 mm
+    res = build_map(obs, world, MapOptions(anchors=(0,)))
+    assert res.markers[7].status == "wrong_size"
+    fitted_mm = float(res.markers[7].detail.split("fit a marker of ")[1].split(" mm")[0])
+    assert abs(fitted_mm - 190.0) < 3.0
+    assert [m for m, r in res.markers.items() if r.status in ("moved", "wrong_size", "duplicated")] == [7]
+
+
+def test_gravity_anchor_makes_its_marker_the_origin_and_up_the_vertical() -> None:
+    """Marker 2 lies on the floor, turned about the vertical: the map's world has its origin and
+    heading, and is level by the attitudes (not by the anchor's own tilt, which its few corners give
+    to a fraction of a degree only)."""
+    obs, world, M_true = make_observations(4, n_frames=60, attitude=True)
+    res = build_map(obs, world, MapOptions(gravity_anchor=2))
+    M_anchor_world = np.linalg.inv(M_true[2])
+    assert np.allclose(res.markers[2].M_world_marker[:3, 3], 0.0, atol=1e-12)
+    tilts = []
+    for m, M in res.mapped().items():
+        expected = M_anchor_world @ M_true[m]
+        sigma = np.linalg.norm(res.markers[m].sigma_m)
+        assert np.linalg.norm(M[:3, 3] - expected[:3, 3]) < 4 * sigma + 0.002, m
+        if m < 9:  # the floor markers: their faces look straight up
+            tilts.append(np.degrees(np.arccos(np.clip(M[2, 2], -1, 1))))
+    assert np.median(tilts) < 0.4, tilts
+    # The same data anchored on marker 2 alone (its own tilt taken as level) tilts the whole floor.
+    fixed = build_map(obs, world, MapOptions(anchors=(2,)))
+    tilts_fixed = [np.degrees(np.arccos(np.clip((M_anchor_world @ M)[2, 2], -1, 1)))
+                   for m, M in fixed.mapped().items() if m < 9 and m != 2]  # fmt: skip
+    assert np.median(tilts_fixed) > np.median(tilts), (tilts_fixed, tilts)
+
+
+def test_no_anchor_seen_is_refused() -> None:
+    obs, world, _ = make_observations(2, n_frames=40, hidden={0})
+    with pytest.raises(MapError, match="no anchor seen"):
+        build_map(obs, world, MapOptions(anchors=(0,)))
+
+
+# --- the command line, on rendered frames of the simulator's map scenario ---------------------------
+
+
+def _render(frames: list[int], sensor_id: int = 1) -> tuple[list[np.ndarray], object]:
+    from atlas_onboard.sim import scenarios
+    from atlas_onboard.sim.camera import FrameRenderer
+
+    scenario = scenarios.get("map")
+    world = scenario.world()
+    renderer = FrameRenderer(scenario, world, world.sensors[sensor_id], seed=7)
+    return [renderer(j) for j in frames], renderer.intr
+
+
+def _write_folder(tmp: Path, images: list[np.ndarray], intr: object) -> tuple[Path, Path]:
+    from atlas_onboard.sim.runner import write_calibration
+
+    folder = tmp / "frames"
+    folder.mkdir()
+    for k, img in enumerate(images):
+        cv2.imwrite(str(folder / f"frame{k:04d}.png"), img)
+    cal = tmp / "calibration.yaml"
+    write_calibration(cal, intr)  # type: ignore[arg-type]
+    return folder, cal
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[np.ndarray]]:
+    """Four seconds of the mapper's camera, every other frame (7.5 fps) as an image folder, and its calibration."""
+    tmp = tmp_path_factory.mktemp("flight")
+    images, intr = _render(list(range(600, 660, 2)))
+    folder, cal = _write_folder(tmp, images, intr)
+    return folder, cal, images
+
+
+def _run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_record_then_map_round_trip(tmp_path: Path, flight, capsys: pytest.CaptureFixture[str]) -> None:
+    folder, cal, images = flight
+    rec = tmp_path / "rec"
+    code, out, err = _run(["record", "--config", str(MAP_WORLD), "--sensor", "cam", "--source", str(folder),
+                           "--calibration", str(cal), "--out", str(rec)], capsys)  # fmt: skip
+    assert code == 0, err
+    assert f"wrote {len(images)} frames" in out
+    index = [json.loads(line) for line in (rec / "index.jsonl").read_text().splitlines()]
+    assert len(index) == len(images) and any(r["markers"] for r in index)
+    out_world = tmp_path / "mapped.yaml"
+    code, out, err = _run(["map", str(rec), "--config", str(MAP_WORLD), "--anchor", "4", "--out", str(out_world),
+                           "--report", str(tmp_path / "report"), "--no-plot"], capsys)  # fmt: skip
+    assert code == 0, err
+    truth = load_world(MAP_WORLD).markers
+    mapped = load_world(out_world).markers
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    statuses = {m["id"]: m["status"] for m in report["markers"]}
+    assert statuses[4] == "anchor"
+    # Markers seen only from one direction are named "degenerate" (their tilt may be the mirror
+    # image, which no first-order sigma describes); the others must be as good as their sigma says.
+    good = [m for m, s in statuses.items() if s in ("mapped", "degenerate")]
+    assert len(good) >= 4
+    for m in good:
+        err_m = np.linalg.norm(mapped[m].T_entity_marker.translation - truth[m].T_entity_marker.translation)
+        ang = (mapped[m].T_entity_marker.rotation * truth[m].T_entity_marker.rotation.inv()).magnitude()
+        rec_m = next(x for x in report["markers"] if x["id"] == m)
+        # Each error within what the map reports (4 sigma of the 3-D error, a millimetre for the rendering).
+        assert err_m < 4 * np.linalg.norm(rec_m["sigma_m"]) + 0.001, (m, err_m, rec_m)
+        if rec_m["status"] == "mapped":
+            assert np.degrees(ang) < 4 * np.linalg.norm(rec_m["sigma_deg"]) + 0.1, (m, np.degrees(ang), rec_m)
+    assert np.allclose(mapped[4].T_entity_marker.as_matrix(), truth[4].T_entity_marker.as_matrix())
+
+
+def _assert_refused(code: int, out: str, err: str, tmp: Path, *needles: str) -> None:
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("atlas-onboard: error:"), err
+    for n in needles:
+        assert n in lines[0], lines[0]
+    assert not (tmp / "out.yaml").exists() and not (tmp / "report").exists()
+    assert not [p for p in tmp.iterdir() if p.name.startswith(".out.yaml")]
+
+
+def _map_args(tmp: Path, *inputs: Path, anchor: str = "4", extra: tuple[str, ...] = ()) -> list[str]:
+    return ["map", *map(str, inputs), "--config", str(MAP_WORLD), "--anchor", anchor, "--out", str(tmp / "out.yaml"),
+            "--report", str(tmp / "report"), *extra]  # fmt: skip
+
+
+def test_empty_recording_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "empty").mkdir()
+    _assert_refused(*_run(_map_args(tmp_path, tmp_path / "empty"), capsys), tmp_path, "empty")
+
+
+def test_unreadable_recording_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "recording.json").write_text("{not json")
+    _assert_refused(*_run(_map_args(tmp_path, rec), capsys), tmp_path, "recording.json")
+
+
+def test_recording_without_frames_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from atlas_onboard.detector.calibration import Calibration
+    from atlas_onboard.mapping.recording import RecordingWriter
+
+    K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+    RecordingWriter(tmp_path / "rec", Calibration(640, 480, K, np.zeros(5))).close()
+    _assert_refused(*_run(_map_args(tmp_path, tmp_path / "rec"), capsys), tmp_path, "no frames")
+
+
+def test_no_anchor_seen_exits_2(tmp_path: Path, flight, capsys: pytest.CaptureFixture[str]) -> None:
+    folder, cal, _ = flight
+    args = _map_args(tmp_path, folder, anchor="11", extra=("--calibration", str(cal)))
+    _assert_refused(*_run(args, capsys), tmp_path, "no anchor seen", "11")
+
+
+def test_disconnected_markers_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Frames of two moments of the flight whose markers were never seen together."""
+    from atlas_onboard.sim import scenarios
+    from atlas_onboard.sim.world import SimWorld
+
+    sim = SimWorld(scenarios.get("map"))
+    seen = {j: frozenset(s.marker.id for s in sim.sightings(1, sim.truth(j / 15), j / 15)) for j in range(0, 900, 3)}
+    groups: list[tuple[frozenset[int], list[int]]] = []
+    for j, ids in seen.items():
+        if len(ids) < 2:
+            continue
+        for g, frames in groups:
+            if ids == g:
+                frames.append(j)
+                break
+        else:
+            groups.append((ids, [j]))
+    pairs = [(a, b) for a in groups for b in groups if len(a[1]) >= 5 and len(b[1]) >= 5 and not (a[0] & b[0])]
+    (ga, fa), (_gb, fb) = pairs[0]
+    images, intr = _render(fa[:5] + fb[:5])
+    folder, cal = _write_folder(tmp_path, images, intr)
+    args = _map_args(tmp_path, folder, anchor=str(min(ga)), extra=("--calibration", str(cal), "--min-frames", "3"))
+    _assert_refused(*_run(args, capsys), tmp_path, "disconnected", "never seen together")
+
+
+def test_map_needs_an_anchor_and_existing_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _assert_refused(*_run(_map_args(tmp_path, tmp_path / "nothing"), capsys), tmp_path, "no such file")
+
+
+@pytest.mark.parametrize("convention", ["ENU", "NED"])
+def test_the_written_world_file_loads_back_to_the_mapped_poses(tmp_path: Path, convention: str) -> None:
+    """The map's poses (internal ENU) are written in the file's own convention, and read back equal."""
+    from scipy.spatial.transform import Rotation
+
+    from atlas_onboard.mapping.build import MapResult, MarkerReport
+    from atlas_onboard.mapping.command import world_text
+
+    src = tmp_path / "world.yaml"
+    src.write_text(
+        f"conventions: {{world: {convention}, body: FLU}}\n"
+        "entities:\n  world:\n    markers:\n"
+        "      - {id: 1, size_m: 0.2, pose: {pos: [0, 0, 0]}}\n"
+        "      - {id: 2, size_m: 0.2, family: DICT_4X4_50, pose: {pos: [1, 2, 3]}}\n"
+        "  drone:\n    markers:\n      - {id: 9, size_m: 0.1, pose: {pos: [0, 0, 0.1]}}\n"
+    )
+    world = load_world(src)
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_euler("xyz", [10, -20, 75], degrees=True).as_matrix()
+    M[:3, 3] = [1.2345, -0.5, 2.0]
+    markers = {
+        1: MarkerReport(1, 0.2, 50, "mapped", M, (0.001, 0.001, 0.002), (0.1, 0.1, 0.1), 0.2, 30.0),
+        2: MarkerReport(2, 0.2, 0, "not_seen"),
+    }
+    result = MapResult(markers, np.zeros(0), [], None, 0.1, {}, {}, 10, 0, 0)
+    out = tmp_path / "out.yaml"
+    out.write_text(world_text(world, result, "test"))
+    back = load_world(out)
+    assert np.allclose(back.markers[1].T_entity_marker.as_matrix(), M, atol=1e-6)
+    assert np.allclose(back.markers[2].T_entity_marker.as_matrix(), world.markers[2].T_entity_marker.as_matrix())
+    assert back.markers[2].family == "DICT_4X4_50" and back.markers[9].entity == "drone"
+    assert "1-sigma position [1.00, 1.00, 2.00] mm" in out.read_text()
