@@ -102,12 +102,9 @@ def _prepare_dir(directory: Path, force: bool) -> Path:
         if not force:
             raise AtlasError(f"{directory}: directory is not empty (use --force to write the demo into it)")
     frames_dir = directory / "frames"
-    try:
-        frames_dir.mkdir(parents=True, exist_ok=True)
-        for old in frames_dir.glob("frame-*.png"):  # a longer earlier demo's images would be played too
-            old.unlink()
-    except OSError as exc:
-        raise AtlasError(f"{directory}: cannot write the demo ({exc.strerror})") from exc
+    frames_dir.mkdir(parents=True, exist_ok=True)
+    for old in frames_dir.glob("frame-*.png"):  # a longer earlier demo's images would be played too
+        old.unlink()
     return frames_dir
 
 
@@ -115,17 +112,23 @@ def write_demo(directory: Path, seconds: float = 20.0, autopilot_port: int = 145
     """Write the demo into ``directory``: world.yaml, calibration.yaml, frames/ and truth.tum.
 
     Returns the path of the world file. Raises :class:`AtlasError` for a non-empty directory
-    without ``force`` and for arguments out of range."""
-    from atlas_onboard.sim.camera import FrameRenderer
-    from atlas_onboard.sim.runner import write_calibration
-    from atlas_onboard.sim.world import Intrinsics
-
+    without ``force``, for arguments out of range and for a directory it cannot write."""
     if not (math.isfinite(seconds) and 0 < seconds <= 600):
         raise AtlasError(f"--seconds: expected 0 < seconds <= 600, got {seconds:g}")
     if not 1 <= autopilot_port <= 65535:
         raise AtlasError(f"--autopilot-port: expected a UDP port 1..65535, got {autopilot_port}")
     directory = directory.resolve()
-    frames_dir = _prepare_dir(directory, force)
+    try:
+        return _write(directory, _prepare_dir(directory, force), seconds, autopilot_port)
+    except OSError as exc:
+        raise AtlasError(f"{directory}: cannot write the demo ({exc.strerror or exc})") from exc
+
+
+def _write(directory: Path, frames_dir: Path, seconds: float, autopilot_port: int) -> Path:
+    from atlas_onboard.sim.camera import FrameRenderer
+    from atlas_onboard.sim.runner import write_calibration
+    from atlas_onboard.sim.world import Intrinsics
+
     write_calibration(directory / "calibration.yaml", Intrinsics.from_fov(WIDTH_PX, HEIGHT_PX, OPTICS))
     header = WORLD_HEADER.format(
         n_tags=len(TAGS), tag_cm=TAG_SIZE_M * 100, entity=ENTITY, height_m=HOVER_HEIGHT_M, seconds=seconds,
@@ -160,10 +163,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     t0 = time.monotonic()
     world_path = write_demo(args.dir, args.seconds, args.autopilot_port, args.force)
     n = max(1, math.floor(args.seconds * FPS_HZ))
-    print(
-        f"wrote {world_path} and {n} camera images ({args.seconds:g} s at {FPS_HZ} Hz) in {time.monotonic() - t0:.1f} s"
-    )
-    print("next, in two terminals:")
+    elapsed_s = time.monotonic() - t0
+    print(f"wrote {world_path}, its camera calibration, {n} camera images and truth.tum in {elapsed_s:.0f} s")
+    print(f"next, in two terminals (the images play once, {args.seconds:g} s in real time; Ctrl-C ends each):")
     print(f"  atlas-onboard sim-autopilot --port {args.autopilot_port}")
     print(f"  atlas-onboard run --config {world_path} --entity {ENTITY}")
     return 0
