@@ -172,16 +172,16 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _sigmas_m(covariance: tuple[float, ...]) -> str:
-    """Position sigmas x/y/z of a MAVLink upper-triangle covariance (variances at 0, 6, 11)."""
+    """Position sigmas x/y/z in mm of a MAVLink upper-triangle covariance (variances at 0, 6, 11)."""
     var = [covariance[i] for i in (0, 6, 11)] if len(covariance) == 21 else []
     if not var or not all(math.isfinite(v) and v >= 0 for v in var):
         return "sigma unknown"
-    return "sigma " + "/".join(f"{math.sqrt(v):.3f}" for v in var) + " m"
+    return "sigma " + "/".join(f"{1000 * math.sqrt(v):.1f}" for v in var) + " mm"
 
 
 def autopilot_line(elapsed_s: float, new: list[Any], heartbeats: int) -> str:
-    """One status line of the simulated autopilot: the poses received in the last second."""
-    head = f"{elapsed_s:4.0f} s  node heartbeats {heartbeats:3d}  poses {len(new):3d}/s"
+    """One status line of the simulated autopilot: the poses and heartbeats received in the last second."""
+    head = f"{elapsed_s:4.0f} s  heartbeats {heartbeats}/s  poses {len(new):3d}/s"
     if not new:
         return head + "  (no pose)"
     r = new[-1]
@@ -211,16 +211,16 @@ def run_sim_autopilot(port: int, seconds: float | None, out: TextIO = sys.stdout
     print(f"simulated autopilot (system id {SYSTEM_ID}) listening on udp 127.0.0.1:{port}; Ctrl-C ends", file=out)
     out.flush()
     t0 = time.monotonic()
-    seen = 0
+    seen = heartbeats_seen = 0
     try:
         k = 1
         while seconds is None or k <= seconds:
             time.sleep(max(t0 + k - time.monotonic(), 0.0))
             records = autopilot.snapshot()
             heartbeats = sum(autopilot.heartbeats_from.values())
-            print(autopilot_line(k, records[seen:], heartbeats), file=out)
+            print(autopilot_line(k, records[seen:], heartbeats - heartbeats_seen), file=out)
             out.flush()
-            seen = len(records)
+            seen, heartbeats_seen = len(records), heartbeats
             k += 1
     finally:
         autopilot.stop()

@@ -111,20 +111,25 @@ def test_sim_autopilot_prints_what_it_receives_and_ends_on_ctrl_c():
         covariance = [0.0] * 21
         covariance[0], covariance[6], covariance[11] = 0.02**2, 0.03**2, 0.05**2
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            heartbeat = mav.heartbeat_encode(
+                mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 4
+            )
+            sock.sendto(heartbeat.pack(mav), ("127.0.0.1", port))
             for k in range(12):
                 x_m = 1.0 + 0.01 * k
                 msg = mav.vision_position_estimate_encode(1_000_000 + k, x_m, -0.5, -2.0, 0.1, -0.2, 0.3, covariance, 7)
                 sock.sendto(msg.pack(mav), ("127.0.0.1", port))
-        lines, total = [], 0
+        lines, total, heartbeats = [], 0, 0
         deadline = time.monotonic() + 10
         while total < 12 and time.monotonic() < deadline:
             lines.append(proc.stdout.readline())
             total += int(lines[-1].split("poses")[1].split("/s")[0])
-        assert total == 12, lines
+            heartbeats += int(lines[-1].split("heartbeats")[1].split("/s")[0])
+        assert total == 12 and heartbeats == 1, lines
         last = next(line for line in reversed(lines) if "NED" in line)
         assert "NED x +1.110 y -0.500 z -2.000 m" in last, last
         assert "roll +5.7 pitch -11.5 yaw +17.2 deg" in last, last
-        assert "sigma 0.020/0.030/0.050 m" in last and "reset_counter 7" in last, last
+        assert "sigma 20.0/30.0/50.0 mm" in last and "reset_counter 7" in last, last
         proc.send_signal(signal.SIGINT)
         _out, err = proc.communicate(timeout=20)
     finally:
