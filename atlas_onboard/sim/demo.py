@@ -14,7 +14,7 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any, TextIO
+from typing import TYPE_CHECKING, Any, TextIO
 
 import cv2
 import numpy as np
@@ -25,6 +25,9 @@ from atlas_onboard.config import load_world
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import trajectories as tj
 from atlas_onboard.sim.scenarios import Optics, Scenario
+
+if TYPE_CHECKING:
+    from atlas_onboard.sim.autopilot import Received
 
 ENTITY = "drone"
 SENSOR = "down"
@@ -171,7 +174,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _sigmas_m(covariance: tuple[float, ...]) -> str:
+def _sigmas_mm(covariance: tuple[float, ...]) -> str:
     """Position sigmas x/y/z in mm of a MAVLink upper-triangle covariance (variances at 0, 6, 11)."""
     var = [covariance[i] for i in (0, 6, 11)] if len(covariance) == 21 else []
     if not var or not all(math.isfinite(v) and v >= 0 for v in var):
@@ -179,7 +182,7 @@ def _sigmas_m(covariance: tuple[float, ...]) -> str:
     return "sigma " + "/".join(f"{1000 * math.sqrt(v):.1f}" for v in var) + " mm"
 
 
-def autopilot_line(elapsed_s: float, new: list[Any], heartbeats: int) -> str:
+def autopilot_line(elapsed_s: float, new: list[Received], heartbeats: int) -> str:
     """One status line of the simulated autopilot: the poses and heartbeats received in the last second."""
     head = f"{elapsed_s:4.0f} s  heartbeats {heartbeats}/s  poses {len(new):3d}/s"
     if not new:
@@ -189,11 +192,11 @@ def autopilot_line(elapsed_s: float, new: list[Any], heartbeats: int) -> str:
     if r.rpy_rad is not None:
         roll, pitch, yaw = (math.degrees(a) for a in r.rpy_rad)
     else:
-        w, qx, qy, qz = r.q_wxyz
+        w, qx, qy, qz = r.q_wxyz or (1.0, 0.0, 0.0, 0.0)
         yaw, pitch, roll = Rotation.from_quat([qx, qy, qz, w]).as_euler("ZYX", degrees=True)
     return (
         f"{head}  NED x {x:+.3f} y {y:+.3f} z {z:+.3f} m  roll {roll:+.1f} pitch {pitch:+.1f} yaw {yaw:+.1f} deg"
-        f"  {_sigmas_m(r.covariance)}  reset_counter {r.reset_counter}"
+        f"  {_sigmas_mm(r.covariance)}  reset_counter {r.reset_counter}"
     )
 
 
