@@ -67,8 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
     from atlas_onboard.mapping.command import add_commands as add_mapping
     from atlas_onboard.params import add_commands as add_params
     from atlas_onboard.sim.command import add_commands as add_sim
+    from atlas_onboard.sim.demo import add_commands as add_demo
 
     add_sim(sub)
+    add_demo(sub)
     add_detector(sub)
     add_install(sub)
     add_params(sub)
