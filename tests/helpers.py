@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WorldConfig, parse_world
@@ -56,3 +58,21 @@ def assert_pose_close(
     err_a = float((Rotation.from_quat(q_xyzw).inv() * T_true.rotation).magnitude())
     assert err_p <= pos_tol_m, f"position error {err_p} m > {pos_tol_m}"
     assert err_a <= ang_tol_rad, f"angle error {err_a} rad > {ang_tol_rad}"
+
+
+DATA = Path(__file__).resolve().parent / "data"
+
+
+def write_ubiquity_calibration(path: Path) -> Path:
+    """The ROS camera_info calibration of the Ubiquity Robotics photos (tests/data/ubiquity), written to ``path``."""
+    cams = yaml.safe_load((DATA / "ubiquity" / "cameras.yaml").read_text())["test_png_and_403"]
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "image_width": 1280, "image_height": 960, "distortion_model": "plumb_bob",
+                "camera_matrix": {"rows": 3, "cols": 3, "data": cams["K"]},
+                "distortion_coefficients": {"rows": 1, "cols": 5, "data": cams["D"]},
+            }
+        )
+    )  # fmt: skip
+    return path

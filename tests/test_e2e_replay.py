@@ -6,10 +6,10 @@ import os
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from atlas_onboard.sim.autopilot import SimAutopilot
 from tests.e2e import NodeProcess, wait_for, write_world
+from tests.helpers import write_ubiquity_calibration
 
 DATA = Path(__file__).resolve().parent / "data"
 FRAMES = 120
@@ -21,17 +21,7 @@ P_BASE_CAMERA_M = np.array([0.035, 0.145, 0.14])
 
 
 def test_every_frame_replay_that_falls_behind_with_the_ekf_keeps_sending(tmp_path):
-    cams = yaml.safe_load((DATA / "ubiquity" / "cameras.yaml").read_text())["test_png_and_403"]
-    cal = tmp_path / "cal.yaml"
-    cal.write_text(
-        yaml.safe_dump(
-            {
-                "image_width": 1280, "image_height": 960, "distortion_model": "plumb_bob",
-                "camera_matrix": {"rows": 3, "cols": 3, "data": cams["K"]},
-                "distortion_coefficients": {"rows": 1, "cols": 5, "data": cams["D"]},
-            }
-        )
-    )  # fmt: skip
+    cal = write_ubiquity_calibration(tmp_path / "cal.yaml")
     # The same photo as 120 frames of a 1000 Hz file: no detector keeps up, the replay falls seconds behind.
     folder = tmp_path / "frames"
     folder.mkdir()

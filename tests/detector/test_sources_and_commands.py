@@ -22,6 +22,7 @@ from atlas_onboard.detector.commands import marker_svg
 from atlas_onboard.detector.families import family
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import CameraWorker, Frame, ImageFolder, Source, SourceError
+from tests.helpers import write_ubiquity_calibration
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 REPO = Path(__file__).resolve().parents[2]
@@ -125,17 +126,7 @@ def run_cli(*args):
 
 
 def test_detect_command_on_a_real_photo(tmp_path):
-    cams = yaml.safe_load((DATA / "ubiquity" / "cameras.yaml").read_text())["test_png_and_403"]
-    cal = tmp_path / "cal.yaml"
-    cal.write_text(
-        yaml.safe_dump(
-            {
-                "image_width": 1280, "image_height": 960, "distortion_model": "plumb_bob",
-                "camera_matrix": {"rows": 3, "cols": 3, "data": cams["K"]},
-                "distortion_coefficients": {"rows": 1, "cols": 5, "data": cams["D"]},
-            }
-        )
-    )  # fmt: skip
+    cal = write_ubiquity_calibration(tmp_path / "cal.yaml")
     world = tmp_path / "w.yaml"
     world.write_text(
         yaml.safe_dump(

@@ -114,6 +114,16 @@ def settle(transport, delivered, quiet_s=0.2):
         time.sleep(0.02)
 
 
+# A ceiling camera (sensor 10) on the world, and two drones with a tag each (5 and 6).
+CEILING_D1_D2 = {
+    "entities": {
+        "world": {"sensors": [{"name": "cam", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},
+        "d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+        "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+    }
+}
+
+
 def test_one_observation_over_two_links_is_delivered_once(rig):
     world, transport, _, (s0, s1), delivered = rig
     fp = world.fingerprint()
@@ -368,15 +378,7 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
     decoded = []
     real = dialect.Deferred.decoded
     monkeypatch.setattr(dialect.Deferred, "decoded", lambda self: decoded.append(self.get_type()) or real(self))
-    world = world_from(
-        {
-            "entities": {
-                "world": {"sensors": [{"name": "cam", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},
-                "d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
-                "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
-            }
-        }
-    )
+    world = world_from(CEILING_D1_D2)
     port = free_port()
     config = NodeConfig(
         entity="d1",
@@ -437,15 +439,7 @@ def test_a_forged_observation_never_supersedes_the_kept_one():
     """The DANGER of keeping the newest of an edge: a forged one with a later stamp would evict the
     real one. From a system id that does not run the sensor, or stamped far ahead, it is refused
     before it is kept (and never decoded)."""
-    world = world_from(
-        {
-            "entities": {
-                "world": {"sensors": [{"name": "cam", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},
-                "d1": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
-                "d2": {"markers": [{"id": 6, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
-            }
-        }
-    )
+    world = world_from(CEILING_D1_D2)
     port = free_port()
     config = NodeConfig(entity="d1", system_id=1, peers=(LinkConfig(f"udpin:127.0.0.1:{port}"),),
                         owners=(("world", 250), ("d1", 1), ("d2", 2)))  # fmt: skip
