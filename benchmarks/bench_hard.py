@@ -61,11 +61,11 @@ RUNS: dict[str, dict[str, Any]] = {
     "defaults": {},
     "paper": {"method": "paper"},
     "ekf": {"filter": "ekf"},
-    "bfs": {"path": "bfs"},
+    "dijkstra": {"path": "dijkstra"},
     "inverse_variance": {"weighting": "inverse_variance"},
     "age_off": {"age_sigma_m_per_s": 0.0},
     "age_deg_30": {"age_sigma_deg_per_s": 30.0},
-    "gate_5": {"outlier_gate_sigma": 5},
+    "gate_off": {"outlier_gate_sigma": 0},
     "ema_0.5": {"ema_alpha": 0.5},
     "moved_marker": {},
 }
