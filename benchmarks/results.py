@@ -36,15 +36,17 @@ class Bench:
 
 
 BENCHES = (
-    Bench(
-        "sim", ("atlas-onboard", "sim"), "The default simulation: six drones, two ceiling cameras (README's command)."
-    ),
+    Bench("sim", ("atlas-onboard", "sim"), "The default simulation: six drones, two ceiling cameras."),
     Bench(
         "methods",
-        ("benchmarks/compare_methods.py", "--duration", "20"),
-        "Each fusion option against the paper's method.",
+        ("benchmarks/compare_methods.py", "--duration", "10", "--methods", "paper,default,ekf"),
+        "The paper's method, the defaults and the EKF in every scenario.",
     ),
-    Bench("hard", ("benchmarks/bench_hard.py",), "The hard scenario: textured floor, tags across the border, gaps."),
+    Bench(
+        "hard",
+        ("benchmarks/bench_hard.py", "--runs", "defaults,paper,ekf,moved_marker"),
+        "The hard scenario: textured floor, tags across the border, gaps.",
+    ),
     Bench("attack", ("benchmarks/attack.py",), "A hostile peer against a node with a live camera path."),
     Bench("detector", ("benchmarks/bench_detector.py",), "The detector against the AprilTag library, per state."),
     Bench("graph", ("benchmarks/bench_graph.py",), "The transform graph's evaluation time against a naive anchor."),
