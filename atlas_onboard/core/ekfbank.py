@@ -39,17 +39,14 @@ class EkfBank:
     _last: dict[str, EntityPose] = field(default_factory=dict)
     latency_us: float | None = None  # smoothed capture-to-filter delay of the measurements (unbounded)
     gap_factor: float = 1.5  # a gap: the last update is this many usual intervals old, and ...
-    # ... at least this old. A prediction is worse than the filtered pose it follows (offline, on
-    # paper-test1's frames with processing stalls emulated, predictions started 0.1 s, 0.15 s and
-    # 0.2 s into a gap gave 1.36, 1.31 and 1.13 cm RMSE, availability 99.6, 99.5 and 97.6 %); the
-    # autopilot wants a pose at most 0.2 s old on arrival, so they start half-way there, which leaves
-    # room for the measurements' latency.
+    # ... at least this old. A prediction is worse than the filtered pose it follows, and the
+    # autopilot wants a pose at most 0.2 s old on arrival: predictions start half-way there, which
+    # leaves room for the measurements' latency.
     predict_after_s: float = 0.1
     # Through a gap the pose is predicted to the times the missed frames were due, at most this far
     # past the newest update (then held, not re-sent, until ``max_predict_s`` loses it). A constant-
-    # velocity extrapolation of a quadrotor is good for a few frames only: offline, the simulated
-    # scenarios' predictions 0.3-0.5 s out were off by 5-15 cm and made the filter's RMSE worse than
-    # no filter's, while 0.2 s still bridges the autopilot's 200 ms freshness limit across gaps of 0.4 s.
+    # velocity extrapolation of a quadrotor is good for a few frames only (docs/covariance.md), while
+    # 0.2 s still bridges the autopilot's 200 ms freshness limit across gaps of 0.4 s.
     predict_horizon_s: float = 0.2
     _interval: dict[str, float] = field(default_factory=dict)  # smoothed update interval, s
     # When (``now_us`` of :meth:`update`) each filter's newest update arrived: a pose's age is how long

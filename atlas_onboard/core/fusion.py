@@ -158,8 +158,8 @@ def fuse_runs(
     a = weights / np.repeat(wsum, runs.sizes)
     sig = np.sqrt(np.add.reduceat((a * sigmas) ** 2, starts))
     # Eq. 5 per group: the eigenvector of the largest eigenvalue of Q Q^T = sum_i w_i^2 q_i q_i^T,
-    # the same as scipy's weighted Rotation.mean (tested against it) written out with numpy: scipy's
-    # call took 0.56 ms per evaluation here, 45 % of evaluating a small graph, against 0.07 ms.
+    # the same as scipy's weighted Rotation.mean (tested against it) written out with numpy, which
+    # batches every group in one call where scipy takes one call per group.
     q = q_xyzw / np.sqrt(np.einsum("ij,ij->i", q_xyzw, q_xyzw))[:, None]
     outer = (weights**2)[:, None, None] * (q[:, :, None] * q[:, None, :])
     _, vectors = np.linalg.eigh(np.add.reduceat(outer, starts))

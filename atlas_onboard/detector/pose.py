@@ -228,8 +228,8 @@ def solve(
     ambiguity = float(e[0] / e[1]) if len(e) > 1 and e[1] > 0 else float("nan")
     # IPPE solves the homography in closed form, which is not the least-squares pose: a few
     # Levenberg-Marquardt steps from it reach the minimum of the reprojection error, whose spread
-    # the first-order covariance describes (IPPE alone: up to 17 % more tilt variance at 20 degrees,
-    # tests/detector/test_pose_covariance.py). About 0.1 ms a marker.
+    # the first-order covariance describes (IPPE alone has more tilt variance:
+    # tests/detector/test_pose_covariance.py).
     r0, t0 = cv2.solvePnPRefineLM(obj, img, K, None, r0.reshape(3, 1).copy(), t0.reshape(3, 1).copy())
     r0, t0 = r0.ravel(), t0.ravel()
     proj, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), r0, t0, K, None)

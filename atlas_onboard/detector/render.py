@@ -235,8 +235,7 @@ def draw_marker(
     nx, ny = len(range(0, w + step, step)), len(range(0, hgt + step, step))
     norm = _undistorted_grid(camera, s)[i0 : i0 + ny, j0 : j0 + nx]
     # Ray through each sample hits the marker plane: solve in the marker frame.
-    # The stored matrix (a rigid one already): scipy's .rotation would orthonormalize it again, at
-    # 0.2 ms a marker.
+    # The stored matrix (a rigid one already): scipy's .rotation would orthonormalize it again.
     M = view.T_camera_marker.as_matrix()
     R, t = M[:3, :3], M[:3, 3]
     rays = np.concatenate([norm, np.ones((*norm.shape[:2], 1))], axis=-1)  # camera frame directions

@@ -2,7 +2,8 @@
 
 Nothing here imports pymavlink, reads a clock or sends anything: each function returns the fields
 of one message as a ``dict`` (keyword arguments of pymavlink's ``MAVLink_<name>_message``), so they
-are tested on numbers alone. The facts they follow are in ``/work/shared/AUTOPILOTS.md``:
+are tested on numbers alone. The facts they follow (from PX4's and ArduPilot's sources; see
+docs/px4.md and docs/ardupilot.md):
 
 - VISION_POSITION_ESTIMATE (#102) is local NED, body FRD, ``usec`` the capture time; covariance is
   the upper-right triangle (row-major, states x y z roll pitch yaw) of a 6x6 matrix, with the

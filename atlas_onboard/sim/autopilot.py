@@ -43,8 +43,8 @@ def recording() -> Iterator[None]:
     The records (:class:`Received`, a few objects each) hold no cycles: reference counting frees any
     that are dropped. The cyclic collector would still scan them all at each full collection, which
     comes whenever they have grown by a quarter: at the same instants of every run, and longer as the
-    run goes (90-155 ms of a core each in the 10-node soak, at 64, 141 and 225 s). On a busy machine
-    that took a core from the nodes under test, and every node's autopilot gap grew at once."""
+    run goes. On a busy machine that takes a core from the nodes under test, and every node's
+    autopilot gap grows at once."""
     was = gc.isenabled()
     gc.disable()
     try:
