@@ -12,6 +12,7 @@ from scipy.spatial.transform import RigidTransform
 from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig, parse_world
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.node import LOOP_TICK_S, Inbox, Node
+from tests.e2e import wait_for
 from tests.helpers import assert_pose_close, observe, pose
 
 WORLD = parse_world(
@@ -286,13 +287,6 @@ def start(node, transport):
     thread.start()
     transport.started.wait(5)
     return thread
-
-
-def wait_for(predicate, timeout_s=5.0):
-    deadline = time.monotonic() + timeout_s
-    while not predicate() and time.monotonic() < deadline:
-        time.sleep(0.002)
-    return predicate()
 
 
 def ceiling_image(capture_time_us, markers=(5, 7, 8)):

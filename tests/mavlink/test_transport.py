@@ -19,6 +19,7 @@ from atlas_onboard.core.markerdata import Rejection
 from atlas_onboard.mavlink import codec, dialect
 from atlas_onboard.mavlink.transport import MavlinkTransport
 from atlas_onboard.publisher import AutopilotPose
+from tests.e2e import wait_for
 from tests.helpers import world_from
 from tests.mavlink.loopback import MD, D, RawSender, free_port
 
@@ -92,15 +93,6 @@ def rig():
     ap.sock.close()
     for s in senders:
         s.close()
-
-
-def wait_for(predicate, timeout_s=5.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if predicate():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def settle(transport, delivered, quiet_s=0.2):
