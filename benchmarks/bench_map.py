@@ -38,12 +38,11 @@ import numpy as np  # noqa: E402
 import yaml  # noqa: E402
 from scipy.spatial.transform import RigidTransform, Rotation  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from atlas_onboard.config import load_world  # noqa: E402
 from atlas_onboard.mapping import ba  # noqa: E402
 from atlas_onboard.mapping import build as mb  # noqa: E402
-from benchmarks.mapsim import edit_marker, record, world_doc  # noqa: E402
+from atlas_onboard.sim.recordings import edit_marker, record, world_doc  # noqa: E402
 
 cv2.setNumThreads(1)
 

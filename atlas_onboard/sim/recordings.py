@@ -1,4 +1,4 @@
-"""Rendered recordings of the simulator's ``map`` scenario, for bench_map.py and the tests."""
+"""Rendered recordings of the simulator's ``map`` scenario (the mapping benchmark's flights)."""
 
 from __future__ import annotations
 
