@@ -2,7 +2,8 @@
 
 Each benchmark is run as its own command line, one after another, and its whole output is written to
 docs/results.md under the command that printed it, with the date, the machine and how long it took;
-a table of every ``BAR`` line comes first. A benchmark that fails or is not run says so in the file.
+a table of every ``BAR`` line comes first, and the same lines end its output (named after their
+benchmark). A benchmark that fails or is not run says so in the file.
 
     python benchmarks/results.py                    # every benchmark at its documented length
     python benchmarks/results.py --only graph,node  # some of them (the others keep no old figures)
@@ -120,6 +121,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  done in {seconds:.0f} s (exit status {status})", flush=True)
     args.out.write_text(render(results, started), encoding="utf-8")
     print(f"wrote {args.out}")
+    # Every bar the benchmarks measured, as they printed it, named after its benchmark.
+    for bench, out, _, _ in results:
+        for m in filter(None, map(BAR_RE.match, out.splitlines())):
+            name, value, unit, limit, verdict = m.groups()
+            print(f"BAR {bench.name}.{name} {value} {unit} {limit} {verdict}")
     return 0
 
 
