@@ -32,7 +32,6 @@ import re
 import secrets
 import shutil
 import sys
-import tempfile
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -40,6 +39,7 @@ from pathlib import Path
 import yaml
 
 from atlas_onboard.errors import AtlasError
+from atlas_onboard.fsio import write_atomic
 
 UNITS = ("atlas-onboard.service", "atlas-onboard@.service")
 EXAMPLE = "example.yaml"
@@ -146,16 +146,7 @@ def write_key(path: Path, force: bool = False) -> None:
     if path.exists() and not force:
         raise AtlasError(f"keygen: {path} exists; give --force to replace it (every drone needs the new key then)")
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, staged = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")  # created 0600
-        try:
-            with os.fdopen(fd, "wb") as f:
-                f.write(secrets.token_bytes(KEY_BYTES))
-            os.chmod(staged, 0o600)
-            os.replace(staged, path)
-        except BaseException:
-            Path(staged).unlink(missing_ok=True)
-            raise
+        write_atomic(path, secrets.token_bytes(KEY_BYTES), mode=0o600, make_dirs=True)
     except OSError as exc:
         raise AtlasError(f"keygen: cannot write {path}: {exc.strerror}") from None
 
@@ -200,15 +191,7 @@ def _write(root: Path, path: Path, text: str) -> None:
         missing = [p for p in reversed(path.parents) if p.is_relative_to(root) and not p.exists()]
         for directory in missing:
             directory.mkdir(mode=0o755)
-        fd, staged = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8") as f:
-                f.write(text)
-            os.chmod(staged, 0o644)
-            os.replace(staged, path)
-        except BaseException:
-            Path(staged).unlink(missing_ok=True)
-            raise
+        write_atomic(path, text, mode=0o644)
     except OSError as exc:
         hint = " (run it as root, or give --root)" if isinstance(exc, PermissionError) else ""
         raise AtlasError(f"install-service: cannot write {path}: {exc.strerror}{hint}") from None

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from pathlib import Path
+
+from atlas_onboard.fsio import write_atomic
 
 _logger = logging.getLogger(__name__)
 
@@ -36,10 +37,7 @@ class ResetCounterStore:
         if self.path is None or value == self.saved:
             return
         try:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = self.path.with_suffix(f".{os.getpid()}.tmp")
-            tmp.write_text(json.dumps({"reset_counter": int(value)}), encoding="utf-8")
-            os.replace(tmp, self.path)
+            write_atomic(self.path, json.dumps({"reset_counter": int(value)}), make_dirs=True)
             self.saved = value
         except OSError as exc:
             self.saved = value  # said once per value, never raised: the pose still goes out

@@ -11,9 +11,7 @@ import argparse
 import contextlib
 import json
 import math
-import os
 import sys
-import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -26,6 +24,7 @@ from scipy.spatial.transform import RigidTransform
 from atlas_onboard.config import WORLD, CameraConfig, ConfigError, WorldConfig, load_world
 from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
+from atlas_onboard.fsio import write_atomic
 from atlas_onboard.mapping.build import MapOptions, MapResult, build_map, collect
 
 PLACEHOLDER = "__atlas_mapped_markers__"
@@ -33,18 +32,9 @@ PLACEHOLDER = "__atlas_mapped_markers__"
 
 def _atomic_write(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same directory (renamed at the end)."""
-    path = Path(path)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+        write_atomic(Path(path), text)
     except OSError as exc:
-        raise AtlasError(f"{path}: cannot write: {exc.strerror}") from None
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except OSError as exc:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
         raise AtlasError(f"{path}: cannot write: {exc.strerror}") from None
 
 

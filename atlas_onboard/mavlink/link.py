@@ -38,6 +38,7 @@ from pymavlink import mavutil
 
 from atlas_onboard.config import LinkConfig, SigningConfig
 from atlas_onboard.errors import AtlasError
+from atlas_onboard.fsio import write_atomic
 from atlas_onboard.mavlink import dialect
 
 _logger = logging.getLogger(__name__)
@@ -323,10 +324,7 @@ class Link:
         if path is None or conn is None or self._key is None:
             return
         try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
-            tmp.write_text(json.dumps({"timestamp": int(conn.mav.signing.timestamp)}), encoding="utf-8")
-            os.replace(tmp, path)
+            write_atomic(path, json.dumps({"timestamp": int(conn.mav.signing.timestamp)}), make_dirs=True)
         except OSError as exc:
             self.counters.inc("signing_state_write_errors")
             _logger.warning("%s: cannot save signing timestamp to %s: %s", self.name, path, exc.strerror)
