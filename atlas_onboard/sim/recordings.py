@@ -44,8 +44,10 @@ def record(
     seed: int,
     out_dir: Path,
     detect: bool = True,
+    start_s: float = 0.0,
 ) -> dict[int, Path]:
-    """Render the scenario's cameras as the world ``doc`` has it and write one recording per sensor."""
+    """Render the scenario's cameras as the world ``doc`` has it and write one recording per sensor:
+    ``duration_s`` from ``start_s`` into the scenario, each frame stamped with its scenario time (us)."""
     scenario = scenarios.get(scenario_name)
     done = {sid: out_dir / f"rec-{scenario.world().sensors[sid].entity}-s{seed}" for sid in sensor_ids}
     if all((p / "index.jsonl").is_file() for p in done.values()):
@@ -57,7 +59,7 @@ def record(
     sim = SimWorld(scenario, world)
     paths = {}
     with tempfile.TemporaryDirectory(prefix="atlas-mapsim-") as tmp:
-        prerender(scenario, world_file, seed, duration_s, Path(tmp))
+        prerender(scenario, world_file, seed, duration_s, Path(tmp), start_s)
         for sid in sensor_ids:
             sensor, intr = sim.cameras[sid]
             cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.array(intr.distortion))
@@ -81,8 +83,9 @@ def record(
                 q_body_camera_wxyz=(q[3], q[0], q[1], q[2]),
             )
             n = int(duration_s * fps)
+            first = round(start_s * fps)
             for j in range(n):
-                t = j / fps
+                t = (first + j) / fps
                 stamp = round(t * 1e6)
                 gray = np.array(frames[j])
                 x, y, z, w = sim.truth(t, {sensor.entity})[sensor.entity].rotation.as_quat()
