@@ -10,8 +10,15 @@ from dataclasses import replace
 from pathlib import Path
 
 from atlas_onboard.config import (
-    NO_NODES, WORLD, ConfigError, NodeConfig, RecordConfig, WorldConfig, load_node, read_yaml,
-)  # fmt: skip
+    NO_NODES,
+    WORLD,
+    ConfigError,
+    NodeConfig,
+    RecordConfig,
+    WorldConfig,
+    load_node,
+    read_yaml,
+)
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.node import Camera, Node, install_signal_handlers
 from atlas_onboard.service import Notifier, watchdog_interval_us
@@ -65,7 +72,6 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
             from atlas_onboard.detector.calibration import load as load_calibration
             from atlas_onboard.detector.pipeline import Detector
             from atlas_onboard.detector.sources import CameraWorker
-
             from atlas_onboard.mapping.recording import is_recording, read_info
 
             if cam.calibration is not None:
@@ -104,9 +110,7 @@ def run_node(
             raise AtlasError("--record-max-mb: give --record DIR too (or nodes.<entity>.record in the world file)")
         if record_max_mb is not None and record_max_mb <= 0:
             raise AtlasError(f"--record-max-mb: expected a positive size, got {record_max_mb:g}")
-        config = replace(
-            config, record=replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb)
-        )
+        config = replace(config, record=replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb))
     if os.environ.get("ATLAS_SIM"):
         from atlas_onboard.sim.runner import die_with_parent
 
