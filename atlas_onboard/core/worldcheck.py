@@ -25,6 +25,7 @@ MIN_VIEWS = 20  # images in which the marker was checked together with two or mo
 MIN_FRACTION = 0.5  # of those, the share in which it did not fit
 MIN_SPAN_S = 1.0  # the disagreeing images span at least this long (not one burst of similar frames)
 MIN_OFFSET_M = 0.02  # the median offset must reach this (smaller moves hide in the poses' noise)
+MAX_EVIDENCE = 1000  # images kept per marker (a minute at 15 fps; at higher rates the newest 1000)
 
 
 @dataclass(frozen=True)
@@ -81,7 +82,7 @@ class MovedMarkerCheck:
         markers of the group that now look moved."""
         out = []
         for mid in checked_ids:
-            q = self._evidence.setdefault((entity, mid), deque())
+            q = self._evidence.setdefault((entity, mid), deque(maxlen=MAX_EVIDENCE))
             offset = offsets_m.get(mid)
             q.append((capture_time_us, None if offset is None else np.asarray(offset, dtype=float)))
             while q and q[0][0] < capture_time_us - self.window_us:

@@ -22,6 +22,7 @@ _logger = logging.getLogger(__name__)
 QUEUE_FRAMES = 8  # frames waiting for the writer, per camera: a quarter second at 30 fps
 WRITER_NICE = 10  # the writer thread yields the processor to the detector and the pose output
 FREE_RESERVE_BYTES = 200_000_000  # never fill the disk: logs and the node's state need room too
+CLOSE_TIMEOUT_S = 2.0  # at shutdown, the queue's frames get this long to be written (a hung disk is abandoned)
 
 Attitude = Callable[[int], tuple[float, float, float, float] | None]
 
@@ -113,9 +114,10 @@ def start(
 def finish(recorder: BackgroundRecorder, name: str) -> None:
     """Write what is queued and close the recording; one line saying what was recorded (never raises)."""
     try:
-        recorder.close()
-    except RecordingError:
-        pass  # said when it happened
+        recorder.close(CLOSE_TIMEOUT_S)
+    except RecordingError as exc:
+        if recorder.error is None:  # (a write error was said when it happened)
+            _logger.error("camera %s: %s", name, exc)
     w = recorder.writer
     c = recorder.counters()
     _logger.info(

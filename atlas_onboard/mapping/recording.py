@@ -270,10 +270,17 @@ class BackgroundRecorder:
                 self.error = exc
                 _logger.error("%s", exc)
 
-    def close(self) -> None:
-        """Write what is queued, stop the thread, close the files; raises the writer's error if any."""
-        self.queue.put(None)
-        self._thread.join()
+    def close(self, timeout_s: float | None = None) -> None:
+        """Write what is queued, stop the thread, close the files; raises the writer's error if any.
+        With ``timeout_s``, a writer still busy after that long (a disk that hangs) is abandoned: what
+        it wrote stays readable (the index is flushed line by line), and RecordingError says so."""
+        try:
+            self.queue.put(None, timeout=timeout_s)
+        except queue.Full:
+            pass
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            raise RecordingError(f"{self.writer.directory}: the writer did not finish in {timeout_s:g} s (abandoned)")
         try:
             self.writer.close()
         except RecordingError as exc:

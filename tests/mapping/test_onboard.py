@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import errno
 import logging
+import threading
 import time
 from pathlib import Path
 
@@ -159,3 +160,22 @@ def test_run_record_options_are_checked_before_anything_starts(tmp_path: Path, c
     assert main(["run", "--config", str(path), "--record-max-mb", "30"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "--record-max-mb: expected a positive size" in err[0] and "give --record DIR" in err[1]
+
+
+def test_a_hung_disk_does_not_hang_the_node_s_shutdown(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    w = rec.RecordingWriter(tmp_path / "r", CAL)
+    gate = threading.Event()
+    real = w.write
+
+    def hung(*args: object) -> bool:
+        gate.wait(10.0)
+        return real(*args)  # type: ignore[arg-type]
+
+    w.write = hung  # type: ignore[method-assign]
+    bg = rec.BackgroundRecorder(w, queue_size=2)
+    for k in range(4):
+        bg.offer(np.zeros((24, 32), np.uint8), k)
+    with caplog.at_level(logging.ERROR):
+        onboard.finish(bg, "cam")  # returns although the writer is stuck
+    assert any("did not finish" in r.getMessage() for r in caplog.records)
+    gate.set()
