@@ -90,12 +90,13 @@ def main() -> int:
     rec_path = rec[SENSOR]
     n_frames = len(list(read_frames(rec_path, with_images=False)))
     print(f"flight: {n_frames} frames of 640x480 at 15 fps ({time.monotonic() - t0:.0f} s to render or load)")
-    results: dict[str, list[dict]] = {"anchor (no record)": [], f"--record ({fmt})": []}
+    anchor, recording = "anchor (no record)", f"--record ({fmt})"
+    results: dict[str, list[dict]] = {anchor: [], recording: []}
     for b in range(args.blocks):
         for name, runs in results.items():
-            work = base / f"{'rec' if 'record' in name else 'plain'}-{b}"
+            work = base / f"{'rec' if name == recording else 'plain'}-{b}"
             work.mkdir()
-            record_dir = work / "recordings" if "record" in name else None
+            record_dir = work / "recordings" if name == recording else None
             runs.append(run_node(doc, rec_path, work, record_dir, fmt))
     print(f"{'state':<20} {'poses':>6} {'frames':>7}  latency capture -> autopilot (ms)")
     summary = {}
@@ -106,7 +107,7 @@ def main() -> int:
         summary[name] = (lat, poses)
         print(f"{name:<20} {poses:>6} {frames:>7}  {stats(lat)}")
         written = sum(r["counters"].get("camera_cam_record_written", 0) for r in runs)
-        if "record" in name:
+        if name == recording:
             behind = sum(r["counters"].get("camera_cam_record_dropped_queue_full", 0) for r in runs)
             print(f"{'':<20} recorded {written} of {frames} frames detected ({behind} dropped: writer behind)")
     (lat_a, poses_a), (lat_r, poses_r) = summary.values()
