@@ -98,6 +98,9 @@ def main() -> int:
             work.mkdir()
             record_dir = work / "recordings" if name == recording else None
             runs.append(run_node(doc, rec_path, work, record_dir, fmt))
+            r = runs[-1]
+            print(f"block {b} {name:<20} poses {r['poses']:>4} frames {r['counters'].get('camera_cam_frames', 0):>4}"
+                  f"  latency median {np.median(r['latency_ms']):6.1f} ms", flush=True)  # fmt: skip
     print(f"{'state':<20} {'poses':>6} {'frames':>7}  latency capture -> autopilot (ms)")
     summary = {}
     for name, runs in results.items():

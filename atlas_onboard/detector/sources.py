@@ -3,10 +3,10 @@
 Sources: a V4L2 device (index or path, with width, height, fps and fourcc), a video file, a folder of
 images (in name order; a number in the name that looks like a time stamp is used as its file time),
 a recording (a directory written by ``record`` or ``run --record``: its frames at their recorded
-capture stamps), or an RTSP/HTTP URL through OpenCV. Live sources stamp the capture time minus the configured fixed
-latency. File sources stamp each frame with its file time mapped onto the wall clock at the moment
-the first frame is read (not when the source is opened: listing a large folder or opening a video
-takes a while), and play in one of two modes (``camera.replay``):
+capture stamps), or an RTSP/HTTP URL through OpenCV. Live sources stamp the capture time minus the
+configured fixed latency. File sources stamp each frame with its file time mapped onto the wall clock
+at the moment the first frame is read (not when the source is opened: listing a large folder or
+opening a video takes a while), and play in one of two modes (``camera.replay``):
 
 - ``realtime`` (the default for a video file): like a camera, paced on the file's own time; a frame
   whose time has passed before it could be read is skipped, and a frame the detector had no time for
