@@ -49,7 +49,8 @@ def record(
     """Render the scenario's cameras as the world ``doc`` has it and write one recording per sensor:
     ``duration_s`` from ``start_s`` into the scenario, each frame stamped with its scenario time (us)."""
     scenario = scenarios.get(scenario_name)
-    done = {sid: out_dir / f"rec-{scenario.world().sensors[sid].entity}-s{seed}" for sid in sensor_ids}
+    at = f"-from{start_s:g}s" if start_s else ""  # a recording of another stretch is another recording
+    done = {sid: out_dir / f"rec-{scenario.world().sensors[sid].entity}-s{seed}{at}" for sid in sensor_ids}
     if all((p / "index.jsonl").is_file() for p in done.values()):
         return done  # recorded by an earlier run (--keep)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -72,7 +73,7 @@ def record(
                 from atlas_onboard.detector.pipeline import Detector
 
                 det = Detector(sensor, world, cal, decimate=2.0)
-            rec = out_dir / f"rec-{sensor.entity}-s{seed}"
+            rec = done[sid]
             writer = RecordingWriter(
                 rec,
                 cal,
