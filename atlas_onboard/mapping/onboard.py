@@ -2,9 +2,10 @@
 
 Each camera gets a :class:`~atlas_onboard.mapping.recording.BackgroundRecorder` in a new directory
 ``DIR/<UTC time>-<entity>-<sensor>``: the camera thread offers each frame it detected, after its
-observations went to the node, to a bounded queue; a writer thread at low priority encodes and writes
-it. Nothing here can stop the node: a directory that cannot be written, a full disk or the size cap
-ends the recording with one line in the log, and the node flies on.
+observations went to the node, to a bounded queue; a writer thread encodes and writes it (OpenCV's
+encoder and the file writes release the GIL). Nothing here can stop the node: a directory that cannot
+be written, a full disk or the size cap ends the recording with one line in the log, and the node
+flies on.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ from atlas_onboard.mapping.recording import BackgroundRecorder, RecordingError, 
 _logger = logging.getLogger(__name__)
 
 QUEUE_FRAMES = 8  # frames waiting for the writer, per camera: a quarter second at 30 fps
-WRITER_NICE = 10  # the writer thread yields the processor to the detector and the pose output
 FREE_RESERVE_BYTES = 200_000_000  # never fill the disk: logs and the node's state need room too
 CLOSE_TIMEOUT_S = 2.0  # at shutdown, the queue's frames get this long to be written (a hung disk is abandoned)
 
@@ -103,7 +103,7 @@ def start(
         except RecordingError as exc:
             _logger.error("camera %s not recorded: %s", sensor.name, exc)
             continue
-        recorder = BackgroundRecorder(writer, QUEUE_FRAMES, attitude_at=attitude_at, nice=WRITER_NICE)
+        recorder = BackgroundRecorder(writer, QUEUE_FRAMES, attitude_at=attitude_at)
         cam.recorder = recorder  # type: ignore[attr-defined]
         recorders.append(recorder)
         _logger.info("camera %s: recording to %s (up to %.0f MB: %s)", sensor.name, directory, writer.max_bytes / 1e6,

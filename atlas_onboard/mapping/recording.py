@@ -16,7 +16,6 @@ dropped (counted), never written.
 
 from __future__ import annotations
 
-import contextlib
 import errno
 import json
 import logging
@@ -199,10 +198,10 @@ class BackgroundRecorder:
     thread); when the disk is slower than the camera, frames are dropped and counted.
 
     ``attitude_at(capture_time_us)``: the autopilot's attitude (q_wxyz, body FLU in a level frame) at a
-    capture time, or None, asked in the writer thread for frames offered without one. ``nice``: the
-    writer thread's niceness (Linux: per thread), so that encoding frames yields the processor to the
-    node's pose output. Once the recording reached its size cap or failed, further frames are refused
-    at once (counted), and each is said once in the log."""
+    capture time, or None, asked in the writer thread for frames offered without one. Once the
+    recording reached its size cap or failed, further frames are refused at once (counted), and each
+    is said once in the log. (The writer thread is not given a lower priority: a thread preempted while
+    it holds the GIL would stall the camera and the node's loop; encoding and writing release it.)"""
 
     def __init__(
         self,
@@ -210,7 +209,6 @@ class BackgroundRecorder:
         queue_size: int = 30,
         *,
         attitude_at: Callable[[int], tuple[float, float, float, float] | None] | None = None,
-        nice: int = 0,
     ) -> None:
         self.writer = writer
         self.queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=queue_size)
@@ -219,7 +217,6 @@ class BackgroundRecorder:
         self.capped = False
         self.error: RecordingError | None = None
         self.attitude_at = attitude_at
-        self._nice = nice
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
 
@@ -246,9 +243,6 @@ class BackgroundRecorder:
         }
 
     def _run(self) -> None:
-        if self._nice:
-            with contextlib.suppress(OSError, AttributeError):  # Linux: a thread's own niceness
-                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), self._nice)
         while True:
             item = self.queue.get()
             if item is None:
