@@ -92,6 +92,13 @@ class MovedMarkerCheck:
                 out.append(moved)
         return out
 
+    def disagrees(self, entity: str, marker_id: int) -> bool:
+        """Whether the marker did not fit in at least ``min_fraction`` of its images in the window."""
+        q = self._evidence.get((entity, marker_id))
+        if not q:
+            return False
+        return sum(o is not None for _, o in q) >= self.min_fraction * len(q)
+
     def _verdict(self, entity: str, mid: int, q: deque[tuple[int, NDArray[np.float64] | None]]) -> MovedMarker | None:
         if len(q) < self.min_views:
             return None

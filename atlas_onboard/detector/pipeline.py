@@ -290,6 +290,10 @@ class Detector:
                 if used is None:  # the squares contradict each other: none of them is trusted in this image
                     continue
             for mid in ids:
+                if (entity, mid) in self.moved:  # alone it would move the pose by its offset
+                    self.counters["dropped_moved"] += 1
+                    self.report.dropped[mid] = "reported moved (the world file disagrees with what is seen)"
+                    continue
                 mp = singles[mid].pose
                 ambiguous = mp.ambiguity > AMBIGUITY_THRESHOLD
                 if mp.ambiguity > self.max_ambiguity or (ambiguous and mp.p_alt_m is None):
@@ -377,7 +381,14 @@ class Detector:
     def _check_world(self, entity: str, ids: list[int], capture_time_us: int) -> None:
         """Feed the image's verdict to the live check; say a marker that has moved (log at most once a
         minute per marker, a STATUSTEXT at most once a minute, ``markers_moved`` counts distinct markers)."""
-        for moved in self.world_check.add(capture_time_us, entity, ids, self._offsets):
+        verdicts = self.world_check.add(capture_time_us, entity, ids, self._offsets)
+        still = {m.marker_id for m in verdicts}
+        for mid in ids:  # a marker put back (it fits again in most images) is used again
+            if (entity, mid) in self.moved and mid not in still and mid not in self._offsets:
+                if not self.world_check.disagrees(entity, mid):
+                    del self.moved[(entity, mid)]
+                    _logger.warning("sensor %s: %s marker %d fits the world file again", self.sensor.name, entity, mid)
+        for moved in verdicts:
             key = (entity, moved.marker_id)
             if key not in self.moved:
                 self.counters["markers_moved"] += 1

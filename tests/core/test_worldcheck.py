@@ -42,6 +42,15 @@ def test_one_burst_or_too_few_images_is_not_enough():
         assert burst.add(k * 10_000, "world", (1, 2, 3), {2: offset}) == []
 
 
+def test_a_marker_put_back_stops_disagreeing_once_it_fits_in_most_images():
+    check = MovedMarkerCheck()
+    assert _feed(check, [np.array([0.1, 0.0, 0.0])] * 30) and check.disagrees("world", 2)
+    _feed(check, [None] * 29, t0_us=30 * FRAME_US)
+    assert check.disagrees("world", 2)  # 30 of 59 images
+    _feed(check, [None] * 2, t0_us=59 * FRAME_US)
+    assert not check.disagrees("world", 2) and not check.disagrees("world", 1)
+
+
 def test_evidence_older_than_the_window_is_forgotten():
     check = MovedMarkerCheck(window_s=10.0)
     offset = np.array([0.1, 0.0, 0.0])
