@@ -26,10 +26,10 @@ from atlas_onboard.sim.world import SimWorld
 from tests.e2e import NodeProcess, wait_for, write_world
 
 SCENARIO, SENSOR, ENTITY = "map", 1, "mapper1"
-START_S, DURATION_S = 8.0, 3.0  # a stretch of the flight where the camera sees three or more markers
+START_S, DURATION_S = 8.0, 2.0  # a stretch of the flight where the camera sees three or more markers
 MOVED_ID, MOVE_M = 17, (0.1, 0.0, 0.0)
 CAP_MB = 1.0
-SCHEDULING_SLACK = 2  # poses (of 45 frames) that two frames reaching the loop together may cost a run
+SCHEDULING_SLACK = 2  # poses (of 30 frames) that two frames reaching the loop together may cost a run
 
 
 @dataclass
