@@ -8,7 +8,7 @@ recorded stamp shifted to the replay) to the pose's arrival at the autopilot: de
 and the link. The anchor is the same node without ``--record``, in the same run: the two take turns
 (``--blocks`` each), so that a drift of the machine's speed falls on both alike.
 
-    python benchmarks/bench_record.py [--seconds 10] [--blocks 2] [--png|--jpg] [--keep DIR]
+    python benchmarks/bench_record.py [--seconds 10] [--blocks 2] [--jpg] [--keep DIR]
 
 Bars: with recording, the median latency within 10 % of the anchor's and at least 95 % of its poses.
 """
