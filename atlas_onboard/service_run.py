@@ -104,13 +104,16 @@ def run_node(
     ``run --record``, over the node settings' ``record`` block."""
     name = choose_entity(config_path, entity)
     world, config = load_node(config_path, name)
+    # The command line's --record goes beside the settings, not into them: a reload (SIGHUP) compares
+    # the re-read settings with the running ones.
+    record = config.record
     if record_dir is not None or record_max_mb is not None:
-        base = config.record or RecordConfig(dir=record_dir or Path("."))
-        if record_dir is None and config.record is None:
+        if record_dir is None and record is None:
             raise AtlasError("--record-max-mb: give --record DIR too (or nodes.<entity>.record in the world file)")
         if record_max_mb is not None and record_max_mb <= 0:
             raise AtlasError(f"--record-max-mb: expected a positive size, got {record_max_mb:g}")
-        config = replace(config, record=replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb))
+        base = record or RecordConfig(dir=record_dir or Path("."))
+        record = replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb)
     if os.environ.get("ATLAS_SIM"):
         from atlas_onboard.sim.runner import die_with_parent
 
@@ -120,10 +123,10 @@ def run_node(
     transport = MavlinkTransport(world, config)
     cameras = build_cameras(world, config)
     node = Node(world, config, transport, cameras, notifier=Notifier.from_environ(), config_path=config_path)
-    if config.record is not None:
+    if record is not None:
         from atlas_onboard.mapping import onboard
 
-        for recorder in onboard.start(cameras, world, name, config.record):
+        for recorder in onboard.start(cameras, world, name, record):
             recorder.attitude_at = None  # LEAD (branch attitude): = node.attitude_at, as q_wxyz (FLU body, level frame)
     interval_us = watchdog_interval_us()  # half of systemd's WatchdogSec, when meant for this process
     if interval_us is not None:
