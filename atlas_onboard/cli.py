@@ -43,7 +43,7 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from atlas_onboard.service_run import run_node
 
-    return run_node(args.config, args.entity)
+    return run_node(args.config, args.entity, args.record, args.record_max_mb)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,6 +60,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run the node of one entity (the service)")
     p.add_argument("--config", required=True, type=Path, help="world file with a nodes section")
     p.add_argument("--entity", help="entity whose node this is (default: the only one with node settings)")
+    p.add_argument("--record", type=Path, metavar="DIR", help="record the cameras as the node flies (for `map`)")
+    p.add_argument("--record-max-mb", type=float, metavar="MB", help="cap on the recordings in DIR (default 2000)")
     p.set_defaults(func=_cmd_run)
 
     from atlas_onboard.detector.commands import add_commands as add_detector

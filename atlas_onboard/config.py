@@ -779,6 +779,45 @@ class AutopilotConfig:
     origin: GlobalOrigin | None = None
 
 
+# --- record: the node records its cameras as it flies (issue 21; docs/mapping.md) -----------------------
+RECORD_FORMATS = ("png", "jpg")
+
+
+@dataclass(frozen=True, slots=True)
+class RecordConfig:
+    """``nodes.<entity>.record`` (or ``run --record DIR``): the node records each camera as it flies.
+
+    Attributes:
+        dir: where recordings go; each run and camera writes a new subdirectory.
+        max_mb: cap on everything under ``dir`` (this run's and earlier runs' recordings), MB;
+            past it frames are not recorded (counted, said once). Default 2000.
+        image_format: ``png`` (lossless, the default) or ``jpg`` (quality 95: smaller, faster to write).
+    """
+
+    dir: Path
+    max_mb: float = 2000.0
+    image_format: str = "png"
+
+
+def _read_record(value: Any, path: str, base_dir: Path | None) -> RecordConfig | None:
+    if value is None:
+        return None
+    m = _mapping(value, path, {"dir", "max_mb", "image_format"}, {"dir"})
+    directory = Path(_string(m["dir"], _join(path, "dir")))
+    if base_dir is not None and not directory.is_absolute():
+        directory = base_dir / directory
+    max_mb = _number(m.get("max_mb", 2000.0), _join(path, "max_mb"), "MB")
+    if not 1.0 <= max_mb <= 10_000_000.0:
+        raise ConfigError(_join(path, "max_mb"), f"expected a size in [1, 1e7] MB, got {max_mb:g}")
+    fmt = _string(m.get("image_format", "png"), _join(path, "image_format"))
+    if fmt not in RECORD_FORMATS:
+        raise ConfigError(_join(path, "image_format"), f"expected one of {', '.join(RECORD_FORMATS)}, got {fmt!r}")
+    return RecordConfig(directory, max_mb, fmt)
+
+
+# --- end record ----------------------------------------------------------------------------------------
+
+
 @dataclass(frozen=True, slots=True)
 class NodeConfig:
     """The settings of the node that runs for one entity.
@@ -796,6 +835,7 @@ class NodeConfig:
         status_interval_s: period of the health log line.
         owners: (entity, system id) of every node the world file's ``nodes`` section names: whose
             observations and fused poses this node accepts from whom (:meth:`owner_system_id`).
+        record: record the cameras as the node flies (:class:`RecordConfig`), or None (the default).
     """
 
     entity: str
@@ -808,6 +848,7 @@ class NodeConfig:
     state_dir: Path | None = None
     status_interval_s: float = 10.0
     owners: tuple[tuple[str, int], ...] = ()
+    record: RecordConfig | None = None  # issue 21: run --record
 
     def owner_system_id(self, entity: str) -> int | None:
         """The system id of the node that runs ``entity``, or None if the world file names none."""
@@ -826,6 +867,7 @@ _NODE_KEYS = {
     "queue_size",
     "state_dir",
     "status_interval_s",
+    "record",  # issue 21
 }
 
 
@@ -950,6 +992,7 @@ def _read_node(m: Mapping[str, Any], path: str, entity: str, base_dir: Path | No
         queue_size=_integer(m.get("queue_size", 256), _join(path, "queue_size"), 8, 1_000_000),
         state_dir=Path(_string(m["state_dir"], _join(path, "state_dir"))) if "state_dir" in m else None,
         status_interval_s=status,
+        record=_read_record(m.get("record"), _join(path, "record"), base_dir),  # issue 21
     )
 
 

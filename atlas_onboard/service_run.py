@@ -6,9 +6,19 @@ import gc
 import logging
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
-from atlas_onboard.config import NO_NODES, WORLD, ConfigError, NodeConfig, WorldConfig, load_node, read_yaml
+from atlas_onboard.config import (
+    NO_NODES,
+    WORLD,
+    ConfigError,
+    NodeConfig,
+    RecordConfig,
+    WorldConfig,
+    load_node,
+    read_yaml,
+)
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.node import Camera, Node, install_signal_handlers
 from atlas_onboard.service import Notifier, watchdog_interval_us
@@ -62,12 +72,17 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
             from atlas_onboard.detector.calibration import load as load_calibration
             from atlas_onboard.detector.pipeline import Detector
             from atlas_onboard.detector.sources import CameraWorker
+            from atlas_onboard.mapping.recording import is_recording, read_info
 
-            if cam.calibration is None:
+            if cam.calibration is not None:
+                calibration = load_calibration(cam.calibration)
+            elif is_recording(Path(cam.source)):  # a recording carries its camera's calibration
+                calibration = read_info(Path(cam.source)).calibration
+            else:
                 raise AtlasError(
                     f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}"
                 )
-            detector = Detector(sensor, world, load_calibration(cam.calibration), decimate=2.0)
+            detector = Detector(sensor, world, calibration, decimate=2.0)
             cameras.append(CameraWorker(sensor.name, cam, detector))
     if config.entity == WORLD:
         # The motion-capture "sensor" has no camera block: it is a world sensor named by the scenario.
@@ -82,10 +97,23 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
     return cameras
 
 
-def run_node(config_path: Path, entity: str | None) -> int:
-    """Load, build and run the node; returns its exit status."""
+def run_node(
+    config_path: Path, entity: str | None, record_dir: Path | None = None, record_max_mb: float | None = None
+) -> int:
+    """Load, build and run the node; returns its exit status. ``record_dir``, ``record_max_mb``:
+    ``run --record``, over the node settings' ``record`` block."""
     name = choose_entity(config_path, entity)
     world, config = load_node(config_path, name)
+    # The command line's --record goes beside the settings, not into them: a reload (SIGHUP) compares
+    # the re-read settings with the running ones.
+    record = config.record
+    if record_dir is not None or record_max_mb is not None:
+        if record_dir is None and record is None:
+            raise AtlasError("--record-max-mb: give --record DIR too (or nodes.<entity>.record in the world file)")
+        if record_max_mb is not None and record_max_mb <= 0:
+            raise AtlasError(f"--record-max-mb: expected a positive size, got {record_max_mb:g}")
+        base = record or RecordConfig(dir=record_dir or Path("."))
+        record = replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb)
     if os.environ.get("ATLAS_SIM"):
         from atlas_onboard.sim.runner import die_with_parent
 
@@ -95,6 +123,11 @@ def run_node(config_path: Path, entity: str | None) -> int:
     transport = MavlinkTransport(world, config)
     cameras = build_cameras(world, config)
     node = Node(world, config, transport, cameras, notifier=Notifier.from_environ(), config_path=config_path)
+    if record is not None:
+        from atlas_onboard.mapping import onboard
+
+        for recorder in onboard.start(cameras, world, name, record):
+            recorder.attitude_at = None  # LEAD (branch attitude): = node.attitude_at, as q_wxyz (FLU body, level frame)
     interval_us = watchdog_interval_us()  # half of systemd's WatchdogSec, when meant for this process
     if interval_us is not None:
         node.watchdog_interval_ns = interval_us * 1000

@@ -33,12 +33,12 @@ def write_world(tmp: Path, doc: dict) -> Path:
 class NodeProcess:
     """``python -m atlas_onboard run`` in a subprocess, with its log captured."""
 
-    def __init__(self, config: Path, entity: str, env: dict | None = None) -> None:
+    def __init__(self, config: Path, entity: str, env: dict | None = None, args: tuple[str, ...] = ()) -> None:
         self.log_path = config.parent / f"{entity}.log"
         self._log = open(self.log_path, "wb")
         full_env = {**os.environ, **(env or {})}
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "atlas_onboard", "-v", "run", "--config", str(config), "--entity", entity],
+            [sys.executable, "-m", "atlas_onboard", "-v", "run", "--config", str(config), "--entity", entity, *args],
             stdout=self._log, stderr=subprocess.STDOUT, env=full_env,
         )  # fmt: skip
 

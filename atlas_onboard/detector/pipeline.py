@@ -27,6 +27,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 from atlas_onboard.config import SensorConfig, WorldConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
+from atlas_onboard.core.worldcheck import MovedMarker, MovedMarkerCheck
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
@@ -127,6 +128,12 @@ class Detector:
         self._status: deque[str] = deque()
         self._last_status_us: int | None = None
         self._last_log_us: int | None = None
+        # The live world-file check (issue 21): the joint solves' verdicts over many images.
+        self.world_check = MovedMarkerCheck()
+        self._offsets: dict[int, NDArray[np.float64]] = {}  # this image's disagreeing markers (entity frame)
+        self._moved_log_us: dict[tuple[str, int], int] = {}
+        self._moved_status_us: int | None = None
+        self.moved: dict[tuple[str, int], MovedMarker] = {}  # reported so far, the latest verdict of each
 
     def find(self, gray: NDArray[np.uint8]) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.
@@ -272,7 +279,10 @@ class Detector:
             groups.setdefault(self.entity_of[mid], []).append(mid)
         for entity, ids in groups.items():
             if self.joint and len(ids) > 1:
+                self._offsets = {}
                 md, used = self._robust_joint(entity, ids, singles, capture_time_us)
+                if len(ids) >= 3 and used is not None:  # one that does not fit can be singled out
+                    self._check_world(entity, ids, capture_time_us)
                 if md is not None:
                     out.append(md)
                     self.report.reported += used
@@ -280,6 +290,10 @@ class Detector:
                 if used is None:  # the squares contradict each other: none of them is trusted in this image
                     continue
             for mid in ids:
+                if (entity, mid) in self.moved:  # alone it would move the pose by its offset
+                    self.counters["dropped_moved"] += 1
+                    self.report.dropped[mid] = "reported moved (the world file disagrees with what is seen)"
+                    continue
                 mp = singles[mid].pose
                 ambiguous = mp.ambiguity > AMBIGUITY_THRESHOLD
                 if mp.ambiguity > self.max_ambiguity or (ambiguous and mp.p_alt_m is None):
@@ -347,14 +361,54 @@ class Detector:
             self._log_disagreement(entity, f"markers {a} and {b} disagree", offset, capture_time_us)
         return None, None
 
-    def _offset_m(self, m: int, others: list[int], singles: dict[int, _Single]) -> float:
-        """How far marker ``m``'s own square is from where the joint pose of ``others`` puts it (m)."""
+    def _offset(self, m: int, others: list[int], singles: dict[int, _Single]) -> NDArray[np.float64] | None:
+        """(3,) where marker ``m``'s own square is minus where the joint pose of ``others`` puts it,
+        in the entity's frame (m); None when the others cannot be solved."""
         sol = self._joint_solution(others, singles)
         if sol is None:
-            return math.nan
+            return None
         T_cam_entity = RigidTransform.from_components(sol[1], Rotation.from_rotvec(sol[0]))
         predicted = (T_cam_entity * self.marker_pose[m]).translation
-        return float(np.linalg.norm(singles[m].pose.p_m - predicted))
+        return T_cam_entity.rotation.inv().apply(singles[m].pose.p_m - predicted)
+
+    def _offset_m(self, m: int, others: list[int], singles: dict[int, _Single]) -> float:
+        """How far marker ``m``'s own square is from where the joint pose of ``others`` puts it (m)."""
+        offset = self._offset(m, others, singles)
+        if offset is not None:
+            self._offsets[m] = offset
+        return math.nan if offset is None else float(np.linalg.norm(offset))
+
+    def _check_world(self, entity: str, ids: list[int], capture_time_us: int) -> None:
+        """Feed the image's verdict to the live check; say a marker that has moved (log at most once a
+        minute per marker, a STATUSTEXT at most once a minute, ``markers_moved`` counts distinct markers)."""
+        verdicts = self.world_check.add(capture_time_us, entity, ids, self._offsets)
+        still = {m.marker_id for m in verdicts}
+        for mid in ids:  # a marker put back (it fits again in most images) is used again
+            if (entity, mid) in self.moved and mid not in still and mid not in self._offsets:
+                if not self.world_check.disagrees(entity, mid):
+                    del self.moved[(entity, mid)]
+                    _logger.warning("sensor %s: %s marker %d fits the world file again", self.sensor.name, entity, mid)
+        for moved in verdicts:
+            key = (entity, moved.marker_id)
+            if key not in self.moved:
+                self.counters["markers_moved"] += 1
+            self.moved[key] = moved
+            dx, dy, dz = moved.offset_m
+            last = self._moved_log_us.get(key)
+            if last is None or capture_time_us - last >= STATUS_INTERVAL_US:
+                self._moved_log_us[key] = capture_time_us
+                _logger.warning(
+                    "sensor %s: %s marker %d has moved: seen %.1f cm from its place in the world file"
+                    " (%+.3f %+.3f %+.3f m) in %d of %d images; it is not used while it disagrees",
+                    self.sensor.name, entity, moved.marker_id, moved.distance_m * 100, dx, dy, dz,
+                    moved.disagreeing, moved.views,
+                )  # fmt: skip
+            if self._moved_status_us is None or capture_time_us - self._moved_status_us >= STATUS_INTERVAL_US:
+                self._moved_status_us = capture_time_us
+                self._status.append(
+                    f"atlas: marker {moved.marker_id} moved {round(dx * 100):+d} {round(dy * 100):+d}"
+                    f" {round(dz * 100):+d} cm"[:50]
+                )
 
     def _disagrees(self, entity: str, m: int, offset_m: float, capture_time_us: int) -> None:
         self.counters["marker_disagrees"] += 1

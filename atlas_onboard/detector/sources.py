@@ -2,10 +2,11 @@
 
 Sources: a V4L2 device (index or path, with width, height, fps and fourcc), a video file, a folder of
 images (in name order; a number in the name that looks like a time stamp is used as its file time),
-or an RTSP/HTTP URL through OpenCV. Live sources stamp the capture time minus the configured fixed
-latency. File sources stamp each frame with its file time mapped onto the wall clock at the moment
-the first frame is read (not when the source is opened: listing a large folder or opening a video
-takes a while), and play in one of two modes (``camera.replay``):
+a recording (a directory written by ``record`` or ``run --record``: its frames at their recorded
+capture stamps), or an RTSP/HTTP URL through OpenCV. Live sources stamp the capture time minus the
+configured fixed latency. File sources stamp each frame with its file time mapped onto the wall clock
+at the moment the first frame is read (not when the source is opened: listing a large folder or
+opening a video takes a while), and play in one of two modes (``camera.replay``):
 
 - ``realtime`` (the default for a video file): like a camera, paced on the file's own time; a frame
   whose time has passed before it could be read is skipped, and a frame the detector had no time for
@@ -35,6 +36,7 @@ from numpy.typing import NDArray
 from atlas_onboard.config import REPLAY_EVERY_FRAME, REPLAY_REALTIME, CameraConfig
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.errors import AtlasError
+from atlas_onboard.mapping.recording import BackgroundRecorder, RecordingError, is_recording, read_frames, read_info
 from atlas_onboard.worker import Deliver, SensorWorker
 
 _logger = logging.getLogger(__name__)
@@ -80,6 +82,8 @@ def default_replay(source: str) -> str:
     """The replay mode of a file source whose camera block names none: an image folder is a set of
     stills that a user wants each of (``every_frame``); a video file is a recorded camera stream,
     played as the camera delivered it (``realtime``)."""
+    if is_recording(Path(source)):
+        return REPLAY_REALTIME  # a recorded camera stream
     return REPLAY_EVERY_FRAME if Path(source).is_dir() else REPLAY_REALTIME
 
 
@@ -166,6 +170,47 @@ class ImageFolder(Source):
             yield Frame(img, self.clock.stamp_us(file_s))
 
 
+class RecordingSource(Source):
+    """A recording's frames (:mod:`atlas_onboard.mapping.recording`), each at its recorded capture
+    stamp shifted to the replay's start: the node sees the flight's own frame timing."""
+
+    live = False
+
+    def __init__(self, path: Path, replay: str, clock: ReplayClock) -> None:
+        try:
+            self.info = read_info(path)
+            self.records = list(read_frames(path, with_images=False))
+        except RecordingError as exc:
+            raise SourceError(str(exc)) from None
+        if not self.records:
+            raise SourceError(f"{path}: a recording without frames")
+        self.path = Path(path)
+        self.keeps_newest = replay == REPLAY_REALTIME
+        self.clock = clock
+        self.skipped = 0
+        self.shift_us = 0
+
+    def frames(self) -> Iterator[Frame]:
+        first_us = self.records[0].capture_time_us
+        times = [(r.capture_time_us - first_us) / 1e6 for r in self.records]
+        self.clock.start()
+        self.shift_us = self.clock.stamp_us(0.0) - first_us
+        _logger.info(
+            "replaying recording %s (%d frames, %s): recorded capture stamps shifted by %+d us",
+            self.path, len(self.records), "realtime" if self.keeps_newest else "every frame", self.shift_us,
+        )  # fmt: skip
+        ext = "png" if self.info.image_format == "png" else "jpg"
+        for k, (rec, file_s) in enumerate(zip(self.records, times, strict=True)):
+            if self.keeps_newest and k + 1 < len(times) and self.clock.behind(times[k + 1]):
+                self.skipped += 1
+                continue
+            self.clock.wait(file_s)
+            img = cv2.imread(str(self.path / "frames" / f"{rec.index:06d}.{ext}"), cv2.IMREAD_GRAYSCALE)
+            if img is None:
+                raise SourceError(f"{self.path}: frame {rec.index}: not a readable image")
+            yield Frame(img, self.clock.stamp_us(file_s))
+
+
 class Capture(Source):
     """An OpenCV VideoCapture: V4L2 device, video file or stream URL."""
 
@@ -227,6 +272,8 @@ def open_source(camera: CameraConfig, fast: bool = False, start_us: int | None =
     path = Path(camera.source)
     replay = REPLAY_EVERY_FRAME if fast else camera.replay or default_replay(camera.source)
     clock = ReplayClock(paced=not fast, start_us=start_us)
+    if is_recording(path):
+        return RecordingSource(path, replay, clock)
     if path.is_dir():
         return ImageFolder(path, camera.fps, replay, clock)
     return Capture(camera, replay, clock)
@@ -245,9 +292,19 @@ class CameraWorker(SensorWorker):
         self._latest: Frame | None = None
         self._lock = threading.Lock()
         self._have = threading.Event()
+        # ``run --record`` (mapping.onboard): each detected frame goes to it after its observations.
+        self.recorder: BackgroundRecorder | None = None
 
     def counters(self) -> dict[str, int]:
-        return dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}
+        out = dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}
+        return out | (self.recorder.counters() if self.recorder is not None else {})
+
+    def stop(self) -> None:
+        super().stop()
+        if self.recorder is not None:  # what is queued is written before the node's final counters
+            from atlas_onboard.mapping.onboard import finish
+
+            finish(self.recorder, self.name)
 
     def take_status(self) -> list[str]:
         """The detector's STATUSTEXT lines since the last call (thread-safe: a list swap)."""
@@ -289,6 +346,9 @@ class CameraWorker(SensorWorker):
         except AtlasError as exc:  # e.g. frames of another size than the calibration
             self.counts["frame_errors"] += 1
             _logger.error("camera %s: %s", self.name, exc)
+            return
+        if self.recorder is not None:  # never blocks: a full queue drops the frame (counted)
+            self.recorder.offer(frame.gray, frame.capture_time_us, found)
 
     def _consume(self, source: Source, deliver: Deliver) -> None:
         """Every frame, in order (a file replayed ``every_frame``, paced by the source unless fast), or

@@ -23,7 +23,7 @@ import math
 import os
 import queue
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -195,19 +195,35 @@ class RecordingWriter:
 
 class BackgroundRecorder:
     """A writer thread behind a bounded queue: ``offer`` never blocks the caller (a node's camera
-    thread); when the disk is slower than the camera, frames are dropped and counted."""
+    thread); when the disk is slower than the camera, frames are dropped and counted.
 
-    def __init__(self, writer: RecordingWriter, queue_size: int = 30) -> None:
+    ``attitude_at(capture_time_us)``: the autopilot's attitude (q_wxyz, body FLU in a level frame) at a
+    capture time, or None, asked in the writer thread for frames offered without one. Once the
+    recording reached its size cap or failed, further frames are refused at once (counted), and each
+    is said once in the log. (The writer thread is not given a lower priority: a thread preempted while
+    it holds the GIL would stall the camera and the node's loop; encoding and writing release it.)"""
+
+    def __init__(
+        self,
+        writer: RecordingWriter,
+        queue_size: int = 30,
+        *,
+        attitude_at: Callable[[int], tuple[float, float, float, float] | None] | None = None,
+    ) -> None:
         self.writer = writer
         self.queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=queue_size)
         self.dropped_queue_full = 0
+        self.refused = 0  # frames offered after the cap was reached or writing failed
+        self.capped = False
         self.error: RecordingError | None = None
+        self.attitude_at = attitude_at
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         self._thread.start()
 
     def offer(self, gray: NDArray[np.uint8], capture_time_us: int, markers: Any = (), attitude: Any = None) -> bool:
-        """Queue a frame for writing; False (counted) if the queue is full or writing has failed."""
-        if self.error is not None:
+        """Queue a frame for writing; False (counted) if the queue is full or the recording has stopped."""
+        if self.error is not None or self.capped:
+            self.refused += 1
             return False
         try:
             self.queue.put_nowait((gray, capture_time_us, tuple(markers), attitude))
@@ -216,24 +232,53 @@ class BackgroundRecorder:
             return False
         return True
 
+    def counters(self) -> dict[str, int]:
+        """What happened to the frames offered: written, dropped (writer behind), past the cap, failed."""
+        return {
+            "record_written": self.writer.frames_written,
+            "record_dropped_queue_full": self.dropped_queue_full,
+            "record_dropped_cap": self.writer.frames_dropped + (self.refused if self.capped else 0),
+            "record_dropped_error": self.refused if self.error is not None else 0,
+            "record_failed": int(self.error is not None),
+        }
+
     def _run(self) -> None:
         while True:
             item = self.queue.get()
             if item is None:
                 return
-            if self.error is not None:
+            if self.error is not None or self.capped:
+                self.refused += 1
                 continue
+            gray, stamp, markers, attitude = item
             try:
-                self.writer.write(*item)
+                if attitude is None and self.attitude_at is not None:
+                    attitude = self.attitude_at(stamp)
+                if not self.writer.write(gray, stamp, markers, attitude):
+                    self.capped = True
+                    _logger.warning(
+                        "%s: recording reached its cap of %.0f MB after %d frames; further frames are not recorded",
+                        self.writer.directory, self.writer.max_bytes / 1e6, self.writer.frames_written,
+                    )  # fmt: skip
             except RecordingError as exc:
                 self.error = exc
                 _logger.error("%s", exc)
 
-    def close(self) -> None:
-        """Write what is queued, stop the thread, close the files; raises the writer's error if any."""
-        self.queue.put(None)
-        self._thread.join()
-        self.writer.close()
+    def close(self, timeout_s: float | None = None) -> None:
+        """Write what is queued, stop the thread, close the files; raises the writer's error if any.
+        With ``timeout_s``, a writer still busy after that long (a disk that hangs) is abandoned: what
+        it wrote stays readable (the index is flushed line by line), and RecordingError says so."""
+        try:
+            self.queue.put(None, timeout=timeout_s)
+        except queue.Full:
+            pass
+        self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            raise RecordingError(f"{self.writer.directory}: the writer did not finish in {timeout_s:g} s (abandoned)")
+        try:
+            self.writer.close()
+        except RecordingError as exc:
+            self.error = self.error or exc
         if self.error is not None:
             raise self.error
 

@@ -247,20 +247,23 @@ def rendered_detector(context: SimContext, world: WorldConfig, sensor: SensorCon
     return detect
 
 
-def _render_frames(args: tuple[str, Path, int, int, Path, int, int]) -> None:
+def _render_frames(args: tuple[str, Path, int, int, Path, int, int, int]) -> None:
     from atlas_onboard.sim import scenarios
 
-    scenario, world_file, sensor_id, seed, path, start, stop = args
+    scenario, world_file, sensor_id, seed, path, start, stop, first = args
     world = load_world(world_file)
     renderer = FrameRenderer(scenarios.get(scenario), world, world.sensors[sensor_id], seed)
     frames = np.load(path, mmap_mode="r+")
     for j in range(start, stop):
-        frames[j] = renderer(j)
+        frames[j] = renderer(first + j)
     frames.flush()
 
 
-def prerender(scenario: Scenario, world_file: Path, run_seed: int, duration_s: float, directory: Path) -> int:
-    """Render every frame of the run's cameras before it starts, on all cores, into ``directory``.
+def prerender(
+    scenario: Scenario, world_file: Path, run_seed: int, duration_s: float, directory: Path, start_s: float = 0.0
+) -> int:
+    """Render every frame of the run's cameras before it starts, on all cores, into ``directory``
+    (the frames from ``start_s`` into the scenario: frame j is the camera's frame at ``start_s + j / fps``).
 
     A real drone's camera delivers its images for free; rendering them while the run goes would
     charge the node's processor for work the drone never does, and on a small machine make the
@@ -281,8 +284,10 @@ def prerender(scenario: Scenario, world_file: Path, run_seed: int, duration_s: f
         workers = os.cpu_count() or 1
         bounds = np.linspace(0, n, workers + 1).astype(int)
         seed = camera_seed(run_seed, sensor_id)
+        first = round(start_s * fps)
         jobs += [
-            (scenario.name, world_file, sensor_id, seed, path, int(a), int(b)) for a, b in itertools.pairwise(bounds)
+            (scenario.name, world_file, sensor_id, seed, path, int(a), int(b), first)
+            for a, b in itertools.pairwise(bounds)
         ]
         total += n
     if not jobs:

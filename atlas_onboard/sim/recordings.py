@@ -44,10 +44,13 @@ def record(
     seed: int,
     out_dir: Path,
     detect: bool = True,
+    start_s: float = 0.0,
 ) -> dict[int, Path]:
-    """Render the scenario's cameras as the world ``doc`` has it and write one recording per sensor."""
+    """Render the scenario's cameras as the world ``doc`` has it and write one recording per sensor:
+    ``duration_s`` from ``start_s`` into the scenario, each frame stamped with its scenario time (us)."""
     scenario = scenarios.get(scenario_name)
-    done = {sid: out_dir / f"rec-{scenario.world().sensors[sid].entity}-s{seed}" for sid in sensor_ids}
+    at = f"-from{start_s:g}s" if start_s else ""  # a recording of another stretch is another recording
+    done = {sid: out_dir / f"rec-{scenario.world().sensors[sid].entity}-s{seed}{at}" for sid in sensor_ids}
     if all((p / "index.jsonl").is_file() for p in done.values()):
         return done  # recorded by an earlier run (--keep)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -57,7 +60,7 @@ def record(
     sim = SimWorld(scenario, world)
     paths = {}
     with tempfile.TemporaryDirectory(prefix="atlas-mapsim-") as tmp:
-        prerender(scenario, world_file, seed, duration_s, Path(tmp))
+        prerender(scenario, world_file, seed, duration_s, Path(tmp), start_s)
         for sid in sensor_ids:
             sensor, intr = sim.cameras[sid]
             cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.array(intr.distortion))
@@ -70,7 +73,7 @@ def record(
                 from atlas_onboard.detector.pipeline import Detector
 
                 det = Detector(sensor, world, cal, decimate=2.0)
-            rec = out_dir / f"rec-{sensor.entity}-s{seed}"
+            rec = done[sid]
             writer = RecordingWriter(
                 rec,
                 cal,
@@ -81,8 +84,9 @@ def record(
                 q_body_camera_wxyz=(q[3], q[0], q[1], q[2]),
             )
             n = int(duration_s * fps)
+            first = round(start_s * fps)
             for j in range(n):
-                t = j / fps
+                t = (first + j) / fps
                 stamp = round(t * 1e6)
                 gray = np.array(frames[j])
                 x, y, z, w = sim.truth(t, {sensor.entity})[sensor.entity].rotation.as_quat()
