@@ -20,6 +20,7 @@ import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
@@ -47,10 +48,14 @@ SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolu
 ROI_MARGIN = 0.4  # a region is the marker's predicted box grown by this fraction of its size on each side
 MAX_REGION_DECIMATE = 3.0  # the hunt's decimation and the largest of a tracked marker's region
 TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (columns, rows)
+CANDIDATE_AREA = 0.06  # the most of the image searched each frame at full resolution around strong contrast
+CELL_PX = 8  # contrast is measured in cells of this many pixels
+CONTRAST_SHARE = 0.5  # a cell is a candidate when its contrast is at least this share of the frame's strongest
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
 BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
 STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagreeing markers
 LOG_INTERVAL_US = 5_000_000
+MIN_CONTRAST = 20  # grey levels: a cell with less is not a marker's black and white (refine.MIN_CONTRAST)
 
 
 @dataclass(frozen=True)
@@ -131,14 +136,16 @@ class Detector:
     def find(self, gray: NDArray[np.uint8]) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.
 
-        Every frame, the regions where the markers of the previous frame are predicted to be (moved on
-        by their last motion in the image) are searched, at a
-        decimation that keeps the marker at least 1.5 ``SMALL_SIDE_PX`` wide (the library fits the
-        edges at full resolution whatever the decimation). When nothing is tracked (hunting), every
-        frame searches the whole image at ``MAX_REGION_DECIMATE`` (large markers) and the next tile of
-        a ``TILES`` grid at full resolution (small ones, found within a grid's worth of frames); while
-        tracking, the whole image is searched at ``decimate`` every ``SCAN_EVERY`` frames (and when
-        every tracked marker is lost), and a tile every other frame.
+        Every frame: the regions where the markers of the previous frame are predicted to be (moved on
+        by their last motion in the image) are searched at a decimation that keeps each marker at least
+        1.5 ``SMALL_SIDE_PX`` wide (the library fits the edges at full resolution whatever the
+        decimation); then the regions of strong black-white contrast outside them
+        (:func:`_contrast_regions`: printed markers are among the strongest in a frame, and the library
+        spends most of its time on the texture elsewhere), at full resolution, at most
+        ``CANDIDATE_AREA`` of the image; then the next tile of a ``TILES`` grid at full resolution
+        (every frame while hunting, every other frame while tracking), so that a marker of weak contrast
+        is found within a grid's worth of frames. The whole image is searched at ``MAX_REGION_DECIMATE``
+        (large markers, whatever their contrast) every ``SCAN_EVERY`` frames.
         """
         if not self.track or self.decimate <= 1.0:
             return self.finder.find(gray, 1.0)
@@ -146,22 +153,23 @@ class Detector:
         found: dict[int, Detection] = {}
         hunting = not self._last
         k = self._frame
-        if hunting:
-            decimate, tile = MAX_REGION_DECIMATE, True
-        else:
-            self._roi_search(gray, self._last, found)
-            decimate = self.decimate if k % SCAN_EVERY == 0 or not found else 0.0
-            tile = k % 2 == 1
-        if decimate:
+        searched: list[NDArray[np.float64]] = []
+        if not hunting:
+            searched = self._roi_search(gray, self._last, found)
+        if k % SCAN_EVERY == 0 or (hunting and k % 2 == 0):
             new = []
-            for d in self.finder.find(gray, decimate):
+            for d in self.finder.find(gray, MAX_REGION_DECIMATE):
                 if d.marker_id not in found:
                     found[d.marker_id] = d
                     new.append(_box(d.corners_px))  # found again at the region's own decimation
-            self._roi_search(gray, new, found)
-            self.counters["hunts" if hunting else "scans"] += 1
-        if tile:
+            searched += self._roi_search(gray, new, found)
+            self.counters["scans"] += 1
+        regions = _contrast_regions(gray, searched, CANDIDATE_AREA * w * h)
+        self._roi_search(gray, regions, found, only_new=True)
+        self.counters["candidate_regions"] += len(regions)
+        if k % SCAN_EVERY == SCAN_EVERY // 2 or (hunting and k % 2 == 1):
             self._roi_search(gray, [self._next_tile(w, h)], found, only_new=True)
+        self.counters["hunts" if hunting else "tracked_frames"] += 1
         self._frame += 1
         # Where each marker will be: moved on by its last motion in the image (constant velocity).
         previous = self._corners
@@ -215,10 +223,12 @@ class Detector:
         boxes: list[NDArray[np.float64]],
         found: dict[int, Detection],
         only_new: bool = False,
-    ) -> None:
-        """Search each region (boxes (x0, y0, x1, y1[, decimate]), merged where they overlap)."""
+    ) -> list[NDArray[np.float64]]:
+        """Search each region (boxes (x0, y0, x1, y1[, decimate]), merged where they overlap); the
+        regions searched (x0, y0, x1, y1, decimate), clipped to the image."""
         h, w = gray.shape[:2]
-        for x0, y0, x1, y1, decimate in _merge(boxes, w, h):
+        regions = _merge(boxes, w, h)
+        for x0, y0, x1, y1, decimate in regions:
             shifted = []
             for d in self.finder.find(np.ascontiguousarray(gray[y0:y1, x0:x1]), decimate):
                 if only_new and d.marker_id in found:
@@ -228,6 +238,7 @@ class Detector:
             for d in self._checked(shifted, gray.shape, (x0, y0, x1, y1)):
                 found[d.marker_id] = d
                 self.counters["roi_finds"] += 1
+        return [np.array(r, float) for r in regions]
 
     def detect(self, gray: NDArray[np.uint8], capture_time_us: int) -> list[MarkerData]:
         """MarkerData of the configured markers in ``gray``.
@@ -479,8 +490,58 @@ def _box(c: NDArray[np.float64]) -> NDArray[np.float64]:
     (at most ``MAX_REGION_DECIMATE``)."""
     lo, hi = c.min(axis=0), c.max(axis=0)
     grow = (hi - lo) * ROI_MARGIN + 8
-    decimate = float(min(max(math.floor(_side(c) / (1.5 * SMALL_SIDE_PX)), 1), MAX_REGION_DECIMATE))
+    decimate = float(min(max(math.floor(_side(c) / SMALL_SIDE_PX), 1), MAX_REGION_DECIMATE))
     return np.concatenate([lo - grow, hi + grow, [decimate]])
+
+
+def _contrast_regions(
+    gray: NDArray[np.uint8], searched: list[NDArray[np.float64]], budget_px: float
+) -> list[NDArray[np.float64]]:
+    """Regions (x0, y0, x1, y1, 1) of the strongest black-white contrast outside ``searched``, the
+    strongest first, at most ``budget_px`` pixels in all.
+
+    The image is cut into cells of ``CELL_PX``; a cell's contrast is its brightest minus its darkest
+    pixel (after a 2x2 average, so that one noisy pixel does not count). A printed marker (black ink on
+    white paper) has about the strongest contrast of a frame in every cell of its outline; cells of at
+    least ``CONTRAST_SHARE`` of the strongest, with their neighbours, are joined into regions.
+    """
+    h, w = gray.shape[:2]
+    cell = CELL_PX // 2
+    small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+    kernel = np.ones((cell, cell), np.uint8)
+    top = cv2.dilate(small, kernel, anchor=(0, 0))[::cell, ::cell]
+    bottom = cv2.erode(small, kernel, anchor=(0, 0))[::cell, ::cell]
+    contrast = cv2.subtract(top, bottom)
+    for x0, y0, x1, y1, *_ in searched:  # already searched: their cells are not candidates
+        contrast[int(y0) // CELL_PX : -(-int(y1) // CELL_PX), int(x0) // CELL_PX : -(-int(x1) // CELL_PX)] = 0
+    strongest = int(contrast.max())
+    if strongest < MIN_CONTRAST:
+        return []
+    mask = (contrast >= max(CONTRAST_SHARE * strongest, MIN_CONTRAST)).astype(np.uint8)
+    mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    peaks = []
+    for i in range(1, n):
+        x, y, bw, bh = stats[i, :4]
+        inside = labels[y : y + bh, x : x + bw] == i
+        peaks.append((-int(contrast[y : y + bh, x : x + bw][inside].max()), i))
+    out = []
+    m = BORDER_MARGIN_PX
+    for _, i in sorted(peaks):
+        x, y, bw, bh = (int(v) * CELL_PX for v in stats[i, :4])
+        # A wide region holds large markers (or clutter): searched decimated, as a tracked one would be.
+        side = min(bw, bh) - 2 * CELL_PX  # the largest marker it can hold
+        decimate = float(min(max(side // SMALL_SIDE_PX, 1), MAX_REGION_DECIMATE))
+        cost = (bw + 2 * m) * (bh + 2 * m) / decimate**2
+        if cost > budget_px:
+            continue
+        budget_px -= cost
+        out.append(np.array([x - m, y - m, x + bw + m, y + bh + m, decimate]))
+    return out
+
+
+def _area(r: list[float]) -> float:
+    return (r[2] - r[0]) * (r[3] - r[1])
 
 
 def _merge(boxes: list[NDArray[np.float64]], w: int, h: int) -> list[tuple[int, int, int, int, float]]:
@@ -494,7 +555,10 @@ def _merge(boxes: list[NDArray[np.float64]], w: int, h: int) -> list[tuple[int, 
     merged: list[list[float]] = []
     for r in sorted(rects):
         for m in merged:
-            if r[0] <= m[2] and r[2] >= m[0] and r[1] <= m[3] and r[3] >= m[1]:
+            union = (max(m[2], r[2]) - min(m[0], r[0])) * (max(m[3], r[3]) - min(m[1], r[1]))
+            # Overlapping boxes are searched as one where that is cheaper than searching both (each
+            # holds its own marker whole).
+            if r[0] <= m[2] and r[2] >= m[0] and r[1] <= m[3] and r[3] >= m[1] and union <= _area(r) + _area(m):
                 m[:] = [min(m[0], r[0]), min(m[1], r[1]), max(m[2], r[2]), max(m[3], r[3]), min(m[4], r[4])]
                 break
         else:
