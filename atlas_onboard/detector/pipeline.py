@@ -49,6 +49,7 @@ ROI_MARGIN = 0.4  # a region is the marker's predicted box grown by this fractio
 MAX_REGION_DECIMATE = 3.0  # the hunt's decimation and the largest of a tracked marker's region
 TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (columns, rows)
 CANDIDATE_AREA = 0.06  # the most of the image searched each frame at full resolution around strong contrast
+QUIET_FRAMES = 4  # a candidate region in which nothing was found is not searched again for this many frames
 CELL_PX = 8  # contrast is measured in cells of this many pixels
 CONTRAST_SHARE = 0.5  # a cell is a candidate when its contrast is at least this share of the frame's strongest
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
@@ -127,6 +128,7 @@ class Detector:
         # node do not all search at once (their frames come at the same instants).
         self._frame = self.sensor.id % SCAN_EVERY
         self._tile = self.sensor.id % (TILES[0] * TILES[1])
+        self._quiet_until = np.zeros((0, 0), np.int64)  # per cell: the frame until which it is not a candidate
         self.report = FrameReport()
         self.disagreements: Counter[int] = Counter()  # marker id -> images in which it disagreed
         self._status: deque[str] = deque()
@@ -164,9 +166,21 @@ class Detector:
                     new.append(_box(d.corners_px))  # found again at the region's own decimation
             searched += self._roi_search(gray, new, found)
             self.counters["scans"] += 1
-        regions = _contrast_regions(gray, searched, CANDIDATE_AREA * w * h)
-        self._roi_search(gray, regions, found, only_new=True)
-        self.counters["candidate_regions"] += len(regions)
+        cells = (-(-h // CELL_PX), -(-w // CELL_PX))
+        if self._quiet_until.shape != cells:
+            self._quiet_until = np.zeros(cells, np.int64)
+            self._quiet_level = np.zeros(cells, np.uint8)
+        contrast = _cell_contrast(gray)
+        # Texture searched lately is not searched again unless its contrast rose (a marker came in).
+        quiet = (self._quiet_until > k) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
+        for region in _contrast_regions(contrast, searched, CANDIDATE_AREA * w * h, quiet):
+            before = len(found)
+            self._roi_search(gray, [region], found, only_new=True)
+            self.counters["candidate_regions"] += 1
+            if len(found) == before:
+                x0, y0, x1, y1 = (max(int(v), 0) // CELL_PX for v in region[:4])
+                self._quiet_until[y0 : y1 + 1, x0 : x1 + 1] = k + QUIET_FRAMES
+                self._quiet_level[y0 : y1 + 1, x0 : x1 + 1] = contrast[y0 : y1 + 1, x0 : x1 + 1]
         if k % SCAN_EVERY == SCAN_EVERY // 2 or (hunting and k % 2 == 1):
             self._roi_search(gray, [self._next_tile(w, h)], found, only_new=True)
         self.counters["hunts" if hunting else "tracked_frames"] += 1
@@ -494,8 +508,23 @@ def _box(c: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.concatenate([lo - grow, hi + grow, [decimate]])
 
 
+def _cell_contrast(gray: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """Each ``CELL_PX`` cell's brightest minus darkest pixel (after a 2x2 average, so that one noisy pixel
+    does not count), shape (ceil(h / CELL_PX), ceil(w / CELL_PX))."""
+    h, w = gray.shape[:2]
+    cell = CELL_PX // 2
+    small = cv2.resize(gray, (-(-w // 2), -(-h // 2)), interpolation=cv2.INTER_AREA)
+    kernel = np.ones((cell, cell), np.uint8)
+    top = cv2.dilate(small, kernel, anchor=(0, 0))[::cell, ::cell]
+    bottom = cv2.erode(small, kernel, anchor=(0, 0))[::cell, ::cell]
+    return cv2.subtract(top, bottom)
+
+
 def _contrast_regions(
-    gray: NDArray[np.uint8], searched: list[NDArray[np.float64]], budget_px: float
+    contrast: NDArray[np.uint8],
+    searched: list[NDArray[np.float64]],
+    budget_px: float,
+    quiet: NDArray[np.bool_] | None = None,
 ) -> list[NDArray[np.float64]]:
     """Regions (x0, y0, x1, y1, 1) of the strongest black-white contrast outside ``searched``, the
     strongest first, at most ``budget_px`` pixels in all.
@@ -505,15 +534,12 @@ def _contrast_regions(
     white paper) has about the strongest contrast of a frame in every cell of its outline; cells of at
     least ``CONTRAST_SHARE`` of the strongest, with their neighbours, are joined into regions.
     """
-    h, w = gray.shape[:2]
-    cell = CELL_PX // 2
-    small = cv2.resize(gray, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
-    kernel = np.ones((cell, cell), np.uint8)
-    top = cv2.dilate(small, kernel, anchor=(0, 0))[::cell, ::cell]
-    bottom = cv2.erode(small, kernel, anchor=(0, 0))[::cell, ::cell]
-    contrast = cv2.subtract(top, bottom)
+    contrast = contrast.copy()
     for x0, y0, x1, y1, *_ in searched:  # already searched: their cells are not candidates
-        contrast[int(y0) // CELL_PX : -(-int(y1) // CELL_PX), int(x0) // CELL_PX : -(-int(x1) // CELL_PX)] = 0
+        x0, y0 = max(int(x0), 0) // CELL_PX, max(int(y0), 0) // CELL_PX
+        contrast[y0 : -(-int(y1) // CELL_PX), x0 : -(-int(x1) // CELL_PX)] = 0
+    if quiet is not None:  # searched lately and found to be texture
+        contrast[quiet] = 0
     strongest = int(contrast.max())
     if strongest < MIN_CONTRAST:
         return []
