@@ -155,16 +155,15 @@ class Detector:
         found: dict[int, Detection] = {}
         hunting = not self._last
         k = self._frame
-        searched: list[NDArray[np.float64]] = []
         if not hunting:
-            searched = self._roi_search(gray, self._last, found)
+            self._roi_search(gray, self._last, found)
         if k % SCAN_EVERY == 0 or (hunting and k % 2 == 0):
             new = []
             for d in self.finder.find(gray, MAX_REGION_DECIMATE):
                 if d.marker_id not in found:
                     found[d.marker_id] = d
                     new.append(_box(d.corners_px))  # found again at the region's own decimation
-            searched += self._roi_search(gray, new, found)
+            self._roi_search(gray, new, found)
             self.counters["scans"] += 1
         cells = (-(-h // CELL_PX), -(-w // CELL_PX))
         if self._quiet_until.shape != cells:
@@ -173,7 +172,8 @@ class Detector:
         contrast = _cell_contrast(gray)
         # Texture searched lately is not searched again unless its contrast rose (a marker came in).
         quiet = (self._quiet_until > k) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
-        for region in _contrast_regions(contrast, searched, CANDIDATE_AREA * w * h, quiet):
+        taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
+        for region in _contrast_regions(contrast, taken, CANDIDATE_AREA * w * h, quiet):
             before = len(found)
             self._roi_search(gray, [region], found, only_new=True)
             self.counters["candidate_regions"] += 1
@@ -237,12 +237,10 @@ class Detector:
         boxes: list[NDArray[np.float64]],
         found: dict[int, Detection],
         only_new: bool = False,
-    ) -> list[NDArray[np.float64]]:
-        """Search each region (boxes (x0, y0, x1, y1[, decimate]), merged where they overlap); the
-        regions searched (x0, y0, x1, y1, decimate), clipped to the image."""
+    ) -> None:
+        """Search each region (boxes (x0, y0, x1, y1[, decimate]), merged where they overlap)."""
         h, w = gray.shape[:2]
-        regions = _merge(boxes, w, h)
-        for x0, y0, x1, y1, decimate in regions:
+        for x0, y0, x1, y1, decimate in _merge(boxes, w, h):
             shifted = []
             for d in self.finder.find(np.ascontiguousarray(gray[y0:y1, x0:x1]), decimate):
                 if only_new and d.marker_id in found:
@@ -252,7 +250,6 @@ class Detector:
             for d in self._checked(shifted, gray.shape, (x0, y0, x1, y1)):
                 found[d.marker_id] = d
                 self.counters["roi_finds"] += 1
-        return [np.array(r, float) for r in regions]
 
     def detect(self, gray: NDArray[np.uint8], capture_time_us: int) -> list[MarkerData]:
         """MarkerData of the configured markers in ``gray``.
@@ -522,27 +519,28 @@ def _cell_contrast(gray: NDArray[np.uint8]) -> NDArray[np.uint8]:
 
 def _contrast_regions(
     contrast: NDArray[np.uint8],
-    searched: list[NDArray[np.float64]],
+    taken: list[NDArray[np.float64]],
     budget_px: float,
     quiet: NDArray[np.bool_] | None = None,
 ) -> list[NDArray[np.float64]]:
-    """Regions (x0, y0, x1, y1, 1) of the strongest black-white contrast outside ``searched``, the
-    strongest first, at most ``budget_px`` pixels in all.
+    """Regions (x0, y0, x1, y1, decimate) of the strongest black-white contrast outside the boxes
+    ``taken`` (x0, y0, x1, y1: the markers found already) and the ``quiet`` cells, the strongest first,
+    at most ``budget_px`` pixels (divided by the decimation squared) in all.
 
     The image is cut into cells of ``CELL_PX``; a cell's contrast is its brightest minus its darkest
     pixel (after a 2x2 average, so that one noisy pixel does not count). A printed marker (black ink on
     white paper) has about the strongest contrast of a frame in every cell of its outline; cells of at
     least ``CONTRAST_SHARE`` of the strongest, with their neighbours, are joined into regions.
     """
+    strongest = int(contrast.max())  # markers found included: a new one should come near them
+    if strongest < MIN_CONTRAST:
+        return []
     contrast = contrast.copy()
-    for x0, y0, x1, y1, *_ in searched:  # already searched: their cells are not candidates
+    for x0, y0, x1, y1, *_ in taken:  # markers found: their cells are not candidates
         x0, y0 = max(int(x0), 0) // CELL_PX, max(int(y0), 0) // CELL_PX
         contrast[y0 : -(-int(y1) // CELL_PX), x0 : -(-int(x1) // CELL_PX)] = 0
     if quiet is not None:  # searched lately and found to be texture
         contrast[quiet] = 0
-    strongest = int(contrast.max())
-    if strongest < MIN_CONTRAST:
-        return []
     mask = (contrast >= max(CONTRAST_SHARE * strongest, MIN_CONTRAST)).astype(np.uint8)
     mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
