@@ -135,8 +135,13 @@ class Detector:
         self._last_status_us: int | None = None
         self._last_log_us: int | None = None
 
-    def find(self, gray: NDArray[np.uint8]) -> list[Detection]:
+    def find(self, gray: NDArray[np.uint8], R_prev_now: Rotation | None = None) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.
+
+        ``R_prev_now``: the camera's rotation since the previous frame (maps directions in the camera
+        frame now into the camera frame then, OpenCV axes), e.g. from the autopilot's attitude; given,
+        the previous markers are predicted where that rotation moves them instead of by their last
+        image motion (a fast turn moves a marker far more than its past motion says).
 
         Every frame: the regions where the markers of the previous frame are predicted to be (moved on
         by their last motion in the image) are searched at a decimation that keeps each marker at least
@@ -153,6 +158,8 @@ class Detector:
             return self.finder.find(gray, 1.0)
         h, w = gray.shape[:2]
         found: dict[int, Detection] = {}
+        if R_prev_now is not None and self._corners:
+            self._last = [_box(self._rotated(c, R_prev_now)) for c in self._corners.values()]
         hunting = not self._last
         k = self._frame
         if not hunting:
@@ -190,6 +197,23 @@ class Detector:
         self._corners = {i: d.corners_px for i, d in found.items()}
         self._last = [_box(2 * c - previous[i] if i in previous else c) for i, c in self._corners.items()]
         return list(found.values())
+
+    def _rotated(self, corners_px: NDArray[np.float64], R_prev_now: Rotation) -> NDArray[np.float64]:
+        """Where corners (N, 2) of the previous image are seen now after the camera turned by
+        ``R_prev_now`` (far points: a turn moves them alike whatever their depth)."""
+        cal = self.calibration
+        ideal = pose.undistort(corners_px, cal.K, cal.dist, cal.fisheye)
+        rays_prev = np.column_stack([ideal, np.ones(len(ideal))]) @ np.linalg.inv(cal.K).T
+        rays_now = R_prev_now.inv().apply(rays_prev)
+        if np.any(rays_now[:, 2] <= 1e-3):  # turned out of view: nothing to predict from
+            return corners_px
+        pts = rays_now.reshape(-1, 1, 3)
+        zero = np.zeros(3)
+        if cal.fisheye:
+            out, _ = cv2.fisheye.projectPoints(pts, zero, zero, cal.K, cal.dist)
+        else:
+            out, _ = cv2.projectPoints(pts, zero, zero, cal.K, cal.dist)
+        return out.reshape(-1, 2)
 
     @property
     def tracking(self) -> bool:
@@ -251,8 +275,10 @@ class Detector:
                 found[d.marker_id] = d
                 self.counters["roi_finds"] += 1
 
-    def detect(self, gray: NDArray[np.uint8], capture_time_us: int) -> list[MarkerData]:
-        """MarkerData of the configured markers in ``gray``.
+    def detect(
+        self, gray: NDArray[np.uint8], capture_time_us: int, R_prev_now: Rotation | None = None
+    ) -> list[MarkerData]:
+        """MarkerData of the configured markers in ``gray`` (``R_prev_now``: see :meth:`find`).
 
         With ``joint`` (the default), the markers of one entity seen together are solved as one
         rigid pattern (every corner at once, far better conditioned than any single square) and
@@ -265,7 +291,7 @@ class Detector:
         cal = self.calibration
         K = cal.K
         singles: dict[int, _Single] = {}
-        for d in self.find(gray):
+        for d in self.find(gray, R_prev_now):
             self.report.found.append(d.marker_id)
             if _at_border(d.corners_px, w, h):
                 # A marker cut by the border, or one whose corner is extrapolated or nearly outside: its
