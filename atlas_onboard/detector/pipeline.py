@@ -1,10 +1,12 @@
 """Frame in, MarkerData out: find the configured markers, undistort their corners, solve their poses.
 
-Speed beyond the library: with nothing tracked, each frame searches the whole image at decimate 3 (nine
-times fewer pixels) and one tile of a grid at full resolution (a different tile each time, so small
-markers are found within a grid's worth of frames); the regions where markers were last seen are
-searched every frame, at a decimation that keeps each marker wide enough, and the whole image and the
-tiles now and then: the recall of decimate 1 after a few frames, at a fraction of its cost.
+Speed beyond the library: on a textured floor the library spends most of its time on the texture. Each
+frame searches the regions where the markers of the previous frame are predicted to be (at a decimation
+that keeps each marker wide enough), then the regions of strong black-white contrast elsewhere at full
+resolution (printed markers are among the strongest contrast of a frame; texture searched in vain is left
+alone for a few frames unless its contrast rises), within a budget of pixels; a whole-image search at
+decimate 3 and one tile of a full-resolution grid take turns, every frame while hunting and now and then
+while tracking, for markers of weak contrast: the recall of decimate 1, at a fraction of its cost.
 
 Trust: a marker whose corners touch the image border (or the border of the region it was found in) is
 dropped (counted by reason), since its edges cannot be fitted; the corners of the others are refitted
@@ -109,7 +111,7 @@ class Detector:
     sensor: SensorConfig
     world: WorldConfig
     calibration: Calibration
-    decimate: float = 2.0
+    decimate: float = 2.0  # 1: every frame searched whole at full resolution (no tracking)
     track: bool = True
     max_ambiguity: float = MAX_AMBIGUITY
     joint: bool = True
@@ -145,14 +147,15 @@ class Detector:
 
         Every frame: the regions where the markers of the previous frame are predicted to be (moved on
         by their last motion in the image) are searched at a decimation that keeps each marker at least
-        1.5 ``SMALL_SIDE_PX`` wide (the library fits the edges at full resolution whatever the
-        decimation); then the regions of strong black-white contrast outside them
+        ``SMALL_SIDE_PX`` wide (the library fits the edges at full resolution whatever the decimation);
+        then the regions of strong black-white contrast outside the markers found
         (:func:`_contrast_regions`: printed markers are among the strongest in a frame, and the library
-        spends most of its time on the texture elsewhere), at full resolution, at most
-        ``CANDIDATE_AREA`` of the image; then the next tile of a ``TILES`` grid at full resolution
-        (every frame while hunting, every other frame while tracking), so that a marker of weak contrast
-        is found within a grid's worth of frames. The whole image is searched at ``MAX_REGION_DECIMATE``
-        (large markers, whatever their contrast) every ``SCAN_EVERY`` frames.
+        spends most of its time on the texture elsewhere), at most ``CANDIDATE_AREA`` of the image's
+        pixels (divided by each region's decimation squared). For markers of weak contrast, a search of
+        the whole image at ``MAX_REGION_DECIMATE`` (large markers) and of the next tile of a ``TILES``
+        grid at full resolution (small ones) take turns: every frame while hunting, each once every
+        ``SCAN_EVERY`` frames while tracking. Without ``track`` (or with ``decimate`` 1), the whole
+        image at full resolution.
         """
         if not self.track or self.decimate <= 1.0:
             return self.finder.find(gray, 1.0)
