@@ -3,10 +3,11 @@
 Speed beyond the library: on a textured floor the library spends most of its time on the texture. Each
 frame searches the regions where the markers of the previous frame are predicted to be (at a decimation
 that keeps each marker wide enough), then the regions of strong black-white contrast elsewhere at full
-resolution (printed markers are among the strongest contrast of a frame; texture searched in vain is left
-alone for a few frames unless its contrast rises), within a budget of pixels; a whole-image search at
-decimate 3 and one tile of a full-resolution grid take turns, every frame while hunting and now and then
-while tracking, for markers of weak contrast: the recall of decimate 1, at a fraction of its cost.
+resolution (cells whose darkest pixel is a small share of their brightest, as black ink beside white
+paper is in any light; texture searched in vain is left alone for a few frames unless its contrast rises),
+within a budget of pixels; for markers of weak contrast, a whole-image search at decimate 3 and one tile
+of a full-resolution grid, every (other) frame while hunting and now and then while tracking: the recall
+of decimate 1 at a fraction of its cost.
 
 Trust: a marker whose corners touch the image border (or the border of the region it was found in) is
 dropped (counted by reason), since its edges cannot be fitted; the corners of the others are refitted
@@ -53,7 +54,7 @@ TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (column
 CANDIDATE_AREA = 0.06  # the most of the image searched each frame at full resolution around strong contrast
 QUIET_FRAMES = 4  # a candidate region in which nothing was found is not searched again for this many frames
 CELL_PX = 8  # contrast is measured in cells of this many pixels
-CONTRAST_SHARE = 0.5  # a cell is a candidate when its contrast is at least this share of the frame's strongest
+MIN_RATIO = 0.6  # a candidate cell's contrast is at least this share of its brightest pixel (ink on paper)
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
 BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
 STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagreeing markers
@@ -149,13 +150,13 @@ class Detector:
         by their last motion in the image) are searched at a decimation that keeps each marker at least
         ``SMALL_SIDE_PX`` wide (the library fits the edges at full resolution whatever the decimation);
         then the regions of strong black-white contrast outside the markers found
-        (:func:`_contrast_regions`: printed markers are among the strongest in a frame, and the library
-        spends most of its time on the texture elsewhere), at most ``CANDIDATE_AREA`` of the image's
-        pixels (divided by each region's decimation squared). For markers of weak contrast, a search of
-        the whole image at ``MAX_REGION_DECIMATE`` (large markers) and of the next tile of a ``TILES``
-        grid at full resolution (small ones) take turns: every frame while hunting, each once every
-        ``SCAN_EVERY`` frames while tracking. Without ``track`` (or with ``decimate`` 1), the whole
-        image at full resolution.
+        (:func:`_contrast_regions`: black ink on white paper, and the library spends most of its time on
+        the texture elsewhere), at most ``CANDIDATE_AREA`` of the image's
+        pixels (divided by each region's decimation squared). For markers of weak contrast: the whole
+        image at ``MAX_REGION_DECIMATE`` (large markers), every frame while hunting and every
+        ``SCAN_EVERY`` frames while tracking, and the next tile of a ``TILES`` grid at full resolution
+        (small ones), every other frame while hunting and every ``SCAN_EVERY`` frames while tracking.
+        Without ``track`` (or with ``decimate`` 1), the whole image at full resolution.
         """
         if not self.track or self.decimate <= 1.0:
             return self.finder.find(gray, 1.0)
@@ -167,7 +168,7 @@ class Detector:
         k = self._frame
         if not hunting:
             self._roi_search(gray, self._last, found)
-        if k % SCAN_EVERY == 0 or (hunting and k % 2 == 0):
+        if hunting or k % SCAN_EVERY == 0:
             new = []
             for d in self.finder.find(gray, MAX_REGION_DECIMATE):
                 if d.marker_id not in found:
@@ -179,11 +180,11 @@ class Detector:
         if self._quiet_until.shape != cells:
             self._quiet_until = np.zeros(cells, np.int64)
             self._quiet_level = np.zeros(cells, np.uint8)
-        contrast = _cell_contrast(gray)
+        contrast, top = _cell_contrast(gray)
         # Texture searched lately is not searched again unless its contrast rose (a marker came in).
         quiet = (self._quiet_until > k) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
         taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
-        for region in _contrast_regions(contrast, taken, CANDIDATE_AREA * w * h, quiet):
+        for region in _contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet):
             before = len(found)
             self._roi_search(gray, [region], found, only_new=True)
             self.counters["candidate_regions"] += 1
@@ -534,20 +535,21 @@ def _box(c: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.concatenate([lo - grow, hi + grow, [decimate]])
 
 
-def _cell_contrast(gray: NDArray[np.uint8]) -> NDArray[np.uint8]:
-    """Each ``CELL_PX`` cell's brightest minus darkest pixel (after a 2x2 average, so that one noisy pixel
-    does not count), shape (ceil(h / CELL_PX), ceil(w / CELL_PX))."""
+def _cell_contrast(gray: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """Each ``CELL_PX`` cell's contrast (brightest minus darkest pixel) and brightest pixel, after a 2x2
+    average (so that one noisy pixel does not count); each of shape (ceil(h / CELL_PX), ceil(w / CELL_PX))."""
     h, w = gray.shape[:2]
     cell = CELL_PX // 2
     small = cv2.resize(gray, (-(-w // 2), -(-h // 2)), interpolation=cv2.INTER_AREA)
     kernel = np.ones((cell, cell), np.uint8)
     top = cv2.dilate(small, kernel, anchor=(0, 0))[::cell, ::cell]
     bottom = cv2.erode(small, kernel, anchor=(0, 0))[::cell, ::cell]
-    return cv2.subtract(top, bottom)
+    return cv2.subtract(top, bottom), top
 
 
 def _contrast_regions(
     contrast: NDArray[np.uint8],
+    top: NDArray[np.uint8],
     taken: list[NDArray[np.float64]],
     budget_px: float,
     quiet: NDArray[np.bool_] | None = None,
@@ -556,21 +558,18 @@ def _contrast_regions(
     ``taken`` (x0, y0, x1, y1: the markers found already) and the ``quiet`` cells, the strongest first,
     at most ``budget_px`` pixels (divided by the decimation squared) in all.
 
-    The image is cut into cells of ``CELL_PX``; a cell's contrast is its brightest minus its darkest
-    pixel (after a 2x2 average, so that one noisy pixel does not count). A printed marker (black ink on
-    white paper) has about the strongest contrast of a frame in every cell of its outline; cells of at
-    least ``CONTRAST_SHARE`` of the strongest, with their neighbours, are joined into regions.
+    ``contrast`` and ``top``: :func:`_cell_contrast`. Black ink reflects a tenth or less of what white
+    paper does, whatever the light: a printed marker's outline crosses cells whose darkest pixel is at
+    most ``1 - MIN_RATIO`` of their brightest; such cells (with at least ``MIN_CONTRAST``), with their
+    neighbours, are joined into regions, strongest contrast first.
     """
-    strongest = int(contrast.max())  # markers found included: a new one should come near them
-    if strongest < MIN_CONTRAST:
-        return []
-    contrast = contrast.copy()
+    contrast = np.where(contrast >= MIN_RATIO * np.maximum(top, 1), contrast, 0).astype(np.uint8)
     for x0, y0, x1, y1, *_ in taken:  # markers found: their cells are not candidates
         x0, y0 = max(int(x0), 0) // CELL_PX, max(int(y0), 0) // CELL_PX
         contrast[y0 : -(-int(y1) // CELL_PX), x0 : -(-int(x1) // CELL_PX)] = 0
     if quiet is not None:  # searched lately and found to be texture
         contrast[quiet] = 0
-    mask = (contrast >= max(CONTRAST_SHARE * strongest, MIN_CONTRAST)).astype(np.uint8)
+    mask = (contrast >= MIN_CONTRAST).astype(np.uint8)
     mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     peaks = []
