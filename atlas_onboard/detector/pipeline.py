@@ -1,10 +1,13 @@
 """Frame in, MarkerData out: find the configured markers, undistort their corners, solve their poses.
 
-Speed beyond the library: with nothing tracked, each frame searches the whole image at decimate 3 (nine
-times fewer pixels) and one tile of a grid at full resolution (a different tile each time, so small
-markers are found within a grid's worth of frames); the regions where markers were last seen are
-searched every frame, at a decimation that keeps each marker wide enough, and the whole image and the
-tiles now and then: the recall of decimate 1 after a few frames, at a fraction of its cost.
+Speed beyond the library: on a textured floor the library spends most of its time on the texture. Each
+frame searches the regions where the markers of the previous frame are predicted to be (at a decimation
+that keeps each marker wide enough), then the regions of strong black-white contrast elsewhere at full
+resolution (cells whose darkest pixel is a small share of their brightest, as black ink beside white
+paper is in any light; texture searched in vain is left alone for a few frames unless its contrast rises),
+within a budget of pixels; for markers of weak contrast, a whole-image search at decimate 3 and one tile
+of a full-resolution grid, every (other) frame while hunting and now and then while tracking: the recall
+of decimate 1 at a fraction of its cost.
 
 Trust: a marker whose corners touch the image border (or the border of the region it was found in) is
 dropped (counted by reason), since its edges cannot be fitted; the corners of the others are refitted
@@ -20,6 +23,7 @@ import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
@@ -48,10 +52,15 @@ SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolu
 ROI_MARGIN = 0.4  # a region is the marker's predicted box grown by this fraction of its size on each side
 MAX_REGION_DECIMATE = 3.0  # the hunt's decimation and the largest of a tracked marker's region
 TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (columns, rows)
+CANDIDATE_AREA = 0.06  # the most of the image searched each frame at full resolution around strong contrast
+QUIET_FRAMES = 4  # a candidate region in which nothing was found is not searched again for this many frames
+CELL_PX = 8  # contrast is measured in cells of this many pixels
+MIN_RATIO = 0.6  # a candidate cell's contrast is at least this share of its brightest pixel (ink on paper)
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
 BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
 STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagreeing markers
 LOG_INTERVAL_US = 5_000_000
+MIN_CONTRAST = 20  # grey levels: a cell with less is not a marker's black and white (refine.MIN_CONTRAST)
 
 
 @dataclass(frozen=True)
@@ -104,7 +113,7 @@ class Detector:
     sensor: SensorConfig
     world: WorldConfig
     calibration: Calibration
-    decimate: float = 2.0
+    decimate: float = 2.0  # 1: every frame searched whole at full resolution (no tracking)
     track: bool = True
     max_ambiguity: float = MAX_AMBIGUITY
     joint: bool = True
@@ -123,6 +132,7 @@ class Detector:
         # node do not all search at once (their frames come at the same instants).
         self._frame = self.sensor.id % SCAN_EVERY
         self._tile = self.sensor.id % (TILES[0] * TILES[1])
+        self._quiet_until = np.zeros((0, 0), np.int64)  # per cell: the frame until which it is not a candidate
         self.report = FrameReport()
         self.disagreements: Counter[int] = Counter()  # marker id -> images in which it disagreed
         self._status: deque[str] = deque()
@@ -135,46 +145,86 @@ class Detector:
         self._moved_status_us: int | None = None
         self.moved: dict[tuple[str, int], MovedMarker] = {}  # reported so far, the latest verdict of each
 
-    def find(self, gray: NDArray[np.uint8]) -> list[Detection]:
+    def find(self, gray: NDArray[np.uint8], R_prev_now: Rotation | None = None) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.
 
-        Every frame, the regions where the markers of the previous frame are predicted to be (moved on
-        by their last motion in the image) are searched, at a
-        decimation that keeps the marker at least 1.5 ``SMALL_SIDE_PX`` wide (the library fits the
-        edges at full resolution whatever the decimation). When nothing is tracked (hunting), every
-        frame searches the whole image at ``MAX_REGION_DECIMATE`` (large markers) and the next tile of
-        a ``TILES`` grid at full resolution (small ones, found within a grid's worth of frames); while
-        tracking, the whole image is searched at ``decimate`` every ``SCAN_EVERY`` frames (and when
-        every tracked marker is lost), and a tile every other frame.
+        ``R_prev_now``: the camera's rotation since the previous frame (maps directions in the camera
+        frame now into the camera frame then, OpenCV axes), e.g. from the autopilot's attitude; given,
+        the previous markers are predicted where that rotation moves them instead of by their last
+        image motion (a fast turn moves a marker far more than its past motion says).
+
+        Every frame: the regions where the markers of the previous frame are predicted to be (moved on
+        by their last motion in the image) are searched at a decimation that keeps each marker at least
+        ``SMALL_SIDE_PX`` wide (the library fits the edges at full resolution whatever the decimation);
+        then the regions of strong black-white contrast outside the markers found
+        (:func:`_contrast_regions`: black ink on white paper, and the library spends most of its time on
+        the texture elsewhere), at most ``CANDIDATE_AREA`` of the image's
+        pixels (divided by each region's decimation squared). For markers of weak contrast: the whole
+        image at ``MAX_REGION_DECIMATE`` (large markers), every frame while hunting and every
+        ``SCAN_EVERY`` frames while tracking, and the next tile of a ``TILES`` grid at full resolution
+        (small ones), every other frame while hunting and every ``SCAN_EVERY`` frames while tracking.
+        Without ``track`` (or with ``decimate`` 1), the whole image at full resolution.
         """
         if not self.track or self.decimate <= 1.0:
             return self.finder.find(gray, 1.0)
         h, w = gray.shape[:2]
         found: dict[int, Detection] = {}
+        if R_prev_now is not None and self._corners:
+            self._last = [_box(self._rotated(c, R_prev_now)) for c in self._corners.values()]
         hunting = not self._last
         k = self._frame
-        if hunting:
-            decimate, tile = MAX_REGION_DECIMATE, True
-        else:
+        if not hunting:
             self._roi_search(gray, self._last, found)
-            decimate = self.decimate if k % SCAN_EVERY == 0 or not found else 0.0
-            tile = k % 2 == 1
-        if decimate:
+        if hunting or k % SCAN_EVERY == 0:
             new = []
-            for d in self.finder.find(gray, decimate):
+            for d in self.finder.find(gray, MAX_REGION_DECIMATE):
                 if d.marker_id not in found:
                     found[d.marker_id] = d
                     new.append(_box(d.corners_px))  # found again at the region's own decimation
             self._roi_search(gray, new, found)
-            self.counters["hunts" if hunting else "scans"] += 1
-        if tile:
+            self.counters["scans"] += 1
+        cells = (-(-h // CELL_PX), -(-w // CELL_PX))
+        if self._quiet_until.shape != cells:
+            self._quiet_until = np.zeros(cells, np.int64)
+            self._quiet_level = np.zeros(cells, np.uint8)
+        contrast, top = _cell_contrast(gray)
+        # Texture searched lately is not searched again unless its contrast rose (a marker came in).
+        quiet = (self._quiet_until > k) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
+        taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
+        for region in _contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet):
+            before = len(found)
+            self._roi_search(gray, [region], found, only_new=True)
+            self.counters["candidate_regions"] += 1
+            if len(found) == before:
+                x0, y0, x1, y1 = (max(int(v), 0) // CELL_PX for v in region[:4])
+                self._quiet_until[y0 : y1 + 1, x0 : x1 + 1] = k + QUIET_FRAMES
+                self._quiet_level[y0 : y1 + 1, x0 : x1 + 1] = contrast[y0 : y1 + 1, x0 : x1 + 1]
+        if k % SCAN_EVERY == SCAN_EVERY // 2 or (hunting and k % 2 == 1):
             self._roi_search(gray, [self._next_tile(w, h)], found, only_new=True)
+        self.counters["hunts" if hunting else "tracked_frames"] += 1
         self._frame += 1
         # Where each marker will be: moved on by its last motion in the image (constant velocity).
         previous = self._corners
         self._corners = {i: d.corners_px for i, d in found.items()}
         self._last = [_box(2 * c - previous[i] if i in previous else c) for i, c in self._corners.items()]
         return list(found.values())
+
+    def _rotated(self, corners_px: NDArray[np.float64], R_prev_now: Rotation) -> NDArray[np.float64]:
+        """Where corners (N, 2) of the previous image are seen now after the camera turned by
+        ``R_prev_now`` (far points: a turn moves them alike whatever their depth)."""
+        cal = self.calibration
+        ideal = pose.undistort(corners_px, cal.K, cal.dist, cal.fisheye)
+        rays_prev = np.column_stack([ideal, np.ones(len(ideal))]) @ np.linalg.inv(cal.K).T
+        rays_now = R_prev_now.inv().apply(rays_prev)
+        if np.any(rays_now[:, 2] <= 1e-3):  # turned out of view: nothing to predict from
+            return corners_px
+        pts = rays_now.reshape(-1, 1, 3)
+        zero = np.zeros(3)
+        if cal.fisheye:
+            out, _ = cv2.fisheye.projectPoints(pts, zero, zero, cal.K, cal.dist)
+        else:
+            out, _ = cv2.projectPoints(pts, zero, zero, cal.K, cal.dist)
+        return out.reshape(-1, 2)
 
     @property
     def tracking(self) -> bool:
@@ -236,8 +286,10 @@ class Detector:
                 found[d.marker_id] = d
                 self.counters["roi_finds"] += 1
 
-    def detect(self, gray: NDArray[np.uint8], capture_time_us: int) -> list[MarkerData]:
-        """MarkerData of the configured markers in ``gray``.
+    def detect(
+        self, gray: NDArray[np.uint8], capture_time_us: int, R_prev_now: Rotation | None = None
+    ) -> list[MarkerData]:
+        """MarkerData of the configured markers in ``gray`` (``R_prev_now``: see :meth:`find`).
 
         With ``joint`` (the default), the markers of one entity seen together are solved as one
         rigid pattern (every corner at once, far better conditioned than any single square) and
@@ -250,7 +302,7 @@ class Detector:
         cal = self.calibration
         K = cal.K
         singles: dict[int, _Single] = {}
-        for d in self.find(gray):
+        for d in self.find(gray, R_prev_now):
             self.report.found.append(d.marker_id)
             if _at_border(d.corners_px, w, h):
                 # A marker cut by the border, or one whose corner is extrapolated or nearly outside: its
@@ -533,8 +585,69 @@ def _box(c: NDArray[np.float64]) -> NDArray[np.float64]:
     (at most ``MAX_REGION_DECIMATE``)."""
     lo, hi = c.min(axis=0), c.max(axis=0)
     grow = (hi - lo) * ROI_MARGIN + 8
-    decimate = float(min(max(math.floor(_side(c) / (1.5 * SMALL_SIDE_PX)), 1), MAX_REGION_DECIMATE))
+    decimate = float(min(max(math.floor(_side(c) / SMALL_SIDE_PX), 1), MAX_REGION_DECIMATE))
     return np.concatenate([lo - grow, hi + grow, [decimate]])
+
+
+def _cell_contrast(gray: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """Each ``CELL_PX`` cell's contrast (brightest minus darkest pixel) and brightest pixel, after a 2x2
+    average (so that one noisy pixel does not count); each of shape (ceil(h / CELL_PX), ceil(w / CELL_PX))."""
+    h, w = gray.shape[:2]
+    cell = CELL_PX // 2
+    small = cv2.resize(gray, (-(-w // 2), -(-h // 2)), interpolation=cv2.INTER_AREA)
+    kernel = np.ones((cell, cell), np.uint8)
+    top = cv2.dilate(small, kernel, anchor=(0, 0))[::cell, ::cell]
+    bottom = cv2.erode(small, kernel, anchor=(0, 0))[::cell, ::cell]
+    return cv2.subtract(top, bottom), top
+
+
+def _contrast_regions(
+    contrast: NDArray[np.uint8],
+    top: NDArray[np.uint8],
+    taken: list[NDArray[np.float64]],
+    budget_px: float,
+    quiet: NDArray[np.bool_] | None = None,
+) -> list[NDArray[np.float64]]:
+    """Regions (x0, y0, x1, y1, decimate) of the strongest black-white contrast outside the boxes
+    ``taken`` (x0, y0, x1, y1: the markers found already) and the ``quiet`` cells, the strongest first,
+    at most ``budget_px`` pixels (divided by the decimation squared) in all.
+
+    ``contrast`` and ``top``: :func:`_cell_contrast`. Black ink reflects a tenth or less of what white
+    paper does, whatever the light: a printed marker's outline crosses cells whose darkest pixel is at
+    most ``1 - MIN_RATIO`` of their brightest; such cells (with at least ``MIN_CONTRAST``), with their
+    neighbours, are joined into regions, strongest contrast first.
+    """
+    contrast = np.where(contrast >= MIN_RATIO * np.maximum(top, 1), contrast, 0).astype(np.uint8)
+    for x0, y0, x1, y1, *_ in taken:  # markers found: their cells are not candidates
+        x0, y0 = max(int(x0), 0) // CELL_PX, max(int(y0), 0) // CELL_PX
+        contrast[y0 : -(-int(y1) // CELL_PX), x0 : -(-int(x1) // CELL_PX)] = 0
+    if quiet is not None:  # searched lately and found to be texture
+        contrast[quiet] = 0
+    mask = (contrast >= MIN_CONTRAST).astype(np.uint8)
+    mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    peaks = []
+    for i in range(1, n):
+        x, y, bw, bh = stats[i, :4]
+        inside = labels[y : y + bh, x : x + bw] == i
+        peaks.append((-int(contrast[y : y + bh, x : x + bw][inside].max()), i))
+    out = []
+    m = BORDER_MARGIN_PX
+    for _, i in sorted(peaks):
+        x, y, bw, bh = (int(v) * CELL_PX for v in stats[i, :4])
+        # A wide region holds large markers (or clutter): searched decimated, as a tracked one would be.
+        side = min(bw, bh) - 2 * CELL_PX  # the largest marker it can hold
+        decimate = float(min(max(side // SMALL_SIDE_PX, 1), MAX_REGION_DECIMATE))
+        cost = (bw + 2 * m) * (bh + 2 * m) / decimate**2
+        if cost > budget_px:
+            continue
+        budget_px -= cost
+        out.append(np.array([x - m, y - m, x + bw + m, y + bh + m, decimate]))
+    return out
+
+
+def _area(r: list[float]) -> float:
+    return (r[2] - r[0]) * (r[3] - r[1])
 
 
 def _merge(boxes: list[NDArray[np.float64]], w: int, h: int) -> list[tuple[int, int, int, int, float]]:
@@ -548,7 +661,10 @@ def _merge(boxes: list[NDArray[np.float64]], w: int, h: int) -> list[tuple[int, 
     merged: list[list[float]] = []
     for r in sorted(rects):
         for m in merged:
-            if r[0] <= m[2] and r[2] >= m[0] and r[1] <= m[3] and r[3] >= m[1]:
+            union = (max(m[2], r[2]) - min(m[0], r[0])) * (max(m[3], r[3]) - min(m[1], r[1]))
+            # Overlapping boxes are searched as one where that is cheaper than searching both (each
+            # holds its own marker whole).
+            if r[0] <= m[2] and r[2] >= m[0] and r[1] <= m[3] and r[3] >= m[1] and union <= _area(r) + _area(m):
                 m[:] = [min(m[0], r[0]), min(m[1], r[1]), max(m[2], r[2]), max(m[3], r[3]), min(m[4], r[4])]
                 break
         else:
