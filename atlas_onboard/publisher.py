@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from atlas_onboard.core.graph import EntityPose, GraphResult
+from atlas_onboard.errors import AtlasError
 
 NS = 1_000_000_000
 
@@ -76,7 +77,7 @@ class RateCap:
 
     rate_hz: float
     min_spacing: float = 0.6
-    burst: float = 3.0  # a detector that hands over three frames at once after a hiccup loses none
+    burst: float = 3.0  # three frames handed over at once (after a detector's hiccup) all go
     hold_periods: float = 2.0
     _tokens: float = 3.0
     _tokens_ns: int | None = None
@@ -88,7 +89,7 @@ class RateCap:
 
     def __post_init__(self) -> None:
         if not self.rate_hz > 0:
-            raise ValueError(f"expected a rate cap > 0 Hz, got {self.rate_hz}")
+            raise AtlasError(f"rate_hz: expected a rate cap > 0 Hz, got {self.rate_hz}")
         self._tokens = self.burst
 
     @property

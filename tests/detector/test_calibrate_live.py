@@ -2,6 +2,7 @@
 moving and duplicate frames refused, coverage growing with each kept view, intrinsics recovered."""
 
 import itertools
+import signal
 import subprocess
 import sys
 
@@ -153,3 +154,33 @@ def test_calibrate_device_that_cannot_be_opened_is_one_line(tmp_path):
     )  # fmt: skip
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+
+
+def test_ctrl_c_ends_the_capture_and_calibrates_with_the_views_kept(b, stream, tmp_path):
+    """Ctrl-C while the camera still delivers (here: a long stretch without the board after the
+    views): the command stops, calibrates with what it kept and writes the file (exit 0)."""
+    video = tmp_path / "camera.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 10, (W, H), False)
+    for img in stream[0]:
+        writer.write(img)
+    blank = np.full((H, W), 120, np.uint8)
+    for _ in range(3000):
+        writer.write(blank)
+    writer.release()
+    out = tmp_path / "cam.yaml"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "atlas_onboard", "calibrate", "--device", str(video), "--out", str(out),
+         "--views", "40", "--min-views", "40"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    kept = 0
+    for line in proc.stdout:
+        kept += line.startswith("view ")
+        if kept >= len(POSES) - 2 or "frames: refused" in line:  # the views are in; blank frames follow
+            break
+    proc.send_signal(signal.SIGINT)
+    rest, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "stopped (Ctrl-C)" in rest and "Traceback" not in err
+    cal = load_calibration(out)
+    np.testing.assert_allclose([cal.K[0, 0], cal.K[1, 1]], [K_TRUE[0, 0], K_TRUE[1, 1]], rtol=0.01)
