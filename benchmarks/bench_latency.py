@@ -16,7 +16,8 @@ stamp the message carries. Cases, each repeated (identical runs must give the sa
     python benchmarks/bench_latency.py [--runs N] [--seconds S] [--rate HZ]
 
 Bars: with the cap at the camera's rate, median and p95 latency within 1.25 x the uncapped anchor's
-and the spread of the per-run medians within 2 ms; at most 1 % of frames suppressed.
+and the spread of the per-run medians within 2 ms; at most two frames suppressed a run (the three
+frames the hiccup hands over at once may cost two; none otherwise).
 """
 
 from __future__ import annotations
@@ -132,7 +133,7 @@ def main() -> int:
         every = np.concatenate([r[0] for r in rs])
         spread = max(medians) - min(medians)
         frames, suppressed = sum(r[1] for r in rs), sum(r[2] for r in rs)
-        summary[name] = (float(np.median(every)), float(np.percentile(every, 95)), spread, suppressed / frames)
+        summary[name] = (float(np.median(every)), float(np.percentile(every, 95)), spread, suppressed / len(rs))
         print(f"{name:20} {'all':>3} {frames:>6} {every.size:>6} {suppressed:>6} {every.mean():>8.2f}"
               f" {summary[name][0]:>7.2f} {summary[name][1]:>7.2f}  spread of run medians {spread:.2f} ms")  # fmt: skip
     capped, anchor = summary["camera = cap"], summary["anchor: uncapped"]
@@ -144,7 +145,7 @@ def main() -> int:
         ("latency_median_ratio_capped_vs_uncapped", ratio_med, "x", 1.25),
         ("latency_p95_ratio_capped_vs_uncapped", ratio_p95, "x", 1.25),
         ("latency_run_median_spread_capped", capped[2], "ms", 2.0),
-        ("suppressed_fraction_capped", capped[3], "-", 0.01),
+        ("suppressed_per_run_capped", capped[3], "frames", 2.0),
     ]
     for name, value, unit, limit in bars:
         print(f"BAR {name} {value:.3f} {unit} {limit} {'pass' if value <= limit else 'fail'}")
