@@ -163,7 +163,7 @@ class ViewSelector:
     coverage: Coverage = field(default_factory=Coverage)
     refused: Counter[Refusal] = field(default_factory=Counter)
     frames: int = 0
-    _detector: cv2.aruco.CharucoDetector | None = None
+    _detector: cv2.aruco.CharucoDetector = field(init=False)
     _previous: dict[int, NDArray[np.float64]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -171,7 +171,6 @@ class ViewSelector:
 
     def offer(self, gray: NDArray[np.uint8]) -> tuple[Refusal | None, ViewQuality | None]:
         """Look at one grey frame: (None, quality) if it was kept, else (why not, quality or None)."""
-        assert self._detector is not None
         self.frames += 1
         corners, ids, _, _ = self._detector.detectBoard(gray)
         if ids is None or len(ids) < MIN_CORNERS:
@@ -239,8 +238,7 @@ def collect_views(
     reporting each kept view and every ``report_every`` frames the refusals so far."""
     for gray in frames:
         reason, q = selector.offer(gray)
-        if reason is None:
-            assert q is not None
+        if reason is None and q is not None:
             report(
                 f"view {len(selector.kept)} kept: {q.n_corners} corners, edge {q.edge_px:.1f} px,"
                 f" {','.join(sorted(q.pose_bins))}; coverage {selector.coverage.text()}"
