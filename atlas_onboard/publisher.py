@@ -96,6 +96,11 @@ class RateCap:
     def period_ns(self) -> float:
         return NS / self.rate_hz
 
+    @property
+    def held_capture_us(self) -> int | None:
+        """The capture time of the pose held back, or None."""
+        return self._held_capture_us
+
     def admit(self, capture_time_us: int, now_ns: int) -> bool:
         """Whether a pose may go now (the caller sends it if so). ``capture_time_us``: its capture
         stamp (us), newer than the last one sent; ``now_ns``: now on the monotonic clock (ns). A pose
@@ -172,8 +177,9 @@ class Publisher:
             status = "pose found"
         if pose.capture_time_us <= self._last_capture_us:
             return None, status  # nothing new contributed since the last message
+        again = pose.capture_time_us == self.cap.held_capture_us
         if not self.cap.admit(pose.capture_time_us, now_ns):
-            self.suppressed_rate += 1
+            self.suppressed_rate += not again  # each capture refused counts once, however often asked
             return None, status
         if self._lost_since_sent or (
             self._last_p is not None and float(np.linalg.norm(pose.p_world_m - self._last_p)) > self.reset_jump_m

@@ -147,6 +147,7 @@ def test_a_pose_refused_by_the_cap_goes_later_when_nothing_newer_comes():
     release = pub.next_autopilot_ns()
     assert release == pytest.approx(10 * MS + 2 * 1e9 / 30, abs=2)
     assert pub.autopilot(g.evaluate(release - 2), release - 2)[0] is None  # not before
+    assert pub.suppressed_rate == 1  # asked again: the same capture counts once
     out, _ = pub.autopilot(g.evaluate(release), release)
     assert out is not None and out.pose.capture_time_us == 11_000
     assert pub.next_autopilot_ns() is None
