@@ -2,6 +2,7 @@
 moving and duplicate frames refused, coverage growing with each kept view, intrinsics recovered."""
 
 import itertools
+import os
 import signal
 import subprocess
 import sys
@@ -157,19 +158,19 @@ def test_calibrate_device_that_cannot_be_opened_is_one_line(tmp_path):
 
 
 def test_ctrl_c_ends_the_capture_and_calibrates_with_the_views_kept(b, stream, tmp_path):
-    """Ctrl-C while the camera still delivers (here: a long stretch without the board after the
-    views): the command stops, calibrates with what it kept and writes the file (exit 0)."""
-    video = tmp_path / "camera.avi"
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 10, (W, H), False)
-    for img in stream[0]:
-        writer.write(img)
-    blank = np.full((H, W), 120, np.uint8)
-    for _ in range(3000):
-        writer.write(blank)
-    writer.release()
+    """Ctrl-C while the camera still delivers (here an image folder: the views, then a long stretch
+    without the board): the command stops, calibrates with what it kept and writes the file (exit 0)."""
+    folder = tmp_path / "camera"
+    folder.mkdir()
+    for k, img in enumerate(stream[0]):
+        cv2.imwrite(str(folder / f"frame-{k:05d}.png"), img)
+    blank = folder / f"frame-{len(stream[0]):05d}.png"
+    cv2.imwrite(str(blank), np.full((H, W), 120, np.uint8))
+    for k in range(len(stream[0]) + 1, len(stream[0]) + 3000):
+        os.link(blank, folder / f"frame-{k:05d}.png")
     out = tmp_path / "cam.yaml"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "atlas_onboard", "calibrate", "--device", str(video), "--out", str(out),
+        [sys.executable, "-m", "atlas_onboard", "calibrate", "--device", str(folder), "--out", str(out),
          "--views", "40", "--min-views", "40"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
