@@ -52,6 +52,8 @@ BENCHES = (
     Bench("detector", ("benchmarks/bench_detector.py",), "The detector against the AprilTag library, per state."),
     Bench("graph", ("benchmarks/bench_graph.py",), "The transform graph's evaluation time against a naive anchor."),
     Bench("node", ("benchmarks/bench_node.py",), "The node's overhead from observation to autopilot message."),
+    Bench("latency", ("benchmarks/bench_latency.py",), "Latency steadiness with the rate cap at the camera's rate."),
+    Bench("pi", ("benchmarks/bench_pi.py",), "Detector and node on one core, scaled to Pi 4 / Pi 5 class cores."),
     Bench("map", ("benchmarks/bench_map.py",), "The marker map from a simulated flight."),
 )
 

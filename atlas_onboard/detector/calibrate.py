@@ -4,7 +4,8 @@ YAML the detector reads.
 A ChArUco board (a chessboard with ArUco markers in its white squares) gives sub-pixel chessboard
 corners that are identified even when the board is partly out of view. Take 15-40 views at different
 distances and angles, covering the whole image; `atlas-onboard calibrate --board-image board.png`
-writes a board to print.
+writes a board to print. ``--device`` captures the views from a live camera by itself
+(:mod:`atlas_onboard.detector.calibrate_live`).
 """
 
 from __future__ import annotations
@@ -77,10 +78,17 @@ def _cmd(args: argparse.Namespace) -> int:
             raise AtlasError(f"--board-image: cannot write {args.board_image}")
         print(f"wrote {args.board_image}: print it so that one square measures {args.square * 1000:g} mm")
         return 0
-    if args.images is None or args.out is None:
-        raise AtlasError("calibrate: give --images DIR and --out FILE (or --board-image FILE)")
-    files = sorted(p for p in Path(args.images).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    images = [g for g in (cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in files) if g is not None]
+    if (args.images is None) == (args.device is None) or args.out is None:
+        raise AtlasError("calibrate: give --images DIR or --device SRC, and --out FILE (or --board-image FILE)")
+    if args.device is not None:
+        from atlas_onboard.detector.calibrate_live import capture_views
+
+        images = capture_views(args, b)
+    else:
+        if not Path(args.images).is_dir():
+            raise AtlasError(f"--images: {args.images} is not a directory")
+        files = sorted(p for p in Path(args.images).iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        images = [g for g in (cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in files) if g is not None]
     cal, rms, used = calibrate(images, b, args.fisheye)
     write_opencv(Path(args.out), cal)
     k = cal.K
@@ -102,4 +110,15 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p.add_argument("--dictionary", default="DICT_4X4_50")
     p.add_argument("--fisheye", action="store_true", help="equidistant (fisheye) model")
     p.add_argument("--board-image", type=Path, help="write a board image to print, and stop")
+    live = p.add_argument_group("live capture (--device): views kept by themselves, then calibrated")
+    live.add_argument("--device", help="V4L2 index or path, stream URL or video file to capture views from")
+    live.add_argument("--width", type=int, default=0, help="requested frame width, px (default: the device's)")
+    live.add_argument("--height", type=int, default=0, help="requested frame height, px")
+    live.add_argument("--fps", type=float, default=0.0, help="requested frame rate, Hz")
+    live.add_argument("--fourcc", default="", help="V4L2 pixel format, e.g. MJPG")
+    live.add_argument("--views", type=int, default=30, help="stop at this many views (default 30)")
+    live.add_argument("--min-views", type=int, default=12, help="or at full coverage with this many (default 12)")
+    live.add_argument("--max-edge-px", type=float, default=3.0, help="sharpness: widest edge kept, px (default 3)")
+    live.add_argument("--max-motion-px", type=float, default=1.5, help="stillness: board motion per frame, px")
+    live.add_argument("--save-views", type=Path, help="also write the kept views here (for --images later)")
     p.set_defaults(func=_cmd)
