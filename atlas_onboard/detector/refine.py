@@ -21,6 +21,8 @@ HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
 STEP_PX = 0.25
 MIN_CONTRAST = 20.0  # grey levels between a profile's ends for an edge to be placed on it
 EDGE_OFFSET_FLOOR_PX = 0.02  # an edge's offset that its scatter cannot show (blur ramps, the background)
+# A shift of all four corners alike that no edge shows: the lens model's residual, motion during the exposure.
+SHIFT_FLOOR_PX = 0.02
 MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
 
 
@@ -197,7 +199,8 @@ def _corner_covariance(
     D = np.empty(8)
     D[0::2] = var_px2 / npts + EDGE_OFFSET_FLOOR_PX**2
     D[1::2] = var_px2 / np.maximum(spread, 1e-9)
-    return (G * D) @ G.T
+    common = np.tile(np.eye(2), (4, 1))  # (8, 2): every corner moved alike
+    return (G * D) @ G.T + SHIFT_FLOOR_PX**2 * (common @ common.T)
 
 
 @dataclass(frozen=True)
