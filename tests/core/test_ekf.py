@@ -381,7 +381,7 @@ def manoeuvring_pose(rng, t_s, sigma=1.5, tau=0.5, yaw_sigma=0.15):
     """Positions and attitudes (FLU) of a quadrotor manoeuvring as :func:`singer_truth`'s: its roll and
     pitch are the tilt its acceleration needs (thrust along a + g), its heading swings as a stationary
     Gauss-Markov process (``yaw_sigma`` rad, correlation time ``tau``)."""
-    dt = 0.002
+    dt = 0.005
     n = round(t_s[-1] / dt) + 2  # a step past the last time, which rounding may put after n - 1 steps
     a, v, p = rng.normal(0, sigma, 3), rng.normal(0, 0.5, 3), np.zeros(3)
     yaw = rng.normal(0, yaw_sigma)
