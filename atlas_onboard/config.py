@@ -111,7 +111,7 @@ class FusionConfig:
     filter: str = "none"
     ekf_accel_noise: float = 0.5
     ekf_max_predict_s: float = 0.5
-    age_sigma_deg_per_s: float = 0.0
+    age_sigma_deg_per_s: float = 30.0  # a stale edge's attitude ages too (issue 19: a tight 6x6 otherwise)
     method: str = "default"
 
 

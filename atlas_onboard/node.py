@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Protocol
 
 from atlas_onboard.config import WORLD, ConfigError, NodeConfig, WorldConfig, load_node
-from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_TIME_S, EkfSettings
+from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_ATTITUDE_SIGMA_RAD, MANOEUVRE_TIME_S, EkfSettings
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
@@ -758,6 +758,7 @@ def _make_ekf(world: WorldConfig) -> EkfBank | None:
         accel_noise=f.ekf_accel_noise,
         max_gap_s=f.ekf_max_predict_s,
         constant_rate=False,
+        attitude_sigma_rad=MANOEUVRE_ATTITUDE_SIGMA_RAD,
         manoeuvre_accel_sigma=MANOEUVRE_ACCEL_SIGMA,
         manoeuvre_time_s=MANOEUVRE_TIME_S,
         estimate_accel=False,

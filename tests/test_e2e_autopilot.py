@@ -20,7 +20,7 @@ def world_doc(peer_port, ap_port, output="vision_position_estimate", extra_node=
     return {
         # No edge ageing: the covariance the autopilot gets is then exactly the observation's, whatever
         # the few milliseconds between capture and evaluation (ageing is tested in the core and sim).
-        "fusion": {"age_sigma_m_per_s": 0},
+        "fusion": {"age_sigma_m_per_s": 0, "age_sigma_deg_per_s": 0},
         "entities": {
             # A world-fixed camera 4 m up looking down, and a drone with a tag on top.
             "world": {"sensors": [{"name": "ceiling", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]},

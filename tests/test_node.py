@@ -203,7 +203,7 @@ def ceiling_world(d1_markers, fusion=None):
     clock: tested apart)."""
     return parse_world(
         {
-            "fusion": fusion if fusion is not None else {"age_sigma_m_per_s": 0},
+            "fusion": fusion if fusion is not None else {"age_sigma_m_per_s": 0, "age_sigma_deg_per_s": 0},
             "entities": {
                 "world": {
                     "markers": [{"id": 0, "size_m": 0.2, "pose": {"pos": [0, 0, 0]}}],

@@ -214,12 +214,21 @@ def fuse_runs(
     edge_term: NDArray[np.float64],
 ) -> NDArray[np.float64]:
     """:func:`fuse` on candidates sorted by child, then parent (:func:`runs_by_parent`): one 6x6
-    covariance per child run. ``Jp`` None: the parents' poses are exact (the root of the graph)."""
-    w = weights / np.repeat(np.add.reduceat(weights, kids.starts), kids.sizes)
-    out = np.add.reduceat((w**2)[:, None, None] * edge_term, kids.starts)
+    covariance per child run. ``Jp`` None: the parents' poses are exact (the root of the graph).
+
+    The fused position is the mean weighted by w_i, the fused rotation the chordal mean weighted by
+    w_i^2 (eq. 5, :func:`fusion.fuse_runs`): to first order the rotation error is the mean of the
+    candidates' rotation errors with the normalised weights w_i^2, so each candidate's error enters
+    the fused one through ``W_i = diag(a_i, a_i, a_i, b_i, b_i, b_i)``, a and b the two normalised
+    weights."""
+    a = weights / np.repeat(np.add.reduceat(weights, kids.starts), kids.sizes)
+    w2 = weights**2
+    b = w2 / np.repeat(np.add.reduceat(w2, kids.starts), kids.sizes)
+    W = np.concatenate((np.repeat(a[:, None], 3, axis=1), np.repeat(b[:, None], 3, axis=1)), axis=1)  # (n, 6)
+    out = np.add.reduceat(W[:, :, None] * edge_term * W[:, None, :], kids.starts)
     if Jp is None:
         return out
     # Candidates sharing a parent: their parent Jacobians add before the parent's covariance.
-    A = np.add.reduceat(w[:, None, None] * Jp, pairs.starts)
+    A = np.add.reduceat(W[:, :, None] * Jp, pairs.starts)
     first_pair = np.cumsum(pairs.sizes) - pairs.sizes
     return out + np.add.reduceat(transform(A, C_parent[pairs.ids]), first_pair)

@@ -34,6 +34,8 @@ N = 15  # error-state size
 # is overconfident at the end of a gap.
 MANOEUVRE_ACCEL_SIGMA = 1.5  # m/s^2 per axis
 MANOEUVRE_TIME_S = 0.5
+# The tilt that acceleration needs (thrust along a + g), per axis; the heading is taken to swing as much.
+MANOEUVRE_ATTITUDE_SIGMA_RAD = float(np.arctan(MANOEUVRE_ACCEL_SIGMA / 9.81))
 
 
 @dataclass
@@ -51,6 +53,10 @@ class EkfSettings:
             the rate state stays zero. A quadrotor's attitude jitters at several hertz, faster than a
             30 Hz camera can follow: extrapolating a rate estimated from it does more harm than good.
         angular_rate_noise: the random walk's rate noise density (with ``constant_rate`` False).
+        attitude_sigma_rad: with ``constant_rate`` False and this > 0, the held attitude's error grows
+            as a stationary Gauss-Markov attitude's does (spread this, correlation time
+            ``manoeuvre_time_s``): by ``2 sigma^2 (1 - exp(-dt / tau))`` over a prediction of dt, which
+            a tilt that follows the manoeuvre acceleration has, instead of the random walk's.
         manoeuvre_accel_sigma: spread of the manoeuvre acceleration (Singer model), m/s^2 per axis; 0
             for the plain constant-velocity model (no acceleration state).
         manoeuvre_time_s: its correlation time, s (how long a manoeuvre's acceleration lasts).
@@ -68,6 +74,7 @@ class EkfSettings:
     max_lag_s: float = 0.1
     constant_rate: bool = True
     angular_rate_noise: float = 1.0
+    attitude_sigma_rad: float = 0.0
     manoeuvre_accel_sigma: float = 0.0
     manoeuvre_time_s: float = 0.5
     estimate_accel: bool = True
@@ -134,7 +141,11 @@ class PoseEkf:
         else:
             # Attitude as a random walk: the rate state is pinned at zero with zero variance.
             F[6:9, 9:12] = 0.0
-            Q[6:9, 6:9] = np.eye(3) * self.settings.angular_rate_noise**2 * dt
+            sigma, tau = self.settings.attitude_sigma_rad, self.settings.manoeuvre_time_s
+            if sigma > 0.0:  # the increment of a Gauss-Markov attitude over dt (exact for one long step)
+                Q[6:9, 6:9] = np.eye(3) * 2.0 * sigma**2 * -np.expm1(-dt / tau)
+            else:
+                Q[6:9, 6:9] = np.eye(3) * self.settings.angular_rate_noise**2 * dt
         self.P = F @ self.P @ F.T + Q
         self.t_s = t_s
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import block_diag
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import SensorConfig, WorldConfig
@@ -104,6 +105,7 @@ class _Single:
     corners: NDArray[np.float64]
     stretch: NDArray[np.float64] | None
     measured_px: float
+    corner_cov: NDArray[np.float64] | None = None  # (8, 8), px^2: refine.RefinedCorners.covariance
 
 
 @dataclass
@@ -312,18 +314,19 @@ class Detector:
                 continue
             corners = pose.undistort(d.corners_px, K, cal.dist, cal.fisheye)
             refined = refine_corners_undistorted(gray, corners, K, cal.dist, cal.fisheye)
-            measured_px = 0.0
+            measured_px, corner_cov = 0.0, None
             if refined is not None:
-                corners, measured_px = refined
+                corners, measured_px, corner_cov = refined.corners, refined.sigma_px, refined.covariance
             else:
                 self.counters["refine_failed"] += 1
             stretch = pose.undistortion_jacobian(d.corners_px, K, cal.dist, cal.fisheye)
-            mp = pose.solve(corners, self.sizes[d.marker_id], K, self._sigma_px(d.family), stretch, measured_px)
+            size_m = self.sizes[d.marker_id]
+            mp = pose.solve(corners, size_m, K, self._sigma_px(d.family), stretch, measured_px, corner_cov)
             if mp is None:
                 self.counters["pnp_failed"] += 1
                 self.report.dropped[d.marker_id] = "no pose"
                 continue
-            singles[d.marker_id] = _Single(mp, corners, stretch, measured_px)
+            singles[d.marker_id] = _Single(mp, corners, stretch, measured_px, corner_cov)
         self.report.found.sort()
         out = []
         groups: dict[str, list[int]] = {}
@@ -528,7 +531,12 @@ class Detector:
         stretches = [singles[m].stretch for m in ids]
         stretch = None if any(x is None for x in stretches) else np.concatenate(stretches)
         R = T.rotation.as_matrix()
-        cov = pose.pose_covariance(R, T.translation, obj_anchor, self.calibration.K, sigma_px, err, stretch)
+        covs = [singles[m].corner_cov for m in ids]
+        img = np.vstack([singles[m].corners for m in ids])
+        if all(c is not None for c in covs):  # the squares' own corner covariances, one block each
+            cov = pose.fitted_covariance(R, T.translation, obj_anchor, self.calibration.K, img, block_diag(*covs))
+        else:
+            cov = pose.pose_covariance(R, T.translation, obj_anchor, self.calibration.K, sigma_px, err, stretch)
         self.counters["joint"] += count
         md = self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us, None, cov)
         return (md, False, err / limit) if with_error else (md, False)

@@ -165,6 +165,64 @@ def pose_covariance(
     noise is ``sigma_px`` in the distorted image (None: no distortion). None if J is singular (fewer
     than three distinct corners)."""
     X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
+    J = _whiten(_pose_jacobian(R_sm, p_sm, X, K), stretch)
+    A = J.T @ J
+    if len(X) < 3 or np.linalg.cond(A) > 1e14:
+        return None
+    fit = 1.0 + (err_px / sigma_px) ** 2 if math.isfinite(err_px) else 4.0
+    C = sigma_px**2 * fit * np.linalg.inv(A)
+    return (C + C.T) / 2.0
+
+
+def pose_covariance_from_corners(
+    R_sm: NDArray[np.float64],
+    p_sm: NDArray[np.float64],
+    obj_m: NDArray[np.float64],
+    K: NDArray[np.float64],
+    corner_cov: NDArray[np.float64],
+) -> NDArray[np.float64] | None:
+    """The 6x6 covariance of :func:`pose_covariance` from the corners' own (2N, 2N) covariance in
+    undistorted pixels (x0 y0 x1 y1 ..., correlated: :class:`refine.RefinedCorners`), by generalised
+    least squares: ``(J^T corner_cov^-1 J)^-1``. None if it is singular."""
+    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
+    J = _pose_jacobian(R_sm, p_sm, X, K)
+    try:
+        A = J.T @ np.linalg.solve(corner_cov, J)
+    except np.linalg.LinAlgError:
+        return None
+    if len(X) < 3 or not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e14:
+        return None
+    C = np.linalg.inv(A)
+    return (C + C.T) / 2.0
+
+
+def fitted_covariance(
+    R_sm: NDArray[np.float64],
+    p_sm: NDArray[np.float64],
+    obj_m: NDArray[np.float64],
+    K: NDArray[np.float64],
+    img_px: NDArray[np.float64],
+    corner_cov: NDArray[np.float64],
+) -> NDArray[np.float64] | None:
+    """:func:`pose_covariance_from_corners` of the pose ``(p_sm, R_sm)`` fitted to the undistorted
+    corners ``img_px`` (N, 2), scaled by how well it fits them: a fit worse than the corners' covariance
+    explains (its chi-square over the 2N - 6 degrees of freedom the pose leaves) scales the covariance
+    by that ratio, as least squares with an unknown noise scale does; a better one changes nothing."""
+    C = pose_covariance_from_corners(R_sm, p_sm, obj_m, K, corner_cov)
+    if C is None:
+        return None
+    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
+    P = X @ R_sm.T + p_sm
+    r = ((P @ K.T)[:, :2] / P[:, 2:] - np.asarray(img_px, dtype=float).reshape(-1, 2)).ravel()
+    dof = max(len(r) - 6, 1)
+    chi2 = float(r @ np.linalg.solve(corner_cov, r))
+    return C * max(1.0, chi2 / dof)
+
+
+def _pose_jacobian(
+    R_sm: NDArray[np.float64], p_sm: NDArray[np.float64], X: NDArray[np.float64], K: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """(2N, 6): the corners' undistorted pixels with respect to the pose error ``[dp, dtheta]``."""
     P = X @ R_sm.T + p_sm
     z = P[:, 2]
     fx, fy = K[0, 0], K[1, 1]
@@ -179,13 +237,7 @@ def pose_covariance(
     hat[:, 0, 1], hat[:, 0, 2], hat[:, 1, 2] = -X[:, 2], X[:, 1], -X[:, 0]
     hat[:, 1, 0], hat[:, 2, 0], hat[:, 2, 1] = X[:, 2], -X[:, 1], X[:, 0]
     dP[:, :, 3:] = -R_sm @ hat
-    J = _whiten((D @ dP).reshape(-1, 6), stretch)
-    A = J.T @ J
-    if len(X) < 3 or np.linalg.cond(A) > 1e14:
-        return None
-    fit = 1.0 + (err_px / sigma_px) ** 2 if math.isfinite(err_px) else 4.0
-    C = sigma_px**2 * fit * np.linalg.inv(A)
-    return (C + C.T) / 2.0
+    return (D @ dP).reshape(-1, 6)
 
 
 def corner_noise_px(base_px: float, side_px: float) -> float:
@@ -202,6 +254,7 @@ def solve(
     sigma_px: float,
     stretch: NDArray[np.float64] | None = None,
     measured_sigma_px: float = 0.0,
+    corner_cov: NDArray[np.float64] | None = None,
 ) -> MarkerPose | None:
     """IPPE on undistorted corners of one square; None if OpenCV finds no solution in front.
 
@@ -250,7 +303,11 @@ def solve(
     fit = math.sqrt(1.0 + (e[0] / sigma_px) ** 2)
     sigma = max(min(sigma, cap * fit), MIN_SIGMA_M)
     R0 = cv2.Rodrigues(r0)[0]
-    cov = pose_covariance(R0, t0, obj, K, sigma_px, float(e[0]), stretch)
+    cov = None
+    if corner_cov is not None:
+        cov = fitted_covariance(R0, t0, obj, K, img.reshape(-1, 2), corner_cov)
+    if cov is None:
+        cov = pose_covariance(R0, t0, obj, K, sigma_px, float(e[0]), stretch)
     if cov is not None and alt[0] is not None and ambiguity <= AMBIGUITY_THRESHOLD:
         cov = cov + _flip_moment(R0, t0, alt[0], alt[1], obj, img, K, sigma_px, float(e[0]), stretch)
     return MarkerPose(t0, Rotation.from_rotvec(r0).as_quat(), float(e[0]), alt[0], alt[1], ambiguity, sigma, cov)

@@ -10,6 +10,8 @@ its corners the same way.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -18,6 +20,10 @@ SAMPLES_PER_SIDE = 12
 HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
 STEP_PX = 0.25
 MIN_CONTRAST = 20.0  # grey levels between a profile's ends for an edge to be placed on it
+EDGE_OFFSET_FLOOR_PX = 0.02  # an edge's offset that its scatter cannot show (blur ramps, the background)
+# A shift of all four corners alike that no edge shows: the lens model's residual, motion during the exposure.
+SHIFT_FLOOR_PX = 0.02
+MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
 
 
 def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -79,7 +85,7 @@ def refine_corners_undistorted(
     K: NDArray[np.float64],
     dist: NDArray[np.float64],
     fisheye: bool = False,
-) -> tuple[NDArray[np.float64], float] | None:
+) -> RefinedCorners | None:
     """Corners (4, 2) in undistorted pixels (an ideal pinhole with the same K), refitted on the edges,
     and their noise (pixels, per axis) measured from the scatter of the edge points about their lines.
 
@@ -101,6 +107,8 @@ def refine_corners_undistorted(
     ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
     lines = []
     ss, npts = 0.0, []
+    lag0 = lag1 = 0.0
+    spread: list[float] = []
     for i in range(4):
         a, b = corners_und[i], corners_und[(i + 1) % 4]
         d = b - a
@@ -135,6 +143,11 @@ def refine_corners_undistorted(
         lines.append((mean, vt[0]))
         ss += float(sv[1] ** 2)  # squared distances of the points from their line
         npts.append(len(e))
+        r = (e - mean) @ np.array([-vt[0][1], vt[0][0]])  # signed distances, in order along the edge
+        lag0 += float(r @ r)
+        lag1 += float(r[1:] @ r[:-1])
+        u = (e - mean) @ vt[0]
+        spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
     out = np.empty_like(corners_und)
     for i in range(4):
         (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
@@ -150,7 +163,55 @@ def refine_corners_undistorted(
     # perpendicular ones (a marker seen obliquely has sharp corners in the image).
     dirs = [d for _, d in lines]
     sin_min = min(abs(float(a[0] * b[1] - a[1] * b[0])) for a, b in zip(dirs, dirs[1:] + dirs[:1], strict=True))
-    return out, float(np.sqrt(7.1 * scatter2 / float(np.mean(npts)))) / max(sin_min, 0.2)
+    # Neighbouring edge points share pixels, blur and aliasing, so their errors are correlated along the
+    # edge: with a lag-one correlation rho, n points carry the information of n (1 - rho) / (1 + rho)
+    # independent ones (an AR(1) sequence's effective sample size).
+    rho = float(np.clip(lag1 / lag0, 0.0, MAX_EDGE_CORRELATION)) if lag0 > 0 else 0.0
+    inflate = (1.0 + rho) / (1.0 - rho)
+    n_eff = float(np.mean(npts)) / inflate
+    cov = _corner_covariance(lines, out, scatter2 * inflate, np.array(npts, float), np.array(spread))
+    return RefinedCorners(out, float(np.sqrt(7.1 * scatter2 / n_eff)) / max(sin_min, 0.2), cov)
+
+
+def _corner_covariance(
+    lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    corners: NDArray[np.float64],
+    var_px2: float,
+    npts: NDArray[np.float64],
+    spread: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """(8, 8) covariance of the four corners (x0 y0 x1 y1 ...) that the four fitted lines place.
+
+    Line l (through its points' mean m_l, direction d_l, normal n_l) errs by an offset a_l across it
+    (variance var / n_l) and a turn b_l about m_l (variance var / sum of squared positions along it),
+    independent of each other and of the other lines. A point x of the line then moves across it by
+    a_l + b_l (x - m_l) . d_l, and corner k, the crossing of lines k-1 and k, by dx with
+    n_{k-1} . dx and n_k . dx those two shifts. Adjacent corners share a line, so they are correlated.
+    """
+    G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
+    for k in range(4):
+        pair = ((k - 1) % 4, k)
+        Ninv = np.linalg.inv(np.array([(-lines[j][1][1], lines[j][1][0]) for j in pair]))
+        for row, j in enumerate(pair):
+            m, d = lines[j]
+            G[2 * k : 2 * k + 2, 2 * j] = Ninv[:, row]
+            G[2 * k : 2 * k + 2, 2 * j + 1] = Ninv[:, row] * float((corners[k] - m) @ d)
+    D = np.empty(8)
+    D[0::2] = var_px2 / npts + EDGE_OFFSET_FLOOR_PX**2
+    D[1::2] = var_px2 / np.maximum(spread, 1e-9)
+    common = np.tile(np.eye(2), (4, 1))  # (8, 2): every corner moved alike
+    return (G * D) @ G.T + SHIFT_FLOOR_PX**2 * (common @ common.T)
+
+
+@dataclass(frozen=True)
+class RefinedCorners:
+    """Corners (4, 2) refitted on the marker's edges, in undistorted pixels; ``sigma_px``: their noise
+    per axis as one figure (the sigma model's); ``covariance``: (8, 8) of x0 y0 ... x3 y3 (px^2), the
+    edge fits' own, corners sharing an edge correlated."""
+
+    corners: NDArray[np.float64]
+    sigma_px: float
+    covariance: NDArray[np.float64]
 
 
 def _half_level(prof: NDArray[np.float32], offsets: NDArray[np.float64]) -> NDArray[np.float64]:

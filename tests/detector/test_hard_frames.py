@@ -114,6 +114,21 @@ def test_single_marker_covariance_is_honest_over_the_whole_distorted_image(whole
     assert 0.6 <= nees6.mean() <= 9.0
 
 
+def test_single_marker_covariance_is_neither_cautious_nor_overconfident(whole_image_errors):
+    """Issue 19: honest means both. Over the whole distorted image (blur, noise, 0.4-3 m, 0-70 deg) the
+    mean NEES is near its dimension (3 for the position, 6 for the pose; a covariance several times too
+    large hides real errors in the autopilot's gate as surely as one too small), and at least 99 % of
+    the detections lie within 3 sigma on every axis. The position's lower bound is 1.0, not 1.5: these
+    static renders have an exact lens and no motion, so the floor on a shift common to the four corners
+    (refine.SHIFT_FLOOR_PX, which a moving camera's frames need) leaves their position NEES near 1.2."""
+    nees3 = np.array([e[:3] @ np.linalg.solve(C[:3, :3], e[:3]) for e, C in whole_image_errors])
+    nees6 = np.array([e @ np.linalg.solve(C, e) for e, C in whole_image_errors])
+    within = np.mean([np.abs(e) <= 3 * np.sqrt(np.diag(C)) for e, C in whole_image_errors], axis=0)
+    assert np.all(within >= 0.99), within
+    assert 1.0 <= nees3.mean() <= 4.5, nees3.mean()
+    assert 3.0 <= nees6.mean() <= 9.0, nees6.mean()
+
+
 def moved_marker_world(moved_id: int | None, offset_m: float):
     """Four 15 cm tags on the floor at the corners of a 60 x 40 cm rectangle; the world file puts
     ``moved_id`` ``offset_m`` off along x."""
