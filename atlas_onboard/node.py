@@ -583,7 +583,7 @@ class Node:
 
     def counters(self) -> dict[str, int]:
         """Every counter of the node: rejections by reason, drops, rates, links, cameras."""
-        out: dict[str, int] = {f"rejected_{r.value}": n for r, n in self.listener.rejected.items()}
+        out: dict[str, int] = self.listener.rejected.snapshot()
         out.update(
             accepted=self.listener.accepted,
             inbox_dropped=self.inbox.dropped + self.parking.dropped,
@@ -597,8 +597,8 @@ class Node:
             late_observations=self.stats.late_observations,
             reset_counter=self.publisher.reset_counter,
         )
-        out.update(self.listener.counters)  # ambiguity resolved / swapped / undecided, alt ignored
-        out["rejected_outlier"] = out.get("rejected_outlier", 0) + self.graph.gated_total
+        out.update(self.listener.counters.snapshot())  # ambiguity resolved / swapped / undecided, alt ignored
+        out[Rejection.OUTLIER.counter] = out.get(Rejection.OUTLIER.counter, 0) + self.graph.gated_total
         if self.ekf is not None:
             out.update({f"ekf_{k}": v for k, v in self.ekf.outcomes.items()})
         for name, n in self.transport.counters().items():  # a reason both refuse for (unknown_sensor): summed

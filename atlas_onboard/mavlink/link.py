@@ -37,6 +37,8 @@ from typing import Any
 from pymavlink import mavutil
 
 from atlas_onboard.config import LinkConfig, SigningConfig
+from atlas_onboard.core.rejection import Rejection
+from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import dialect
 
@@ -64,34 +66,6 @@ smaller one drops the real peers' first under a burst. What does not fit is drop
 flood costs it a header read per datagram, never its own camera's path."""
 
 Handler = Callable[["Link", Any, int], None]
-
-
-class Counters:
-    """Named event counters, safe to increment from a link's thread while another thread reads them."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._values: dict[str, int] = {}
-
-    def inc(self, name: str, n: int = 1) -> None:
-        with self._lock:
-            self._values[name] = self._values.get(name, 0) + n
-
-    def __getitem__(self, name: str) -> int:
-        return self._values.get(name, 0)
-
-    def get(self, name: str, default: int = 0) -> int:
-        return self._values.get(name, default)
-
-    def snapshot(self) -> dict[str, int]:
-        with self._lock:
-            return dict(self._values)
-
-    def items(self) -> Iterator[tuple[str, int]]:
-        return iter(self.snapshot().items())
-
-    def __repr__(self) -> str:
-        return f"Counters({self.snapshot()})"
 
 
 def udp_socket_drops(sock: Any) -> int | None:
@@ -254,7 +228,7 @@ class Link:
             if not signing.require and not bad_signature:
                 return True
             if getattr(self.dialect.mavlink_map.get(msg_id), "msgname", "") in PROTECTED:
-                self.counters.inc("rejected_unsigned_or_bad_signature")
+                self.counters.inc(Rejection.UNSIGNED_OR_BAD_SIGNATURE)
                 return False
             return True
 
@@ -416,14 +390,14 @@ class Link:
         kind = msg.get_type()
         if kind == "BAD_DATA":
             reason = str(getattr(msg, "reason", ""))
-            self.counters.inc("rejected_bad_signature" if "signature" in reason else "rejected_bad_data")
+            self.counters.inc(Rejection.BAD_SIGNATURE if "signature" in reason else Rejection.BAD_DATA)
             return False
         if type(msg).__name__ == "MAVLink_unknown" or kind.startswith("UNKNOWN"):
             # pymavlink returns unknown ids before any CRC or signature check: never trust them. An id
             # another public dialect defines (ArduPilot's AHRS, ...) is only not ours to read.
             msg_id = kind.rpartition("_")[2]  # pymavlink names it UNKNOWN_<id>
             other = msg_id.isdigit() and int(msg_id) in dialect.known_elsewhere()
-            self.counters.inc("rx_other_dialect" if other else "rejected_unknown_id")
+            self.counters.inc("rx_other_dialect" if other else Rejection.UNKNOWN_ID)
             return False
         self.counters.inc(f"rx_{kind.lower()}")
         return True

@@ -15,10 +15,12 @@ from typing import Any
 from atlas_onboard.config import NodeConfig, WorldConfig
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.rejection import Rejection
+from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, dialect
-from atlas_onboard.mavlink.gate import OriginBinding, OriginRefusal, PeerGate, ReportLimiter, TokenBucket
-from atlas_onboard.mavlink.link import Counters, Link
+from atlas_onboard.mavlink.gate import OriginBinding, PeerGate, ReportLimiter, TokenBucket
+from atlas_onboard.mavlink.link import Link
 from atlas_onboard.publisher import AutopilotPose, PoseState, Telemetry
 from atlas_onboard.schedule import Inbound
 
@@ -332,15 +334,15 @@ class MavlinkTransport:
         refusal = self.binding.observation(msg.sensor_id, origin)
         wall_ns = self._wall_ns()
         if refusal is None and abs(wall_ns - msg.time_usec * 1000) > self.gate.max_skew_ns:
-            refusal = OriginRefusal.BAD_STAMP
+            refusal = Rejection.BAD_STAMP
         if refusal is not None:
             self._refuse(refusal, origin)
             return
         if msg.format_version != codec.FORMAT_VERSION:
-            self._refuse("bad_version", origin)
+            self._refuse(Rejection.BAD_VERSION, origin)
             return
         if msg.fingerprint != self.fingerprint & 0xFFFFFFFF:
-            self._refuse("wrong_fingerprint", origin)
+            self._refuse(Rejection.WRONG_FINGERPRINT, origin)
             self._warn_fingerprint(origin)
             return
         admit = partial(self._admit, index, link, kind, msg, origin, arrival_ns, wall_ns)
@@ -355,12 +357,12 @@ class MavlinkTransport:
         refusal = self.binding.fused(entity, origin)
         if refusal is None:
             self.peers_seen[origin] = arrival_ns
-        elif refusal is OriginRefusal.UNKNOWN_ORIGIN:
+        elif refusal is Rejection.UNKNOWN_ORIGIN:
             self._refuse(refusal, origin)
 
-    def _refuse(self, reason: str, origin: int) -> None:
+    def _refuse(self, reason: Rejection, origin: int) -> None:
         """Count a refused peer message by reason and by origin (at most 256 origins)."""
-        self.counters_.inc(f"rejected_{reason}")
+        self.counters_.inc(reason)
         with self._lock:
             self._refused_by_origin[origin & 0xFF] = self._refused_by_origin.get(origin & 0xFF, 0) + 1
 
@@ -411,11 +413,11 @@ class MavlinkTransport:
                 md = codec.decode_observation(msg, origin, self.fingerprint)
         except codec.RejectionError as exc:
             self._refuse(exc.reason, origin)
-            if exc.reason == "wrong_fingerprint":
+            if exc.reason is Rejection.WRONG_FINGERPRINT:
                 self._warn_fingerprint(origin)
             return None
         except link.dialect.MAVError:  # a deferred frame that pymavlink cannot make a message of
-            self._refuse("bad_data", origin)
+            self._refuse(Rejection.BAD_DATA, origin)
             return None
         refusal = self.binding.observation(md.sensor_id, origin)  # TUNNEL's is known only now
         if refusal is not None:
@@ -435,7 +437,7 @@ class MavlinkTransport:
                 " (chrony)", skew.origin, skew.skew_s * 1e3,
             )  # fmt: skip
         if self.gate.stamp_refused(md, wall_ns):
-            self._refuse(OriginRefusal.BAD_STAMP, origin)
+            self._refuse(Rejection.BAD_STAMP, origin)
             return None
         return md
 
