@@ -18,7 +18,7 @@ from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.rejection import Rejection
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mavlink import autopilot, codec, dialect
+from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.gate import OriginBinding, PeerGate, ReportLimiter, TokenBucket
 from atlas_onboard.mavlink.link import Link
 from atlas_onboard.publisher import AutopilotPose, PoseState, Telemetry
@@ -405,7 +405,7 @@ class MavlinkTransport:
         (counted) if it must go no further. ``wall_ns``: its arrival on the wall clock (now if not
         given), for the clock checks."""
         try:
-            if isinstance(msg, dialect.Deferred):
+            if isinstance(msg, framing.Deferred):
                 msg = msg.decoded()
             if kind == "TUNNEL":
                 md = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, origin, self.fingerprint)

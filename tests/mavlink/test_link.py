@@ -10,7 +10,8 @@ import pytest
 
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import codec
-from atlas_onboard.mavlink.link import Link, read_key, signing_timestamp
+from atlas_onboard.mavlink.link import Link
+from atlas_onboard.mavlink.signing import read_key, signing_timestamp
 from tests.mavlink.loopback import (
     FP,
     MD,
@@ -23,6 +24,8 @@ from tests.mavlink.loopback import (
     poll_until,
     write_key,
 )
+
+pytestmark = pytest.mark.usefixtures("framing_mode")  # every test with the fast path and without
 
 
 def test_udp_round_trip_between_two_links(closing):

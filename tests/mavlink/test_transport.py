@@ -16,13 +16,15 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import AutopilotConfig, AutopilotOutput, GlobalOrigin, LinkConfig, NodeConfig
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import Rejection
-from atlas_onboard.mavlink import codec, dialect
+from atlas_onboard.mavlink import codec, framing
 from atlas_onboard.mavlink.transport import MavlinkTransport
 from atlas_onboard.publisher import AutopilotPose
 from atlas_onboard.schedule import ParkingBuffer
 from tests.e2e import wait_for
 from tests.helpers import world_from
 from tests.mavlink.loopback import MD, D, RawSender, free_port
+
+pytestmark = pytest.mark.usefixtures("framing_mode")  # every test with the fast path and without
 
 WALL_S = 1_700_000_000.25  # the transport's wall clock, frozen
 
@@ -381,15 +383,16 @@ class Parking:
         return [(md, arrival_ns) for md, arrival_ns in taken if md is not None]
 
 
-def test_parked_observations_are_the_newest_of_each_edge_and_checked_when_taken(monkeypatch):
+@pytest.mark.parametrize("framing_mode", ["fast"], indirect=True)  # deferred decoding is the fast path's
+def test_parked_observations_are_the_newest_of_each_edge_and_checked_when_taken(monkeypatch, framing_mode):
     """Observations the node parks (here of marker 6) are delivered undecoded: the newest of its
     edge is kept, the others dropped (counted), and it is decoded and checked (duplicates, stamps)
     only when taken; another world file's never stands in for ours (refused before decoding); the
     rest is taken at once. Those dropped are never decoded, nor is a peer's fused pose (it only says
     the peer is alive)."""
     decoded = []
-    real = dialect.Deferred.decoded
-    monkeypatch.setattr(dialect.Deferred, "decoded", lambda self: decoded.append(self.get_type()) or real(self))
+    real = framing.Deferred.decoded
+    monkeypatch.setattr(framing.Deferred, "decoded", lambda self: decoded.append(self.get_type()) or real(self))
     world = world_from(CEILING_D1_D2)
     port = free_port()
     config = NodeConfig(
