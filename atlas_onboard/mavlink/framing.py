@@ -60,27 +60,31 @@ _MAGIC_V2 = 0xFD
 _IFLAG_SIGNED = 0x01
 _V2_OVERHEAD = 12  # 10-byte header, 2-byte checksum (unsigned)
 _V2_HEADER = 10
+_SIGNATURE_LEN = 13  # link id, 6-byte timestamp, 6-byte signature
 
 
 def parser_class(module: ModuleType) -> type:
-    """The dialect's ``MAVLink`` class, faster for unsigned MAVLink 2 frames, with deferred decoding.
+    """The dialect's ``MAVLink`` class, faster for MAVLink 2 frames, with deferred decoding.
 
     pymavlink's generated ``decode`` finds each field of a message with arrays by summing the lengths
     of the fields before it, for every message it decodes: for ATLAS_OBSERVATION (20 fields, three
     arrays) that is about half of its time, and a node in a swarm decodes every peer's observation.
     This class computes each message type's field layout once and otherwise does what pymavlink
-    does: the same checks, the same message object (fields, header, payload, checksum). Anything
-    else goes to pymavlink's own ``decode`` unchanged: MAVLink 1, signed frames, any frame while a
-    signing key is set (unsigned frames are then the signing callback's to judge), unknown ids, a
-    wrong length or checksum (pymavlink raises its own error for those). Tested equal to pymavlink's
-    on every message of the dialect.
+    does: the same checks, the same message object (fields, header, payload, checksum). Its
+    ``decode`` (pymavlink's parser calls it for a frame split across reads) leaves to pymavlink's
+    own: MAVLink 1, signed frames, any frame while a signing key is set, unknown ids, a wrong length
+    or checksum (pymavlink raises its own error for those). Tested equal to pymavlink's on every
+    message of the dialect.
 
     ``parse_buffer`` takes a read that starts at a frame (a UDP datagram holds whole frames) a frame
-    at a time, rather than pymavlink's byte-buffer bookkeeping per message; at the first thing that
-    is not a whole, valid, unsigned MAVLink 2 frame of a known id (a partial frame of a stream, bad
-    data, MAVLink 1, a signed frame) it hands the rest of the read to pymavlink's ``parse_buffer``,
-    which then parses it exactly as it would have. Frames of the ids in ``deferred_ids`` come back as
-    :class:`Deferred`: checked as above, decoded only when a field is asked for.
+    at a time, rather than pymavlink's byte-buffer bookkeeping per message, signed or not: the
+    signing policy is pymavlink's decode's, step for step (the connection's ``check_signature``, the
+    ``allow_unsigned_callback``, the same counts, BAD_DATA "Invalid signature" for a refused frame).
+    At the first thing that is not a whole MAVLink 2 frame of a known id with a valid checksum (a
+    partial frame of a stream, bad data, MAVLink 1, an unknown flag) it hands the rest of the read to
+    pymavlink's ``parse_buffer``, which then parses it exactly as it would have. Frames of the ids in
+    ``deferred_ids`` come back as :class:`Deferred`: checked as above (the signature included),
+    decoded only when a field is asked for.
     """
     with _lock:
         cls = _cache.get("parser")
@@ -95,18 +99,20 @@ def parser_class(module: ModuleType) -> type:
 
 
 class Deferred:
-    """A frame that passed every check of a decode (an unsigned MAVLink 2 frame of a known id, its
-    length and checksum right), decoded only when needed: :meth:`decoded` gives pymavlink's message
+    """A frame that passed every check of a decode (a MAVLink 2 frame of a known id, its length,
+    checksum and signing right), decoded only when needed: :meth:`decoded` gives pymavlink's message
     (the same object the parser would have returned), a scalar field read as an attribute
     (``frame.sensor_id``) is read from the payload alone, any other attribute decodes. A receiver
     that keeps only the newest of many messages, or needs only their sender, then decodes few."""
 
-    __slots__ = ("_build", "_msg", "_msgbuf", "_msgtype")
+    __slots__ = ("_build", "_msg", "_msgbuf", "_msgtype", "_sig_ok", "_trailer")
 
-    def __init__(self, build: Any, msgbuf: bytearray, msgtype: Any) -> None:
+    def __init__(self, build: Any, msgbuf: bytearray, msgtype: Any, trailer: int = 2, sig_ok: bool = False) -> None:
         self._build = build
         self._msgbuf = msgbuf
         self._msgtype = msgtype
+        self._trailer = trailer  # bytes after the payload: the checksum, and the signature if signed
+        self._sig_ok = sig_ok
         self._msg: Any = None
 
     def get_type(self) -> str:
@@ -127,7 +133,7 @@ class Deferred:
     def decoded(self) -> Any:
         """pymavlink's message for this frame (decoded once)."""
         if self._msg is None:
-            self._msg = self._build(self._msgbuf, self._msgtype)
+            self._msg = self._build(self._msgbuf, self._msgtype, self._trailer, self._sig_ok)
         return self._msg
 
     def __getattr__(self, name: str) -> Any:
@@ -151,7 +157,7 @@ def _deferred_class(msgtype: Any) -> type[Deferred]:
 
 
 def _field(read: Any) -> Any:
-    return lambda self: read(self._msgbuf)
+    return lambda self: read(self._msgbuf, len(self._msgbuf) - self._trailer)
 
 
 def _scalar_readers(msgtype: Any) -> dict[str, Any]:
@@ -178,8 +184,7 @@ def _scalar_readers(msgtype: Any) -> dict[str, Any]:
 def _reader(unpacker: struct.Struct, start: int) -> Any:
     size = unpacker.size
 
-    def read(msgbuf: bytearray) -> Any:
-        end = len(msgbuf) - 2  # the payload's end (the checksum follows)
+    def read(msgbuf: bytearray, end: int) -> Any:  # ``end``: the payload's (the checksum follows)
         if start + size <= end:
             return unpacker.unpack_from(msgbuf, start)[0]
         return unpacker.unpack(bytes(msgbuf[start:end]).ljust(size, b"\x00"))[0]
@@ -205,23 +210,47 @@ def _layout(msgtype: Any) -> tuple[list[tuple[int, int]], list[int]]:
 def _decoder(module: ModuleType) -> tuple[Any, Any]:
     """The parser's ``decode`` and ``parse_buffer`` (see :func:`parser_class`)."""
     mavlink_map, header, x25crc = module.mavlink_map, module.MAVLink_header, module.x25crc
+    bad_data = module.MAVLink_bad_data
     layouts: dict[int, tuple[list[tuple[int, int]], list[int]]] = {}
     generic_decode, generic_parse = module.MAVLink.decode, module.MAVLink.parse_buffer
 
-    def checksum_ok(msgbuf: bytearray, msgtype: Any) -> bool:
-        crcbuf = msgbuf[1:-2]
+    def checksum_ok(msgbuf: bytearray, msgtype: Any, trailer: int = 2) -> bool:
+        crcbuf = msgbuf[1:-trailer]
         crcbuf.append(msgtype.crc_extra)
-        return bool(x25crc(crcbuf).crc == msgbuf[-2] | msgbuf[-1] << 8)
+        return bool(x25crc(crcbuf).crc == msgbuf[-trailer] | msgbuf[1 - trailer] << 8)
 
-    def build(msgbuf: bytearray, msgtype: Any) -> Any:
-        """The message of a frame whose checks have passed."""
+    def signing_accepts(mav: Any, msgbuf: bytearray, msg_id: int, signed: bool) -> tuple[bool, bool]:
+        """(accepted, signature good): pymavlink's decode's signing policy, with its counts."""
+        signing = mav.signing
+        sig_ok = False
+        if signed:
+            signing.sig_count += 1
+        if signing.secret_key is None:
+            return True, False
+        accept = False
+        if signed:
+            sig_ok = accept = mav.check_signature(msgbuf, msgbuf[5], msgbuf[6])
+            if sig_ok:
+                signing.goodsig_count += 1
+            else:
+                signing.badsig_count += 1
+        if not accept and signing.allow_unsigned_callback is not None:
+            accept = signing.allow_unsigned_callback(mav, msg_id)
+            if accept:
+                signing.unsigned_count += 1
+            else:
+                signing.reject_count += 1
+        return accept, sig_ok
+
+    def build(msgbuf: bytearray, msgtype: Any, trailer: int = 2, sig_ok: bool = False) -> Any:
+        """The message of a frame whose checks have passed (``trailer``: the bytes after its payload)."""
         msg_id = msgtype.id
         layout = layouts.get(msg_id)
         if layout is None:
             layout = layouts[msg_id] = _layout(msgtype)
         fields, strings = layout
         size = msgtype.unpacker.size
-        payload = msgbuf[10:-2]
+        payload = msgbuf[10:-trailer]
         if len(payload) < size:  # MAVLink 2 drops the payload's trailing zeros
             payload.extend(bytes(size - len(payload)))
         t = msgtype.unpacker.unpack(payload[:size])
@@ -232,10 +261,12 @@ def _decoder(module: ModuleType) -> tuple[Any, Any]:
             m = msgtype(*values)
         except Exception as exc:
             raise module.MAVError(f"Unable to instantiate MAVLink message of type {msgtype} : {exc}") from exc
-        m._signed = False
+        m._signed = sig_ok
+        if sig_ok:
+            m._link_id = msgbuf[-13]
         m._msgbuf = msgbuf
-        m._payload = msgbuf[6:-2]  # as pymavlink sets it
-        m._crc = msgbuf[-2] | msgbuf[-1] << 8
+        m._payload = msgbuf[6:-trailer]  # as pymavlink sets it
+        m._crc = msgbuf[-trailer] | msgbuf[1 - trailer] << 8
         m._header = header(msg_id, msgbuf[2], msgbuf[3], msgbuf[1], msgbuf[4], msgbuf[5], msgbuf[6])
         return m
 
@@ -249,27 +280,35 @@ def _decoder(module: ModuleType) -> tuple[Any, Any]:
         return build(msgbuf, msgtype)
 
     def parse_buffer(self: Any, s: Any) -> list[Any] | None:
-        if self.buf_index != len(self.buf) or self.signing.secret_key is not None or self.callback is not None:
-            return generic_parse(self, s)  # a partial frame is waiting, or signing: pymavlink's way
+        if self.buf_index != len(self.buf) or self.callback is not None:
+            return generic_parse(self, s)  # a partial frame is waiting, or a callback: pymavlink's way
         out: list[Any] = []
         deferred = self.deferred_ids
+        errors = 0
         i, n = 0, len(s)
-        while n - i >= _V2_OVERHEAD and s[i] == _MAGIC_V2 and not s[i + 2]:
-            end = i + s[i + 1] + _V2_OVERHEAD
+        while n - i >= _V2_OVERHEAD and s[i] == _MAGIC_V2 and s[i + 2] in (0, _IFLAG_SIGNED):
+            signed = s[i + 2] == _IFLAG_SIGNED
+            trailer = 2 + _SIGNATURE_LEN if signed else 2
+            end = i + s[i + 1] + _V2_HEADER + trailer
             msgtype = mavlink_map.get(s[i + 7] | s[i + 8] << 8 | s[i + 9] << 16)
             if end > n or msgtype is None:
                 break
             msgbuf = bytearray(s[i:end])
-            if not checksum_ok(msgbuf, msgtype):
+            if not checksum_ok(msgbuf, msgtype, trailer):
                 break
-            if msgtype.id in deferred:
-                out.append(_deferred_class(msgtype)(build, msgbuf, msgtype))
-            else:
-                out.append(build(msgbuf, msgtype))
             i = end
+            accepted, sig_ok = signing_accepts(self, msgbuf, msgtype.id, signed)
+            if not accepted:
+                out.append(bad_data(msgbuf, "Invalid signature"))
+                errors += 1
+            elif msgtype.id in deferred:
+                out.append(_deferred_class(msgtype)(build, msgbuf, msgtype, trailer, sig_ok))
+            else:
+                out.append(build(msgbuf, msgtype, trailer, sig_ok))
         if out:  # the parser's state as pymavlink leaves it after whole frames
             self.total_bytes_received += i
             self.total_packets_received += len(out)
+            self.total_receive_errors += errors
             self.have_prefix_error = False
             self.expected_length = _V2_OVERHEAD
         if i < n:
