@@ -29,7 +29,17 @@ from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.listener import Listener, make_graph
 from atlas_onboard.publisher import AutopilotPose, PoseState, Publisher, Telemetry
-from atlas_onboard.schedule import FrameCount, Inbound, Inbox, Item, ParkingBuffer, Relevance, near_entities, relevance
+from atlas_onboard.schedule import (
+    Changes,
+    FrameCount,
+    Inbound,
+    Inbox,
+    Item,
+    ParkingBuffer,
+    Relevance,
+    near_entities,
+    relevance,
+)
 from atlas_onboard.state import ResetCounterStore
 
 _logger = logging.getLogger(__name__)
@@ -153,11 +163,8 @@ class Node:
         self._may_read = threading.Event()  # cleared while the own pose is evaluated and published
         self._may_read.set()
         self._reload = threading.Event()
-        self._dirty = False
-        self._dirty_others = False  # an edge not between the own entity and the world changed
+        self.changes = Changes(COALESCE_NS)  # when the graph is to be evaluated
         self._last_publish_ns = 0
-        self._last_eval_ns = 0
-        self._urgent = False
         # Peer observations that cannot move the own pose are parked and accepted together, as often
         # as the fused poses of others go out (at least every COALESCE_NS, at most every half edge
         # timeout so that no edge expires while its refresh waits): others' poses are needed no
@@ -281,9 +288,7 @@ class Node:
         since = self.parking.since_ns()
         if since is not None:
             due.append(since + self.park_ns)
-        if self._dirty:
-            due.append(now if self._urgent else self._last_eval_ns + COALESCE_NS)
-        for t in (self.graph.next_expiry_ns(), self.publisher.next_autopilot_ns()):
+        for t in (self.changes.due_ns(now), self.graph.next_expiry_ns(), self.publisher.next_autopilot_ns()):
             if t is not None:
                 due.append(t)
         if self.ekf is not None and self.last_result is not None:
@@ -378,12 +383,13 @@ class Node:
             else:
                 self.stats.peer_observations += 1
             if reason is None:
-                self._dirty = True
-                if not self._urgent:
-                    self._urgent = self._concerns_own_pose(md)
-                if not self._dirty_others:
+                changes = self.changes
+                changes.pending = True
+                if not changes.urgent:
+                    changes.urgent = self._concerns_own_pose(md)
+                if not changes.others:
                     ends = (self._entity_of[0].get(md.sensor_id), self._entity_of[1].get(md.marker_id))
-                    self._dirty_others = not all(e in (self.config.entity, WORLD) for e in ends)
+                    changes.others = not all(e in (self.config.entity, WORLD) for e in ends)
                 _logger.debug(
                     "obs %d/%d cap %d sigma %.4f err %.3f ambiguity %.3f p %s", md.sensor_id, md.marker_id,
                     md.capture_time_us, md.sigma_m, md.reprojection_error_px, md.ambiguity_ratio, md.p_sensor_marker_m,
@@ -436,8 +442,7 @@ class Node:
         when that is possible (see :meth:`_evaluate`)."""
         expiry = self.graph.next_expiry_ns()
         expired = expiry is not None and now >= expiry
-        due = self._dirty and (self._urgent or now - self._last_eval_ns >= COALESCE_NS)
-        if due or expired:
+        if self.changes.due(now) or expired:
             self._evaluate(now, own_only=own_first and not expired)
             self._publish(now)
         elif self.last_result is not None:
@@ -496,12 +501,10 @@ class Node:
         edges between the own entity and the world, the own entity a parent of none of them, and no
         edge ageing (with which their sigmas grow between evaluations)."""
         partial = own_only and self._near is not None and self.ekf is None
-        self._urgent = False
         self.listener.forget_expired(now)
         result = self.graph.evaluate(now, target=self.config.entity if partial else None)
         if result.complete:
-            self._dirty = self._dirty_others = False
-            self._last_eval_ns = now
+            self.changes.evaluated(now, complete=True)
         else:
             last = self.last_result
             known = last.poses if last is not None else {}
@@ -509,8 +512,9 @@ class Node:
             result = replace(result, poses=poses, relative=last.relative if last is not None else {})
             f = self.world.fusion
             ageless = f.age_sigma_m_per_s == 0.0 and f.age_sigma_deg_per_s == 0.0
-            if not self._dirty_others and ageless and not self._parent_of_others(result):
-                self._dirty = False  # a full evaluation would give every other entity the pose it has
+            # A full evaluation is not needed when it would give every other entity the pose it has.
+            unchanged = not self.changes.others and ageless and not self._parent_of_others(result)
+            self.changes.evaluated(now, complete=False, rest_unchanged=unchanged)
         self.last_result = result
         bfs = self.world.fusion.path == "bfs"
         self._near = near_entities(self.config.entity, result.levels if bfs else None)

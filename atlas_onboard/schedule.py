@@ -11,6 +11,8 @@ loop empties them): no clock is read here, every time is passed in.
   superseded, never decoded); otherwise every one is kept, in arrival order, for the edge's filter.
 - :class:`Inbox` holds what is taken at once (bounded, oldest dropped, counted).
 - :class:`FrameCount` says which images of a batch still have observations to come.
+- :class:`Changes` says when the graph is to be evaluated: what was accepted since the last
+  evaluation of every entity, and when that was.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from enum import Enum
 
 from atlas_onboard.core.markerdata import MarkerData
@@ -241,3 +244,38 @@ class FrameCount:
             if not seen[2] and (self._watch is None or self._watch(md)):
                 seen[2] = 1
             self.incomplete += (seen[2] and seen[0] < seen[1]) - before
+
+
+@dataclass
+class Changes:
+    """What was accepted since the graph was last evaluated whole, and when that was (monotonic ns):
+    when the node evaluates. An observation that can move the own pose is evaluated at once; the
+    others at most ``coalesce_ns`` after the last full evaluation, together. Used by the loop's
+    thread only."""
+
+    coalesce_ns: int
+    last_full_ns: int = 0
+    pending: bool = False  # an observation accepted since the last full evaluation
+    urgent: bool = False  # one that can move the own pose, not evaluated yet
+    others: bool = False  # one of an edge not between the own entity and the world
+
+    def due(self, now_ns: int) -> bool:
+        """Whether the graph is to be evaluated now."""
+        return self.pending and (self.urgent or now_ns - self.last_full_ns >= self.coalesce_ns)
+
+    def due_ns(self, now_ns: int) -> int | None:
+        """When the graph is to be evaluated next, or None if nothing changed."""
+        if not self.pending:
+            return None
+        return now_ns if self.urgent else self.last_full_ns + self.coalesce_ns
+
+    def evaluated(self, now_ns: int, complete: bool, rest_unchanged: bool = False) -> None:
+        """After an evaluation at ``now_ns``: of every entity (``complete``), or of the own pose
+        alone, after which a full one is still due unless ``rest_unchanged`` (it would give every
+        other entity the pose it has) and no other edge changed."""
+        self.urgent = False
+        if complete:
+            self.pending = self.others = False
+            self.last_full_ns = now_ns
+        elif rest_unchanged and not self.others:
+            self.pending = False

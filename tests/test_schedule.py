@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.schedule import Inbound, Inbox, ParkingBuffer, Relevance, near_entities, relevance
+from atlas_onboard.schedule import Changes, Inbound, Inbox, ParkingBuffer, Relevance, near_entities, relevance
 
 # --- relevance ------------------------------------------------------------------------------------
 
@@ -170,3 +170,26 @@ def test_inbox_items_that_need_no_wake_wait_until_it_is_half_full():
     consumer.join(10)
     assert not consumer.is_alive() and got[0][1] == 0
     assert [box.get(0)[1] for _ in range(3)] == [1, 2, 3] and box.dropped == 0
+
+
+# --- when the graph is evaluated ---------------------------------------------------------------------
+
+
+def test_changes_say_when_the_graph_is_evaluated():
+    ms = 1_000_000
+    changes = Changes(coalesce_ns=50 * ms)
+    assert not changes.due(0) and changes.due_ns(0) is None  # nothing accepted
+    changes.pending = changes.others = True  # a view of another drone, at 10 ms
+    assert not changes.due(10 * ms) and changes.due_ns(10 * ms) == 50 * ms and changes.due(50 * ms)
+    changes.urgent = True  # then one of the own entity: at once
+    assert changes.due(20 * ms) and changes.due_ns(20 * ms) == 20 * ms
+    changes.evaluated(20 * ms, complete=False, rest_unchanged=True)  # the own pose alone
+    assert not changes.urgent and changes.due_ns(20 * ms) == 50 * ms  # the others' view still waits
+    changes.evaluated(50 * ms, complete=True)
+    assert changes.due_ns(60 * ms) is None and changes.last_full_ns == 50 * ms
+    changes.pending = changes.urgent = True  # only the own entity's edge to the world changed
+    changes.evaluated(70 * ms, complete=False, rest_unchanged=True)
+    assert changes.due_ns(70 * ms) is None  # a full evaluation would change nothing
+    changes.pending = changes.urgent = True
+    changes.evaluated(80 * ms, complete=False, rest_unchanged=False)  # an entity rests on the own pose
+    assert changes.due_ns(80 * ms) == 100 * ms
