@@ -25,8 +25,6 @@ from tests.mavlink.loopback import (
     write_key,
 )
 
-pytestmark = pytest.mark.usefixtures("framing_mode")  # every test with the fast path and without
-
 
 def test_udp_round_trip_between_two_links(closing):
     port = free_port()
