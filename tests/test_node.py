@@ -13,7 +13,7 @@ from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig, parse_
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.node import LOOP_TICK_S, Node
 from atlas_onboard.schedule import Inbound, Relevance
-from tests.e2e import wait_for
+from tests.e2e.helpers import wait_for
 from tests.helpers import assert_pose_close, observe, pose
 
 WORLD = parse_world(
