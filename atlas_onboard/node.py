@@ -578,7 +578,7 @@ class Node:
         self.world = world
         self._entity_of = _entity_lookup(world)
         self._supersedes = _supersedes(world)
-        self.parking = ParkingBuffer(self.parking.capacity, self._supersedes)
+        self.parking.clear(newest_wins=self._supersedes)
         self.graph.clear()
         self.graph = make_graph(world, self.config.entity)
         self.listener = Listener(world, self.graph)

@@ -167,8 +167,12 @@ class ParkingBuffer:
             self._items, self._kept, self._since_ns = {}, {}, None
         return items
 
-    def clear(self) -> None:
-        self.take()
+    def clear(self, newest_wins: bool | None = None) -> None:
+        """Drop what is parked (uncounted: a reload), switching ``newest_wins`` if given; counts go on."""
+        with self._lock:
+            self._items, self._kept, self._since_ns = {}, {}, None
+            if newest_wins is not None:
+                self.newest_wins = newest_wins
 
     def __len__(self) -> int:
         return len(self._items)

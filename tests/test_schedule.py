@@ -193,3 +193,16 @@ def test_changes_say_when_the_graph_is_evaluated():
     changes.pending = changes.urgent = True
     changes.evaluated(80 * ms, complete=False, rest_unchanged=False)  # an entity rests on the own pose
     assert changes.due_ns(80 * ms) == 100 * ms
+
+
+def test_clearing_the_buffer_keeps_its_counts_and_may_switch_its_mode():
+    """A reload drops what is parked and may change whether only the newest of an edge counts; the
+    counters of superseded and dropped observations go on (they never decrease)."""
+    buffer = ParkingBuffer(capacity=1, newest_wins=True)
+    buffer.put([arrival(1, 0, 10, 0), arrival(1, 0, 11, 1), arrival(2, 0, 10, 2)])
+    assert (buffer.superseded, buffer.dropped, len(buffer)) == (1, 1, 1)
+    buffer.clear(newest_wins=False)
+    assert (buffer.superseded, buffer.dropped, len(buffer), buffer.since_ns()) == (1, 1, 0, None)
+    buffer.put([arrival(1, 0, 12, 3)])
+    buffer.put([arrival(1, 0, 13, 4)])  # every one counts now: the older is dropped for room, not superseded
+    assert (buffer.superseded, buffer.dropped) == (1, 2) and buffer.take()[0].capture_time_us == 13
