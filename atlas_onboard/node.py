@@ -301,7 +301,7 @@ class Node:
         most ``FRAME_WAIT_S``: an image's observations are evaluated together, never part of them with
         the previous image. (Images that cannot move it are parked or sent on, not waited for.)"""
         batch = [first, *self.inbox.drain()]
-        frames = FrameCount(self._concerns_own_pose)
+        frames = FrameCount(self._concerns_own_pose, self.parking.parked_of)
         frames.add(batch)
         deadline = time.monotonic() + FRAME_WAIT_S
         while frames.incomplete and not self._stop.is_set():

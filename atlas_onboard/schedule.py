@@ -27,6 +27,7 @@ from atlas_onboard.core.markerdata import MarkerData
 
 WORLD = "world"
 EdgeKey = tuple[int, int]  # (sensor id, marker id)
+ImageKey = tuple[int, int, int]  # a peer's image: (origin system id, sensor id, capture time in us)
 Item = tuple[MarkerData, int, bool]  # an accepted-to-be observation, its arrival (monotonic ns), whether local
 
 
@@ -60,15 +61,18 @@ def relevance(observer: str | None, observed: str | None, near: frozenset[str] |
 
 
 class Inbound:
-    """A peer's observation as the transport delivers it: its edge, capture time and place in its
-    image read from the frame, when it arrived, and :meth:`take`, which gives the checked
+    """A peer's observation as the transport delivers it: its sender (system id), edge, capture time
+    and place in its image read from the frame, when it arrived, and :meth:`take`, which gives the checked
     MarkerData (decoded and checked at the first call, in the caller's thread; None if refused,
     counted by the transport). One that is never taken is never decoded."""
 
-    __slots__ = ("_admit", "_md", "arrival_ns", "capture_time_us", "frame_remaining", "marker_id", "sensor_id")
+    __slots__ = (
+        "_admit", "_md", "arrival_ns", "capture_time_us", "frame_remaining", "marker_id", "origin", "sensor_id",
+    )  # fmt: skip
 
     def __init__(
         self,
+        origin: int,
         sensor_id: int,
         marker_id: int,
         capture_time_us: int,
@@ -76,6 +80,7 @@ class Inbound:
         arrival_ns: int,
         admit: Callable[[], MarkerData | None],
     ) -> None:
+        self.origin = origin
         self.sensor_id = sensor_id
         self.marker_id = marker_id
         self.capture_time_us = capture_time_us
@@ -87,13 +92,17 @@ class Inbound:
     @classmethod
     def of(cls, md: MarkerData, arrival_ns: int) -> Inbound:
         """One already decoded and checked."""
-        item = cls(md.sensor_id, md.marker_id, md.capture_time_us, md.frame_remaining, arrival_ns, _none)
+        item = cls(md.origin, md.sensor_id, md.marker_id, md.capture_time_us, md.frame_remaining, arrival_ns, _none)
         item._admit, item._md = None, md
         return item
 
     @property
     def edge(self) -> EdgeKey:
         return (self.sensor_id, self.marker_id)
+
+    @property
+    def image(self) -> ImageKey:
+        return (self.origin, self.sensor_id, self.capture_time_us)
 
     def take(self) -> MarkerData | None:
         """The checked observation, or None if it is refused (decided once)."""
@@ -115,6 +124,10 @@ class ParkingBuffer:
     the same, the first) is kept: every other arrival of an edge counts once in :attr:`superseded`.
     Otherwise every observation is kept. Bounded: beyond ``capacity`` the oldest arrival goes,
     counted in :attr:`dropped`. :meth:`take` returns everything, in arrival order.
+
+    It also tallies, per image, the observations parked since the last :meth:`take` (kept or not):
+    the node's :class:`FrameCount` counts them with the image's others, so that it does not wait
+    for observations of an image that were parked (at most ``capacity`` images are tallied).
     """
 
     def __init__(self, capacity: int, newest_wins: bool) -> None:
@@ -126,6 +139,7 @@ class ParkingBuffer:
         self._kept: dict[EdgeKey, int] = {}  # with newest_wins: each edge's kept item
         self._n = 0
         self._since_ns: int | None = None
+        self._images: dict[ImageKey, tuple[int, int]] = {}  # (observations parked, largest frame_remaining)
         self._lock = threading.Lock()
         self.superseded = 0
         self.dropped = 0
@@ -136,6 +150,12 @@ class ParkingBuffer:
                 self._put(item)
 
     def _put(self, item: Inbound) -> None:
+        image = item.image
+        tally = self._images.get(image)
+        if tally is not None:
+            self._images[image] = (tally[0] + 1, max(tally[1], item.frame_remaining))
+        elif len(self._images) < self.capacity:
+            self._images[image] = (1, item.frame_remaining)
         if self.newest_wins:
             old = self._kept.get(item.edge)
             if old is not None:
@@ -156,6 +176,11 @@ class ParkingBuffer:
         if self.newest_wins:
             self._kept[item.edge] = self._n
 
+    def parked_of(self, image: ImageKey) -> tuple[int, int] | None:
+        """How many observations of a peer's ``image`` were parked since the last :meth:`take`, and
+        the largest ``frame_remaining`` among them; None if none (or not tallied)."""
+        return self._images.get(image)
+
     def since_ns(self) -> int | None:
         """When the first observation parked since the last :meth:`take` arrived, or None if none waits."""
         return self._since_ns if self._items else None
@@ -164,13 +189,13 @@ class ParkingBuffer:
         """Everything parked, in order of arrival; the buffer is then empty."""
         with self._lock:
             items = sorted(self._items.values(), key=lambda it: it.arrival_ns)
-            self._items, self._kept, self._since_ns = {}, {}, None
+            self._items, self._kept, self._since_ns, self._images = {}, {}, None, {}
         return items
 
     def clear(self, newest_wins: bool | None = None) -> None:
         """Drop what is parked (uncounted: a reload), switching ``newest_wins`` if given; counts go on."""
         with self._lock:
-            self._items, self._kept, self._since_ns = {}, {}, None
+            self._items, self._kept, self._since_ns, self._images = {}, {}, None, {}
             if newest_wins is not None:
                 self.newest_wins = newest_wins
 
@@ -229,11 +254,18 @@ class FrameCount:
     promises (order-proof: datagrams may be reordered). Updated as items arrive.
 
     With ``watch``, only images holding an observation for which it is true are waited for (the
-    node waits for those that can move its own pose; the others are parked anyway)."""
+    node waits for those that can move its own pose; the others are parked anyway). With
+    ``parked``, a peer's image's observations that were parked rather than queued (``(count, largest
+    frame_remaining)`` or None, :meth:`ParkingBuffer.parked_of`) count as seen."""
 
-    def __init__(self, watch: Callable[[MarkerData], bool] | None = None) -> None:
+    def __init__(
+        self,
+        watch: Callable[[MarkerData], bool] | None = None,
+        parked: Callable[[ImageKey], tuple[int, int] | None] | None = None,
+    ) -> None:
         self._frames: dict[tuple[bool, int, int, int], list[int]] = {}  # [seen, expected, watched]
         self._watch = watch
+        self._parked = parked
         self.incomplete = 0  # watched images still waiting for observations
 
     def add(self, items: Sequence[Item]) -> None:
@@ -242,6 +274,9 @@ class FrameCount:
             seen = self._frames.get(key)
             if seen is None:
                 seen = self._frames[key] = [0, 0, 0]
+                tally = self._parked(key[1:]) if self._parked is not None and not local else None
+                if tally is not None:
+                    seen[0], seen[1] = tally[0], tally[1] + 1
             before = seen[2] and seen[0] < seen[1]
             seen[0] += 1
             seen[1] = max(seen[1], md.frame_remaining + 1)

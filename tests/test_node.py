@@ -466,7 +466,7 @@ def test_the_others_are_evaluated_again_when_they_rest_on_the_own_pose():
 
 def undecoded(md, arrival_ns, decoded):
     """``md`` as the transport delivers it, not yet decoded: ``decoded`` gets its marker id when taken."""
-    return Inbound(md.sensor_id, md.marker_id, md.capture_time_us, md.frame_remaining, arrival_ns,
+    return Inbound(md.origin, md.sensor_id, md.marker_id, md.capture_time_us, md.frame_remaining, arrival_ns,
                    lambda: decoded.append(md.marker_id) or md)  # fmt: skip
 
 
@@ -554,3 +554,22 @@ def test_links_pause_at_the_last_observation_of_an_image_that_moves_the_own_pose
     assert not node._may_read.is_set()
     node._process(node.inbox.drain())
     assert node._may_read.is_set() and tr.autopilot[-1][1].pose.capture_time_us == 2_000
+
+
+def test_an_image_is_not_waited_for_the_observations_of_it_that_were_parked():
+    """A ceiling image of d1's two markers and of d2's (one datagram, three observations): d2's is
+    parked, d1's are queued, and the loop takes d1's at once; it does not wait for the third, which
+    it would never get from its inbox."""
+    node, _, set_ms = clocked_node(WORLD3)
+    node._process([(md, set_ms(0), False) for md in ceiling_image(1_000)])
+    node._step(set_ms(0))
+    assert "d1" in node.last_result.poses  # d1 has a pose: views of d2 can wait
+    d1_views = [replace(md, frame_remaining=2 - i) for i, md in enumerate(ceiling_image(2_000, markers=(5, 7)))]
+    view_of_d2 = replace(observe(WORLD3, TRUTH2, 10, 6, capture_time_us=2_000), origin=3, frame_remaining=0)
+    node.deliver_peers([Inbound.of(md, set_ms(10)) for md in (*d1_views, view_of_d2)])  # d2's is the last
+    assert len(node.parking) == 1 and len(node.inbox) == 2
+    waits = []
+    first = node.inbox.get(0)
+    node.inbox.get = waits.append  # a wait for more (its timeout recorded): none comes
+    batch = node._collect(first)
+    assert [md.marker_id for md, _, _ in batch] == [5, 7] and waits == []

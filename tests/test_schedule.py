@@ -73,7 +73,7 @@ def arrival(sensor_id, marker_id, capture_time_us, arrival_ns, decoded=None):
             decoded.append((sensor_id, marker_id, capture_time_us))
         return record
 
-    return Inbound(sensor_id, marker_id, capture_time_us, 0, arrival_ns, admit)
+    return Inbound(2, sensor_id, marker_id, capture_time_us, 0, arrival_ns, admit)
 
 
 observations = st.lists(
@@ -138,7 +138,7 @@ def test_since_is_the_first_arrival_of_a_park_period():
 
 def test_an_inbound_is_decoded_once_and_a_refused_one_stays_refused():
     calls = []
-    item = Inbound(1, 0, 5, 0, 0, lambda: calls.append(1))  # the transport refused it (returns None)
+    item = Inbound(2, 1, 0, 5, 0, 0, lambda: calls.append(1))  # the transport refused it (returns None)
     assert item.take() is None and item.take() is None and calls == [1]
     ready = Inbound.of(md(1, 0, 5), 7)
     assert ready.take() == md(1, 0, 5) and ready.arrival_ns == 7 and ready.edge == (1, 0)
@@ -206,3 +206,24 @@ def test_clearing_the_buffer_keeps_its_counts_and_may_switch_its_mode():
     buffer.put([arrival(1, 0, 12, 3)])
     buffer.put([arrival(1, 0, 13, 4)])  # every one counts now: the older is dropped for room, not superseded
     assert (buffer.superseded, buffer.dropped) == (1, 2) and buffer.take()[0].capture_time_us == 13
+
+
+def test_parked_observations_of_an_image_count_as_seen():
+    """An image of four observations, two parked (one of them its last): the two queued complete it."""
+    from atlas_onboard.schedule import FrameCount
+
+    obs = [md(10, m, 500) for m in (5, 7, 6, 8)]
+    obs = [MarkerData(o.sensor_id, o.marker_id, o.sigma_m, o.p_sensor_marker_m, o.q_sensor_marker_wxyz,
+                      o.capture_time_us, origin=3, frame_remaining=3 - i) for i, o in enumerate(obs)]  # fmt: skip
+    buffer = ParkingBuffer(capacity=8, newest_wins=True)
+    buffer.put([Inbound.of(o, 0) for o in obs[2:]])  # 6 and 8: parked
+    assert buffer.parked_of((3, 10, 500)) == (2, 1) and buffer.parked_of((4, 10, 500)) is None
+    queued = [(o, 0, False) for o in obs[:2]]
+    alone = FrameCount()
+    alone.add(queued)
+    assert alone.incomplete == 1  # without the tally: two of four seen
+    frames = FrameCount(parked=buffer.parked_of)
+    frames.add(queued)
+    assert frames.incomplete == 0
+    buffer.take()
+    assert buffer.parked_of((3, 10, 500)) is None  # a tally lasts one park period

@@ -346,7 +346,7 @@ class MavlinkTransport:
             self._warn_fingerprint(origin)
             return
         admit = partial(self._admit, index, link, kind, msg, origin, arrival_ns, wall_ns)
-        item = Inbound(msg.sensor_id, msg.marker_id, msg.time_usec, msg.frame_remaining, arrival_ns, admit)
+        item = Inbound(origin, msg.sensor_id, msg.marker_id, msg.time_usec, msg.frame_remaining, arrival_ns, admit)
         self._read[index].append(item)
 
     def _on_fused(self, msg: Any, origin: int, arrival_ns: int) -> None:
