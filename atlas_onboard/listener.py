@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 
@@ -26,6 +25,7 @@ from atlas_onboard.core import ambiguity, covariance, fusion, geometry
 from atlas_onboard.core.ambiguity import Verdict
 from atlas_onboard.core.graph import MAX_RATE_RAD_S, MAX_SPEED_M_S, EdgeKey, EntityPose, TransformGraph
 from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection, upper_to_matrix
+from atlas_onboard.counters import Counters
 
 _logger = logging.getLogger(__name__)
 
@@ -114,8 +114,8 @@ class Listener:
         self._marker_fwd = {m.id: m.T_entity_marker.as_matrix() for m in world.markers.values()}
         self._ema: dict[EdgeKey, _EmaState] = {}
         self._estimates: dict[str, EntityPose] = {}
-        self.rejected: Counter[Rejection] = Counter()
-        self.counters: Counter[str] = Counter()
+        self.rejected = Counters()  # by reason (``rejected_<reason>``)
+        self.counters = Counters()
         """Beyond rejections: ``ambiguity_resolved``, ``ambiguity_swapped`` (the other solution won),
         ``ambiguity_<verdict>`` for each unresolved one, and ``alt_ignored`` (an unusable other
         solution, see :class:`MarkerData`)."""
@@ -294,7 +294,7 @@ class Listener:
         self.counters.update(notes)
         for (md, now_ns), update in zip(items, updates, strict=True):
             if isinstance(update, Rejection):
-                self.rejected[update] += 1
+                self.rejected.inc(update)
                 results.append(update)
             else:
                 self._insert(md, update, now_ns)

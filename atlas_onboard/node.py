@@ -16,7 +16,7 @@ import logging
 import signal
 import threading
 import time
-from collections import Counter, deque
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -29,6 +29,17 @@ from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.listener import Listener, make_graph
 from atlas_onboard.publisher import AutopilotPose, PoseState, Publisher, Telemetry
+from atlas_onboard.schedule import (
+    Changes,
+    FrameCount,
+    Inbound,
+    Inbox,
+    Item,
+    ParkingBuffer,
+    Relevance,
+    near_entities,
+    relevance,
+)
 from atlas_onboard.state import ResetCounterStore
 
 _logger = logging.getLogger(__name__)
@@ -53,23 +64,12 @@ LATE_STREAK = 3  # said once this many images in a row were late (one late image
 class Transport(Protocol):
     """What the node needs from its MAVLink links (implemented in :mod:`atlas_onboard.mavlink`)."""
 
-    def start(
-        self,
-        deliver: Callable[[Sequence[tuple[MarkerData, int]]], None],
-        may_read: threading.Event | None = None,
-        may_wait: Callable[[int, int], bool] | None = None,
-    ) -> None:
-        """Start the receive threads; ``deliver([(md, arrival_ns), ...])`` with the valid peer
-        observations of each read (a datagram). Peer links read only while ``may_read`` is set (the
-        node holds them while it publishes). An observation of an edge (sensor id, marker id) for
-        which ``may_wait`` is true is not delivered: the newest of each such edge is kept, undecoded,
-        for :meth:`take_waiting` (the older are dropped, counted ``waiting_superseded``)."""
-
-    def waiting_since_ns(self) -> int | None:
-        """When the oldest observation kept for :meth:`take_waiting` arrived (monotonic), or None."""
-
-    def take_waiting(self) -> list[tuple[MarkerData, int]]:
-        """The kept observations, checked as delivered ones are, with their arrival times."""
+    def start(self, deliver: Callable[[Sequence[Inbound]], None], may_read: threading.Event | None = None) -> None:
+        """Start the receive threads; ``deliver(items)`` with the peer observations of each read (a
+        datagram) that passed the checks made before decoding (signature, origin binding, stamp, world
+        file); each is decoded and checked further (duplicates, rate) when the node takes it
+        (:meth:`Inbound.take`). Peer links read only while ``may_read`` is set (the node holds them
+        while it publishes)."""
 
     def send_observations(self, mds: Sequence[MarkerData]) -> None:
         """Our accepted detections to every peer, together (an image's in one datagram where it fits)."""
@@ -105,51 +105,6 @@ class Camera(Protocol):
     def stop(self) -> None: ...
 
     def counters(self) -> dict[str, int]: ...
-
-
-class Inbox:
-    """A bounded FIFO that drops its oldest item when full (thread-safe, counted)."""
-
-    def __init__(self, capacity: int) -> None:
-        self._items: deque[tuple[MarkerData, int, bool]] = deque()
-        self._capacity = capacity
-        self._cond = threading.Condition()
-        self.dropped = 0
-
-    def put(self, item: tuple[MarkerData, int, bool]) -> None:
-        self.put_many((item,))
-
-    def put_many(self, items: Sequence[tuple[MarkerData, int, bool]], wake: bool = True) -> None:
-        """Put several items at once: a consumer never sees part of them. With ``wake`` False, a
-        waiting consumer is not woken for them: it takes them with the next items or at its timeout."""
-        with self._cond:
-            for item in items:
-                if len(self._items) >= self._capacity:
-                    self._items.popleft()
-                    self.dropped += 1
-                self._items.append(item)
-            if wake or len(self._items) * 2 >= self._capacity:  # half full: take them before any is lost
-                self._cond.notify()
-
-    def drain(self) -> list[tuple[MarkerData, int, bool]]:
-        """Everything queued now, without waiting."""
-        with self._cond:
-            items = list(self._items)
-            self._items.clear()
-            return items
-
-    def get(self, timeout_s: float) -> tuple[MarkerData, int, bool] | None:
-        with self._cond:
-            if not self._items:
-                self._cond.wait(timeout_s)
-            return self._items.popleft() if self._items else None
-
-    def wake(self) -> None:
-        with self._cond:
-            self._cond.notify()
-
-    def __len__(self) -> int:
-        return len(self._items)
 
 
 @dataclass
@@ -208,20 +163,16 @@ class Node:
         self._may_read = threading.Event()  # cleared while the own pose is evaluated and published
         self._may_read.set()
         self._reload = threading.Event()
-        self._dirty = False
-        self._dirty_others = False  # an edge not between the own entity and the world changed
+        self.changes = Changes(COALESCE_NS)  # when the graph is to be evaluated
         self._last_publish_ns = 0
-        self._last_eval_ns = 0
-        self._urgent = False
         # Peer observations that cannot move the own pose are parked and accepted together, as often
         # as the fused poses of others go out (at least every COALESCE_NS, at most every half edge
         # timeout so that no edge expires while its refresh waits): others' poses are needed no
         # faster, and one vectorised batch costs far less than dozens of small ones.
-        self._pending: deque[tuple[MarkerData, int, bool]] = deque(maxlen=config.queue_size * 4)
-        self._pending_since_ns = 0
+        self.parking = ParkingBuffer(config.queue_size * 4, _supersedes(world))
         timeout_ns = round(world.fusion.edge_timeout_s * NS)
         self.park_ns = int(min(max(NS / config.fused_rate_hz, COALESCE_NS), timeout_ns // 2))
-        self._relevant: set[str] | None = None  # entities whose observations are evaluated at once
+        self._near: frozenset[str] | None = None  # entities whose observations are evaluated at once
         self._next_status_ns = 0
         self._next_telemetry_ns = 0
         self._telemetry_since = (0, 0)  # (monotonic ns, local observations) at the last telemetry
@@ -246,29 +197,41 @@ class Node:
             items.append((stamped, now, True))
         self.inbox.put_many(items)
 
-    def deliver_peers(self, items: Sequence[tuple[MarkerData, int]]) -> None:
-        """Observations from a peer (those of one datagram), already decoded, authenticated and
-        de-duplicated by the link, with their arrival times; queued together.
+    def deliver_peers(self, items: Sequence[Inbound]) -> None:
+        """Observations from a peer (those of one datagram), as the transport delivers them (checked
+        before decoding), with their arrival times. Those that can move the own pose (:func:`relevance`)
+        are taken (decoded and checked) here, in the link's thread, and queued together; the others
+        are parked. Where only the newest of an edge counts they are parked undecoded: most are
+        superseded before the park period ends, and are never decoded.
 
         The last observation of an image that can move the own pose also pauses the peer links (see
         :meth:`_process`): the link's thread stops before its next datagram and leaves the processor
         to the loop, which would otherwise wait its turn behind the decoding of the rest of a burst.
-        Others' views do not wake the loop: it parks them anyway, and takes them with the next
-        observations that can move the own pose or when something is due (at most ``LOOP_TICK_S``), so that
-        a swarm's traffic does not switch threads hundreds of times a second.
+        Parked views do not wake the loop: it takes them when their park period ends (at most
+        ``LOOP_TICK_S`` late), so that a swarm's traffic does not switch threads hundreds of times a second.
         """
-        wake = pause = False
-        for md, _ in items:
-            mine = self._concerns_own_pose(md)  # every observation while the own entity has no pose
-            wake |= mine
-            pause |= mine and md.frame_remaining == 0 and self._relevant is not None
+        now: list[Item] = []
+        parked: list[Inbound] = []
+        pause = False
+        for item in items:
+            if self._relevance(item.sensor_id, item.marker_id) is Relevance.PARK:
+                if self.parking.newest_wins or item.take() is not None:  # every one counts: decoded here
+                    parked.append(item)
+                continue
+            md = item.take()
+            if md is not None:
+                now.append((md, item.arrival_ns, False))
+                pause |= md.frame_remaining == 0 and self._near is not None
+        if parked:
+            self.parking.put(parked)
         if pause:
             self._may_read.clear()  # before the put: the loop sets it again once it has published
-        self.inbox.put_many([(md, arrival_ns, False) for md, arrival_ns in items], wake=wake)
+        if now:
+            self.inbox.put_many(now)
 
     def deliver_peer(self, md: MarkerData, arrival_ns: int) -> None:
-        """One observation from a peer (:meth:`deliver_peers`)."""
-        self.deliver_peers(((md, arrival_ns),))
+        """One observation from a peer, already decoded and checked (:meth:`deliver_peers`)."""
+        self.deliver_peers((Inbound.of(md, arrival_ns),))
 
     def stop(self) -> None:
         """Ask the loop to end (safe from a signal handler: it only sets a flag; the loop polls it)."""
@@ -282,7 +245,7 @@ class Node:
 
     def run(self) -> int:
         """Run until stopped; returns the exit status (0)."""
-        self.transport.start(self.deliver_peers, self._may_read, self._may_wait)
+        self.transport.start(self.deliver_peers, self._may_read)
         self.transport.set_pose_state(PoseState.NONE)
         self._telemetry_since = (self.clock(), 0)
         for cam in self.cameras:
@@ -322,12 +285,10 @@ class Node:
             self._next_status_ns,
             self.publisher.next_fused_ns(),
         ]
-        since = self._parked_since_ns()
+        since = self.parking.since_ns()
         if since is not None:
             due.append(since + self.park_ns)
-        if self._dirty:
-            due.append(now if self._urgent else self._last_eval_ns + COALESCE_NS)
-        for t in (self.graph.next_expiry_ns(), self.publisher.next_autopilot_ns()):
+        for t in (self.changes.due_ns(now), self.graph.next_expiry_ns(), self.publisher.next_autopilot_ns()):
             if t is not None:
                 due.append(t)
         if self.ekf is not None and self.last_result is not None:
@@ -340,7 +301,7 @@ class Node:
         most ``FRAME_WAIT_S``: an image's observations are evaluated together, never part of them with
         the previous image. (Images that cannot move it are parked or sent on, not waited for.)"""
         batch = [first, *self.inbox.drain()]
-        frames = FrameCount(self._concerns_own_pose)
+        frames = FrameCount(self._concerns_own_pose, self.parking.parked_of)
         frames.add(batch)
         deadline = time.monotonic() + FRAME_WAIT_S
         while frames.incomplete and not self._stop.is_set():
@@ -372,7 +333,7 @@ class Node:
         # Our own camera's views of others go out at once (they may be urgent for them); a peer's
         # views that cannot move our pose wait, to be accepted together.
         local += self._handle([x for x in rest if x[2]])
-        self._park([x for x in rest if not x[2]])
+        self.parking.put([Inbound.of(md, arrival_ns) for md, arrival_ns, is_local in rest if not is_local])
         # Our accepted detections go to peers, each image's last one marked as such.
         left = Counter((md.sensor_id, md.capture_time_us) for md in local)
         marked = []
@@ -383,37 +344,22 @@ class Node:
         if marked:
             self.transport.send_observations(marked)
 
-    def _park(self, items: list[tuple[MarkerData, int, bool]]) -> None:
-        if items and not self._pending:
-            self._pending_since_ns = self.clock()
-        overflow = len(self._pending) + len(items) - (self._pending.maxlen or 0)
-        if overflow > 0:  # bounded like the inbox: the oldest go, counted with its drops
-            self.inbox.dropped += overflow
-        self._pending.extend(items)
-
-    def _flush_pending(self) -> None:
-        """Accept the parked observations (and those the transport kept, :meth:`_may_wait`), except
-        those superseded: one whose edge has meanwhile been refreshed by a newer arrival (taken at
-        once because the own pose's needs changed) or already holds a later image of the same sensor
-        (a datagram overtaken on the way), and, when each observation simply replaces its edge (the
-        paper's setting: ``ema_alpha`` 1, no ``age_sigma_m_per_s``), every one but the newest of its edge."""
-        pending, self._pending = list(self._pending), deque(maxlen=self._pending.maxlen)
-        kept = self.transport.take_waiting()
-        if kept:  # in the order of arrival with the parked ones: the newest of an edge is the last
-            pending = sorted(pending + [(md, arrival_ns, False) for md, arrival_ns in kept], key=lambda x: x[1])
-        if self._supersedes:
-            newest = {(md.sensor_id, md.marker_id): i for i, (md, _, _) in enumerate(pending)}
-            keep = set(newest.values())
-            self.stats.superseded += len(pending) - len(keep)
-            pending = [item for i, item in enumerate(pending) if i in keep]
+    def _flush_parked(self) -> None:
+        """Accept the parked observations (decoding those parked undecoded), except those superseded:
+        one whose edge has meanwhile been refreshed by a newer arrival (taken at once because the own
+        pose's needs changed) or already holds a later image of the same sensor (a datagram overtaken
+        on the way). (Where only the newest of an edge counts, the parking buffer kept only that one.)"""
         edges = self.graph.edges
         fresh = []
-        for item in pending:
-            edge = edges.get((item[0].sensor_id, item[0].marker_id))
-            if edge is not None and (edge.stamp_ns > item[1] or edge.capture_time_us > item[0].capture_time_us):
+        for item in self.parking.take():
+            md = item.take()
+            if md is None:
+                continue
+            edge = edges.get(item.edge)
+            if edge is not None and (edge.stamp_ns > item.arrival_ns or edge.capture_time_us > md.capture_time_us):
                 self.stats.superseded += 1
             else:
-                fresh.append(item)
+                fresh.append((md, item.arrival_ns, False))
         self._handle(fresh)
 
     def _handle(self, batch: list[tuple[MarkerData, int, bool]]) -> list[MarkerData]:
@@ -437,12 +383,13 @@ class Node:
             else:
                 self.stats.peer_observations += 1
             if reason is None:
-                self._dirty = True
-                if not self._urgent:
-                    self._urgent = self._concerns_own_pose(md)
-                if not self._dirty_others:
+                changes = self.changes
+                changes.pending = True
+                if not changes.urgent:
+                    changes.urgent = self._concerns_own_pose(md)
+                if not changes.others:
                     ends = (self._entity_of[0].get(md.sensor_id), self._entity_of[1].get(md.marker_id))
-                    self._dirty_others = not all(e in (self.config.entity, WORLD) for e in ends)
+                    changes.others = not all(e in (self.config.entity, WORLD) for e in ends)
                 _logger.debug(
                     "obs %d/%d cap %d sigma %.4f err %.3f ambiguity %.3f p %s", md.sensor_id, md.marker_id,
                     md.capture_time_us, md.sigma_m, md.reprojection_error_px, md.ambiguity_ratio, md.p_sensor_marker_m,
@@ -483,9 +430,9 @@ class Node:
         most of a node's time in a swarm). With the EKF, the prediction to now is published every
         ``PREDICT_NS``, and a pose held back by the rate cap goes when the cap allows.
         """
-        since = self._parked_since_ns()
+        since = self.parking.since_ns()
         if since is not None and now - since >= self.park_ns:
-            self._flush_pending()
+            self._flush_parked()
         self._evaluate_and_publish(now)
         self._duties(now)
 
@@ -495,8 +442,7 @@ class Node:
         when that is possible (see :meth:`_evaluate`)."""
         expiry = self.graph.next_expiry_ns()
         expired = expiry is not None and now >= expiry
-        due = self._dirty and (self._urgent or now - self._last_eval_ns >= COALESCE_NS)
-        if due or expired:
+        if self.changes.due(now) or expired:
             self._evaluate(now, own_only=own_first and not expired)
             self._publish(now)
         elif self.last_result is not None:
@@ -526,34 +472,14 @@ class Node:
             self._next_status_ns = now + int(self.config.status_interval_s * NS)
 
     def _concerns_own_pose(self, md: MarkerData) -> bool:
-        """Whether an accepted observation can change this node's own pose right away: it involves
-        the own entity or one of the entities nearer the world (the BFS levels of the last
-        evaluation); every observation when the own entity has no pose or paths are Dijkstra's.
-        Others (a ceiling camera's view of another drone) are evaluated together, ``COALESCE_NS``
-        at most later: in a swarm they are most of a node's input."""
-        return self._edge_concerns_own_pose(md.sensor_id, md.marker_id)
+        """Whether an observation can change this node's own pose right away (:func:`relevance`):
+        every one while the own entity has no pose or paths are Dijkstra's. Others (a ceiling
+        camera's view of another drone) are evaluated together, at most ``park_ns`` later: in a
+        swarm they are most of a node's input."""
+        return self._relevance(md.sensor_id, md.marker_id) is Relevance.NOW
 
-    def _edge_concerns_own_pose(self, sensor_id: int, marker_id: int) -> bool:
-        """:meth:`_concerns_own_pose` of an observation of this edge."""
-        relevant = self._relevant
-        if relevant is None:
-            return True
-        observer, observed = self._entity_of[0].get(sensor_id), self._entity_of[1].get(marker_id)
-        return observer is None or observed is None or observer in relevant or observed in relevant
-
-    def _may_wait(self, sensor_id: int, marker_id: int) -> bool:
-        """For the transport (a link's thread): whether a peer's observation of this edge can wait,
-        undecoded, for the next park period, where only the newest of its edge would be accepted:
-        it cannot move the own pose, and each observation simply replaces its edge (the setting in
-        which :meth:`_flush_pending` supersedes). In a swarm that is most of a node's input, and it
-        then costs little more than framing its datagram (it is decoded only if taken)."""
-        return self._supersedes and not self._edge_concerns_own_pose(sensor_id, marker_id)
-
-    def _parked_since_ns(self) -> int | None:
-        """When the oldest parked observation arrived (here or kept by the transport), or None."""
-        since = self._pending_since_ns if self._pending else None
-        kept = self.transport.waiting_since_ns()
-        return kept if since is None else since if kept is None else min(since, kept)
+    def _relevance(self, sensor_id: int, marker_id: int) -> Relevance:
+        return relevance(self._entity_of[0].get(sensor_id), self._entity_of[1].get(marker_id), self._near)
 
     def _parent_of_others(self, result: GraphResult) -> bool:
         """Whether an edge joins the own entity to an entity one BFS level further from the world
@@ -574,13 +500,11 @@ class Node:
         evaluated together within ``COALESCE_NS``, unless nothing they rest on has changed: only
         edges between the own entity and the world, the own entity a parent of none of them, and no
         edge ageing (with which their sigmas grow between evaluations)."""
-        partial = own_only and self._relevant is not None and self.ekf is None
-        self._urgent = False
+        partial = own_only and self._near is not None and self.ekf is None
         self.listener.forget_expired(now)
         result = self.graph.evaluate(now, target=self.config.entity if partial else None)
         if result.complete:
-            self._dirty = self._dirty_others = False
-            self._last_eval_ns = now
+            self.changes.evaluated(now, complete=True)
         else:
             last = self.last_result
             known = last.poses if last is not None else {}
@@ -588,15 +512,12 @@ class Node:
             result = replace(result, poses=poses, relative=last.relative if last is not None else {})
             f = self.world.fusion
             ageless = f.age_sigma_m_per_s == 0.0 and f.age_sigma_deg_per_s == 0.0
-            if not self._dirty_others and ageless and not self._parent_of_others(result):
-                self._dirty = False  # a full evaluation would give every other entity the pose it has
+            # A full evaluation is not needed when it would give every other entity the pose it has.
+            unchanged = not self.changes.others and ageless and not self._parent_of_others(result)
+            self.changes.evaluated(now, complete=False, rest_unchanged=unchanged)
         self.last_result = result
-        own = self.config.entity
-        level = result.levels.get(own)
-        if level is None or self.world.fusion.path != "bfs":
-            self._relevant = None
-        else:  # the world's pose never changes: it is never relevant, not even to the world's node
-            self._relevant = {n for n, lv in result.levels.items() if 1 <= lv < level} | ({own} - {WORLD})
+        bfs = self.world.fusion.path == "bfs"
+        self._near = near_entities(self.config.entity, result.levels if bfs else None)
         self.listener.set_estimates(result.poses)
         self.stats.evaluations += 1
         if self.ekf is not None:
@@ -657,7 +578,7 @@ class Node:
         self.world = world
         self._entity_of = _entity_lookup(world)
         self._supersedes = _supersedes(world)
-        self._pending.clear()
+        self.parking.clear(newest_wins=self._supersedes)
         self.graph.clear()
         self.graph = make_graph(world, self.config.entity)
         self.listener = Listener(world, self.graph)
@@ -666,27 +587,26 @@ class Node:
 
     def counters(self) -> dict[str, int]:
         """Every counter of the node: rejections by reason, drops, rates, links, cameras."""
-        out: dict[str, int] = {f"rejected_{r.value}": n for r, n in self.listener.rejected.items()}
+        out: dict[str, int] = self.listener.rejected.snapshot()
         out.update(
             accepted=self.listener.accepted,
-            inbox_dropped=self.inbox.dropped,
+            inbox_dropped=self.inbox.dropped + self.parking.dropped,
             local_observations=self.stats.local_observations,
             peer_observations=self.stats.peer_observations,
             evaluations=self.stats.evaluations,
             autopilot_sent=self.stats.autopilot_sent,
             autopilot_rate_suppressed=self.publisher.suppressed_rate,
             fused_sent=self.stats.fused_sent,
-            superseded=self.stats.superseded,
+            superseded=self.stats.superseded + self.parking.superseded,
             late_observations=self.stats.late_observations,
             reset_counter=self.publisher.reset_counter,
         )
-        out.update(self.listener.counters)  # ambiguity resolved / swapped / undecided, alt ignored
-        out["rejected_outlier"] = out.get("rejected_outlier", 0) + self.graph.gated_total
+        out.update(self.listener.counters.snapshot())  # ambiguity resolved / swapped / undecided, alt ignored
+        out[Rejection.OUTLIER.counter] = out.get(Rejection.OUTLIER.counter, 0) + self.graph.gated_total
         if self.ekf is not None:
             out.update({f"ekf_{k}": v for k, v in self.ekf.outcomes.items()})
         for name, n in self.transport.counters().items():  # a reason both refuse for (unknown_sensor): summed
             out[name] = out.get(name, 0) + n
-        out["superseded"] += out.pop("waiting_superseded", 0)  # the newest of an edge kept by the transport
         for cam in self.cameras:
             out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})
         return out
@@ -699,33 +619,6 @@ class Node:
     def _notify(self, *lines: str) -> None:
         if self.notifier is not None:
             self.notifier.notify(*lines)  # type: ignore[attr-defined]
-
-
-class FrameCount:
-    """Which images of a batch still have observations to come: fewer of an image's observations
-    (same producer, sensor and capture time) are in than the largest ``frame_remaining`` among them
-    promises (order-proof: datagrams may be reordered). Updated as items arrive.
-
-    With ``watch``, only images holding an observation for which it is true are waited for (the
-    node waits for those that can move its own pose; the others are parked anyway)."""
-
-    def __init__(self, watch: Callable[[MarkerData], bool] | None = None) -> None:
-        self._frames: dict[tuple[bool, int, int, int], list[int]] = {}  # [seen, expected, watched]
-        self._watch = watch
-        self.incomplete = 0  # watched images still waiting for observations
-
-    def add(self, items: Sequence[tuple[MarkerData, int, bool]]) -> None:
-        for md, _, local in items:
-            key = (local, md.origin, md.sensor_id, md.capture_time_us)
-            seen = self._frames.get(key)
-            if seen is None:
-                seen = self._frames[key] = [0, 0, 0]
-            before = seen[2] and seen[0] < seen[1]
-            seen[0] += 1
-            seen[1] = max(seen[1], md.frame_remaining + 1)
-            if not seen[2] and (self._watch is None or self._watch(md)):
-                seen[2] = 1
-            self.incomplete += (seen[2] and seen[0] < seen[1]) - before
 
 
 def fused_poses(result: GraphResult) -> list[EntityPose]:

@@ -295,7 +295,7 @@ def test_keygen_writes_a_private_key_and_never_replaces_one_unasked(tmp_path, ca
     assert args.func(args) == 0
     first = path.read_bytes()
     assert len(first) == 32 and path.stat().st_mode & 0o777 == 0o600
-    from atlas_onboard.mavlink.link import read_key
+    from atlas_onboard.mavlink.signing import read_key
 
     assert read_key(path) == first  # what a node accepts
     with pytest.raises(AtlasError, match="exists; give --force"):

@@ -11,8 +11,9 @@ from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig, parse_world
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.node import LOOP_TICK_S, Inbox, Node
-from tests.e2e import wait_for
+from atlas_onboard.node import LOOP_TICK_S, Node
+from atlas_onboard.schedule import Inbound, Relevance
+from tests.e2e.helpers import wait_for
 from tests.helpers import assert_pose_close, observe, pose
 
 WORLD = parse_world(
@@ -35,20 +36,10 @@ class FakeTransport:
         self.pose_states = []
         self.telemetry = []
         self.started = threading.Event()
-        self.waiting = []  # what a test puts here the node takes as kept by the transport
-        self.waiting_since = None
 
-    def start(self, deliver, may_read=None, may_wait=None):
+    def start(self, deliver, may_read=None):
         self.deliver = deliver
-        self.may_wait = may_wait
         self.started.set()
-
-    def waiting_since_ns(self):
-        return self.waiting_since if self.waiting else None
-
-    def take_waiting(self):
-        taken, self.waiting = self.waiting, []
-        return taken
 
     def send_observations(self, mds):
         self.observations.extend(mds)
@@ -153,31 +144,6 @@ def test_bad_observations_are_counted_and_change_nothing():
     c = node.counters()
     assert c["rejected_bad_sigma"] == 1 and c["rejected_unknown_sensor"] == 1
     assert len(tr.autopilot) == 1  # the rejected ones produced no output
-
-
-def test_inbox_drops_oldest_when_full():
-    box = Inbox(3)
-    items = [(MarkerData(1, 0, 0.01, (0, 0, 1), (1, 0, 0, 0), k), k, True) for k in range(5)]
-    for it in items:
-        box.put(it)
-    assert box.dropped == 2
-    assert [box.get(0)[1] for _ in range(3)] == [2, 3, 4]
-    assert box.get(0) is None
-
-
-def test_inbox_items_that_need_no_wake_wait_until_it_is_half_full():
-    box = Inbox(8)
-    got = []
-    consumer = threading.Thread(target=lambda: got.append(box.get(timeout_s=60)))
-    consumer.start()
-    items = [(MarkerData(1, 0, 0.01, (0, 0, 1), (1, 0, 0, 0), k), k, False) for k in range(4)]
-    box.put_many(items[:3], wake=False)
-    consumer.join(0.3)
-    assert consumer.is_alive() and not got  # three of eight: left for the consumer's next tick
-    box.put_many(items[3:], wake=False)  # half full: woken, so that none is lost
-    consumer.join(10)
-    assert not consumer.is_alive() and got[0][1] == 0
-    assert [box.get(0)[1] for _ in range(3)] == [1, 2, 3] and box.dropped == 0
 
 
 @pytest.mark.parametrize("n", [1, 3])
@@ -375,7 +341,7 @@ def test_the_own_pose_is_published_before_other_observations_are_accepted():
 
 
 def test_frame_count_follows_each_image_whatever_the_order():
-    from atlas_onboard.node import FrameCount
+    from atlas_onboard.schedule import FrameCount
 
     def incomplete(*arrivals):
         frames = FrameCount()
@@ -498,38 +464,54 @@ def test_the_others_are_evaluated_again_when_they_rest_on_the_own_pose():
         assert node.stats.evaluations == evaluations
 
 
-def test_peer_views_kept_by_the_transport_are_taken_with_the_parked_ones():
-    """Which peer observations may wait in the transport (undecoded, the newest of each edge): those
-    that cannot move the own pose, once it has one, and only where each observation replaces its
-    edge. On a fake clock, what the transport kept is taken park_ns after its first arrival; one
-    older than the image its edge already holds (overtaken on the way) is superseded, not written."""
-    node, tr, set_ms = clocked_node(WORLD2)
+def undecoded(md, arrival_ns, decoded):
+    """``md`` as the transport delivers it, not yet decoded: ``decoded`` gets its marker id when taken."""
+    return Inbound(md.origin, md.sensor_id, md.marker_id, md.capture_time_us, md.frame_remaining, arrival_ns,
+                   lambda: decoded.append(md.marker_id) or md)  # fmt: skip
+
+
+def test_peer_views_parked_undecoded_are_taken_newest_of_each_edge():
+    """Which peer observations are parked undecoded (the newest of each edge): those that cannot
+    move the own pose, once it has one, and only where each observation replaces its edge. On a
+    fake clock, they are taken park_ns after the first arrival, only the newest of an edge decoded;
+    one older than the image its edge already holds (overtaken on the way) is superseded, not written."""
+    node, _, set_ms = clocked_node(WORLD2)
     t_us = 1_700_000_000_000_000
+    decoded = []
 
     at = stepper(node, set_ms)
 
-    assert not node._may_wait(10, 6)  # no own pose yet: everything is taken at once
+    node.deliver_peers([undecoded(observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us), set_ms(0), decoded)])
+    assert decoded == [6] and len(node.parking) == 0  # no own pose yet: everything is taken at once
+    node._process(node.inbox.drain())
     at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True))  # d1 sees the floor
-    assert node._may_wait(10, 6)  # the ceiling's view of d2
-    assert not any(node._may_wait(s, m) for s, m in ((10, 5), (1, 0), (1, 6), (99, 6), (10, 99)))
-    tr.waiting, tr.waiting_since = [(observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 5), set_ms(5))], set_ms(5)
+    accepted = node.listener.accepted
+    assert node._relevance(10, 6) is Relevance.PARK  # the ceiling's view of d2
+    assert all(node._relevance(s, m) is Relevance.NOW for s, m in ((10, 5), (1, 0), (1, 6), (99, 6), (10, 99)))
+    decoded.clear()
+    views = [observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + dt) for dt in (5, 7, 6)]
+    node.deliver_peers([undecoded(md, set_ms(5), decoded) for md in views])
+    assert decoded == [] and len(node.parking) == 1 and not node.inbox.drain()
     at(129)
-    assert node.listener.accepted == 1 and tr.waiting
+    assert node.listener.accepted == accepted and len(node.parking) == 1
     at(130)
-    assert node.listener.accepted == 2 and not tr.waiting and "d2" in node.last_result.poses
+    assert decoded == [6] and node.listener.accepted == accepted + 1 and len(node.parking) == 0
+    assert node.last_result.poses["d2"].capture_time_us == t_us + 7 and node.counters()["superseded"] == 2
     np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)
     late = observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 4, T_noise=pose([0.3, 0, 0]))  # overtaken
-    arrived = 1_000_000_000 + 100_000_000  # at 100 ms on the node's clock: after the other
-    tr.waiting, tr.waiting_since = [(late, arrived)], arrived
+    node.deliver_peers([undecoded(late, set_ms(100), decoded)])
     at(225)
-    assert node.listener.accepted == 2 and node.counters()["superseded"] == 1
+    assert node.listener.accepted == accepted + 1 and node.counters()["superseded"] == 3
     np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)
-    # An EMA of the edges (every observation counts) or Dijkstra's paths: nothing waits.
-    for fusion in ({"ema_alpha": 0.5}, {"path": "dijkstra"}):
+    # An EMA of the edges (every observation counts): parked, but decoded at once and every one kept.
+    # Dijkstra's paths: nothing is parked.
+    for fusion, parked in (({"ema_alpha": 0.5}, 3), ({"path": "dijkstra"}, 0)):
         other, _, set_other = clocked_node(ceiling_world([(5, [0, 0, 0.05])], fusion))
         other._process([(observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), set_other(0), True)])
         other._step(set_other(0))
-        assert "d1" in other.last_result.poses and not other._may_wait(10, 6)
+        decoded.clear()
+        other.deliver_peers([undecoded(md, set_other(1), decoded) for md in views])
+        assert "d1" in other.last_result.poses and decoded == [6, 6, 6] and len(other.parking) == parked
 
 
 def test_the_loop_waits_until_the_first_thing_due():
@@ -572,3 +554,22 @@ def test_links_pause_at_the_last_observation_of_an_image_that_moves_the_own_pose
     assert not node._may_read.is_set()
     node._process(node.inbox.drain())
     assert node._may_read.is_set() and tr.autopilot[-1][1].pose.capture_time_us == 2_000
+
+
+def test_an_image_is_not_waited_for_the_observations_of_it_that_were_parked():
+    """A ceiling image of d1's two markers and of d2's (one datagram, three observations): d2's is
+    parked, d1's are queued, and the loop takes d1's at once; it does not wait for the third, which
+    it would never get from its inbox."""
+    node, _, set_ms = clocked_node(WORLD3)
+    node._process([(md, set_ms(0), False) for md in ceiling_image(1_000)])
+    node._step(set_ms(0))
+    assert "d1" in node.last_result.poses  # d1 has a pose: views of d2 can wait
+    d1_views = [replace(md, frame_remaining=2 - i) for i, md in enumerate(ceiling_image(2_000, markers=(5, 7)))]
+    view_of_d2 = replace(observe(WORLD3, TRUTH2, 10, 6, capture_time_us=2_000), origin=3, frame_remaining=0)
+    node.deliver_peers([Inbound.of(md, set_ms(10)) for md in (*d1_views, view_of_d2)])  # d2's is the last
+    assert len(node.parking) == 1 and len(node.inbox) == 2
+    waits = []
+    first = node.inbox.get(0)
+    node.inbox.get = waits.append  # a wait for more (its timeout recorded): none comes
+    batch = node._collect(first)
+    assert [md.marker_id for md, _, _ in batch] == [5, 7] and waits == []

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from tests.e2e import write_world
+from tests.e2e.helpers import write_world
 
 
 def doc(body="FLU", filt="none", output="vision_position_estimate", system_id=7):

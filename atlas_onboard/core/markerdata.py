@@ -13,32 +13,9 @@ from enum import StrEnum
 
 import numpy as np
 
+from atlas_onboard.core.rejection import Rejection
 
-class Rejection(StrEnum):
-    """Why an observation was dropped. Every reason has a counter in the listener and the node."""
-
-    NON_FINITE = "non_finite"
-    ZERO_QUATERNION = "zero_quaternion"
-    BAD_SIGMA = "bad_sigma"
-    UNKNOWN_SENSOR = "unknown_sensor"
-    UNKNOWN_MARKER = "unknown_marker"
-    OWN_MARKER = "own_marker"
-    OUT_OF_RANGE = "out_of_range"
-    BAD_QUALITY = "bad_quality"
-    """A reprojection error that is negative or infinite, or an ambiguity ratio outside [0, 1]
-    (NaN, unknown, is fine for both): a broken sender, whose record is not trusted."""
-    STALE = "stale"
-    DUPLICATE = "duplicate"
-    OUTLIER = "outlier"
-    AMBIGUOUS = "ambiguous"
-    """The two planar solutions fit almost equally well and the record carries no usable other one."""
-    BAD_COVARIANCE = "bad_covariance"
-    """A detection covariance that is not 21 finite numbers making a positive definite 6x6 matrix
-    (:meth:`MarkerData.rejection` checks the numbers and the variances, the listener the rest)."""
-    AMBIGUITY_UNRESOLVED = "ambiguity_unresolved"
-    """Ambiguous with both solutions, but the current estimates could not say which is right (no
-    estimate of the observer or the observed entity, or both solutions far from the prediction, or
-    both about as close to it: see :mod:`atlas_onboard.core.ambiguity`)."""
+__all__ = ["MarkerData", "Rejection"]  # Rejection's home is core/rejection.py
 
 
 MAX_RANGE_M = 1000.0

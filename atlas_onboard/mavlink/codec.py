@@ -17,6 +17,8 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.core import frames
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.rejection import Rejection
+from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot
 
 FORMAT_VERSION = 1
@@ -35,11 +37,11 @@ MAV_FRAME_BODY_FRD = autopilot.MAV_FRAME_BODY_FRD
 MAV_ESTIMATOR_TYPE_VISION = autopilot.MAV_ESTIMATOR_TYPE_VISION
 
 
-class RejectionError(Exception):
-    """A received message that must not reach the graph; ``reason`` names the counter."""
+class RejectionError(AtlasError):
+    """A received message that must not reach the graph, and why (its message is the reason's value)."""
 
-    def __init__(self, reason: str) -> None:
-        super().__init__(reason)
+    def __init__(self, reason: Rejection) -> None:
+        super().__init__(reason.value)
         self.reason = reason
 
 
@@ -103,14 +105,14 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
     the node leaves that to the listener, which counts those reasons for local and peer records alike.
     """
     if msg.format_version != FORMAT_VERSION:
-        raise RejectionError("bad_version")
+        raise RejectionError(Rejection.BAD_VERSION)
     if msg.fingerprint != fingerprint & 0xFFFFFFFF:
-        raise RejectionError("wrong_fingerprint")
+        raise RejectionError(Rejection.WRONG_FINGERPRINT)
     try:
         q = tuple(map(float, msg.q))  # map, not a generator: this runs for every peer observation
         q_alt = tuple(map(float, msg.q_alt))
         if len(q) != 4 or len(q_alt) != 4:
-            raise RejectionError("malformed")
+            raise RejectionError(Rejection.MALFORMED)
         md = MarkerData(
             sensor_id=int(msg.sensor_id),
             marker_id=int(msg.marker_id),
@@ -128,11 +130,11 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
             covariance=_covariance(getattr(msg, "covariance", None)),
         )
     except (TypeError, ValueError, AttributeError):
-        raise RejectionError("malformed") from None
+        raise RejectionError(Rejection.MALFORMED) from None
     if check:
         reason = md.rejection()
         if reason is not None:
-            raise RejectionError(reason.value)
+            raise RejectionError(reason)
     return md
 
 
@@ -191,14 +193,14 @@ def decode_tunnel(
     """MarkerData from a TUNNEL message's fields; RejectionError (``tunnel_unknown_type``,
     ``tunnel_bad_length``, then as :func:`decode_observation`) if it is not ours or is malformed."""
     if payload_type != TUNNEL_PAYLOAD_OBSERVATION:
-        raise RejectionError("tunnel_unknown_type")
+        raise RejectionError(Rejection.TUNNEL_UNKNOWN_TYPE)
     if length not in (TUNNEL_STRUCT.size, TUNNEL_EXTENDED_SIZE) or len(payload) < length:
-        raise RejectionError("tunnel_bad_length")
+        raise RejectionError(Rejection.TUNNEL_BAD_LENGTH)
     try:
         raw = bytes(payload[:length])
         v = TUNNEL_STRUCT.unpack(raw[: TUNNEL_STRUCT.size])
     except (struct.error, TypeError, ValueError):
-        raise RejectionError("tunnel_bad_length") from None
+        raise RejectionError(Rejection.TUNNEL_BAD_LENGTH) from None
     remaining = raw[TUNNEL_STRUCT.size] if length == TUNNEL_EXTENDED_SIZE else 0
     fields = _TunnelFields(v[0], v[1], v[2], v[3], v[4], v[5:9], v[9], v[10], v[11], v[12], v[13], v[14], v[15:19],
                            v[19], v[20], v[21], v[22], remaining)  # fmt: skip

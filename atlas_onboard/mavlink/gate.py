@@ -23,9 +23,9 @@ import threading
 from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass
-from enum import StrEnum
 
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.rejection import Rejection
 
 NS = 1_000_000_000
 DEDUPE_WINDOW = 4096
@@ -87,19 +87,19 @@ class PeerGate:
         self._lock = threading.Lock()
         self.skew_warnings = 0
 
-    def admit(self, md: MarkerData, link_index: int, rate_hz: float, arrival_ns: int) -> str | None:
-        """None if the observation may go on; otherwise the reason it is dropped (a counter name).
+    def admit(self, md: MarkerData, link_index: int, rate_hz: float, arrival_ns: int) -> Rejection | None:
+        """None if the observation may go on; otherwise the reason it is dropped.
 
         ``md.origin`` is the sender's system id; ``arrival_ns`` is on the receiver's monotonic clock.
         A duplicate spends no token; a rate-limited observation is still remembered as seen, so its
         copy from another link is a duplicate too.
         """
         if md.origin == self.own_system_id:
-            return "own_echo"
+            return Rejection.OWN_ECHO
         key = (md.origin & 0xFF, md.seq & 0xFFFF, md.sensor_id, md.marker_id, md.capture_time_us)
         with self._lock:
             if key in self._seen:
-                return "duplicate"
+                return Rejection.DUPLICATE
             self._seen[key] = None
             while len(self._seen) > self.dedupe_window:
                 self._seen.popitem(last=False)
@@ -108,7 +108,7 @@ class PeerGate:
             if bucket is None or bucket.rate_hz != rate_hz:
                 bucket = self._buckets[bucket_key] = TokenBucket(rate_hz, arrival_ns)
             if not bucket.take(arrival_ns):
-                return "rate_limited"
+                return Rejection.RATE_LIMITED
         return None
 
     def check_skew(self, md: MarkerData, arrival_wall_ns: int, arrival_ns: int) -> SkewReport | None:
@@ -137,27 +137,6 @@ class PeerGate:
             return len(self._seen), len(self._buckets)
 
 
-class OriginRefusal(StrEnum):
-    """Why a peer's message is refused for its origin (counted as ``rejected_<value>``, and per origin)."""
-
-    OWN_SENSOR = "own_sensor"
-    """An observation by a sensor of this node's own entity: only our own cameras make those."""
-    NOT_OWNER = "not_owner"
-    """An observation by a sensor (or a fused pose of an entity) from a system id other than the node
-    that the world file says runs the sensor's entity."""
-    UNBOUND_SENSOR = "unbound_sensor"
-    """An observation by a sensor of an entity that the world file's ``nodes`` section gives no node
-    (no system id to bind it to)."""
-    UNKNOWN_SENSOR = "unknown_sensor"
-    """An observation by a sensor id the world file does not have (the listener's reason of the same
-    name, decided here before decoding)."""
-    UNKNOWN_ORIGIN = "unknown_origin"
-    """A heartbeat or fused pose from a system id that is no node of the world file."""
-    BAD_STAMP = "bad_stamp"
-    """A capture stamp more than ``MAX_SKEW_S`` from its arrival on our wall clock, refused before it
-    is kept for the node (a forged future stamp must not supersede the real observation)."""
-
-
 class OriginBinding:
     """Which system id may send what, from the world file's ``nodes`` section (pure; read-only after
     construction, so link threads share it without a lock).
@@ -179,31 +158,31 @@ class OriginBinding:
         self.owners = dict(owners)
         self.node_ids = frozenset(self.owners.values())
         # sensor id -> the one system id it may come from, or the reason it may come from none
-        self._sender: dict[int, int | OriginRefusal] = {}
+        self._sender: dict[int, int | Rejection] = {}
         unbound: set[str] = set()
         for sensor_id, entity in sensor_entity.items():
             owner = self.owners.get(entity)
             if entity == own_entity:
-                self._sender[sensor_id] = OriginRefusal.OWN_SENSOR
+                self._sender[sensor_id] = Rejection.OWN_SENSOR
             elif owner is None:
-                self._sender[sensor_id] = OriginRefusal.UNBOUND_SENSOR
+                self._sender[sensor_id] = Rejection.UNBOUND_SENSOR
                 unbound.add(entity)
             else:
                 self._sender[sensor_id] = owner
         self.unbound: tuple[str, ...] = tuple(sorted(unbound))
 
-    def observation(self, sensor_id: int, origin: int) -> OriginRefusal | None:
+    def observation(self, sensor_id: int, origin: int) -> Rejection | None:
         """None if an observation by ``sensor_id`` may come from system ``origin``; else why not."""
-        sender = self._sender.get(sensor_id, OriginRefusal.UNKNOWN_SENSOR)
-        if isinstance(sender, OriginRefusal):
+        sender = self._sender.get(sensor_id, Rejection.UNKNOWN_SENSOR)
+        if isinstance(sender, Rejection):
             return sender
-        return None if sender == origin else OriginRefusal.NOT_OWNER
+        return None if sender == origin else Rejection.NOT_OWNER
 
-    def fused(self, entity: str, origin: int) -> OriginRefusal | None:
+    def fused(self, entity: str, origin: int) -> Rejection | None:
         """None if a fused pose of ``entity`` from system ``origin`` is that entity's own node's."""
         if origin not in self.node_ids:
-            return OriginRefusal.UNKNOWN_ORIGIN
-        return None if self.owners.get(entity) == origin else OriginRefusal.NOT_OWNER
+            return Rejection.UNKNOWN_ORIGIN
+        return None if self.owners.get(entity) == origin else Rejection.NOT_OWNER
 
     def is_node(self, origin: int) -> bool:
         """Whether ``origin`` is the system id of a node of the world file (a peer, not a stranger)."""

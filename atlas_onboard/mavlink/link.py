@@ -4,29 +4,17 @@ by the caller (:meth:`Link.poll`).
 
 A link knows nothing of the graph: it returns (or hands to a callback) every message that decoded
 and passed the signing policy, and counts what it drops (bad CRC, bad or missing signature where it
-is required, replays, unknown ids, read errors).
-
-Two fixes over pymavlink's signing, both needed by a swarm:
-
-- pymavlink stores a stream's timestamp *before* it checks the signature, so one forged frame with
-  a far-future timestamp (no key needed) would make every later genuine frame of that stream look
-  like a replay. Here the signature is checked first, the timestamp only after.
-- pymavlink's outgoing timestamp only counts messages (+1 each), never the clock, so a node that has
-  run a while signs far behind real time and a peer that restarts rejects it (more than 60 s behind)
-  for good. Here it follows the wall clock, and never goes below the value persisted in ``state_dir``.
+is required, replays, unknown ids, read errors). Framing is :mod:`~atlas_onboard.mavlink.framing`'s
+(with its off switch), signing :mod:`~atlas_onboard.mavlink.signing`'s.
 """
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
-import hmac
-import json
 import logging
 import os
 import socket
-import stat
-import struct
 import threading
 import time
 from collections import Counter as Tally
@@ -36,20 +24,15 @@ from typing import Any
 
 from pymavlink import mavutil
 
-from atlas_onboard.config import LinkConfig, SigningConfig
-from atlas_onboard.errors import AtlasError
-from atlas_onboard.fsio import write_atomic
-from atlas_onboard.mavlink import dialect
+from atlas_onboard.config import LinkConfig
+from atlas_onboard.core.rejection import Rejection
+from atlas_onboard.counters import Counters
+from atlas_onboard.mavlink import dialect, framing
+from atlas_onboard.mavlink.signing import LinkSigning
 
 _logger = logging.getLogger(__name__)
 
-SIGNING_EPOCH_S = 1420070400  # MAVLink signing timestamps count 10 us units since 2015-01-01
-SIGNING_TICKS_PER_S = 100_000
-STREAM_MAX_BEHIND_TICKS = 60 * SIGNING_TICKS_PER_S  # a new stream more than 60 s behind is refused
-TIMESTAMP_SAVE_EVERY_S = 10.0
 BACKOFF_S = (0.2, 0.5, 1.0, 2.0, 5.0)
-PROTECTED = frozenset({"ATLAS_OBSERVATION", "ATLAS_FUSED_POSE", "TUNNEL"})  # never accepted unsigned when required
-KEY_LEN = 32
 DATAGRAMS_PER_POLL = 16
 DROPS_CHECK_S = 1.0  # how often a UDP link reads the kernel's drop count of its socket
 MAX_HOLD_S = 0.02  # a reader held by the node waits no longer than this
@@ -65,34 +48,6 @@ smaller one drops the real peers' first under a burst. What does not fit is drop
 flood costs it a header read per datagram, never its own camera's path."""
 
 Handler = Callable[["Link", Any, int], None]
-
-
-class Counters:
-    """Named event counters, safe to increment from a link's thread while another thread reads them."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._values: dict[str, int] = {}
-
-    def inc(self, name: str, n: int = 1) -> None:
-        with self._lock:
-            self._values[name] = self._values.get(name, 0) + n
-
-    def __getitem__(self, name: str) -> int:
-        return self._values.get(name, 0)
-
-    def get(self, name: str, default: int = 0) -> int:
-        return self._values.get(name, default)
-
-    def snapshot(self) -> dict[str, int]:
-        with self._lock:
-            return dict(self._values)
-
-    def items(self) -> Iterator[tuple[str, int]]:
-        return iter(self.snapshot().items())
-
-    def __repr__(self) -> str:
-        return f"Counters({self.snapshot()})"
 
 
 def udp_socket_drops(sock: Any) -> int | None:
@@ -111,33 +66,6 @@ def udp_socket_drops(sock: Any) -> int | None:
     return None
 
 
-def read_key(path: Path) -> bytes:
-    """A 32-byte signing key: 32 raw bytes, or 64 hex characters. Refused if group or others may read it."""
-    try:
-        st = path.stat()
-        data = path.read_bytes()
-    except OSError as exc:
-        raise AtlasError(f"signing key {path}: cannot read: {exc.strerror}") from None
-    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise AtlasError(
-            f"signing key {path}: readable by group or others (mode {stat.S_IMODE(st.st_mode):o}); chmod 600 it"
-        )
-    text = data.strip()
-    if len(text) == 2 * KEY_LEN:
-        try:
-            return bytes.fromhex(text.decode("ascii"))
-        except (UnicodeDecodeError, ValueError):
-            pass
-    if len(data) == KEY_LEN:
-        return data
-    raise AtlasError(f"signing key {path}: expected 32 bytes or 64 hex characters, got {len(data)} bytes")
-
-
-def signing_timestamp(wall_s: float) -> int:
-    """A MAVLink signing timestamp (10 us units since 2015-01-01 UTC) from UNIX seconds."""
-    return int((max(wall_s, SIGNING_EPOCH_S) - SIGNING_EPOCH_S) * SIGNING_TICKS_PER_S)
-
-
 def is_serial(url: str) -> bool:
     """Any absolute device path (``/dev/ttyAMA0,921600``, ``/dev/serial/by-id/...``) or ``COMn`` is serial."""
     return url.startswith(("/", "COM"))
@@ -153,8 +81,8 @@ class Link:
         state_dir: where the signing timestamp persists (None: not persisted).
         link_id: the MAVLink signing link id of this connection.
         wall_clock: UNIX time in seconds (signing timestamps); injectable for tests.
-        deferred: names of messages handed on as :class:`dialect.Deferred` (checked, decoded only when
-            a field is read) where the parser can (unsigned MAVLink 2); others are decoded as they come.
+        deferred: names of messages handed on as :class:`framing.Deferred` (checked, decoded only when
+            a field is read) where the fast path can (unsigned MAVLink 2); others are decoded as they come.
     """
 
     def __init__(
@@ -180,7 +108,19 @@ class Link:
         names = set(deferred)
         self._deferred_ids = frozenset(t.id for t in self.dialect.mavlink_map.values() if t.msgname in names)
         self._wall = wall_clock
-        self._key = read_key(config.signing.key_file) if config.signing is not None else None
+        digest = hashlib.sha256(f"{config.url}|{system_id}|{component_id}".encode()).hexdigest()[:12]
+        self.signing = (
+            LinkSigning(
+                config.signing,
+                self.dialect,
+                link_id,
+                self.counters,
+                state_dir / f"signing-{digest}.json" if state_dir is not None else None,
+                wall_clock,
+            )
+            if config.signing is not None
+            else None
+        )
         self._conn: Any = None
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
@@ -189,11 +129,9 @@ class Link:
         self._read_done: Callable[[Link], None] | None = None
         self._may_read: threading.Event | None = None
         self._kernel_drops = 0
-        self._bad_signature = False  # the frame being decoded was signed and failed the check
         self._next_drops_check_s = 0.0
         self._backoff = 0
         self._next_open_s = 0.0  # monotonic time of the next reopen attempt
-        self._last_ts_save = time.monotonic()
         self._opened_before = False
         self.connected = threading.Event()
 
@@ -208,23 +146,17 @@ class Link:
             conn = mavutil.mavlink_connection(device, baud=int(baud or 57600), **kwargs)
         elif url.startswith("tcp:"):
             conn = mavutil.mavlink_connection(url, retries=0, **kwargs)  # one attempt: we do the backoff
-
-            def closed() -> None:  # mavutil only prints on EOF/reset; make it an error we reopen on
-                raise ConnectionError("TCP peer closed the connection")
-
-            conn.handle_eof = conn.handle_disconnect = closed
+            framing.raise_on_close(conn)
         else:
             conn = mavutil.mavlink_connection(url, **kwargs)
         # Our dialect (common.xml plus the atlas messages) on this connection only.
-        conn.mav = dialect.parser_class(self.dialect)(conn, srcSystem=self.system_id, srcComponent=self.component_id)
-        conn.mav.robust_parsing = True
-        conn.mav.deferred_ids = self._deferred_ids
+        conn.mav = framing.parser(self.dialect, conn, self.system_id, self.component_id, self._deferred_ids)
         # Our dialect speaks MAVLink 2 only; without this, mavutil's protocol auto-switch would replace
         # conn.mav with its global dialect on the first MAVLink 2 byte.
         conn.WIRE_PROTOCOL_VERSION = "2.0"
         conn.first_byte = False
-        if self._key is not None and self.config.signing is not None:
-            self._setup_signing(conn, self.config.signing)
+        if self.signing is not None:
+            self.signing.setup(conn)
         if isinstance(conn, mavutil.mavudp):
             self._size_receive_buffer(conn.port)
         self._conn = conn
@@ -246,88 +178,11 @@ class Link:
         if not self._opened_before:
             _logger.info("%s: %s receive buffer %d bytes (asked %d)", self.name, self.config.url, got, RCVBUF_BYTES)
 
-    def _setup_signing(self, conn: Any, signing: SigningConfig) -> None:
-        def allow_unsigned(_mav: Any, msg_id: int) -> bool:
-            """Called by pymavlink for unsigned (or badly signed) messages, before their payload is
-            decoded: True lets one through. A protected message that was signed but failed the check
-            (another key, a replay) is refused even without ``require``: it is no unsigned peer's."""
-            bad_signature, self._bad_signature = self._bad_signature, False
-            if not signing.require and not bad_signature:
-                return True
-            if getattr(self.dialect.mavlink_map.get(msg_id), "msgname", "") in PROTECTED:
-                self.counters.inc("rejected_unsigned_or_bad_signature")
-                return False
-            return True
-
-        conn.setup_signing(
-            self._key,
-            sign_outgoing=signing.sign_outgoing,
-            allow_unsigned_callback=allow_unsigned,
-            initial_timestamp=max(signing_timestamp(self._wall()), self._load_timestamp() + 1),
-            link_id=self.link_id,
-        )
-        mav = conn.mav
-        mav.check_signature = lambda buf, src_system, src_component: self._check_signature(mav, buf, src_system,
-                                                                                           src_component)  # fmt: skip
-
-    def _check_signature(self, mav: Any, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
-        """pymavlink's check, in the safe order: the signature first, then the stream's timestamp."""
-        signing = mav.signing
-        link_id = msgbuf[-13]
-        low, high = struct.unpack("<IH", bytes(msgbuf[-12:-6]))
-        timestamp = low + (high << 32)
-        digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
-        self._bad_signature = True  # until it passes: read by the allow_unsigned callback that follows
-        if not hmac.compare_digest(digest, bytes(msgbuf[-6:])):
-            self.counters.inc("signature_mismatch")
-            return False
-        stream = (link_id, src_system, src_component)
-        last = signing.stream_timestamps.get(stream)
-        if last is not None and timestamp <= last:
-            self.counters.inc("signature_replayed")
-            return False
-        if last is None and timestamp + STREAM_MAX_BEHIND_TICKS < signing.timestamp:
-            self.counters.inc("signature_stream_too_old")
-            return False
-        self._bad_signature = False
-        signing.stream_timestamps[stream] = timestamp
-        signing.timestamp = max(signing.timestamp, timestamp)
-        return True
-
-    def _advance_signing_clock(self, conn: Any) -> None:
-        """Keep the signing timestamp at least at the wall clock (it must rise with real time)."""
-        signing = conn.mav.signing
-        if signing.secret_key is not None:
-            signing.timestamp = max(signing.timestamp, signing_timestamp(self._wall()))
-
-    def _ts_path(self) -> Path | None:
-        if self.state_dir is None:
-            return None
-        digest = hashlib.sha256(f"{self.config.url}|{self.system_id}|{self.component_id}".encode()).hexdigest()[:12]
-        return self.state_dir / f"signing-{digest}.json"
-
-    def _load_timestamp(self) -> int:
-        path = self._ts_path()
-        if path is None:
-            return 0
-        try:
-            saved = int(json.loads(path.read_text(encoding="utf-8"))["timestamp"])
-        except (OSError, ValueError, KeyError, TypeError):
-            return 0
-        # Saved periodically: add the save period so a restart never reuses a timestamp.
-        return saved + int(TIMESTAMP_SAVE_EVERY_S * SIGNING_TICKS_PER_S)
-
     def save_timestamp(self) -> None:
-        """Persist the signing timestamp (a companion without an RTC restarts with a clock in the past)."""
-        path = self._ts_path()
+        """Persist the signing timestamp (see :meth:`LinkSigning.save`)."""
         conn = self._conn
-        if path is None or conn is None or self._key is None:
-            return
-        try:
-            write_atomic(path, json.dumps({"timestamp": int(conn.mav.signing.timestamp)}), make_dirs=True)
-        except OSError as exc:
-            self.counters.inc("signing_state_write_errors")
-            _logger.warning("%s: cannot save signing timestamp to %s: %s", self.name, path, exc.strerror)
+        if self.signing is not None and conn is not None:
+            self.signing.save(conn, self.name)
 
     @property
     def is_open(self) -> bool:
@@ -401,12 +256,11 @@ class Link:
             if drops is not None and drops > self._kernel_drops:
                 self.counters.inc("kernel_drops", drops - self._kernel_drops)
                 self._kernel_drops = drops
-        if self._key is None:
+        if self.signing is None:
             return
         with self._send_lock:  # send() advances it too: never write back a value it has passed
-            self._advance_signing_clock(conn)
-        if time.monotonic() - self._last_ts_save > TIMESTAMP_SAVE_EVERY_S:
-            self._last_ts_save = time.monotonic()
+            self.signing.advance(conn)
+        if self.signing.save_due():
             self.save_timestamp()
 
     def _accept(self, msg: Any) -> bool:
@@ -414,14 +268,14 @@ class Link:
         kind = msg.get_type()
         if kind == "BAD_DATA":
             reason = str(getattr(msg, "reason", ""))
-            self.counters.inc("rejected_bad_signature" if "signature" in reason else "rejected_bad_data")
+            self.counters.inc(Rejection.BAD_SIGNATURE if "signature" in reason else Rejection.BAD_DATA)
             return False
         if type(msg).__name__ == "MAVLink_unknown" or kind.startswith("UNKNOWN"):
             # pymavlink returns unknown ids before any CRC or signature check: never trust them. An id
             # another public dialect defines (ArduPilot's AHRS, ...) is only not ours to read.
             msg_id = kind.rpartition("_")[2]  # pymavlink names it UNKNOWN_<id>
             other = msg_id.isdigit() and int(msg_id) in dialect.known_elsewhere()
-            self.counters.inc("rx_other_dialect" if other else "rejected_unknown_id")
+            self.counters.inc("rx_other_dialect" if other else Rejection.UNKNOWN_ID)
             return False
         self.counters.inc(f"rx_{kind.lower()}")
         return True
@@ -507,8 +361,8 @@ class Link:
             return False
         try:
             with self._send_lock:
-                if self._key is not None:
-                    self._advance_signing_clock(conn)
+                if self.signing is not None:
+                    self.signing.advance(conn)
                 mav = conn.mav
                 chunks, chunk = [], b""
                 for msg in msgs:

@@ -9,16 +9,20 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
 from atlas_onboard.config import NodeConfig, WorldConfig
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.rejection import Rejection
+from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mavlink import autopilot, codec, dialect
-from atlas_onboard.mavlink.gate import OriginBinding, OriginRefusal, PeerGate, ReportLimiter, TokenBucket
-from atlas_onboard.mavlink.link import Counters, Link
+from atlas_onboard.mavlink import autopilot, codec, framing
+from atlas_onboard.mavlink.gate import OriginBinding, PeerGate, ReportLimiter, TokenBucket
+from atlas_onboard.mavlink.link import Link
 from atlas_onboard.publisher import AutopilotPose, PoseState, Telemetry
+from atlas_onboard.schedule import Inbound
 
 _logger = logging.getLogger(__name__)
 
@@ -51,16 +55,16 @@ class MavlinkTransport:
             if ap is not None
             else None
         )
-        # A peer's observations are decoded only if the node may use them (most wait for the newest of
-        # their edge, :meth:`take_waiting`); its fused poses only say that it is alive.
+        # A peer's observations are decoded only when the node takes them (most wait for the newest of
+        # their edge, and the others are never taken); its fused poses only say that it is alive.
         lazy = ("ATLAS_OBSERVATION", "ATLAS_FUSED_POSE")
         self.peers = [
             Link(p, f"peer{i}", config.system_id, compid, config.state_dir, i + 1, wall_clock=wall_clock, deferred=lazy)
             for i, p in enumerate(config.peers)
         ]
         self.entity_index = {name: i for i, name in enumerate(world.entity_names)}
-        self._deliver: Callable[[Sequence[tuple[MarkerData, int]]], None] | None = None
-        self._read: list[list[tuple[MarkerData, int]]] = [[] for _ in self.peers]  # per link, this read's
+        self._deliver: Callable[[Sequence[Inbound]], None] | None = None
+        self._read: list[list[Inbound]] = [[] for _ in self.peers]  # per link, this read's
         self.gate = PeerGate(config.system_id)  # shared by the receive threads of every peer link
         self.binding = OriginBinding(
             {s.id: s.entity for s in world.sensors.values()}, dict(config.owners), config.entity
@@ -82,21 +86,11 @@ class MavlinkTransport:
         self.peers_seen: dict[int, int] = {}  # system id -> last arrival (ns)
         self._peers_alive: set[int] = set()
         self._fingerprint_warned: set[int] = set()
-        # Observations the node takes only every park period: the newest of each edge, undecoded.
-        self._may_wait: Callable[[int, int], bool] | None = None
-        self._waiting: dict[tuple[int, int], tuple[int, Link, Any, int, int, int]] = {}
-        self._waiting_since_ns: int | None = None
 
     # --- Transport ------------------------------------------------------------------------------------
 
-    def start(
-        self,
-        deliver: Callable[[Sequence[tuple[MarkerData, int]]], None],
-        may_read: threading.Event | None = None,
-        may_wait: Callable[[int, int], bool] | None = None,
-    ) -> None:
+    def start(self, deliver: Callable[[Sequence[Inbound]], None], may_read: threading.Event | None = None) -> None:
         self._deliver = deliver
-        self._may_wait = may_wait
         self._warn_at_start()
         if self.autopilot is not None:
             self.autopilot.start(self._on_autopilot)
@@ -329,39 +323,31 @@ class MavlinkTransport:
             elif kind == "ATLAS_FUSED_POSE":
                 self._on_fused(msg, origin, arrival_ns)
             return
-        if kind == "ATLAS_OBSERVATION":
-            # Who sent it and when it was taken, read from the frame without decoding it, before it can
-            # be kept for the node (a forged one must never supersede the real one) or cost a decode.
-            refusal = self.binding.observation(msg.sensor_id, origin)
-            if refusal is None and abs(self._wall_ns() - msg.time_usec * 1000) > self.gate.max_skew_ns:
-                refusal = OriginRefusal.BAD_STAMP
-            if refusal is not None:
-                self._refuse(refusal, origin)
-                return
-        may_wait = self._may_wait
-        if (
-            kind == "ATLAS_OBSERVATION"
-            and may_wait is not None
-            and msg.format_version == codec.FORMAT_VERSION
-            and msg.fingerprint == self.fingerprint & 0xFFFFFFFF
-            and may_wait(msg.sensor_id, msg.marker_id)
-        ):
-            # The node will take it at its next park period, and only the newest of its edge then:
-            # keep that one as it came (decoded and checked when taken) and drop the older. (Another
-            # world file's or version's observation never stands in for one of ours: refused below.)
-            key = (msg.sensor_id, msg.marker_id)
-            with self._lock:
-                old = self._waiting.get(key)
-                if old is None or msg.time_usec > old[2].time_usec:
-                    self._waiting[key] = (index, link, msg, origin, arrival_ns, self._wall_ns())
-                    if self._waiting_since_ns is None:
-                        self._waiting_since_ns = arrival_ns
-                if old is not None:
-                    self.counters_.inc("waiting_superseded")
+        if kind == "TUNNEL":  # its sensor is known only once decoded: decoded and checked now
+            md = self._admit(index, link, kind, msg, origin, arrival_ns)
+            if md is not None:
+                self._read[index].append(Inbound.of(md, arrival_ns))
             return
-        md = self._admit(index, link, kind, msg, origin, arrival_ns)
-        if md is not None:
-            self._read[index].append((md, arrival_ns))
+        # Who sent it, when it was taken and for which world file, read from the frame without
+        # decoding it, before the node can park it (a forged one must never supersede the real one)
+        # or it costs a decode; the rest is checked when the node takes it.
+        refusal = self.binding.observation(msg.sensor_id, origin)
+        wall_ns = self._wall_ns()
+        if refusal is None and abs(wall_ns - msg.time_usec * 1000) > self.gate.max_skew_ns:
+            refusal = Rejection.BAD_STAMP
+        if refusal is not None:
+            self._refuse(refusal, origin)
+            return
+        if msg.format_version != codec.FORMAT_VERSION:
+            self._refuse(Rejection.BAD_VERSION, origin)
+            return
+        if msg.fingerprint != self.fingerprint & 0xFFFFFFFF:
+            self._refuse(Rejection.WRONG_FINGERPRINT, origin)
+            self._warn_fingerprint(origin)
+            return
+        admit = partial(self._admit, index, link, kind, msg, origin, arrival_ns, wall_ns)
+        item = Inbound(origin, msg.sensor_id, msg.marker_id, msg.time_usec, msg.frame_remaining, arrival_ns, admit)
+        self._read[index].append(item)
 
     def _on_fused(self, msg: Any, origin: int, arrival_ns: int) -> None:
         """A peer's fused pose only says that its sender is alive; it is the pose of its entity only
@@ -371,12 +357,12 @@ class MavlinkTransport:
         refusal = self.binding.fused(entity, origin)
         if refusal is None:
             self.peers_seen[origin] = arrival_ns
-        elif refusal is OriginRefusal.UNKNOWN_ORIGIN:
+        elif refusal is Rejection.UNKNOWN_ORIGIN:
             self._refuse(refusal, origin)
 
-    def _refuse(self, reason: str, origin: int) -> None:
+    def _refuse(self, reason: Rejection, origin: int) -> None:
         """Count a refused peer message by reason and by origin (at most 256 origins)."""
-        self.counters_.inc(f"rejected_{reason}")
+        self.counters_.inc(reason)
         with self._lock:
             self._refused_by_origin[origin & 0xFF] = self._refused_by_origin.get(origin & 0xFF, 0) + 1
 
@@ -412,30 +398,14 @@ class MavlinkTransport:
                 " sensors are refused from every peer", ", ".join(self.binding.unbound),
             )  # fmt: skip
 
-    def waiting_since_ns(self) -> int | None:
-        """When the oldest observation kept for :meth:`take_waiting` arrived (monotonic), or None."""
-        return self._waiting_since_ns
-
-    def take_waiting(self) -> list[tuple[MarkerData, int]]:
-        """The observations kept for the node's park period (the newest of each edge), decoded and
-        checked as any other (fingerprint, duplicates, rate, and the clock as of their arrival), with
-        their arrival times."""
-        with self._lock:
-            waiting, self._waiting, self._waiting_since_ns = self._waiting, {}, None
-        out = []
-        for index, link, msg, origin, arrival_ns, wall_ns in waiting.values():
-            md = self._admit(index, link, "ATLAS_OBSERVATION", msg, origin, arrival_ns, wall_ns)
-            if md is not None:
-                out.append((md, arrival_ns))
-        return out
-
     def _admit(
         self, index: int, link: Link, kind: str, msg: Any, origin: int, arrival_ns: int, wall_ns: int | None = None
     ) -> MarkerData | None:
-        """A peer's observation decoded and checked, or None (counted) if it must go no further.
-        ``wall_ns``: its arrival on the wall clock (now if not given), for the clock checks."""
+        """A peer's observation decoded and checked (world file, duplicates, rate, clock), or None
+        (counted) if it must go no further. ``wall_ns``: its arrival on the wall clock (now if not
+        given), for the clock checks."""
         try:
-            if isinstance(msg, dialect.Deferred):
+            if isinstance(msg, framing.Deferred):
                 msg = msg.decoded()
             if kind == "TUNNEL":
                 md = codec.decode_tunnel(msg.payload_type, msg.payload_length, msg.payload, origin, self.fingerprint)
@@ -443,11 +413,11 @@ class MavlinkTransport:
                 md = codec.decode_observation(msg, origin, self.fingerprint)
         except codec.RejectionError as exc:
             self._refuse(exc.reason, origin)
-            if exc.reason == "wrong_fingerprint":
+            if exc.reason is Rejection.WRONG_FINGERPRINT:
                 self._warn_fingerprint(origin)
             return None
         except link.dialect.MAVError:  # a deferred frame that pymavlink cannot make a message of
-            self._refuse("bad_data", origin)
+            self._refuse(Rejection.BAD_DATA, origin)
             return None
         refusal = self.binding.observation(md.sensor_id, origin)  # TUNNEL's is known only now
         if refusal is not None:
@@ -467,7 +437,7 @@ class MavlinkTransport:
                 " (chrony)", skew.origin, skew.skew_s * 1e3,
             )  # fmt: skip
         if self.gate.stamp_refused(md, wall_ns):
-            self._refuse(OriginRefusal.BAD_STAMP, origin)
+            self._refuse(Rejection.BAD_STAMP, origin)
             return None
         return md
 

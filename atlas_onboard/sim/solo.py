@@ -29,7 +29,7 @@ from atlas_onboard.config import WorldConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import codec, dialect
-from atlas_onboard.mavlink.link import signing_timestamp
+from atlas_onboard.mavlink.signing import signing_timestamp
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.command import autopilot_track

@@ -10,7 +10,8 @@ from pathlib import Path
 from atlas_onboard.config import LinkConfig, SigningConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.mavlink import codec, dialect
-from atlas_onboard.mavlink.link import Link, signing_timestamp
+from atlas_onboard.mavlink.link import Link
+from atlas_onboard.mavlink.signing import signing_timestamp
 
 D = dialect.load()
 FP = 0x1234ABCD

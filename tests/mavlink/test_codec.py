@@ -12,7 +12,9 @@ from hypothesis import strategies as st
 
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.mavlink import codec, dialect
+from atlas_onboard.mavlink import codec, dialect, framing
+
+pytestmark = pytest.mark.usefixtures("framing_mode")  # every test with the fast path and without
 
 D = dialect.load()
 FP = 0xDEADBEEF
@@ -25,8 +27,8 @@ def wire(msg, sysid=9):
 
 
 def parse(buf):
-    rx = D.MAVLink(None)
-    rx.robust_parsing = True
+    """The messages of ``buf`` as a link's parser gives them (the fast path or pymavlink's: both ways)."""
+    rx = framing.parser(D, None, 255, 0, frozenset())
     return rx.parse_buffer(buf) or []
 
 

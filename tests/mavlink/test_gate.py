@@ -90,21 +90,22 @@ def test_a_stamp_more_than_a_second_from_our_clock_is_refused():
 
 
 def test_origin_binding_by_the_world_files_nodes():
-    from atlas_onboard.mavlink.gate import OriginBinding, OriginRefusal
+    from atlas_onboard.core.rejection import Rejection
+    from atlas_onboard.mavlink.gate import OriginBinding
 
     # sensors: 1 on d1 (this node's entity), 2 on d2 (system 2), 10 on world (system 250), 30 on an
     # entity that no node runs
     binding = OriginBinding({1: "d1", 2: "d2", 10: "world", 30: "orphan"}, {"d1": 1, "d2": 2, "world": 250}, "d1")
     assert binding.observation(2, 2) is None and binding.observation(10, 250) is None
-    assert binding.observation(2, 250) is OriginRefusal.NOT_OWNER
-    assert binding.observation(10, 2) is OriginRefusal.NOT_OWNER
+    assert binding.observation(2, 250) is Rejection.NOT_OWNER
+    assert binding.observation(10, 2) is Rejection.NOT_OWNER
     for origin in (1, 2, 250, 77):  # the own entity's sensor: from no one, not even "ourselves"
-        assert binding.observation(1, origin) is OriginRefusal.OWN_SENSOR
-    assert binding.observation(30, 2) is OriginRefusal.UNBOUND_SENSOR
-    assert binding.observation(999, 2) is OriginRefusal.UNKNOWN_SENSOR
+        assert binding.observation(1, origin) is Rejection.OWN_SENSOR
+    assert binding.observation(30, 2) is Rejection.UNBOUND_SENSOR
+    assert binding.observation(999, 2) is Rejection.UNKNOWN_SENSOR
     assert binding.unbound == ("orphan",)
-    assert binding.fused("d2", 2) is None and binding.fused("d1", 2) is OriginRefusal.NOT_OWNER
-    assert binding.fused("d2", 77) is OriginRefusal.UNKNOWN_ORIGIN
+    assert binding.fused("d2", 2) is None and binding.fused("d1", 2) is Rejection.NOT_OWNER
+    assert binding.fused("d2", 77) is Rejection.UNKNOWN_ORIGIN
     assert binding.is_node(250) and not binding.is_node(77)
 
 

@@ -10,7 +10,8 @@ import pytest
 
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import codec
-from atlas_onboard.mavlink.link import Link, read_key, signing_timestamp
+from atlas_onboard.mavlink.link import Link
+from atlas_onboard.mavlink.signing import read_key, signing_timestamp
 from tests.mavlink.loopback import (
     FP,
     MD,

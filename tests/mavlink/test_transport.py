@@ -16,12 +16,15 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import AutopilotConfig, AutopilotOutput, GlobalOrigin, LinkConfig, NodeConfig
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import Rejection
-from atlas_onboard.mavlink import codec, dialect
+from atlas_onboard.mavlink import codec, framing
 from atlas_onboard.mavlink.transport import MavlinkTransport
 from atlas_onboard.publisher import AutopilotPose
-from tests.e2e import wait_for
+from atlas_onboard.schedule import ParkingBuffer
+from tests.e2e.helpers import wait_for
 from tests.helpers import world_from
 from tests.mavlink.loopback import MD, D, RawSender, free_port
+
+pytestmark = pytest.mark.usefixtures("framing_mode")  # every test with the fast path and without
 
 WALL_S = 1_700_000_000.25  # the transport's wall clock, frozen
 
@@ -80,9 +83,9 @@ def rig():
     delivered: list = []
     lock = threading.Lock()
 
-    def deliver(items):
+    def deliver(items):  # as the node takes what can move its pose: decoded and checked at once
         with lock:
-            delivered.extend(md for md, _ in items)
+            delivered.extend(md for md in (item.take() for item in items) if md is not None)
             transport.batches.append(len(items))
 
     transport.batches = []  # how many observations each hand-over carried
@@ -362,14 +365,34 @@ def test_the_observations_of_one_datagram_are_handed_on_together(rig):
     assert transport.batches == [3, 1]
 
 
-def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_when_taken(monkeypatch):
-    """An observation the node says may wait (here of marker 5) is not delivered: the newest of its
+class Parking:
+    """What a node does with delivered observations: those of marker 6 parked (the newest of each
+    edge, undecoded), the others taken (decoded and checked) at once."""
+
+    def __init__(self):
+        self.delivered = []
+        self.parking = ParkingBuffer(64, newest_wins=True)
+
+    def __call__(self, items):
+        self.parking.put([item for item in items if item.marker_id == 6])
+        taken = ((item.take(), item.arrival_ns) for item in items if item.marker_id != 6)
+        self.delivered.extend((md, arrival_ns) for md, arrival_ns in taken if md is not None)
+
+    def take(self):
+        taken = ((item.take(), item.arrival_ns) for item in self.parking.take())
+        return [(md, arrival_ns) for md, arrival_ns in taken if md is not None]
+
+
+@pytest.mark.parametrize("framing_mode", ["fast"], indirect=True)  # deferred decoding is the fast path's
+def test_parked_observations_are_the_newest_of_each_edge_and_checked_when_taken(monkeypatch, framing_mode):
+    """Observations the node parks (here of marker 6) are delivered undecoded: the newest of its
     edge is kept, the others dropped (counted), and it is decoded and checked (duplicates, stamps)
-    only when taken; another world file's never stands in for ours; the rest is delivered at once.
-    Those dropped are never decoded, nor is a peer's fused pose (it only says the peer is alive)."""
+    only when taken; another world file's never stands in for ours (refused before decoding); the
+    rest is taken at once. Those dropped are never decoded, nor is a peer's fused pose (it only says
+    the peer is alive)."""
     decoded = []
-    real = dialect.Deferred.decoded
-    monkeypatch.setattr(dialect.Deferred, "decoded", lambda self: decoded.append(self.get_type()) or real(self))
+    real = framing.Deferred.decoded
+    monkeypatch.setattr(framing.Deferred, "decoded", lambda self: decoded.append(self.get_type()) or real(self))
     world = world_from(CEILING_D1_D2)
     port = free_port()
     config = NodeConfig(
@@ -380,12 +403,13 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
     )
     wall = [WALL_S]
     transport = MavlinkTransport(world, config, wall_clock=lambda: wall[0])
-    delivered: list = []
-    transport.start(delivered.extend, may_wait=lambda sensor, marker: marker == 6)
+    node = Parking()
+    delivered = node.delivered
+    transport.start(node)
     sender = RawSender(port, 250)
     try:
         fp, t_us = world.fingerprint(), int(WALL_S * 1e6)
-        assert transport.waiting_since_ns() is None
+        assert node.parking.since_ns() is None
         for seq, dt in ((1, 0), (2, 1000), (3, -1000)):  # the newest (seq 2) arrives in the middle
             sender.raw(sender.observation(seq=seq, fingerprint=fp, time_usec=t_us + dt, marker_id=6))
         sender.raw(sender.observation(seq=4, fingerprint=fp ^ 1, time_usec=t_us + 2000, marker_id=6))
@@ -393,8 +417,8 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
         settle(transport, delivered)
         assert [(md.marker_id, md.seq) for md, _ in delivered] == [(5, 5)]
         c = transport.counters()
-        assert c["waiting_superseded"] == 2 and c["rejected_wrong_fingerprint"] == 1
-        assert decoded == ["ATLAS_OBSERVATION"] * 2  # the other world file's (refused) and seq 5
+        assert node.parking.superseded == 2 and c["rejected_wrong_fingerprint"] == 1
+        assert decoded == ["ATLAS_OBSERVATION"]  # seq 5 (the other world file's was refused undecoded)
         pose = EntityPose("d2", np.array([1.0, 2.0, 3.0]), np.array([0.0, 0.0, 0.0, 1.0]), 1, 2, 3, 0.01, t_us)
         peer = RawSender(port, 77)
         fused = peer.frame(codec.encode_fused(D, pose, 2, 0, fp))
@@ -403,25 +427,25 @@ def test_observations_that_may_wait_are_kept_newest_of_each_edge_and_checked_whe
         monkeypatch.setattr(cls, "__init__", lambda self, *a, init=cls.__init__: made.append(1) or init(self, *a))
         peer.raw(fused)
         assert wait_for(lambda: 77 in transport.peers_seen)
-        assert decoded == ["ATLAS_OBSERVATION"] * 2 and not made
+        assert decoded == ["ATLAS_OBSERVATION"] and not made
         assert transport.counters()["peer0_rx_atlas_fused_pose"] == 1
         peer.close()
-        since = transport.waiting_since_ns()
+        since = node.parking.since_ns()
         assert since is not None and since <= time.monotonic_ns()
         wall[0] += 0.3  # taken later than it arrived: its clock is checked as of its arrival
-        taken = transport.take_waiting()
+        taken = node.take()
         assert transport.counters().get("clock_skew_warnings", 0) == 0
         assert [(md.marker_id, md.seq, md.capture_time_us) for md, _ in taken] == [(6, 2, t_us + 1000)]
-        assert decoded == ["ATLAS_OBSERVATION"] * 3  # the one taken
-        assert taken[0][1] >= since and transport.waiting_since_ns() is None and transport.take_waiting() == []
+        assert decoded == ["ATLAS_OBSERVATION"] * 2  # the one taken
+        assert taken[0][1] >= since and node.parking.since_ns() is None and node.take() == []
         # Checked as any other when taken: the same observation again is a duplicate; a stale one is refused.
         wall[0] = WALL_S
         sender.raw(sender.observation(seq=2, fingerprint=fp, time_usec=t_us + 1000, marker_id=6))
         settle(transport, delivered)
-        assert transport.take_waiting() == [] and transport.counters()["rejected_duplicate"] == 1
+        assert node.take() == [] and transport.counters()["rejected_duplicate"] == 1
         sender.raw(sender.observation(seq=6, fingerprint=fp, time_usec=t_us - 5_000_000, marker_id=6))
         settle(transport, delivered)
-        assert transport.take_waiting() == [] and transport.counters()["rejected_bad_stamp"] == 1
+        assert node.take() == [] and transport.counters()["rejected_bad_stamp"] == 1
     finally:
         transport.close()
         sender.close()
@@ -436,19 +460,19 @@ def test_a_forged_observation_never_supersedes_the_kept_one():
     config = NodeConfig(entity="d1", system_id=1, peers=(LinkConfig(f"udpin:127.0.0.1:{port}"),),
                         owners=(("world", 250), ("d1", 1), ("d2", 2)))  # fmt: skip
     transport = MavlinkTransport(world, config, wall_clock=lambda: WALL_S)
-    delivered: list = []
-    transport.start(delivered.extend, may_wait=lambda sensor, marker: marker == 6)
+    node = Parking()
+    transport.start(node)
     real, forger = RawSender(port, 250), RawSender(port, 2)
     try:
         fp, t_us = world.fingerprint(), int(WALL_S * 1e6)
         real.raw(real.observation(seq=1, fingerprint=fp, time_usec=t_us, marker_id=6))
         forger.raw(forger.observation(seq=2, fingerprint=fp, time_usec=t_us + 500_000, marker_id=6))  # not its sensor
         real.raw(real.observation(seq=3, fingerprint=fp, time_usec=t_us + 3_600_000_000, marker_id=6))  # 1 h ahead
-        settle(transport, delivered)
-        taken = transport.take_waiting()
+        settle(transport, node.delivered)
+        taken = node.take()
         assert [(md.seq, md.origin, md.capture_time_us) for md, _ in taken] == [(1, 250, t_us)]
         c = transport.counters()
-        assert c["rejected_not_owner"] == 1 and c["rejected_bad_stamp"] == 1 and c.get("waiting_superseded", 0) == 0
+        assert c["rejected_not_owner"] == 1 and c["rejected_bad_stamp"] == 1 and node.parking.superseded == 0
         assert c["refused_from_2"] == 1 and c["refused_from_250"] == 1
     finally:
         transport.close()

@@ -17,7 +17,7 @@ from atlas_onboard import cli
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.command import autopilot_track
 from atlas_onboard.sim.demo import ENTITY, FPS_HZ, SYSTEM_ID, read_truth
-from tests.e2e import NodeProcess, free_udp_port, wait_for
+from tests.e2e.helpers import NodeProcess, free_udp_port, wait_for
 
 SECONDS = 3.0
 

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from atlas_onboard.sim.autopilot import SimAutopilot
-from tests.e2e import NodeProcess, wait_for, write_world
+from tests.e2e.helpers import NodeProcess, wait_for, write_world
 from tests.helpers import write_ubiquity_calibration
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 FRAMES = 120
 # fiducial_slam's expectation for 403.jpg: marker 403 at this position in base_link (m), the camera
 # at this one. The drone's frame here is the camera's and the marker is at the world origin: the

@@ -6,7 +6,7 @@ import time
 import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from tests.e2e import start_node_with_peer
+from tests.e2e.helpers import start_node_with_peer
 from tests.helpers import observe, pose
 
 

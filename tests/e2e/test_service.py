@@ -10,9 +10,9 @@ import numpy as np
 from pymavlink.dialects.v20 import common
 
 from atlas_onboard.config import load_world
-from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.e2e.helpers import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.e2e.test_autopilot import TRUTH, world_doc
 from tests.helpers import observe
-from tests.test_e2e_autopilot import TRUTH, world_doc
 
 
 def test_notify_protocol(tmp_path):

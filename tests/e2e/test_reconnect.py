@@ -6,9 +6,9 @@ import numpy as np
 
 from atlas_onboard.config import load_world
 from atlas_onboard.sim.autopilot import SimAutopilot
-from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.e2e.helpers import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.e2e.test_autopilot import TRUTH, world_doc
 from tests.helpers import observe
-from tests.test_e2e_autopilot import TRUTH, world_doc
 
 
 def test_autopilot_tcp_link_restart(tmp_path):

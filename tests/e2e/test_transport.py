@@ -7,9 +7,9 @@ import time
 from atlas_onboard.config import load_world
 from atlas_onboard.mavlink import dialect
 from atlas_onboard.sim.autopilot import SimAutopilot
-from tests.e2e import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.e2e.helpers import NodeProcess, Peer, free_udp_port, wait_for, write_world
+from tests.e2e.test_autopilot import TRUTH, world_doc
 from tests.helpers import observe, pose
-from tests.test_e2e_autopilot import TRUTH, world_doc
 
 TRUTH_D2 = {**TRUTH, "d2": pose([0.0, 2.0, 3.0], [0, 0, 0])}  # 1 m from d1, looking along +x at its tag
 

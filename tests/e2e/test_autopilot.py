@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from tests.e2e import start_node_with_peer, wait_for
+from tests.e2e.helpers import start_node_with_peer, wait_for
 from tests.helpers import observe, pose
 
 MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD = 20, 12
@@ -182,7 +182,7 @@ def test_reset_counter_signals_a_restart(tmp_path):
     autopilot resets to vision instead of fusing a jump across the restart as a measurement."""
     from atlas_onboard.config import load_world
     from atlas_onboard.sim.autopilot import SimAutopilot
-    from tests.e2e import NodeProcess, Peer, free_udp_port, write_world
+    from tests.e2e.helpers import NodeProcess, Peer, free_udp_port, write_world
 
     ap = SimAutopilot(system_id=1).start()
     port = free_udp_port()
@@ -239,7 +239,7 @@ def test_ground_station_sees_pose_state_and_named_values(tmp_path):
     import threading
 
     from atlas_onboard.listener import Listener, make_graph
-    from tests.e2e import start_node_with_peer
+    from tests.e2e.helpers import start_node_with_peer
 
     def doc_for(port, ap_port):
         doc = world_doc(port, ap_port)

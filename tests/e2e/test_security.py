@@ -14,10 +14,10 @@ from atlas_onboard.config import load_world
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.solo import Radio, forged_view, start_solo
 from atlas_onboard.sim.world import SimWorld
-from tests.e2e import NodeProcess, free_udp_port, wait_for, write_world
+from tests.e2e.helpers import NodeProcess, free_udp_port, wait_for, write_world
+from tests.e2e.test_autopilot import world_doc
+from tests.e2e.test_signing import TRUTH_A, TRUTH_B, key_file
 from tests.helpers import observe
-from tests.test_e2e_autopilot import world_doc
-from tests.test_e2e_signing import TRUTH_A, TRUTH_B, key_file
 
 LIE_M = (1.0, 0.0, 0.0)  # the claim: the drone stands 1 m east of where it is
 OWN_SENSOR, MARKER = 1, 2  # paper-test1: the drone's front camera; a floor tag
