@@ -193,3 +193,57 @@ class AttitudeHistory:
         """World up in the body frame at ``t_us`` (see :meth:`attitude_at`), or None."""
         R = self.attitude_at(t_us)
         return None if R is None else up_in_body(R)
+
+
+@dataclass(frozen=True, slots=True)
+class Constrained:
+    """A single tag's pose T_sensor_marker after the gravity update (:func:`constrain_tilt`)."""
+
+    p_sensor_marker_m: NDArray[np.float64]  # (3,)
+    R_sensor_marker: NDArray[np.float64]  # (3, 3)
+    covariance: NDArray[np.float64]  # (6, 6), core.covariance convention ([dp in sensor, dtheta about marker axes])
+
+
+def _tangent_basis(u: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Two orthonormal rows perpendicular to the unit vector ``u``, shape (2, 3)."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(u, a)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(u, e1)])
+
+
+def constrain_tilt(
+    p_sensor_marker_m: NDArray[np.float64],
+    R_sensor_marker: NDArray[np.float64],
+    C_sensor_marker: NDArray[np.float64],
+    R_body_sensor: NDArray[np.float64],
+    R_world_marker: NDArray[np.float64],
+    up_body: NDArray[np.float64],
+    sigma_rad: float = AUTOPILOT_TILT_SIGMA_RAD,
+) -> Constrained:
+    """The MegaTag2 idea, as a Kalman update: a single tag's pose T_sensor_marker (position (3,) m,
+    rotation (3, 3), 6x6 covariance in the core.covariance convention) updated with the autopilot's up
+    vector ``up_body`` (unit, body frame; per-axis standard deviation ``sigma_rad``).
+
+    The measurement is the up vector the pose implies, ``u = R_body_sensor R_sensor_marker m`` with ``m``
+    world up in the marker frame; to first order ``u(dtheta) = u0 - R_bs R_sm [m]x dtheta``, observed
+    in the plane perpendicular to ``u0`` (two components: roll and pitch). Position follows through the
+    covariance's coupling of tilt and position (a single tag's camera position is range x tilt), and the
+    covariance shrinks as the update says (Joseph form).
+    """
+    C = np.asarray(C_sensor_marker, dtype=float)
+    R_sm = np.asarray(R_sensor_marker, dtype=float)
+    m = np.asarray(R_world_marker, dtype=float).T @ UP
+    u0 = np.asarray(R_body_sensor, dtype=float) @ R_sm @ m
+    B = _tangent_basis(u0 / np.linalg.norm(u0))
+    skew_m = np.array([[0.0, -m[2], m[1]], [m[2], 0.0, -m[0]], [-m[1], m[0], 0.0]])
+    H = np.zeros((2, 6))
+    H[:, 3:] = -B @ R_body_sensor @ R_sm @ skew_m
+    z = B @ (np.asarray(up_body, dtype=float) - u0)
+    S = H @ C @ H.T + sigma_rad**2 * np.eye(2)
+    K = np.linalg.solve(S, H @ C).T  # C H^T S^-1 (S and C symmetric)
+    x = K @ z
+    I_KH = np.eye(6) - K @ H
+    C_new = I_KH @ C @ I_KH.T + sigma_rad**2 * (K @ K.T)
+    R_new = R_sm @ Rotation.from_rotvec(x[3:]).as_matrix()
+    return Constrained(np.asarray(p_sensor_marker_m, dtype=float) + x[:3], R_new, 0.5 * (C_new + C_new.T))

@@ -70,3 +70,57 @@ def test_boot_clock_converges_on_the_smallest_lag_and_restarts_after_a_reboot():
     assert c.wall_us(2_001_000, 7_001_000 + 3_000) == 7_001_000 + 3_000  # a smaller lag wins
     assert c.wall_us(2_002_000, 7_002_000 + 20_000) == 7_002_000 + 3_000  # a late arrival is not believed
     assert c.wall_us(0, 9_000_000) == 9_000_000  # boot time went back: a reboot
+
+
+def _pose_scene(seed: int):
+    rng = np.random.default_rng(seed)
+    R_world_marker = Rotation.from_euler("xz", [rng.choice([0.0, 90.0]), rng.uniform(0, 360)], degrees=True)
+    R_body_sensor = Rotation.from_euler("y", rng.uniform(30, 90), degrees=True) * Rotation.from_euler(
+        "zx", [-90, -90], degrees=True
+    )
+    R_sm_true = Rotation.from_euler(
+        "zxz", [rng.uniform(0, 360), 180 + rng.uniform(5, 40), rng.uniform(0, 360)], degrees=True
+    )
+    p_true = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(1.0, 3.0)])
+    return R_world_marker, R_body_sensor, R_sm_true, p_true
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_constrain_tilt_pulls_a_tilted_single_tag_back_along_its_coupling(seed):
+    from atlas_onboard.core.attitude import constrain_tilt
+
+    R_wm, R_bs, R_sm_true, p_true = _pose_scene(seed)
+    up = up_in_body(R_wm * R_sm_true.inv() * R_bs.inv())
+    # A detection off by a tilt d about the marker's x axis at the right position (a single tag's image
+    # position is well determined, its tilt is not): the camera, seen from the marker, is off by range x d.
+    # The covariance says that the tilt is poorly known.
+    d = np.array([math.radians(3.0), 0.0, 0.0])
+    R_sm = R_sm_true * Rotation.from_rotvec(d)
+    C = np.diag([1e-8] * 3 + [math.radians(3.0) ** 2, math.radians(3.0) ** 2, 1e-6])
+    new = constrain_tilt(p_true, R_sm.as_matrix(), C, R_bs.as_matrix(), R_wm.as_matrix(), up, math.radians(0.3))
+
+    def camera_in_marker(R, p):
+        return -R.inv().apply(p)
+
+    c_true = camera_in_marker(R_sm_true, p_true)
+    err_before = np.linalg.norm(camera_in_marker(R_sm, p_true) - c_true)
+    err_after = np.linalg.norm(
+        camera_in_marker(Rotation.from_matrix(new.R_sensor_marker), new.p_sensor_marker_m) - c_true
+    )
+    ang_after = (Rotation.from_matrix(new.R_sensor_marker).inv() * R_sm_true).magnitude()
+    assert err_after < 0.25 * err_before and ang_after < 0.25 * d[0]
+    assert np.all(np.linalg.eigvalsh(new.covariance) > 0)
+    assert np.trace(new.covariance) < np.trace(C)
+
+
+def test_constrain_tilt_with_the_implied_up_changes_nothing_but_the_covariance():
+    from atlas_onboard.core.attitude import constrain_tilt
+
+    R_wm, R_bs, R_sm, p = _pose_scene(9)
+    up = up_in_body(R_wm * R_sm.inv() * R_bs.inv())
+    C = np.diag([1e-4] * 3 + [1e-3] * 3)
+    new = constrain_tilt(p, R_sm.as_matrix(), C, R_bs.as_matrix(), R_wm.as_matrix(), up)
+    np.testing.assert_allclose(new.p_sensor_marker_m, p, atol=1e-12)
+    np.testing.assert_allclose(new.R_sensor_marker, R_sm.as_matrix(), atol=1e-12)
+    # Yaw (about world up) stays as uncertain as it was; the tilt shrinks.
+    assert np.trace(new.covariance[3:, 3:]) < np.trace(C[3:, 3:])
