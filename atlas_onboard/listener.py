@@ -13,18 +13,18 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import Weighting, WorldConfig
-from atlas_onboard.core import ambiguity, covariance, fusion, geometry
+from atlas_onboard.config import WORLD, Weighting, WorldConfig
+from atlas_onboard.core import ambiguity, attitude, covariance, fusion, geometry
 from atlas_onboard.core.ambiguity import Verdict
 from atlas_onboard.core.graph import MAX_RATE_RAD_S, MAX_SPEED_M_S, EdgeKey, EntityPose, TransformGraph
-from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection, upper_to_matrix
+from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection, matrix_to_upper, upper_to_matrix
 from atlas_onboard.counters import Counters
 
 _logger = logging.getLogger(__name__)
@@ -120,6 +120,16 @@ class Listener:
         ``ambiguity_<verdict>`` for each unresolved one, and ``alt_ignored`` (an unusable other
         solution, see :class:`MarkerData`)."""
         self.accepted = 0
+        self._up_at: Callable[[int], NDArray[np.float64] | None] | None = None
+        self._up_entity: str | None = None
+
+    def set_attitude(self, entity: str, up_at: Callable[[int], NDArray[np.float64] | None] | None) -> None:
+        """The autopilot's gravity reference of ``entity`` (the node's own): ``up_at(capture_time_us)``
+        is world up in the entity's body frame at that time, or None when no fresh attitude covers it.
+        With it, a single tag's two solutions (observations between ``entity`` and the world carrying
+        both) are chosen by the tilt they imply (:func:`atlas_onboard.core.attitude.choose_by_tilt`);
+        one whose solutions both disagree with gravity is rejected (``attitude_mismatch``)."""
+        self._up_entity, self._up_at = (entity, up_at) if up_at is not None else (None, None)
 
     def set_estimates(self, poses: Mapping[str, EntityPose]) -> None:
         """The current pose estimates (a graph evaluation's ``poses``), used to resolve ambiguity."""
@@ -153,7 +163,7 @@ class Listener:
         q2 /= np.sqrt(np.einsum("ij,ij->i", q2, q2))[:, None]
         R2 = geometry.quat_matrix(q2)
         p2 = np.array([md.p_sensor_marker_m for md in valid])
-        unresolved, swapped = self._resolve_ambiguity(valid, R2, p2, q2, notes)
+        unresolved, swapped = self._resolve_ambiguity(valid, R2, p2, q2, notes, C_sm)
         if any(valid[j].covariance for j in swapped):
             # The detector's covariance describes the solution it chose, not the other one (whose
             # tilt, and so whose spread, differs): a swapped record's edge gets the sigma model.
@@ -175,7 +185,7 @@ class Listener:
                 else:
                     observer, observed = self._sensor[item.sensor_id][0], self._marker[item.marker_id][0]
                     key = (item.sensor_id, item.marker_id)
-                    out[i] = EdgeUpdate(key, observer, observed, p_ab[j], q_all[j], item.sigma_m, cov[j])
+                    out[i] = EdgeUpdate(key, observer, observed, p_ab[j], q_all[j], valid[j].sigma_m, cov[j])
                 j += 1
         return out, notes
 
@@ -207,6 +217,7 @@ class Listener:
         p2: NDArray[np.float64],
         q2: NDArray[np.float64],
         notes: list[str],
+        C_sm: NDArray[np.float64] | None = None,
     ) -> tuple[dict[int, Rejection], set[int]]:
         """Resolve the ambiguous observations among ``valid`` in place in their detections: rotation
         matrices ``R2`` (N, 3, 3), positions ``p2`` (N, 3) and rotations ``q2`` (N, 4, x first), batched.
@@ -217,11 +228,12 @@ class Listener:
         rejected: dict[int, Rejection] = {}
         swapped: set[int] = set()
         todo: list[tuple[int, EntityPose, EntityPose]] = []
+        by_tilt = self._resolve_by_tilt(valid, R2, p2, q2, notes, rejected, swapped, C_sm) if self._up_at else set()
         for j, md in enumerate(valid):
             state = md.alt_state()
             if state is AltState.INVALID:
                 notes.append("alt_ignored")
-            if not md.ambiguity_ratio > self.ambiguity_threshold:  # nan (unknown) passes, as before
+            if j in by_tilt or not md.ambiguity_ratio > self.ambiguity_threshold:  # nan (unknown) passes
                 continue
             if state is not AltState.VALID:
                 rejected[j] = Rejection.AMBIGUOUS
@@ -281,6 +293,77 @@ class Listener:
                 rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
                 notes.append(f"ambiguity_{verdict.value}")
         return rejected, swapped
+
+    def _resolve_by_tilt(
+        self,
+        valid: list[MarkerData],
+        R2: NDArray[np.float64],
+        p2: NDArray[np.float64],
+        q2: NDArray[np.float64],
+        notes: list[str],
+        rejected: dict[int, Rejection],
+        swapped: set[int],
+        C_sm: NDArray[np.float64] | None = None,
+    ) -> set[int]:
+        """The MegaTag2 step: observations between the attitude's entity and the world that carry both
+        solutions, decided by gravity (swapped in place, or rejected). Returns the indices decided.
+
+        A kept solution of the own camera with a detection covariance is then updated with the
+        autopilot's up vector (:func:`atlas_onboard.core.attitude.constrain_tilt`): ``valid[j]`` gets
+        the new covariance and a sigma scaled as its camera-position spread shrank, ``C_sm[j]`` too."""
+        up_at, own = self._up_at, self._up_entity
+        if up_at is None:
+            return set()
+        decided: set[int] = set()
+        for j, md in enumerate(valid):
+            observer, observed = self._sensor[md.sensor_id][0], self._marker[md.marker_id][0]
+            if not ((observer == own and observed == WORLD) or (observer == WORLD and observed == own)):
+                continue
+            if md.alt_state() is not AltState.VALID:
+                continue
+            up = up_at(md.capture_time_us)
+            if up is None:
+                notes.append("attitude_unavailable")
+                continue
+            R_alt = Rotation.from_quat(md.q_sensor_marker_alt_xyzw()).as_matrix()
+            R_pair = np.stack([R2[j], R_alt])  # R_sensor_marker of both solutions
+            M_es = self._sensor[md.sensor_id][1][:3, :3]
+            M_em = self._marker_fwd[md.marker_id][:3, :3]
+            if observer == own:  # R_world_body = R_world_marker R_sensor_marker^-1 R_body_sensor^-1
+                R_wb = M_em @ R_pair.transpose(0, 2, 1) @ M_es.T
+            else:  # a world camera sees the own marker: R_world_body = R_world_sensor R_sensor_marker R_body_marker^-1
+                R_wb = M_es @ R_pair @ M_em.T
+            rng = float(np.linalg.norm(p2[j]))
+            check = attitude.choose_by_tilt(
+                Rotation.from_matrix(R_wb[0]), Rotation.from_matrix(R_wb[1]), up, _rotation_sigma(md, rng)
+            )
+            notes.append(f"attitude_{check.verdict.value}")
+            if check.verdict is attitude.TiltVerdict.ALT:
+                R2[j], q2[j] = R_alt, md.q_sensor_marker_alt_xyzw()
+                p2[j] = md.p_sensor_marker_alt_m
+                swapped.add(j)
+            elif check.verdict is attitude.TiltVerdict.NEITHER:
+                rejected[j] = Rejection.ATTITUDE_MISMATCH
+            if check.verdict is not attitude.TiltVerdict.BOTH:
+                decided.add(j)
+            kept = check.verdict is attitude.TiltVerdict.PRIMARY or (
+                check.verdict is attitude.TiltVerdict.BOTH and not md.ambiguity_ratio > self.ambiguity_threshold
+            )
+            if kept and observer == own and md.covariance:
+                C = C_sm[j] if C_sm is not None else upper_to_matrix(np.array([md.covariance]))[0]
+                new = attitude.constrain_tilt(p2[j], R2[j], C, M_es, M_em, up)
+                scale = _camera_spread(new.p_sensor_marker_m, new.R_sensor_marker, new.covariance) / max(
+                    _camera_spread(p2[j], R2[j], C), 1e-300
+                )
+                R2[j], p2[j] = new.R_sensor_marker, new.p_sensor_marker_m
+                q2[j] = Rotation.from_matrix(new.R_sensor_marker).as_quat()
+                valid[j] = replace(
+                    md, covariance=matrix_to_upper(new.covariance), sigma_m=md.sigma_m * math.sqrt(min(scale, 1.0))
+                )
+                if C_sm is not None:
+                    C_sm[j] = new.covariance
+                notes.append("attitude_constrained")
+        return decided
 
     def accept(self, md: MarkerData, now_ns: int) -> Rejection | None:
         """Validate, transform (eq. 1), filter (eq. 3) and insert into the graph; None when accepted."""
@@ -382,6 +465,21 @@ def _covariances(
         C_sm = upper_to_matrix(np.array([valid[i].covariance for i in have]))
         cov[have] = covariance.detection(R_as[have], R_as[have] @ R_sm[have], T_m_b[have, :3, 3], R_mb[have], C_sm)
     return cov
+
+
+def _camera_spread(p_sm: NDArray[np.float64], R_sm: NDArray[np.float64], C_sm: NDArray[np.float64]) -> float:
+    """Trace (m^2) of the covariance of the camera's position in the marker frame, -R^T p, from a
+    T_sensor_marker covariance (core.covariance convention): J = [-R^T, -[R^T p]x]."""
+    v = R_sm.T @ p_sm
+    J = np.hstack([-R_sm.T, -covariance.skew(v)])
+    return float(np.trace(J @ C_sm @ J.T))
+
+
+def _rotation_sigma(md: MarkerData, range_m: float) -> float:
+    """A detection's attitude standard deviation (rad) about its own solution: its camera position
+    sigma over the range (a single tag's camera position error is range x angle). Not the covariance's,
+    which may hold the spread between the two solutions (the second moment of the other)."""
+    return md.sigma_m / max(range_m, 1e-3)
 
 
 def _matrices(p: NDArray[np.float64], q_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:

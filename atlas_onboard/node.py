@@ -145,6 +145,7 @@ class Node:
         self.config_path = config_path
         self.graph = make_graph(world, config.entity)
         self.listener = Listener(world, self.graph)
+        self._attach_attitude()
         self.ekf = _make_ekf(world)
         ap = config.autopilot
         self.publisher = Publisher(
@@ -582,8 +583,15 @@ class Node:
         self.graph.clear()
         self.graph = make_graph(world, self.config.entity)
         self.listener = Listener(world, self.graph)
+        self._attach_attitude()
         self.ekf = _make_ekf(world)
         _logger.info("reloaded %s (fingerprint %08x)", self.config_path, world.fingerprint())
+
+    def _attach_attitude(self) -> None:
+        """The autopilot's attitude (issue 19), if the transport keeps one, resolves single tags' flips."""
+        history = getattr(self.transport, "attitude", None)
+        if history is not None and self.config.autopilot is not None:
+            self.listener.set_attitude(self.config.entity, history.up_at)
 
     def counters(self) -> dict[str, int]:
         """Every counter of the node: rejections by reason, drops, rates, links, cameras."""

@@ -35,6 +35,9 @@ class Rejection(StrEnum):
     """Ambiguous with both solutions, but the current estimates could not say which is right (no
     estimate of the observer or the observed entity, or both solutions far from the prediction, or
     both about as close to it: see :mod:`atlas_onboard.core.ambiguity`)."""
+    ATTITUDE_MISMATCH = "attitude_mismatch"
+    """Neither of a single tag's two solutions implies the tilt the autopilot reports (see
+    :mod:`atlas_onboard.core.attitude`): the detection, not gravity, is wrong."""
 
     # The graph's outlier gate (counted once per refused edge observation)
     OUTLIER = "outlier"

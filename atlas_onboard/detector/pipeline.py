@@ -314,11 +314,14 @@ class Detector:
                 continue
             corners = pose.undistort(d.corners_px, K, cal.dist, cal.fisheye)
             refined = refine_corners_undistorted(gray, corners, K, cal.dist, cal.fisheye)
-            measured_px, corner_cov = 0.0, None
-            if refined is not None:
-                corners, measured_px, corner_cov = refined.corners, refined.sigma_px, refined.covariance
-            else:
+            if refined is None:
+                # The library's corners are straight-line fits in the distorted image: where the edge fit
+                # fails (near the image's edge, under strong distortion or blur) they were off by many
+                # times the corner noise, a wrong pose with a small sigma (issue 19). Not used.
                 self.counters["refine_failed"] += 1
+                self.report.dropped[d.marker_id] = "corner refinement failed"
+                continue
+            corners, measured_px, corner_cov = refined.corners, refined.sigma_px, refined.covariance
             stretch = pose.undistortion_jacobian(d.corners_px, K, cal.dist, cal.fisheye)
             size_m = self.sizes[d.marker_id]
             mp = pose.solve(corners, size_m, K, self._sigma_px(d.family), stretch, measured_px, corner_cov)

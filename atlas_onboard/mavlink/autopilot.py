@@ -40,6 +40,9 @@ MAV_AUTOPILOT_INVALID = 8
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12
 MAV_CMD_REQUEST_MESSAGE = 512
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MSG_ATTITUDE = 30
+MSG_ATTITUDE_QUATERNION = 31
 MSG_GPS_GLOBAL_ORIGIN = 49
 MAV_STATE_ACTIVE = 4
 MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY = 197
@@ -393,6 +396,47 @@ def request_message_fields(target_system: int, target_component: int, message_id
         "confirmation": 0,
         "param1": float(message_id),
         "param2": 0.0,
+        "param3": 0.0,
+        "param4": 0.0,
+        "param5": 0.0,
+        "param6": 0.0,
+        "param7": 0.0,
+    }
+
+
+def attitude_level_flu(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Rotation:
+    """R_level_body of ATTITUDE's roll, pitch, yaw (rad; body FRD in local NED, aerospace Z-Y'-X''):
+    the body FLU in a level ENU frame, ``R_ENU_NED * R_ned_frd * R_FRD_FLU``. Its heading is the
+    autopilot's (which may be a compass's): only the up vector it implies is frame-independent.
+
+    Raises AtlasError for a non-finite angle."""
+    if not all(math.isfinite(a) for a in (roll_rad, pitch_rad, yaw_rad)):
+        raise AtlasError(f"expected finite roll, pitch, yaw, got {(roll_rad, pitch_rad, yaw_rad)!r}")
+    R_ned_frd = Rotation.from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad])
+    return frames.R_ENU_NED * R_ned_frd * frames.R_FLU_FRD.inv()
+
+
+def attitude_quaternion_level_flu(q_wxyz: Sequence[float]) -> Rotation:
+    """R_level_body of ATTITUDE_QUATERNION's ``q`` (w, x, y, z; body FRD in local NED), as
+    :func:`attitude_level_flu`. Raises AtlasError for a non-finite or zero quaternion."""
+    w, x, y, z = (float(v) for v in q_wxyz)
+    if not all(math.isfinite(v) for v in (w, x, y, z)) or w * w + x * x + y * y + z * z < 1e-12:
+        raise AtlasError(f"expected a finite non-zero quaternion, got {tuple(q_wxyz)!r}")
+    return frames.R_ENU_NED * Rotation.from_quat([x, y, z, w]) * frames.R_FLU_FRD.inv()
+
+
+def set_message_interval_fields(
+    target_system: int, target_component: int, message_id: int, interval_us: int
+) -> dict[str, Any]:
+    """COMMAND_LONG MAV_CMD_SET_MESSAGE_INTERVAL: ask the target to stream ``message_id`` every
+    ``interval_us`` microseconds (PX4 and ArduPilot both honour it)."""
+    return {
+        "target_system": int(target_system) & 0xFF,
+        "target_component": int(target_component) & 0xFF,
+        "command": MAV_CMD_SET_MESSAGE_INTERVAL,
+        "confirmation": 0,
+        "param1": float(message_id),
+        "param2": float(interval_us),
         "param3": 0.0,
         "param4": 0.0,
         "param5": 0.0,

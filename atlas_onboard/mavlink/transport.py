@@ -12,7 +12,10 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
+from scipy.spatial.transform import Rotation
+
 from atlas_onboard.config import NodeConfig, WorldConfig
+from atlas_onboard.core.attitude import AttitudeHistory, BootClock
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.rejection import Rejection
@@ -37,6 +40,9 @@ MAV_AUTOPILOT_PX4 = autopilot.MAV_AUTOPILOT_PX4
 MAV_COMP_ID_AUTOPILOT1 = 1
 ORIGIN_REQUEST_NS = NS // 2  # GPS_GLOBAL_ORIGIN asked for this often until the autopilot reports one
 ORIGIN_UNANSWERED = 2  # requests unanswered before SET_GPS_GLOBAL_ORIGIN (then twice as many each time)
+ATTITUDE_INTERVAL_US = 20_000  # ATTITUDE asked for at 50 Hz (MAV_CMD_SET_MESSAGE_INTERVAL) when it does not come
+ATTITUDE_WAIT_NS = 2 * NS  # silence after which ATTITUDE is asked for again (at most ATTITUDE_ASKS times)
+ATTITUDE_ASKS = 5
 
 
 class MavlinkTransport:
@@ -86,6 +92,16 @@ class MavlinkTransport:
         self.peers_seen: dict[int, int] = {}  # system id -> last arrival (ns)
         self._peers_alive: set[int] = set()
         self._fingerprint_warned: set[int] = set()
+        # --- the autopilot's attitude (issue 19): gravity for a single tag's ambiguity ---
+        self.attitude = AttitudeHistory()
+        self._boot_clock = BootClock()
+        self._attitude_asks = 0
+        self._next_attitude_ask_ns = 0
+
+    def attitude_at(self, t_us: int) -> Rotation | None:
+        """The autopilot's attitude at ``t_us`` (wall clock, us) as a scipy Rotation of the body FLU in a
+        level ENU frame of the autopilot's heading, or None (see :meth:`AttitudeHistory.attitude_at`)."""
+        return self.attitude.attitude_at(t_us)
 
     # --- Transport ------------------------------------------------------------------------------------
 
@@ -201,6 +217,40 @@ class MavlinkTransport:
             for link in self._links():
                 link.send(link.dialect.MAVLink_heartbeat_message(**autopilot.heartbeat_fields(int(self.pose_state))))
         self._origin_tick(now_ns)
+        self._attitude_tick(now_ns)
+
+    def _attitude_tick(self, now_ns: int) -> None:
+        """Ask the autopilot for ATTITUDE (MAV_CMD_SET_MESSAGE_INTERVAL) when none came for
+        ATTITUDE_WAIT_NS after its HEARTBEAT; at most ATTITUDE_ASKS times (a link without it works as before)."""
+        if self.autopilot is None or self.autopilot_system is None or self._attitude_asks >= ATTITUDE_ASKS:
+            return
+        last = self.attitude.latest_us()
+        if last is not None and self._wall_ns() // 1000 - last < ATTITUDE_WAIT_NS // 1000:
+            return
+        if self._next_attitude_ask_ns == 0:
+            self._next_attitude_ask_ns = now_ns + ATTITUDE_WAIT_NS  # give the autopilot's own streams a chance
+        if now_ns < self._next_attitude_ask_ns:
+            return
+        self._next_attitude_ask_ns = now_ns + ATTITUDE_WAIT_NS
+        self._attitude_asks += 1
+        fields = autopilot.set_message_interval_fields(
+            self.autopilot_system, self.autopilot_component or 0, autopilot.MSG_ATTITUDE, ATTITUDE_INTERVAL_US
+        )
+        self.autopilot.send(self.autopilot.dialect.MAVLink_command_long_message(**fields))
+        self.counters_.inc("attitude_requested")
+
+    def _on_attitude(self, msg: Any, arrival_ns: int) -> None:
+        """ATTITUDE or ATTITUDE_QUATERNION into the history, stamped on the wall clock (see BootClock)."""
+        try:
+            if msg.get_type() == "ATTITUDE":
+                R = autopilot.attitude_level_flu(msg.roll, msg.pitch, msg.yaw)
+            else:
+                R = autopilot.attitude_quaternion_level_flu((msg.q1, msg.q2, msg.q3, msg.q4))
+        except AtlasError:
+            self.counters_.inc("attitude_rejected")
+            return
+        arrival_wall_us = (self._wall_ns() - (time.monotonic_ns() - arrival_ns)) // 1000
+        self.attitude.add(self._boot_clock.wall_us(int(msg.time_boot_ms) * 1000, arrival_wall_us), R)
 
     def _origin_tick(self, now_ns: int) -> None:
         """The EKF origin: asked for (MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) every
@@ -306,6 +356,9 @@ class MavlinkTransport:
             reply = autopilot.timesync_reply(msg.tc1, msg.ts1, self._wall_ns(), requester, link.system_id, target)
             if reply is not None:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
+        elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION"):
+            if (msg.get_srcSystem(), msg.get_srcComponent()) == (self.autopilot_system, self.autopilot_component):
+                self._on_attitude(msg, arrival_ns)
         elif kind == "GPS_GLOBAL_ORIGIN":
             if not self.origin_known:
                 _logger.info(

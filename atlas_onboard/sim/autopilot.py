@@ -12,6 +12,12 @@ while it has none and ignores it silently afterwards (4.8). PX4 takes every one,
 local frame as ekf2's ``setAltOrigin`` (v1.16) does: with an origin altitude already set (0 once
 height is initialised on vision), a new altitude A shifts local z (NED) by A minus the old one;
 with none set, the local height is kept (``local_z_shift_m`` accumulates the shift).
+
+Attitude (``attitude``: the body's true attitude at a wall time, world ENU / body FLU): ATTITUDE is sent
+at ``attitude_hz`` (ArduPilot streams it at its SRn_EXTRA1 rate, typically 10-50 Hz; 0: only once asked
+with MAV_CMD_SET_MESSAGE_INTERVAL), in NED/FRD, stamped ``time_boot_ms`` at the measurement and sent
+``attitude_delay_s`` later, with a per-run bias and per-sample noise on roll and pitch (an EKF's attitude
+in flight) and a heading offset (a compass's): the node must use neither the noise's absence nor the yaw.
 """
 
 from __future__ import annotations
@@ -25,10 +31,14 @@ import struct
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
+import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.core import frames
 
 _logger = logging.getLogger(__name__)
 
@@ -94,6 +104,15 @@ class SimAutopilot:
     px4_origin_alt_m: float = 0.0  # PX4's origin altitude (NaN: none yet); 0 once height is set on vision
     local_z_shift_m: float = 0.0  # how far the origin's altitude moved PX4's local frame (NED z)
     origin_requests: int = 0  # MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN received
+    attitude: Callable[[float], Rotation | None] | None = None  # true R_world_body (ENU/FLU) at a wall time (s)
+    attitude_hz: float = 25.0
+    attitude_delay_s: float = 0.015  # measurement to send
+    attitude_noise_deg: float = 0.5  # per sample, per axis (roll, pitch)
+    attitude_bias_deg: float = 0.5  # per run, per axis (roll, pitch)
+    attitude_yaw_offset_deg: float = 30.0  # the heading is the autopilot's own, not the world file's
+    attitude_seed: int = 0
+    attitude_sent: int = 0
+    attitude_interval_requests: int = 0  # MAV_CMD_SET_MESSAGE_INTERVAL for ATTITUDE received
 
     def __post_init__(self) -> None:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM if self.tcp else socket.SOCK_DGRAM)
@@ -112,7 +131,7 @@ class SimAutopilot:
                 self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
             except OSError:
                 pass
-        self._sock.settimeout(0.05)
+        self._sock.settimeout(0.005 if self.attitude is not None else 0.05)
         self.port = self._sock.getsockname()[1]
         self._client: socket.socket | None = None
         self.connections = 0
@@ -123,6 +142,12 @@ class SimAutopilot:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._thread = threading.Thread(target=self._run, name=f"sim-autopilot-{self.system_id}", daemon=True)
+        self._boot_s = time.time()
+        rng = np.random.default_rng(self.attitude_seed)
+        self._att_rng = rng
+        self._att_bias_rad = np.radians(rng.normal(0.0, self.attitude_bias_deg, 2))
+        self._next_attitude_s = 0.0
+        self._att_queue: list[tuple[float, float, float, float, float]] = []  # (send at, t_meas, r, p, y)
 
     def start(self) -> SimAutopilot:
         self._thread.start()
@@ -189,6 +214,8 @@ class SimAutopilot:
                         mavlink.MAV_TYPE_QUADROTOR, self.autopilot_type, 0, 0, mavlink.MAV_STATE_STANDBY
                     )
                 )
+            if self.attitude is not None:
+                self._attitude_tick()
             try:
                 data = self._receive()
             except TimeoutError:
@@ -206,6 +233,25 @@ class SimAutopilot:
                 continue
             for msg in msgs:
                 self._handle(msg)
+
+    def _attitude_tick(self) -> None:
+        """Measure the attitude at the stream's rate; send each measurement ``attitude_delay_s`` later."""
+        now = time.time()
+        if self.attitude_hz > 0 and now >= self._next_attitude_s:
+            self._next_attitude_s = max(self._next_attitude_s + 1.0 / self.attitude_hz, now - 0.5 / self.attitude_hz)
+            R = self.attitude(now) if self.attitude is not None else None
+            if R is not None:
+                R_ned_frd = frames.R_ENU_NED.inv() * R * frames.R_FLU_FRD
+                yaw, pitch, roll = R_ned_frd.as_euler("ZYX")
+                noise = self._att_rng.normal(0.0, math.radians(self.attitude_noise_deg), 2) + self._att_bias_rad
+                yaw += math.radians(self.attitude_yaw_offset_deg)
+                self._att_queue.append((now + self.attitude_delay_s, now, roll + noise[0], pitch + noise[1], yaw))
+        while self._att_queue and self._att_queue[0][0] <= now:
+            _, t_meas, roll, pitch, yaw = self._att_queue.pop(0)
+            boot_ms = int((t_meas - self._boot_s) * 1000) & 0xFFFFFFFF
+            yaw = math.atan2(math.sin(yaw), math.cos(yaw))
+            self._send(self._mav.attitude_encode(boot_ms, roll, pitch, yaw, 0.0, 0.0, 0.0))
+            self.attitude_sent += 1
 
     def _handle(self, msg: mavlink.MAVLink_message) -> None:
         kind = msg.get_type()
@@ -262,6 +308,10 @@ class SimAutopilot:
             self.last[kind] = msg
             if kind == "SET_GPS_GLOBAL_ORIGIN" and msg.target_system == self.system_id:
                 self._set_origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+            elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and msg.param1 == 30:
+                self.attitude_interval_requests += 1
+                if msg.param2 > 0:
+                    self.attitude_hz = 1e6 / msg.param2
             elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == 49:
                 self.origin_requests += 1
                 self._send_origin()

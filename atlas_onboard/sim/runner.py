@@ -218,7 +218,16 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
             raise
     taps: list[tuple[float, bytes]] = []
     hub = Hub(tap=lambda data, _addr, t: taps.append((t, data))).start()
-    autopilots = {name: SimAutopilot(system_id=k).start() for k, name in enumerate(scenario.drones, start=1)}
+    sim_world = SimWorld(scenario)
+    epoch_at: list[float] = []  # set once the run starts: the autopilots' attitude is the truth from then
+
+    def attitude_of(name: str) -> Callable[[float], Any]:
+        return lambda t_wall: sim_world.truth(t_wall - epoch_at[0], (name,))[name].rotation if epoch_at else None
+
+    autopilots = {
+        name: SimAutopilot(system_id=k, attitude=attitude_of(name), attitude_seed=options.seed + k).start()
+        for k, name in enumerate(scenario.drones, start=1)
+    }
     logs: dict[str, str] = {}
     exit_codes: dict[str, int | None] = {}
     pids: list[int] = []
@@ -264,6 +273,7 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
                     )
                 time.sleep(0.05)
             epoch = time.time() + 0.3
+            epoch_at.append(epoch)
             tmp = epoch_file.with_suffix(".tmp")
             tmp.write_text(f"{epoch:.6f}\n", encoding="utf-8")
             tmp.replace(epoch_file)

@@ -301,6 +301,34 @@ def _hard() -> Scenario:
     )
 
 
+def _hard_near() -> Scenario:
+    # hard, every length scaled by NEAR (room, path, oscillation), the tags 30 cm (see hard-near.yaml):
+    # the same views and motion in the image, tags resolved about three times better.
+    near = 0.63
+    drone = tj.Quadrotor(
+        path=tj.lissajous((0.0, 0.0, 1.35 * near), (1.8 * near, 1.0 * near, 0.2 * near), (1 / 15, 2 / 15, 0.1)),
+        yaw=tj.slow_yaw(0.0, 70.0, 9.0),
+        oscillation=tj.Oscillation((0.02 * near, 0.02 * near, 0.01 * near), 1.1, 0.8, seed=60),
+    )
+    return Scenario(
+        name="hard-near",
+        description="hard with 30 cm tags and every length x0.63 (a per-frame floor like issue 19's scene)",
+        world_file="hard-near.yaml",
+        duration_s=30.0,
+        trajectories={"drone": drone},
+        drones=("drone",),
+        scored=("drone",),
+        optics={"drone.front": Optics(90.0, (-0.28, 0.08, 0.0, 0.0, 0.0), noise_sigma=2.0, exposure_s=0.008)},
+        # The room scaled too, its textures as fine in the image as hard's.
+        room=Room(
+            lo_m=(-3.0 * near, -2.5 * near, 0.0),
+            hi_m=(3.0 * near, 2.5 * near, 3.0 * near),
+            floor_px_per_m=400.0 / near,
+            wall_px_per_m=200.0 / near,
+        ),
+    )
+
+
 def _map() -> Scenario:
     # Issue 21: two drones survey a room (floor and walls) for the mapper; yaw sweeps so every wall is seen.
     def drone(k: int, center: tuple[float, float, float], amp: tuple[float, float, float]) -> tj.Quadrotor:
@@ -327,7 +355,18 @@ def _map() -> Scenario:
 
 
 SCENARIOS = {
-    s.name: s for s in (_paper_test1(), _paper_test2(), _relay(), _swarm(), _paths(), _gaps(), _hard(), _map())
+    s.name: s
+    for s in (
+        _paper_test1(),
+        _paper_test2(),
+        _relay(),
+        _swarm(),
+        _paths(),
+        _gaps(),
+        _hard(),
+        _hard_near(),
+        _map(),
+    )
 }
 DEFAULT = "swarm"
 

@@ -20,7 +20,7 @@ from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.sources import CameraWorker
 from atlas_onboard.mapping import onboard
 from atlas_onboard.mapping import recording as rec
-from tests.e2e import wait_for, write_world
+from tests.e2e.helpers import wait_for, write_world
 
 K = np.array([[100.0, 0.0, 15.5], [0.0, 100.0, 11.5], [0.0, 0.0, 1.0]])
 CAL = Calibration(32, 24, K, np.zeros(5))

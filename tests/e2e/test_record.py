@@ -23,7 +23,7 @@ from atlas_onboard.mapping.recording import read_frames
 from atlas_onboard.sim import recordings, scenarios
 from atlas_onboard.sim.autopilot import Received, SimAutopilot
 from atlas_onboard.sim.world import SimWorld
-from tests.e2e import NodeProcess, wait_for, write_world
+from tests.e2e.helpers import NodeProcess, wait_for, write_world
 
 SCENARIO, SENSOR, ENTITY = "map", 1, "mapper1"
 START_S, DURATION_S = 8.0, 2.0  # a stretch of the flight where the camera sees three or more markers

@@ -1,0 +1,126 @@
+"""The gravity check of a single tag's two solutions, the attitude history and the boot-time mapping."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.core.attitude import (
+    AttitudeHistory,
+    BootClock,
+    TiltVerdict,
+    choose_by_tilt,
+    tilt_error_rad,
+    up_in_body,
+)
+
+DEG = math.pi / 180
+
+
+@given(st.floats(-60, 60), st.floats(-60, 60), st.floats(-180, 180))
+def test_tilt_error_ignores_heading(roll, pitch, yaw):
+    R = Rotation.from_euler("ZYX", [yaw, pitch, roll], degrees=True)
+    R_other_heading = Rotation.from_euler("z", 77, degrees=True) * R
+    assert tilt_error_rad(R_other_heading, up_in_body(R))[0] < 1e-7
+
+
+@given(st.floats(-60, 60), st.floats(0.0, 40.0), st.floats(0, 360))
+def test_tilt_error_is_the_angle_tilted(roll, extra, axis_deg):
+    R = Rotation.from_euler("x", roll, degrees=True)
+    axis = np.array([math.cos(axis_deg * DEG), math.sin(axis_deg * DEG), 0.0])  # a horizontal axis
+    tilted = Rotation.from_rotvec(axis * extra * DEG) * R
+    assert tilt_error_rad(tilted, up_in_body(R))[0] == pytest.approx(extra * DEG, abs=1e-7)
+
+
+def test_the_solution_that_agrees_with_gravity_wins_and_neither_is_rejected():
+    truth = Rotation.from_euler("ZYX", [40, 5, -3], degrees=True)
+    flip = Rotation.from_euler("y", 25, degrees=True) * truth
+    up = up_in_body(truth)
+    assert choose_by_tilt(truth, flip, up, 0.01).verdict is TiltVerdict.PRIMARY
+    assert choose_by_tilt(flip, truth, up, 0.01).verdict is TiltVerdict.ALT
+    both_off = Rotation.from_euler("x", 30, degrees=True) * truth
+    assert choose_by_tilt(flip, both_off, up, 0.01).verdict is TiltVerdict.NEITHER
+    # Two solutions that differ by a turn about the vertical: gravity cannot tell them apart.
+    turned = Rotation.from_euler("z", 30, degrees=True) * truth
+    assert choose_by_tilt(truth, turned, up, 0.01).verdict is TiltVerdict.BOTH
+    # An observation too uncertain in attitude to be judged: both agree, nothing decided.
+    assert choose_by_tilt(truth, flip, up, 0.5).verdict is TiltVerdict.BOTH
+
+
+def test_history_interpolates_and_says_none_outside_its_samples():
+    h = AttitudeHistory(max_gap_us=100_000)
+    assert h.attitude_at(0) is None
+    h.add(1_000_000, Rotation.from_euler("x", 0, degrees=True))
+    h.add(1_040_000, Rotation.from_euler("x", 4, degrees=True))
+    h.add(1_030_000, Rotation.from_euler("x", 50, degrees=True))  # out of order: ignored
+    assert h.attitude_at(1_010_000).as_euler("xyz", degrees=True)[0] == pytest.approx(1.0)
+    assert h.attitude_at(1_040_000 + 50_000) is not None
+    assert h.attitude_at(1_040_000 + 50_001) is None  # the stream stopped
+    assert h.attitude_at(1_000_000 - 50_001) is None  # before the first sample
+    h.add(1_400_000, Rotation.identity())
+    assert h.attitude_at(1_200_000) is None  # inside a gap longer than max_gap_us
+
+
+def test_boot_clock_converges_on_the_smallest_lag_and_restarts_after_a_reboot():
+    c = BootClock()
+    assert c.wall_us(2_000_000, 7_000_000 + 9_000) == 7_000_000 + 9_000  # first: arrival
+    assert c.wall_us(2_001_000, 7_001_000 + 3_000) == 7_001_000 + 3_000  # a smaller lag wins
+    assert c.wall_us(2_002_000, 7_002_000 + 20_000) == 7_002_000 + 3_000  # a late arrival is not believed
+    assert c.wall_us(0, 9_000_000) == 9_000_000  # boot time went back: a reboot
+
+
+def _pose_scene(seed: int):
+    rng = np.random.default_rng(seed)
+    R_world_marker = Rotation.from_euler("xz", [rng.choice([0.0, 90.0]), rng.uniform(0, 360)], degrees=True)
+    R_body_sensor = Rotation.from_euler("y", rng.uniform(30, 90), degrees=True) * Rotation.from_euler(
+        "zx", [-90, -90], degrees=True
+    )
+    R_sm_true = Rotation.from_euler(
+        "zxz", [rng.uniform(0, 360), 180 + rng.uniform(5, 40), rng.uniform(0, 360)], degrees=True
+    )
+    p_true = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.5, 0.5), rng.uniform(1.0, 3.0)])
+    return R_world_marker, R_body_sensor, R_sm_true, p_true
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_constrain_tilt_pulls_a_tilted_single_tag_back_along_its_coupling(seed):
+    from atlas_onboard.core.attitude import constrain_tilt
+
+    R_wm, R_bs, R_sm_true, p_true = _pose_scene(seed)
+    up = up_in_body(R_wm * R_sm_true.inv() * R_bs.inv())
+    # A detection off by a tilt d about the marker's x axis at the right position (a single tag's image
+    # position is well determined, its tilt is not): the camera, seen from the marker, is off by range x d.
+    # The covariance says that the tilt is poorly known.
+    d = np.array([math.radians(3.0), 0.0, 0.0])
+    R_sm = R_sm_true * Rotation.from_rotvec(d)
+    C = np.diag([1e-8] * 3 + [math.radians(3.0) ** 2, math.radians(3.0) ** 2, 1e-6])
+    new = constrain_tilt(p_true, R_sm.as_matrix(), C, R_bs.as_matrix(), R_wm.as_matrix(), up, math.radians(0.3))
+
+    def camera_in_marker(R, p):
+        return -R.inv().apply(p)
+
+    c_true = camera_in_marker(R_sm_true, p_true)
+    err_before = np.linalg.norm(camera_in_marker(R_sm, p_true) - c_true)
+    err_after = np.linalg.norm(
+        camera_in_marker(Rotation.from_matrix(new.R_sensor_marker), new.p_sensor_marker_m) - c_true
+    )
+    ang_after = (Rotation.from_matrix(new.R_sensor_marker).inv() * R_sm_true).magnitude()
+    assert err_after < 0.25 * err_before and ang_after < 0.25 * d[0]
+    assert np.all(np.linalg.eigvalsh(new.covariance) > 0)
+    assert np.trace(new.covariance) < np.trace(C)
+
+
+def test_constrain_tilt_with_the_implied_up_changes_nothing_but_the_covariance():
+    from atlas_onboard.core.attitude import constrain_tilt
+
+    R_wm, R_bs, R_sm, p = _pose_scene(9)
+    up = up_in_body(R_wm * R_sm.inv() * R_bs.inv())
+    C = np.diag([1e-4] * 3 + [1e-3] * 3)
+    new = constrain_tilt(p, R_sm.as_matrix(), C, R_bs.as_matrix(), R_wm.as_matrix(), up)
+    np.testing.assert_allclose(new.p_sensor_marker_m, p, atol=1e-12)
+    np.testing.assert_allclose(new.R_sensor_marker, R_sm.as_matrix(), atol=1e-12)
+    # Yaw (about world up) stays as uncertain as it was; the tilt shrinks.
+    assert np.trace(new.covariance[3:, 3:]) < np.trace(C[3:, 3:])

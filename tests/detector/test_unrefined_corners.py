@@ -1,0 +1,52 @@
+"""Issue 19, failure class 2: a single full tag near the edge of a distorted image whose corners the edge
+fit cannot refine was reported from the library's straight-line corners, centimetres off with a sigma
+of about 2 mm. On rendered frames of the hard-near scenario (tags of ~70 px near the left border, barrel
+distortion, blur): every reported detection must lie within 5 of its sigmas of the truth."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.pipeline import Detector
+from atlas_onboard.sim import scenarios
+from atlas_onboard.sim.camera import FrameRenderer
+
+SC = scenarios.get("hard-near")
+FRAMES = range(138, 143)  # marker 6 drifts to the left border; the edge fit fails on some of them
+
+
+@pytest.fixture(scope="module")
+def detections():
+    world = SC.world()
+    sensor = world.sensors[1]
+    render = FrameRenderer(SC, world, sensor, 0)
+    intr = render.intr
+    cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
+    det = Detector(sensor, world, cal, decimate=2.0)
+    out = []
+    for j in FRAMES:
+        t = j / render.fps
+        M_ws = render.sim.truth(t)["drone"].as_matrix() @ sensor.T_entity_sensor.as_matrix()
+        for md in det.detect(render(j), round(t * 1e6)):
+            M_sm = np.eye(4)
+            w, x, y, z = md.q_sensor_marker_wxyz
+            M_sm[:3, :3] = Rotation.from_quat([x, y, z, w]).as_matrix()
+            M_sm[:3, 3] = md.p_sensor_marker_m
+            M_ws_det = world.markers[md.marker_id].T_entity_marker.as_matrix() @ np.linalg.inv(M_sm)
+            out.append((j, md, float(np.linalg.norm(M_ws_det[:3, 3] - M_ws[:3, 3]))))
+    return out, det
+
+
+def test_no_detection_is_far_beyond_its_sigma_near_the_border(detections):
+    out, det = detections
+    assert len(out) >= 2, det.counters  # not vacuous: the tag was reported where the fit worked
+    for j, md, err in out:
+        assert err <= 5 * md.sigma_m, (
+            f"frame {j}: marker {md.marker_id} {err * 1e3:.1f} mm off, sigma {md.sigma_m * 1e3:.1f}"
+        )
+
+
+def test_a_failed_edge_fit_is_counted_and_explained(detections):
+    _, det = detections
+    assert det.counters["refine_failed"] >= 1
