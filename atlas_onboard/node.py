@@ -209,7 +209,6 @@ class Node:
         self._may_read.set()
         self._reload = threading.Event()
         self._dirty = False
-        self._dirty_others = False  # an edge not between the own entity and the world changed
         self._last_publish_ns = 0
         self._last_eval_ns = 0
         self._urgent = False
@@ -406,11 +405,9 @@ class Node:
             keep = set(newest.values())
             self.stats.superseded += len(pending) - len(keep)
             pending = [item for i, item in enumerate(pending) if i in keep]
-        edges = self.graph.edges
         fresh = []
         for item in pending:
-            edge = edges.get((item[0].sensor_id, item[0].marker_id))
-            if edge is not None and (edge.stamp_ns > item[1] or edge.capture_time_us > item[0].capture_time_us):
+            if self.graph.is_superseded((item[0].sensor_id, item[0].marker_id), item[1], item[0].capture_time_us):
                 self.stats.superseded += 1
             else:
                 fresh.append(item)
@@ -440,9 +437,6 @@ class Node:
                 self._dirty = True
                 if not self._urgent:
                     self._urgent = self._concerns_own_pose(md)
-                if not self._dirty_others:
-                    ends = (self._entity_of[0].get(md.sensor_id), self._entity_of[1].get(md.marker_id))
-                    self._dirty_others = not all(e in (self.config.entity, WORLD) for e in ends)
                 _logger.debug(
                     "obs %d/%d cap %d sigma %.4f err %.3f ambiguity %.3f p %s", md.sensor_id, md.marker_id,
                     md.capture_time_us, md.sigma_m, md.reprojection_error_px, md.ambiguity_ratio, md.p_sensor_marker_m,
@@ -555,41 +549,20 @@ class Node:
         kept = self.transport.waiting_since_ns()
         return kept if since is None else since if kept is None else min(since, kept)
 
-    def _parent_of_others(self, result: GraphResult) -> bool:
-        """Whether an edge joins the own entity to an entity one BFS level further from the world
-        (whose pose then rests on the own pose)."""
-        own = self.config.entity
-        below = result.levels.get(own, -2) + 1
-        sensors, markers = self._entity_of
-        for sensor_id, marker_id in self.graph.edges:
-            a, b = sensors.get(sensor_id), markers.get(marker_id)
-            if (a == own and result.levels.get(b) == below) or (b == own and result.levels.get(a) == below):
-                return True
-        return False
-
     def _evaluate(self, now: int, own_only: bool = False) -> None:
         """Evaluate the graph. With ``own_only``, and when the paper's BFS has placed the own entity
         (and no filter needs every entity's candidates), only the own pose and those it rests on are
         computed (the same pose as a full evaluation); the others keep their last poses and are
-        evaluated together within ``COALESCE_NS``, unless nothing they rest on has changed: only
-        edges between the own entity and the world, the own entity a parent of none of them, and no
-        edge ageing (with which their sigmas grow between evaluations)."""
+        evaluated together within ``COALESCE_NS``, unless the graph says those are still current."""
         partial = own_only and self._relevant is not None and self.ekf is None
         self._urgent = False
         self.listener.forget_expired(now)
-        result = self.graph.evaluate(now, target=self.config.entity if partial else None)
+        result = self.graph.evaluate(now, target=self.config.entity if partial else None, previous=self.last_result)
         if result.complete:
-            self._dirty = self._dirty_others = False
+            self._dirty = False
             self._last_eval_ns = now
-        else:
-            last = self.last_result
-            known = last.poses if last is not None else {}
-            poses = {n: result.poses.get(n) or known[n] for n in result.order if n in result.poses or n in known}
-            result = replace(result, poses=poses, relative=last.relative if last is not None else {})
-            f = self.world.fusion
-            ageless = f.age_sigma_m_per_s == 0.0 and f.age_sigma_deg_per_s == 0.0
-            if not self._dirty_others and ageless and not self._parent_of_others(result):
-                self._dirty = False  # a full evaluation would give every other entity the pose it has
+        elif result.current:
+            self._dirty = False  # a full evaluation would give every other entity the pose it has
         self.last_result = result
         own = self.config.entity
         level = result.levels.get(own)
