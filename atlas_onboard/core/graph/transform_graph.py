@@ -213,12 +213,13 @@ class TransformGraph:
         With ``target``, the pose phase computes only what ``target``'s pose depends on: every entity
         of a lower stage (level), and of its own stage only ``target`` (the node's own pose, when
         others can wait). Its pose is the one a full evaluation gives (tested); the result says
-        ``complete=False``. Its ``poses`` hold the entities computed and, with ``previous`` (this
-        graph's last result), every other entity's pose in ``previous`` (and its relative poses):
-        ``current`` says whether those are what a full evaluation would give now, which holds when
-        nothing they rest on has changed since the last full evaluation (BFS paths, no edge ageing,
-        no edge changed but between ``target`` and world, ``target`` the parent of none). A target
-        with no path to world gets the full evaluation (relative poses included).
+        ``complete=False``. Its ``poses`` hold the entities computed and, with ``previous`` (the
+        result of this graph's last full evaluation, or one made from it like this one), every
+        other entity's pose in ``previous`` (and its relative poses): ``current`` says whether those
+        are what a full evaluation would give now, which holds when nothing they rest on has changed
+        since the last full evaluation (BFS paths, no edge ageing, no edge changed but between
+        ``target`` and world, ``target`` the parent of none). A target with no path to world gets
+        the full evaluation (relative poses included).
 
         With the paper's method (``path="bfs"``) a vertex's candidates come from every live edge to
         a parent exactly one level lower; edges within a level (cycles such as the paper's A-B) and
