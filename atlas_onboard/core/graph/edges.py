@@ -67,7 +67,12 @@ class EdgeStore:
         """Create or refresh ``edge.key`` (its row is set here). Its inverse is computed at the next
         :meth:`invert_new`, for all new edges at once."""
         old = self.edges.get(edge.key)
-        slot = self._take() if old is None else old.slot
+        if old is None:
+            slot = self._take()
+        else:
+            slot = old.slot
+            if (old.a, old.b) != (edge.a, edge.b):  # the key now joins other entities: a new shape
+                self.version += 1
         edge.slot = slot
         self.used[slot], self.keys[slot] = True, edge.key
         self.anchored[slot] = anchored

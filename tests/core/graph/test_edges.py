@@ -75,3 +75,15 @@ def test_edge_rows_are_reused_and_grow_without_changing_results():
     g.clear()
     assert g.edges == {} and g.next_expiry_ns() is None
     assert g.evaluate(300 * MS).order == ("world",)
+
+
+def test_an_observation_older_than_its_edge_is_superseded():
+    """is_superseded: the edge already holds an observation that arrived later, or one of a later
+    image (a datagram overtaken on the way); an equal or newer one, or an unknown edge, is not."""
+    g = TransformGraph(["world", "A"], 250 * MS)
+    add(g, (1, 1), "world", "A", pose([1, 2, 3]), now_ns=100 * MS, capture_us=5_000)
+    assert g.is_superseded((1, 1), 99 * MS, 5_000)  # arrived before the edge's
+    assert g.is_superseded((1, 1), 100 * MS, 4_999)  # from an earlier image
+    assert not g.is_superseded((1, 1), 100 * MS, 5_000)
+    assert not g.is_superseded((1, 1), 101 * MS, 5_001)
+    assert not g.is_superseded((1, 2), 0, 0)  # no such edge yet

@@ -152,3 +152,15 @@ def test_a_kept_plan_never_outlives_the_shape_of_the_graph():
     g.clear()
     r = step(280, [((1, 0), "world", "A", [0, 0, 0])])
     assert r.levels == {"world": 0, "A": 1} and r.unreached == ("B", "C")
+
+
+def test_a_key_that_comes_to_join_other_entities_gives_a_new_plan():
+    """An edge key re-used between other entities changes the graph's shape as an edge that comes
+    and goes does: the kept plan is not used for it (on main, the stale plan still reached A)."""
+    g = TransformGraph(["world", "A", "B"], 250 * MS)
+    add(g, (1, 1), "world", "A", pose([1, 0, 0]))
+    assert g.evaluate(0).order == ("world", "A")
+    add(g, (1, 1), "world", "B", pose([0, 2, 0]))
+    got = g.evaluate(0)
+    assert got.order == ("world", "B") and got.unreached == ("A",)
+    np.testing.assert_allclose(got.poses["B"].p_world_m, [0, 2, 0], atol=1e-12)
