@@ -218,8 +218,10 @@ class TransformGraph:
         other entity's pose in ``previous`` (and its relative poses): ``current`` says whether those
         are what a full evaluation would give now, which holds when nothing they rest on has changed
         since the last full evaluation (BFS paths, no edge ageing, no edge changed but between
-        ``target`` and world, ``target`` the parent of none). A target with no path to world gets
-        the full evaluation (relative poses included).
+        ``target`` and world, ``target`` the parent of none; the consensus gate's memory is not
+        considered: an entity whose candidates it left out may be judged anew once its last estimate
+        is older than the edge timeout). A target with no path to world gets the full evaluation
+        (relative poses included).
 
         With the paper's method (``path="bfs"``) a vertex's candidates come from every live edge to
         a parent exactly one level lower; edges within a level (cycles such as the paper's A-B) and
