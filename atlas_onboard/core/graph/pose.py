@@ -58,6 +58,22 @@ class Vertices:
 
 
 @dataclass(frozen=True, slots=True)
+class StageEdges:
+    """One stage's edges as walked (parent -> child), shapes (N, ...): edge ``row``, ``parent``,
+    ``child``, the edge's ``p`` and ``q`` (xyzw), its ``sigma`` (m) and 6x6 ``cov``, both aged, and
+    the ``capture_us`` of its image."""
+
+    row: NDArray[np.intp]
+    parent: NDArray[np.intp]
+    child: NDArray[np.intp]
+    p: NDArray[np.float64]
+    q: NDArray[np.float64]
+    sigma: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    capture_us: NDArray[np.int64]
+
+
+@dataclass(frozen=True, slots=True)
 class StageCandidates:
     """One stage's candidates (eq. 2), shapes (N, ...): edge ``row``, ``parent`` and ``child``; the
     edge parent -> child (``p_pc``, ``q_pc``, its sigma ``s_edge`` aged, its covariance ``c_edge``
@@ -130,7 +146,7 @@ class PosePhase:
         vx = Vertices.at_root(len(self.names))
         gated = 0
         for sel, runs, from_root in zip(plan.stages, plan.runs, plan.from_root, strict=True):
-            cands = _compose(vx, *_edge_terms(store, plan, sel, now_ns, self.options), from_root)
+            cands = _compose(vx, _edge_terms(store, plan, sel, now_ns, self.options), from_root)
             keep = None
             if self.gate.enabled:
                 keep = self._gate(store, cands, vx, root, now_ns)
@@ -240,14 +256,8 @@ class PosePhase:
         return poses
 
 
-def _edge_terms(
-    store: EdgeStore, plan: Plan, sel: slice, now_ns: int, options: PoseOptions
-) -> tuple[
-    NDArray[np.intp], NDArray[np.intp], NDArray[np.intp], NDArray[np.float64], NDArray[np.float64],
-    NDArray[np.float64], NDArray[np.float64], NDArray[np.int64],
-]:  # fmt: skip
-    """One stage's edges as walked (parent -> child): rows, parents, children, ``p``, ``q``, sigma
-    and covariance, aged, and capture times. An edge's information ages (the entities may have
+def _edge_terms(store: EdgeStore, plan: Plan, sel: slice, now_ns: int, options: PoseOptions) -> StageEdges:
+    """One stage's edges as walked (parent -> child), aged. An edge's information ages (the entities may have
     moved since it arrived): with ``age_sigma_m_per_s`` > 0 an edge of age a (s) counts with sigma
     sqrt(sigma^2 + (a * age_sigma)^2), and its covariance grows likewise (the attitude's with
     ``age_sigma_rad_per_s``); 0: the paper's method, every live edge counts as new."""
@@ -264,22 +274,14 @@ def _edge_terms(
         turn = (age_s * options.age_sigma_rad_per_s) ** 2
         c_edge[:, [3, 4, 5], [3, 4, 5]] += turn[:, None]
     p, q = store.p[direction, row], store.q[direction, row]
-    return row, plan.parent[sel], plan.child[sel], p, q, sigma, c_edge, store.capture[row]
+    return StageEdges(row, plan.parent[sel], plan.child[sel], p, q, sigma, c_edge, store.capture[row])
 
 
-def _compose(
-    vx: Vertices,
-    row: NDArray[np.intp],
-    parent: NDArray[np.intp],
-    child: NDArray[np.intp],
-    p_pc: NDArray[np.float64],
-    q_pc: NDArray[np.float64],
-    s_edge: NDArray[np.float64],
-    c_edge: NDArray[np.float64],
-    capture_us: NDArray[np.int64],
-    from_root: bool,
-) -> StageCandidates:
+def _compose(vx: Vertices, e: StageEdges, from_root: bool) -> StageCandidates:
     """eq. 2: each candidate is P_parent * T_parent_child, with its sigma and covariance."""
+    row, parent, child, p_pc, q_pc, s_edge, c_edge, capture_us = (
+        e.row, e.parent, e.child, e.p, e.q, e.sigma, e.cov, e.capture_us
+    )  # fmt: skip
     t_cand = np.maximum(capture_us, vx.stamp_us[parent])  # a candidate is as new as its newest part
     if from_root:  # the root's pose is the identity, exactly, with no uncertainty
         return StageCandidates(row, parent, child, p_pc, q_pc, s_edge, c_edge, p_pc, q_pc, s_edge, t_cand, None, c_edge)
