@@ -96,6 +96,8 @@ class EdgeStore:
         """Remove edges older than the timeout (age > timeout); returns their entities' indices
         (``a`` then ``b`` of each removed edge)."""
         dead = np.flatnonzero(self.used & (now_ns - self.stamp > timeout_ns))
+        if dead.size == 0:
+            return dead
         ends = np.concatenate((self.a[dead], self.b[dead]))
         for slot in dead.tolist():
             key = self.keys[slot]

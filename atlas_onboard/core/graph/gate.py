@@ -8,6 +8,7 @@ estimate (a :class:`PriorEstimate`), allowing for what the entity may have moved
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,8 +21,7 @@ MAX_RATE_RAD_S = 3.0
 """And for rotation since the last estimate (about 170 deg/s)."""
 
 
-@dataclass(frozen=True, slots=True)
-class PriorEstimate:
+class PriorEstimate(NamedTuple):
     """An entity's last fused estimate in one frame: the gate's reference when it has fewer than
     three candidates, and what it keeps when the gate leaves out every candidate.
 
@@ -42,7 +42,7 @@ class PriorEstimate:
     capture_time_us: int
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class GateInput:
     """One stage's candidates as the gate sees them, shapes (N, ...): ``child`` (entity index),
     ``p``, ``q`` (xyzw) and ``cov`` (6x6) of each candidate in the root's frame, ``capture_us``

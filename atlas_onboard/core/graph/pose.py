@@ -57,11 +57,12 @@ class Vertices:
                    np.zeros(n, dtype=np.intp))  # fmt: skip
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class StageEdges:
-    """One stage's edges as walked (parent -> child), shapes (N, ...): edge ``row``, ``parent``,
-    ``child``, the edge's ``p`` and ``q`` (xyzw), its ``sigma`` (m) and 6x6 ``cov``, both aged, and
-    the ``capture_us`` of its image."""
+    """Edges as walked (parent -> child), shapes (N, ...): edge ``row``, ``parent``, ``child``, the
+    edge's ``p`` and ``q`` (xyzw), its ``sigma`` (m) and 6x6 ``cov``, both aged, and the
+    ``capture_us`` of its image. Made once per evaluation for every candidate of the plan, then
+    sliced by stage (:meth:`stage`: views, no copies)."""
 
     row: NDArray[np.intp]
     parent: NDArray[np.intp]
@@ -72,8 +73,14 @@ class StageEdges:
     cov: NDArray[np.float64]
     capture_us: NDArray[np.int64]
 
+    def stage(self, sel: slice) -> StageEdges:
+        return StageEdges(
+            self.row[sel], self.parent[sel], self.child[sel], self.p[sel], self.q[sel], self.sigma[sel],
+            self.cov[sel], self.capture_us[sel],
+        )  # fmt: skip
 
-@dataclass(frozen=True, slots=True)
+
+@dataclass(slots=True)
 class StageCandidates:
     """One stage's candidates (eq. 2), shapes (N, ...): edge ``row``, ``parent`` and ``child``; the
     edge parent -> child (``p_pc``, ``q_pc``, its sigma ``s_edge`` aged, its covariance ``c_edge``
@@ -144,9 +151,10 @@ class PosePhase:
         ``root``'s frame. ``out`` collects each entity's candidates when given. With ``goal`` (if
         reached), only the vertices of lower stages and ``goal`` itself get a pose."""
         vx = Vertices.at_root(len(self.names))
+        edges = _edge_terms(store, plan, now_ns, self.options)
         gated = 0
         for sel, runs, from_root in zip(plan.stages, plan.runs, plan.from_root, strict=True):
-            cands = _compose(vx, _edge_terms(store, plan, sel, now_ns, self.options), from_root)
+            cands = _compose(vx, edges.stage(sel), from_root)
             keep = None
             if self.gate.enabled:
                 keep = self._gate(store, cands, vx, root, now_ns)
@@ -256,12 +264,12 @@ class PosePhase:
         return poses
 
 
-def _edge_terms(store: EdgeStore, plan: Plan, sel: slice, now_ns: int, options: PoseOptions) -> StageEdges:
-    """One stage's edges as walked (parent -> child), aged. An edge's information ages (the entities may have
+def _edge_terms(store: EdgeStore, plan: Plan, now_ns: int, options: PoseOptions) -> StageEdges:
+    """The plan's edges as walked (parent -> child), aged. An edge's information ages (the entities may have
     moved since it arrived): with ``age_sigma_m_per_s`` > 0 an edge of age a (s) counts with sigma
     sqrt(sigma^2 + (a * age_sigma)^2), and its covariance grows likewise (the attitude's with
     ``age_sigma_rad_per_s``); 0: the paper's method, every live edge counts as new."""
-    row, direction = plan.row[sel], plan.direction[sel]
+    row, direction = plan.row, plan.direction
     sigma_raw = store.sigma[row]
     sigma = sigma_raw
     c_edge = store.cov[direction, row]
@@ -274,7 +282,7 @@ def _edge_terms(store: EdgeStore, plan: Plan, sel: slice, now_ns: int, options: 
         turn = (age_s * options.age_sigma_rad_per_s) ** 2
         c_edge[:, [3, 4, 5], [3, 4, 5]] += turn[:, None]
     p, q = store.p[direction, row], store.q[direction, row]
-    return StageEdges(row, plan.parent[sel], plan.child[sel], p, q, sigma, c_edge, store.capture[row])
+    return StageEdges(row, plan.parent, plan.child, p, q, sigma, c_edge, store.capture[row])
 
 
 def _compose(vx: Vertices, e: StageEdges, from_root: bool) -> StageCandidates:

@@ -165,7 +165,8 @@ class TransformGraph:
     def expire(self, now_ns: int) -> int:
         """Remove edges older than the timeout (age > timeout); returns how many were removed."""
         ends = self._store.expire(now_ns, self.edge_timeout_ns)
-        self._touched[ends] = True
+        if ends.size:
+            self._touched[ends] = True
         return ends.size // 2
 
     def next_expiry_ns(self) -> int | None:
@@ -250,9 +251,18 @@ class TransformGraph:
                 self.names, unreached, lambda root: self._evaluate_from(slots, root, now_ns)
             )
             gated += rel_gated
-        result = GraphResult(
-            poses=frame.poses,
-            order=tuple(self.names[v] for v in frame.order),
+        order = tuple(self.names[v] for v in frame.order)
+        poses, current = frame.poses, True
+        if goal is None:
+            self._touched[:] = False
+            self._evaluated = True
+        elif previous is None:
+            current = False
+        else:
+            poses, relative, current = self._with_previous(order, goal, frame, previous)
+        return GraphResult(
+            poses=poses,
+            order=order,
             levels={self.names[v]: lv for v, lv in frame.levels.items()},
             unreached=tuple(self.names[v] for v in unreached),
             n_edges=len(slots),
@@ -260,12 +270,8 @@ class TransformGraph:
             candidates=cands or {},
             gated=gated,
             complete=goal is None,
+            current=current,
         )
-        if goal is None:
-            self._touched[:] = False
-            self._evaluated = True
-            return result
-        return self._with_previous(result, goal, frame, previous)
 
     # --- internals ----------------------------------------------------------------------------------
 
@@ -285,18 +291,12 @@ class TransformGraph:
         return self._pose.run(self._store, plan, root, now_ns, out, goal)
 
     def _with_previous(
-        self, result: GraphResult, goal: int, frame: FrameEvaluation, previous: GraphResult | None
-    ) -> GraphResult:
-        """A targeted evaluation's result completed with ``previous``'s poses of the other entities,
-        and whether those are still current (see :meth:`evaluate`)."""
-        if previous is None:
-            return dataclasses.replace(result, current=False)
-        known = previous.poses
-        poses = {
-            n: result.poses[n] if n in result.poses else known[n]
-            for n in result.order
-            if n in result.poses or n in known
-        }
+        self, order: tuple[str, ...], goal: int, frame: FrameEvaluation, previous: GraphResult
+    ) -> tuple[dict[str, EntityPose], dict[str, dict[str, EntityPose]], bool]:
+        """A targeted evaluation's poses completed with ``previous``'s poses of the other entities,
+        ``previous``'s relative poses, and whether those are still current (see :meth:`evaluate`)."""
+        known, computed = previous.poses, frame.poses
+        poses = {n: computed[n] if n in computed else known[n] for n in order if n in computed or n in known}
         others = self._touched.copy()
         others[[self.index[WORLD], goal]] = False
         options = self._pose.options
@@ -307,4 +307,4 @@ class TransformGraph:
             and not others.any()
             and not frame.goal_is_parent
         )
-        return dataclasses.replace(result, poses=poses, relative=previous.relative, current=current)
+        return poses, previous.relative, current
