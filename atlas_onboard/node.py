@@ -350,14 +350,12 @@ class Node:
         one whose edge has meanwhile been refreshed by a newer arrival (taken at once because the own
         pose's needs changed) or already holds a later image of the same sensor (a datagram overtaken
         on the way). (Where only the newest of an edge counts, the parking buffer kept only that one.)"""
-        edges = self.graph.edges
         fresh = []
         for item in self.parking.take():
             md = item.take()
             if md is None:
                 continue
-            edge = edges.get(item.edge)
-            if edge is not None and (edge.stamp_ns > item.arrival_ns or edge.capture_time_us > md.capture_time_us):
+            if self.graph.is_superseded(item.edge, item.arrival_ns, md.capture_time_us):
                 self.stats.superseded += 1
             else:
                 fresh.append((md, item.arrival_ns, False))
@@ -482,40 +480,18 @@ class Node:
     def _relevance(self, sensor_id: int, marker_id: int) -> Relevance:
         return relevance(self._entity_of[0].get(sensor_id), self._entity_of[1].get(marker_id), self._near)
 
-    def _parent_of_others(self, result: GraphResult) -> bool:
-        """Whether an edge joins the own entity to an entity one BFS level further from the world
-        (whose pose then rests on the own pose)."""
-        own = self.config.entity
-        below = result.levels.get(own, -2) + 1
-        sensors, markers = self._entity_of
-        for sensor_id, marker_id in self.graph.edges:
-            a, b = sensors.get(sensor_id), markers.get(marker_id)
-            if (a == own and result.levels.get(b) == below) or (b == own and result.levels.get(a) == below):
-                return True
-        return False
-
     def _evaluate(self, now: int, own_only: bool = False) -> None:
         """Evaluate the graph. With ``own_only``, and when the paper's BFS has placed the own entity
         (and no filter needs every entity's candidates), only the own pose and those it rests on are
         computed (the same pose as a full evaluation); the others keep their last poses and are
-        evaluated together within ``COALESCE_NS``, unless nothing they rest on has changed: only
-        edges between the own entity and the world, the own entity a parent of none of them, and no
-        edge ageing (with which their sigmas grow between evaluations)."""
+        evaluated together within ``COALESCE_NS``, unless the graph says those are still current."""
         partial = own_only and self._near is not None and self.ekf is None
         self.listener.forget_expired(now)
-        result = self.graph.evaluate(now, target=self.config.entity if partial else None)
+        result = self.graph.evaluate(now, target=self.config.entity if partial else None, previous=self.last_result)
         if result.complete:
             self.changes.evaluated(now, complete=True)
-        else:
-            last = self.last_result
-            known = last.poses if last is not None else {}
-            poses = {n: result.poses.get(n) or known[n] for n in result.order if n in result.poses or n in known}
-            result = replace(result, poses=poses, relative=last.relative if last is not None else {})
-            f = self.world.fusion
-            ageless = f.age_sigma_m_per_s == 0.0 and f.age_sigma_deg_per_s == 0.0
-            # A full evaluation is not needed when it would give every other entity the pose it has.
-            unchanged = not self.changes.others and ageless and not self._parent_of_others(result)
-            self.changes.evaluated(now, complete=False, rest_unchanged=unchanged)
+        else:  # a full evaluation is not needed when it would give every other entity the pose it has
+            self.changes.evaluated(now, complete=False, rest_unchanged=result.current)
         self.last_result = result
         bfs = self.world.fusion.path == "bfs"
         self._near = near_entities(self.config.entity, result.levels if bfs else None)

@@ -1,0 +1,306 @@
+"""The pose phase (the paper's section 3.2, eq. 2 and 4-7): every vertex reached from a root gets the
+weighted mean of its candidates, each candidate its parent's fused pose times an edge.
+
+It runs a :class:`~atlas_onboard.core.graph.paths.Plan` stage by stage (a stage's parents all lie in
+lower stages), each stage in a few batched array operations, in these steps: the edges' terms
+(:func:`_edge_terms`, aged), the candidates (:func:`_compose`, eq. 2, with their covariance), the
+gate (:meth:`PosePhase._gate`), and the fusion (:meth:`PosePhase._fuse`, eq. 4-7).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from atlas_onboard.core import covariance, fusion, geometry
+from atlas_onboard.core.graph.edges import EdgeStore
+from atlas_onboard.core.graph.gate import ConsensusGate, GateInput, PriorEstimate
+from atlas_onboard.core.graph.paths import Plan
+from atlas_onboard.core.graph.result import Candidate, EntityPose
+
+
+@dataclass(frozen=True, slots=True)
+class PoseOptions:
+    """How candidates are weighted and aged (see :class:`TransformGraph`)."""
+
+    inverse_variance: bool = False
+    path: str = "bfs"
+    age_sigma_m_per_s: float = 0.0
+    age_sigma_rad_per_s: float = 0.0
+
+    @property
+    def ageing(self) -> bool:
+        return self.age_sigma_m_per_s > 0.0 or self.age_sigma_rad_per_s > 0.0
+
+
+@dataclass(slots=True)
+class Vertices:
+    """Every vertex's estimate so far, in the root's frame, indexed by vertex: position ``p`` (n, 3),
+    orientation ``q`` (n, 4) xyzw, covariance ``cov`` (n, 6, 6), position ``sigma`` (n,) m, the
+    capture time of its newest observation ``stamp_us`` (n,), its number of candidates ``count``."""
+
+    p: NDArray[np.float64]
+    q: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    sigma: NDArray[np.float64]
+    stamp_us: NDArray[np.int64]
+    count: NDArray[np.intp]
+
+    @classmethod
+    def at_root(cls, n: int) -> Vertices:
+        """Identity everywhere, exact: the root's pose in its own frame (the rest is overwritten)."""
+        q = np.zeros((n, 4))
+        q[:, 3] = 1.0
+        return cls(np.zeros((n, 3)), q, np.zeros((n, 6, 6)), np.zeros(n), np.zeros(n, dtype=np.int64),
+                   np.zeros(n, dtype=np.intp))  # fmt: skip
+
+
+@dataclass(slots=True)
+class StageEdges:
+    """Edges as walked (parent -> child), shapes (N, ...): edge ``row``, ``parent``, ``child``, the
+    edge's ``p`` and ``q`` (xyzw), its ``sigma`` (m) and 6x6 ``cov``, both aged, and the
+    ``capture_us`` of its image. Made once per evaluation for every candidate of the plan, then
+    sliced by stage (:meth:`stage`: views, no copies)."""
+
+    row: NDArray[np.intp]
+    parent: NDArray[np.intp]
+    child: NDArray[np.intp]
+    p: NDArray[np.float64]
+    q: NDArray[np.float64]
+    sigma: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    capture_us: NDArray[np.int64]
+
+    def stage(self, sel: slice) -> StageEdges:
+        return StageEdges(
+            self.row[sel], self.parent[sel], self.child[sel], self.p[sel], self.q[sel], self.sigma[sel],
+            self.cov[sel], self.capture_us[sel],
+        )  # fmt: skip
+
+
+@dataclass(slots=True)
+class StageCandidates:
+    """One stage's candidates (eq. 2), shapes (N, ...): edge ``row``, ``parent`` and ``child``; the
+    edge parent -> child (``p_pc``, ``q_pc``, its sigma ``s_edge`` aged, its covariance ``c_edge``
+    aged); the candidate in the root's frame (``p``, ``q``, sigma ``s`` along the chain, capture
+    time ``capture_us`` of its newest part); the covariance's parts: ``Jp`` (None when the parent
+    is the root) and ``edge_term`` (the edge's covariance carried into the root's frame)."""
+
+    row: NDArray[np.intp]
+    parent: NDArray[np.intp]
+    child: NDArray[np.intp]
+    p_pc: NDArray[np.float64]
+    q_pc: NDArray[np.float64]
+    s_edge: NDArray[np.float64]
+    c_edge: NDArray[np.float64]
+    p: NDArray[np.float64]
+    q: NDArray[np.float64]
+    s: NDArray[np.float64]
+    capture_us: NDArray[np.int64]
+    Jp: NDArray[np.float64] | None
+    edge_term: NDArray[np.float64]
+
+    def covariance(self, cov_parent: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Each candidate's full 6x6 covariance, the parent's included (``cov_parent``: per vertex)."""
+        if self.Jp is None:
+            return self.edge_term
+        return covariance.transform(self.Jp, cov_parent[self.parent]) + self.edge_term
+
+    def select(self, keep: NDArray[np.bool_]) -> StageCandidates:
+        Jp = None if self.Jp is None else self.Jp[keep]
+        return StageCandidates(
+            self.row[keep], self.parent[keep], self.child[keep], self.p_pc[keep], self.q_pc[keep],
+            self.s_edge[keep], self.c_edge[keep], self.p[keep], self.q[keep], self.s[keep],
+            self.capture_us[keep], Jp, self.edge_term[keep],
+        )  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
+class FrameEvaluation:
+    """The pose phase from one root: the poses (in the root's frame), the visiting order and levels
+    (vertex indices), how many candidates the gate left out, and whether the goal (if any) is the
+    parent of some candidate (then other entities' poses rest on it)."""
+
+    poses: dict[str, EntityPose]
+    order: list[int]
+    levels: dict[int, int]
+    gated: int
+    goal_is_parent: bool
+
+
+class PosePhase:
+    """The pose phase of one graph: its vertex names, options and gate."""
+
+    def __init__(self, names: tuple[str, ...], options: PoseOptions, gate: ConsensusGate) -> None:
+        self.names = names
+        self.options = options
+        self.gate = gate
+
+    def run(
+        self,
+        store: EdgeStore,
+        plan: Plan,
+        root: int,
+        now_ns: int,
+        out: dict[str, list[Candidate]] | None = None,
+        goal: int | None = None,
+    ) -> FrameEvaluation:
+        """Poses of every vertex of ``plan`` (made from ``root``, with ``goal`` if given), in
+        ``root``'s frame. ``out`` collects each entity's candidates when given. With ``goal`` (if
+        reached), only the vertices of lower stages and ``goal`` itself get a pose."""
+        vx = Vertices.at_root(len(self.names))
+        edges = _edge_terms(store, plan, now_ns, self.options)
+        gated = 0
+        for sel, runs, from_root in zip(plan.stages, plan.runs, plan.from_root, strict=True):
+            cands = _compose(vx, edges.stage(sel), from_root)
+            keep = None
+            if self.gate.enabled:
+                keep = self._gate(store, cands, vx, root, now_ns)
+                gated += int(keep.size - keep.sum())
+            if out is not None:
+                self._collect(out, store, cands, vx, root, keep)
+            if keep is not None and not keep.all():
+                self._hold_rejected(vx, cands.child, keep, root)
+                cands = cands.select(keep)
+                if len(cands.child) == 0:
+                    continue
+                runs = covariance.runs_by_parent(cands.child, cands.parent)
+            self._fuse(vx, cands, runs, root, now_ns)
+        order, level = plan.order.tolist(), plan.level.tolist()
+        levels = {v: level[v] for v in order}
+        return FrameEvaluation(self._poses(vx, plan, root, goal), order, levels, gated, plan.goal_is_parent)
+
+    def _gate(self, store: EdgeStore, c: StageCandidates, vx: Vertices, root: int, now_ns: int) -> NDArray[np.bool_]:
+        """The gate's verdict on a stage's candidates; counts the rejected edge observations."""
+        # The anchor: the own cameras' direct views of the root's markers (through another entity,
+        # a candidate also rests on that entity's estimate: a peer's work).
+        anchored = store.anchored[c.row] & (c.parent == root)
+        gate_in = GateInput(c.child, c.p, c.q, c.covariance(vx.cov), c.capture_us, anchored, store.stamp[c.row])
+        keep = self.gate.keep(root, now_ns, gate_in)
+        out = c.row[~keep].tolist()
+        self.gate.count([store.keys[slot] for slot in out], [int(store.stamp[slot]) for slot in out])
+        return keep
+
+    def _collect(
+        self,
+        out: dict[str, list[Candidate]],
+        store: EdgeStore,
+        c: StageCandidates,
+        vx: Vertices,
+        root: int,
+        keep: NDArray[np.bool_] | None,
+    ) -> None:
+        """Each kept candidate as a :class:`Candidate`, for a filter that fuses them itself."""
+        names = self.names
+        c_full = c.covariance(vx.cov)
+        for i in range(len(c.child)) if keep is None else np.flatnonzero(keep):
+            slot = int(c.row[i])
+            via = None if c.parent[i] == root else names[c.parent[i]]
+            out.setdefault(names[c.child[i]], []).append(
+                Candidate(
+                    names[c.child[i]], store.keys[slot], int(store.stamp[slot]),
+                    int(c.capture_us[i]), c.p[i], c.q[i], c_full[i],
+                    via, c.p_pc[i], c.q_pc[i], c.c_edge[i],
+                )
+            )  # fmt: skip
+
+    def _hold_rejected(self, vx: Vertices, child: NDArray[np.intp], keep: NDArray[np.bool_], root: int) -> None:
+        """A child whose every candidate was gated keeps its last estimate (not re-sent: same stamp)."""
+        for v in set(child[~keep].tolist()) - set(child[keep].tolist()):
+            prior = self.gate.priors[(root, v)]
+            vx.p[v], vx.q[v], vx.sigma[v] = prior.p_m, prior.q_xyzw, prior.sigma_m
+            vx.cov[v] = covariance.diagonal(prior.sigma_m, prior.sigma_att_rad)
+            vx.stamp_us[v] = prior.capture_time_us
+
+    def _fuse(
+        self, vx: Vertices, c: StageCandidates, runs: tuple[fusion.Runs, fusion.Runs], root: int, now_ns: int
+    ) -> None:
+        """eq. 4-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
+        The paper weighs by the sensor's sigma; Dijkstra weighs by the whole chain's."""
+        kids, pairs = runs
+        dijkstra = self.options.path == "dijkstra"
+        s_weigh = c.s if dijkstra else c.s_edge
+        if self.options.inverse_variance:
+            # Beyond the paper: weights from each candidate's propagated position variance (its
+            # covariance's position block, the detector's own where it reported one, aged), so a
+            # fresh precise view outweighs a stale or a poorly placed one whatever their sigma says.
+            c_weigh = (
+                c.edge_term
+                if c.Jp is None or not dijkstra
+                else c.edge_term + covariance.transform(c.Jp, vx.cov[c.parent])
+            )
+            s_weigh = np.sqrt(np.maximum(np.trace(c_weigh[:, :3, :3], axis1=1, axis2=2) / 3.0, 1e-30))
+        weights = np.repeat(np.minimum.reduceat(s_weigh, kids.starts), kids.sizes) / s_weigh
+        if self.options.inverse_variance:
+            weights = weights**2
+        ids = kids.ids
+        vx.p[ids], vx.q[ids], vx.sigma[ids] = fusion.fuse_runs(kids, c.p, c.q, c.s, weights)
+        vx.cov[ids] = covariance.fuse_runs(kids, pairs, weights, c.Jp, vx.cov, c.edge_term)
+        vx.count[ids] = kids.sizes
+        newest = np.maximum.reduceat(c.capture_us, kids.starts)
+        vx.stamp_us[ids] = newest
+        if self.gate.enabled:
+            for k, v in enumerate(ids.tolist()):
+                att = float(np.sqrt(max(np.trace(vx.cov[v][3:, 3:]) / 3.0, 0.0)))
+                prior = PriorEstimate(vx.p[v].copy(), vx.q[v].copy(), float(vx.sigma[v]), att, now_ns, int(newest[k]))
+                self.gate.remember(root, v, prior)
+
+    def _poses(self, vx: Vertices, plan: Plan, root: int, goal: int | None) -> dict[str, EntityPose]:
+        """The :class:`EntityPose` of every vertex reached (with ``goal``: the lower stages and it)."""
+        levels, counts, sigmas, stamps = plan.level.tolist(), vx.count.tolist(), vx.sigma.tolist(), vx.stamp_us.tolist()
+        frame = self.names[root]
+        poses = {}
+        below = int(plan.stage_of[goal]) if goal is not None and plan.level[goal] >= 0 else None
+        stages = plan.stage_of.tolist()
+        for rank_v, v in enumerate(plan.order.tolist()):
+            if below is not None and v != goal and stages[v] >= below:
+                continue
+            name = self.names[v]
+            poses[name] = EntityPose(
+                name, vx.p[v], vx.q[v], levels[v], rank_v, counts[v], sigmas[v], stamps[v], frame, vx.cov[v]
+            )
+        return poses
+
+
+def _edge_terms(store: EdgeStore, plan: Plan, now_ns: int, options: PoseOptions) -> StageEdges:
+    """The plan's edges as walked (parent -> child), aged. An edge's information ages (the entities may have
+    moved since it arrived): with ``age_sigma_m_per_s`` > 0 an edge of age a (s) counts with sigma
+    sqrt(sigma^2 + (a * age_sigma)^2), and its covariance grows likewise (the attitude's with
+    ``age_sigma_rad_per_s``); 0: the paper's method, every live edge counts as new."""
+    row, direction = plan.row, plan.direction
+    sigma_raw = store.sigma[row]
+    sigma = sigma_raw
+    c_edge = store.cov[direction, row]
+    if options.ageing:
+        age_s = np.maximum(now_ns - store.stamp[row], 0) / 1e9
+        if options.age_sigma_m_per_s > 0.0:
+            sigma = np.hypot(sigma_raw, age_s * options.age_sigma_m_per_s)
+        grow = (sigma**2 - sigma_raw**2).clip(0.0)
+        c_edge[:, [0, 1, 2], [0, 1, 2]] += grow[:, None]
+        turn = (age_s * options.age_sigma_rad_per_s) ** 2
+        c_edge[:, [3, 4, 5], [3, 4, 5]] += turn[:, None]
+    p, q = store.p[direction, row], store.q[direction, row]
+    return StageEdges(row, plan.parent, plan.child, p, q, sigma, c_edge, store.capture[row])
+
+
+def _compose(vx: Vertices, e: StageEdges, from_root: bool) -> StageCandidates:
+    """eq. 2: each candidate is P_parent * T_parent_child, with its sigma and covariance."""
+    row, parent, child, p_pc, q_pc, s_edge, c_edge, capture_us = (
+        e.row, e.parent, e.child, e.p, e.q, e.sigma, e.cov, e.capture_us
+    )  # fmt: skip
+    t_cand = np.maximum(capture_us, vx.stamp_us[parent])  # a candidate is as new as its newest part
+    if from_root:  # the root's pose is the identity, exactly, with no uncertainty
+        return StageCandidates(row, parent, child, p_pc, q_pc, s_edge, c_edge, p_pc, q_pc, s_edge, t_cand, None, c_edge)
+    R_wp = geometry.quat_matrix(vx.q[parent])
+    p_cand = vx.p[parent] + (R_wp @ p_pc[:, :, None])[:, :, 0]
+    q_cand = geometry.quat_multiply(vx.q[parent], q_pc)
+    # The candidate's sigma carries its parent's: variances add along a chain.
+    s_cand = np.sqrt(s_edge**2 + vx.sigma[parent] ** 2)
+    # Beyond the paper: the full 6x6 covariance along the chain (lever arms included).
+    Jp, Je = covariance.compose_jacobians(R_wp, p_pc, geometry.quat_matrix(q_pc))
+    edge_term = covariance.transform(Je, c_edge)
+    return StageCandidates(
+        row, parent, child, p_pc, q_pc, s_edge, c_edge, p_cand, q_cand, s_cand, t_cand, Jp, edge_term
+    )
