@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import gc
 import logging
-import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
-from atlas_onboard.config import NO_NODES, WORLD, ConfigError, NodeConfig, WorldConfig, load_node, read_yaml
+from atlas_onboard.config import NO_NODES, ConfigError, NodeConfig, SensorConfig, WorldConfig, load_node, read_yaml
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.node import Camera, Node, install_signal_handlers
 from atlas_onboard.service import Notifier, watchdog_interval_us
@@ -34,51 +34,38 @@ def choose_entity(path: Path, entity: str | None) -> str:
     return names[0]
 
 
+CameraFactory = Callable[[WorldConfig, NodeConfig, SensorConfig], Camera]
+"""Makes the camera worker of a sensor whose ``camera.source`` is a registered kind."""
+
+CAMERA_KINDS: dict[str, CameraFactory] = {}
+"""Camera sources that are not devices or files, by the ``camera.source`` that names them; a plug-in
+(the simulator's launcher) registers its kind before the node starts."""
+
+
+def register_camera_kind(kind: str, factory: CameraFactory) -> None:
+    """Let ``camera.source: KIND`` make its camera with ``factory`` in this process."""
+    CAMERA_KINDS[kind] = factory
+
+
 def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
-    """The camera workers of this node's entity (simulated ones when the source is ``sim``)."""
+    """The camera workers of this node's entity: a registered kind's, or a device or file read by the detector."""
     cameras: list[Camera] = []
     for sensor in world.entity(config.entity).sensors:
         cam = sensor.camera
         if cam is None or not cam.source:
             continue
-        if cam.source == "sim":
-            from atlas_onboard.sim.camera import SimCameraWorker, camera_seed, geometric_detector, rendered_detector
-            from atlas_onboard.sim.sources import MocapWorker, SimContext
-            from atlas_onboard.sim.world import SimWorld
+        factory = CAMERA_KINDS.get(cam.source)
+        if factory is not None:
+            cameras.append(factory(world, config, sensor))
+            continue
+        from atlas_onboard.detector.calibration import load as load_calibration
+        from atlas_onboard.detector.pipeline import Detector
+        from atlas_onboard.detector.sources import CameraWorker
 
-            context = SimContext.from_env()
-            mocap = context.scenario.mocap
-            if mocap is not None and config.entity == WORLD and sensor.name == mocap.sensor:
-                cameras.append(MocapWorker(context, world, sensor.id))
-                continue
-            seed = camera_seed(context.seed, sensor.id)
-            if os.environ.get("ATLAS_SIM_GEOMETRIC"):  # no images: corners from geometry plus noise
-                intr = SimWorld(context.scenario, world).cameras[sensor.id][1]
-                detect = geometric_detector(context, sensor, intr, seed)
-            else:
-                detect = rendered_detector(context, world, sensor, seed)
-            cameras.append(SimCameraWorker(context, world, sensor, detect))
-        else:
-            from atlas_onboard.detector.calibration import load as load_calibration
-            from atlas_onboard.detector.pipeline import Detector
-            from atlas_onboard.detector.sources import CameraWorker
-
-            if cam.calibration is None:
-                raise AtlasError(
-                    f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}"
-                )
-            detector = Detector(sensor, world, load_calibration(cam.calibration), decimate=2.0)
-            cameras.append(CameraWorker(sensor.name, cam, detector))
-    if config.entity == WORLD:
-        # The motion-capture "sensor" has no camera block: it is a world sensor named by the scenario.
-        if os.environ.get("ATLAS_SIM"):
-            from atlas_onboard.sim.sources import MocapWorker, SimContext
-
-            context = SimContext.from_env()
-            mocap = context.scenario.mocap
-            if mocap is not None and not any(c.name == "mocap" for c in cameras):
-                sensor = next(s for s in world.entity(WORLD).sensors if s.name == mocap.sensor)
-                cameras.append(MocapWorker(context, world, sensor.id))
+        if cam.calibration is None:
+            raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}")
+        detector = Detector(sensor, world, load_calibration(cam.calibration), decimate=2.0)
+        cameras.append(CameraWorker(sensor.name, cam, detector))
     return cameras
 
 
@@ -86,10 +73,6 @@ def run_node(config_path: Path, entity: str | None) -> int:
     """Load, build and run the node; returns its exit status."""
     name = choose_entity(config_path, entity)
     world, config = load_node(config_path, name)
-    if os.environ.get("ATLAS_SIM"):
-        from atlas_onboard.sim.runner import die_with_parent
-
-        die_with_parent()
     from atlas_onboard.mavlink.transport import MavlinkTransport
 
     transport = MavlinkTransport(world, config)
