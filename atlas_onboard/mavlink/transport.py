@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from atlas_onboard.config import NodeConfig, WorldConfig
+from atlas_onboard.config import AutopilotConfig, NodeConfig, WorldConfig, defaults
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
@@ -45,7 +45,7 @@ class MavlinkTransport:
         self.wall = wall_clock
         self.counters_ = Counters()
         ap = config.autopilot
-        compid = ap.component_id if ap is not None else 197
+        compid = ap.component_id if ap is not None else defaults(AutopilotConfig)["component_id"]
         self.autopilot = (
             Link(ap.link, "autopilot", config.system_id, compid, config.state_dir, link_id=0, wall_clock=wall_clock)
             if ap is not None
