@@ -54,12 +54,8 @@ def read_link(value: Any, path: str, base_dir: Path | None) -> LinkConfig:
         s = mapping(m["signing"], spath, keys(SigningConfig), required(SigningConfig))
         values = {name: read(SigningConfig, name, s, spath) for name in declared(SigningConfig)}
         signing = SigningConfig(**{**values, "key_file": _resolve(values["key_file"], base_dir)})
-    return LinkConfig(
-        url=url,
-        tunnel=read(LinkConfig, "tunnel", m, path),
-        signing=signing,
-        rate_limit_hz=read(LinkConfig, "rate_limit_hz", m, path),
-    )
+    values = {name: read(LinkConfig, name, m, path) for name in declared(LinkConfig) if name not in ("url", "signing")}
+    return LinkConfig(url=url, signing=signing, **values)
 
 
 def read_autopilot(value: Any, path: str, base_dir: Path | None, partial: bool = False) -> AutopilotConfig | None:
