@@ -12,9 +12,13 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from atlas_onboard import __version__
 from atlas_onboard.errors import AtlasError
+
+if TYPE_CHECKING:
+    from atlas_onboard.config import WorldConfig
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -30,8 +34,46 @@ class _Parser(argparse.ArgumentParser):
         raise SystemExit(EXIT_USAGE)
 
 
+def summary(world: WorldConfig) -> str:
+    """A human-readable summary: entities, sensors, markers, and which entity can see which."""
+    lines = [
+        f"world file: {world.source or '(in memory)'}",
+        f"conventions: world {world.world_convention.value}, body {world.body_convention.value} (internal ENU/FLU)",
+        f"fusion: edge_timeout {world.fusion.edge_timeout_s * 1000:.0f} ms, ema_alpha {world.fusion.ema_alpha:g},"
+        f" weighting {world.fusion.weighting.value}",
+        f"fingerprint: {world.fingerprint():08x}",
+        f"{len(world.entities)} entities, {len(world.sensors)} sensors, {len(world.markers)} markers",
+    ]
+    for ent in world.entities:
+        lines.append(f"  {ent.name}: {len(ent.sensors)} sensors, {len(ent.markers)} markers")
+        for s in ent.sensors:
+            p = s.T_entity_sensor.translation
+            axis = s.T_entity_sensor.rotation.apply([0.0, 0.0, 1.0])
+            lines.append(
+                f"    sensor {s.name} (id {s.id}) at [{p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}] m,"
+                f" looking along [{axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}]"
+            )
+        for mk in ent.markers:
+            p = mk.T_entity_marker.translation
+            lines.append(
+                f"    marker {mk.id} ({mk.family}, {mk.size_m * 1000:.0f} mm) at [{p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}] m"
+            )
+    lines.append("who can see whom (a sensor of the first sees markers of the second):")
+    has_markers = [e.name for e in world.entities if e.markers]
+    for ent in world.entities:
+        if ent.sensors:
+            targets = [n for n in has_markers if n != ent.name]
+            lines.append(f"  {ent.name} -> {', '.join(targets) if targets else '(no markers elsewhere)'}")
+    from atlas_onboard.config import WORLD
+
+    unseen = [e.name for e in world.entities if e.name != WORLD and not e.sensors and not e.markers]
+    if unseen:
+        lines.append(f"warning: entities with neither sensors nor markers can never be localized: {', '.join(unseen)}")
+    return "\n".join(lines)
+
+
 def _cmd_check_config(args: argparse.Namespace) -> int:
-    from atlas_onboard.config import load_world, security_notes, summary
+    from atlas_onboard.config import load_world, security_notes
 
     world = load_world(args.file)
     print(summary(world))

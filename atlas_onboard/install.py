@@ -60,7 +60,7 @@ DROP_IN_TEXT = (
 _LOCAL_HOSTS = ("127.", "localhost")
 EXEC_PATH = Path("usr/local/bin/atlas-onboard")  # the units' ExecStart
 SERVICE_USER = "atlas"
-# Entity names as the world file allows them (config.py), which are also valid unit instance names.
+# Entity names as the world file allows them (config/model.py), which are also valid unit instance names.
 _ENTITY_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_-]{0,31}$")
 # What the units' ProtectHome=yes makes inaccessible to the service.
 _HIDDEN_HOMES = (Path("/home"), Path("/root"), Path("/run/user"))

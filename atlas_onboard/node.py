@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Protocol
 
-from atlas_onboard.config import WORLD, ConfigError, NodeConfig, WorldConfig, load_node
+from atlas_onboard.config import WORLD, AutopilotConfig, ConfigError, NodeConfig, WorldConfig, defaults, load_node
 from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_ATTITUDE_SIGMA_RAD, MANOEUVRE_TIME_S, EkfSettings
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
@@ -148,11 +148,12 @@ class Node:
         self._attach_attitude()
         self.ekf = _make_ekf(world)
         ap = config.autopilot
+        ap_default = defaults(AutopilotConfig)
         self.publisher = Publisher(
             config.entity,
-            rate_hz=ap.rate_hz if ap else 30.0,
+            rate_hz=ap.rate_hz if ap else ap_default["rate_hz"],
             fused_rate_hz=config.fused_rate_hz,
-            reset_jump_m=ap.reset_jump_m if ap else 0.5,
+            reset_jump_m=ap.reset_jump_m if ap else ap_default["reset_jump_m"],
         )
         self._reset_store = ResetCounterStore(config.state_dir, config.entity)
         self.publisher.reset_counter = self._reset_store.initial(self.wall())  # a restart is a reset

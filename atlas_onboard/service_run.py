@@ -4,17 +4,17 @@ from __future__ import annotations
 
 import gc
 import logging
-import os
 import sys
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 
 from atlas_onboard.config import (
     NO_NODES,
-    WORLD,
     ConfigError,
     NodeConfig,
     RecordConfig,
+    SensorConfig,
     WorldConfig,
     load_node,
     read_yaml,
@@ -44,56 +44,43 @@ def choose_entity(path: Path, entity: str | None) -> str:
     return names[0]
 
 
+CameraFactory = Callable[[WorldConfig, NodeConfig, SensorConfig], Camera]
+"""Makes the camera worker of a sensor whose ``camera.source`` is a registered kind."""
+
+CAMERA_KINDS: dict[str, CameraFactory] = {}
+"""Camera sources that are not devices or files, by the ``camera.source`` that names them; a plug-in
+(the simulator's launcher) registers its kind before the node starts."""
+
+
+def register_camera_kind(kind: str, factory: CameraFactory) -> None:
+    """Let ``camera.source: KIND`` make its camera with ``factory`` in this process."""
+    CAMERA_KINDS[kind] = factory
+
+
 def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
-    """The camera workers of this node's entity (simulated ones when the source is ``sim``)."""
+    """The camera workers of this node's entity: a registered kind's, or a device or file read by the detector."""
     cameras: list[Camera] = []
     for sensor in world.entity(config.entity).sensors:
         cam = sensor.camera
         if cam is None or not cam.source:
             continue
-        if cam.source == "sim":
-            from atlas_onboard.sim.camera import SimCameraWorker, camera_seed, geometric_detector, rendered_detector
-            from atlas_onboard.sim.sources import MocapWorker, SimContext
-            from atlas_onboard.sim.world import SimWorld
+        factory = CAMERA_KINDS.get(cam.source)
+        if factory is not None:
+            cameras.append(factory(world, config, sensor))
+            continue
+        from atlas_onboard.detector.calibration import load as load_calibration
+        from atlas_onboard.detector.pipeline import Detector
+        from atlas_onboard.detector.sources import CameraWorker
+        from atlas_onboard.mapping.recording import is_recording, read_info
 
-            context = SimContext.from_env()
-            mocap = context.scenario.mocap
-            if mocap is not None and config.entity == WORLD and sensor.name == mocap.sensor:
-                cameras.append(MocapWorker(context, world, sensor.id))
-                continue
-            seed = camera_seed(context.seed, sensor.id)
-            if os.environ.get("ATLAS_SIM_GEOMETRIC"):  # no images: corners from geometry plus noise
-                intr = SimWorld(context.scenario, world).cameras[sensor.id][1]
-                detect = geometric_detector(context, sensor, intr, seed)
-            else:
-                detect = rendered_detector(context, world, sensor, seed)
-            cameras.append(SimCameraWorker(context, world, sensor, detect))
+        if cam.calibration is not None:
+            calibration = load_calibration(cam.calibration)
+        elif is_recording(Path(cam.source)):  # a recording carries its camera's calibration
+            calibration = read_info(Path(cam.source)).calibration
         else:
-            from atlas_onboard.detector.calibration import load as load_calibration
-            from atlas_onboard.detector.pipeline import Detector
-            from atlas_onboard.detector.sources import CameraWorker
-            from atlas_onboard.mapping.recording import is_recording, read_info
-
-            if cam.calibration is not None:
-                calibration = load_calibration(cam.calibration)
-            elif is_recording(Path(cam.source)):  # a recording carries its camera's calibration
-                calibration = read_info(Path(cam.source)).calibration
-            else:
-                raise AtlasError(
-                    f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}"
-                )
-            detector = Detector(sensor, world, calibration, decimate=2.0)
-            cameras.append(CameraWorker(sensor.name, cam, detector))
-    if config.entity == WORLD:
-        # The motion-capture "sensor" has no camera block: it is a world sensor named by the scenario.
-        if os.environ.get("ATLAS_SIM"):
-            from atlas_onboard.sim.sources import MocapWorker, SimContext
-
-            context = SimContext.from_env()
-            mocap = context.scenario.mocap
-            if mocap is not None and not any(c.name == "mocap" for c in cameras):
-                sensor = next(s for s in world.entity(WORLD).sensors if s.name == mocap.sensor)
-                cameras.append(MocapWorker(context, world, sensor.id))
+            raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}")
+        detector = Detector(sensor, world, calibration, decimate=2.0)
+        cameras.append(CameraWorker(sensor.name, cam, detector))
     return cameras
 
 
@@ -114,10 +101,6 @@ def run_node(
             raise AtlasError(f"--record-max-mb: expected a positive size, got {record_max_mb:g}")
         base = record or RecordConfig(dir=record_dir or Path("."))
         record = replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb)
-    if os.environ.get("ATLAS_SIM"):
-        from atlas_onboard.sim.runner import die_with_parent
-
-        die_with_parent()
     from atlas_onboard.mavlink.transport import MavlinkTransport
 
     transport = MavlinkTransport(world, config)
@@ -127,7 +110,7 @@ def run_node(
         from atlas_onboard.mapping import onboard
 
         for recorder in onboard.start(cameras, world, name, record):
-            recorder.attitude_at = None  # LEAD (branch attitude): = node.attitude_at, as q_wxyz (FLU body, level frame)
+            recorder.attitude_at = _attitude_wxyz(transport)
     interval_us = watchdog_interval_us()  # half of systemd's WatchdogSec, when meant for this process
     if interval_us is not None:
         node.watchdog_interval_ns = interval_us * 1000
@@ -144,3 +127,17 @@ def run_node(
         config_path, world.fingerprint(), name, len(cameras), len(config.peers),
     )  # fmt: skip
     return node.run()
+
+
+def _attitude_wxyz(transport: object) -> Callable[[int], tuple[float, float, float, float] | None]:
+    """The autopilot's attitude at a capture stamp, as a recording keeps it: q_wxyz of the body FLU in
+    a level ENU frame of the autopilot's heading, or None when the autopilot has sent none near it."""
+
+    def at(t_us: int) -> tuple[float, float, float, float] | None:
+        R = transport.attitude_at(t_us)  # type: ignore[attr-defined]
+        if R is None:
+            return None
+        x, y, z, w = (float(v) for v in R.as_quat())
+        return (w, x, y, z)
+
+    return at

@@ -14,7 +14,7 @@ from typing import Any
 
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import NodeConfig, WorldConfig
+from atlas_onboard.config import AutopilotConfig, NodeConfig, WorldConfig, defaults
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
@@ -55,7 +55,7 @@ class MavlinkTransport:
         self.wall = wall_clock
         self.counters_ = Counters()
         ap = config.autopilot
-        compid = ap.component_id if ap is not None else 197
+        compid = ap.component_id if ap is not None else defaults(AutopilotConfig)["component_id"]
         self.autopilot = (
             Link(ap.link, "autopilot", config.system_id, compid, config.state_dir, link_id=0, wall_clock=wall_clock)
             if ap is not None

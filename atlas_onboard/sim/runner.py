@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import atexit
 import contextlib
-import ctypes
 import hashlib
 import json
 import logging
@@ -42,13 +41,14 @@ from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot, recording
 from atlas_onboard.sim.camera import prerender
 from atlas_onboard.sim.hub import Hub
-from atlas_onboard.sim.sources import SIM_ENV
+from atlas_onboard.sim.sources import SIM_ENV, SIM_KIND
 from atlas_onboard.sim.world import Intrinsics, SimWorld
 
 _logger = logging.getLogger(__name__)
 
 
 WORLD_NODE_SYSTEM_ID = 250
+NODE_MODULE = "atlas_onboard.sim.launch"  # each node: `atlas-onboard run` with the simulator plugged in
 WARMUP_S = 1.0  # scored from this long after the start: the first frames fill the pipelines
 
 
@@ -82,15 +82,6 @@ class SimRun:
     logs: dict[str, str]
     ports: list[int] = field(default_factory=list)  # every UDP port the runner opened (all closed now)
     pids: list[int] = field(default_factory=list)  # every node process it started (all ended now)
-
-
-def die_with_parent() -> None:
-    """Called by a node started by the runner: SIGTERM when the runner dies, even on a crash.
-
-    (Set by the child itself rather than in ``preexec_fn``, which is unsafe while threads run.)
-    """
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
 def write_calibration(path: Path, intr: Intrinsics) -> None:
@@ -128,6 +119,10 @@ def build_run_config(
             cal = run_dir / f"calibration-{entity}-{sensor['name']}.yaml"
             write_calibration(cal, sim_world.cameras[sid][1])
             sensor["camera"]["calibration"] = str(cal)
+    if scenario.mocap is not None:  # the motion-capture system reports like a camera of the world node
+        for sensor in (doc["entities"].get(WORLD) or {}).get("sensors", []) or []:
+            if sensor["name"] == scenario.mocap.sensor:
+                sensor.setdefault("camera", {"source": SIM_KIND})
     nodes: dict[str, Any] = {"defaults": {"peers": [f"udpout:127.0.0.1:{hub_port}"], "status_interval_s": 5}}
     for k, name in enumerate(scenario.drones, start=1):
         nodes[name] = {"system_id": k, "autopilot": {"url": f"udpout:127.0.0.1:{autopilot_ports[name]}"}}
@@ -210,7 +205,8 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
         raise AtlasError(f"--duration: expected 2 to 3600 seconds, got {duration:g}")
     run_dir = Path(tempfile.mkdtemp(prefix=f"atlas-sim-{scenario.name}-"))
     frames_dir = None
-    if not os.environ.get("ATLAS_SIM_GEOMETRIC"):
+    geometric = bool(os.environ.get("ATLAS_SIM_GEOMETRIC"))  # no images: corners from the geometry plus noise
+    if not geometric:
         try:
             frames_dir = _rendered_frames(scenario, options.seed, duration, say)
         except BaseException:
@@ -245,6 +241,7 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
                 "epoch_file": str(epoch_file),
                 "duration_s": duration,
                 "frames_dir": str(frames_dir) if frames_dir is not None else None,
+                "geometric": geometric,
             }
         )
         entities = list(scenario.drones) + ([WORLD] if scenario.needs_world_node else [])
@@ -253,7 +250,7 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
             def spawn(name: str) -> None:
                 with open(run_dir / f"{name}.log", "ab") as log:
                     procs[name] = subprocess.Popen(  # noqa: S603 - our own interpreter and arguments
-                        [sys.executable, "-m", "atlas_onboard", *options.node_args, "run", "--config", str(world_file),
+                        [sys.executable, "-m", NODE_MODULE, *options.node_args, "run", "--config", str(world_file),
                          "--entity", name],
                         stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env,
                     )  # fmt: skip

@@ -34,7 +34,7 @@ from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.command import autopilot_track
 from atlas_onboard.sim.report import EntityScore, score
-from atlas_onboard.sim.runner import WARMUP_S, _rendered_frames, build_run_config
+from atlas_onboard.sim.runner import NODE_MODULE, WARMUP_S, _rendered_frames, build_run_config
 from atlas_onboard.sim.sources import SIM_ENV
 from atlas_onboard.sim.world import SimWorld
 
@@ -138,13 +138,12 @@ def start_solo(
             "epoch_file": str(run_dir / "epoch"),
             "duration_s": duration_s,
             "frames_dir": str(frames_dir) if frames_dir is not None else None,
+            "geometric": geometric,
         }
     )
-    if geometric:
-        env["ATLAS_SIM_GEOMETRIC"] = "1"
     with open(run_dir / "node.log", "ab") as log:
         proc = subprocess.Popen(  # noqa: S603 - our own interpreter and arguments
-            [sys.executable, "-m", "atlas_onboard", *node_args, "run", "--config", str(path), "--entity", entity],
+            [sys.executable, "-m", NODE_MODULE, *node_args, "run", "--config", str(path), "--entity", entity],
             stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env,
         )  # fmt: skip
     return SoloNode(scenario, entity, system_id, port, autopilot, proc, run_dir, path)

@@ -1,9 +1,11 @@
-"""Simulated sensors inside a node process: the shared start time, and the motion-capture system.
+"""Simulated sensors inside a node process: the ``sim`` camera source, the shared start time, and the
+motion-capture system.
 
-A node started by ``atlas-onboard sim`` finds the scenario in the ``ATLAS_SIM`` environment variable
-(JSON: scenario, seed, epoch_file, duration_s). Its simulated sensors wait until the runner writes the
-start time (UNIX seconds) to ``epoch_file``, then produce data stamped on the wall clock, so every
-process of the run shares one timeline with the ground truth.
+A node started by ``atlas-onboard sim`` (through :mod:`atlas_onboard.sim.launch`, which registers the
+``sim`` camera source) finds the scenario in the ``ATLAS_SIM`` environment variable (JSON: scenario,
+seed, epoch_file, duration_s, frames_dir, geometric). Its simulated sensors wait until the runner
+writes the start time (UNIX seconds) to ``epoch_file``, then produce data stamped on the wall clock, so
+every process of the run shares one timeline with the ground truth.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import WorldConfig
+from atlas_onboard.config import WORLD, NodeConfig, SensorConfig, WorldConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
@@ -29,6 +31,8 @@ from atlas_onboard.worker import Deliver, SensorWorker
 _logger = logging.getLogger(__name__)
 
 SIM_ENV = "ATLAS_SIM"
+SIM_KIND = "sim"
+"""The ``camera.source`` of a simulated camera (and of the motion-capture system's world sensor)."""
 
 
 @dataclass(frozen=True)
@@ -40,6 +44,7 @@ class SimContext:
     epoch_file: Path
     duration_s: float
     frames_dir: Path | None = None  # the cameras' pre-rendered images, if the runner made them
+    geometric: bool = False  # no images: corners from the geometry plus noise
 
     @classmethod
     def from_env(cls) -> SimContext:
@@ -56,6 +61,7 @@ class SimContext:
                 Path(doc["epoch_file"]),
                 float(doc["duration_s"]),
                 Path(doc["frames_dir"]) if doc.get("frames_dir") else None,
+                bool(doc.get("geometric", False)),
             )
         except (ValueError, KeyError, TypeError) as exc:
             raise AtlasError(f"{SIM_ENV}: expected JSON with scenario, epoch_file and duration_s ({exc})") from None
@@ -128,3 +134,22 @@ class MocapWorker(SensorWorker):
             if frame:
                 deliver(frame)
                 self.sent += len(frame)
+
+
+def sim_camera(world: WorldConfig, config: NodeConfig, sensor: SensorConfig) -> SensorWorker:
+    """The worker of a sensor whose ``camera.source`` is ``sim``: the scenario's motion-capture system
+    for its world sensor, else a simulated camera (rendered images through the real detector, or
+    corners from the geometry plus noise)."""
+    from atlas_onboard.sim.camera import SimCameraWorker, camera_seed, geometric_detector, rendered_detector
+
+    context = SimContext.from_env()
+    mocap = context.scenario.mocap
+    if mocap is not None and config.entity == WORLD and sensor.name == mocap.sensor:
+        return MocapWorker(context, world, sensor.id)
+    seed = camera_seed(context.seed, sensor.id)
+    if context.geometric:
+        intr = SimWorld(context.scenario, world).cameras[sensor.id][1]
+        detect = geometric_detector(context, sensor, intr, seed)
+    else:
+        detect = rendered_detector(context, world, sensor, seed)
+    return SimCameraWorker(context, world, sensor, detect)
