@@ -59,8 +59,13 @@ class RateCap:
     """The autopilot's rate cap: at most ``rate_hz`` poses a second on average, and a camera at the
     cap's own rate has every frame sent on arrival, whatever its jitter.
 
-    A token bucket on arrival times (``burst`` tokens, one more a period of 1 / ``rate_hz``) bounds
-    what any flood can send, however its capture times are spread. A new pose goes at once when it
+    Two token buckets of ``burst`` tokens. One fills on capture times (a token a period of 1 /
+    ``rate_hz`` of the poses' capture stamps): it keeps the average, and since capture times are the
+    camera's rhythm its level only wanders by the capture jitter, so a camera at the cap's rate never
+    runs it dry, hiccup or not. The other fills on arrival times, ``arrival_margin`` times faster: it
+    bounds a flood however its capture times are spread, and regains its burst after a detector's
+    hiccup (at exactly the cap's rate it would stay as low as the hiccup left it, and drop a jittered
+    frame much later). A new pose goes at once when it
     finds a token and spacing from the last sent pose: a capture time at least ``min_spacing`` of a
     period newer, or an arrival a full period later. Capture times are the camera's rhythm, free of
     the detector's varying time: a camera at the cap's rate passes with capture jitter up to 40 % of
@@ -79,8 +84,11 @@ class RateCap:
     min_spacing: float = 0.6
     burst: float = 3.0  # three frames handed over at once (after a detector's hiccup) all go
     hold_periods: float = 2.0
+    arrival_margin: float = 1.1
     _tokens: float = 3.0
     _tokens_ns: int | None = None
+    _ctokens: float = 3.0  # the capture-time bucket
+    _ctokens_us: int | None = None  # the newest capture time it was filled to
     _last_capture_us: int | None = None
     _last_sent_ns: int | None = None
     _held_ns: int | None = None  # when the pose now held back was refused
@@ -90,7 +98,7 @@ class RateCap:
     def __post_init__(self) -> None:
         if not self.rate_hz > 0:
             raise AtlasError(f"rate_hz: expected a rate cap > 0 Hz, got {self.rate_hz}")
-        self._tokens = self.burst
+        self._tokens = self._ctokens = self.burst
 
     @property
     def period_ns(self) -> float:
@@ -106,8 +114,14 @@ class RateCap:
         stamp (us), newer than the last one sent; ``now_ns``: now on the monotonic clock (ns). A pose
         asked about again after a refusal goes only at its release time (:meth:`release_ns`)."""
         if self._tokens_ns is not None:
-            self._tokens = min(self.burst, self._tokens + (now_ns - self._tokens_ns) / self.period_ns)
+            gained = (now_ns - self._tokens_ns) * self.arrival_margin / self.period_ns
+            self._tokens = min(self.burst, self._tokens + gained)
         self._tokens_ns = now_ns
+        if self._ctokens_us is None or capture_time_us > self._ctokens_us:
+            if self._ctokens_us is not None:
+                gained = (capture_time_us - self._ctokens_us) * 1000 / self.period_ns
+                self._ctokens = min(self.burst, self._ctokens + gained)
+            self._ctokens_us = capture_time_us
         again = capture_time_us == self._held_capture_us
         hold_ns = self.hold_periods * self.period_ns
         release = self._held_ns is not None and now_ns >= self._held_ns + hold_ns
@@ -120,8 +134,11 @@ class RateCap:
                 or now_ns - self._last_sent_ns >= self.period_ns
             )
         )
-        if self._tokens >= 1.0 and (spaced or release):
+        # A held pose's release (a sporadic source) needs no capture token: its capture time cannot
+        # grow while it waits; what it borrows, the next captures repay.
+        if self._tokens >= 1.0 and (release or (spaced and self._ctokens >= 1.0)):
             self._tokens -= 1.0
+            self._ctokens = max(self._ctokens - 1.0, -self.burst)
             self._last_capture_us, self._last_sent_ns = capture_time_us, now_ns
             self._held_ns = self._held_capture_us = None
             return True
@@ -137,7 +154,7 @@ class RateCap:
         if self._held_ns is None or self._tokens_ns is None:
             return None
         at = self._held_ns + self.hold_periods * self.period_ns
-        token = self._tokens_ns + max(1.0 - self._tokens, 0.0) * self.period_ns
+        token = self._tokens_ns + max(1.0 - self._tokens, 0.0) * self.period_ns / self.arrival_margin
         return int(max(at, token)) + 1
 
 

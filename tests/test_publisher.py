@@ -116,7 +116,7 @@ def test_rate_cap_keeps_the_average_of_a_slightly_faster_camera_without_latency(
     cap = RateCap(30.0)
     sent = play(cap, frames)
     assert set(sent) <= set(frames)
-    duration_s = (frames[-1][1] - frames[0][1]) / 1e9
+    duration_s = (frames[-1][0] - frames[0][0]) / 1e6  # the cap keeps the average over capture time
     assert len(sent) <= 30.0 * duration_s + cap.burst  # the average, plus the burst
     assert len(sent) >= len(frames) * 0.985  # about 1 % dropped, not more
 
@@ -124,9 +124,10 @@ def test_rate_cap_keeps_the_average_of_a_slightly_faster_camera_without_latency(
 def test_rate_cap_bounds_a_flood_whatever_its_capture_times():
     cap = RateCap(30.0)
     period_us = 1e6 / 30.0
-    # 1000 poses in 1 s, each a full period newer than the last: the bucket lets the average through
+    # 1000 poses in 1 s, each a full period newer than the last: the arrival bucket lets its burst
+    # through and then a token every period / arrival_margin (the last at 999 ms)
     sent = sum(cap.admit(int(k * period_us), k * MS) for k in range(1000))
-    assert sent == 30 + cap.burst - 1  # the bucket's burst and then a token a period (the last at 999 ms)
+    assert sent == int(30 * cap.arrival_margin * 0.999) + cap.burst
     # captures 1 us apart arriving together: two (the second on a spare token), then none
     cap = RateCap(30.0)
     assert [cap.admit(10**6 + k, 5 * 10**9) for k in range(5)] == [True, True, False, False, False]
@@ -158,15 +159,15 @@ def test_a_pose_refused_by_the_cap_goes_later_when_nothing_newer_comes():
 
 def test_reset_counter_on_found_again_and_on_jump():
     pub = Publisher("d", rate_hz=1000, reset_jump_m=0.5)
-    g = graph_with([0, 0, 0], 1, 0)
+    g = graph_with([0, 0, 0], 0, 0)
     assert pub.autopilot(g.evaluate(0), 0)[0].reset_counter == 0
     pub.autopilot(g.evaluate(300 * MS), 300 * MS)  # lost
-    graph_with([0.1, 0, 0], 2, 400 * MS, g)
+    graph_with([0.1, 0, 0], 400_000, 400 * MS, g)
     out, status = pub.autopilot(g.evaluate(400 * MS), 400 * MS)
     assert status == "pose found" and out.reset_counter == 1
-    graph_with([0.2, 0, 0], 3, 410 * MS, g)  # small move: same counter
+    graph_with([0.2, 0, 0], 410_000, 410 * MS, g)  # small move: same counter
     assert pub.autopilot(g.evaluate(410 * MS), 410 * MS)[0].reset_counter == 1
-    graph_with([1.0, 0, 0], 4, 420 * MS, g)  # 0.8 m jump
+    graph_with([1.0, 0, 0], 420_000, 420 * MS, g)  # 0.8 m jump
     assert pub.autopilot(g.evaluate(420 * MS), 420 * MS)[0].reset_counter == 2
 
 

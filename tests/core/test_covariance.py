@@ -235,13 +235,16 @@ def test_detection_covariance_matches_monte_carlo():
 
 
 def test_attitude_ages_only_when_asked():
-    """age_sigma_rad_per_s grows an edge's attitude variance by (age x rate)^2 and nothing else."""
+    """age_sigma_rad_per_s grows an edge's attitude variance by (age x rate)^2 and nothing else; the age
+    is counted on the capture clock from the newest image of a live edge (here another entity's, 100 ms
+    newer), not from the evaluation's time."""
     C = covariance.diagonal(0.01, 0.02)
     poses = {}
     for rate in (0.0, 1.5):
-        g = TransformGraph(["world", "d"], 250 * MS, age_sigma_rad_per_s=rate)
+        g = TransformGraph(["world", "d", "e"], 250 * MS, age_sigma_rad_per_s=rate)
         g.update_edge(("c", 1), "world", "d", np.array([1.0, 0, 0]), np.array([0, 0, 0, 1.0]), 0.01, 0, 0, cov_a_b=C)
-        poses[rate] = g.evaluate(100 * MS).poses["d"]
+        g.update_edge(("c", 2), "world", "e", np.array([2.0, 0, 0]), np.array([0, 0, 0, 1.0]), 0.01, 0, 100_000)
+        poses[rate] = g.evaluate(150 * MS).poses["d"]
     np.testing.assert_allclose(poses[0.0].covariance, C, atol=1e-15)
     grown = C.copy()
     grown[[3, 4, 5], [3, 4, 5]] += (0.1 * 1.5) ** 2
@@ -321,9 +324,9 @@ def test_a_leaders_aged_attitude_swings_the_followers_pose_as_monte_carlo_says()
     p_ab, q_ab = np.array([-1.2, 0.1, 0.05]), Rotation.from_euler("ZYX", [-10, 3, 2], degrees=True)
     C_wa = np.diag([0.004**2] * 3 + [np.radians(0.5) ** 2] * 3)
     C_ab = np.diag([0.01**2] * 3 + [np.radians(1.5) ** 2] * 3)
-    g.update_edge((1, 10), "world", "a", p_wa, q_wa.as_quat(), 0.004, 0, 1, cov_a_b=C_wa)
-    now_ns = int(age_s * 1e9)
-    g.update_edge((2, 20), "a", "b", p_ab, q_ab.as_quat(), 0.01, now_ns, 2, cov_a_b=C_ab)
+    g.update_edge((1, 10), "world", "a", p_wa, q_wa.as_quat(), 0.004, 0, 0, cov_a_b=C_wa)
+    now_ns = int(age_s * 1e9)  # b's image is taken (and arrives) 80 ms after a's
+    g.update_edge((2, 20), "a", "b", p_ab, q_ab.as_quat(), 0.01, now_ns, now_ns // 1000, cov_a_b=C_ab)
     got = g.evaluate(now_ns).poses["b"]
     rng = np.random.default_rng(7)
     n = 20_000

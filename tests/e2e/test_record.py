@@ -135,7 +135,6 @@ def test_recording_as_it_flies_changes_no_output(runs: dict[str, Run], flight: t
     assert c["camera_cam_frames"] == plain.counters["camera_cam_frames"] == len(list(read_frames(flight[1], False)))
     assert c["accepted"] == plain.counters["accepted"] > 0
     assert c["autopilot_sent"] == len(run.poses) >= len(plain.poses) - SCHEDULING_SLACK
-    assert c["late_observations"] <= plain.counters["late_observations"] + SCHEDULING_SLACK
     # What was recorded: every frame detected (or counted as dropped), bit for bit, at its stamp.
     assert run.record_dir is not None
     (rec,) = list(run.record_dir.iterdir())

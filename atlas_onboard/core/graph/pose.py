@@ -151,7 +151,7 @@ class PosePhase:
         ``root``'s frame. ``out`` collects each entity's candidates when given. With ``goal`` (if
         reached), only the vertices of lower stages and ``goal`` itself get a pose."""
         vx = Vertices.at_root(len(self.names))
-        edges = _edge_terms(store, plan, now_ns, self.options)
+        edges = _edge_terms(store, plan, self.options)
         gated = 0
         for sel, runs, from_root in zip(plan.stages, plan.runs, plan.from_root, strict=True):
             cands = _compose(vx, edges.stage(sel), from_root)
@@ -264,17 +264,22 @@ class PosePhase:
         return poses
 
 
-def _edge_terms(store: EdgeStore, plan: Plan, now_ns: int, options: PoseOptions) -> StageEdges:
+def _edge_terms(store: EdgeStore, plan: Plan, options: PoseOptions) -> StageEdges:
     """The plan's edges as walked (parent -> child), aged. An edge's information ages (the entities may have
-    moved since it arrived): with ``age_sigma_m_per_s`` > 0 an edge of age a (s) counts with sigma
+    moved since its image was taken): with ``age_sigma_m_per_s`` > 0 an edge of age a (s) counts with sigma
     sqrt(sigma^2 + (a * age_sigma)^2), and its covariance grows likewise (the attitude's with
-    ``age_sigma_rad_per_s``); 0: the paper's method, every live edge counts as new."""
+    ``age_sigma_rad_per_s``); 0: the paper's method, every live edge counts as new. The age is counted from
+    the newest image of a live edge, on the capture clock: a pose is stamped with the capture time of its
+    newest image (and a chain's with its newest link's), so a lag common to all (the link, the queue,
+    this evaluation) ages nothing, while an edge older than the images it is combined with does."""
     row, direction = plan.row, plan.direction
     sigma_raw = store.sigma[row]
     sigma = sigma_raw
     c_edge = store.cov[direction, row]
-    if options.ageing:
-        age_s = np.maximum(now_ns - store.stamp[row], 0) / 1e9
+    if options.ageing and len(row):
+        capture = store.capture[row]
+        newest = store.capture[store.used].max()  # every live edge's: a partial evaluation ages as a full one
+        age_s = np.maximum(newest - capture, 0) / 1e6
         if options.age_sigma_m_per_s > 0.0:
             sigma = np.hypot(sigma_raw, age_s * options.age_sigma_m_per_s)
         grow = (sigma**2 - sigma_raw**2).clip(0.0)
