@@ -5,6 +5,7 @@ import itertools
 import json
 import os
 import socket
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -25,6 +26,27 @@ def run_and_score(scenario, duration, **kw):
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.bind(("127.0.0.1", port))
     return {e.entity: e for e in rep.entities}, rep
+
+
+def run_together(*runs):
+    """Several runs at once (each its own hub, autopilots and node processes; their nodes mostly wait
+    for frames), each as :func:`run_and_score` gives it: the suite's wall time, not the runs' load."""
+    with ThreadPoolExecutor(len(runs)) as pool:
+        return list(pool.map(lambda args: run_and_score(*args[:2], **args[2]), runs))
+
+
+_GAPS = {}
+
+
+def gaps_runs():
+    """The gaps scenario with the paper's method and with its EKF, run together once for both tests."""
+    if not _GAPS:
+        paper, ekf = run_together(
+            ("gaps", 8, {"world_overrides": {"fusion": PAPER}}),
+            ("gaps", 8, {"world_overrides": {"fusion": {**PAPER, "filter": "ekf"}}}),
+        )
+        _GAPS.update(paper=paper, ekf=ekf)
+    return _GAPS
 
 
 def test_paper_test1_self_localization():
@@ -115,8 +137,10 @@ PAPER = {
 def test_paths_dijkstra_beats_bfs_for_the_drone_with_a_noisy_short_path():
     """The lead sees a far wall tag (noisy) and is seen precisely by the wing, which the ceiling
     camera sees: BFS keeps only the direct edge, Dijkstra weighs the whole precise chain."""
-    bfs, rep_b = run_and_score("paths", 8, world_overrides={"fusion": PAPER})
-    dij, rep_d = run_and_score("paths", 8, world_overrides={"fusion": {**PAPER, "path": "dijkstra"}})
+    (bfs, rep_b), (dij, rep_d) = run_together(
+        ("paths", 8, {"world_overrides": {"fusion": PAPER}}),
+        ("paths", 8, {"world_overrides": {"fusion": {**PAPER, "path": "dijkstra"}}}),
+    )
     print(rep_b.table())
     print(rep_d.table())
     lead_b, lead_d = bfs["lead"], dij["lead"]
@@ -129,7 +153,7 @@ def test_paths_dijkstra_beats_bfs_for_the_drone_with_a_noisy_short_path():
 def test_gaps_availability_follows_the_expected_gaps():
     """With the paper's method the pose is published exactly when markers are in view: the reported
     availability tracks the expected one, which the occlusions keep well below 100 %."""
-    e, rep = run_and_score("gaps", 8, world_overrides={"fusion": PAPER})
+    e, rep = gaps_runs()["paper"]
     print(rep.table())
     d = e["drone"]
     assert d.expected_availability < 0.9
@@ -141,7 +165,7 @@ def test_gaps_the_ekf_keeps_the_pose_through_gaps_the_papers_method_cannot_bridg
     """The expected availability is what a node publishing every frame in view can reach (the paper's
     method tracks it, test above); the EKF predicts through the first 0.2 s of a gap, so its autopilot
     holds a fresh pose for clearly more of the time, and the predictions stay accurate."""
-    e, rep = run_and_score("gaps", 8, world_overrides={"fusion": {**PAPER, "filter": "ekf"}})
+    e, rep = gaps_runs()["ekf"]
     print(rep.table())
     d = e["drone"]
     assert d.availability >= d.expected_availability + 0.05, (d.availability, d.expected_availability)

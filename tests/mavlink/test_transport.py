@@ -248,7 +248,8 @@ def _origin_run(sim, origin, seconds=3.0):
     return transport
 
 
-def test_origin_after_a_restart_against_ardupilot_that_has_one_is_asked_for_never_set():
+@pytest.mark.parametrize("framing_mode", ["fast"], indirect=True)  # what is sent, not how framed
+def test_origin_after_a_restart_against_ardupilot_that_has_one_is_asked_for_never_set(framing_mode):
     from atlas_onboard.sim.autopilot import SimAutopilot
 
     sim = SimAutopilot(system_id=1, autopilot_type=3, origin=(47.1, 8.5, 400.0)).start()
@@ -261,7 +262,8 @@ def test_origin_after_a_restart_against_ardupilot_that_has_one_is_asked_for_neve
     assert sim.origin_requests == 1 and sim.origin == (47.1, 8.5, 400.0)
 
 
-def test_origin_set_once_on_ardupilot_without_one():
+@pytest.mark.parametrize("framing_mode", ["fast"], indirect=True)  # what is sent, not how framed
+def test_origin_set_once_on_ardupilot_without_one(framing_mode):
     from atlas_onboard.sim.autopilot import SimAutopilot
 
     sim = SimAutopilot(system_id=1, autopilot_type=3).start()
@@ -273,8 +275,9 @@ def test_origin_set_once_on_ardupilot_without_one():
     assert sim.origin == pytest.approx((49.6116, 6.1319, 300.0), abs=1e-6)
 
 
+@pytest.mark.parametrize("framing_mode", ["fast"], indirect=True)  # what is sent, not how framed
 @pytest.mark.parametrize("send_to_px4", [False, True])
-def test_origin_never_moves_px4s_local_frame(send_to_px4):
+def test_origin_never_moves_px4s_local_frame(send_to_px4, framing_mode):
     """PX4 v1.16 (``setAltOrigin``, modelled by the simulated autopilot): an origin altitude set after
     height initialisation shifts local z by it. The node sends none to PX4 unless asked, and then
     one that leaves the local height where it is."""
