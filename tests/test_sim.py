@@ -9,8 +9,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
+from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.command import score_run, write_outputs
-from atlas_onboard.sim.runner import WARMUP_S, SimOptions, run
+from atlas_onboard.sim.runner import WARMUP_S, SimOptions, _rendered_frames, run
 
 # The paper's method with ageing: what the replica files and relay/swarm ran before issue 19.
 AGEING = {"method": "paper", "age_sigma_m_per_s": 1.0}
@@ -49,6 +50,22 @@ def gaps_runs():
     return _GAPS
 
 
+_RELAY = {}
+
+
+def relay_runs():
+    """The relay scenario as it is and with drone_b's node killed at 4 s and restarted at 6 s, together."""
+    if not _RELAY:
+        faults = ((4.0, "kill", "drone_b"), (6.0, "start", "drone_b"))
+        # The images first, once (the runs then find them rendered, and start together).
+        _rendered_frames(scenarios.get("relay"), SimOptions(scenario="relay").seed, 11, lambda _text: None)
+        with ThreadPoolExecutor(2) as pool:
+            plain = pool.submit(run_and_score, "relay", 11)
+            fault = pool.submit(run, SimOptions(scenario="relay", duration_s=11, faults=faults))
+            _RELAY.update(plain=plain.result(), fault=fault.result())
+    return _RELAY
+
+
 def test_paper_test1_self_localization():
     """The replica's scene with the fusion its file had until the replicas ran the paper's method
     exactly (the paper's method with ageing); benchmarks/compare_methods.py measures the others."""
@@ -82,8 +99,8 @@ def test_paper_test2_entity_localization(tmp_path):
 
 
 def test_relay_localizes_a_drone_that_sees_no_world_marker():
-    # As long as the run with a fault below: the cameras' images are rendered once for both.
-    e, rep = run_and_score("relay", 11)
+    # As long as the run with a fault below, and at the same time: the images are rendered once for both.
+    e, rep = relay_runs()["plain"]
     print(rep.table())
     c = e["drone_c"]
     assert c.availability >= 0.95, f"availability {c.availability:.3f}"
@@ -108,7 +125,7 @@ def test_swarm_each_drone_within_its_expected_availability():
 def test_when_a_relay_drone_dies_its_follower_stops_then_resumes():
     """drone_b's node crashes at 4 s and restarts at 6 s: drone_c (localized only through B) must stop
     sending within the 250 ms edge timeout, and resume by itself once B is back."""
-    sim = run(SimOptions(scenario="relay", duration_s=11, faults=((4.0, "kill", "drone_b"), (6.0, "start", "drone_b"))))
+    sim = relay_runs()["fault"]
     t_c = sorted(r.arrival_s - sim.epoch_s for r in sim.autopilots["drone_c"].snapshot())
     t_a = sorted(r.arrival_s - sim.epoch_s for r in sim.autopilots["drone_a"].snapshot())
     stale = [t for t in t_c if 4.0 + 0.25 + 0.1 < t < 6.0]
