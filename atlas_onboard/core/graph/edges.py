@@ -130,6 +130,14 @@ class EdgeStore:
         edge = self.edges.get(key)
         return edge is not None and (edge.stamp_ns > arrival_ns or edge.capture_time_us > capture_time_us)
 
+    def remove(self, key: EdgeKey) -> bool:
+        """Remove the edge ``key`` if there is one; whether there was."""
+        edge = self.edges.pop(key, None)
+        if edge is None:
+            return False
+        self._release(edge.slot)
+        return True
+
     def _take(self) -> int:
         if not self.free:
             self._grow()

@@ -76,6 +76,8 @@ class TransformGraph:
         # since the last full evaluation, and whether there has been one.
         self._touched = np.zeros(len(names), dtype=bool)
         self._evaluated = False
+        # Each camera's newest view of each pair of entities: (capture time, the edges of that image).
+        self._views: dict[tuple[object, int, int], tuple[int, list[EdgeKey]]] = {}
 
     # --- settings and counters ----------------------------------------------------------------------
 
@@ -155,12 +157,25 @@ class TransformGraph:
         edge = Edge(key, a, b, p, q, float(sigma_m), int(now_ns), int(capture_time_us), cov)
         self._store.put(edge, anchored=key[0] in self.anchor_sensors)
         self._touched[a] = self._touched[b] = True
+        # A camera's newer image of an entity replaces its older views of it through other markers: the
+        # joint solve reports an entity through one of its markers, which changes from image to image,
+        # and the stale edge would otherwise be fused as new (without ageing) until it expires.
+        view = (key[0], a, b)
+        held = self._views.get(view)
+        if held is None or capture_time_us > held[0]:
+            for old in held[1] if held is not None else ():
+                if old != key:
+                    self._store.remove(old)
+            self._views[view] = (int(capture_time_us), [key])
+        elif capture_time_us == held[0] and key not in held[1]:
+            held[1].append(key)
 
     def clear(self) -> None:
         """Forget every edge."""
         self._touched[[e.a for e in self._store.edges.values()]] = True
         self._touched[[e.b for e in self._store.edges.values()]] = True
         self._store.clear()
+        self._views.clear()
 
     def expire(self, now_ns: int) -> int:
         """Remove edges older than the timeout (age > timeout); returns how many were removed."""

@@ -87,3 +87,21 @@ def test_an_observation_older_than_its_edge_is_superseded():
     assert not g.is_superseded((1, 1), 100 * MS, 5_000)
     assert not g.is_superseded((1, 1), 101 * MS, 5_001)
     assert not g.is_superseded((1, 2), 0, 0)  # no such edge yet
+
+
+def test_a_cameras_newer_view_of_an_entity_replaces_its_older_view_through_another_marker():
+    """The joint solve reports an entity through one of its markers, which changes from image to image:
+    camera 1's view of the drone through marker 5 at 0 ms is replaced by its view through marker 6 at
+    33 ms (else, without ageing, the stale view is fused as new for 250 ms and drags the pose). Views of
+    one image (the same capture time) are all kept, another camera's too, and an older image arriving
+    late replaces nothing."""
+    g = TransformGraph(["world", "d"], edge_timeout_ns=250 * MS)
+    g.update_edge((1, 5), "d", "world", np.zeros(3), np.array([0, 0, 0, 1.0]), 0.01, 0, 0)
+    g.update_edge((1, 7), "d", "world", np.zeros(3), np.array([0, 0, 0, 1.0]), 0.01, 0, 0)  # same image
+    g.update_edge((2, 5), "d", "world", np.zeros(3), np.array([0, 0, 0, 1.0]), 0.01, 0, 0)  # another camera
+    assert set(g.edges) == {(1, 5), (1, 7), (2, 5)}
+    g.update_edge((1, 6), "d", "world", np.array([0.1, 0, 0]), np.array([0, 0, 0, 1.0]), 0.01, 33 * MS, 33_000)
+    assert set(g.edges) == {(1, 6), (2, 5)}
+    g.update_edge((1, 5), "d", "world", np.zeros(3), np.array([0, 0, 0, 1.0]), 0.01, 40 * MS, 20_000)  # late
+    assert set(g.edges) == {(1, 5), (1, 6), (2, 5)}
+    np.testing.assert_allclose(g.evaluate(40 * MS).poses["d"].n_observations, 3)
