@@ -146,6 +146,20 @@ def _fields(msg) -> list:
     return [msg.get_type(), msg.get_srcSystem(), msg.get_srcComponent(), msg.get_seq(), repr(msg.to_dict())]
 
 
+def _parse_both(ours, theirs, pieces, rng, stream):
+    """What our parser and pymavlink's give for ``pieces`` read one per read, or (``stream``) for their
+    bytes cut at up to five random places."""
+    if stream:
+        data = b"".join(pieces)
+        cuts = sorted(int(c) for c in rng.integers(0, len(data) + 1, int(rng.integers(0, 6))))
+        pieces = [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)], strict=True)]
+    got, want = [], []
+    for piece in pieces:
+        got += ours.parse_buffer(piece) or []
+        want += theirs.parse_buffer(piece) or []
+    return got, want
+
+
 @given(
     kinds=st.lists(st.sampled_from(["frame", "obs", "frame", "bad_crc", "flag", "v1", "cut", "garbage"]), max_size=12),
     seed=st.integers(0, 2**32 - 1),
@@ -161,14 +175,7 @@ def test_whole_frames_parse_as_pymavlink_parses_any_stream(parsers, kinds, seed,
     rng = np.random.default_rng(seed)
     ours.deferred_ids = frozenset(t.id for t in d.mavlink_map.values()) if deferred else frozenset()
     pieces = _pieces(d, rng, kinds)
-    if stream:
-        data = b"".join(pieces)
-        cuts = sorted(int(c) for c in rng.integers(0, len(data) + 1, int(rng.integers(0, 6))))
-        pieces = [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)], strict=True)]
-    got, want = [], []
-    for piece in pieces:
-        got += ours.parse_buffer(piece) or []
-        want += theirs.parse_buffer(piece) or []
+    got, want = _parse_both(ours, theirs, pieces, rng, stream)
     for mine in got:
         if isinstance(mine, framing.Deferred):
             scalars = {name: getattr(mine, name) for name in framing._scalar_readers(mine._msgtype)}
@@ -275,14 +282,7 @@ def test_signed_frames_parse_as_pymavlink_parses_them(parsers, kinds, seed, stre
             if keyed == "allow_unsigned":
                 mav.signing.allow_unsigned_callback = lambda _mav, msg_id: msg_id == 0  # HEARTBEAT only
     pieces = _signed_pieces(d, rng, kinds)
-    if stream:
-        data = b"".join(pieces)
-        cuts = sorted(int(c) for c in rng.integers(0, len(data) + 1, int(rng.integers(0, 6))))
-        pieces = [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)], strict=True)]
-    got, want = [], []
-    for piece in pieces:
-        got += ours.parse_buffer(piece) or []
-        want += theirs.parse_buffer(piece) or []
+    got, want = _parse_both(ours, theirs, pieces, rng, stream)
     got = [m.decoded() if isinstance(m, framing.Deferred) else m for m in got]
     assert [_fields(m) for m in got] == [_fields(m) for m in want]
     assert [getattr(m, "_signed", None) for m in got] == [getattr(m, "_signed", None) for m in want]
