@@ -1,0 +1,178 @@
+"""The listener's resolution of planar ambiguity (:mod:`atlas_onboard.listener`): by the current
+estimates (:mod:`atlas_onboard.core.ambiguity`) and, with the autopilot's attitude, by gravity."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.config import WORLD
+from atlas_onboard.core import ambiguity, attitude
+from atlas_onboard.core.ambiguity import Verdict
+from atlas_onboard.core.graph import MAX_RATE_RAD_S, MAX_SPEED_M_S, EntityPose
+from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection, matrix_to_upper, upper_to_matrix
+from atlas_onboard.listener_covariance import _camera_spread, _matrices, _rotation_sigma
+
+
+class AmbiguityResolution:
+    """The ambiguity steps of :class:`atlas_onboard.listener.Listener` (its base): they use the listener's
+    attributes (mountings, estimates, thresholds, the attitude source), set up by its constructor."""
+
+    def _resolve_ambiguity(
+        self,
+        valid: list[MarkerData],
+        R2: NDArray[np.float64],
+        p2: NDArray[np.float64],
+        q2: NDArray[np.float64],
+        notes: list[str],
+        C_sm: NDArray[np.float64] | None = None,
+    ) -> tuple[dict[int, Rejection], set[int]]:
+        """Resolve the ambiguous observations among ``valid`` in place in their detections: rotation
+        matrices ``R2`` (N, 3, 3), positions ``p2`` (N, 3) and rotations ``q2`` (N, 4, x first), batched.
+
+        Returns the rejections by index into ``valid`` and the indices swapped to the other
+        solution; appends counter names to ``notes``.
+        """
+        rejected: dict[int, Rejection] = {}
+        swapped: set[int] = set()
+        todo: list[tuple[int, EntityPose, EntityPose]] = []
+        by_tilt = self._resolve_by_tilt(valid, R2, p2, q2, notes, rejected, swapped, C_sm) if self._up_at else set()
+        for j, md in enumerate(valid):
+            state = md.alt_state()
+            if state is AltState.INVALID:
+                notes.append("alt_ignored")
+            if j in by_tilt or not md.ambiguity_ratio > self.ambiguity_threshold:  # nan (unknown) passes
+                continue
+            if state is not AltState.VALID:
+                rejected[j] = Rejection.AMBIGUOUS
+                continue
+            est_a = self._estimates.get(self._sensor[md.sensor_id][0])
+            est_b = self._estimates.get(self._marker[md.marker_id][0])
+            if est_a is None or est_b is None or est_a.frame != est_b.frame:
+                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+                notes.append(f"ambiguity_{Verdict.NO_PREDICTION.value}")
+                continue
+            todo.append((j, est_a, est_b))
+        if not todo:
+            return rejected, swapped
+        idx = [j for j, _, _ in todo]
+        # Predicted T_sensor_marker = T1^-1 * T_frame_observer^-1 * T_frame_observed * T3 (eq. 1 backwards).
+        W_a = _matrices(np.array([a.p_world_m for _, a, _ in todo]), np.array([a.q_world_xyzw for _, a, _ in todo]))
+        W_b = _matrices(np.array([b.p_world_m for _, _, b in todo]), np.array([b.q_world_xyzw for _, _, b in todo]))
+        T1_inv = np.array([self._sensor_inv[valid[j].sensor_id] for j in idx])
+        T3 = np.array([self._marker_fwd[valid[j].marker_id] for j in idx])
+        pred = T1_inv @ np.linalg.inv(W_a) @ W_b @ T3
+        p_a = p2[idx]
+        p_b = np.array([valid[j].p_sensor_marker_alt_m for j in idx])
+        q_b = np.array([valid[j].q_sensor_marker_alt_xyzw() for j in idx])
+
+        # The estimates' frame root (world) is exact; every other entity has the assumed attitude error,
+        # plus what it may have turned and moved between its estimate's capture and this observation's
+        # (a stale estimate must not pick the flipped solution: it leaves the observation undecided).
+        def motion(est: EntityPose, md: MarkerData) -> tuple[float, float]:
+            if est.name == est.frame:
+                return 0.0, 0.0
+            age_s = max(md.capture_time_us - est.capture_time_us, 0) / 1e6
+            return float(np.hypot(self.attitude_sigma_rad, MAX_RATE_RAD_S * age_s)), MAX_SPEED_M_S * age_s
+
+        move_a = np.array([motion(a, valid[j]) for j, a, _ in todo])
+        move_b = np.array([motion(b, valid[j]) for j, _, b in todo])
+        sigma_rad, sigma_m = ambiguity.prediction_sigmas(
+            np.linalg.norm(p_a, axis=1), np.array([valid[j].sigma_m for j in idx]),
+            np.hypot([a.sigma_m for _, a, _ in todo], move_a[:, 1]),
+            np.hypot([b.sigma_m for _, _, b in todo], move_b[:, 1]), move_a[:, 0], move_b[:, 0],
+        )  # fmt: skip
+        verdicts, _, _ = ambiguity.resolve_arrays(
+            p_a, q2[idx], p_b, q_b,
+            pred[:, :3, 3], Rotation.from_matrix(pred[:, :3, :3]).as_quat(),
+            sigma_rad, sigma_m, self.gate_r2, self.min_likelihood_ratio,
+        )  # fmt: skip
+        for j, verdict in zip(idx, verdicts, strict=True):
+            if verdict is Verdict.ALT:
+                alt = Rotation.from_quat(valid[j].q_sensor_marker_alt_xyzw())
+                R2[j] = alt.as_matrix()
+                q2[j] = alt.as_quat()
+                p2[j] = valid[j].p_sensor_marker_alt_m
+                swapped.add(j)
+                notes.append("ambiguity_swapped")
+            if verdict.decided:
+                notes.append("ambiguity_resolved")
+            else:
+                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+                notes.append(f"ambiguity_{verdict.value}")
+        return rejected, swapped
+
+    def _resolve_by_tilt(
+        self,
+        valid: list[MarkerData],
+        R2: NDArray[np.float64],
+        p2: NDArray[np.float64],
+        q2: NDArray[np.float64],
+        notes: list[str],
+        rejected: dict[int, Rejection],
+        swapped: set[int],
+        C_sm: NDArray[np.float64] | None = None,
+    ) -> set[int]:
+        """The MegaTag2 step: observations between the attitude's entity and the world that carry both
+        solutions, decided by gravity (swapped in place, or rejected). Returns the indices decided.
+
+        A kept solution of the own camera with a detection covariance is then updated with the
+        autopilot's up vector (:func:`atlas_onboard.core.attitude.constrain_tilt`): ``valid[j]`` gets
+        the new covariance and a sigma scaled as its camera-position spread shrank, ``C_sm[j]`` too."""
+        up_at, own = self._up_at, self._up_entity
+        if up_at is None:
+            return set()
+        decided: set[int] = set()
+        for j, md in enumerate(valid):
+            observer, observed = self._sensor[md.sensor_id][0], self._marker[md.marker_id][0]
+            if not ((observer == own and observed == WORLD) or (observer == WORLD and observed == own)):
+                continue
+            if md.alt_state() is not AltState.VALID:
+                continue
+            up = up_at(md.capture_time_us)
+            if up is None:
+                notes.append("attitude_unavailable")
+                continue
+            R_alt = Rotation.from_quat(md.q_sensor_marker_alt_xyzw()).as_matrix()
+            R_pair = np.stack([R2[j], R_alt])  # R_sensor_marker of both solutions
+            M_es = self._sensor[md.sensor_id][1][:3, :3]
+            M_em = self._marker_fwd[md.marker_id][:3, :3]
+            if observer == own:  # R_world_body = R_world_marker R_sensor_marker^-1 R_body_sensor^-1
+                R_wb = M_em @ R_pair.transpose(0, 2, 1) @ M_es.T
+            else:  # a world camera sees the own marker: R_world_body = R_world_sensor R_sensor_marker R_body_marker^-1
+                R_wb = M_es @ R_pair @ M_em.T
+            rng = float(np.linalg.norm(p2[j]))
+            check = attitude.choose_by_tilt(
+                Rotation.from_matrix(R_wb[0]), Rotation.from_matrix(R_wb[1]), up, _rotation_sigma(md, rng)
+            )
+            notes.append(f"attitude_{check.verdict.value}")
+            if check.verdict is attitude.TiltVerdict.ALT:
+                R2[j], q2[j] = R_alt, md.q_sensor_marker_alt_xyzw()
+                p2[j] = md.p_sensor_marker_alt_m
+                swapped.add(j)
+            elif check.verdict is attitude.TiltVerdict.NEITHER:
+                rejected[j] = Rejection.ATTITUDE_MISMATCH
+            if check.verdict is not attitude.TiltVerdict.BOTH:
+                decided.add(j)
+            kept = check.verdict is attitude.TiltVerdict.PRIMARY or (
+                check.verdict is attitude.TiltVerdict.BOTH and not md.ambiguity_ratio > self.ambiguity_threshold
+            )
+            if kept and observer == own and md.covariance:
+                C = C_sm[j] if C_sm is not None else upper_to_matrix(np.array([md.covariance]))[0]
+                new = attitude.constrain_tilt(p2[j], R2[j], C, M_es, M_em, up)
+                scale = _camera_spread(new.p_sensor_marker_m, new.R_sensor_marker, new.covariance) / max(
+                    _camera_spread(p2[j], R2[j], C), 1e-300
+                )
+                R2[j], p2[j] = new.R_sensor_marker, new.p_sensor_marker_m
+                q2[j] = Rotation.from_matrix(new.R_sensor_marker).as_quat()
+                valid[j] = replace(
+                    md, covariance=matrix_to_upper(new.covariance), sigma_m=md.sigma_m * math.sqrt(min(scale, 1.0))
+                )
+                if C_sm is not None:
+                    C_sm[j] = new.covariance
+                notes.append("attitude_constrained")
+        return decided

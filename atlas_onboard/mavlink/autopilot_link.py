@@ -1,0 +1,173 @@
+"""The autopilot side of :class:`~atlas_onboard.mavlink.transport.MavlinkTransport`: the autopilot's
+HEARTBEAT, TIMESYNC answers, the EKF origin, its attitude (issue 19) and the pose sent to it."""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.errors import AtlasError
+from atlas_onboard.mavlink import autopilot, codec
+from atlas_onboard.mavlink.link import Link
+from atlas_onboard.publisher import AutopilotPose
+
+_logger = logging.getLogger("atlas_onboard.mavlink.transport")  # the transport's log, as before the split
+
+NS = 1_000_000_000
+MAV_AUTOPILOT_PX4 = autopilot.MAV_AUTOPILOT_PX4
+MAV_COMP_ID_AUTOPILOT1 = 1
+ORIGIN_REQUEST_NS = NS // 2  # GPS_GLOBAL_ORIGIN asked for this often until the autopilot reports one
+ORIGIN_UNANSWERED = 2  # requests unanswered before SET_GPS_GLOBAL_ORIGIN (then twice as many each time)
+ATTITUDE_INTERVAL_US = 20_000  # ATTITUDE asked for at 50 Hz (MAV_CMD_SET_MESSAGE_INTERVAL) when it does not come
+ATTITUDE_WAIT_NS = 2 * NS  # silence after which ATTITUDE is asked for again (at most ATTITUDE_ASKS times)
+ATTITUDE_ASKS = 5
+MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
+
+
+class AutopilotSide:
+    """The autopilot's half of :class:`~atlas_onboard.mavlink.transport.MavlinkTransport` (its base): it uses
+    the transport's attributes (autopilot link, config, counters, attitude history, clocks), set up there."""
+
+    def attitude_at(self, t_us: int) -> Rotation | None:
+        """The autopilot's attitude at ``t_us`` (wall clock, us) as a scipy Rotation of the body FLU in a
+        level ENU frame of the autopilot's heading, or None (see :meth:`AttitudeHistory.attitude_at`)."""
+        return self.attitude.attitude_at(t_us)
+
+    def send_autopilot(self, pose: AutopilotPose) -> None:
+        """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity; a non-finite pose is counted, not sent."""
+        if self.autopilot is None or self.config.autopilot is None:
+            return
+        d = self.autopilot.dialect
+        speed = None
+        try:
+            if self.config.autopilot.output.value == "odometry":
+                msg = codec.odometry(d, pose.pose, pose.reset_counter)
+            else:
+                msg = codec.vision_position_estimate(d, pose.pose, pose.reset_counter)
+                speed = codec.vision_speed_estimate(d, pose.pose, pose.reset_counter)
+        except AtlasError as exc:
+            self.counters_.inc("autopilot_pose_refused")
+            _logger.debug("pose not sent to the autopilot: %s", exc)
+            return
+        self.autopilot.send(msg)
+        if speed is not None:
+            self.autopilot.send(speed)  # the EKF velocity, for ArduPilot (EK3_SRC1_VELXY=6); PX4 ignores it
+
+    def _attitude_tick(self, now_ns: int) -> None:
+        """Ask the autopilot for ATTITUDE (MAV_CMD_SET_MESSAGE_INTERVAL) when none came for
+        ATTITUDE_WAIT_NS after its HEARTBEAT; at most ATTITUDE_ASKS times (a link without it works as before)."""
+        if self.autopilot is None or self.autopilot_system is None or self._attitude_asks >= ATTITUDE_ASKS:
+            return
+        last = self.attitude.latest_us()
+        if last is not None and self._wall_ns() // 1000 - last < ATTITUDE_WAIT_NS // 1000:
+            return
+        if self._next_attitude_ask_ns == 0:
+            self._next_attitude_ask_ns = now_ns + ATTITUDE_WAIT_NS  # give the autopilot's own streams a chance
+        if now_ns < self._next_attitude_ask_ns:
+            return
+        self._next_attitude_ask_ns = now_ns + ATTITUDE_WAIT_NS
+        self._attitude_asks += 1
+        fields = autopilot.set_message_interval_fields(
+            self.autopilot_system, self.autopilot_component or 0, autopilot.MSG_ATTITUDE, ATTITUDE_INTERVAL_US
+        )
+        self.autopilot.send(self.autopilot.dialect.MAVLink_command_long_message(**fields))
+        self.counters_.inc("attitude_requested")
+
+    def _on_attitude(self, msg: Any, arrival_ns: int) -> None:
+        """ATTITUDE or ATTITUDE_QUATERNION into the history, stamped on the wall clock (see BootClock)."""
+        try:
+            if msg.get_type() == "ATTITUDE":
+                R = autopilot.attitude_level_flu(msg.roll, msg.pitch, msg.yaw)
+            else:
+                R = autopilot.attitude_quaternion_level_flu((msg.q1, msg.q2, msg.q3, msg.q4))
+        except AtlasError:
+            self.counters_.inc("attitude_rejected")
+            return
+        arrival_wall_us = (self._wall_ns() - (time.monotonic_ns() - arrival_ns)) // 1000
+        self.attitude.add(self._boot_clock.wall_us(int(msg.time_boot_ms) * 1000, arrival_wall_us), R)
+
+    def _origin_tick(self, now_ns: int) -> None:
+        """The EKF origin: asked for (MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) every
+        ORIGIN_REQUEST_NS until the autopilot reports one; set (SET_GPS_GLOBAL_ORIGIN) only after
+        ORIGIN_UNANSWERED requests went unanswered, each later set after twice as many. ArduPilot
+        with an origin ignores SET_GPS_GLOBAL_ORIGIN without a word, so sending it blindly would only
+        repeat. PX4 needs no origin to hold position, and v1.16 shifts its local height by a new
+        origin's altitude once height is initialised (ekf2 ``setAltOrigin``): it gets one only with
+        ``origin.send_to_px4``, and then at altitude 0, where neither branch of that rule moves the
+        local frame (an origin altitude of 0 or none)."""
+        ap = self.config.autopilot
+        if ap is None or ap.origin is None or self.origin_known or self.autopilot is None:
+            return
+        if self.autopilot_type is None or now_ns < self._next_origin_ns:
+            return  # the autopilot's HEARTBEAT first: what to send depends on which autopilot it is
+        px4 = self.autopilot_type == MAV_AUTOPILOT_PX4
+        if px4 and not ap.origin.send_to_px4:
+            if not self._origin_skipped:
+                self._origin_skipped = True
+                _logger.info("PX4 needs no EKF origin to hold position: autopilot.origin not sent (see send_to_px4)")
+            return
+        self._next_origin_ns = now_ns + ORIGIN_REQUEST_NS
+        target = self.autopilot_system if self.autopilot_system is not None else self.config.system_id
+        d = self.autopilot.dialect
+        if self._origin_unanswered >= ORIGIN_UNANSWERED << min(self._origin_sets, 4):
+            alt_m = 0.0 if px4 else ap.origin.alt_m
+            fields = autopilot.set_gps_global_origin_fields(
+                target, ap.origin.lat_deg, ap.origin.lon_deg, alt_m, int(self.wall() * 1e6)
+            )
+            self.autopilot.send(d.MAVLink_set_gps_global_origin_message(**fields))
+            self.counters_.inc("origin_set_sent")
+            self._origin_sets += 1
+            self._origin_unanswered = 0
+            _logger.info("autopilot reports no EKF origin: SET_GPS_GLOBAL_ORIGIN sent (altitude %.1f m)", alt_m)
+        fields = autopilot.request_message_fields(
+            target, self.autopilot_component or 0, autopilot.MSG_GPS_GLOBAL_ORIGIN
+        )
+        self.autopilot.send(d.MAVLink_command_long_message(**fields))
+        self._origin_unanswered += 1
+
+    def _on_autopilot(self, link: Link, msg: Any, arrival_ns: int) -> None:
+        kind = msg.get_type()
+        if kind == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
+            source = (msg.get_srcSystem(), msg.get_srcComponent())
+            if self.autopilot_system is not None and source != (self.autopilot_system, self.autopilot_component):
+                if source[1] != MAV_COMP_ID_AUTOPILOT1:
+                    return  # another component of the vehicle (a gimbal, a camera): the autopilot stays
+            if self.autopilot_system is None:
+                _logger.info(
+                    "autopilot found: system %d, component %d, autopilot type %d",
+                    msg.get_srcSystem(), msg.get_srcComponent(), msg.autopilot,
+                )  # fmt: skip
+                if msg.get_srcSystem() != self.config.system_id:
+                    _logger.warning(
+                        "autopilot's system id %d differs from system_id %d in the node settings",
+                        msg.get_srcSystem(), self.config.system_id,
+                    )  # fmt: skip
+            self.autopilot_system = msg.get_srcSystem()
+            self.autopilot_component = msg.get_srcComponent()
+            self.autopilot_type = msg.autopilot
+        elif kind == "TIMESYNC":
+            # Answer only the autopilot's own requests (PX4 trusts our usec once this converges), on
+            # the wall clock of our usec stamps, addressed to it: behind a router a GCS's or MAVSDK's
+            # request also arrives here, and an answer to it would reach PX4 as a bogus reply.
+            requester = (msg.get_srcSystem(), msg.get_srcComponent())
+            if requester != (self.autopilot_system, self.autopilot_component):
+                if msg.tc1 == 0:
+                    self.counters_.inc("timesync_not_from_autopilot")
+                return
+            target = getattr(msg, "target_system", 0)
+            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, self._wall_ns(), requester, link.system_id, target)
+            if reply is not None:
+                link.send(link.dialect.MAVLink_timesync_message(**reply))
+        elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION"):
+            if (msg.get_srcSystem(), msg.get_srcComponent()) == (self.autopilot_system, self.autopilot_component):
+                self._on_attitude(msg, arrival_ns)
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            if not self.origin_known:
+                _logger.info(
+                    "autopilot reports its EKF origin (%.7f, %.7f, %.1f m): no more requests",
+                    msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3,
+                )  # fmt: skip
+            self.origin_known = True

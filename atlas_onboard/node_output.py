@@ -1,0 +1,218 @@
+"""The node's output side: evaluating the graph, the autopilot's pose (the EKF's, if enabled), fused poses
+to peers, telemetry, the lateness report, counters and the status line (the loop is in :mod:`atlas_onboard.node`)."""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from dataclasses import dataclass
+
+from atlas_onboard.config import WorldConfig
+from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_ATTITUDE_SIGMA_RAD, MANOEUVRE_TIME_S, EkfSettings
+from atlas_onboard.core.ekfbank import EkfBank
+from atlas_onboard.core.graph import EntityPose, GraphResult
+from atlas_onboard.core.markerdata import Rejection
+from atlas_onboard.publisher import PoseState, Telemetry
+from atlas_onboard.schedule import near_entities
+
+_logger = logging.getLogger("atlas_onboard.node")  # the node's log, as before the split
+
+NS = 1_000_000_000
+PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms
+TELEMETRY_NS = NS  # graphable values to the ground station once a second
+
+
+# An own camera's observation is late when it is older, as the loop takes it, than this beyond the
+# smallest age seen (the pipeline's fixed delay; under a simulator or a test, the offset of its
+# clock): beyond what the autopilots compensate (PX4 EKF2_EV_DELAY <= 300 ms; ArduPilot marks vision
+# older than 300 ms unhealthy). It is still used, its pose published, stamped with its capture time.
+LATE_S = 0.3
+LATE_REPORT_NS = 10 * NS  # at most one log line and one STATUSTEXT about lateness per 10 s
+LATE_STREAK = 3  # said once this many images in a row were late (one late image is a hiccup, not a lag)
+
+
+@dataclass
+class Stats:
+    local_observations: int = 0
+    peer_observations: int = 0
+    evaluations: int = 0
+    autopilot_sent: int = 0
+    fused_sent: int = 0
+    superseded: int = 0  # parked peer observations replaced by a newer one of the same edge before use
+    late_observations: int = 0  # own camera's observations older than LATE_S when taken (still used)
+
+
+class NodeOutput:
+    """The part of :class:`atlas_onboard.node.Node` that evaluates and sends; it uses the node's attributes
+    (graph, listener, publisher, ekf, transport, stats, clocks), set up by the node's constructor."""
+
+    def _report_late(self, age_s: float) -> None:
+        """Own observations arrive ``age_s`` later than the promptest did (a file replayed every frame, a
+        detector that cannot keep up): counted always, said at most every ``LATE_REPORT_NS`` in the log
+        and as a STATUSTEXT. They are used all the same: a pose stamped with its capture time is valid."""
+        now = self.clock()
+        if now < self._next_late_report_ns:
+            return
+        self._next_late_report_ns = now + LATE_REPORT_NS
+        _logger.warning(
+            "%s: camera observations arrive %.2f s late (more than the autopilot compensates, %.1f s):"
+            " the detector or a replay cannot keep up; poses still go out, stamped with their capture time",
+            self.config.entity, age_s, LATE_S,
+        )  # fmt: skip
+        self.transport.send_status(f"atlas {self.config.entity}: vision {age_s:.1f} s late", 4)  # WARNING
+
+    def _evaluate_and_publish(self, now: int, own_first: bool = False) -> None:
+        """The part of :meth:`_step` that can give the autopilot a pose. With ``own_first`` (new
+        observations that can move the own pose, :meth:`_process`), only the own pose is evaluated
+        when that is possible (see :meth:`_evaluate`)."""
+        expiry = self.graph.next_expiry_ns()
+        expired = expiry is not None and now >= expiry
+        if self.changes.due(now) or expired:
+            self._evaluate(now, own_only=own_first and not expired)
+            self._publish(now)
+        elif self.last_result is not None:
+            held = self.publisher.next_autopilot_ns()
+            due_hold = held is not None and now >= held and self.publisher.has_pose
+            if due_hold or (self.ekf is not None and now - self._last_publish_ns >= PREDICT_NS):
+                self._publish(now)
+
+    def _duties(self, now: int) -> None:
+        """The rest: fused poses to peers, the links' periodic messages, systemd, the status line."""
+        if self.publisher.fused_due(now) and self.last_result is not None:
+            self.transport.send_fused(fused_poses(self.last_result), self.world)
+            self.stats.fused_sent += 1
+        if now >= self._next_telemetry_ns:
+            self._next_telemetry_ns = now + TELEMETRY_NS
+            self._send_telemetry(now)
+        self.transport.tick(now)
+        for cam in self.cameras:  # a camera's detector's warnings (a marker that disagrees), rate-limited there
+            for text in getattr(cam, "take_status", tuple)():
+                self.transport.send_status(text, 4)  # WARNING
+        if now >= self._next_watchdog_ns:
+            self._notify("WATCHDOG=1")
+            self._next_watchdog_ns = now + self.watchdog_interval_ns
+        if now >= self._next_status_ns:
+            if self._next_status_ns:
+                self._log_status()
+            self._next_status_ns = now + int(self.config.status_interval_s * NS)
+
+    def _evaluate(self, now: int, own_only: bool = False) -> None:
+        """Evaluate the graph. With ``own_only``, and when the paper's BFS has placed the own entity
+        (and no filter needs every entity's candidates), only the own pose and those it rests on are
+        computed (the same pose as a full evaluation); the others keep their last poses and are
+        evaluated together within ``COALESCE_NS``, unless the graph says those are still current."""
+        partial = own_only and self._near is not None and self.ekf is None
+        self.listener.forget_expired(now)
+        result = self.graph.evaluate(now, target=self.config.entity if partial else None, previous=self.last_result)
+        if result.complete:
+            self.changes.evaluated(now, complete=True)
+        else:  # a full evaluation is not needed when it would give every other entity the pose it has
+            self.changes.evaluated(now, complete=False, rest_unchanged=result.current)
+        self.last_result = result
+        bfs = self.world.fusion.path == "bfs"
+        self._near = near_entities(self.config.entity, result.levels if bfs else None)
+        self.listener.set_estimates(result.poses)
+        self.stats.evaluations += 1
+        if self.ekf is not None:
+            self.ekf.update(result, self.wall() // 1000, only=self.config.entity)
+
+    def _publish(self, now: int) -> None:
+        """The autopilot's pose from the last evaluation (the EKF's, predicted to now, if enabled)."""
+        assert self.last_result is not None
+        self._last_publish_ns = now
+        result = self.last_result
+        if self.ekf is not None:
+            # The autopilot gets the filter's pose predicted to now (stamped now), at its rate.
+            result = self.ekf.poses(result, self.wall() // 1000, only=self.config.entity)
+        out, status = self.publisher.autopilot(result, now)
+        if status is not None:
+            lost = status == "pose lost"
+            _logger.log(logging.WARNING if lost else logging.INFO, "%s: %s", self.config.entity, status)
+            self.transport.send_status(f"atlas {self.config.entity}: {status}", 4 if lost else 6)  # WARNING / INFO
+            self.transport.set_pose_state(PoseState.LOST if lost else PoseState.ACTIVE)
+        if out is not None and self.config.autopilot is not None:
+            pose = out.pose
+            _logger.debug("pose cap %d p %s n %d", pose.capture_time_us, pose.p_world_m, pose.n_observations)
+            self.transport.send_autopilot(out)
+            self.stats.autopilot_sent += 1
+            self._reset_store.save(out.reset_counter)
+            self._latency_sum_ms += (self.wall() // 1000 - pose.capture_time_us) / 1000.0
+            self._latency_n += 1
+
+    def _send_telemetry(self, now: int) -> None:
+        """The ground station's graphable values over the period since the last call."""
+        since_ns, since_local = self._telemetry_since
+        self._telemetry_since = (now, self.stats.local_observations)
+        period_s = (now - since_ns) / NS
+        pose = self.last_result.poses.get(self.config.entity) if self.last_result is not None else None
+        latency = self._latency_sum_ms / self._latency_n if self._latency_n else float("nan")
+        self._latency_sum_ms, self._latency_n = 0.0, 0
+        self.transport.send_telemetry(
+            Telemetry(
+                sigma_m=pose.sigma_m if pose is not None and self.publisher.has_pose else float("nan"),
+                detections_hz=(self.stats.local_observations - since_local) / period_s if period_s > 0 else 0.0,
+                latency_ms=latency,
+            )
+        )
+
+    def counters(self) -> dict[str, int]:
+        """Every counter of the node: rejections by reason, drops, rates, links, cameras."""
+        out: dict[str, int] = self.listener.rejected.snapshot()
+        out.update(
+            accepted=self.listener.accepted,
+            inbox_dropped=self.inbox.dropped + self.parking.dropped,
+            local_observations=self.stats.local_observations,
+            peer_observations=self.stats.peer_observations,
+            evaluations=self.stats.evaluations,
+            autopilot_sent=self.stats.autopilot_sent,
+            autopilot_rate_suppressed=self.publisher.suppressed_rate,
+            fused_sent=self.stats.fused_sent,
+            superseded=self.stats.superseded + self.parking.superseded,
+            late_observations=self.stats.late_observations,
+            reset_counter=self.publisher.reset_counter,
+        )
+        out.update(self.listener.counters.snapshot())  # ambiguity resolved / swapped / undecided, alt ignored
+        out[Rejection.OUTLIER.counter] = out.get(Rejection.OUTLIER.counter, 0) + self.graph.gated_total
+        if self.ekf is not None:
+            out.update({f"ekf_{k}": v for k, v in self.ekf.outcomes.items()})
+        for name, n in self.transport.counters().items():  # a reason both refuse for (unknown_sensor): summed
+            out[name] = out.get(name, 0) + n
+        for cam in self.cameras:
+            out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})
+        return out
+
+    def _log_status(self, final: bool = False) -> None:
+        c = Counter(self.counters())
+        text = " ".join(f"{k}={v}" for k, v in sorted(c.items()))
+        _logger.info("%s %s", "final" if final else "status", text)
+
+    def _notify(self, *lines: str) -> None:
+        if self.notifier is not None:
+            self.notifier.notify(*lines)  # type: ignore[attr-defined]
+
+
+def fused_poses(result: GraphResult) -> list[EntityPose]:
+    """What goes to peers and the GCS: every world pose, then (with ``relative_poses``) the pose of
+    each entity of a group with no path to world relative to the group's first entity (its frame)."""
+    poses = list(result.poses.values())
+    for group in result.relative.values():
+        poses += [p for p in group.values() if p.name != p.frame]
+    return poses
+
+
+def _make_ekf(world: WorldConfig) -> EkfBank | None:
+    f = world.fusion
+    if f.filter != "ekf":
+        return None
+    # The attitude is held between updates (see EkfSettings.constant_rate): the autopilot's gyros
+    # know the rates far better than a camera does.
+    settings = EkfSettings(
+        accel_noise=f.ekf_accel_noise,
+        max_gap_s=f.ekf_max_predict_s,
+        constant_rate=False,
+        attitude_sigma_rad=MANOEUVRE_ATTITUDE_SIGMA_RAD,
+        manoeuvre_accel_sigma=MANOEUVRE_ACCEL_SIGMA,
+        manoeuvre_time_s=MANOEUVRE_TIME_S,
+        estimate_accel=False,
+    )
+    return EkfBank(settings, max_predict_s=f.ekf_max_predict_s)
