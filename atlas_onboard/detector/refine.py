@@ -42,6 +42,24 @@ def _side_normal(
     return d, n
 
 
+def _crossings(
+    lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]], corners: NDArray[np.float64]
+) -> NDArray[np.float64] | None:
+    """The corners (4, 2) where adjacent fitted edges (point, direction) cross; None where two are
+    parallel or a corner moved more than 2 px from ``corners`` (a fit that moves it this far is wrong)."""
+    out = np.empty_like(corners)
+    for i in range(4):
+        (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
+        A = np.array([d1, -d2]).T
+        if abs(np.linalg.det(A)) < 1e-9:
+            return None
+        s, _ = np.linalg.solve(A, p2 - p1)
+        out[i] = p1 + s * d1
+    if np.abs(out - corners).max() > 2.0:
+        return None
+    return out
+
+
 def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDArray[np.float64]:
     """Corners (4, 2), pixel-centre convention, refined on ``gray``; unchanged where a fit fails."""
     img = gray.astype(np.float32)
@@ -78,17 +96,8 @@ def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDA
         mean = e.mean(axis=0)
         _, _, vt = np.linalg.svd(e - mean)
         lines.append((mean, vt[0]))
-    out = np.empty_like(corners)
-    for i in range(4):
-        (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
-        A = np.array([d1, -d2]).T
-        if abs(np.linalg.det(A)) < 1e-9:
-            return corners
-        s, _ = np.linalg.solve(A, p2 - p1)
-        out[i] = p1 + s * d1
-    if np.abs(out - corners).max() > 2.0:  # a fit that moves a corner this far is wrong: keep OpenCV's
-        return corners
-    return out
+    out = _crossings(lines, corners)
+    return corners if out is None else out  # no fit: keep OpenCV's
 
 
 def refine_corners_undistorted(
@@ -156,15 +165,8 @@ def refine_corners_undistorted(
         lag1 += float(r[1:] @ r[:-1])
         u = (e - mean) @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
-    out = np.empty_like(corners_und)
-    for i in range(4):
-        (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
-        A = np.array([d1, -d2]).T
-        if abs(np.linalg.det(A)) < 1e-9:
-            return None
-        s, _ = np.linalg.solve(A, p2 - p1)
-        out[i] = p1 + s * d1
-    if np.abs(out - corners_und).max() > 2.0:
+    out = _crossings(lines, corners_und)
+    if out is None:
         return None
     scatter2 = ss / max(sum(npts) - 8, 1)  # two parameters a line
     # Two lines crossing at an angle phi place their crossing 1 / sin(phi) less precisely than
