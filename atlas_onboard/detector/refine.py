@@ -26,6 +26,40 @@ SHIFT_FLOOR_PX = 0.02
 MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
 
 
+def _side_normal(
+    a: NDArray[np.float64], b: NDArray[np.float64], center: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """The side from corner ``a`` to ``b`` (its vector) and its unit normal pointing out of the marker
+    (``center``: the corners' mean); None for a side shorter than 8 px (no edge to fit)."""
+    d = b - a
+    length = float(np.linalg.norm(d))
+    if length < 8:
+        return None
+    u = d / length
+    n = np.array([-u[1], u[0]])
+    if n @ (center - a) > 0:  # normal pointing out of the marker
+        n = -n
+    return d, n
+
+
+def _crossings(
+    lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]], corners: NDArray[np.float64]
+) -> NDArray[np.float64] | None:
+    """The corners (4, 2) where adjacent fitted edges (point, direction) cross; None where two are
+    parallel or a corner moved more than 2 px from ``corners`` (a fit that moves it this far is wrong)."""
+    out = np.empty_like(corners)
+    for i in range(4):
+        (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
+        A = np.array([d1, -d2]).T
+        if abs(np.linalg.det(A)) < 1e-9:
+            return None
+        s, _ = np.linalg.solve(A, p2 - p1)
+        out[i] = p1 + s * d1
+    if np.abs(out - corners).max() > 2.0:
+        return None
+    return out
+
+
 def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDArray[np.float64]:
     """Corners (4, 2), pixel-centre convention, refined on ``gray``; unchanged where a fit fails."""
     img = gray.astype(np.float32)
@@ -34,14 +68,10 @@ def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDA
     offsets = np.arange(-HALF_WIDTH_PX, HALF_WIDTH_PX + 1e-9, STEP_PX)
     for i in range(4):
         a, b = corners[i], corners[(i + 1) % 4]
-        d = b - a
-        length = float(np.linalg.norm(d))
-        if length < 8:
+        side = _side_normal(a, b, center)
+        if side is None:
             return corners
-        u = d / length
-        n = np.array([-u[1], u[0]])
-        if n @ (center - a) > 0:  # normal pointing out of the marker
-            n = -n
+        d, n = side
         ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
         base = a[None, :] + ts[:, None] * d[None, :]
         pts = base[:, None, :] + offsets[None, :, None] * n[None, None, :]
@@ -66,17 +96,8 @@ def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDA
         mean = e.mean(axis=0)
         _, _, vt = np.linalg.svd(e - mean)
         lines.append((mean, vt[0]))
-    out = np.empty_like(corners)
-    for i in range(4):
-        (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
-        A = np.array([d1, -d2]).T
-        if abs(np.linalg.det(A)) < 1e-9:
-            return corners
-        s, _ = np.linalg.solve(A, p2 - p1)
-        out[i] = p1 + s * d1
-    if np.abs(out - corners).max() > 2.0:  # a fit that moves a corner this far is wrong: keep OpenCV's
-        return corners
-    return out
+    out = _crossings(lines, corners)
+    return corners if out is None else out  # no fit: keep OpenCV's
 
 
 def refine_corners_undistorted(
@@ -111,14 +132,10 @@ def refine_corners_undistorted(
     spread: list[float] = []
     for i in range(4):
         a, b = corners_und[i], corners_und[(i + 1) % 4]
-        d = b - a
-        length = float(np.linalg.norm(d))
-        if length < 8:
+        side = _side_normal(a, b, center)
+        if side is None:
             return None
-        u = d / length
-        n = np.array([-u[1], u[0]])
-        if n @ (center - a) > 0:  # normal pointing out of the marker
-            n = -n
+        d, n = side
         # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
         # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
@@ -148,15 +165,8 @@ def refine_corners_undistorted(
         lag1 += float(r[1:] @ r[:-1])
         u = (e - mean) @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
-    out = np.empty_like(corners_und)
-    for i in range(4):
-        (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
-        A = np.array([d1, -d2]).T
-        if abs(np.linalg.det(A)) < 1e-9:
-            return None
-        s, _ = np.linalg.solve(A, p2 - p1)
-        out[i] = p1 + s * d1
-    if np.abs(out - corners_und).max() > 2.0:
+    out = _crossings(lines, corners_und)
+    if out is None:
         return None
     scatter2 = ss / max(sum(npts) - 8, 1)  # two parameters a line
     # Two lines crossing at an angle phi place their crossing 1 / sin(phi) less precisely than

@@ -1,0 +1,258 @@
+"""The joint solve of the markers of one entity seen together, and the live check of the world file: a
+marker that does not fit with the others is left out, counted, logged and announced (part of
+:class:`atlas_onboard.detector.pipeline.Detector`)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import block_diag
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
+from atlas_onboard.detector import pose
+from atlas_onboard.detector.families import family
+from atlas_onboard.detector.search import _side
+
+# The detector's log (one name for all its parts, as before they were split).
+_logger = logging.getLogger("atlas_onboard.detector.pipeline")
+
+JOINT_MISFIT = 3.0  # a joint fit this many times worse than its worst single square is not used
+STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagreeing markers
+LOG_INTERVAL_US = 5_000_000
+
+
+@dataclass(frozen=True)
+class Disagreement:
+    """A marker that does not fit with the other markers of its entity in one image: its offset is the
+    distance between where its own square puts it and where the others place it (camera frame, m)."""
+
+    entity: str
+    marker_id: int
+    offset_m: float
+    capture_time_us: int
+
+
+@dataclass(frozen=True)
+class _Single:
+    """One marker's own solve: its pose, undistorted corners (4, 2), their undistortion Jacobian
+    (:func:`pose.undistortion_jacobian`, None without distortion) and measured corner noise (px)."""
+
+    pose: pose.MarkerPose
+    corners: NDArray[np.float64]
+    stretch: NDArray[np.float64] | None
+    measured_px: float
+    corner_cov: NDArray[np.float64] | None = None  # (8, 8), px^2: refine.RefinedCorners.covariance
+
+
+class JointSolve:
+    """The joint solve and the world check of :class:`~atlas_onboard.detector.pipeline.Detector` (a base of
+    it: the state they use is the detector's)."""
+
+    def _sigma_px(self, family_name: str) -> float:
+        return pose.SIGMA_PX_APRILTAG if family(family_name).is_apriltag else pose.SIGMA_PX_ARUCO
+
+    def _robust_joint(
+        self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int
+    ) -> tuple[MarkerData | None, list[int] | None]:
+        """The entity's observation from the markers that fit together, and the ids used.
+
+        When all of them do not fit (:meth:`_joint`), the marker whose removal fits the rest best is
+        left out, again while they do not fit and at least two remain: a moved or mis-measured marker
+        costs only itself. Two markers that disagree cannot say which of them moved: neither is used.
+        Returns (None, ids) when the joint solve failed (the squares are then reported one by one),
+        (None, None) when no subset of two or more fits.
+        """
+        md, misfit = self._joint(ids, singles, capture_time_us)
+        if md is not None or not misfit:
+            return md, ids
+        used = list(ids)
+        while len(used) > 2:
+            trials = []
+            for m in used:
+                rest = [i for i in used if i != m]
+                md_r, misfit_r, err = self._joint(rest, singles, capture_time_us, count=False, with_error=True)
+                if md_r is not None or misfit_r:
+                    trials.append((err, m, rest, md_r))
+            if not trials:
+                break
+            _, m, used, md = min(trials, key=lambda t: t[0])
+            offset = self._offset_m(m, used, singles)
+            self._disagrees(entity, m, offset, capture_time_us)
+            if md is not None:
+                self.counters["joint"] += 1
+                self.counters["joint_without_disagreeing"] += 1
+                return md, used
+        for m in used:
+            self.report.dropped.setdefault(m, "joint misfit: the markers do not fit together as placed")
+        if len(used) == 2:
+            a, b = used
+            offset = self._offset_m(b, [a], singles)
+            self.report.dropped[a] = self.report.dropped[b] = (
+                f"joint misfit, markers {a} and {b} disagree by {offset * 100:.1f} cm"
+            )
+            self._log_disagreement(entity, f"markers {a} and {b} disagree", offset, capture_time_us)
+        return None, None
+
+    def _offset(self, m: int, others: list[int], singles: dict[int, _Single]) -> NDArray[np.float64] | None:
+        """(3,) where marker ``m``'s own square is minus where the joint pose of ``others`` puts it,
+        in the entity's frame (m); None when the others cannot be solved."""
+        sol = self._joint_solution(others, singles)
+        if sol is None:
+            return None
+        T_cam_entity = RigidTransform.from_components(sol[1], Rotation.from_rotvec(sol[0]))
+        predicted = (T_cam_entity * self.marker_pose[m]).translation
+        return T_cam_entity.rotation.inv().apply(singles[m].pose.p_m - predicted)
+
+    def _offset_m(self, m: int, others: list[int], singles: dict[int, _Single]) -> float:
+        """How far marker ``m``'s own square is from where the joint pose of ``others`` puts it (m)."""
+        offset = self._offset(m, others, singles)
+        if offset is not None:
+            self._offsets[m] = offset
+        return math.nan if offset is None else float(np.linalg.norm(offset))
+
+    def _check_world(self, entity: str, ids: list[int], capture_time_us: int) -> None:
+        """Feed the image's verdict to the live check; say a marker that has moved (log at most once a
+        minute per marker, a STATUSTEXT at most once a minute, ``markers_moved`` counts distinct markers)."""
+        verdicts = self.world_check.add(capture_time_us, entity, ids, self._offsets)
+        still = {m.marker_id for m in verdicts}
+        for mid in ids:  # a marker put back (it fits again in most images) is used again
+            if (entity, mid) in self.moved and mid not in still and mid not in self._offsets:
+                if not self.world_check.disagrees(entity, mid):
+                    del self.moved[(entity, mid)]
+                    _logger.warning("sensor %s: %s marker %d fits the world file again", self.sensor.name, entity, mid)
+        for moved in verdicts:
+            key = (entity, moved.marker_id)
+            if key not in self.moved:
+                self.counters["markers_moved"] += 1
+            self.moved[key] = moved
+            dx, dy, dz = moved.offset_m
+            last = self._moved_log_us.get(key)
+            if last is None or capture_time_us - last >= STATUS_INTERVAL_US:
+                self._moved_log_us[key] = capture_time_us
+                _logger.warning(
+                    "sensor %s: %s marker %d has moved: seen %.1f cm from its place in the world file"
+                    " (%+.3f %+.3f %+.3f m) in %d of %d images; it is not used while it disagrees",
+                    self.sensor.name, entity, moved.marker_id, moved.distance_m * 100, dx, dy, dz,
+                    moved.disagreeing, moved.views,
+                )  # fmt: skip
+            if self._moved_status_us is None or capture_time_us - self._moved_status_us >= STATUS_INTERVAL_US:
+                self._moved_status_us = capture_time_us
+                self._status.append(
+                    f"atlas: marker {moved.marker_id} moved {round(dx * 100):+d} {round(dy * 100):+d}"
+                    f" {round(dz * 100):+d} cm"[:50]
+                )
+
+    def _disagrees(self, entity: str, m: int, offset_m: float, capture_time_us: int) -> None:
+        self.counters["marker_disagrees"] += 1
+        self.disagreements[m] += 1
+        self.report.dropped[m] = f"joint misfit, marker {m} disagrees by {offset_m * 100:.1f} cm"
+        self._log_disagreement(entity, f"marker {m} disagrees", offset_m, capture_time_us)
+
+    def _log_disagreement(self, entity: str, what: str, offset_m: float, capture_time_us: int) -> None:
+        text = f"{entity}: {what} by {offset_m * 100:.1f} cm"
+        if self._last_log_us is None or abs(capture_time_us - self._last_log_us) >= LOG_INTERVAL_US:
+            self._last_log_us = capture_time_us
+            _logger.warning("sensor %s: %s with the world file (not used)", self.sensor.name, text)
+        if self._last_status_us is None or abs(capture_time_us - self._last_status_us) >= STATUS_INTERVAL_US:
+            self._last_status_us = capture_time_us
+            self._status.append(f"atlas {text}"[:50])
+
+    def _joint_solution(self, ids: list[int], singles: dict[int, _Single]) -> tuple | None:
+        """rvec, tvec (T_camera_entity), RMS error and sigma of the joint solve of ``ids``, or None."""
+        obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
+        img = np.vstack([singles[m].corners for m in ids])
+        # Start from the least ambiguous single solution, moved to the entity frame.
+        best = min(ids, key=lambda m: singles[m].pose.ambiguity if np.isfinite(singles[m].pose.ambiguity) else 1.0)
+        mp = singles[best].pose
+        T_cam_entity = (
+            RigidTransform.from_components(mp.p_m, Rotation.from_quat(mp.q_xyzw)) * self.marker_pose[best].inv()
+        )
+        guess = (T_cam_entity.rotation.as_rotvec(), T_cam_entity.translation)
+        fam = self.world.markers[ids[0]].family
+        return pose.solve_joint(obj, img, self.calibration.K, self._sigma_px(fam), guess)
+
+    def _joint(
+        self,
+        ids: list[int],
+        singles: dict[int, _Single],
+        capture_time_us: int,
+        count: bool = True,
+        with_error: bool = False,
+    ) -> tuple:
+        """The entity's observation from all its squares at once; (None, False) when the solve
+        failed (the squares are then reported one by one), (None, True) when they do not fit together.
+        ``with_error``: the joint RMS error relative to its limit as a third element."""
+        anchor = ids[0]
+        T_entity_anchor = self.marker_pose[anchor]
+        fam = self.world.markers[anchor].family
+        sol = self._joint_solution(ids, singles)
+        if sol is None:
+            self.counters["joint_failed"] += count
+            return (None, False, math.inf) if with_error else (None, False)
+        rvec, tvec, err, sigma = sol
+        # Markers that do not fit together as the world file places them (a misplaced marker, a bad
+        # corner, motion blur that moves each square differently) give a joint fit far worse than
+        # each square's own: the joint pose is then wrong in a way no sigma describes.
+        worst_single = max(singles[m].pose.reprojection_error_px for m in ids)
+        limit = JOINT_MISFIT * max(worst_single, self._sigma_px(fam))
+        if err > limit:
+            self.counters["joint_misfit"] += count
+            return (None, True, err / limit) if with_error else (None, True)
+        T = RigidTransform.from_components(tvec, Rotation.from_rotvec(rvec)) * T_entity_anchor
+        # The covariance of the anchor's pose: the same corners, in the anchor's frame.
+        obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
+        obj_anchor = T_entity_anchor.inv().apply(obj)
+        model_px = pose.corner_noise_px(self._sigma_px(fam), float(np.median([_side(singles[m].corners) for m in ids])))
+        measured = [singles[m].measured_px for m in ids]
+        sigma_px = math.hypot(max(measured), pose.CORNER_FLOOR_PX) if min(measured) > 0 else model_px
+        stretches = [singles[m].stretch for m in ids]
+        stretch = None if any(x is None for x in stretches) else np.concatenate(stretches)
+        R = T.rotation.as_matrix()
+        covs = [singles[m].corner_cov for m in ids]
+        img = np.vstack([singles[m].corners for m in ids])
+        if all(c is not None for c in covs):  # the squares' own corner covariances, one block each
+            cov = pose.fitted_covariance(R, T.translation, obj_anchor, self.calibration.K, img, block_diag(*covs))
+        else:
+            cov = pose.pose_covariance(R, T.translation, obj_anchor, self.calibration.K, sigma_px, err, stretch)
+        self.counters["joint"] += count
+        md = self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us, None, cov)
+        return (md, False, err / limit) if with_error else (md, False)
+
+    def _markerdata(
+        self,
+        marker_id: int,
+        p: NDArray[np.float64],
+        q_xyzw: NDArray[np.float64],
+        sigma: float,
+        err: float,
+        ambiguity: float,
+        capture_time_us: int,
+        alt: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+        covariance: NDArray[np.float64] | None = None,
+    ) -> MarkerData:
+        """``alt``: the other IPPE solution (p, q_xyzw), carried along for the listener; ``covariance``:
+        the chosen solution's 6x6 (:func:`pose.pose_covariance`; None: the record carries none)."""
+        x, y, z, w = q_xyzw
+        if alt is None:
+            p_alt, q_alt = (math.nan,) * 3, (math.nan,) * 4
+        else:
+            pa, (xa, ya, za, wa) = alt
+            p_alt, q_alt = (float(pa[0]), float(pa[1]), float(pa[2])), (float(wa), float(xa), float(ya), float(za))
+        return MarkerData(
+            sensor_id=self.sensor.id,
+            marker_id=marker_id,
+            sigma_m=float(sigma),
+            p_sensor_marker_m=(float(p[0]), float(p[1]), float(p[2])),
+            q_sensor_marker_wxyz=(float(w), float(x), float(y), float(z)),
+            capture_time_us=capture_time_us,
+            reprojection_error_px=float(err),
+            ambiguity_ratio=float(ambiguity),
+            p_sensor_marker_alt_m=p_alt,  # type: ignore[arg-type]
+            q_sensor_marker_alt_wxyz=q_alt,  # type: ignore[arg-type]
+            covariance=matrix_to_upper(covariance) if covariance is not None else (),
+        )

@@ -1,0 +1,211 @@
+"""The detector's search for markers in a frame: the regions where the previous frame's markers are predicted
+to be, the cells of strong black-white contrast, the tiles of a full-resolution grid (part of
+:class:`atlas_onboard.detector.pipeline.Detector`, whose :meth:`find` drives them)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.detector import pose
+from atlas_onboard.detector.backends import Detection
+
+SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
+ROI_MARGIN = 0.4  # a region is the marker's predicted box grown by this fraction of its size on each side
+MAX_REGION_DECIMATE = 3.0  # the hunt's decimation and the largest of a tracked marker's region
+TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (columns, rows)
+CELL_PX = 8  # contrast is measured in cells of this many pixels
+MIN_RATIO = 0.6  # a candidate cell's contrast is at least this share of its brightest pixel (ink on paper)
+TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
+BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
+MIN_CONTRAST = 20  # grey levels: a cell with less is not a marker's black and white (refine.MIN_CONTRAST)
+
+
+class RegionSearch:
+    """The region searches of :class:`~atlas_onboard.detector.pipeline.Detector` (a base of it: the state
+    they use is the detector's)."""
+
+    def _rotated(self, corners_px: NDArray[np.float64], R_prev_now: Rotation) -> NDArray[np.float64]:
+        """Where corners (N, 2) of the previous image are seen now after the camera turned by
+        ``R_prev_now`` (far points: a turn moves them alike whatever their depth)."""
+        cal = self.calibration
+        ideal = pose.undistort(corners_px, cal.K, cal.dist, cal.fisheye)
+        rays_prev = np.column_stack([ideal, np.ones(len(ideal))]) @ np.linalg.inv(cal.K).T
+        rays_now = R_prev_now.inv().apply(rays_prev)
+        if np.any(rays_now[:, 2] <= 1e-3):  # turned out of view: nothing to predict from
+            return corners_px
+        pts = rays_now.reshape(-1, 1, 3)
+        zero = np.zeros(3)
+        if cal.fisheye:
+            out, _ = cv2.fisheye.projectPoints(pts, zero, zero, cal.K, cal.dist)
+        else:
+            out, _ = cv2.projectPoints(pts, zero, zero, cal.K, cal.dist)
+        return out.reshape(-1, 2)
+
+    @property
+    def tracking(self) -> bool:
+        """Whether markers of the previous frame are tracked (False: the next frame is a hunt)."""
+        return bool(self._last)
+
+    def _next_tile(self, w: int, h: int) -> NDArray[np.float64]:
+        """The next tile of the grid, grown so that every small marker (the decimated search finds
+        the others) lies wholly inside one tile."""
+        cols, rows = TILES
+        k = self._tile % (cols * rows)
+        self._tile += 1
+        tx, ty = k % cols, k // cols
+        m = TILE_OVERLAP_PX / 2
+        return np.array(
+            [tx * w // cols - m, ty * h // rows - m, (tx + 1) * w // cols + m, (ty + 1) * h // rows + m], float
+        )
+
+    def _checked(
+        self, found: list[Detection], shape: tuple[int, ...], region: tuple[int, int, int, int]
+    ) -> list[Detection]:
+        """``found`` in a ``region`` (x0, y0, x1, y1) of the image without the detections whose corners
+        touch a border of the region inside the image: the marker may be cut there (counted; it is found
+        again when the whole image is searched)."""
+        h, w = shape[:2]
+        x0, y0, x1, y1 = region
+        m = BORDER_MARGIN_PX
+        out = []
+        for d in found:
+            lo, hi = d.corners_px.min(axis=0), d.corners_px.max(axis=0)
+            if (
+                (x0 > 0 and lo[0] < x0 + m)
+                or (y0 > 0 and lo[1] < y0 + m)
+                or (x1 < w and hi[0] > x1 - 1 - m)
+                or (y1 < h and hi[1] > y1 - 1 - m)
+            ):
+                self.counters["dropped_region_border"] += 1
+                continue
+            out.append(d)
+        return out
+
+    def _roi_search(
+        self,
+        gray: NDArray[np.uint8],
+        boxes: list[NDArray[np.float64]],
+        found: dict[int, Detection],
+        only_new: bool = False,
+    ) -> None:
+        """Search each region (boxes (x0, y0, x1, y1[, decimate]), merged where they overlap)."""
+        h, w = gray.shape[:2]
+        for x0, y0, x1, y1, decimate in _merge(boxes, w, h):
+            shifted = []
+            for d in self.finder.find(np.ascontiguousarray(gray[y0:y1, x0:x1]), decimate):
+                if only_new and d.marker_id in found:
+                    continue
+                c = d.corners_px + np.array([x0, y0], dtype=float)
+                shifted.append(Detection(d.marker_id, d.family, c, d.decision_margin))
+            for d in self._checked(shifted, gray.shape, (x0, y0, x1, y1)):
+                found[d.marker_id] = d
+                self.counters["roi_finds"] += 1
+
+
+def _at_border(c: NDArray[np.float64], w: int, h: int) -> bool:
+    """Whether any corner (c: (4, 2) pixels) lies within ``BORDER_MARGIN_PX`` of the image's border or outside."""
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    m = BORDER_MARGIN_PX
+    return bool(lo[0] < m or lo[1] < m or hi[0] > w - 1 - m or hi[1] > h - 1 - m)
+
+
+def _side(c: NDArray[np.float64]) -> float:
+    return float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
+
+
+def _box(c: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The region (x0, y0, x1, y1, decimate) to search for a marker with corners ``c`` in the next
+    frame: its box grown by ``ROI_MARGIN``, decimated while the marker stays ``SMALL_SIDE_PX`` wide
+    (at most ``MAX_REGION_DECIMATE``)."""
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    grow = (hi - lo) * ROI_MARGIN + 8
+    decimate = float(min(max(math.floor(_side(c) / SMALL_SIDE_PX), 1), MAX_REGION_DECIMATE))
+    return np.concatenate([lo - grow, hi + grow, [decimate]])
+
+
+def _cell_contrast(gray: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """Each ``CELL_PX`` cell's contrast (brightest minus darkest pixel) and brightest pixel, after a 2x2
+    average (so that one noisy pixel does not count); each of shape (ceil(h / CELL_PX), ceil(w / CELL_PX))."""
+    h, w = gray.shape[:2]
+    cell = CELL_PX // 2
+    small = cv2.resize(gray, (-(-w // 2), -(-h // 2)), interpolation=cv2.INTER_AREA)
+    kernel = np.ones((cell, cell), np.uint8)
+    top = cv2.dilate(small, kernel, anchor=(0, 0))[::cell, ::cell]
+    bottom = cv2.erode(small, kernel, anchor=(0, 0))[::cell, ::cell]
+    return cv2.subtract(top, bottom), top
+
+
+def _contrast_regions(
+    contrast: NDArray[np.uint8],
+    top: NDArray[np.uint8],
+    taken: list[NDArray[np.float64]],
+    budget_px: float,
+    quiet: NDArray[np.bool_] | None = None,
+) -> list[NDArray[np.float64]]:
+    """Regions (x0, y0, x1, y1, decimate) of the strongest black-white contrast outside the boxes
+    ``taken`` (x0, y0, x1, y1: the markers found already) and the ``quiet`` cells, the strongest first,
+    at most ``budget_px`` pixels (divided by the decimation squared) in all.
+
+    ``contrast`` and ``top``: :func:`_cell_contrast`. Black ink reflects a tenth or less of what white
+    paper does, whatever the light: a printed marker's outline crosses cells whose darkest pixel is at
+    most ``1 - MIN_RATIO`` of their brightest; such cells (with at least ``MIN_CONTRAST``), with their
+    neighbours, are joined into regions, strongest contrast first.
+    """
+    contrast = np.where(contrast >= MIN_RATIO * np.maximum(top, 1), contrast, 0).astype(np.uint8)
+    for x0, y0, x1, y1, *_ in taken:  # markers found: their cells are not candidates
+        x0, y0 = max(int(x0), 0) // CELL_PX, max(int(y0), 0) // CELL_PX
+        contrast[y0 : -(-int(y1) // CELL_PX), x0 : -(-int(x1) // CELL_PX)] = 0
+    if quiet is not None:  # searched lately and found to be texture
+        contrast[quiet] = 0
+    mask = (contrast >= MIN_CONTRAST).astype(np.uint8)
+    mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    peaks = []
+    for i in range(1, n):
+        x, y, bw, bh = stats[i, :4]
+        inside = labels[y : y + bh, x : x + bw] == i
+        peaks.append((-int(contrast[y : y + bh, x : x + bw][inside].max()), i))
+    out = []
+    m = BORDER_MARGIN_PX
+    for _, i in sorted(peaks):
+        x, y, bw, bh = (int(v) * CELL_PX for v in stats[i, :4])
+        # A wide region holds large markers (or clutter): searched decimated, as a tracked one would be.
+        side = min(bw, bh) - 2 * CELL_PX  # the largest marker it can hold
+        decimate = float(min(max(side // SMALL_SIDE_PX, 1), MAX_REGION_DECIMATE))
+        cost = (bw + 2 * m) * (bh + 2 * m) / decimate**2
+        if cost > budget_px:
+            continue
+        budget_px -= cost
+        out.append(np.array([x - m, y - m, x + bw + m, y + bh + m, decimate]))
+    return out
+
+
+def _area(r: list[float]) -> float:
+    return (r[2] - r[0]) * (r[3] - r[1])
+
+
+def _merge(boxes: list[NDArray[np.float64]], w: int, h: int) -> list[tuple[int, int, int, int, float]]:
+    """Clip boxes (x0, y0, x1, y1[, decimate]; 1 if not given) to the image and merge overlapping ones
+    (so no marker is cut in two), a merged region at the smallest of its decimations."""
+    rects = [
+        [max(int(b[0]), 0), max(int(b[1]), 0), min(int(b[2]) + 1, w), min(int(b[3]) + 1, h), b[4] if len(b) > 4 else 1]
+        for b in boxes
+    ]
+    rects = [r for r in rects if r[2] - r[0] >= 16 and r[3] - r[1] >= 16]
+    merged: list[list[float]] = []
+    for r in sorted(rects):
+        for m in merged:
+            union = (max(m[2], r[2]) - min(m[0], r[0])) * (max(m[3], r[3]) - min(m[1], r[1]))
+            # Overlapping boxes are searched as one where that is cheaper than searching both (each
+            # holds its own marker whole).
+            if r[0] <= m[2] and r[2] >= m[0] and r[1] <= m[3] and r[3] >= m[1] and union <= _area(r) + _area(m):
+                m[:] = [min(m[0], r[0]), min(m[1], r[1]), max(m[2], r[2]), max(m[3], r[3]), min(m[4], r[4])]
+                break
+        else:
+            merged.append(r)
+    return [(int(a), int(b), int(c), int(d), float(e)) for a, b, c, d, e in merged]
