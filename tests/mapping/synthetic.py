@@ -51,6 +51,23 @@ def camera_poses(rng: np.random.Generator, n: int, M_wm: np.ndarray) -> np.ndarr
     return np.array(out)
 
 
+def visible_corners(lens_row: np.ndarray, Mc: np.ndarray, Mm: np.ndarray, size: float) -> np.ndarray | None:
+    """The marker's four corners in the image (px), or None when the camera would not see it whole: a
+    corner nearer than 0.3 m, seen more than 70 deg off its face, or within 5 px of the border."""
+    X = marker_corners(size) @ Mm[:3, :3].T + Mm[:3, 3]
+    P = X @ Mc[:3, :3].T + Mc[:3, 3]
+    if np.any(P[:, 2] < 0.3):
+        return None
+    normal_c = Mc[:3, :3] @ Mm[:3, 2]
+    centre = P.mean(axis=0)
+    if normal_c @ (-centre / np.linalg.norm(centre)) < np.cos(np.radians(70)):
+        return None
+    px = project(lens_row, P)
+    if np.any(px < 5) or np.any(px[:, 0] > 634) or np.any(px[:, 1] > 474):
+        return None
+    return px
+
+
 def make_problem(
     seed: int, n_frames: int = 40, noise_px: float = 0.3, init_error: float = 0.02
 ) -> tuple[Problem, np.ndarray, np.ndarray]:
@@ -62,16 +79,8 @@ def make_problem(
     frames, markers, corners = [], [], []
     for f, Mc in enumerate(M_cw):
         for m, Mm in enumerate(M_wm):
-            X = marker_corners(sizes[m]) @ Mm[:3, :3].T + Mm[:3, 3]
-            P = X @ Mc[:3, :3].T + Mc[:3, 3]
-            if np.any(P[:, 2] < 0.3):
-                continue
-            normal_c = Mc[:3, :3] @ Mm[:3, 2]
-            centre = P.mean(axis=0)
-            if normal_c @ (-centre / np.linalg.norm(centre)) < np.cos(np.radians(70)):
-                continue
-            px = project(lens_row, P)
-            if np.any(px < 5) or np.any(px[:, 0] > 634) or np.any(px[:, 1] > 474):
+            px = visible_corners(lens_row, Mc, Mm, sizes[m])
+            if px is None:
                 continue
             frames.append(f)
             markers.append(m)
@@ -129,16 +138,8 @@ def make_observations(
                 Mm[0, 3] += moved[1]
             if true_size is not None and m == true_size[0]:
                 size = true_size[1]
-            X = marker_corners(size) @ Mm[:3, :3].T + Mm[:3, 3]
-            P = X @ Mc[:3, :3].T + Mc[:3, 3]
-            if np.any(P[:, 2] < 0.3):
-                continue
-            normal_c = Mc[:3, :3] @ Mm[:3, 2]
-            centre = P.mean(axis=0)
-            if normal_c @ (-centre / np.linalg.norm(centre)) < np.cos(np.radians(70)):
-                continue
-            px = project(lens_row, P)
-            if np.any(px < 5) or np.any(px[:, 0] > 634) or np.any(px[:, 1] > 474):
+            px = visible_corners(lens_row, Mc, Mm, size)
+            if px is None:
                 continue
             dets.append((m, px + rng.normal(0.0, noise_px, (4, 2))))
         if not dets:
