@@ -40,7 +40,7 @@ BENCHES = (
     Bench("sim", ("atlas-onboard", "sim"), "The default simulation: six drones, two ceiling cameras."),
     Bench(
         "methods",
-        ("benchmarks/compare_methods.py", "--duration", "10", "--methods", "paper,default,ekf"),
+        ("benchmarks/compare_methods.py", "--duration", "10", "--methods", "paper,default,ekf,dijkstra"),
         "The paper's method, the defaults and the EKF in every scenario.",
     ),
     Bench(
