@@ -1,16 +1,20 @@
 """The listener's resolution of planar ambiguity (:mod:`atlas_onboard.listener`): by the current
-estimates (:mod:`atlas_onboard.core.ambiguity`) and, with the autopilot's attitude, by gravity."""
+estimates (:mod:`atlas_onboard.core.ambiguity`) and, with the autopilot's attitude, by gravity.
+
+:class:`AmbiguityResolver` owns what the decision needs (the world file's mountings, the latest
+estimates, the attitude source, the rule's thresholds); the listener holds one and asks it."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Mapping
 from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import WORLD
+from atlas_onboard.config import WORLD, WorldConfig
 from atlas_onboard.core import ambiguity, attitude
 from atlas_onboard.core.ambiguity import Verdict
 from atlas_onboard.core.graph import MAX_RATE_RAD_S, MAX_SPEED_M_S, EntityPose
@@ -18,11 +22,45 @@ from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection, matri
 from atlas_onboard.listener_covariance import _camera_spread, _matrices, _rotation_sigma
 
 
-class AmbiguityResolution:
-    """The ambiguity steps of :class:`atlas_onboard.listener.Listener` (its base): they use the listener's
-    attributes (mountings, estimates, thresholds, the attitude source), set up by its constructor."""
+class AmbiguityResolver:
+    """Decides which of an ambiguous observation's two solutions an edge is made of, or that it is refused.
 
-    def _resolve_ambiguity(
+    ``threshold``: IPPE ratio above which an observation must be resolved (or is rejected);
+    ``attitude_sigma_rad``, ``gate_r2``, ``min_likelihood_ratio``: the resolution rule's parameters
+    (:mod:`atlas_onboard.core.ambiguity`).
+    """
+
+    def __init__(
+        self,
+        world: WorldConfig,
+        *,
+        threshold: float,
+        attitude_sigma_rad: float,
+        gate_r2: float,
+        min_likelihood_ratio: float,
+    ) -> None:
+        self.threshold = threshold
+        self.attitude_sigma_rad = attitude_sigma_rad
+        self.gate_r2 = gate_r2
+        self.min_likelihood_ratio = min_likelihood_ratio
+        self._sensor_entity = {s.id: s.entity for s in world.sensors.values()}
+        self._marker_entity = {m.id: m.entity for m in world.markers.values()}
+        self._T_entity_sensor = {s.id: s.T_entity_sensor.as_matrix() for s in world.sensors.values()}
+        self._T_sensor_entity = {s.id: s.T_entity_sensor.inv().as_matrix() for s in world.sensors.values()}
+        self._T_entity_marker = {m.id: m.T_entity_marker.as_matrix() for m in world.markers.values()}
+        self._estimates: dict[str, EntityPose] = {}
+        self._up_at: Callable[[int], NDArray[np.float64] | None] | None = None
+        self._up_entity: str | None = None
+
+    def set_attitude(self, entity: str, up_at: Callable[[int], NDArray[np.float64] | None] | None) -> None:
+        """The gravity reference of ``entity`` (see :meth:`atlas_onboard.listener.Listener.set_attitude`)."""
+        self._up_entity, self._up_at = (entity, up_at) if up_at is not None else (None, None)
+
+    def set_estimates(self, poses: Mapping[str, EntityPose]) -> None:
+        """The current pose estimates (a graph evaluation's ``poses``)."""
+        self._estimates = dict(poses)
+
+    def resolve(
         self,
         valid: list[MarkerData],
         R2: NDArray[np.float64],
@@ -40,18 +78,18 @@ class AmbiguityResolution:
         rejected: dict[int, Rejection] = {}
         swapped: set[int] = set()
         todo: list[tuple[int, EntityPose, EntityPose]] = []
-        by_tilt = self._resolve_by_tilt(valid, R2, p2, q2, notes, rejected, swapped, C_sm) if self._up_at else set()
+        by_tilt = self._by_tilt(valid, R2, p2, q2, notes, rejected, swapped, C_sm) if self._up_at else set()
         for j, md in enumerate(valid):
             state = md.alt_state()
             if state is AltState.INVALID:
                 notes.append("alt_ignored")
-            if j in by_tilt or not md.ambiguity_ratio > self.ambiguity_threshold:  # nan (unknown) passes
+            if j in by_tilt or not md.ambiguity_ratio > self.threshold:  # nan (unknown) passes
                 continue
             if state is not AltState.VALID:
                 rejected[j] = Rejection.AMBIGUOUS
                 continue
-            est_a = self._estimates.get(self._sensor[md.sensor_id][0])
-            est_b = self._estimates.get(self._marker[md.marker_id][0])
+            est_a = self._estimates.get(self._sensor_entity[md.sensor_id])
+            est_b = self._estimates.get(self._marker_entity[md.marker_id])
             if est_a is None or est_b is None or est_a.frame != est_b.frame:
                 rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
                 notes.append(f"ambiguity_{Verdict.NO_PREDICTION.value}")
@@ -63,8 +101,8 @@ class AmbiguityResolution:
         # Predicted T_sensor_marker = T1^-1 * T_frame_observer^-1 * T_frame_observed * T3 (eq. 1 backwards).
         W_a = _matrices(np.array([a.p_world_m for _, a, _ in todo]), np.array([a.q_world_xyzw for _, a, _ in todo]))
         W_b = _matrices(np.array([b.p_world_m for _, _, b in todo]), np.array([b.q_world_xyzw for _, _, b in todo]))
-        T1_inv = np.array([self._sensor_inv[valid[j].sensor_id] for j in idx])
-        T3 = np.array([self._marker_fwd[valid[j].marker_id] for j in idx])
+        T1_inv = np.array([self._T_sensor_entity[valid[j].sensor_id] for j in idx])
+        T3 = np.array([self._T_entity_marker[valid[j].marker_id] for j in idx])
         pred = T1_inv @ np.linalg.inv(W_a) @ W_b @ T3
         p_a = p2[idx]
         p_b = np.array([valid[j].p_sensor_marker_alt_m for j in idx])
@@ -106,7 +144,7 @@ class AmbiguityResolution:
                 notes.append(f"ambiguity_{verdict.value}")
         return rejected, swapped
 
-    def _resolve_by_tilt(
+    def _by_tilt(
         self,
         valid: list[MarkerData],
         R2: NDArray[np.float64],
@@ -128,7 +166,7 @@ class AmbiguityResolution:
             return set()
         decided: set[int] = set()
         for j, md in enumerate(valid):
-            observer, observed = self._sensor[md.sensor_id][0], self._marker[md.marker_id][0]
+            observer, observed = self._sensor_entity[md.sensor_id], self._marker_entity[md.marker_id]
             if not ((observer == own and observed == WORLD) or (observer == WORLD and observed == own)):
                 continue
             if md.alt_state() is not AltState.VALID:
@@ -139,8 +177,8 @@ class AmbiguityResolution:
                 continue
             R_alt = Rotation.from_quat(md.q_sensor_marker_alt_xyzw()).as_matrix()
             R_pair = np.stack([R2[j], R_alt])  # R_sensor_marker of both solutions
-            M_es = self._sensor[md.sensor_id][1][:3, :3]
-            M_em = self._marker_fwd[md.marker_id][:3, :3]
+            M_es = self._T_entity_sensor[md.sensor_id][:3, :3]
+            M_em = self._T_entity_marker[md.marker_id][:3, :3]
             if observer == own:  # R_world_body = R_world_marker R_sensor_marker^-1 R_body_sensor^-1
                 R_wb = M_em @ R_pair.transpose(0, 2, 1) @ M_es.T
             else:  # a world camera sees the own marker: R_world_body = R_world_sensor R_sensor_marker R_body_marker^-1
@@ -159,7 +197,7 @@ class AmbiguityResolution:
             if check.verdict is not attitude.TiltVerdict.BOTH:
                 decided.add(j)
             kept = check.verdict is attitude.TiltVerdict.PRIMARY or (
-                check.verdict is attitude.TiltVerdict.BOTH and not md.ambiguity_ratio > self.ambiguity_threshold
+                check.verdict is attitude.TiltVerdict.BOTH and not md.ambiguity_ratio > self.threshold
             )
             if kept and observer == own and md.covariance:
                 C = C_sm[j] if C_sm is not None else upper_to_matrix(np.array([md.covariance]))[0]
