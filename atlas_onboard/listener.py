@@ -24,7 +24,7 @@ from atlas_onboard.core import ambiguity, fusion, geometry
 from atlas_onboard.core.graph import EdgeKey, EntityPose, TransformGraph
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.counters import Counters
-from atlas_onboard.listener_ambiguity import AmbiguityResolver
+from atlas_onboard.listener_ambiguity import AmbiguityResolver, Detections
 from atlas_onboard.listener_covariance import (  # noqa: F401 (were defined here)
     _camera_spread,
     _covariances,
@@ -167,7 +167,7 @@ class Listener:
         q2 /= np.sqrt(np.einsum("ij,ij->i", q2, q2))[:, None]
         R2 = geometry.quat_matrix(q2)
         p2 = np.array([md.p_sensor_marker_m for md in valid])
-        unresolved, swapped = self.ambiguity.resolve(valid, R2, p2, q2, notes, C_sm)
+        unresolved, swapped = self.ambiguity.resolve(Detections(valid, R2, p2, q2, C_sm), notes)
         if any(valid[j].covariance for j in swapped):
             # The detector's covariance describes the solution it chose, not the other one (whose
             # tilt, and so whose spread, differs): a swapped record's edge gets the sigma model.

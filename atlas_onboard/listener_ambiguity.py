@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +20,19 @@ from atlas_onboard.core.ambiguity import Verdict
 from atlas_onboard.core.graph import MAX_RATE_RAD_S, MAX_SPEED_M_S, EntityPose
 from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection, matrix_to_upper, upper_to_matrix
 from atlas_onboard.listener_covariance import _camera_spread, _matrices, _rotation_sigma
+
+
+@dataclass(slots=True)
+class Detections:
+    """A batch of valid detections under resolution, changed in place: the records, their rotation
+    matrices ``R_sm`` (N, 3, 3) and rotations ``q_sm_xyzw`` (N, 4) of T_sensor_marker, positions ``p_sm``
+    (N, 3, m), and their detection covariances as matrices ``C_sm`` (N, 6, 6) when every record has one."""
+
+    records: list[MarkerData]
+    R_sm: NDArray[np.float64]
+    p_sm: NDArray[np.float64]
+    q_sm_xyzw: NDArray[np.float64]
+    C_sm: NDArray[np.float64] | None = None
 
 
 class AmbiguityResolver:
@@ -60,25 +73,17 @@ class AmbiguityResolver:
         """The current pose estimates (a graph evaluation's ``poses``)."""
         self._estimates = dict(poses)
 
-    def resolve(
-        self,
-        valid: list[MarkerData],
-        R2: NDArray[np.float64],
-        p2: NDArray[np.float64],
-        q2: NDArray[np.float64],
-        notes: list[str],
-        C_sm: NDArray[np.float64] | None = None,
-    ) -> tuple[dict[int, Rejection], set[int]]:
-        """Resolve the ambiguous observations among ``valid`` in place in their detections: rotation
-        matrices ``R2`` (N, 3, 3), positions ``p2`` (N, 3) and rotations ``q2`` (N, 4, x first), batched.
+    def resolve(self, det: Detections, notes: list[str]) -> tuple[dict[int, Rejection], set[int]]:
+        """Resolve the ambiguous observations among ``det`` in place, batched.
 
-        Returns the rejections by index into ``valid`` and the indices swapped to the other
+        Returns the rejections by index into ``det.records`` and the indices swapped to the other
         solution; appends counter names to ``notes``.
         """
+        valid, p2, q2 = det.records, det.p_sm, det.q_sm_xyzw
         rejected: dict[int, Rejection] = {}
         swapped: set[int] = set()
         todo: list[tuple[int, EntityPose, EntityPose]] = []
-        by_tilt = self._by_tilt(valid, R2, p2, q2, notes, rejected, swapped, C_sm) if self._up_at else set()
+        by_tilt = self._by_tilt(det, notes, rejected, swapped) if self._up_at else set()
         for j, md in enumerate(valid):
             state = md.alt_state()
             if state is AltState.INVALID:
@@ -132,7 +137,7 @@ class AmbiguityResolver:
         for j, verdict in zip(idx, verdicts, strict=True):
             if verdict is Verdict.ALT:
                 alt = Rotation.from_quat(valid[j].q_sensor_marker_alt_xyzw())
-                R2[j] = alt.as_matrix()
+                det.R_sm[j] = alt.as_matrix()
                 q2[j] = alt.as_quat()
                 p2[j] = valid[j].p_sensor_marker_alt_m
                 swapped.add(j)
@@ -145,22 +150,15 @@ class AmbiguityResolver:
         return rejected, swapped
 
     def _by_tilt(
-        self,
-        valid: list[MarkerData],
-        R2: NDArray[np.float64],
-        p2: NDArray[np.float64],
-        q2: NDArray[np.float64],
-        notes: list[str],
-        rejected: dict[int, Rejection],
-        swapped: set[int],
-        C_sm: NDArray[np.float64] | None = None,
+        self, det: Detections, notes: list[str], rejected: dict[int, Rejection], swapped: set[int]
     ) -> set[int]:
         """The MegaTag2 step: observations between the attitude's entity and the world that carry both
         solutions, decided by gravity (swapped in place, or rejected). Returns the indices decided.
 
         A kept solution of the own camera with a detection covariance is then updated with the
-        autopilot's up vector (:func:`atlas_onboard.core.attitude.constrain_tilt`): ``valid[j]`` gets
-        the new covariance and a sigma scaled as its camera-position spread shrank, ``C_sm[j]`` too."""
+        autopilot's up vector (:func:`atlas_onboard.core.attitude.constrain_tilt`): its record gets
+        the new covariance and a sigma scaled as its camera-position spread shrank, ``det.C_sm`` too."""
+        valid, R2, p2, q2, C_sm = det.records, det.R_sm, det.p_sm, det.q_sm_xyzw, det.C_sm
         up_at, own = self._up_at, self._up_entity
         if up_at is None:
             return set()
