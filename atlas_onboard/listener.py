@@ -24,7 +24,7 @@ from atlas_onboard.core import ambiguity, fusion, geometry
 from atlas_onboard.core.graph import EdgeKey, EntityPose, TransformGraph
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.counters import Counters
-from atlas_onboard.listener_ambiguity import AmbiguityResolution
+from atlas_onboard.listener_ambiguity import AmbiguityResolver, Detections
 from atlas_onboard.listener_covariance import (  # noqa: F401 (were defined here)
     _camera_spread,
     _covariances,
@@ -82,7 +82,7 @@ def make_graph(world: WorldConfig, own_entity: str | None = None) -> TransformGr
     )
 
 
-class Listener(AmbiguityResolution):
+class Listener:
     """Turns MarkerData into graph edges for one world file.
 
     ``T1`` (entity to sensor) and ``T3^-1`` (marker to entity) of eq. 1 are fixed by the world file,
@@ -107,27 +107,25 @@ class Listener(AmbiguityResolution):
         self.alpha = world.fusion.ema_alpha
         self.age_sigma = world.fusion.age_sigma_m_per_s
         self.timeout_ns = graph.edge_timeout_ns
-        self.ambiguity_threshold = ambiguity_threshold
-        self.attitude_sigma_rad = attitude_sigma_rad
-        self.gate_r2 = gate_r2
-        self.min_likelihood_ratio = min_likelihood_ratio
+        self.ambiguity = AmbiguityResolver(
+            world,
+            threshold=ambiguity_threshold,
+            attitude_sigma_rad=attitude_sigma_rad,
+            gate_r2=gate_r2,
+            min_likelihood_ratio=min_likelihood_ratio,
+        )
         self._sensor = {s.id: (s.entity, s.T_entity_sensor.as_matrix()) for s in world.sensors.values()}
         self._marker = {m.id: (m.entity, m.T_entity_marker.inv().as_matrix()) for m in world.markers.values()}
         # The same rotations as quaternions: eq. 1's rotation is composed as a quaternion product.
         self._sensor_q = {s.id: s.T_entity_sensor.rotation.as_quat() for s in world.sensors.values()}
         self._marker_inv_q = {m.id: m.T_entity_marker.rotation.inv().as_quat() for m in world.markers.values()}
-        self._sensor_inv = {s.id: s.T_entity_sensor.inv().as_matrix() for s in world.sensors.values()}
-        self._marker_fwd = {m.id: m.T_entity_marker.as_matrix() for m in world.markers.values()}
         self._ema: dict[EdgeKey, _EmaState] = {}
-        self._estimates: dict[str, EntityPose] = {}
         self.rejected = Counters()  # by reason (``rejected_<reason>``)
         self.counters = Counters()
         """Beyond rejections: ``ambiguity_resolved``, ``ambiguity_swapped`` (the other solution won),
         ``ambiguity_<verdict>`` for each unresolved one, and ``alt_ignored`` (an unusable other
         solution, see :class:`MarkerData`)."""
         self.accepted = 0
-        self._up_at: Callable[[int], NDArray[np.float64] | None] | None = None
-        self._up_entity: str | None = None
 
     def set_attitude(self, entity: str, up_at: Callable[[int], NDArray[np.float64] | None] | None) -> None:
         """The autopilot's gravity reference of ``entity`` (the node's own): ``up_at(capture_time_us)``
@@ -135,11 +133,11 @@ class Listener(AmbiguityResolution):
         With it, a single tag's two solutions (observations between ``entity`` and the world carrying
         both) are chosen by the tilt they imply (:func:`atlas_onboard.core.attitude.choose_by_tilt`);
         one whose solutions both disagree with gravity is rejected (``attitude_mismatch``)."""
-        self._up_entity, self._up_at = (entity, up_at) if up_at is not None else (None, None)
+        self.ambiguity.set_attitude(entity, up_at)
 
     def set_estimates(self, poses: Mapping[str, EntityPose]) -> None:
         """The current pose estimates (a graph evaluation's ``poses``), used to resolve ambiguity."""
-        self._estimates = dict(poses)
+        self.ambiguity.set_estimates(poses)
 
     def edge_from(self, md: MarkerData) -> EdgeUpdate | Rejection:
         """Eq. 1, T = T1 * T2 * T3^-1, without filtering (an ambiguous observation resolved with the
@@ -169,7 +167,7 @@ class Listener(AmbiguityResolution):
         q2 /= np.sqrt(np.einsum("ij,ij->i", q2, q2))[:, None]
         R2 = geometry.quat_matrix(q2)
         p2 = np.array([md.p_sensor_marker_m for md in valid])
-        unresolved, swapped = self._resolve_ambiguity(valid, R2, p2, q2, notes, C_sm)
+        unresolved, swapped = self.ambiguity.resolve(Detections(valid, R2, p2, q2, C_sm), notes)
         if any(valid[j].covariance for j in swapped):
             # The detector's covariance describes the solution it chose, not the other one (whose
             # tilt, and so whose spread, differs): a swapped record's edge gets the sigma model.

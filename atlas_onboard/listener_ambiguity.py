@@ -1,16 +1,20 @@
 """The listener's resolution of planar ambiguity (:mod:`atlas_onboard.listener`): by the current
-estimates (:mod:`atlas_onboard.core.ambiguity`) and, with the autopilot's attitude, by gravity."""
+estimates (:mod:`atlas_onboard.core.ambiguity`) and, with the autopilot's attitude, by gravity.
+
+:class:`AmbiguityResolver` owns what the decision needs (the world file's mountings, the latest
+estimates, the attitude source, the rule's thresholds); the listener holds one and asks it."""
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import WORLD
+from atlas_onboard.config import WORLD, WorldConfig
 from atlas_onboard.core import ambiguity, attitude
 from atlas_onboard.core.ambiguity import Verdict
 from atlas_onboard.core.graph import MAX_RATE_RAD_S, MAX_SPEED_M_S, EntityPose
@@ -18,40 +22,79 @@ from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection, matri
 from atlas_onboard.listener_covariance import _camera_spread, _matrices, _rotation_sigma
 
 
-class AmbiguityResolution:
-    """The ambiguity steps of :class:`atlas_onboard.listener.Listener` (its base): they use the listener's
-    attributes (mountings, estimates, thresholds, the attitude source), set up by its constructor."""
+@dataclass(slots=True)
+class Detections:
+    """A batch of valid detections under resolution, changed in place: the records, their rotation
+    matrices ``R_sm`` (N, 3, 3) and rotations ``q_sm_xyzw`` (N, 4) of T_sensor_marker, positions ``p_sm``
+    (N, 3, m), and their detection covariances as matrices ``C_sm`` (N, 6, 6) when every record has one."""
 
-    def _resolve_ambiguity(
+    records: list[MarkerData]
+    R_sm: NDArray[np.float64]
+    p_sm: NDArray[np.float64]
+    q_sm_xyzw: NDArray[np.float64]
+    C_sm: NDArray[np.float64] | None = None
+
+
+class AmbiguityResolver:
+    """Decides which of an ambiguous observation's two solutions an edge is made of, or that it is refused.
+
+    ``threshold``: IPPE ratio above which an observation must be resolved (or is rejected);
+    ``attitude_sigma_rad``, ``gate_r2``, ``min_likelihood_ratio``: the resolution rule's parameters
+    (:mod:`atlas_onboard.core.ambiguity`).
+    """
+
+    def __init__(
         self,
-        valid: list[MarkerData],
-        R2: NDArray[np.float64],
-        p2: NDArray[np.float64],
-        q2: NDArray[np.float64],
-        notes: list[str],
-        C_sm: NDArray[np.float64] | None = None,
-    ) -> tuple[dict[int, Rejection], set[int]]:
-        """Resolve the ambiguous observations among ``valid`` in place in their detections: rotation
-        matrices ``R2`` (N, 3, 3), positions ``p2`` (N, 3) and rotations ``q2`` (N, 4, x first), batched.
+        world: WorldConfig,
+        *,
+        threshold: float,
+        attitude_sigma_rad: float,
+        gate_r2: float,
+        min_likelihood_ratio: float,
+    ) -> None:
+        self.threshold = threshold
+        self.attitude_sigma_rad = attitude_sigma_rad
+        self.gate_r2 = gate_r2
+        self.min_likelihood_ratio = min_likelihood_ratio
+        self._sensor_entity = {s.id: s.entity for s in world.sensors.values()}
+        self._marker_entity = {m.id: m.entity for m in world.markers.values()}
+        self._T_entity_sensor = {s.id: s.T_entity_sensor.as_matrix() for s in world.sensors.values()}
+        self._T_sensor_entity = {s.id: s.T_entity_sensor.inv().as_matrix() for s in world.sensors.values()}
+        self._T_entity_marker = {m.id: m.T_entity_marker.as_matrix() for m in world.markers.values()}
+        self._estimates: dict[str, EntityPose] = {}
+        self._up_at: Callable[[int], NDArray[np.float64] | None] | None = None
+        self._up_entity: str | None = None
 
-        Returns the rejections by index into ``valid`` and the indices swapped to the other
+    def set_attitude(self, entity: str, up_at: Callable[[int], NDArray[np.float64] | None] | None) -> None:
+        """The gravity reference of ``entity`` (see :meth:`atlas_onboard.listener.Listener.set_attitude`)."""
+        self._up_entity, self._up_at = (entity, up_at) if up_at is not None else (None, None)
+
+    def set_estimates(self, poses: Mapping[str, EntityPose]) -> None:
+        """The current pose estimates (a graph evaluation's ``poses``)."""
+        self._estimates = dict(poses)
+
+    def resolve(self, det: Detections, notes: list[str]) -> tuple[dict[int, Rejection], set[int]]:
+        """Resolve the ambiguous observations among ``det`` in place, batched.
+
+        Returns the rejections by index into ``det.records`` and the indices swapped to the other
         solution; appends counter names to ``notes``.
         """
+        valid, p2, q2 = det.records, det.p_sm, det.q_sm_xyzw
         rejected: dict[int, Rejection] = {}
         swapped: set[int] = set()
         todo: list[tuple[int, EntityPose, EntityPose]] = []
-        by_tilt = self._resolve_by_tilt(valid, R2, p2, q2, notes, rejected, swapped, C_sm) if self._up_at else set()
+        by_tilt = self._by_tilt(det, notes, rejected, swapped) if self._up_at else set()
         for j, md in enumerate(valid):
             state = md.alt_state()
             if state is AltState.INVALID:
                 notes.append("alt_ignored")
-            if j in by_tilt or not md.ambiguity_ratio > self.ambiguity_threshold:  # nan (unknown) passes
+            if j in by_tilt or not md.ambiguity_ratio > self.threshold:  # nan (unknown) passes
                 continue
             if state is not AltState.VALID:
                 rejected[j] = Rejection.AMBIGUOUS
                 continue
-            est_a = self._estimates.get(self._sensor[md.sensor_id][0])
-            est_b = self._estimates.get(self._marker[md.marker_id][0])
+            est_a = self._estimates.get(self._sensor_entity[md.sensor_id])
+            est_b = self._estimates.get(self._marker_entity[md.marker_id])
             if est_a is None or est_b is None or est_a.frame != est_b.frame:
                 rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
                 notes.append(f"ambiguity_{Verdict.NO_PREDICTION.value}")
@@ -63,8 +106,8 @@ class AmbiguityResolution:
         # Predicted T_sensor_marker = T1^-1 * T_frame_observer^-1 * T_frame_observed * T3 (eq. 1 backwards).
         W_a = _matrices(np.array([a.p_world_m for _, a, _ in todo]), np.array([a.q_world_xyzw for _, a, _ in todo]))
         W_b = _matrices(np.array([b.p_world_m for _, _, b in todo]), np.array([b.q_world_xyzw for _, _, b in todo]))
-        T1_inv = np.array([self._sensor_inv[valid[j].sensor_id] for j in idx])
-        T3 = np.array([self._marker_fwd[valid[j].marker_id] for j in idx])
+        T1_inv = np.array([self._T_sensor_entity[valid[j].sensor_id] for j in idx])
+        T3 = np.array([self._T_entity_marker[valid[j].marker_id] for j in idx])
         pred = T1_inv @ np.linalg.inv(W_a) @ W_b @ T3
         p_a = p2[idx]
         p_b = np.array([valid[j].p_sensor_marker_alt_m for j in idx])
@@ -94,7 +137,7 @@ class AmbiguityResolution:
         for j, verdict in zip(idx, verdicts, strict=True):
             if verdict is Verdict.ALT:
                 alt = Rotation.from_quat(valid[j].q_sensor_marker_alt_xyzw())
-                R2[j] = alt.as_matrix()
+                det.R_sm[j] = alt.as_matrix()
                 q2[j] = alt.as_quat()
                 p2[j] = valid[j].p_sensor_marker_alt_m
                 swapped.add(j)
@@ -106,29 +149,22 @@ class AmbiguityResolution:
                 notes.append(f"ambiguity_{verdict.value}")
         return rejected, swapped
 
-    def _resolve_by_tilt(
-        self,
-        valid: list[MarkerData],
-        R2: NDArray[np.float64],
-        p2: NDArray[np.float64],
-        q2: NDArray[np.float64],
-        notes: list[str],
-        rejected: dict[int, Rejection],
-        swapped: set[int],
-        C_sm: NDArray[np.float64] | None = None,
+    def _by_tilt(
+        self, det: Detections, notes: list[str], rejected: dict[int, Rejection], swapped: set[int]
     ) -> set[int]:
         """The MegaTag2 step: observations between the attitude's entity and the world that carry both
         solutions, decided by gravity (swapped in place, or rejected). Returns the indices decided.
 
         A kept solution of the own camera with a detection covariance is then updated with the
-        autopilot's up vector (:func:`atlas_onboard.core.attitude.constrain_tilt`): ``valid[j]`` gets
-        the new covariance and a sigma scaled as its camera-position spread shrank, ``C_sm[j]`` too."""
+        autopilot's up vector (:func:`atlas_onboard.core.attitude.constrain_tilt`): its record gets
+        the new covariance and a sigma scaled as its camera-position spread shrank, ``det.C_sm`` too."""
+        valid, R2, p2, q2, C_sm = det.records, det.R_sm, det.p_sm, det.q_sm_xyzw, det.C_sm
         up_at, own = self._up_at, self._up_entity
         if up_at is None:
             return set()
         decided: set[int] = set()
         for j, md in enumerate(valid):
-            observer, observed = self._sensor[md.sensor_id][0], self._marker[md.marker_id][0]
+            observer, observed = self._sensor_entity[md.sensor_id], self._marker_entity[md.marker_id]
             if not ((observer == own and observed == WORLD) or (observer == WORLD and observed == own)):
                 continue
             if md.alt_state() is not AltState.VALID:
@@ -139,8 +175,8 @@ class AmbiguityResolution:
                 continue
             R_alt = Rotation.from_quat(md.q_sensor_marker_alt_xyzw()).as_matrix()
             R_pair = np.stack([R2[j], R_alt])  # R_sensor_marker of both solutions
-            M_es = self._sensor[md.sensor_id][1][:3, :3]
-            M_em = self._marker_fwd[md.marker_id][:3, :3]
+            M_es = self._T_entity_sensor[md.sensor_id][:3, :3]
+            M_em = self._T_entity_marker[md.marker_id][:3, :3]
             if observer == own:  # R_world_body = R_world_marker R_sensor_marker^-1 R_body_sensor^-1
                 R_wb = M_em @ R_pair.transpose(0, 2, 1) @ M_es.T
             else:  # a world camera sees the own marker: R_world_body = R_world_sensor R_sensor_marker R_body_marker^-1
@@ -159,7 +195,7 @@ class AmbiguityResolution:
             if check.verdict is not attitude.TiltVerdict.BOTH:
                 decided.add(j)
             kept = check.verdict is attitude.TiltVerdict.PRIMARY or (
-                check.verdict is attitude.TiltVerdict.BOTH and not md.ambiguity_ratio > self.ambiguity_threshold
+                check.verdict is attitude.TiltVerdict.BOTH and not md.ambiguity_ratio > self.threshold
             )
             if kept and observer == own and md.covariance:
                 C = C_sm[j] if C_sm is not None else upper_to_matrix(np.array([md.covariance]))[0]

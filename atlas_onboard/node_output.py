@@ -15,7 +15,7 @@ from atlas_onboard.core.markerdata import Rejection
 from atlas_onboard.publisher import PoseState, Telemetry
 from atlas_onboard.schedule import near_entities
 
-_logger = logging.getLogger("atlas_onboard.node")  # the node's log, as before the split
+_logger = logging.getLogger(__name__)
 
 NS = 1_000_000_000
 PREDICT_NS = 20_000_000  # with the EKF, publish its prediction to now at least every 20 ms

@@ -60,34 +60,21 @@ def relevance(observer: str | None, observed: str | None, near: frozenset[str] |
     return Relevance.PARK
 
 
+@dataclass(slots=True, eq=False)
 class Inbound:
     """A peer's observation as the transport delivers it: its sender (system id), edge, capture time
     and place in its image read from the frame, when it arrived, and :meth:`take`, which gives the checked
     MarkerData (decoded and checked at the first call, in the caller's thread; None if refused,
     counted by the transport). One that is never taken is never decoded."""
 
-    __slots__ = (
-        "_admit", "_md", "arrival_ns", "capture_time_us", "frame_remaining", "marker_id", "origin", "sensor_id",
-    )  # fmt: skip
-
-    def __init__(
-        self,
-        origin: int,
-        sensor_id: int,
-        marker_id: int,
-        capture_time_us: int,
-        frame_remaining: int,
-        arrival_ns: int,
-        admit: Callable[[], MarkerData | None],
-    ) -> None:
-        self.origin = origin
-        self.sensor_id = sensor_id
-        self.marker_id = marker_id
-        self.capture_time_us = capture_time_us
-        self.frame_remaining = frame_remaining
-        self.arrival_ns = arrival_ns
-        self._admit: Callable[[], MarkerData | None] | None = admit
-        self._md: MarkerData | None = None
+    origin: int
+    sensor_id: int
+    marker_id: int
+    capture_time_us: int
+    frame_remaining: int
+    arrival_ns: int
+    _admit: Callable[[], MarkerData | None] | None
+    _md: MarkerData | None = None
 
     @classmethod
     def of(cls, md: MarkerData, arrival_ns: int) -> Inbound:

@@ -11,37 +11,27 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
+from atlas_onboard.config import model, settings
 from atlas_onboard.config.fields import REQUIRED, declared, kind_of, range_text
-from atlas_onboard.config.model import Conventions, FileOptions, MarkerConfig, SensorConfig, SensorPose
-from atlas_onboard.config.settings import (
-    AutopilotConfig,
-    CameraConfig,
-    FusionConfig,
-    GlobalOrigin,
-    LinkConfig,
-    NodeConfig,
-    RecordConfig,
-    SigningConfig,
-)
 
 # Where each class's settings sit in the file: (YAML path of the section, class, only these keys).
 # `<name>` is any entity, `<entity>` an entity with a node or `defaults`, `[]` any item of a list.
 SECTIONS: tuple[tuple[str, type, tuple[str, ...]], ...] = (
-    ("", FileOptions, ()),
-    ("conventions", Conventions, ()),
-    ("fusion", FusionConfig, ()),
-    ("entities.<name>.sensors[]", SensorConfig, ()),
-    ("entities.<name>.sensors[]", SensorPose, ()),
-    ("entities.<name>.sensors[].camera", CameraConfig, ()),
-    ("entities.<name>.markers[]", MarkerConfig, ()),
-    ("nodes.<entity>", NodeConfig, ()),
-    ("nodes.<entity>.autopilot", LinkConfig, ("url", "signing")),
-    ("nodes.<entity>.autopilot", AutopilotConfig, ()),
-    ("nodes.<entity>.autopilot.signing", SigningConfig, ()),
-    ("nodes.<entity>.autopilot.origin", GlobalOrigin, ()),
-    ("nodes.<entity>.peers[]", LinkConfig, ()),
-    ("nodes.<entity>.peers[].signing", SigningConfig, ()),
-    ("nodes.<entity>.record", RecordConfig, ()),
+    ("", model.FileOptions, ()),
+    ("conventions", model.Conventions, ()),
+    ("fusion", settings.FusionConfig, ()),
+    ("entities.<name>.sensors[]", model.SensorConfig, ()),
+    ("entities.<name>.sensors[]", model.SensorPose, ()),
+    ("entities.<name>.sensors[].camera", settings.CameraConfig, ()),
+    ("entities.<name>.markers[]", model.MarkerConfig, ()),
+    ("nodes.<entity>", settings.NodeConfig, ()),
+    ("nodes.<entity>.autopilot", settings.LinkConfig, ("url", "signing")),
+    ("nodes.<entity>.autopilot", settings.AutopilotConfig, ()),
+    ("nodes.<entity>.autopilot.signing", settings.SigningConfig, ()),
+    ("nodes.<entity>.autopilot.origin", settings.GlobalOrigin, ()),
+    ("nodes.<entity>.peers[]", settings.LinkConfig, ()),
+    ("nodes.<entity>.peers[].signing", settings.SigningConfig, ()),
+    ("nodes.<entity>.record", settings.RecordConfig, ()),
 )
 
 

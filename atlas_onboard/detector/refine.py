@@ -26,20 +26,26 @@ SHIFT_FLOOR_PX = 0.02
 MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
 
 
-def _side_normal(
-    a: NDArray[np.float64], b: NDArray[np.float64], center: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-    """The side from corner ``a`` to ``b`` (its vector) and its unit normal pointing out of the marker
-    (``center``: the corners' mean); None for a side shorter than 8 px (no edge to fit)."""
-    d = b - a
-    length = float(np.linalg.norm(d))
-    if length < 8:
-        return None
-    u = d / length
-    n = np.array([-u[1], u[0]])
-    if n @ (center - a) > 0:  # normal pointing out of the marker
-        n = -n
-    return d, n
+def _sides(
+    corners: NDArray[np.float64],
+) -> list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] | None:
+    """The four sides of ``corners`` (4, 2), side i from corner i to corner i + 1: its first corner, its
+    vector and its unit normal pointing out of the marker; None if a side is shorter than 8 px (no edge
+    to fit)."""
+    center = corners.mean(axis=0)
+    out = []
+    for i in range(4):
+        a, b = corners[i], corners[(i + 1) % 4]
+        d = b - a
+        length = float(np.linalg.norm(d))
+        if length < 8:
+            return None
+        u = d / length
+        n = np.array([-u[1], u[0]])
+        if n @ (center - a) > 0:  # normal pointing out of the marker
+            n = -n
+        out.append((a, d, n))
+    return out
 
 
 def _crossings(
@@ -64,14 +70,11 @@ def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDA
     """Corners (4, 2), pixel-centre convention, refined on ``gray``; unchanged where a fit fails."""
     img = gray.astype(np.float32)
     lines = []
-    center = corners.mean(axis=0)
     offsets = np.arange(-HALF_WIDTH_PX, HALF_WIDTH_PX + 1e-9, STEP_PX)
-    for i in range(4):
-        a, b = corners[i], corners[(i + 1) % 4]
-        side = _side_normal(a, b, center)
-        if side is None:
-            return corners
-        d, n = side
+    sides = _sides(corners)
+    if sides is None:
+        return corners
+    for a, d, n in sides:
         ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
         base = a[None, :] + ts[:, None] * d[None, :]
         pts = base[:, None, :] + offsets[None, :, None] * n[None, None, :]
@@ -124,18 +127,15 @@ def refine_corners_undistorted(
     """
     img = gray.astype(np.float32)
     Kinv = np.linalg.inv(K)
-    center = corners_und.mean(axis=0)
     ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
     lines = []
     ss, npts = 0.0, []
     lag0 = lag1 = 0.0
     spread: list[float] = []
-    for i in range(4):
-        a, b = corners_und[i], corners_und[(i + 1) % 4]
-        side = _side_normal(a, b, center)
-        if side is None:
-            return None
-        d, n = side
+    sides = _sides(corners_und)
+    if sides is None:
+        return None
+    for i, (a, d, n) in enumerate(sides):
         # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
         # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).

@@ -16,19 +16,21 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform
 
+from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.families import family
+from atlas_onboard.errors import AtlasError
 
 CELL_PX = 16
 
 
-@dataclass(frozen=True)
-class Camera:
-    """Pinhole intrinsics (OpenCV pixel-centre convention) and distortion k1 k2 p1 p2 k3."""
+Camera = Calibration
+"""The camera the renderer draws for: a calibration (pinhole intrinsics in OpenCV's pixel-centre
+convention and distortion k1 k2 p1 p2 k3; the fisheye model is not rendered)."""
 
-    width_px: int
-    height_px: int
-    K: NDArray[np.float64]
-    dist: NDArray[np.float64]
+
+def _pinhole(camera: Camera) -> None:
+    if camera.fisheye:
+        raise AtlasError("the renderer draws pinhole cameras (distortion k1 k2 p1 p2 k3), not the fisheye model")
 
 
 @dataclass(frozen=True)
@@ -151,6 +153,7 @@ def _texture(camera: Camera, seed: int, mean: float, contrast: float) -> NDArray
 
 
 def _project(camera: Camera, pts_cam: NDArray[np.float64]) -> NDArray[np.float64]:
+    _pinhole(camera)
     pts = np.ascontiguousarray(pts_cam, dtype=np.float64).reshape(-1, 1, 3)
     px, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), camera.K, camera.dist)
     return px.reshape(-1, 2)
@@ -168,6 +171,7 @@ def _undistorted_grid(camera: Camera, supersample: int) -> NDArray[np.float64]:
     point j is sample j * GRID_STEP. Computed once per camera and supersampling (cached), so that a
     frame costs no undistortion; :func:`draw_marker` starts each region on a grid point.
     """
+    _pinhole(camera)
     key = (camera.width_px, camera.height_px, camera.K.tobytes(), np.asarray(camera.dist).tobytes(), supersample)
     grid = _grids.get(key)
     if grid is None:

@@ -19,6 +19,6 @@ The only package that imports pymavlink. Its layers, bottom up:
   ``poll(timeout_s)`` or by its own thread (``start(handler)``).
 - :mod:`~atlas_onboard.mavlink.transport`: ``MavlinkTransport``, the node's autopilot and peer links
   (implements ``atlas_onboard.node.Transport``): frames, checks and delivers peer observations as
-  ``schedule.Inbound`` items, decoded when the node takes them; its autopilot side (HEARTBEAT,
-  TIMESYNC, EKF origin, attitude, the pose sent) is :mod:`~atlas_onboard.mavlink.autopilot_link`.
+  ``schedule.Inbound`` items, decoded when the node takes them; it holds an ``AutopilotLink``
+  (:mod:`~atlas_onboard.mavlink.autopilot_link`: HEARTBEAT, TIMESYNC, EKF origin, attitude, the pose sent).
 """

@@ -1,20 +1,24 @@
-"""The autopilot side of :class:`~atlas_onboard.mavlink.transport.MavlinkTransport`: the autopilot's
-HEARTBEAT, TIMESYNC answers, the EKF origin, its attitude (issue 19) and the pose sent to it."""
+"""The link to the own autopilot, held by :class:`~atlas_onboard.mavlink.transport.MavlinkTransport`: the
+autopilot's HEARTBEAT, TIMESYNC answers, the EKF origin, its attitude (issue 19) and the pose sent to it."""
 
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from typing import Any
 
 from scipy.spatial.transform import Rotation
 
+from atlas_onboard.config import NodeConfig
+from atlas_onboard.core.attitude import AttitudeHistory, BootClock
+from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec
 from atlas_onboard.mavlink.link import Link
 from atlas_onboard.publisher import AutopilotPose
 
-_logger = logging.getLogger("atlas_onboard.mavlink.transport")  # the transport's log, as before the split
+_logger = logging.getLogger(__name__)
 
 NS = 1_000_000_000
 MAV_AUTOPILOT_PX4 = autopilot.MAV_AUTOPILOT_PX4
@@ -27,9 +31,49 @@ ATTITUDE_ASKS = 5
 MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
 
 
-class AutopilotSide:
-    """The autopilot's half of :class:`~atlas_onboard.mavlink.transport.MavlinkTransport` (its base): it uses
-    the transport's attributes (autopilot link, config, counters, attitude history, clocks), set up there."""
+def wall_ns(wall_clock: Callable[[], float]) -> int:
+    """The wall clock (UNIX epoch) in ns, to the microsecond (the resolution of a float of seconds)."""
+    return round(wall_clock() * 1e6) * 1000
+
+
+class AutopilotLink:
+    """The own autopilot's link (``link``, None without ``autopilot`` in the node settings) and everything
+    said over it. The transport starts it, ticks it, and hands it the pose to send; the attitude it keeps
+    (``attitude``) is what the listener's gravity check reads."""
+
+    def __init__(self, config: NodeConfig, component_id: int, wall_clock: Callable[[], float] = time.time) -> None:
+        self.settings = config.autopilot
+        self.system_id = config.system_id
+        self.wall = wall_clock
+        self.link = (
+            Link(self.settings.link, "autopilot", config.system_id, component_id, config.state_dir, link_id=0,
+                 wall_clock=wall_clock)
+            if self.settings is not None
+            else None
+        )  # fmt: skip
+        self.counters = Counters()
+        self.autopilot_system: int | None = None  # from the autopilot's HEARTBEAT
+        self.autopilot_component: int | None = None
+        self.autopilot_type: int | None = None  # MAV_AUTOPILOT_* (PX4 12, ArduPilot 3)
+        self._next_origin_ns = 0
+        self._origin_unanswered = 0  # origin requests since the last SET_GPS_GLOBAL_ORIGIN, unanswered
+        self._origin_sets = 0
+        self._origin_skipped = False
+        self.origin_known = False
+        # --- the autopilot's attitude (issue 19): gravity for a single tag's ambiguity ---
+        self.attitude = AttitudeHistory()
+        self._boot_clock = BootClock()
+        self._attitude_asks = 0
+        self._next_attitude_ask_ns = 0
+
+    def start(self) -> None:
+        if self.link is not None:
+            self.link.start(self._on_message)
+
+    def tick(self, now_ns: int) -> None:
+        """The EKF origin and the ATTITUDE stream, asked for (or set) when due."""
+        self._origin_tick(now_ns)
+        self._attitude_tick(now_ns)
 
     def attitude_at(self, t_us: int) -> Rotation | None:
         """The autopilot's attitude at ``t_us`` (wall clock, us) as a scipy Rotation of the body FLU in a
@@ -38,31 +82,31 @@ class AutopilotSide:
 
     def send_autopilot(self, pose: AutopilotPose) -> None:
         """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity; a non-finite pose is counted, not sent."""
-        if self.autopilot is None or self.config.autopilot is None:
+        if self.link is None or self.settings is None:
             return
-        d = self.autopilot.dialect
+        d = self.link.dialect
         speed = None
         try:
-            if self.config.autopilot.output.value == "odometry":
+            if self.settings.output.value == "odometry":
                 msg = codec.odometry(d, pose.pose, pose.reset_counter)
             else:
                 msg = codec.vision_position_estimate(d, pose.pose, pose.reset_counter)
                 speed = codec.vision_speed_estimate(d, pose.pose, pose.reset_counter)
         except AtlasError as exc:
-            self.counters_.inc("autopilot_pose_refused")
+            self.counters.inc("autopilot_pose_refused")
             _logger.debug("pose not sent to the autopilot: %s", exc)
             return
-        self.autopilot.send(msg)
+        self.link.send(msg)
         if speed is not None:
-            self.autopilot.send(speed)  # the EKF velocity, for ArduPilot (EK3_SRC1_VELXY=6); PX4 ignores it
+            self.link.send(speed)  # the EKF velocity, for ArduPilot (EK3_SRC1_VELXY=6); PX4 ignores it
 
     def _attitude_tick(self, now_ns: int) -> None:
         """Ask the autopilot for ATTITUDE (MAV_CMD_SET_MESSAGE_INTERVAL) when none came for
         ATTITUDE_WAIT_NS after its HEARTBEAT; at most ATTITUDE_ASKS times (a link without it works as before)."""
-        if self.autopilot is None or self.autopilot_system is None or self._attitude_asks >= ATTITUDE_ASKS:
+        if self.link is None or self.autopilot_system is None or self._attitude_asks >= ATTITUDE_ASKS:
             return
         last = self.attitude.latest_us()
-        if last is not None and self._wall_ns() // 1000 - last < ATTITUDE_WAIT_NS // 1000:
+        if last is not None and wall_ns(self.wall) // 1000 - last < ATTITUDE_WAIT_NS // 1000:
             return
         if self._next_attitude_ask_ns == 0:
             self._next_attitude_ask_ns = now_ns + ATTITUDE_WAIT_NS  # give the autopilot's own streams a chance
@@ -73,8 +117,8 @@ class AutopilotSide:
         fields = autopilot.set_message_interval_fields(
             self.autopilot_system, self.autopilot_component or 0, autopilot.MSG_ATTITUDE, ATTITUDE_INTERVAL_US
         )
-        self.autopilot.send(self.autopilot.dialect.MAVLink_command_long_message(**fields))
-        self.counters_.inc("attitude_requested")
+        self.link.send(self.link.dialect.MAVLink_command_long_message(**fields))
+        self.counters.inc("attitude_requested")
 
     def _on_attitude(self, msg: Any, arrival_ns: int) -> None:
         """ATTITUDE or ATTITUDE_QUATERNION into the history, stamped on the wall clock (see BootClock)."""
@@ -84,9 +128,9 @@ class AutopilotSide:
             else:
                 R = autopilot.attitude_quaternion_level_flu((msg.q1, msg.q2, msg.q3, msg.q4))
         except AtlasError:
-            self.counters_.inc("attitude_rejected")
+            self.counters.inc("attitude_rejected")
             return
-        arrival_wall_us = (self._wall_ns() - (time.monotonic_ns() - arrival_ns)) // 1000
+        arrival_wall_us = (wall_ns(self.wall) - (time.monotonic_ns() - arrival_ns)) // 1000
         self.attitude.add(self._boot_clock.wall_us(int(msg.time_boot_ms) * 1000, arrival_wall_us), R)
 
     def _origin_tick(self, now_ns: int) -> None:
@@ -98,8 +142,8 @@ class AutopilotSide:
         origin's altitude once height is initialised (ekf2 ``setAltOrigin``): it gets one only with
         ``origin.send_to_px4``, and then at altitude 0, where neither branch of that rule moves the
         local frame (an origin altitude of 0 or none)."""
-        ap = self.config.autopilot
-        if ap is None or ap.origin is None or self.origin_known or self.autopilot is None:
+        ap = self.settings
+        if ap is None or ap.origin is None or self.origin_known or self.link is None:
             return
         if self.autopilot_type is None or now_ns < self._next_origin_ns:
             return  # the autopilot's HEARTBEAT first: what to send depends on which autopilot it is
@@ -110,25 +154,25 @@ class AutopilotSide:
                 _logger.info("PX4 needs no EKF origin to hold position: autopilot.origin not sent (see send_to_px4)")
             return
         self._next_origin_ns = now_ns + ORIGIN_REQUEST_NS
-        target = self.autopilot_system if self.autopilot_system is not None else self.config.system_id
-        d = self.autopilot.dialect
+        target = self.autopilot_system if self.autopilot_system is not None else self.system_id
+        d = self.link.dialect
         if self._origin_unanswered >= ORIGIN_UNANSWERED << min(self._origin_sets, 4):
             alt_m = 0.0 if px4 else ap.origin.alt_m
             fields = autopilot.set_gps_global_origin_fields(
                 target, ap.origin.lat_deg, ap.origin.lon_deg, alt_m, int(self.wall() * 1e6)
             )
-            self.autopilot.send(d.MAVLink_set_gps_global_origin_message(**fields))
-            self.counters_.inc("origin_set_sent")
+            self.link.send(d.MAVLink_set_gps_global_origin_message(**fields))
+            self.counters.inc("origin_set_sent")
             self._origin_sets += 1
             self._origin_unanswered = 0
             _logger.info("autopilot reports no EKF origin: SET_GPS_GLOBAL_ORIGIN sent (altitude %.1f m)", alt_m)
         fields = autopilot.request_message_fields(
             target, self.autopilot_component or 0, autopilot.MSG_GPS_GLOBAL_ORIGIN
         )
-        self.autopilot.send(d.MAVLink_command_long_message(**fields))
+        self.link.send(d.MAVLink_command_long_message(**fields))
         self._origin_unanswered += 1
 
-    def _on_autopilot(self, link: Link, msg: Any, arrival_ns: int) -> None:
+    def _on_message(self, link: Link, msg: Any, arrival_ns: int) -> None:
         kind = msg.get_type()
         if kind == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
             source = (msg.get_srcSystem(), msg.get_srcComponent())
@@ -140,10 +184,10 @@ class AutopilotSide:
                     "autopilot found: system %d, component %d, autopilot type %d",
                     msg.get_srcSystem(), msg.get_srcComponent(), msg.autopilot,
                 )  # fmt: skip
-                if msg.get_srcSystem() != self.config.system_id:
+                if msg.get_srcSystem() != self.system_id:
                     _logger.warning(
                         "autopilot's system id %d differs from system_id %d in the node settings",
-                        msg.get_srcSystem(), self.config.system_id,
+                        msg.get_srcSystem(), self.system_id,
                     )  # fmt: skip
             self.autopilot_system = msg.get_srcSystem()
             self.autopilot_component = msg.get_srcComponent()
@@ -155,10 +199,10 @@ class AutopilotSide:
             requester = (msg.get_srcSystem(), msg.get_srcComponent())
             if requester != (self.autopilot_system, self.autopilot_component):
                 if msg.tc1 == 0:
-                    self.counters_.inc("timesync_not_from_autopilot")
+                    self.counters.inc("timesync_not_from_autopilot")
                 return
             target = getattr(msg, "target_system", 0)
-            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, self._wall_ns(), requester, link.system_id, target)
+            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, wall_ns(self.wall), requester, link.system_id, target)
             if reply is not None:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION"):

@@ -12,8 +12,10 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
+from scipy.spatial.transform import Rotation
+
 from atlas_onboard.config import AutopilotConfig, NodeConfig, WorldConfig, defaults
-from atlas_onboard.core.attitude import AttitudeHistory, BootClock
+from atlas_onboard.core.attitude import AttitudeHistory
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.rejection import Rejection
@@ -28,11 +30,12 @@ from atlas_onboard.mavlink.autopilot_link import (  # noqa: F401 (were defined h
     MAV_COMP_ID_AUTOPILOT1,
     ORIGIN_REQUEST_NS,
     ORIGIN_UNANSWERED,
-    AutopilotSide,
+    AutopilotLink,
+    wall_ns,
 )
 from atlas_onboard.mavlink.gate import OriginBinding, PeerGate, ReportLimiter, TokenBucket
 from atlas_onboard.mavlink.link import Link
-from atlas_onboard.publisher import PoseState, Telemetry
+from atlas_onboard.publisher import AutopilotPose, PoseState, Telemetry
 from atlas_onboard.schedule import Inbound
 
 _logger = logging.getLogger(__name__)
@@ -45,7 +48,7 @@ PEER_LOST_NS = 3 * NS
 REPORT_EVERY_S = 10.0  # a STATUSTEXT or a warning of one reason goes out at most this often
 
 
-class MavlinkTransport(AutopilotSide):
+class MavlinkTransport:
     """Implements :class:`atlas_onboard.node.Transport` over pymavlink links."""
 
     def __init__(self, world: WorldConfig, config: NodeConfig, wall_clock: Callable[[], float] = time.time) -> None:
@@ -56,11 +59,7 @@ class MavlinkTransport(AutopilotSide):
         self.counters_ = Counters()
         ap = config.autopilot
         compid = ap.component_id if ap is not None else defaults(AutopilotConfig)["component_id"]
-        self.autopilot = (
-            Link(ap.link, "autopilot", config.system_id, compid, config.state_dir, link_id=0, wall_clock=wall_clock)
-            if ap is not None
-            else None
-        )
+        self.autopilot_link = AutopilotLink(config, compid, wall_clock)
         # A peer's observations are decoded only when the node takes them (most wait for the newest of
         # their edge, and the others are never taken); its fused poses only say that it is alive.
         lazy = ("ATLAS_OBSERVATION", "ATLAS_FUSED_POSE")
@@ -79,38 +78,37 @@ class MavlinkTransport(AutopilotSide):
         self._reports = ReportLimiter(REPORT_EVERY_S)  # STATUSTEXT and warnings, per reason
         self._lock = threading.Lock()
         self._next_heartbeat_ns = 0
-        self._next_origin_ns = 0
-        self._origin_unanswered = 0  # origin requests since the last SET_GPS_GLOBAL_ORIGIN, unanswered
-        self._origin_sets = 0
-        self._origin_skipped = False
-        self.origin_known = False
         self.pose_state = PoseState.NONE
         self._start_ns = time.monotonic_ns()
-        self.autopilot_system: int | None = None  # from the autopilot's HEARTBEAT
-        self.autopilot_component: int | None = None
-        self.autopilot_type: int | None = None  # MAV_AUTOPILOT_* (PX4 12, ArduPilot 3)
         self.peers_seen: dict[int, int] = {}  # system id -> last arrival (ns)
         self._peers_alive: set[int] = set()
         self._fingerprint_warned: set[int] = set()
-        # --- the autopilot's attitude (issue 19): gravity for a single tag's ambiguity ---
-        self.attitude = AttitudeHistory()
-        self._boot_clock = BootClock()
-        self._attitude_asks = 0
-        self._next_attitude_ask_ns = 0
+
+    @property
+    def attitude(self) -> AttitudeHistory:
+        """The autopilot's attitude history (issue 19): gravity for a single tag's ambiguity."""
+        return self.autopilot_link.attitude
 
     # --- Transport ------------------------------------------------------------------------------------
 
     def start(self, deliver: Callable[[Sequence[Inbound]], None], may_read: threading.Event | None = None) -> None:
         self._deliver = deliver
         self._warn_at_start()
-        if self.autopilot is not None:
-            self.autopilot.start(self._on_autopilot)
+        self.autopilot_link.start()
         for i, link in enumerate(self.peers):
             link.start(
                 lambda lk, msg, t, i=i: self._on_peer(i, lk, msg, t),
                 may_read,
                 read_done=lambda lk, i=i: self._hand_on(i),
             )
+
+    def send_autopilot(self, pose: AutopilotPose) -> None:
+        """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity (see :meth:`AutopilotLink.send_autopilot`)."""
+        self.autopilot_link.send_autopilot(pose)
+
+    def attitude_at(self, t_us: int) -> Rotation | None:
+        """The autopilot's attitude at ``t_us`` (see :meth:`AutopilotLink.attitude_at`)."""
+        return self.autopilot_link.attitude_at(t_us)
 
     def _hand_on(self, index: int) -> None:
         """The observations of one read of peer link ``index``, to the node together."""
@@ -191,8 +189,7 @@ class MavlinkTransport(AutopilotSide):
             self._next_heartbeat_ns = now_ns + int(NS / self.config.heartbeat_hz)
             for link in self._links():
                 link.send(link.dialect.MAVLink_heartbeat_message(**autopilot.heartbeat_fields(int(self.pose_state))))
-        self._origin_tick(now_ns)
-        self._attitude_tick(now_ns)
+        self.autopilot_link.tick(now_ns)
 
     def _peer_changes(self, now_ns: int) -> None:
         """STATUSTEXT and a log line when a peer appears or falls silent for PEER_LOST_S."""
@@ -210,6 +207,7 @@ class MavlinkTransport(AutopilotSide):
 
     def counters(self) -> dict[str, int]:
         out = self.counters_.snapshot()
+        out.update(self.autopilot_link.counters.snapshot())
         out["clock_skew_warnings"] = self.gate.skew_warnings
         with self._lock:
             out.update({f"refused_from_{sysid}": n for sysid, n in self._refused_by_origin.items()})
@@ -224,7 +222,8 @@ class MavlinkTransport(AutopilotSide):
     # --- receiving ------------------------------------------------------------------------------------
 
     def _links(self) -> list[Link]:
-        return ([self.autopilot] if self.autopilot is not None else []) + self.peers
+        ap = self.autopilot_link.link
+        return ([ap] if ap is not None else []) + self.peers
 
     def _on_peer(self, index: int, link: Link, msg: Any, arrival_ns: int) -> None:
         kind = msg.get_type()
@@ -354,8 +353,7 @@ class MavlinkTransport(AutopilotSide):
         return md
 
     def _wall_ns(self) -> int:
-        """The wall clock (UNIX epoch) in ns, to the microsecond (the resolution of a float of seconds)."""
-        return round(self.wall() * 1e6) * 1000
+        return wall_ns(self.wall)
 
     def _warn_fingerprint(self, origin: int) -> None:
         with self._lock:

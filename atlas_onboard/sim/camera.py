@@ -13,7 +13,6 @@ import math
 import multiprocessing as mp
 import os
 import threading
-import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -55,25 +54,12 @@ class SimCameraWorker(SensorWorker):
     def counters(self) -> dict[str, int]:
         return {"frames": self.frames, "frames_skipped": self.skipped, "detections": self.detections}
 
+    def _skip(self, missed: int) -> None:
+        self.skipped += missed
+
     def _run(self, deliver: Deliver) -> None:
-        epoch = self.context.wait_epoch(self._stop)
-        if epoch is None:
-            return
-        period = 1.0 / self.fps
-        k = 0
-        while not self._stop.is_set():
-            t = k * period
-            wait = epoch + t - time.time()
-            if wait > 0:
-                self._stop.wait(wait)
-                continue
-            if wait < -period:  # we fell behind: drop the frames whose time has passed, never queue
-                missed = int(-wait / period)
-                self.skipped += missed
-                k += missed
-                continue
-            index = k
-            k += 1
+        # when behind, the frames whose time has passed are dropped (counted), never queued
+        for epoch, index, t in self.context.ticks(self._stop, 1.0 / self.fps, self._skip):
             self.frames += 1
             # Ground truth only when the detector needs it (not for images rendered before the run).
             truth = self.sim.truth(t) if getattr(self.detect, "needs_truth", True) else {}

@@ -11,6 +11,7 @@ import functools
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -141,6 +142,27 @@ class Scenario:
         return self.mocap is not None or any(s.camera is not None for s in world.entity(WORLD).sensors)
 
 
+def _flights(drones: dict[str, tj.Quadrotor], **scenario: Any) -> Scenario:
+    """A scenario in which every moving entity is a drone that runs a node and is scored."""
+    return Scenario(trajectories=dict(drones), drones=tuple(drones), scored=tuple(drones), **scenario)
+
+
+def _figure_eight(scale: float) -> tj.Quadrotor:
+    """The hard scenes' drone: a figure-eight (x at 1/15 Hz, y at 2/15 Hz: two figures in 30 s, up to
+    0.8 m/s at scale 1) with yaw swings of +-70 deg (up to 50 deg/s) and a controller's oscillation and
+    vibration, every length times ``scale``."""
+    return tj.Quadrotor(
+        path=tj.lissajous((0.0, 0.0, 1.35 * scale), (1.8 * scale, 1.0 * scale, 0.2 * scale), (1 / 15, 2 / 15, 0.1)),
+        yaw=tj.slow_yaw(0.0, 70.0, 9.0),
+        oscillation=tj.Oscillation((0.02 * scale, 0.02 * scale, 0.01 * scale), 1.1, 0.8, seed=60),
+    )
+
+
+# Barrel distortion of a cheap wide-angle lens (about 106 deg across), the blur of a 8 ms exposure and
+# a webcam's read noise; the room adds shot noise, vignetting and JPEG.
+_HARD_OPTICS = Optics(90.0, (-0.28, 0.08, 0.0, 0.0, 0.0), noise_sigma=2.0, exposure_s=0.008)
+
+
 def _paper_test1() -> Scenario:
     # The AR.Drone flies arbitrarily over the 13 tags and oscillates heavily (the paper's words).
     drone = tj.Quadrotor(
@@ -148,14 +170,12 @@ def _paper_test1() -> Scenario:
         yaw=tj.slow_yaw(0.0, 25.0, 17.0),
         oscillation=tj.Oscillation((0.03, 0.03, 0.01), 1.2, 1.0, seed=1),
     )
-    return Scenario(
+    return _flights(
+        {"ardrone": drone},
         name="paper-test1",
         description="self-localization: 13 floor tags of 18 cm, one AR.Drone 2 with its 720p camera looking down",
         world_file="paper-test1.yaml",
         duration_s=20.0,
-        trajectories={"ardrone": drone},
-        drones=("ardrone",),
-        scored=("ardrone",),
         optics={"ardrone.front": Optics(hfov_deg=70.0, distortion=(-0.05, 0.01, 0.0, 0.0, 0.0))},
         bars={"ardrone.rmse_m": 0.02},
     )
@@ -193,14 +213,12 @@ def _relay() -> Scenario:
         "drone_b": tj.Quadrotor(tj.offset(lead, (-1.2, 0.0, 0.0)), tj.constant_yaw(0.0), osc["b"]),
         "drone_c": tj.Quadrotor(tj.offset(lead, (-2.4, 0.0, 0.0)), tj.constant_yaw(0.0), osc["c"]),
     }
-    return Scenario(
+    return _flights(
+        trajectories,
         name="relay",
         description="cooperative localization: A sees the floor tags, B sees only A, C sees only B",
         world_file="relay.yaml",
         duration_s=16.0,
-        trajectories=trajectories,
-        drones=("drone_a", "drone_b", "drone_c"),
-        scored=("drone_a", "drone_b", "drone_c"),
         optics={n: Optics(hfov_deg=70.0) for n in ("drone_a.down", "drone_b.front", "drone_c.front")},
         bars={"drone_c.rmse_m": 0.10, "drone_c.availability": 0.95},
     )
@@ -210,7 +228,7 @@ def _swarm() -> Scenario:
     def osc(k: int) -> tj.Oscillation:
         return tj.Oscillation((0.02, 0.02, 0.01), 0.7 + 0.15 * k, 0.5, seed=30 + k)
 
-    trajectories: dict[str, Trajectory] = {
+    trajectories = {
         "d1": tj.Quadrotor(tj.circle((-1.5, 0.7, 1.5), 0.8, 12.0), tj.slow_yaw(0, 90, 20), osc(1)),
         "d2": tj.Quadrotor(tj.circle((-1.4, -1.2, 1.2), 0.6, 9.0, 2.0), tj.constant_yaw(45), osc(2)),
         "d3": tj.Quadrotor(tj.circle((1.5, 1.0, 1.6), 0.7, 11.0, 1.0), tj.slow_yaw(90, 60, 15), osc(3)),
@@ -221,15 +239,12 @@ def _swarm() -> Scenario:
         # d6 flies a wide circle that leaves both cameras' view for part of each lap.
         "d6": tj.Quadrotor(tj.circle((0.0, 0.0, 1.5), 3.0, 16.0, 0.5), tj.constant_yaw(0), osc(6)),
     }
-    drones = tuple(trajectories)
-    return Scenario(
+    return _flights(
+        trajectories,
         name="swarm",
         description="6 drones under two ceiling cameras, tags on every drone, some leaving the view",
         world_file="swarm.yaml",
         duration_s=20.0,
-        trajectories=trajectories,
-        drones=drones,
-        scored=drones,
         optics={"world.ceiling_west": Optics(hfov_deg=90.0), "world.ceiling_east": Optics(hfov_deg=90.0)},
     )
 
@@ -237,7 +252,7 @@ def _swarm() -> Scenario:
 def _paths() -> Scenario:
     # Holding formation: a slow drift (peak 8 cm/s) plus each vehicle's own oscillation.
     line = tj.shuttle((0.0, 0.0, 1.2), (0.4, 0.0, 1.2), 16.0)
-    trajectories: dict[str, Trajectory] = {
+    trajectories = {
         "lead": tj.Quadrotor(line, tj.constant_yaw(0.0), tj.Oscillation((0.015, 0.015, 0.01), 0.9, 0.5, seed=40)),
         "wing": tj.Quadrotor(
             tj.offset(line, (0.0, -1.0, 0.0)),
@@ -245,14 +260,12 @@ def _paths() -> Scenario:
             tj.Oscillation((0.015, 0.015, 0.01), 1.1, 0.5, seed=41),
         ),
     }
-    return Scenario(
+    return _flights(
+        trajectories,
         name="paths",
         description="a short noisy path (a far wall tag) and a long precise one (ceiling -> wing -> lead) for the lead",
         world_file="paths.yaml",
         duration_s=20.0,
-        trajectories=trajectories,
-        drones=("lead", "wing"),
-        scored=("lead", "wing"),
         optics={n: Optics(hfov_deg=70.0) for n in ("lead.front", "wing.left", "world.ceiling")},
     )
 
@@ -265,38 +278,25 @@ def _gaps() -> Scenario:
         yaw=tj.slow_yaw(0.0, 20.0, 13.0),
         oscillation=tj.Oscillation((0.02, 0.02, 0.01), 1.0, 0.8, seed=50),
     )
-    return Scenario(
+    return _flights(
+        {"drone": drone},
         name="gaps",
         description="detection gaps of 0.1-0.6 s: tags leave the view of a cruising drone, the camera is occluded",
         world_file="gaps.yaml",
         duration_s=20.0,
-        trajectories={"drone": drone},
-        drones=("drone",),
-        scored=("drone",),
         optics={"drone.down": Optics(hfov_deg=70.0)},
         occlusions=(Occlusions("drone.down", seed=51),),
     )
 
 
 def _hard() -> Scenario:
-    # A figure-eight (x at 1/15 Hz, y at 2/15 Hz: two figures in 30 s, up to 0.8 m/s) with yaw swings
-    # of +-70 deg (up to 50 deg/s) and a controller's oscillation and vibration.
-    drone = tj.Quadrotor(
-        path=tj.lissajous((0.0, 0.0, 1.35), (1.8, 1.0, 0.2), (1 / 15, 2 / 15, 0.1)),
-        yaw=tj.slow_yaw(0.0, 70.0, 9.0),
-        oscillation=tj.Oscillation((0.02, 0.02, 0.01), 1.1, 0.8, seed=60),
-    )
-    return Scenario(
+    return _flights(
+        {"drone": _figure_eight(1.0)},
         name="hard",
         description="a figure-eight over a concrete floor with few tags, wide-angle 640x480 camera pitched down",
         world_file="hard.yaml",
         duration_s=30.0,
-        trajectories={"drone": drone},
-        drones=("drone",),
-        scored=("drone",),
-        # Barrel distortion of a cheap wide-angle lens (about 106 deg across), the blur of a 8 ms
-        # exposure and a webcam's read noise; the room adds shot noise, vignetting and JPEG.
-        optics={"drone.front": Optics(90.0, (-0.28, 0.08, 0.0, 0.0, 0.0), noise_sigma=2.0, exposure_s=0.008)},
+        optics={"drone.front": _HARD_OPTICS},
         room=Room(),
     )
 
@@ -305,20 +305,13 @@ def _hard_near() -> Scenario:
     # hard, every length scaled by NEAR (room, path, oscillation), the tags 30 cm (see hard-near.yaml):
     # the same views and motion in the image, tags resolved about three times better.
     near = 0.63
-    drone = tj.Quadrotor(
-        path=tj.lissajous((0.0, 0.0, 1.35 * near), (1.8 * near, 1.0 * near, 0.2 * near), (1 / 15, 2 / 15, 0.1)),
-        yaw=tj.slow_yaw(0.0, 70.0, 9.0),
-        oscillation=tj.Oscillation((0.02 * near, 0.02 * near, 0.01 * near), 1.1, 0.8, seed=60),
-    )
-    return Scenario(
+    return _flights(
+        {"drone": _figure_eight(near)},
         name="hard-near",
         description="hard with 30 cm tags and every length x0.63 (a per-frame floor like issue 19's scene)",
         world_file="hard-near.yaml",
         duration_s=30.0,
-        trajectories={"drone": drone},
-        drones=("drone",),
-        scored=("drone",),
-        optics={"drone.front": Optics(90.0, (-0.28, 0.08, 0.0, 0.0, 0.0), noise_sigma=2.0, exposure_s=0.008)},
+        optics={"drone.front": _HARD_OPTICS},
         # The room scaled too, its textures as fine in the image as hard's.
         room=Room(
             lo_m=(-3.0 * near, -2.5 * near, 0.0),
@@ -339,17 +332,12 @@ def _map() -> Scenario:
         )
 
     cam = Optics(hfov_deg=80.0, distortion=(-0.12, 0.03, 0.0, 0.0, 0.0))
-    return Scenario(
+    return _flights(
+        {"mapper1": drone(0, (0.0, 0.0, 1.4), (1.6, 1.1, 0.3)), "mapper2": drone(1, (0.1, -0.1, 1.3), (1.5, 1.2, 0.2))},
         name="map",
         description="two drones survey a room of 22 markers on the floor and walls (record, map, fly on the map)",
         world_file="map.yaml",
         duration_s=60.0,
-        trajectories={
-            "mapper1": drone(0, (0.0, 0.0, 1.4), (1.6, 1.1, 0.3)),
-            "mapper2": drone(1, (0.1, -0.1, 1.3), (1.5, 1.2, 0.2)),
-        },
-        drones=("mapper1", "mapper2"),
-        scored=("mapper1", "mapper2"),
         optics={"mapper1.cam": cam, "mapper2.cam": cam},
     )
 

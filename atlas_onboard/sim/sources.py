@@ -15,6 +15,7 @@ import logging
 import os
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -75,6 +76,31 @@ class SimContext:
                 stop.wait(0.02)
         return None
 
+    def ticks(
+        self, stop: threading.Event, period_s: float, on_late: Callable[[int], None] | None = None
+    ) -> Iterator[tuple[float, int, float]]:
+        """The run's clock for a periodic sensor: ``(epoch, k, t)`` for k = 0, 1, ..., each yielded when
+        the wall clock reaches ``epoch + t`` (t = k period_s, s from the run's start), until ``stop``.
+        With ``on_late``, ticks whose time passed more than a period ago are dropped, never queued,
+        and their number handed to it."""
+        epoch = self.wait_epoch(stop)
+        if epoch is None:
+            return
+        k = 0
+        while not stop.is_set():
+            t = k * period_s
+            wait = epoch + t - time.time()
+            if wait > 0:
+                stop.wait(wait)
+                continue
+            if on_late is not None and wait < -period_s:
+                missed = int(-wait / period_s)
+                on_late(missed)
+                k += missed
+                continue
+            yield epoch, k, t
+            k += 1
+
 
 class MocapWorker(SensorWorker):
     """The paper's OptiTrack: observes the rigid-body marker of every drone at a fixed rate, with noise.
@@ -100,20 +126,9 @@ class MocapWorker(SensorWorker):
 
     def _run(self, deliver: Deliver) -> None:
         assert self.mocap is not None
-        epoch = self.context.wait_epoch(self._stop)
-        if epoch is None:
-            return
         rng = np.random.default_rng(self.context.seed + 1000)
-        period = 1.0 / self.mocap.rate_hz
-        k = 0
         T_world_sensor = self.sensor.T_entity_sensor  # the mocap frame, on the world entity
-        while not self._stop.is_set():
-            t = k * period
-            wait = epoch + t - time.time()
-            if wait > 0:
-                self._stop.wait(wait)
-                continue
-            k += 1
+        for epoch, _, t in self.context.ticks(self._stop, 1.0 / self.mocap.rate_hz):
             truth = self.sim.truth(t)
             frame = []
             for m in self.markers:

@@ -112,3 +112,14 @@ def test_concrete_background_has_the_edges_of_a_real_floor_and_keeps_the_tags_re
     assert ids == [7]
     with pytest.raises(ValueError, match="background style"):
         render.background(CAM, 3, style="marble")
+
+
+def test_a_fisheye_calibration_is_refused_not_drawn_as_a_pinhole():
+    """The renderer's camera is a calibration; it draws only the pinhole model, so a fisheye one is an error."""
+    from atlas_onboard.detector.calibration import Calibration
+    from atlas_onboard.errors import AtlasError
+
+    fisheye = Calibration(1280, 720, K, np.array([0.1, 0.01, 0.0, 0.0]), fisheye=True)
+    with pytest.raises(AtlasError, match="fisheye"):
+        render.render(fisheye, views(0))
+    assert render.render(CAM, views(0)).shape == (720, 1280)  # the same scene as a pinhole is drawn

@@ -195,7 +195,7 @@ def test_timesync_answered_on_the_wall_clock_and_origin_until_known(rig):
     transport.tick(0)
     ap.pump(0.2)
     ap.send(D.MAVLink_heartbeat_message(2, 3, 0, 0, 3, 3))  # ArduPilot (MAV_AUTOPILOT_ARDUPILOTMEGA)
-    assert wait_for(lambda: transport.autopilot_type == 3)
+    assert wait_for(lambda: transport.autopilot_link.autopilot_type == 3)
     # Asked for every 0.5 s; set after two requests went unanswered, together with a third request.
     for now_ns in (400_000_000, 1_000_000_000, 1_500_000_000):  # heartbeats at 2 Hz
         transport.tick(now_ns)
@@ -215,7 +215,7 @@ def test_timesync_answered_on_the_wall_clock_and_origin_until_known(rig):
     (reply,) = ap.of("TIMESYNC")
     assert (reply.tc1, reply.ts1) == (1_700_000_000_250_000_000, 987_654_321)  # the wall clock of usec, in ns
     assert (reply.target_system, reply.target_component) == (1, 1)
-    assert transport.origin_known
+    assert transport.autopilot_link.origin_known
     for now_ns in range(2_000_000_000, 10_000_000_000, 500_000_000):
         transport.tick(now_ns)
     ap.pump(0.2)
@@ -238,7 +238,7 @@ def _origin_run(sim, origin, seconds=3.0):
         transport.tick(0)  # a heartbeat: the simulated autopilot learns where the node is
         assert wait_for(lambda: sim._peer is not None)
         sim.send(sim._mav.heartbeat_encode(2, sim.autopilot_type, 0, 0, 3))
-        assert wait_for(lambda: transport.autopilot_type == sim.autopilot_type)
+        assert wait_for(lambda: transport.autopilot_link.autopilot_type == sim.autopilot_type)
         for k in range(1, int(seconds * 10)):
             transport.tick(k * 100_000_000)
             time.sleep(0.02)
@@ -257,7 +257,7 @@ def test_origin_after_a_restart_against_ardupilot_that_has_one_is_asked_for_neve
         transport = _origin_run(sim, GlobalOrigin(49.6, 6.1, 300.0))  # the node's is another: ignored
     finally:
         sim.stop()
-    assert transport.origin_known
+    assert transport.autopilot_link.origin_known
     assert sim.other.get("SET_GPS_GLOBAL_ORIGIN", 0) == 0
     assert sim.origin_requests == 1 and sim.origin == (47.1, 8.5, 400.0)
 
@@ -271,7 +271,7 @@ def test_origin_set_once_on_ardupilot_without_one(framing_mode):
         transport = _origin_run(sim, GlobalOrigin(49.6116, 6.1319, 300.0))
     finally:
         sim.stop()
-    assert transport.origin_known and sim.other.get("SET_GPS_GLOBAL_ORIGIN", 0) == 1
+    assert transport.autopilot_link.origin_known and sim.other.get("SET_GPS_GLOBAL_ORIGIN", 0) == 1
     assert sim.origin == pytest.approx((49.6116, 6.1319, 300.0), abs=1e-6)
 
 
@@ -328,7 +328,7 @@ def test_autopilot_gets_ned_and_never_a_non_finite_pose(rig):
 def test_odometry_output(rig):
     _, transport, ap, _, _ = rig
     ap_config = AutopilotConfig(transport.config.autopilot.link, output=AutopilotOutput.ODOMETRY)
-    transport.config = replace(transport.config, autopilot=ap_config)
+    transport.autopilot_link.settings = ap_config
     transport.tick(0)
     ap.pump(0.1)
     q = Rotation.from_euler("z", 90, degrees=True).as_quat()
