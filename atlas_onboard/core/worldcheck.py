@@ -302,13 +302,18 @@ class MotionCheck:
                     cov_pred = last.cov_m2 + cov_v * dt_s**2
                 for m, s in now.items():
                     cov = cov_pred + s.cov_m2
-                    worst = self.k_sigma * math.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)) + motion_m
-                    if worst > self.max_allowance_m:
-                        continue
                     d = s.p_m - p_pred
                     dist = float(np.linalg.norm(d))
                     sigma_dir = math.sqrt(float(d @ cov @ d)) / dist if dist > 0 else 0.0
-                    agree = dist <= self.k_sigma * sigma_dir + motion_m
+                    if dist > max(self.k_sigma * sigma_dir + motion_m, MIN_OFFSET_M):
+                        agree = False  # beyond the bound along the direction it jumped
+                    elif (
+                        self.k_sigma * math.sqrt(max(np.linalg.eigvalsh(cov)[-1], 0.0)) + motion_m
+                        <= self.max_allowance_m
+                    ):
+                        agree = True  # close, and a move of max_allowance_m in any direction would have shown
+                    else:
+                        continue  # close, but too uncertain along some direction to say it fits
                     # The camera seen too far by d: marker m's square is -d from its world-file place.
                     out.append(PairVerdict(m, b, agree, -d))
         for m, s in now.items():

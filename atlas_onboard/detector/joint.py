@@ -24,6 +24,7 @@ from atlas_onboard.detector.search import _side
 _logger = logging.getLogger("atlas_onboard.detector.pipeline")
 
 JOINT_MISFIT = 3.0  # a joint fit this many times worse than its worst single square is not used
+CLEAR_OFFSET_M = 0.03  # a moved or suspect marker fits again when its square is this close to where others put it
 STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagreeing markers
 LOG_INTERVAL_US = 5_000_000
 
@@ -73,7 +74,7 @@ class JointSolve:
         self._misfit_pair = []
         if md is not None or not misfit:
             if md is not None:
-                self.consistency.add_group(capture_time_us, entity, ids, [])
+                self._record_group(entity, ids, [], singles, capture_time_us)
             return md, ids
         used = list(ids)
         while len(used) > 2:
@@ -91,7 +92,7 @@ class JointSolve:
             if md is not None:
                 self.counters["joint"] += 1
                 self.counters["joint_without_disagreeing"] += 1
-                self.consistency.add_group(capture_time_us, entity, used, [i for i in ids if i not in used])
+                self._record_group(entity, used, [i for i in ids if i not in used], singles, capture_time_us)
                 return md, used
         for m in used:
             self.report.dropped.setdefault(m, "joint misfit: the markers do not fit together as placed")
@@ -155,6 +156,30 @@ class JointSolve:
                     f" {round(dz * 100):+d} cm"[:50]
                 )
 
+    def _doubtful(self, entity: str, ids: list[int], capture_time_us: int) -> set[int]:
+        """Those of ``ids`` reported moved or suspect."""
+        suspects = self.consistency.suspects(entity, capture_time_us)
+        return {m for m in ids if m in suspects or (entity, m) in self.moved}
+
+    def _record_group(
+        self, entity: str, fitted: list[int], left_out: list[int], singles: dict[int, _Single], capture_time_us: int
+    ) -> None:
+        """A joint solve's verdicts to the consistency graph. A moved or suspect marker that fitted is
+        judged by its offset from the others instead: the joint fit cannot see a move along the line of
+        sight of far squares, and such a marker must not be cleared by it."""
+        doubtful = self._doubtful(entity, fitted, capture_time_us)
+        trusted = [m for m in fitted if m not in doubtful]
+        if not trusted or not doubtful:
+            self.consistency.add_group(capture_time_us, entity, fitted, left_out)
+            return
+        self.consistency.add_group(capture_time_us, entity, trusted, left_out)
+        for m in doubtful:
+            offset = self._offset(m, trusted, singles)
+            if offset is not None:
+                agree = bool(np.linalg.norm(offset) <= CLEAR_OFFSET_M)
+                for b in trusted:
+                    self.consistency.add(capture_time_us, entity, m, b, agree)
+
     def _sighting(self, m: int, single: _Single, capture_time_us: int) -> Sighting | None:
         """Where marker ``m``'s own square puts the camera in its entity's frame, with the (3, 3)
         covariance of that position from the pose's 6x6 (None without one, or when the pose may be the
@@ -199,13 +224,18 @@ class JointSolve:
                 best[v.marker_id] = (support, v)
         return {m: v for m, (_, v) in best.items()}
 
-    def _pair_verdicts(self, a: int, b: int, agree: bool, singles: dict[int, _Single]) -> list[PairVerdict]:
-        """The joint solve's verdict on a pair, for each of its two markers (offsets only when they disagree)."""
+    def _pair_verdicts(
+        self, entity: str, a: int, b: int, agree: bool, singles: dict[int, _Single], capture_time_us: int
+    ) -> list[PairVerdict]:
+        """The joint solve's verdict on a pair for each of its markers, for the world check (a moved or
+        suspect one that fitted is judged by its offset, as in :meth:`_record_group`)."""
         out = []
         for m, other in ((a, b), (b, a)):
-            offset = np.zeros(3) if agree else self._offset(m, [other], singles)
+            doubtful = bool(self._doubtful(entity, [m], capture_time_us))
+            offset = np.zeros(3) if agree and not doubtful else self._offset(m, [other], singles)
             if offset is not None:
-                out.append(PairVerdict(m, other, agree, offset))
+                fits = agree and (not doubtful or bool(np.linalg.norm(offset) <= CLEAR_OFFSET_M))
+                out.append(PairVerdict(m, other, fits, offset))
         return out
 
     def _feed_world_check(self, entity: str, verdicts: list[PairVerdict], capture_time_us: int) -> None:

@@ -255,15 +255,25 @@ class Detector(RegionSearch, JointSolve):
             fed = False
             if self.joint and len(ids) > 1:
                 self._offsets = {}
+                doubtful = self._doubtful(entity, ids, capture_time_us)
                 md, used = self._robust_joint(entity, ids, singles, capture_time_us)
                 if len(ids) >= 3 and used is not None:  # one that does not fit can be singled out
                     self._check_world(entity, ids, capture_time_us)
                     fed = True
                 elif len(ids) == 2 and (md is not None or used is None):
                     a, b = ids
-                    verdicts += self._pair_verdicts(a, b, md is not None, singles)
+                    verdicts += self._pair_verdicts(entity, a, b, md is not None, singles, capture_time_us)
                 if not fed:
                     self._feed_world_check(entity, verdicts, capture_time_us)
+                if md is not None and used is not None and doubtful & set(used):
+                    # A moved or suspect marker that fitted is still left out: the rest give the pose.
+                    for m in doubtful & set(used):
+                        self.counters["dropped_suspect"] += 1
+                        self.report.dropped[m] = "moved or suspect: left out of the joint solve"
+                    used = [m for m in used if m not in doubtful]
+                    md = self._joint(used, singles, capture_time_us, count=False)[0] if len(used) > 1 else None
+                    if md is None:
+                        ids = used
                 if md is not None:
                     out.append(md)
                     self.report.reported += used
