@@ -8,6 +8,11 @@ image proves nothing (a blurred corner, a mirrored pose); a marker is reported m
 within a sliding window, it was checked in many images, disagreed in most of them, over more than a
 moment, and the median of its offsets is beyond what the corners' noise gives.
 
+Faster evidence (:class:`MarkerConsistency`, :class:`MotionCheck`): every pair of markers seen together
+and every marker seen a frame after another (where it puts the camera against where the other put it,
+moved on as a multirotor can move) agree or disagree; a marker that disagrees with markers that agree
+among themselves is suspect at once, and its verdicts against such markers feed the check above.
+
 Pure: the time is each image's capture stamp, passed in.
 """
 
@@ -256,8 +261,10 @@ class MotionCheck:
     with where another marker put it in the last frames, moved on by the camera's velocity (from two
     sightings of one marker: the same for every marker, whatever its error in the world file) and
     allowed the change of velocity that ``a_max_m_s2`` permits, plus ``k_sigma`` standard deviations of
-    both positions. After a gap the allowance grows as dt^2 and past ``max_allowance_m`` the comparison
-    proves nothing: a camera that really moved (re-acquired after a gap) is never held to an old pose.
+    both positions along the jump. Sightings more than ``max_gap_s`` apart are not compared and the
+    allowance grows as dt^2, so a camera that really moved (re-acquired after a gap) is never held to
+    an old pose. A jump of less than ``MIN_OFFSET_M`` is no disagreement, and an agreement counts only
+    when a move of ``max_allowance_m`` in any direction would have shown.
     """
 
     def __init__(

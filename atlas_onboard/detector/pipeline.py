@@ -14,6 +14,10 @@ dropped (counted by reason), since its edges cannot be fitted; the corners of th
 in undistorted pixels (:func:`refine.refine_corners_undistorted`), which also measures their noise.
 Markers of one entity that do not fit together are found by leaving each out in turn: the rest give the
 entity's pose, and the one that disagrees is counted, logged and announced (:meth:`Detector.take_status`).
+Every pair seen together and every marker seen a frame after another (the camera cannot jump) is
+evidence in a consistency graph over the markers (:class:`MarkerConsistency`, :class:`MotionCheck`): a
+marker that disagrees with markers that agree among themselves is suspect, never used alone nor in a
+joint solve, while the other member of a pair that disagrees is used.
 """
 
 from __future__ import annotations
@@ -281,7 +285,7 @@ class Detector(RegionSearch, JointSolve):
                 if used is None:
                     # The squares contradict each other: a pair's member that others trust is used alone,
                     # when the other is suspect; otherwise none of them is trusted in this image.
-                    suspects = self.consistency.suspects(entity, capture_time_us)
+                    suspects = self._doubtful(entity, self._misfit_pair, capture_time_us)
                     rest = [m for m in self._misfit_pair if m not in suspects]
                     if len(rest) != 1 or len(self._misfit_pair) != 2:
                         continue
