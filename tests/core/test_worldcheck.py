@@ -189,7 +189,7 @@ def test_after_a_gap_the_camera_may_be_anywhere_so_nothing_is_compared():
     frames=st.lists(st.integers(1, 3), min_size=3, max_size=3),  # frame periods between sightings
     seed=st.integers(0, 2**31 - 1),
 )
-def test_a_camera_moving_as_a_multirotor_can_never_disagrees_with_itself(accel, v0, frames, seed):
+def test_a_camera_moving_as_a_multirotor_can_never_disagree_with_itself(accel, v0, frames, seed):
     """Any motion within the acceleration bound, seen with noise of its stated sigma (within 3 sigma), by
     one marker and then another, never gives a disagreement: the check costs no marker that fits."""
     a = np.asarray(accel)

@@ -83,3 +83,29 @@ def test_a_pair_that_disagrees_uses_the_marker_others_agree_with_and_a_put_back_
         det.detect(moved_marker_image(back, yaw)[0], next(t))
     (md,) = det.detect(moved_marker_image({5: back[5]}, 6.0)[0], next(t))
     assert md.marker_id == 5
+
+
+def test_a_marker_seen_only_in_pairs_is_named_once_the_pairs_evidence_is_sound(caplog):
+    """No three markers together (the scene of issue 19): pairs alone name the marker, with its offset."""
+    world, spots = moved_marker_world(5, 0.10)
+    det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
+    trusted = moved_marker_image({1: spots[1], 2: spots[2]})[0]
+    pair, T_cam_world = moved_marker_image({1: spots[1], 5: spots[5]})
+    t_us = 1_000_000
+    for _ in range(2):
+        det.detect(trusted, t_us)
+        t_us += FRAME_US
+    with caplog.at_level(logging.WARNING, logger="atlas_onboard.detector.pipeline"):
+        poses = []
+        for _ in range(MIN_VIEWS + 1):
+            poses.append([md.p_sensor_marker_m for md in det.detect(pair, t_us) if md.marker_id == 1])
+            t_us += FRAME_US
+    assert list(det.moved) == [("world", 5)]
+    np.testing.assert_allclose(det.moved[("world", 5)].offset_m, [-0.10, 0.0, 0.0], atol=0.02)
+    assert sum("world marker 5 has moved" in r.getMessage() for r in caplog.records) == 1
+    assert [t for t in det.take_status() if "moved" in t] == ["atlas: marker 5 moved -10 +0 +0 cm"]
+    # Marker 1 was never named; it gave the pose, at the truth, in every pair image but the first (one
+    # disagreement is no relation yet, so neither member is used then).
+    assert det.counters["markers_moved"] == 1
+    assert [len(p) for p in poses] == [0] + [1] * MIN_VIEWS
+    np.testing.assert_allclose(poses[-1][0], T_cam_world.translation, atol=0.01)
