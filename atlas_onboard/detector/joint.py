@@ -13,6 +13,7 @@ from numpy.typing import NDArray
 from scipy.linalg import block_diag
 from scipy.spatial.transform import RigidTransform, Rotation
 
+from atlas_onboard.config import WORLD
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
 from atlas_onboard.core.worldcheck import PairVerdict, Sighting
@@ -201,7 +202,11 @@ class JointSolve:
         self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int
     ) -> list[PairVerdict]:
         """The temporal verdicts of this image's markers of ``entity`` (:class:`MotionCheck`), added to
-        the consistency graph and returned."""
+        the consistency graph and returned. Only for the world's markers: the camera's motion in the
+        world's frame is bounded by its vehicle alone; in another entity's frame that entity's motion and
+        turns add to it."""
+        if entity != WORLD:
+            return []
         now = {m: s for m in ids if (s := self._sighting(m, singles[m], capture_time_us)) is not None}
         verdicts = self.motion.compare(entity, now)
         for v in verdicts:
