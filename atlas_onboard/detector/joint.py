@@ -13,7 +13,10 @@ from numpy.typing import NDArray
 from scipy.linalg import block_diag
 from scipy.spatial.transform import RigidTransform, Rotation
 
+from atlas_onboard.config import WORLD
+from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
+from atlas_onboard.core.worldcheck import PairVerdict, Sighting
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.families import family
 from atlas_onboard.detector.search import _side
@@ -22,6 +25,7 @@ from atlas_onboard.detector.search import _side
 _logger = logging.getLogger("atlas_onboard.detector.pipeline")
 
 JOINT_MISFIT = 3.0  # a joint fit this many times worse than its worst single square is not used
+CLEAR_OFFSET_M = 0.03  # a moved or suspect marker fits again when its square is this close to where others put it
 STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagreeing markers
 LOG_INTERVAL_US = 5_000_000
 
@@ -68,7 +72,10 @@ class JointSolve:
         (None, None) when no subset of two or more fits.
         """
         md, misfit = self._joint(ids, singles, capture_time_us)
+        self._misfit_pair = []
         if md is not None or not misfit:
+            if md is not None:
+                self._record_group(entity, ids, [], singles, capture_time_us)
             return md, ids
         used = list(ids)
         while len(used) > 2:
@@ -86,11 +93,14 @@ class JointSolve:
             if md is not None:
                 self.counters["joint"] += 1
                 self.counters["joint_without_disagreeing"] += 1
+                self._record_group(entity, used, [i for i in ids if i not in used], singles, capture_time_us)
                 return md, used
         for m in used:
             self.report.dropped.setdefault(m, "joint misfit: the markers do not fit together as placed")
         if len(used) == 2:
             a, b = used
+            self._misfit_pair = [a, b]
+            self.consistency.add(capture_time_us, entity, a, b, False)
             offset = self._offset_m(b, [a], singles)
             self.report.dropped[a] = self.report.dropped[b] = (
                 f"joint misfit, markers {a} and {b} disagree by {offset * 100:.1f} cm"
@@ -146,6 +156,108 @@ class JointSolve:
                     f"atlas: marker {moved.marker_id} moved {round(dx * 100):+d} {round(dy * 100):+d}"
                     f" {round(dz * 100):+d} cm"[:50]
                 )
+
+    def _doubtful(self, entity: str, ids: list[int], capture_time_us: int) -> set[int]:
+        """Those of ``ids`` reported moved or suspect."""
+        suspects = self.consistency.suspects(entity, capture_time_us)
+        return {m for m in ids if m in suspects or (entity, m) in self.moved}
+
+    def _record_group(
+        self, entity: str, fitted: list[int], left_out: list[int], singles: dict[int, _Single], capture_time_us: int
+    ) -> None:
+        """A joint solve's verdicts to the consistency graph. A moved or suspect marker that fitted is
+        judged by its offset from the others instead: the joint fit cannot see a move along the line of
+        sight of far squares, and such a marker must not be cleared by it."""
+        doubtful = self._doubtful(entity, fitted, capture_time_us)
+        trusted = [m for m in fitted if m not in doubtful]
+        if not trusted or not doubtful:
+            self.consistency.add_group(capture_time_us, entity, fitted, left_out)
+            return
+        self.consistency.add_group(capture_time_us, entity, trusted, left_out)
+        for m in doubtful:
+            offset = self._offset(m, trusted, singles)
+            if offset is not None:
+                agree = bool(np.linalg.norm(offset) <= CLEAR_OFFSET_M)
+                for b in trusted:
+                    self.consistency.add(capture_time_us, entity, m, b, agree)
+
+    def _sighting(self, m: int, single: _Single, capture_time_us: int) -> Sighting | None:
+        """Where marker ``m``'s own square puts the camera in its entity's frame, with the (3, 3)
+        covariance of that position from the pose's 6x6 (None without one, or when the pose may be the
+        mirrored planar solution)."""
+        mp = single.pose
+        if mp.covariance is None or not mp.ambiguity <= AMBIGUITY_THRESHOLD:
+            return None
+        R_cm = Rotation.from_quat(mp.q_xyzw).as_matrix()
+        u = R_cm.T @ mp.p_m  # minus the camera's position in the marker frame
+        # c = -R^T p; with p + dp and R exp(dtheta): dc = -R^T dp - [u]x dtheta (pose_covariance's error vector)
+        ux = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+        J = np.hstack([-R_cm.T, -ux])
+        T_entity_marker = self.marker_pose[m]
+        R_em = T_entity_marker.rotation.as_matrix()
+        cov = R_em @ J @ mp.covariance @ J.T @ R_em.T
+        return Sighting(capture_time_us, T_entity_marker.apply(-u), (cov + cov.T) / 2.0)
+
+    def _consistency_evidence(
+        self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int
+    ) -> list[PairVerdict]:
+        """The temporal verdicts of this image's markers of ``entity`` (:class:`MotionCheck`), added to
+        the consistency graph and returned. Only for the world's markers: the camera's motion in the
+        world's frame is bounded by its vehicle alone; in another entity's frame that entity's motion and
+        turns add to it."""
+        if entity != WORLD:
+            return []
+        now = {m: s for m in ids if (s := self._sighting(m, singles[m], capture_time_us)) is not None}
+        verdicts = self.motion.compare(entity, now)
+        for v in verdicts:
+            self.consistency.add(capture_time_us, entity, v.marker_id, v.other, v.agree)
+        self.counters["motion_disagrees"] += sum(not v.agree for v in verdicts)
+        return verdicts
+
+    def _trusted_verdicts(
+        self, entity: str, verdicts: list[PairVerdict], capture_time_us: int
+    ) -> dict[int, PairVerdict]:
+        """Per marker, its verdict against the best supported marker that is not suspect and agrees with
+        at least one other (the reference the world check can trust)."""
+        best: dict[int, tuple[int, PairVerdict]] = {}
+        suspects = self.consistency.suspects(entity, capture_time_us)
+        for v in verdicts:
+            if v.other in suspects:
+                continue
+            support = self.consistency.support(entity, v.other, capture_time_us)
+            if support >= 2 and (v.marker_id not in best or support > best[v.marker_id][0]):
+                best[v.marker_id] = (support, v)
+        return {m: v for m, (_, v) in best.items()}
+
+    def _pair_verdicts(
+        self, entity: str, a: int, b: int, agree: bool, singles: dict[int, _Single], capture_time_us: int
+    ) -> list[PairVerdict]:
+        """The joint solve's verdict on a pair for each of its markers, for the world check (a moved or
+        suspect one that fitted is judged by its offset, as in :meth:`_record_group`)."""
+        out = []
+        for m, other in ((a, b), (b, a)):
+            doubtful = bool(self._doubtful(entity, [m], capture_time_us))
+            offset = np.zeros(3) if agree and not doubtful else self._offset(m, [other], singles)
+            if offset is not None:
+                fits = agree and (not doubtful or bool(np.linalg.norm(offset) <= CLEAR_OFFSET_M))
+                out.append(PairVerdict(m, other, fits, offset))
+        return out
+
+    def _feed_world_check(self, entity: str, verdicts: list[PairVerdict], capture_time_us: int) -> None:
+        """Pair and temporal verdicts against trusted markers, one per marker and image, to the live check."""
+        trusted = self._trusted_verdicts(entity, verdicts, capture_time_us)
+        if trusted:
+            self._offsets = {m: v.offset_m for m, v in trusted.items() if not v.agree}
+            self._check_world(entity, sorted(trusted), capture_time_us)
+
+    def _jumped(self, entity: str, m: int, verdicts: list[PairVerdict], capture_time_us: int) -> bool:
+        """Whether marker ``m`` put the camera this image where it cannot have moved to from where a
+        better supported marker put it a frame ago."""
+        own = self.consistency.support(entity, m, capture_time_us)
+        return any(
+            v.marker_id == m and not v.agree and self.consistency.support(entity, v.other, capture_time_us) > own
+            for v in verdicts
+        )
 
     def _disagrees(self, entity: str, m: int, offset_m: float, capture_time_us: int) -> None:
         self.counters["marker_disagrees"] += 1

@@ -14,6 +14,10 @@ dropped (counted by reason), since its edges cannot be fitted; the corners of th
 in undistorted pixels (:func:`refine.refine_corners_undistorted`), which also measures their noise.
 Markers of one entity that do not fit together are found by leaving each out in turn: the rest give the
 entity's pose, and the one that disagrees is counted, logged and announced (:meth:`Detector.take_status`).
+Every pair seen together and every marker seen a frame after another (the camera cannot jump) is
+evidence in a consistency graph over the markers (:class:`MarkerConsistency`, :class:`MotionCheck`): a
+marker that disagrees with markers that agree among themselves is suspect, never used alone nor in a
+joint solve, while the other member of a pair that disagrees is used.
 """
 
 from __future__ import annotations
@@ -28,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import SensorConfig, WorldConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.core.worldcheck import MovedMarker, MovedMarkerCheck
+from atlas_onboard.core.worldcheck import MarkerConsistency, MotionCheck, MovedMarker, MovedMarkerCheck
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
@@ -133,6 +137,10 @@ class Detector(RegionSearch, JointSolve):
         self._moved_log_us: dict[tuple[str, int], int] = {}
         self._moved_status_us: int | None = None
         self.moved: dict[tuple[str, int], MovedMarker] = {}  # reported so far, the latest verdict of each
+        # Faster evidence: pairs and frame-to-frame motion, in a consistency graph over the markers.
+        self.consistency = MarkerConsistency()
+        self.motion = MotionCheck()
+        self._misfit_pair: list[int] = []  # the last joint solve's two markers that disagreed
 
     def find(self, gray: NDArray[np.uint8], R_prev_now: Rotation | None = None) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.
@@ -246,21 +254,58 @@ class Detector(RegionSearch, JointSolve):
         for mid in sorted(singles):
             groups.setdefault(self.entity_of[mid], []).append(mid)
         for entity, ids in groups.items():
+            # Evidence for the consistency of the markers over time (the camera cannot jump) and in pairs.
+            verdicts = self._consistency_evidence(entity, ids, singles, capture_time_us)
+            fed = False
             if self.joint and len(ids) > 1:
                 self._offsets = {}
+                doubtful = self._doubtful(entity, ids, capture_time_us)
                 md, used = self._robust_joint(entity, ids, singles, capture_time_us)
                 if len(ids) >= 3 and used is not None:  # one that does not fit can be singled out
                     self._check_world(entity, ids, capture_time_us)
+                    fed = True
+                elif len(ids) == 2 and (md is not None or used is None):
+                    a, b = ids
+                    verdicts += self._pair_verdicts(entity, a, b, md is not None, singles, capture_time_us)
+                if not fed:
+                    self._feed_world_check(entity, verdicts, capture_time_us)
+                if md is not None and used is not None and doubtful & set(used):
+                    # A moved or suspect marker that fitted is still left out: the rest give the pose.
+                    for m in doubtful & set(used):
+                        self.counters["dropped_suspect"] += 1
+                        self.report.dropped[m] = "moved or suspect: left out of the joint solve"
+                    used = [m for m in used if m not in doubtful]
+                    md = self._joint(used, singles, capture_time_us, count=False)[0] if len(used) > 1 else None
+                    if md is None:
+                        ids = used
                 if md is not None:
                     out.append(md)
                     self.report.reported += used
                     continue
-                if used is None:  # the squares contradict each other: none of them is trusted in this image
-                    continue
+                if used is None:
+                    # The squares contradict each other: a pair's member that others trust is used alone,
+                    # when the other is suspect; otherwise none of them is trusted in this image.
+                    suspects = self._doubtful(entity, self._misfit_pair, capture_time_us)
+                    rest = [m for m in self._misfit_pair if m not in suspects]
+                    if len(rest) != 1 or len(self._misfit_pair) != 2:
+                        continue
+                    ids = rest
+            else:
+                self._feed_world_check(entity, verdicts, capture_time_us)
             for mid in ids:
                 if (entity, mid) in self.moved:  # alone it would move the pose by its offset
                     self.counters["dropped_moved"] += 1
                     self.report.dropped[mid] = "reported moved (the world file disagrees with what is seen)"
+                    continue
+                if self.consistency.is_suspect(entity, mid, capture_time_us):
+                    # It disagrees with markers that agree among themselves: alone it would move the pose.
+                    self.counters["dropped_suspect"] += 1
+                    self.report.dropped[mid] = "suspect: disagrees with markers that agree with each other"
+                    continue
+                if self._jumped(entity, mid, verdicts, capture_time_us):
+                    # It puts the camera where it cannot have gone since a better supported marker saw it.
+                    self.counters["dropped_jump"] += 1
+                    self.report.dropped[mid] = "puts the camera where it cannot have moved since the last frame"
                     continue
                 mp = singles[mid].pose
                 ambiguous = mp.ambiguity > AMBIGUITY_THRESHOLD

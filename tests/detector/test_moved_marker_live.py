@@ -54,3 +54,58 @@ def test_markers_where_the_world_file_has_them_are_never_named():
     det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
     _fly(det, range(MIN_VIEWS + 10))
     assert det.counters["markers_moved"] == 0 and not det.moved and not det.disagreements
+
+
+PAIR_FRAME_US = 200_000  # far enough apart that only the pairs seen together are compared
+
+
+def test_a_pair_that_disagrees_uses_the_marker_others_agree_with_and_a_put_back_marker_is_used_again():
+    world, spots = moved_marker_world(5, 0.10)  # the world file puts marker 5 10 cm off its true place
+    det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
+    pair_15 = {1: spots[1], 5: spots[5]}
+    t = iter(range(1_000_000, 100_000_000, PAIR_FRAME_US))
+    # Markers 1 and 5 together: they disagree, and nothing says which of them moved: neither is used.
+    assert det.detect(moved_marker_image(pair_15)[0], next(t)) == []
+    # Markers 1 and 2 together agree (twice: one image is no relation).
+    for yaw in (3.0, 5.0):
+        (md,) = det.detect(moved_marker_image({1: spots[1], 2: spots[2]}, yaw)[0], next(t))
+    # Now 1 and 5 again: 5 disagrees with a marker that others agree with: 1 alone is used, 5 is not.
+    img, T_cam_world = moved_marker_image(pair_15, 6.0)
+    (md,) = det.detect(img, next(t))
+    assert md.marker_id == 1
+    np.testing.assert_allclose(md.p_sensor_marker_m, T_cam_world.translation, atol=0.01)
+    # Marker 5 alone is suspect: not used (alone it would move the pose 10 cm).
+    assert det.detect(moved_marker_image({5: spots[5]}, 6.0)[0], next(t)) == []
+    assert det.counters["dropped_suspect"] == 1
+    # Put back where the world file has it: it agrees with 1 again, and is cleared after a few images.
+    back = {1: spots[1], 5: (spots[5][0] + 0.10, spots[5][1])}
+    for yaw in (4.0, 4.5, 5.0):
+        det.detect(moved_marker_image(back, yaw)[0], next(t))
+    (md,) = det.detect(moved_marker_image({5: back[5]}, 6.0)[0], next(t))
+    assert md.marker_id == 5
+
+
+def test_a_marker_seen_only_in_pairs_is_named_once_the_pairs_evidence_is_sound(caplog):
+    """No three markers together (the scene of issue 19): pairs alone name the marker, with its offset."""
+    world, spots = moved_marker_world(5, 0.10)
+    det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
+    trusted = moved_marker_image({1: spots[1], 2: spots[2]})[0]
+    pair, T_cam_world = moved_marker_image({1: spots[1], 5: spots[5]})
+    t_us = 1_000_000
+    for _ in range(2):
+        det.detect(trusted, t_us)
+        t_us += FRAME_US
+    with caplog.at_level(logging.WARNING, logger="atlas_onboard.detector.pipeline"):
+        poses = []
+        for _ in range(MIN_VIEWS + 1):
+            poses.append([md.p_sensor_marker_m for md in det.detect(pair, t_us) if md.marker_id == 1])
+            t_us += FRAME_US
+    assert list(det.moved) == [("world", 5)]
+    np.testing.assert_allclose(det.moved[("world", 5)].offset_m, [-0.10, 0.0, 0.0], atol=0.02)
+    assert sum("world marker 5 has moved" in r.getMessage() for r in caplog.records) == 1
+    assert [t for t in det.take_status() if "moved" in t] == ["atlas: marker 5 moved -10 +0 +0 cm"]
+    # Marker 1 was never named; it gave the pose, at the truth, in every pair image but the first (one
+    # disagreement is no relation yet, so neither member is used then).
+    assert det.counters["markers_moved"] == 1
+    assert [len(p) for p in poses] == [0] + [1] * MIN_VIEWS
+    np.testing.assert_allclose(poses[-1][0], T_cam_world.translation, atol=0.01)
