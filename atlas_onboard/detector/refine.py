@@ -168,9 +168,12 @@ def refine_corners_undistorted(
         lag1 += float(r[1:] @ r[:-1])
         u = (e - mean) @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
-    out = _crossings(lines, corners_und, MAX_MOVE_PX + BEND_ALLOWANCE * _bend_px(corners_und, K, dist, fisheye))
+    out = _crossings(lines, corners_und, max_move_px=np.inf)
     if out is None:
         return None
+    move = float(np.abs(out - corners_und).max())
+    if move > MAX_MOVE_PX and move > MAX_MOVE_PX + BEND_ALLOWANCE * _bend_px(corners_und, K, dist, fisheye):
+        return None  # (the bend, which takes a while, only when the move needs it)
     scatter2 = ss / max(sum(npts) - 8, 1)  # two parameters a line
     # Two lines crossing at an angle phi place their crossing 1 / sin(phi) less precisely than
     # perpendicular ones (a marker seen obliquely has sharp corners in the image).
