@@ -182,9 +182,10 @@ def run_one(name: str, duration_s: float, scenario: str) -> Result:
     res.log_lines = [line for line in log if re.search(r"\bmarkers?\b", line, re.IGNORECASE)]
     final = next((line for line in reversed(log) if " final " in line), "")
     counters = dict(re.findall(r"(\w+)=(\d+)", final))
-    f["frames"] = sum(int(v) for k, v in counters.items() if k.startswith("camera_") and k.endswith("_frames"))
+    cams = {k: int(v) for k, v in counters.items() if k.startswith("camera_") and "_detector_" not in k}
+    f["frames"] = sum(v for k, v in cams.items() if k.endswith("_frames"))  # frames detected
     # skipped unread (a camera or replay behind its time) or dropped unprocessed (the detector busy)
-    f["skipped"] = sum(int(v) for k, v in counters.items() if k.endswith(("_frames_skipped", "_frames_dropped")))
+    f["skipped"] = sum(v for k, v in cams.items() if k.endswith(("_frames_skipped", "_frames_dropped")))
     res.counters = {k: int(v) for k, v in counters.items() if re.search(r"misfit|outlier|disagree|moved", k)}
     return res
 
