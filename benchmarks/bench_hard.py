@@ -317,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
             directory = runner._rendered_frames(scenarios.get(sc), 0, args.duration, lambda _m: None)
             if directory is not None and any(n in REPLAYS for s, n in plan if s == sc):
                 runner.write_replay_folders(directory, scenarios.get(sc), lambda _m: None)
-            os.sync()  # written back now, not by the kernel during the first run (its frames were skipped)
+            os.sync()  # written back now, not by the kernel during the first run
         t = time.monotonic()
         print(f"[{i}/{len(plan)}] {sc} {name} ...", file=sys.stderr, flush=True)
         results.append(run_one(name, args.duration, sc))
