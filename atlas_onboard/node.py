@@ -85,6 +85,7 @@ class Node(NodeOutput):
             rate_hz=ap.rate_hz if ap else ap_default["rate_hz"],
             fused_rate_hz=config.fused_rate_hz,
             reset_jump_m=ap.reset_jump_m if ap else ap_default["reset_jump_m"],
+            reset_gap_s=world.fusion.edge_timeout_s,  # lost means no observation for this long
         )
         self._reset_store = ResetCounterStore(config.state_dir, config.entity)
         self.publisher.reset_counter = self._reset_store.initial(self.wall())  # a restart is a reset

@@ -5,7 +5,8 @@ The node asks it after every accepted observation and on every tick; it answers 
 
 - the own entity's pose for the autopilot, only when a newer observation contributed to it (so a
   pose is never sent twice, and never once its edges have expired), at most ``rate_hz`` (:class:`RateCap`);
-- a reset counter that increments when the pose was lost and is found again, or jumps;
+- a reset counter that increments when the pose is found again after it was lost and nothing was sent for
+  at least ``reset_gap_s`` (a re-acquisition), or jumps;
 - status changes (pose lost / found) for STATUSTEXT and the log;
 - the fused poses of every entity for peers and the ground station, at ``fused_rate_hz``.
 """
@@ -166,6 +167,9 @@ class Publisher:
     rate_hz: float = 30.0
     fused_rate_hz: float = 5.0
     reset_jump_m: float = 0.5
+    # A loss shorter than this (no pose sent for less; the node's edge_timeout) is no re-acquisition: an
+    # evaluation that missed the own pose between two frames must not make the autopilot reset its position.
+    reset_gap_s: float = 0.25
     reset_counter: int = 0
     has_pose: bool = False
     sent: int = 0
@@ -175,6 +179,7 @@ class Publisher:
     _last_p: np.ndarray | None = None
     _last_fused_ns: int | None = None
     _lost_since_sent: bool = field(default=False)
+    _last_sent_ns: int | None = None
 
     def __post_init__(self) -> None:
         self.cap = RateCap(self.rate_hz)
@@ -198,12 +203,17 @@ class Publisher:
         if not self.cap.admit(pose.capture_time_us, now_ns):
             self.suppressed_rate += not again  # each capture refused counts once, however often asked
             return None, status
-        if self._lost_since_sent or (
+        reacquired = (
+            self._lost_since_sent
+            and self._last_sent_ns is not None
+            and now_ns - self._last_sent_ns >= self.reset_gap_s * NS
+        )
+        if reacquired or (
             self._last_p is not None and float(np.linalg.norm(pose.p_world_m - self._last_p)) > self.reset_jump_m
         ):
-            if self._last_p is not None:
-                self.reset_counter = (self.reset_counter + 1) % 256
+            self.reset_counter = (self.reset_counter + 1) % 256
         self._lost_since_sent = False
+        self._last_sent_ns = now_ns
         self._last_capture_us = pose.capture_time_us
         self._last_p = pose.p_world_m.copy()
         self.sent += 1

@@ -22,7 +22,10 @@ floor: the node's detector alone on the same frames, each detection's own positi
 (median, mean, RMSE, p95, max), without and with the autopilot's attitude (a single tag's flip chosen
 by gravity, its tilt constrained): how far the node is from what the detections allow. ``hard-near``
 is hard with tags resolved like issue 19's independent scene (a ~1 mm per-frame median; see its
-world file); by default every run is on hard and the defaults run on hard-near too. Bars, one line
+world file). By default hard runs every fusion setting and the moved marker, and hard-near runs those and
+two real-time replays of the same frames (``replay``, ``replay_ekf``: the camera an image folder with
+``replay: realtime``, read by the node's own file source, its file time started at the run's start),
+so that no setting and no replay may go silent where a tag is in view. Bars, one line
 each per run: RMSE <= 5 mm, max <= 30 mm, >= 99 % within 3 sigma on every axis, cover >= 99 %,
 every reset_counter change at a re-acquisition; and hard-near's per-frame median <= 2 mm (its design).
 
@@ -37,6 +40,7 @@ from __future__ import annotations
 import argparse
 import copy
 import math
+import os
 import re
 import sys
 import time
@@ -83,6 +87,17 @@ RUNS: dict[str, dict[str, Any]] = {
     "gate_off": {"outlier_gate_sigma": 0},
     "ema_0.5": {"ema_alpha": 0.5},
     "moved_marker": {},
+    "replay": {},
+    "replay_ekf": {"filter": "ekf"},
+}
+# Runs whose camera is a real-time replay of the same frames from an image folder (camera.source: <folder>,
+# replay: realtime; the node's own file source and camera worker), not the simulated camera.
+REPLAYS = {"replay": "realtime", "replay_ekf": "realtime"}
+# The runs of each scenario by default: on hard those of before; on hard-near (the per-frame floor of
+# issue 19's scene) every fusion setting, the moved marker and the real-time replays.
+DEFAULT_RUNS = {
+    "hard": [n for n in RUNS if n not in REPLAYS],
+    "hard-near": list(RUNS),
 }
 BARS = (
     ("rmse", "mm", 5.0, "<="),
@@ -96,6 +111,8 @@ BARS = (
 @dataclass
 class Result:
     name: str
+    scenario: str = ""
+    run: str = ""  # the run's key in RUNS (name: with the scenario, for hard-near)
     figures: dict[str, float] = field(default_factory=dict)
     states: dict[str, tuple[int, float, float, float]] = field(default_factory=dict)  # n, mean, median, p95
     log_lines: list[str] = field(default_factory=list)
@@ -114,12 +131,14 @@ def moved_world(scenario: str) -> dict[str, Any]:
 
 
 def run_one(name: str, duration_s: float, scenario: str) -> Result:
-    res = Result(name if scenario == SCENARIOS[0] else f"{scenario}:{name}")
+    res = Result(name if scenario == SCENARIOS[0] else f"{scenario}:{name}", scenario, name)
     overrides: dict[str, Any] = moved_world(scenario) if name == "moved_marker" else {}
     if RUNS[name]:
         overrides["fusion"] = dict(RUNS[name])
     try:
-        sim = run(SimOptions(scenario=scenario, duration_s=duration_s, world_overrides=overrides))
+        options = SimOptions(scenario=scenario, duration_s=duration_s, world_overrides=overrides)
+        options.replay = REPLAYS.get(name, "")
+        sim = run(options)
     except Exception as exc:  # a run that fails is a row that says so, not the end of the benchmark
         res.error = f"{type(exc).__name__}: {exc}"
         return res
@@ -164,8 +183,10 @@ def run_one(name: str, duration_s: float, scenario: str) -> Result:
     res.log_lines = [line for line in log if re.search(r"\bmarkers?\b", line, re.IGNORECASE)]
     final = next((line for line in reversed(log) if " final " in line), "")
     counters = dict(re.findall(r"(\w+)=(\d+)", final))
-    f["frames"] = sum(int(v) for k, v in counters.items() if k.startswith("camera_") and k.endswith("_frames"))
-    f["skipped"] = sum(int(v) for k, v in counters.items() if k.endswith("_frames_skipped"))
+    cams = {k: int(v) for k, v in counters.items() if k.startswith("camera_") and "_detector_" not in k}
+    f["frames"] = sum(v for k, v in cams.items() if k.endswith("_frames"))  # frames detected
+    # skipped unread (a camera or replay behind its time) or dropped unprocessed (the detector busy)
+    f["skipped"] = sum(v for k, v in cams.items() if k.endswith(("_frames_skipped", "_frames_dropped")))
     res.counters = {k: int(v) for k, v in counters.items() if re.search(r"misfit|outlier|disagree|moved", k)}
     return res
 
@@ -268,10 +289,13 @@ def bar_value(res: Result, key: str) -> float:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=30.0, help="seconds per run (default 30)")
-    ap.add_argument("--runs", default=",".join(RUNS), help=f"comma-separated, from {', '.join(RUNS)}")
+    ap.add_argument(
+        "--runs", default="",
+        help=f"comma-separated, from {', '.join(RUNS)} (default: on hard every run but the replays, on hard-near all)",
+    )  # fmt: skip
     ap.add_argument(
         "--scenario", choices=(*SCENARIOS, "both"), default="both",
-        help="hard, hard-near, or both (default: every run on hard, and the defaults run on hard-near too)",
+        help="hard, hard-near, or both (default: both, each with its default runs or --runs)",
     )  # fmt: skip
     ap.add_argument("--floor-only", action="store_true", help="only the per-frame floor (no node runs)")
     args = ap.parse_args(argv)
@@ -280,13 +304,20 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         print(f"bench_hard: unknown run(s) {', '.join(unknown)} (choose from {', '.join(RUNS)})", file=sys.stderr)
         return 2
-    plan = [(sc, n) for sc in (SCENARIOS if args.scenario == "both" else (args.scenario,)) for n in names]
-    if args.scenario == "both":  # the other runs on hard only: hard-near is the floor's check, not a tuning target
-        plan = [(sc, n) for sc, n in plan if sc == SCENARIOS[0] or n == "defaults"]
+    chosen = SCENARIOS if args.scenario == "both" else (args.scenario,)
+    plan = [(sc, n) for sc in chosen for n in (names or DEFAULT_RUNS[sc])]
     if args.floor_only:
         plan = []
     results = []
+    prepared: set[str] = set()
     for i, (sc, name) in enumerate(plan, start=1):
+        if sc not in prepared:  # the scenario's images rendered (and written as folders) before its first run
+            prepared.add(sc)
+            print(f"rendering {sc} ...", file=sys.stderr, flush=True)
+            directory = runner._rendered_frames(scenarios.get(sc), 0, args.duration, lambda _m: None)
+            if directory is not None and any(n in REPLAYS for s, n in plan if s == sc):
+                runner.write_replay_folders(directory, scenarios.get(sc), lambda _m: None)
+            os.sync()  # written back now, not by the kernel during the first run
         t = time.monotonic()
         print(f"[{i}/{len(plan)}] {sc} {name} ...", file=sys.stderr, flush=True)
         results.append(run_one(name, args.duration, sc))
@@ -300,7 +331,7 @@ def main(argv: list[str] | None = None) -> int:
     ):
         print(f"per-frame floor {sc} ...", file=sys.stderr, flush=True)
         floors[sc] = per_frame_floor(sc, args.duration)
-    anchor = next((r for r in results if r.name == "paper" and not r.error), None)
+    anchors = {r.scenario: r for r in results if r.run == "paper" and not r.error}  # each scenario's paper run
     for sc in floors:
         print(f"scenario {sc}: {scenarios.get(sc).description}")
     print(f"{args.duration:g} s per run, scored from {WARMUP_S:g} s; anchors: the paper's method (run `paper`) and"
@@ -316,6 +347,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{r.name:<26} failed: {r.error}")
             continue
         f = r.figures
+        anchor = anchors.get(r.scenario)
         ratio = f["rmse"] / anchor.figures["rmse"] if anchor and anchor.figures.get("rmse") else math.nan
         print(
             f"{r.name:<26} {f['messages']:>5.0f} {f['rmse']:>8.2f} {ratio:>6.2f} {f['median']:>7.2f} {f['p95']:>7.2f}"
@@ -333,16 +365,15 @@ def main(argv: list[str] | None = None) -> int:
     for r in results:
         for state, (n, mean, median, p95) in r.states.items():
             print(f"{r.name:<26} {state:<6} {n:>5} {mean:>7.2f} {median:>7.2f} {p95:>7.2f}")
-    moved = next((r for r in results if r.name == "moved_marker"), None)
-    if moved is not None and not moved.error:
+    for moved in (r for r in results if r.run == "moved_marker" and not r.error):
         print()
         named = [line for line in moved.log_lines if re.search(rf"marker\W+(id\W+)?{MOVED_MARKER}\b", line, re.I)]
-        print(f"moved_marker: marker {MOVED_MARKER} moved by {MOVED_BY_M} m in the nodes' world file;")
+        print(f"{moved.name}: marker {MOVED_MARKER} moved by {MOVED_BY_M} m in the nodes' world file;")
         print(f"  {len(moved.log_lines)} log line(s) about markers, {len(named)} naming marker {MOVED_MARKER}:")
         for line in moved.log_lines[:8]:
             print(f"    {line}")
         print(f"  the node's final counters about outliers: {moved.counters or 'none'}")
-        print(f"BAR moved_marker.named {len(named)} lines 1 {'pass' if named else 'fail'}")
+        print(f"BAR {moved.name}.named {len(named)} lines 1 {'pass' if named else 'fail'}")
     print()
     if "hard-near" in floors:  # the scenario's design: a per-frame floor like the issue's scene (~1-2 mm median)
         med = floors["hard-near"][0].figures()[0]

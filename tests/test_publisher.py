@@ -171,6 +171,28 @@ def test_reset_counter_on_found_again_and_on_jump():
     assert pub.autopilot(g.evaluate(420 * MS), 420 * MS)[0].reset_counter == 2
 
 
+def test_reset_counter_unchanged_when_the_pose_is_missed_between_two_frames():
+    # A camera at 30 Hz; one evaluation between two frames lacks the own pose (its edge gated, say):
+    # "pose lost", then found 33 ms later with no gap in what was sent. Not a re-acquisition: the
+    # autopilot must not reset its position. A real loss (nothing sent for edge_timeout) still is.
+    pub = Publisher("d", rate_hz=30, reset_gap_s=0.25)
+    g = TransformGraph(["world", "d"], 250 * MS)
+    empty = TransformGraph(["world", "d"], 250 * MS)
+    counters = []
+    for k in range(10):
+        now = k * 33 * MS
+        if k == 5:
+            assert pub.autopilot(empty.evaluate(now), now) == (None, "pose lost")
+            continue
+        graph_with([0.01 * k, 0, 0], k * 33_000, now, g)
+        out, _ = pub.autopilot(g.evaluate(now), now)
+        counters.append(out.reset_counter)
+    assert counters == [0] * 9
+    pub.autopilot(empty.evaluate(700 * MS), 700 * MS)  # lost, and nothing sent for 400 ms
+    graph_with([0.1, 0, 0], 700_000, 700 * MS, g)
+    assert pub.autopilot(g.evaluate(700 * MS), 700 * MS)[0].reset_counter == 1
+
+
 def test_reset_counter_wraps_like_the_uint8_field_and_a_loss_before_any_pose_is_no_reset():
     pub = Publisher("d", rate_hz=1000, reset_jump_m=0.5)
     g = TransformGraph(["world", "d"], 250 * MS)

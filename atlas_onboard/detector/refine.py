@@ -16,6 +16,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from atlas_onboard.detector.pose import undistort
+
 SAMPLES_PER_SIDE = 12
 HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
 STEP_PX = 0.25
@@ -24,6 +26,10 @@ EDGE_OFFSET_FLOOR_PX = 0.02  # an edge's offset that its scatter cannot show (bl
 # A shift of all four corners alike that no edge shows: the lens model's residual, motion during the exposure.
 SHIFT_FLOOR_PX = 0.02
 MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
+MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
+# The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
+# in undistorted pixels; a refit may rightly move them about that far (with a margin).
+BEND_ALLOWANCE = 1.5
 
 
 def _sides(
@@ -49,10 +55,13 @@ def _sides(
 
 
 def _crossings(
-    lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]], corners: NDArray[np.float64]
+    lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    corners: NDArray[np.float64],
+    max_move_px: float = MAX_MOVE_PX,
 ) -> NDArray[np.float64] | None:
     """The corners (4, 2) where adjacent fitted edges (point, direction) cross; None where two are
-    parallel or a corner moved more than 2 px from ``corners`` (a fit that moves it this far is wrong)."""
+    parallel or a corner moved more than ``max_move_px`` from ``corners`` (a fit that moves it this far
+    is wrong)."""
     out = np.empty_like(corners)
     for i in range(4):
         (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
@@ -61,7 +70,7 @@ def _crossings(
             return None
         s, _ = np.linalg.solve(A, p2 - p1)
         out[i] = p1 + s * d1
-    if np.abs(out - corners).max() > 2.0:
+    if np.abs(out - corners).max() > max_move_px:
         return None
     return out
 
@@ -126,7 +135,6 @@ def refine_corners_undistorted(
     blur and pixel noise raise s.
     """
     img = gray.astype(np.float32)
-    Kinv = np.linalg.inv(K)
     ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
     lines = []
     ss, npts = 0.0, []
@@ -144,12 +152,7 @@ def refine_corners_undistorted(
         offsets = np.arange(-half, half + 1e-9, STEP_PX)
         base = a[None, :] + ts[:, None] * d[None, :]
         pts = (base[:, None, :] + offsets[None, :, None] * n[None, None, :]).reshape(-1, 2)
-        rays = np.column_stack([pts, np.ones(len(pts))]) @ Kinv.T  # normalized, z = 1
-        if fisheye:
-            px = cv2.fisheye.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
-        else:
-            px = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
-        px = px.reshape(len(ts), len(offsets), 2).astype(np.float32)
+        px = _distort(pts, K, dist, fisheye).reshape(len(ts), len(offsets), 2).astype(np.float32)
         prof = cv2.remap(img, px[..., 0], px[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         edge = [base[row] + off * n for row, off in enumerate(_half_level(prof, offsets)) if np.isfinite(off)]
         if len(edge) < SAMPLES_PER_SIDE // 2:
@@ -165,9 +168,12 @@ def refine_corners_undistorted(
         lag1 += float(r[1:] @ r[:-1])
         u = (e - mean) @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
-    out = _crossings(lines, corners_und)
+    out = _crossings(lines, corners_und, max_move_px=np.inf)
     if out is None:
         return None
+    move = float(np.abs(out - corners_und).max())
+    if move > MAX_MOVE_PX and move > MAX_MOVE_PX + BEND_ALLOWANCE * _bend_px(corners_und, K, dist, fisheye):
+        return None  # (the bend, which takes a while, only when the move needs it)
     scatter2 = ss / max(sum(npts) - 8, 1)  # two parameters a line
     # Two lines crossing at an angle phi place their crossing 1 / sin(phi) less precisely than
     # perpendicular ones (a marker seen obliquely has sharp corners in the image).
@@ -181,6 +187,38 @@ def refine_corners_undistorted(
     n_eff = float(np.mean(npts)) / inflate
     cov = _corner_covariance(lines, out, scatter2 * inflate, np.array(npts, float), np.array(spread))
     return RefinedCorners(out, float(np.sqrt(7.1 * scatter2 / n_eff)) / max(sin_min, 0.2), cov)
+
+
+def _distort(
+    pts_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> NDArray[np.float64]:
+    """Undistorted pixels (N, 2) (an ideal pinhole with the same K) -> image pixels (N, 2)."""
+    rays = np.column_stack([pts_und, np.ones(len(pts_und))]) @ np.linalg.inv(K).T  # normalized, z = 1
+    if fisheye:
+        px = cv2.fisheye.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
+    else:
+        px = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
+    return px.reshape(-1, 2)
+
+
+def _bend_px(
+    corners_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> float:
+    """How far a side drawn straight between the corners in the distorted image strays, in undistorted
+    pixels, from the straight side between them there (the largest over the four sides): the lens's
+    bend over the marker, 0 without distortion."""
+    if not np.any(dist):
+        return 0.0
+    img = _distort(corners_und, K, dist, fisheye)
+    t = np.linspace(0.0, 1.0, 9)[1:-1, None]
+    worst = 0.0
+    for i in range(4):
+        a, b = img[i], img[(i + 1) % 4]
+        straight = undistort(a + t * (b - a), K, dist, fisheye)
+        ua, ub = corners_und[i], corners_und[(i + 1) % 4]
+        d = (ub - ua) / max(float(np.linalg.norm(ub - ua)), 1e-9)
+        worst = max(worst, float(np.abs((straight - ua) @ np.array([-d[1], d[0]])).max()))
+    return worst
 
 
 def _corner_covariance(

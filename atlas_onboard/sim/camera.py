@@ -13,8 +13,10 @@ import math
 import multiprocessing as mp
 import os
 import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +25,7 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import SensorConfig, WorldConfig, load_world
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.detector.sources import CameraWorker, ImageFolder, ReplayClock
 from atlas_onboard.sim.scenarios import Scenario
 from atlas_onboard.sim.sources import SimContext
 from atlas_onboard.sim.world import Sighting, SimWorld
@@ -72,6 +75,31 @@ class SimCameraWorker(SensorWorker):
             if found:
                 self.detections += len(found)
                 deliver(list(found))
+
+
+class SimReplayWorker(CameraWorker):
+    """A camera whose ``camera.source`` is an image folder of the run's frames, replayed in the run's
+    replay mode by the node's own camera worker and file source (:mod:`atlas_onboard.detector.sources`).
+    Its file time is mapped onto the wall clock at the run's epoch (a replay started by hand starts when
+    its first image is read), so that its stamps are on the run's timeline."""
+
+    def __init__(self, context: SimContext, world: WorldConfig, sensor: SensorConfig, folder: Path) -> None:
+        from atlas_onboard.detector.calibration import load as load_calibration
+        from atlas_onboard.detector.pipeline import Detector
+
+        assert sensor.camera is not None and sensor.camera.calibration is not None
+        camera = replace(sensor.camera, source=str(folder), replay=context.replay)
+        detector = Detector(sensor, world, load_calibration(camera.calibration), decimate=2.0)
+        super().__init__(sensor.name, camera, detector)
+        self.context = context
+
+    def _run(self, deliver: Deliver) -> None:
+        epoch = self.context.wait_epoch(self._stop)
+        if epoch is None or self._stop.wait(max(epoch - time.time(), 0.0)):
+            return
+        clock = ReplayClock(paced=True, start_us=round(epoch * 1e6))
+        self.counts["opened"] += 1
+        self._consume(ImageFolder(Path(self.camera.source), self.camera.fps, self.context.replay, clock), deliver)
 
 
 def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: object, seed: int) -> FrameHandler:

@@ -39,7 +39,7 @@ from atlas_onboard.config import WORLD
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot, recording
-from atlas_onboard.sim.camera import prerender
+from atlas_onboard.sim.camera import frames_path, prerender
 from atlas_onboard.sim.hub import Hub
 from atlas_onboard.sim.sources import SIM_ENV, SIM_KIND
 from atlas_onboard.sim.world import Intrinsics, SimWorld
@@ -65,6 +65,9 @@ class SimOptions:
     # Faults to inject, (seconds after the start, "kill" or "start", entity): a node crashes (SIGKILL)
     # and is started again, to check what its peers do meanwhile.
     faults: tuple[tuple[float, str, str], ...] = ()
+    # "realtime" or "every_frame": the drones' cameras replay the run's pre-rendered images from an image
+    # folder (the ``camera.source: <folder>`` path, detector.sources), started at the run's epoch.
+    replay: str = ""
 
 
 @dataclass
@@ -196,6 +199,30 @@ def _drop_frame_cache() -> None:
 atexit.register(_drop_frame_cache)
 
 
+def replay_folder(frames_dir: Path, sensor_id: int) -> Path:
+    """The image folder of a camera's pre-rendered frames (one PNG a frame, in name order)."""
+    return frames_dir / f"replay-{sensor_id}"
+
+
+def write_replay_folders(frames_dir: Path, scenario: scenarios.Scenario, say: Callable[[str], None]) -> None:
+    """The drones' cameras' pre-rendered frames as image folders, once (kept with the frames)."""
+    import cv2
+
+    for sid, (sensor, _intr) in SimWorld(scenario).cameras.items():
+        folder = replay_folder(frames_dir, sid)
+        source = frames_path(frames_dir, sid)
+        if sensor.entity not in scenario.drones or folder.exists() or not source.exists():
+            continue
+        say(f"writing the images of camera {sensor.name} for a replay")
+        frames = np.load(source, mmap_mode="r")
+        part = folder.with_suffix(".part")
+        shutil.rmtree(part, ignore_errors=True)
+        part.mkdir()
+        for j in range(len(frames)):
+            cv2.imwrite(str(part / f"frame{j:05d}.png"), np.asarray(frames[j]), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        part.rename(folder)
+
+
 def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> SimRun:
     """Run one scenario to the end and return its records (scoring is :func:`atlas_onboard.sim.report`)."""
     say = progress or (lambda _msg: None)
@@ -206,9 +233,13 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
     run_dir = Path(tempfile.mkdtemp(prefix=f"atlas-sim-{scenario.name}-"))
     frames_dir = None
     geometric = bool(os.environ.get("ATLAS_SIM_GEOMETRIC"))  # no images: corners from the geometry plus noise
+    if options.replay and geometric:
+        raise AtlasError("a replay needs rendered images (unset ATLAS_SIM_GEOMETRIC)")
     if not geometric:
         try:
             frames_dir = _rendered_frames(scenario, options.seed, duration, say)
+            if options.replay:
+                write_replay_folders(frames_dir, scenario, say)
         except BaseException:
             shutil.rmtree(run_dir, ignore_errors=True)
             raise
@@ -242,6 +273,7 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
                 "duration_s": duration,
                 "frames_dir": str(frames_dir) if frames_dir is not None else None,
                 "geometric": geometric,
+                "replay": options.replay,
             }
         )
         entities = list(scenario.drones) + ([WORLD] if scenario.needs_world_node else [])

@@ -46,6 +46,7 @@ class SimContext:
     duration_s: float
     frames_dir: Path | None = None  # the cameras' pre-rendered images, if the runner made them
     geometric: bool = False  # no images: corners from the geometry plus noise
+    replay: str = ""  # a replay mode: the cameras read the frames' image folders (sim.runner.replay_folder)
 
     @classmethod
     def from_env(cls) -> SimContext:
@@ -63,6 +64,7 @@ class SimContext:
                 float(doc["duration_s"]),
                 Path(doc["frames_dir"]) if doc.get("frames_dir") else None,
                 bool(doc.get("geometric", False)),
+                str(doc.get("replay") or ""),
             )
         except (ValueError, KeyError, TypeError) as exc:
             raise AtlasError(f"{SIM_ENV}: expected JSON with scenario, epoch_file and duration_s ({exc})") from None
@@ -155,13 +157,25 @@ def sim_camera(world: WorldConfig, config: NodeConfig, sensor: SensorConfig) -> 
     """The worker of a sensor whose ``camera.source`` is ``sim``: the scenario's motion-capture system
     for its world sensor, else a simulated camera (rendered images through the real detector, or
     corners from the geometry plus noise)."""
-    from atlas_onboard.sim.camera import SimCameraWorker, camera_seed, geometric_detector, rendered_detector
+    from atlas_onboard.sim.camera import (
+        SimCameraWorker,
+        SimReplayWorker,
+        camera_seed,
+        geometric_detector,
+        rendered_detector,
+    )
 
     context = SimContext.from_env()
     mocap = context.scenario.mocap
     if mocap is not None and config.entity == WORLD and sensor.name == mocap.sensor:
         return MocapWorker(context, world, sensor.id)
     seed = camera_seed(context.seed, sensor.id)
+    if context.replay and context.frames_dir is not None:
+        from atlas_onboard.sim.runner import replay_folder
+
+        folder = replay_folder(context.frames_dir, sensor.id)
+        if folder.is_dir():
+            return SimReplayWorker(context, world, sensor, folder)
     if context.geometric:
         intr = SimWorld(context.scenario, world).cameras[sensor.id][1]
         detect = geometric_detector(context, sensor, intr, seed)
