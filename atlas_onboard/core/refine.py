@@ -195,50 +195,61 @@ class MapRefiner:
         if len(seen) < self.options.min_others + 1:
             self.counters["rejected_few_markers"] += 1
             return 0
-        cams = [self._camera_candidate(s) for s in seen]
-        if any(c is None for c in cams):
+        n = len(seen)
+        p_sm = np.array([s.p_sensor_marker_m for s in seen])
+        R_sm = np.array([s.R_sensor_marker for s in seen])
+        C_sm = np.array([s.cov for s in seen])
+        cams = self._camera_candidates(seen, p_sm, R_sm, C_sm)
+        if cams is None:
             self.counters["rejected_singular"] += 1
             return 0
+        fused = _leave_one_out(*cams)
+        if fused is None:
+            self.counters["rejected_singular"] += 1
+            return 0
+        p_ws, R_ws, C_ws, chi2_values = fused
+        # T_world_marker = T_world_sensor T_sensor_marker, the camera's and the square's errors together.
+        Jp, Je = covariance.compose_jacobians(R_ws, p_sm, R_sm)
+        cov = covariance.transform(Jp, C_ws) + covariance.transform(Je, C_sm)
+        cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))
+        p_wm = p_ws + (R_ws @ p_sm[..., None])[..., 0]
+        R_wm = R_ws @ R_sm
+        to_camera = -(np.swapaxes(R_sm, -1, -2) @ p_sm[..., None])[..., 0]
+        directions = to_camera / np.maximum(np.linalg.norm(to_camera, axis=1, keepdims=True), 1e-9)
+        limit = chi2.isf(self.options.consistency_p, 6 * (n - 2))
         added = 0
         for i, s in enumerate(seen):
             if s.marker_id in self.anchors:
                 self.counters["rejected_anchor"] += 1
                 continue
-            others = [c for j, c in enumerate(cams) if j != i]
-            fused = _fuse(others)  # type: ignore[arg-type]
-            if fused is None:
-                self.counters["rejected_singular"] += 1
-                continue
-            p_ws, R_ws, C_ws, chi2_value = fused
-            if chi2_value > chi2.isf(self.options.consistency_p, 6 * (len(others) - 1)):
+            if chi2_values[i] > limit:
                 self.counters["rejected_inconsistent"] += 1
                 continue
-            # T_world_marker = T_world_sensor T_sensor_marker, the camera's and the square's errors together.
-            Jp, Je = covariance.compose_jacobians(R_ws, s.p_sensor_marker_m, s.R_sensor_marker)
-            cov = Jp @ C_ws @ Jp.T + Je @ s.cov @ Je.T
-            p = p_ws + R_ws @ s.p_sensor_marker_m
-            R = R_ws @ s.R_sensor_marker
-            to_camera = -s.R_sensor_marker.T @ s.p_sensor_marker_m
-            direction = to_camera / max(float(np.linalg.norm(to_camera)), 1e-9)
             items = self._evidence.setdefault(s.marker_id, deque(maxlen=self.options.max_evidence))
-            items.append(Evidence(p, R, 0.5 * (cov + cov.T), direction, camera, int(capture_time_us)))
+            items.append(Evidence(p_wm[i], R_wm[i], cov[i], directions[i], camera, int(capture_time_us)))
             added += 1
         if added:
             self.counters["images"] += 1
             self.counters["evidence"] += added
         return added
 
-    def _camera_candidate(self, s: Sighting) -> tuple[NDArray, NDArray, NDArray] | None:
-        """T_world_sensor from one sighting and the marker's map pose (with its covariance)."""
-        m = self._map[s.marker_id]
-        R_ms = s.R_sensor_marker.T
-        p_ms = -R_ms @ s.p_sensor_marker_m
-        C_ms = covariance.transform(covariance.inverse_jacobian(s.p_sensor_marker_m, s.R_sensor_marker), s.cov)
-        Jp, Je = covariance.compose_jacobians(m.R, p_ms, R_ms)
-        C = Jp @ m.cov @ Jp.T + Je @ C_ms @ Je.T
+    def _camera_candidates(
+        self, seen: Sequence[Sighting], p_sm: NDArray, R_sm: NDArray, C_sm: NDArray
+    ) -> tuple[NDArray, NDArray, NDArray] | None:
+        """T_world_sensor from each sighting and its marker's map pose (with its covariance):
+        p (n, 3), R (n, 3, 3), C (n, 6, 6); None if a covariance is not finite."""
+        maps = [self._map[s.marker_id] for s in seen]
+        p_wm = np.array([m.p for m in maps])
+        R_wm = np.array([m.R for m in maps])
+        C_wm = np.array([m.cov for m in maps])
+        R_ms = np.swapaxes(R_sm, -1, -2)
+        p_ms = -(R_ms @ p_sm[..., None])[..., 0]
+        C_ms = covariance.transform(covariance.inverse_jacobian(p_sm, R_sm), C_sm)
+        Jp, Je = covariance.compose_jacobians(R_wm, p_ms, R_ms)
+        C = covariance.transform(Jp, C_wm) + covariance.transform(Je, C_ms)
         if not np.all(np.isfinite(C)):
             return None
-        return m.p + m.R @ p_ms, m.R @ R_ms, C
+        return p_wm + (R_wm @ p_ms[..., None])[..., 0], R_wm @ R_ms, C
 
     # --- the estimate ---------------------------------------------------------------------------------
 
@@ -352,28 +363,41 @@ def _residuals(P: NDArray, Rs: NDArray, p_ref: NDArray, R_ref: NDArray) -> NDArr
     return np.concatenate([P - p_ref, rot], axis=1)
 
 
-def _fuse(cands: list[tuple[NDArray, NDArray, NDArray]]) -> tuple[NDArray, NDArray, NDArray, float] | None:
-    """The information-weighted mean of poses (p, R, C): p (3,), R (3, 3), its covariance, and the
-    chi-square of the candidates about it (6 (n - 1) degrees of freedom when they agree)."""
-    P = np.array([c[0] for c in cands])
-    Rs = np.array([c[1] for c in cands])
+def _leave_one_out(P: NDArray, Rs: NDArray, C: NDArray) -> tuple[NDArray, NDArray, NDArray, NDArray] | None:
+    """For each of n candidate poses (p (n, 3), R (n, 3, 3), C (n, 6, 6)), the information-weighted
+    mean of the others: p (n, 3), R (n, 3, 3), its covariance (n, 6, 6), and the chi-square of those
+    others about it (6 (n - 2) degrees of freedom when they agree). Gauss-Newton, twice, each mean
+    about its own reference (the first of its others to start)."""
+    n = len(P)
     try:
-        W = np.linalg.inv(np.array([c[2] for c in cands]))
+        W = np.linalg.inv(C)
     except np.linalg.LinAlgError:
         return None
-    p_ref, R_ref = P[0], Rs[0]
-    info = W.sum(axis=0)
+    others = ~np.eye(n, dtype=bool)
+    Wo = W[None] * others[:, :, None, None]  # (i, k, 6, 6): candidate k's weight in i's mean
+    info = Wo.sum(axis=1)
+    first = np.where(np.arange(n) == 0, 1, 0)
+    p_ref, R_ref = P[first], Rs[first]
     try:
         for _ in range(2):
-            r = _residuals(P, Rs, p_ref, R_ref)
-            x = np.linalg.solve(info, np.einsum("nij,nj->i", W, r))
-            p_ref, R_ref = p_ref + x[:3], R_ref @ Rotation.from_rotvec(x[3:]).as_matrix()
-        C = np.linalg.inv(info)
+            r = _residuals_each(P, Rs, p_ref, R_ref)
+            x = np.linalg.solve(info, np.einsum("ikab,ikb->ia", Wo, r)[..., None])[..., 0]
+            p_ref = p_ref + x[:, :3]
+            R_ref = R_ref @ Rotation.from_rotvec(x[:, 3:]).as_matrix()
+        cov = np.linalg.inv(info)
     except np.linalg.LinAlgError:
         return None
-    r = _residuals(P, Rs, p_ref, R_ref)
-    value = float(np.einsum("ni,nij,nj->", r, W, r))
-    return p_ref, R_ref, 0.5 * (C + C.T), value
+    r = _residuals_each(P, Rs, p_ref, R_ref)
+    values = np.einsum("ika,ikab,ikb->i", r, Wo, r)
+    return p_ref, R_ref, 0.5 * (cov + np.swapaxes(cov, -1, -2)), values
+
+
+def _residuals_each(P: NDArray, Rs: NDArray, p_ref: NDArray, R_ref: NDArray) -> NDArray[np.float64]:
+    """(m, n, 6): the n poses' errors about each of m references (:func:`_residuals`)."""
+    m, n = len(p_ref), len(P)
+    rel = np.swapaxes(R_ref, -1, -2)[:, None] @ Rs[None]
+    rot = Rotation.from_matrix(rel.reshape(m * n, 3, 3)).as_rotvec().reshape(m, n, 3)
+    return np.concatenate([P[None] - p_ref[:, None], rot], axis=2)
 
 
 def _views(items: Sequence[Evidence], inlier: NDArray[np.bool_], gap_s: float) -> int:

@@ -15,12 +15,13 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.refine import MapRefiner, RefineOptions, Sighting
 
-FRAME_US = 66_667  # 15 fps
+FPS = 5  # slower than a camera: successive frames share their errors anyway (views count, not frames)
+FRAME_US = 1_000_000 // FPS
 SIGMA_P_M = 0.002  # a square's position noise in the camera (m), per axis
 SIGMA_R_RAD = np.radians(0.5)
 
 
-def _floor(n: int = 6, spacing_m: float = 0.6) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+def _floor(n: int = 8, spacing_m: float = 0.6) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Markers on a line on the floor, their z axes up, each turned about z by its own angle."""
     out = {}
     for i in range(n):
@@ -31,9 +32,10 @@ def _floor(n: int = 6, spacing_m: float = 0.6) -> dict[int, tuple[np.ndarray, np
 
 def _camera(t_s: float) -> tuple[np.ndarray, np.ndarray]:
     """The camera at time t: 1.5 m above the floor, looking down, sweeping along the line and sideways."""
-    p = np.array([1.5 + 0.8 * np.sin(0.7 * t_s), 0.6 * np.sin(1.3 * t_s), 1.5])
+    p = np.array([2.1 + 1.2 * np.sin(0.3 * t_s) + 0.3 * np.sin(1.7 * t_s), 0.6 * np.sin(1.3 * t_s), 1.5])
     # optical z down (-world z), turned a little as it goes
-    R = Rotation.from_euler("x", 180.0, degrees=True) * Rotation.from_euler("xy", [8 * np.sin(t_s), 6 * np.cos(t_s)], degrees=True)
+    tilt = Rotation.from_euler("xy", [8 * np.sin(t_s), 6 * np.cos(t_s)], degrees=True)
+    R = Rotation.from_euler("x", 180.0, degrees=True) * tilt
     return p, R.as_matrix()
 
 
@@ -57,10 +59,10 @@ def _sightings(truth, ids, t_s, rng, flips=()) -> list[Sighting]:
 def _feed(refiner, truth, seconds=30.0, ids=None, rng=None, flip_every=0, camera="cam") -> None:
     rng = rng or np.random.default_rng(0)
     ids = list(truth) if ids is None else ids
-    for k in range(int(seconds * 15)):
-        t = k / 15
+    for k in range(int(seconds * FPS)):
+        t = k / FPS
         # The camera sees four neighbouring markers at a time, a window that moves along the line.
-        first = int((np.sin(0.3 * t) + 1) / 2 * (len(ids) - 3))
+        first = round((np.sin(0.3 * t) + 1) / 2 * (len(ids) - 4))
         seen = ids[first : first + 4]
         flips = (seen[k % len(seen)],) if flip_every and k % flip_every == 0 else ()
         refiner.add_image(camera, k * FRAME_US, _sightings(truth, seen, t, rng, flips))
@@ -113,11 +115,11 @@ def test_each_update_moves_at_most_the_step_bound():
 
 def test_a_good_map_is_never_moved():
     truth = _floor()
-    for seed in range(3):
+    for seed in range(2):
         refiner = MapRefiner(truth)
         _feed(refiner, truth, rng=np.random.default_rng(seed))
         assert refiner.step() == []
-        assert refiner.counters["evidence"] > 1000
+        assert refiner.counters["evidence"] > 500
 
 
 def test_leave_one_out_a_marker_never_confirms_itself():
@@ -165,7 +167,7 @@ def test_never_from_a_single_image_nor_from_one_direction():
         one.add_image("cam", k * FRAME_US, _sightings(truth, [0, 1, 2, 3], 0.0, np.random.default_rng(7)))
     assert one.step() == []
     est = one.estimate(1)
-    assert est is not None and "views" in one.verdict(est) or "direction" in one.verdict(est)
+    assert est is not None and ("views" in one.verdict(est) or "direction" in one.verdict(est))
     # Many images from one place, but the camera never moves: seen from one direction only.
     still = MapRefiner(wrong, options=RefineOptions(view_gap_s=0.0))
     for k in range(200):
@@ -184,16 +186,16 @@ def test_an_image_with_too_few_markers_gives_no_evidence():
     assert refiner.add_image("cam", 2, _sightings(truth, [0, 1, 2], 0.0, rng)) == 3
 
 
-@settings(max_examples=15)
+@settings(max_examples=6)
 @given(
-    mid=st.integers(1, 4),
+    mid=st.integers(2, 5),  # seen in enough images of the scene in 30 s
     dp=st.tuples(*[st.floats(-0.15, 0.15)] * 3).filter(lambda v: np.linalg.norm(v) > 0.03),
     seed=st.integers(0, 2**16),
 )
 def test_any_misplaced_marker_converges_within_its_sigma(mid, dp, seed):
     truth = _floor()
     refiner = MapRefiner(_moved(truth, mid, dp))
-    _feed(refiner, truth, seconds=20, rng=np.random.default_rng(seed))
+    _feed(refiner, truth, seconds=30, rng=np.random.default_rng(seed))
     _converge(refiner, max_steps=30)
     p, _, cov = refiner.pose(mid)
     err = p - truth[mid][0]
