@@ -21,6 +21,7 @@ from atlas_onboard.config.settings import (
     LinkConfig,
     NodeConfig,
     RecordConfig,
+    RefineConfig,
     SigningConfig,
 )
 
@@ -42,6 +43,7 @@ SECTIONS: tuple[tuple[str, type, tuple[str, ...]], ...] = (
     ("nodes.<entity>.peers[]", LinkConfig, ()),
     ("nodes.<entity>.peers[].signing", SigningConfig, ()),
     ("nodes.<entity>.record", RecordConfig, ()),
+    ("nodes.<entity>.refine", RefineConfig, ()),
 )
 
 
