@@ -14,6 +14,7 @@ from atlas_onboard.config import (
     ConfigError,
     NodeConfig,
     RecordConfig,
+    RefineConfig,
     SensorConfig,
     WorldConfig,
     load_node,
@@ -57,8 +58,10 @@ def register_camera_kind(kind: str, factory: CameraFactory) -> None:
     CAMERA_KINDS[kind] = factory
 
 
-def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
-    """The camera workers of this node's entity: a registered kind's, or a device or file read by the detector."""
+def build_cameras(world: WorldConfig, config: NodeConfig, per_marker: bool = False) -> list[Camera]:
+    """The camera workers of this node's entity: a registered kind's, or a device or file read by the detector.
+    ``per_marker``: the detector reports each marker on its own, not an entity's markers as one joint
+    solve (live map refinement needs each world marker's own pose)."""
     cameras: list[Camera] = []
     for sensor in world.entity(config.entity).sensors:
         cam = sensor.camera
@@ -79,16 +82,21 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
             calibration = read_info(Path(cam.source)).calibration
         else:
             raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}")
-        detector = Detector(sensor, world, calibration, decimate=2.0)
+        detector = Detector(sensor, world, calibration, decimate=2.0, joint=not per_marker)
         cameras.append(CameraWorker(sensor.name, cam, detector))
     return cameras
 
 
 def run_node(
-    config_path: Path, entity: str | None, record_dir: Path | None = None, record_max_mb: float | None = None
+    config_path: Path,
+    entity: str | None,
+    record_dir: Path | None = None,
+    record_max_mb: float | None = None,
+    write_map: Path | None = None,
 ) -> int:
     """Load, build and run the node; returns its exit status. ``record_dir``, ``record_max_mb``:
-    ``run --record``, over the node settings' ``record`` block."""
+    ``run --record``, over the node settings' ``record`` block; ``write_map``: ``run --write-map``, the
+    refined world file written at exit (refinement on, over the settings' ``refine`` block)."""
     name = choose_entity(config_path, entity)
     world, config = load_node(config_path, name)
     # The command line's --record goes beside the settings, not into them: a reload (SIGHUP) compares
@@ -103,9 +111,14 @@ def run_node(
         record = replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb)
     from atlas_onboard.mavlink.transport import MavlinkTransport
 
+    refine = config.refine
+    if write_map is not None:  # like --record, beside the settings (a reload compares those)
+        refine = replace(refine or RefineConfig(), write_map=write_map)
     transport = MavlinkTransport(world, config)
-    cameras = build_cameras(world, config)
+    cameras = build_cameras(world, config, per_marker=refine is not None)
     node = Node(world, config, transport, cameras, notifier=Notifier.from_environ(), config_path=config_path)
+    if refine is not None:
+        node.enable_refinement(refine)
     if record is not None:
         from atlas_onboard.mapping import onboard
 
