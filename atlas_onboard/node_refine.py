@@ -4,9 +4,10 @@ The node hands every observation it accepted (its own cameras' and its peers') t
 which groups them by image (sensor and capture stamp) and gives each image's world markers to the pure
 :class:`~atlas_onboard.core.refine.MapRefiner`. Once a second it lets the refiner move the markers whose
 evidence is converged and significant, puts each moved marker's pose and covariance into the listener
-(eq. 1's ``T3``, from then on instead of the world file's), logs it (the first time per marker, then at
-most once a minute), counts it and sends a STATUSTEXT at most once a minute. At exit it writes the
-refined world file, if asked, atomically and in the format ``map`` writes.
+(eq. 1's ``T3``, from then on instead of the world file's), logs it (its first step and the step that
+reaches the refined pose), counts it and, when a marker has reached its refined pose, sends a
+STATUSTEXT (at most one a minute). At exit it writes the refined world file, if asked, atomically and
+in the format ``map`` writes.
 """
 
 from __future__ import annotations
@@ -100,19 +101,21 @@ class LiveRefinement:
         return updates
 
     def _say(self, u: Update, now_ns: int) -> None:
+        """Log a marker's first step and the step that reaches its estimate (others at most once a
+        minute per marker); a STATUSTEXT when one reaches it, at most one a minute."""
         mid = u.marker_id
         dx, dy, dz = self.refiner.file_offset_m(mid)
         est = u.estimate
         last = self._logged_ns.get(mid)
-        if last is None or now_ns - last >= LOG_NS:
+        if last is None or u.reached or now_ns - last >= LOG_NS:
             self._logged_ns[mid] = now_ns
             _logger.warning(
-                "world marker %d refined: moved %.1f mm (%.2f deg) towards what %d views show; now %+.3f %+.3f %+.3f m"
+                "world marker %d %s: moved %.1f mm (%.2f deg) towards what %d views show; now %+.3f %+.3f %+.3f m"
                 " from the world file, 1-sigma %.1f mm, %.2f deg (%d evidence items, %d outliers)",
-                mid, u.step_m * 1000, u.step_deg, est.views, dx, dy, dz, est.max_sigma_m * 1000, est.max_sigma_deg,
-                est.items, est.outliers,
+                mid, "refined" if u.reached else "being refined", u.step_m * 1000, u.step_deg, est.views, dx, dy, dz,
+                est.max_sigma_m * 1000, est.max_sigma_deg, est.items, est.outliers,
             )  # fmt: skip
-        if self._last_status_ns is None or now_ns - self._last_status_ns >= STATUS_NS:
+        if u.reached and (self._last_status_ns is None or now_ns - self._last_status_ns >= STATUS_NS):
             self._last_status_ns = now_ns
             text = f"atlas: marker {mid} refined {round(dx * 100):+d} {round(dy * 100):+d} {round(dz * 100):+d} cm"
             self._status.append(text[:50])

@@ -45,7 +45,7 @@ class RefineOptions:
     min_others: int = 2  # other world markers in the image; two can be checked against each other
     consistency_p: float = 1e-4  # the others' camera poses disagree when their chi2 has this tail probability
     outlier_p: float = 1e-4  # an evidence item is an outlier when its distance has this tail probability
-    min_views: int = 20  # independent views (images at least view_gap_s apart per camera)
+    min_views: int = 12  # independent views (images at least view_gap_s apart per camera)
     view_gap_s: float = 0.5
     min_spread_deg: float = 5.0  # the viewing directions' widest angle from their mean direction
     max_sigma_m: float = 0.005  # the refined position's largest 1-sigma
@@ -134,6 +134,7 @@ class Update:
     cov: NDArray[np.float64]
     step_m: float
     step_deg: float
+    reached: bool  # the step reached the estimate (not cut short by the step bound)
     estimate: Estimate
 
 
@@ -353,7 +354,7 @@ class MapRefiner:
             m.cov = est.cov + np.outer(left, left)
             self._active.add(mid)
             self.counters["updates"] += 1
-            out.append(Update(mid, m.p.copy(), m.R.copy(), m.cov.copy(), f * dist, f * ang, est))
+            out.append(Update(mid, m.p.copy(), m.R.copy(), m.cov.copy(), f * dist, f * ang, f == 1.0, est))
         return out
 
 
