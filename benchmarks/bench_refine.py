@@ -160,7 +160,10 @@ def main(argv: list[str] | None = None) -> int:
         for name in ("moved, joint", "moved, refine", "truth, refine"):
             print(f"  {state:6s} {name:14s} / truth, joint: {_rmse(table[name][k]) / anchor:6.2f}")
     after_ratio = _rmse(table["moved, refine"][1]) / _rmse(table["truth, refine"][1])
-    all_refine, all_joint = sum(table["truth, refine"], []), sum(table["truth, joint"], [])
+    all_refine, all_joint = (
+        [*table["truth, refine"][0], *table["truth, refine"][1]],
+        [*table["truth, joint"][0], *table["truth, joint"][1]],
+    )
     cost_rmse = _rmse(all_refine) / _rmse(all_joint)
     cost_ratio = float(np.median(all_refine) / np.median(all_joint))
     print(f"refinement's cost on the true map (per-marker detection vs joint), whole run: RMSE x{cost_rmse:.2f},"
