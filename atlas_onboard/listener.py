@@ -151,6 +151,10 @@ class Listener(AmbiguityResolution):
         self._marker_fwd[marker_id] = T.as_matrix()
         self._marker_cov[marker_id] = np.asarray(cov, dtype=float)
 
+    def marker_pose(self, marker_id: int) -> NDArray[np.float64]:
+        """The 4x4 pose of a marker in its entity that eq. 1 uses now (the world file's, or a refined one)."""
+        return self._marker_fwd[marker_id].copy()
+
     def set_estimates(self, poses: Mapping[str, EntityPose]) -> None:
         """The current pose estimates (a graph evaluation's ``poses``), used to resolve ambiguity."""
         self._estimates = dict(poses)

@@ -88,7 +88,7 @@ def run(world_file: Path, recs: dict[int, Path], refine: bool, marker: int, trut
         if pose is not None:
             truth = sim.truth(t_s, {entity})[entity]
             errors.append((t_s - t0, entity, float(np.linalg.norm(np.asarray(pose.p_world_m) - truth.translation))))
-        p_marker = listener._marker_fwd[marker][:3, 3]
+        p_marker = listener.marker_pose(marker)[:3, 3]
         track.append((t_s - t0, float(np.linalg.norm(p_marker - true_marker))))
     moved = sorted(refinement.markers_refined) if refinement is not None else []
     return {"errors": errors, "track": track, "reached_s": reached_s, "moved": moved}

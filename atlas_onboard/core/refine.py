@@ -15,8 +15,9 @@ their errors).
 A refined pose replaces the map's (:meth:`MapRefiner.step`) only when it is converged and
 significant: enough independent views (images at least ``view_gap_s`` apart per camera), seen over a
 spread of directions, a small sigma, and an offset from the current pose beyond its noise and beyond
-``min_offset_m`` / ``min_offset_deg``. Each update moves the marker at most ``max_step_m`` and
-``max_step_deg``. Anchors (surveyed markers) are never moved.
+``min_offset_m`` / ``min_offset_deg``. Each update moves one marker, the most significant, at most
+``max_step_m`` and ``max_step_deg``, and drops the evidence it gave the others (gathered again against
+its new pose). Anchors (surveyed markers) are never moved.
 
 Conventions as in :mod:`atlas_onboard.core.covariance`: a pose's error is ``[dp, dtheta]``, ``dp`` in the
 parent frame (m) and ``dtheta`` about the child's own axes (rad). Pure: the time is each image's
@@ -81,6 +82,7 @@ class Evidence:
     direction: NDArray[np.float64]  # (3,) unit: from the marker towards the camera, in the marker's frame
     camera: Hashable  # which camera (sensor) took the image
     capture_time_us: int
+    others: frozenset[int] = frozenset()  # the markers that placed the camera
 
 
 @dataclass(frozen=True)
@@ -219,6 +221,7 @@ class MapRefiner:
         directions = to_camera / np.maximum(np.linalg.norm(to_camera, axis=1, keepdims=True), 1e-9)
         limit = chi2.isf(self.options.consistency_p, 6 * (n - 2))
         added = 0
+        ids_seen = frozenset(ids)
         for i, s in enumerate(seen):
             if s.marker_id in self.anchors:
                 self.counters["rejected_anchor"] += 1
@@ -227,7 +230,8 @@ class MapRefiner:
                 self.counters["rejected_inconsistent"] += 1
                 continue
             items = self._evidence.setdefault(s.marker_id, deque(maxlen=self.options.max_evidence))
-            items.append(Evidence(p_wm[i], R_wm[i], cov[i], directions[i], camera, int(capture_time_us)))
+            others = ids_seen - {s.marker_id}
+            items.append(Evidence(p_wm[i], R_wm[i], cov[i], directions[i], camera, int(capture_time_us), others))
             added += 1
         if added:
             self.counters["images"] += 1
@@ -334,28 +338,40 @@ class MapRefiner:
         return None
 
     def step(self) -> list[Update]:
-        """Move every marker whose estimate passes :meth:`verdict` towards it, by a bounded step; the
-        moved marker's map covariance becomes its estimate's. Returns the updates made."""
+        """Move the marker whose estimate passes :meth:`verdict` and is farthest from its map pose (in
+        its own sigmas) towards it, by a bounded step; its map covariance becomes its estimate's.
+
+        One marker a step, the most significant first: a misplaced marker biases the evidence of every
+        marker it helped place the camera for (a little, within the consistency gate, but the same in
+        every image), so that evidence is dropped when it moves and gathered again against its new
+        pose. Returns the update made (none or one)."""
         o = self.options
-        out = []
+        best: Estimate | None = None
         for mid in sorted(self._evidence):
             est = self.estimate(mid)
-            if est is None or self.verdict(est) is not None:
-                continue
-            m = self._map[mid]
-            dp = est.p_world_marker_m - m.p
-            dr = Rotation.from_matrix(m.R.T @ est.R_world_marker).as_rotvec()
-            dist, ang = float(np.linalg.norm(dp)), float(np.degrees(np.linalg.norm(dr)))
-            f = min(1.0, o.max_step_m / dist if dist > 0 else 1.0, o.max_step_deg / ang if ang > 0 else 1.0)
-            m.p = m.p + f * dp
-            m.R = m.R @ Rotation.from_rotvec(f * dr).as_matrix()
-            # Short of the estimate, the pose is off by what is left of the step as well as by the noise.
-            left = (1.0 - f) * np.concatenate([dp, dr])
-            m.cov = est.cov + np.outer(left, left)
-            self._active.add(mid)
-            self.counters["updates"] += 1
-            out.append(Update(mid, m.p.copy(), m.R.copy(), m.cov.copy(), f * dist, f * ang, f == 1.0, est))
-        return out
+            if est is not None and self.verdict(est) is None and (best is None or est.distance2 > best.distance2):
+                best = est
+        if best is None:
+            return []
+        mid, est = best.marker_id, best
+        m = self._map[mid]
+        dp = est.p_world_marker_m - m.p
+        dr = Rotation.from_matrix(m.R.T @ est.R_world_marker).as_rotvec()
+        dist, ang = float(np.linalg.norm(dp)), float(np.degrees(np.linalg.norm(dr)))
+        f = min(1.0, o.max_step_m / dist if dist > 0 else 1.0, o.max_step_deg / ang if ang > 0 else 1.0)
+        m.p = m.p + f * dp
+        m.R = m.R @ Rotation.from_rotvec(f * dr).as_matrix()
+        # Short of the estimate, the pose is off by what is left of the step as well as by the noise.
+        left = (1.0 - f) * np.concatenate([dp, dr])
+        m.cov = est.cov + np.outer(left, left)
+        self._active.add(mid)
+        self.counters["updates"] += 1
+        for other, items in self._evidence.items():  # placed with its old pose: gathered again
+            if other != mid:
+                kept = [e for e in items if mid not in e.others]
+                self.counters["evidence_dropped"] += len(items) - len(kept)
+                self._evidence[other] = deque(kept, maxlen=o.max_evidence)
+        return [Update(mid, m.p.copy(), m.R.copy(), m.cov.copy(), f * dist, f * ang, f == 1.0, est)]
 
 
 def _residuals(P: NDArray, Rs: NDArray, p_ref: NDArray, R_ref: NDArray) -> NDArray[np.float64]:
