@@ -66,15 +66,13 @@ class LiveRefinement:
     def add(self, accepted: Sequence[MarkerData], now_ns: int) -> None:
         """Accepted observations (any order, any images); an image is used once its last one is in."""
         for md in accepted:
-            if md.marker_id not in self._world_ids or md.sensor_id in self._world_sensors:
-                continue
-            if md.ambiguity_ratio > AMBIGUITY_THRESHOLD:  # its square may be the mirrored one
-                self.skipped_ambiguous += 1
-                continue
             key = (md.sensor_id, md.capture_time_us)
-            _, sightings = self._images.setdefault(key, (now_ns, []))
-            sightings.append(_sighting(md))
-            if md.frame_remaining == 0:
+            if md.marker_id in self._world_ids and md.sensor_id not in self._world_sensors:
+                if md.ambiguity_ratio > AMBIGUITY_THRESHOLD:  # its square may be the mirrored one
+                    self.skipped_ambiguous += 1
+                else:
+                    self._images.setdefault(key, (now_ns, []))[1].append(_sighting(md))
+            if md.frame_remaining == 0 and key in self._images:  # the image's last observation (any marker)
                 self._use(key)
 
     def _use(self, key: tuple[int, int]) -> None:

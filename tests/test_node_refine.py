@@ -91,6 +91,17 @@ def test_observations_are_grouped_by_image_and_ambiguous_squares_left_out():
     assert live.refiner.counters["evidence"] == 0
     live.add([second[0], first[2], *second[1:]], 0)  # interleaved images: each used whole
     assert live.refiner.counters["images"] == 2 and live.refiner.counters["evidence"] == 6
+    # The image's last observation is of another entity's marker: the image is complete all the same.
+    drone_doc = {
+        **DOC,
+        "entities": {**DOC["entities"], "other": {"markers": [{"id": 9, "size_m": 0.1, "pose": {"pos": [0, 0, 0]}}]}},
+    }
+    truth = {**TRUTH, "other": pose([0.2, 0.2, 0.0])}
+    with_other = world_from(drone_doc)
+    live_other = LiveRefinement(with_other, RefineConfig())
+    mds = [observe(with_other, truth, 1, m, capture_time_us=5_000) for m in (0, 1, 2, 9)]
+    live_other.add([replace(md, frame_remaining=3 - i) for i, md in enumerate(mds)], 0)
+    assert live_other.refiner.counters["images"] == 1
     live.add(_image(world, [0, 1, 2], 3_000, ambiguity=0.95), 0)
     assert live.skipped_ambiguous == 3 and live.refiner.counters["images"] == 2
     # An image whose last observation never comes is used once it has waited long enough.
