@@ -35,6 +35,44 @@ STEP_NS = NS  # how often refined poses may be applied (each a bounded step)
 IMAGE_WAIT_NS = NS // 2  # an image whose last observation never came is used after this long
 STATUS_NS = 60 * NS  # at most one STATUSTEXT a minute
 LOG_NS = 60 * NS  # a marker's update is logged the first time, then at most once a minute
+PER_MARKER_PERIOD_US = 500_000  # one image per camera this often is reported marker by marker
+
+
+class PerMarkerSampler:
+    """A detector that reports one image every ``period_us`` (capture time) marker by marker and the
+    others as it always does (an entity's markers seen together as one joint solve).
+
+    Refinement needs each world marker's own pose in an image that shows three or more of them, and
+    counts an image as a new view only when it is at least
+    :attr:`~atlas_onboard.core.refine.RefineOptions.view_gap_s` after the last one of its camera: the
+    images between would add no views, and the joint solve gives far better poses than the fusion of
+    single squares. An image is taken marker by marker when the period has passed and the previous
+    image reported three or more world markers (the next one most likely does too). Everything else
+    is the wrapped detector's."""
+
+    def __init__(self, detector: object, world_ids: frozenset[int], period_us: int = PER_MARKER_PERIOD_US) -> None:
+        self._detector = detector
+        self._world_ids = world_ids
+        self.period_us = period_us
+        self._last_us: int | None = None
+        self._world_seen = 0  # world markers the previous image reported
+
+    def detect(self, gray: object, capture_time_us: int, *args: object, **kwargs: object) -> list[MarkerData]:
+        det = self._detector
+        due = self._last_us is None or not 0 <= capture_time_us - self._last_us < self.period_us
+        each = due and self._world_seen >= 3
+        det.joint = not each  # type: ignore[attr-defined]
+        try:
+            out = det.detect(gray, capture_time_us, *args, **kwargs)  # type: ignore[attr-defined]
+        finally:
+            det.joint = True  # type: ignore[attr-defined]
+        if each:
+            self._last_us = capture_time_us
+        self._world_seen = len(self._world_ids.intersection(det.report.reported))  # type: ignore[attr-defined]
+        return out
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._detector, name)
 
 
 class LiveRefinement:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from atlas_onboard.config import (
     NO_NODES,
+    WORLD,
     ConfigError,
     NodeConfig,
     RecordConfig,
@@ -60,8 +61,8 @@ def register_camera_kind(kind: str, factory: CameraFactory) -> None:
 
 def build_cameras(world: WorldConfig, config: NodeConfig, per_marker: bool = False) -> list[Camera]:
     """The camera workers of this node's entity: a registered kind's, or a device or file read by the detector.
-    ``per_marker``: the detector reports each marker on its own, not an entity's markers as one joint
-    solve (live map refinement needs each world marker's own pose)."""
+    ``per_marker``: the detector reports some images marker by marker, not an entity's markers as one
+    joint solve (live map refinement needs each world marker's own pose; :class:`PerMarkerSampler`)."""
     cameras: list[Camera] = []
     for sensor in world.entity(config.entity).sensors:
         cam = sensor.camera
@@ -82,7 +83,12 @@ def build_cameras(world: WorldConfig, config: NodeConfig, per_marker: bool = Fal
             calibration = read_info(Path(cam.source)).calibration
         else:
             raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}")
-        detector = Detector(sensor, world, calibration, decimate=2.0, joint=not per_marker)
+        detector = Detector(sensor, world, calibration, decimate=2.0)
+        if per_marker:
+            from atlas_onboard.node_refine import PerMarkerSampler
+
+            world_ids = frozenset(m.id for m in world.entity(WORLD).markers)
+            detector = PerMarkerSampler(detector, world_ids)  # type: ignore[assignment]
         cameras.append(CameraWorker(sensor.name, cam, detector))
     return cameras
 
