@@ -62,10 +62,17 @@ class PerMarkerSampler:
         due = self._last_us is None or not 0 <= capture_time_us - self._last_us < self.period_us
         each = due and self._world_seen >= 3
         det.joint = not each  # type: ignore[attr-defined]
+        # A marker the live check reports moved is left out of the images it is seen alone in: the one
+        # that most needs refining. In the images taken marker by marker it is reported all the same.
+        moved = getattr(det, "moved", None)
+        if each and moved:
+            det.moved = {}  # type: ignore[attr-defined]
         try:
             out = det.detect(gray, capture_time_us, *args, **kwargs)  # type: ignore[attr-defined]
         finally:
             det.joint = True  # type: ignore[attr-defined]
+            if each and moved:
+                det.moved = moved  # type: ignore[attr-defined]
         if each:
             self._last_us = capture_time_us
         self._world_seen = len(self._world_ids.intersection(det.report.reported))  # type: ignore[attr-defined]
@@ -115,7 +122,8 @@ class LiveRefinement:
 
     def _use(self, key: tuple[int, int]) -> None:
         _, sightings = self._images.pop(key)
-        self.refiner.add_image(key[0], key[1], sightings)
+        if len(sightings) > 1:  # (a joint solve's image: one observation of the whole pattern, no evidence)
+            self.refiner.add_image(key[0], key[1], sightings)
 
     # --- updates out ----------------------------------------------------------------------------------
 

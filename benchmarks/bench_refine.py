@@ -62,7 +62,8 @@ def run(world_file: Path, recs: dict[int, Path], refine: bool, marker: int, trut
         sid: Detector(world.sensors[sid], world, read_info(p).calibration, decimate=2.0) for sid, p in recs.items()
     }
     if refine:  # as the node's cameras run when refining
-        detectors = {sid: PerMarkerSampler(d) for sid, d in detectors.items()}
+        world_ids = frozenset(m.id for m in world.entity("world").markers)
+        detectors = {sid: PerMarkerSampler(d, world_ids) for sid, d in detectors.items()}
     refinement = LiveRefinement(world, RefineConfig()) if refine else None
     sim = SimWorld(scenarios.get(SCENARIO), truth_world)
     true_marker = truth_world.markers[marker].T_entity_marker.translation
@@ -92,7 +93,14 @@ def run(world_file: Path, recs: dict[int, Path], refine: bool, marker: int, trut
         p_marker = listener.marker_pose(marker)[:3, 3]
         track.append((t_s - t0, float(np.linalg.norm(p_marker - true_marker))))
     moved = sorted(refinement.markers_refined) if refinement is not None else []
-    return {"errors": errors, "track": track, "reached_s": reached_s, "moved": moved}
+    notes = ""
+    if refinement is not None:
+        est = refinement.refiner.estimate(marker)
+        why = refinement.refiner.verdict(est) if est is not None else "no evidence"
+        notes = f"marker {marker}: {why or 'refined'}; " + " ".join(
+            f"{k}={v}" for k, v in refinement.counters().items()
+        )
+    return {"errors": errors, "track": track, "reached_s": reached_s, "moved": moved, "notes": notes}
 
 
 FRAMES: dict[int, list] = {}
@@ -155,6 +163,8 @@ def main(argv: list[str] | None = None) -> int:
         table[name] = (before, after)
         print(f"  {name:14s} before {_stats(before)}")
         print(f"  {'':14s} after  {_stats(after)}   markers moved: {r['moved']}")
+        if r["notes"]:
+            print(f"  {'':14s} {r['notes']}")
     print("ratios (RMSE) in the same frames:")
     for state, k in (("before", 0), ("after", 1)):
         anchor = _rmse(table["truth, joint"][k])

@@ -28,7 +28,7 @@ SCENARIO = "map"
 SENSORS = {1: "mapper1", 2: "mapper2"}
 START_S, DURATION_S = 44.0, 8.0  # both cameras see marker 2 with others here
 MOVED_ID, MOVE_M = 2, (0.1, 0.0, 0.0)
-FPS = 5  # a slow camera: a loaded machine's detector keeps up with it (refinement counts views 0.5 s apart)
+FPS = 10  # a slow camera: a loaded machine's detector keeps up with it (refinement counts views 0.5 s apart)
 BOUND_M = 0.005  # the refined marker within this of the truth: a few times the detections' noise at 1-2 m
 
 
