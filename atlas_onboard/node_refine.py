@@ -35,27 +35,26 @@ STEP_NS = NS  # how often refined poses may be applied (each a bounded step)
 IMAGE_WAIT_NS = NS // 2  # an image whose last observation never came is used after this long
 STATUS_NS = 60 * NS  # at most one STATUSTEXT a minute
 LOG_NS = 60 * NS  # a marker's update is logged the first time, then at most once a minute
-PER_MARKER_PERIOD_US = 500_000  # one image per camera this often is reported marker by marker
 
 
 class PerMarkerSampler:
-    """A detector that reports one image every ``period_us`` (capture time) marker by marker and the
-    others as it always does (an entity's markers seen together as one joint solve).
+    """A detector that reports one image every ``period_us`` (capture time; 0: every one) marker by
+    marker and the others as it always does (an entity's markers seen together as one joint solve).
 
     Refinement needs each world marker's own pose in an image that shows three or more of them, and
     counts an image as a new view only when it is at least
     :attr:`~atlas_onboard.core.refine.RefineOptions.view_gap_s` after the last one of its camera: the
     images between would add no views, and the joint solve gives far better poses than the fusion of
-    single squares. An image is taken marker by marker when the period has passed and the previous
-    image reported three or more world markers (the next one most likely does too). Everything else
+    single squares. An image is taken marker by marker when the period has passed and three or more
+    world markers were found in the previous image (the next one most likely does too). Everything else
     is the wrapped detector's."""
 
-    def __init__(self, detector: object, world_ids: frozenset[int], period_us: int = PER_MARKER_PERIOD_US) -> None:
+    def __init__(self, detector: object, world_ids: frozenset[int], period_us: int) -> None:
         self._detector = detector
         self._world_ids = world_ids
         self.period_us = period_us
         self._last_us: int | None = None
-        self._world_seen = 0  # world markers the previous image reported
+        self._world_seen = 0  # world markers found in the previous image
 
     def detect(self, gray: object, capture_time_us: int, *args: object, **kwargs: object) -> list[MarkerData]:
         det = self._detector
@@ -75,7 +74,8 @@ class PerMarkerSampler:
                 det.moved = moved  # type: ignore[attr-defined]
         if each:
             self._last_us = capture_time_us
-        self._world_seen = len(self._world_ids.intersection(det.report.reported))  # type: ignore[attr-defined]
+        # Found, not reported: a joint solve leaves out a marker that does not fit (the one to refine).
+        self._world_seen = len(self._world_ids.intersection(det.report.found))  # type: ignore[attr-defined]
         return out
 
     def __getattr__(self, name: str) -> object:

@@ -59,10 +59,10 @@ def register_camera_kind(kind: str, factory: CameraFactory) -> None:
     CAMERA_KINDS[kind] = factory
 
 
-def build_cameras(world: WorldConfig, config: NodeConfig, per_marker: bool = False) -> list[Camera]:
+def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig | None = None) -> list[Camera]:
     """The camera workers of this node's entity: a registered kind's, or a device or file read by the detector.
-    ``per_marker``: the detector reports some images marker by marker, not an entity's markers as one
-    joint solve (live map refinement needs each world marker's own pose; :class:`PerMarkerSampler`)."""
+    ``refine``: live map refinement is on, and the detector reports some images marker by marker, not an
+    entity's markers as one joint solve (it needs each world marker's own pose; :class:`PerMarkerSampler`)."""
     cameras: list[Camera] = []
     for sensor in world.entity(config.entity).sensors:
         cam = sensor.camera
@@ -84,11 +84,12 @@ def build_cameras(world: WorldConfig, config: NodeConfig, per_marker: bool = Fal
         else:
             raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}")
         detector = Detector(sensor, world, calibration, decimate=2.0)
-        if per_marker:
+        if refine is not None:
             from atlas_onboard.node_refine import PerMarkerSampler
 
             world_ids = frozenset(m.id for m in world.entity(WORLD).markers)
-            detector = PerMarkerSampler(detector, world_ids)  # type: ignore[assignment]
+            period_us = round(refine.per_marker_period_s * 1e6)
+            detector = PerMarkerSampler(detector, world_ids, period_us)  # type: ignore[assignment]
         cameras.append(CameraWorker(sensor.name, cam, detector))
     return cameras
 
@@ -121,7 +122,7 @@ def run_node(
     if write_map is not None:  # like --record, beside the settings (a reload compares those)
         refine = replace(refine or RefineConfig(), write_map=write_map)
     transport = MavlinkTransport(world, config)
-    cameras = build_cameras(world, config, per_marker=refine is not None)
+    cameras = build_cameras(world, config, refine)
     node = Node(world, config, transport, cameras, notifier=Notifier.from_environ(), config_path=config_path)
     if refine is not None:
         node.enable_refinement(refine)

@@ -7,7 +7,7 @@ clocks: load-free and repeatable). Runs:
 
 - ``truth, joint`` (the anchor): the true world file, the default detector (joint solves), no refinement;
 - ``moved, joint``: the world file with marker ``--marker`` 10 cm off, the default (refinement off);
-- ``moved, refine``: the same, refinement on (one image a camera every 0.5 s reported marker by marker);
+- ``moved, refine``: the same, refinement on (defaults: one image a camera every 0.25 s marker by marker);
 - ``truth, refine``: the true world file with refinement on: a good map must not move, and its pose
   error is what refinement's per-marker images cost (the anchor of the ``after`` state).
 
@@ -63,7 +63,8 @@ def run(world_file: Path, recs: dict[int, Path], refine: bool, marker: int, trut
     }
     if refine:  # as the node's cameras run when refining
         world_ids = frozenset(m.id for m in world.entity("world").markers)
-        detectors = {sid: PerMarkerSampler(d, world_ids) for sid, d in detectors.items()}
+        period_us = round(RefineConfig().per_marker_period_s * 1e6)
+        detectors = {sid: PerMarkerSampler(d, world_ids, period_us) for sid, d in detectors.items()}
     refinement = LiveRefinement(world, RefineConfig()) if refine else None
     sim = SimWorld(scenarios.get(SCENARIO), truth_world)
     true_marker = truth_world.markers[marker].T_entity_marker.translation

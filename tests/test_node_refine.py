@@ -165,13 +165,13 @@ class _FakeDetector:
     def __init__(self) -> None:
         self.joint = True
         self.calls: list[bool] = []
-        self.report = type("Report", (), {"reported": []})()
+        self.report = type("Report", (), {"found": []})()
         self.counters = {"detections": 0}
         self.seen = [0, 1, 2]
 
     def detect(self, gray, capture_time_us):
         self.calls.append(self.joint)
-        self.report.reported = list(self.seen)
+        self.report.found = list(self.seen)
         return [None] * (1 if self.joint else len(self.seen))
 
 

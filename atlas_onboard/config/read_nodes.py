@@ -99,7 +99,9 @@ def read_refine(value: Any, path: str, base_dir: Path | None) -> RefineConfig | 
     apath = join(path, "anchors")
     anchors = tuple(integer(v, join(apath, i), 0, MAX_ID) for i, v in enumerate(listing(m.get("anchors"), apath)))
     out = read(RefineConfig, "write_map", m, path)
-    return RefineConfig(anchors=anchors, write_map=_resolve(out, base_dir) if out is not None else None)
+    period = read(RefineConfig, "per_marker_period_s", m, path)
+    written = _resolve(out, base_dir) if out is not None else None
+    return RefineConfig(anchors=anchors, write_map=written, per_marker_period_s=period)
 
 
 def _read_node(m: Mapping[str, Any], path: str, entity: str, base_dir: Path | None, partial: bool) -> NodeConfig:
