@@ -7,7 +7,7 @@ clocks: load-free and repeatable). Runs:
 
 - ``truth, joint`` (the anchor): the true world file, the default detector (joint solves), no refinement;
 - ``moved, joint``: the world file with marker ``--marker`` 10 cm off, the default (refinement off);
-- ``moved, refine``: the same, refinement on (defaults: one image a camera every 0.25 s marker by marker);
+- ``moved, refine``: the same, refinement on (defaults: one image a camera every 0.5 s marker by marker);
 - ``truth, refine``: the true world file with refinement on: a good map must not move, and its pose
   error is what refinement's per-marker images cost (the anchor of the ``after`` state).
 

@@ -216,7 +216,7 @@ class RefineConfig:
     write_map: Path | None = field(default=None, metadata=spec(
         "at exit, write the refined world file here, in the format `map` writes (relative to the world"
         " file; `run --write-map PATH` also sets it); none: not written"))  # fmt: skip
-    per_marker_period_s: float = field(default=0.25, metadata=spec(
+    per_marker_period_s: float = field(default=0.5, metadata=spec(
         "each camera reports one image this often marker by marker (the evidence), the others as joint solves"
         " (the better pose); 0: every image that shows three or more world markers (faster evidence, a noisier"
         " pose)", unit="s", within="[0, 10]", noun="a period"))  # fmt: skip
