@@ -85,7 +85,7 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
 def _cmd_run(args: argparse.Namespace) -> int:
     from atlas_onboard.service_run import run_node
 
-    return run_node(args.config, args.entity, args.record, args.record_max_mb)
+    return run_node(args.config, args.entity, args.record, args.record_max_mb, args.write_map)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -104,6 +104,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--entity", help="entity whose node this is (default: the only one with node settings)")
     p.add_argument("--record", type=Path, metavar="DIR", help="record the cameras as the node flies (for `map`)")
     p.add_argument("--record-max-mb", type=float, metavar="MB", help="cap on the recordings in DIR (default 2000)")
+    p.add_argument(
+        "--write-map",
+        type=Path,
+        metavar="PATH",
+        help="refine the world markers live; write the refined world file at exit",
+    )
     p.set_defaults(func=_cmd_run)
 
     from atlas_onboard.detector.commands import add_commands as add_detector

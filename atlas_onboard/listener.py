@@ -18,9 +18,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import Weighting, WorldConfig
-from atlas_onboard.core import ambiguity, fusion, geometry
+from atlas_onboard.core import ambiguity, covariance, fusion, geometry
 from atlas_onboard.core.graph import EdgeKey, EntityPose, TransformGraph
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.counters import Counters
@@ -119,6 +120,8 @@ class Listener:
         # The same rotations as quaternions: eq. 1's rotation is composed as a quaternion product.
         self._sensor_q = {s.id: s.T_entity_sensor.rotation.as_quat() for s in world.sensors.values()}
         self._marker_inv_q = {m.id: m.T_entity_marker.rotation.inv().as_quat() for m in world.markers.values()}
+        self._marker_fwd = {m.id: m.T_entity_marker.as_matrix() for m in world.markers.values()}
+        self._marker_cov: dict[int, NDArray[np.float64]] = {}  # markers placed by refinement, not the file
         self._ema: dict[EdgeKey, _EmaState] = {}
         self.rejected = Counters()  # by reason (``rejected_<reason>``)
         self.counters = Counters()
@@ -134,6 +137,23 @@ class Listener:
         both) are chosen by the tilt they imply (:func:`atlas_onboard.core.attitude.choose_by_tilt`);
         one whose solutions both disagree with gravity is rejected (``attitude_mismatch``)."""
         self.ambiguity.set_attitude(entity, up_at)
+
+    def set_marker_pose(self, marker_id: int, M_entity_marker: NDArray[np.float64], cov: NDArray[np.float64]) -> None:
+        """Place a marker elsewhere than the world file does (live map refinement): ``M_entity_marker``
+        its 4x4 pose in its entity, ``cov`` that pose's 6x6 covariance (dp in the entity frame, dtheta
+        about the marker's axes), carried into every edge through it from now on."""
+        M = np.asarray(M_entity_marker, dtype=float)
+        T = geometry.pose_from_arrays(M[:3, 3], Rotation.from_matrix(M[:3, :3]).as_quat())
+        entity = self._marker[marker_id][0]
+        self._marker[marker_id] = (entity, T.inv().as_matrix())
+        self._marker_inv_q[marker_id] = T.rotation.inv().as_quat()
+        self._marker_fwd[marker_id] = T.as_matrix()
+        self._marker_cov[marker_id] = np.asarray(cov, dtype=float)
+        self.ambiguity.set_marker_pose(marker_id, T.as_matrix())
+
+    def marker_pose(self, marker_id: int) -> NDArray[np.float64]:
+        """The 4x4 pose of a marker in its entity that eq. 1 uses now (the world file's, or a refined one)."""
+        return self._marker_fwd[marker_id].copy()
 
     def set_estimates(self, poses: Mapping[str, EntityPose]) -> None:
         """The current pose estimates (a graph evaluation's ``poses``), used to resolve ambiguity."""
@@ -181,6 +201,16 @@ class Listener:
         q3_inv = np.array([self._marker_inv_q[md.marker_id] for md in valid])
         q_all = geometry.quat_multiply(geometry.quat_multiply(q1, q2), q3_inv)  # eq. 1's rotation
         cov = _covariances(valid, R_as, R2, T3_inv, p2, p_sb, C_sm)
+        if self._marker_cov:
+            placed = [j for j, md in enumerate(valid) if md.marker_id in self._marker_cov]
+            if placed:  # T_a_b = T_a_m T_m_b: a refined marker's own uncertainty enters through T_m_b
+                M_bm = np.array([self._marker_fwd[valid[j].marker_id] for j in placed])
+                C_bm = np.array([self._marker_cov[valid[j].marker_id] for j in placed])
+                C_mb = covariance.transform(covariance.inverse_jacobian(M_bm[:, :3, 3], M_bm[:, :3, :3]), C_bm)
+                Je = np.tile(np.eye(6), (len(placed), 1, 1))
+                Je[:, :3, :3] = R_as[placed] @ R2[placed]
+                cov = cov.copy()
+                cov[placed] += covariance.transform(Je, C_mb)
         j = 0
         for i, item in enumerate(out):
             if isinstance(item, MarkerData):

@@ -65,6 +65,10 @@ class AmbiguityResolver:
         self._up_at: Callable[[int], NDArray[np.float64] | None] | None = None
         self._up_entity: str | None = None
 
+    def set_marker_pose(self, marker_id: int, M_entity_marker: NDArray[np.float64]) -> None:
+        """A marker placed elsewhere than the world file (live refinement): predictions use it from now on."""
+        self._T_entity_marker[marker_id] = np.asarray(M_entity_marker, dtype=float)
+
     def set_attitude(self, entity: str, up_at: Callable[[int], NDArray[np.float64] | None] | None) -> None:
         """The gravity reference of ``entity`` (see :meth:`atlas_onboard.listener.Listener.set_attitude`)."""
         self._up_entity, self._up_at = (entity, up_at) if up_at is not None else (None, None)

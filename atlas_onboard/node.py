@@ -21,9 +21,19 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from atlas_onboard.config import WORLD, AutopilotConfig, ConfigError, NodeConfig, WorldConfig, defaults, load_node
+from atlas_onboard.config import (
+    WORLD,
+    AutopilotConfig,
+    ConfigError,
+    NodeConfig,
+    RefineConfig,
+    WorldConfig,
+    defaults,
+    load_node,
+)
 from atlas_onboard.core.graph import GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
+from atlas_onboard.errors import AtlasError
 from atlas_onboard.listener import Listener, make_graph
 from atlas_onboard.node_output import (  # noqa: F401 (were defined here)
     LATE_REPORT_NS,
@@ -38,6 +48,7 @@ from atlas_onboard.node_output import (  # noqa: F401 (were defined here)
     fused_poses,
 )
 from atlas_onboard.node_ports import Camera, Transport  # were defined here (imported from here elsewhere)
+from atlas_onboard.node_refine import LiveRefinement
 from atlas_onboard.publisher import PoseState, Publisher
 from atlas_onboard.schedule import Changes, FrameCount, Inbound, Inbox, Item, ParkingBuffer, Relevance, relevance
 from atlas_onboard.state import ResetCounterStore
@@ -77,6 +88,9 @@ class Node(NodeOutput):
         self.graph = make_graph(world, config.entity)
         self.listener = Listener(world, self.graph)
         self._attach_attitude()
+        self.refinement: LiveRefinement | None = None  # live map refinement (issue 21), opt-in
+        if config.refine is not None:
+            self.enable_refinement(config.refine)
         self.ekf = _make_ekf(world)
         ap = config.autopilot
         ap_default = defaults(AutopilotConfig)
@@ -167,6 +181,10 @@ class Node(NodeOutput):
         """One observation from a peer, already decoded and checked (:meth:`deliver_peers`)."""
         self.deliver_peers((Inbound.of(md, arrival_ns),))
 
+    def enable_refinement(self, refine: RefineConfig) -> None:
+        """Refine the world markers' poses from the observations this node accepts (docs/mapping.md)."""
+        self.refinement = LiveRefinement(self.world, refine)
+
     def stop(self) -> None:
         """Ask the loop to end (safe from a signal handler: it only sets a flag; the loop polls it)."""
         self._stop.set()
@@ -205,6 +223,7 @@ class Node(NodeOutput):
             for cam in self.cameras:
                 cam.stop()
             self.transport.close()
+            self._write_refined_map()
             self._log_status(final=True)
         return 0
 
@@ -300,6 +319,8 @@ class Node(NodeOutput):
             return []
         local: list[MarkerData] = []
         reasons = self.listener.accept_many([(md, arrival) for md, arrival, _ in batch])
+        if self.refinement is not None:
+            self.refinement.add([md for (md, _, _), r in zip(batch, reasons, strict=True) if r is None], self.clock())
         wall_us = self.wall() // 1000
         late, oldest_us = 0, 0
         for (md, _, is_local), reason in zip(batch, reasons, strict=True):
@@ -352,6 +373,10 @@ class Node(NodeOutput):
             self._flush_parked()
         self._evaluate_and_publish(now)
         self._duties(now)
+        if self.refinement is not None:
+            self.refinement.step(now, self.listener)
+            for text in self.refinement.take_status():
+                self.transport.send_status(text, 4)  # WARNING
 
     def _concerns_own_pose(self, md: MarkerData) -> bool:
         """Whether an observation can change this node's own pose right away (:func:`relevance`):
@@ -384,8 +409,24 @@ class Node(NodeOutput):
         self.graph = make_graph(world, self.config.entity)
         self.listener = Listener(world, self.graph)
         self._attach_attitude()
+        if self.refinement is not None:  # the re-read file's poses, refined afresh
+            self.enable_refinement(self.refinement.config)
         self.ekf = _make_ekf(world)
         _logger.info("reloaded %s (fingerprint %08x)", self.config_path, world.fingerprint())
+
+    def _write_refined_map(self) -> None:
+        """At exit, the refined world file, if asked (``refine.write_map`` or ``run --write-map``)."""
+        if self.refinement is None or self.refinement.config.write_map is None:
+            return
+        path = self.refinement.config.write_map
+        try:
+            self.refinement.write(path)
+        except AtlasError as exc:
+            _logger.error("%s", exc)
+            return
+        _logger.info(
+            "refined world file written to %s (%d marker(s) refined)", path, len(self.refinement.markers_refined)
+        )
 
     def _attach_attitude(self) -> None:
         """The autopilot's attitude (issue 19), if the transport keeps one, resolves single tags' flips."""

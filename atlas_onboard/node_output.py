@@ -179,6 +179,8 @@ class NodeOutput:
             out[name] = out.get(name, 0) + n
         for cam in self.cameras:
             out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})
+        if self.refinement is not None:  # type: ignore[attr-defined]
+            out.update(self.refinement.counters())  # type: ignore[attr-defined]
         return out
 
     def _log_status(self, final: bool = False) -> None:

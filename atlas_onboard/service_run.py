@@ -11,9 +11,11 @@ from pathlib import Path
 
 from atlas_onboard.config import (
     NO_NODES,
+    WORLD,
     ConfigError,
     NodeConfig,
     RecordConfig,
+    RefineConfig,
     SensorConfig,
     WorldConfig,
     load_node,
@@ -57,8 +59,10 @@ def register_camera_kind(kind: str, factory: CameraFactory) -> None:
     CAMERA_KINDS[kind] = factory
 
 
-def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
-    """The camera workers of this node's entity: a registered kind's, or a device or file read by the detector."""
+def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig | None = None) -> list[Camera]:
+    """The camera workers of this node's entity: a registered kind's, or a device or file read by the detector.
+    ``refine``: live map refinement is on, and the detector reports some images marker by marker, not an
+    entity's markers as one joint solve (it needs each world marker's own pose; :class:`PerMarkerSampler`)."""
     cameras: list[Camera] = []
     for sensor in world.entity(config.entity).sensors:
         cam = sensor.camera
@@ -80,15 +84,26 @@ def build_cameras(world: WorldConfig, config: NodeConfig) -> list[Camera]:
         else:
             raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}")
         detector = Detector(sensor, world, calibration, decimate=2.0)
+        if refine is not None:
+            from atlas_onboard.node_refine import PerMarkerSampler
+
+            world_ids = frozenset(m.id for m in world.entity(WORLD).markers)
+            period_us = round(refine.per_marker_period_s * 1e6)
+            detector = PerMarkerSampler(detector, world_ids, period_us)  # type: ignore[assignment]
         cameras.append(CameraWorker(sensor.name, cam, detector))
     return cameras
 
 
 def run_node(
-    config_path: Path, entity: str | None, record_dir: Path | None = None, record_max_mb: float | None = None
+    config_path: Path,
+    entity: str | None,
+    record_dir: Path | None = None,
+    record_max_mb: float | None = None,
+    write_map: Path | None = None,
 ) -> int:
     """Load, build and run the node; returns its exit status. ``record_dir``, ``record_max_mb``:
-    ``run --record``, over the node settings' ``record`` block."""
+    ``run --record``, over the node settings' ``record`` block; ``write_map``: ``run --write-map``, the
+    refined world file written at exit (refinement on, over the settings' ``refine`` block)."""
     name = choose_entity(config_path, entity)
     world, config = load_node(config_path, name)
     # The command line's --record goes beside the settings, not into them: a reload (SIGHUP) compares
@@ -103,9 +118,14 @@ def run_node(
         record = replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb)
     from atlas_onboard.mavlink.transport import MavlinkTransport
 
+    refine = config.refine
+    if write_map is not None:  # like --record, beside the settings (a reload compares those)
+        refine = replace(refine or RefineConfig(), write_map=write_map)
     transport = MavlinkTransport(world, config)
-    cameras = build_cameras(world, config)
+    cameras = build_cameras(world, config, refine)
     node = Node(world, config, transport, cameras, notifier=Notifier.from_environ(), config_path=config_path)
+    if refine is not None:
+        node.enable_refinement(refine)
     if record is not None:
         from atlas_onboard.mapping import onboard
 

@@ -43,6 +43,7 @@ from atlas_onboard.config.settings import (
     LinkConfig,
     NodeConfig,
     RecordConfig,
+    RefineConfig,
     SigningConfig,
     Weighting,
 )
@@ -77,6 +78,7 @@ __all__ = [
     "MarkerConfig",
     "NodeConfig",
     "RecordConfig",
+    "RefineConfig",
     "SensorConfig",
     "SigningConfig",
     "Weighting",

@@ -9,14 +9,15 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from atlas_onboard.config.fields import REQUIRED, declared, join, keys, listing, mapping, read, required
-from atlas_onboard.config.model import WorldConfig
+from atlas_onboard.config.fields import REQUIRED, declared, integer, join, keys, listing, mapping, read, required
+from atlas_onboard.config.model import MAX_ID, WORLD, WorldConfig
 from atlas_onboard.config.settings import (
     AutopilotConfig,
     GlobalOrigin,
     LinkConfig,
     NodeConfig,
     RecordConfig,
+    RefineConfig,
     SigningConfig,
 )
 from atlas_onboard.errors import ConfigError
@@ -90,6 +91,19 @@ def read_record(value: Any, path: str, base_dir: Path | None) -> RecordConfig | 
     return RecordConfig(**{**values, "dir": _resolve(values["dir"], base_dir)})
 
 
+def read_refine(value: Any, path: str, base_dir: Path | None) -> RefineConfig | None:
+    """The ``refine`` section: which markers are surveyed, and where the refined map goes at exit."""
+    if value is None:
+        return None
+    m = mapping(value, path, keys(RefineConfig))
+    apath = join(path, "anchors")
+    anchors = tuple(integer(v, join(apath, i), 0, MAX_ID) for i, v in enumerate(listing(m.get("anchors"), apath)))
+    out = read(RefineConfig, "write_map", m, path)
+    period = read(RefineConfig, "per_marker_period_s", m, path)
+    written = _resolve(out, base_dir) if out is not None else None
+    return RefineConfig(anchors=anchors, write_map=written, per_marker_period_s=period)
+
+
 def _read_node(m: Mapping[str, Any], path: str, entity: str, base_dir: Path | None, partial: bool) -> NodeConfig:
     """Build a node's settings from one mapping; ``partial`` skips required fields (a defaults section)."""
     mapping(m, path, keys(NodeConfig))
@@ -103,13 +117,14 @@ def _read_node(m: Mapping[str, Any], path: str, entity: str, base_dir: Path | No
     values = {
         name: read(NodeConfig, name, m, path, 0 if name == "system_id" else REQUIRED)
         for name in declared(NodeConfig)
-        if name not in ("autopilot", "peers", "record")
+        if name not in ("autopilot", "peers", "record", "refine")
     }
     return NodeConfig(
         entity=entity,
         autopilot=read_autopilot(m.get("autopilot"), join(path, "autopilot"), base_dir, partial),
         peers=peers,
         record=read_record(m.get("record"), join(path, "record"), base_dir),
+        refine=read_refine(m.get("refine"), join(path, "refine"), base_dir),
         **values,
     )
 
@@ -132,6 +147,11 @@ def parse_node(doc: Any, entity: str, world: WorldConfig, base_dir: Path | None 
     _read_node(defaults, "nodes.defaults", entity, base_dir, partial=True)
     _read_node(own, path, entity, base_dir, partial=True)
     config = _read_node(_merge(defaults, own), path, entity, base_dir, partial=False)
+    if config.refine is not None:
+        world_ids = {m.id for m in world.entity(WORLD).markers}
+        for i, mid in enumerate(config.refine.anchors):
+            if mid not in world_ids:
+                raise ConfigError(join(path, f"refine.anchors[{i}]"), f"{mid} is not a world marker of the world file")
     return replace(config, owners=_owners(nodes, defaults))
 
 

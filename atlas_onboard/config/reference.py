@@ -32,6 +32,7 @@ SECTIONS: tuple[tuple[str, type, tuple[str, ...]], ...] = (
     ("nodes.<entity>.peers[]", settings.LinkConfig, ()),
     ("nodes.<entity>.peers[].signing", settings.SigningConfig, ()),
     ("nodes.<entity>.record", settings.RecordConfig, ()),
+    ("nodes.<entity>.refine", settings.RefineConfig, ()),
 )
 
 

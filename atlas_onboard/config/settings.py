@@ -207,6 +207,22 @@ RECORD_FORMATS = ("png", "jpg")
 
 
 @dataclass(frozen=True, slots=True)
+class RefineConfig:
+    """``nodes.<entity>.refine``: the node refines the world markers' poses live from its own and its
+    peers' observations of them (docs/mapping.md); its cameras then report each world marker on its own."""
+
+    anchors: tuple[int, ...] = field(default=(), metadata=spec(
+        "ids of surveyed world markers (the anchors `map` was given): never moved"))  # fmt: skip
+    write_map: Path | None = field(default=None, metadata=spec(
+        "at exit, write the refined world file here, in the format `map` writes (relative to the world"
+        " file; `run --write-map PATH` also sets it); none: not written"))  # fmt: skip
+    per_marker_period_s: float = field(default=0.5, metadata=spec(
+        "each camera reports one image this often marker by marker (the evidence), the others as joint solves"
+        " (the better pose); 0: every image that shows three or more world markers (faster evidence, a noisier"
+        " pose)", unit="s", within="[0, 10]", noun="a period"))  # fmt: skip
+
+
+@dataclass(frozen=True, slots=True)
 class NodeConfig:
     """The settings of the node that runs for one entity (``nodes.defaults`` merged with ``nodes.<entity>``).
 
@@ -237,6 +253,8 @@ class NodeConfig:
         "period of the health log line", unit="s", within="[0.5, 3600]", noun="an interval"))  # fmt: skip
     record: RecordConfig | None = field(default=None, metadata=spec(
         "record the cameras as the node flies (none: not recorded)"))  # fmt: skip
+    refine: RefineConfig | None = field(default=None, metadata=spec(
+        "refine the world markers' poses from the swarm's observations (none: the world file as written)"))  # fmt: skip
     owners: tuple[tuple[str, int], ...] = ()
 
     def owner_system_id(self, entity: str) -> int | None:

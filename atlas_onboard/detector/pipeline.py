@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import SensorConfig, WorldConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.core.worldcheck import MarkerConsistency, MotionCheck, MovedMarker, MovedMarkerCheck
+from atlas_onboard.core.worldcheck import MarkerConsistency, MotionCheck, MovedMarker, MovedMarkerCheck, PairVerdict
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
@@ -110,6 +110,8 @@ class Detector(RegionSearch, JointSolve):
     track: bool = True
     max_ambiguity: float = MAX_AMBIGUITY
     joint: bool = True
+    # Report every marker's own pose, moved, suspect or not (live map refinement's per-marker images).
+    report_doubtful: bool = False
     counters: Counter[str] = field(default_factory=Counter)
 
     def __post_init__(self) -> None:
@@ -293,19 +295,7 @@ class Detector(RegionSearch, JointSolve):
             else:
                 self._feed_world_check(entity, verdicts, capture_time_us)
             for mid in ids:
-                if (entity, mid) in self.moved:  # alone it would move the pose by its offset
-                    self.counters["dropped_moved"] += 1
-                    self.report.dropped[mid] = "reported moved (the world file disagrees with what is seen)"
-                    continue
-                if self.consistency.is_suspect(entity, mid, capture_time_us):
-                    # It disagrees with markers that agree among themselves: alone it would move the pose.
-                    self.counters["dropped_suspect"] += 1
-                    self.report.dropped[mid] = "suspect: disagrees with markers that agree with each other"
-                    continue
-                if self._jumped(entity, mid, verdicts, capture_time_us):
-                    # It puts the camera where it cannot have gone since a better supported marker saw it.
-                    self.counters["dropped_jump"] += 1
-                    self.report.dropped[mid] = "puts the camera where it cannot have moved since the last frame"
+                if not self.report_doubtful and self._doubtful_alone(entity, mid, verdicts, capture_time_us):
                     continue
                 mp = singles[mid].pose
                 ambiguous = mp.ambiguity > AMBIGUITY_THRESHOLD
@@ -321,6 +311,23 @@ class Detector(RegionSearch, JointSolve):
                 self.report.reported.append(mid)
         self.counters["detections"] += len(out)
         return out
+
+    def _doubtful_alone(self, entity: str, mid: int, verdicts: list[PairVerdict], capture_time_us: int) -> bool:
+        """Whether a marker seen alone must not give the pose (counted and explained in the report)."""
+        if (entity, mid) in self.moved:  # alone it would move the pose by its offset
+            self.counters["dropped_moved"] += 1
+            self.report.dropped[mid] = "reported moved (the world file disagrees with what is seen)"
+        elif self.consistency.is_suspect(entity, mid, capture_time_us):
+            # It disagrees with markers that agree among themselves: alone it would move the pose.
+            self.counters["dropped_suspect"] += 1
+            self.report.dropped[mid] = "suspect: disagrees with markers that agree with each other"
+        elif self._jumped(entity, mid, verdicts, capture_time_us):
+            # It puts the camera where it cannot have gone since a better supported marker saw it.
+            self.counters["dropped_jump"] += 1
+            self.report.dropped[mid] = "puts the camera where it cannot have moved since the last frame"
+        else:
+            return False
+        return True
 
     def take_status(self) -> list[str]:
         """STATUSTEXT lines to send (at most one a minute), emptied by the call."""

@@ -26,6 +26,7 @@ from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.fsio import write_atomic
 from atlas_onboard.mapping.build import MapOptions, MapResult, build_map, collect
+from atlas_onboard.mapping.report import MarkerReport
 
 PLACEHOLDER = "__atlas_mapped_markers__"
 
@@ -70,8 +71,8 @@ def world_text(world: WorldConfig, result: MapResult, header: str, keep_anchors:
             sm = ", ".join(f"{v * 1000:.2f}" for v in rep.sigma_m or ())
             sd = ", ".join(f"{v:.3f}" for v in rep.sigma_deg or ())
             note = (
-                f"# {rep.status}: 1-sigma position [{sm}] mm, rotation [{sd}] deg (world axes);"
-                f" {rep.frames} frames, rms {rep.rms_px:.2f} px"
+                f"# {rep.status}: 1-sigma position [{sm}] mm, rotation [{sd}] deg (world axes); {rep.frames} frames"
+                + (f", rms {rep.rms_px:.2f} px" if math.isfinite(rep.rms_px) else "")
             )
         else:
             pose = yaml.safe_dump(raw["pose"], default_flow_style=True, width=1000).strip()
@@ -95,6 +96,13 @@ def world_text(world: WorldConfig, result: MapResult, header: str, keep_anchors:
         else:
             out.append(line)
     return "".join(f"# {h}\n" for h in header.splitlines()) + "\n".join(out) + "\n"
+
+
+def refined_world_text(world: WorldConfig, markers: dict[int, MarkerReport], header: str) -> str:
+    """:func:`world_text` for a map refined live (``run`` with ``refine``): ``markers`` says of each world
+    marker whether it was refined (its pose, 1-sigma and views as frames), kept or an anchor."""
+    result = MapResult(markers, np.zeros(0), [], None, math.nan, {}, {}, 0, 0, 0)
+    return world_text(world, result, header, keep_anchors=True)
 
 
 def report_text(result: MapResult) -> str:

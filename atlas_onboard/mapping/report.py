@@ -23,7 +23,7 @@ class MarkerReport:
     id: int
     size_m: float
     frames: int
-    status: str  # mapped, anchor, too_rare, degenerate, moved, duplicated, wrong_size, not_seen
+    status: str  # mapped, anchor, too_rare, degenerate, moved, duplicated, wrong_size, not_seen; refined, kept (live)
     M_world_marker: NDArray[np.float64] | None = None
     sigma_m: tuple[float, float, float] | None = None
     sigma_deg: tuple[float, float, float] | None = None
@@ -50,7 +50,7 @@ class MapResult:
         return {
             m.id: m.M_world_marker
             for m in self.markers.values()
-            if m.status in ("mapped", "anchor", "degenerate") and m.M_world_marker is not None
+            if m.status in ("mapped", "anchor", "degenerate", "refined") and m.M_world_marker is not None
         }
 
 
