@@ -140,7 +140,8 @@ def test_the_misplaced_marker_is_refined_to_where_it_is(truth_and_runs, tmp_path
         assert run.counters["refine_markers_refined"] == 1 and run.counters["refine_updates"] >= 2  # 5 cm steps
         texts = [t for t in run.statustexts if b"refined" in t]
         assert len(texts) == 1 and f"marker {MOVED_ID} refined -10".encode() in texts[0], run.statustexts
-    assert refined_by, {e: ([l for l in r.written.read_text().splitlines() if "kept" in l], r.counters) for e, r in runs["on"].items()}
+    kept = {e: [x for x in r.written.read_text().splitlines() if "kept" in x] for e, r in runs["on"].items()}
+    assert refined_by, kept
 
 
 def test_without_the_setting_nothing_is_refined(truth_and_runs) -> None:
