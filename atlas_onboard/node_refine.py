@@ -79,6 +79,15 @@ class PerMarkerSampler:
         return getattr(self._detector, name)
 
 
+def sampled(detector: object, world: WorldConfig, refine: RefineConfig | None) -> object:
+    """``detector`` as a camera of a refining node uses it: wrapped by a :class:`PerMarkerSampler` when
+    ``refine`` is on (None: off, the detector itself)."""
+    if refine is None:
+        return detector
+    world_ids = frozenset(m.id for m in world.entity(WORLD).markers)
+    return PerMarkerSampler(detector, world_ids, round(refine.per_marker_period_s * 1e6))
+
+
 class LiveRefinement:
     """The node's side of the refinement: images in, the listener's marker poses out (see the module)."""
 

@@ -11,7 +11,6 @@ from pathlib import Path
 
 from atlas_onboard.config import (
     NO_NODES,
-    WORLD,
     ConfigError,
     NodeConfig,
     RecordConfig,
@@ -85,11 +84,9 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
             raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}")
         detector = Detector(sensor, world, calibration, decimate=2.0)
         if refine is not None:
-            from atlas_onboard.node_refine import PerMarkerSampler
+            from atlas_onboard.node_refine import sampled
 
-            world_ids = frozenset(m.id for m in world.entity(WORLD).markers)
-            period_us = round(refine.per_marker_period_s * 1e6)
-            detector = PerMarkerSampler(detector, world_ids, period_us)  # type: ignore[assignment]
+            detector = sampled(detector, world, refine)  # type: ignore[assignment]
         cameras.append(CameraWorker(sensor.name, cam, detector))
     return cameras
 

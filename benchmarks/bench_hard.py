@@ -87,6 +87,7 @@ RUNS: dict[str, dict[str, Any]] = {
     "gate_off": {"outlier_gate_sigma": 0},
     "ema_0.5": {"ema_alpha": 0.5},
     "moved_marker": {},
+    "moved_refine": {},
     "replay": {},
     "replay_ekf": {"filter": "ekf"},
 }
@@ -132,7 +133,9 @@ def moved_world(scenario: str) -> dict[str, Any]:
 
 def run_one(name: str, duration_s: float, scenario: str) -> Result:
     res = Result(name if scenario == SCENARIOS[0] else f"{scenario}:{name}", scenario, name)
-    overrides: dict[str, Any] = moved_world(scenario) if name == "moved_marker" else {}
+    overrides: dict[str, Any] = moved_world(scenario) if name.startswith("moved_") else {}
+    if name == "moved_refine":  # the same world, live map refinement on (opt-in: nodes.<entity>.refine)
+        overrides["nodes"] = {"refine": {}}
     if RUNS[name]:
         overrides["fusion"] = dict(RUNS[name])
     try:
@@ -187,7 +190,8 @@ def run_one(name: str, duration_s: float, scenario: str) -> Result:
     f["frames"] = sum(v for k, v in cams.items() if k.endswith("_frames"))  # frames detected
     # skipped unread (a camera or replay behind its time) or dropped unprocessed (the detector busy)
     f["skipped"] = sum(v for k, v in cams.items() if k.endswith(("_frames_skipped", "_frames_dropped")))
-    res.counters = {k: int(v) for k, v in counters.items() if re.search(r"misfit|outlier|disagree|moved", k)}
+    about = r"misfit|outlier|disagree|moved|suspect|jump|refine"
+    res.counters = {k: int(v) for k, v in counters.items() if re.search(about, k)}
     return res
 
 
@@ -365,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     for r in results:
         for state, (n, mean, median, p95) in r.states.items():
             print(f"{r.name:<26} {state:<6} {n:>5} {mean:>7.2f} {median:>7.2f} {p95:>7.2f}")
-    for moved in (r for r in results if r.run == "moved_marker" and not r.error):
+    for moved in (r for r in results if r.run.startswith("moved_") and not r.error):
         print()
         named = [line for line in moved.log_lines if re.search(rf"marker\W+(id\W+)?{MOVED_MARKER}\b", line, re.I)]
         print(f"{moved.name}: marker {MOVED_MARKER} moved by {MOVED_BY_M} m in the nodes' world file;")

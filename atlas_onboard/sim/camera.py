@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import SensorConfig, WorldConfig, load_world
+from atlas_onboard.config import RefineConfig, SensorConfig, WorldConfig, load_world
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.sources import CameraWorker, ImageFolder, ReplayClock
 from atlas_onboard.sim.scenarios import Scenario
@@ -83,13 +83,16 @@ class SimReplayWorker(CameraWorker):
     Its file time is mapped onto the wall clock at the run's epoch (a replay started by hand starts when
     its first image is read), so that its stamps are on the run's timeline."""
 
-    def __init__(self, context: SimContext, world: WorldConfig, sensor: SensorConfig, folder: Path) -> None:
+    def __init__(
+        self, context: SimContext, world: WorldConfig, sensor: SensorConfig, folder: Path, refine: RefineConfig | None
+    ) -> None:
         from atlas_onboard.detector.calibration import load as load_calibration
         from atlas_onboard.detector.pipeline import Detector
+        from atlas_onboard.node_refine import sampled
 
         assert sensor.camera is not None and sensor.camera.calibration is not None
         camera = replace(sensor.camera, source=str(folder), replay=context.replay)
-        detector = Detector(sensor, world, load_calibration(camera.calibration), decimate=2.0)
+        detector = sampled(Detector(sensor, world, load_calibration(camera.calibration), decimate=2.0), world, refine)
         super().__init__(sensor.name, camera, detector)
         self.context = context
 
@@ -231,14 +234,20 @@ class FrameRenderer:
         return self.room.render(M[0], M[1], M[2], entities, seed)
 
 
-def rendered_detector(context: SimContext, world: WorldConfig, sensor: SensorConfig, seed: int) -> FrameHandler:
+def rendered_detector(
+    context: SimContext, world: WorldConfig, sensor: SensorConfig, seed: int, refine: RefineConfig | None = None
+) -> FrameHandler:
     """Run the real detector on the frame the camera would see: the run's pre-rendered image of that
-    instant when there is one (:func:`prerender`), otherwise rendered now."""
+    instant when there is one (:func:`prerender`), otherwise rendered now. ``refine``: the node refines
+    the map (the detector reports some images marker by marker, as a real camera's does)."""
     from atlas_onboard.detector.calibration import load as load_calibration
     from atlas_onboard.detector.pipeline import Detector
+    from atlas_onboard.node_refine import sampled
 
     assert sensor.camera is not None and sensor.camera.calibration is not None
-    detector = Detector(sensor, world, load_calibration(sensor.camera.calibration), decimate=2.0)
+    detector = sampled(
+        Detector(sensor, world, load_calibration(sensor.camera.calibration), decimate=2.0), world, refine
+    )
     frames: NDArray[np.uint8] | None = None
     if context.frames_dir is not None and frames_path(context.frames_dir, sensor.id).exists():
         frames = np.load(frames_path(context.frames_dir, sensor.id), mmap_mode="r")

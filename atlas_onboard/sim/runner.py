@@ -111,8 +111,11 @@ def build_run_config(
 ) -> Path:
     """The world file of the run: the scenario's, plus calibrations and a ``nodes`` section."""
     doc = yaml.safe_load(scenario.world_path().read_text(encoding="utf-8"))
+    # ``nodes`` overrides are settings for every node (merged into the generated ``nodes.defaults``).
+    node_defaults = dict((overrides or {}).get("nodes", {}))
     for key, value in (overrides or {}).items():
-        doc[key] = {**doc.get(key, {}), **value} if isinstance(value, dict) else value
+        if key != "nodes":
+            doc[key] = {**doc.get(key, {}), **value} if isinstance(value, dict) else value
     sim_world = SimWorld(scenario)
     for entity, ent in doc["entities"].items():
         for sensor in (ent or {}).get("sensors", []) or []:
@@ -126,7 +129,8 @@ def build_run_config(
         for sensor in (doc["entities"].get(WORLD) or {}).get("sensors", []) or []:
             if sensor["name"] == scenario.mocap.sensor:
                 sensor.setdefault("camera", {"source": SIM_KIND})
-    nodes: dict[str, Any] = {"defaults": {"peers": [f"udpout:127.0.0.1:{hub_port}"], "status_interval_s": 5}}
+    defaults = {"peers": [f"udpout:127.0.0.1:{hub_port}"], "status_interval_s": 5, **node_defaults}
+    nodes: dict[str, Any] = {"defaults": defaults}
     for k, name in enumerate(scenario.drones, start=1):
         nodes[name] = {"system_id": k, "autopilot": {"url": f"udpout:127.0.0.1:{autopilot_ports[name]}"}}
     if scenario.needs_world_node:

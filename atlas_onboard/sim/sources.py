@@ -175,10 +175,10 @@ def sim_camera(world: WorldConfig, config: NodeConfig, sensor: SensorConfig) -> 
 
         folder = replay_folder(context.frames_dir, sensor.id)
         if folder.is_dir():
-            return SimReplayWorker(context, world, sensor, folder)
+            return SimReplayWorker(context, world, sensor, folder, config.refine)
     if context.geometric:
         intr = SimWorld(context.scenario, world).cameras[sensor.id][1]
         detect = geometric_detector(context, sensor, intr, seed)
     else:
-        detect = rendered_detector(context, world, sensor, seed)
+        detect = rendered_detector(context, world, sensor, seed, config.refine)
     return SimCameraWorker(context, world, sensor, detect)

@@ -98,3 +98,22 @@ def test_relay_ages_its_edges_at_its_drones_own_speed_and_turn_rate():
         turn = max(turn, float(np.degrees(np.sqrt(np.mean(w**2, axis=0)).max())))
     assert 0.5 * speed <= fusion.age_sigma_m_per_s <= 1.5 * speed, (fusion.age_sigma_m_per_s, speed)
     assert 0.5 * turn <= fusion.age_sigma_deg_per_s <= 1.5 * turn, (fusion.age_sigma_deg_per_s, turn)
+
+
+def test_node_overrides_reach_every_node_of_a_run(tmp_path):
+    """``nodes`` in a run's world overrides are settings of every node (e.g. live map refinement on),
+    merged into the generated ``nodes.defaults`` without losing its peer link."""
+    from atlas_onboard.config import load_node
+    from atlas_onboard.sim.runner import build_run_config
+
+    scenario = scenarios.get("hard-near")
+    ports = {name: 14550 + k for k, name in enumerate(scenario.drones)}
+    overrides = {"nodes": {"refine": {"per_marker_period_s": 1.0}}, "fusion": {"filter": "ekf"}}
+    path = build_run_config(scenario, tmp_path, 14600, ports, overrides)
+    world, node = load_node(path, scenario.drones[0])
+    assert node.refine is not None and node.refine.per_marker_period_s == 1.0
+    assert [p.url for p in node.peers] == ["udpout:127.0.0.1:14600"]
+    assert world.fusion.filter == "ekf"
+    (tmp_path / "plain").mkdir()
+    _, plain = load_node(build_run_config(scenario, tmp_path / "plain", 14600, ports), scenario.drones[0])
+    assert plain.refine is None
