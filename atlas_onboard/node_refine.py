@@ -60,15 +60,13 @@ class PerMarkerSampler:
         det = self._detector
         due = self._last_us is None or not 0 <= capture_time_us - self._last_us < self.period_us
         each = due and self._world_seen >= 3
-        det.joint = not each  # type: ignore[attr-defined]
-        # In the images taken marker by marker every marker is reported, the moved or suspect one too:
-        # it is the one that most needs refining (the graph's consensus gate weighs it against the rest).
-        det.report_doubtful = each  # type: ignore[attr-defined]
+        # In an image taken marker by marker every marker seen with two or more others is reported, the
+        # moved or suspect one too: it is the one that most needs refining.
+        det.per_marker = each  # type: ignore[attr-defined]
         try:
             out = det.detect(gray, capture_time_us, *args, **kwargs)  # type: ignore[attr-defined]
         finally:
-            det.joint = True  # type: ignore[attr-defined]
-            det.report_doubtful = False  # type: ignore[attr-defined]
+            det.per_marker = False  # type: ignore[attr-defined]
         if each:
             self._last_us = capture_time_us
         # Found, not reported: a joint solve leaves out a marker that does not fit (the one to refine).

@@ -163,16 +163,17 @@ class _FakeDetector:
     """Reports the markers it is told to see; remembers whether each image was solved jointly."""
 
     def __init__(self) -> None:
-        self.joint = True
+        self.per_marker = False
         self.calls: list[bool] = []
         self.report = type("Report", (), {"found": []})()
         self.counters = {"detections": 0}
         self.seen = [0, 1, 2]
 
     def detect(self, gray, capture_time_us):
-        self.calls.append(self.joint)
+        joint = not self.per_marker
+        self.calls.append(joint)
         self.report.found = list(self.seen)
-        return [None] * (1 if self.joint else len(self.seen))
+        return [None] * (1 if joint else len(self.seen))
 
 
 def test_one_image_per_half_second_is_reported_marker_by_marker():
@@ -180,7 +181,7 @@ def test_one_image_per_half_second_is_reported_marker_by_marker():
     sampler = PerMarkerSampler(det, frozenset({0, 1, 2}), period_us=500_000)
     for k in range(30):  # 15 fps, 2 s
         sampler.detect(None, k * 66_667)
-    assert det.joint is True and sampler.counters == {"detections": 0}  # the rest is the detector's
+    assert det.per_marker is False and sampler.counters == {"detections": 0}  # the rest is the detector's
     each = [k for k, joint in enumerate(det.calls) if not joint]
     assert each == [1, 9, 17, 25]  # after an image with three world markers, then every 0.5 s or more
     det.seen = [0, 1]  # two world markers: nothing to refine from, every image joint

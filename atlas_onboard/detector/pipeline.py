@@ -110,8 +110,10 @@ class Detector(RegionSearch, JointSolve):
     track: bool = True
     max_ambiguity: float = MAX_AMBIGUITY
     joint: bool = True
-    # Report every marker's own pose, moved, suspect or not (live map refinement's per-marker images).
-    report_doubtful: bool = False
+    # Live map refinement's per-marker images: an entity's markers seen three or more together are each
+    # reported on their own, moved, suspect or not (the graph's consensus gate weighs them against each
+    # other); fewer are solved and checked as always (two that disagree cannot be told apart downstream).
+    per_marker: bool = False
     counters: Counter[str] = field(default_factory=Counter)
 
     def __post_init__(self) -> None:
@@ -259,7 +261,8 @@ class Detector(RegionSearch, JointSolve):
             # Evidence for the consistency of the markers over time (the camera cannot jump) and in pairs.
             verdicts = self._consistency_evidence(entity, ids, singles, capture_time_us)
             fed = False
-            if self.joint and len(ids) > 1:
+            each = self.per_marker and len(ids) >= 3
+            if self.joint and len(ids) > 1 and not each:
                 self._offsets = {}
                 doubtful = self._doubtful(entity, ids, capture_time_us)
                 md, used = self._robust_joint(entity, ids, singles, capture_time_us)
@@ -295,7 +298,7 @@ class Detector(RegionSearch, JointSolve):
             else:
                 self._feed_world_check(entity, verdicts, capture_time_us)
             for mid in ids:
-                if not self.report_doubtful and self._doubtful_alone(entity, mid, verdicts, capture_time_us):
+                if not each and self._doubtful_alone(entity, mid, verdicts, capture_time_us):
                     continue
                 mp = singles[mid].pose
                 ambiguous = mp.ambiguity > AMBIGUITY_THRESHOLD

@@ -109,3 +109,17 @@ def test_a_marker_seen_only_in_pairs_is_named_once_the_pairs_evidence_is_sound(c
     assert det.counters["markers_moved"] == 1
     assert [len(p) for p in poses] == [0] + [1] * MIN_VIEWS
     np.testing.assert_allclose(poses[-1][0], T_cam_world.translation, atol=0.01)
+
+
+def test_per_marker_images_report_a_moved_marker_only_beside_two_others():
+    """Live refinement's per-marker images: a marker named moved is reported on its own when two or more
+    others are seen with it (the evidence to refine it; the graph weighs it against them), never alone."""
+    world, _ = moved_marker_world(5, 0.10)
+    det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
+    _fly(det, range(MIN_VIEWS + 5))
+    assert ("world", 5) in det.moved
+    det.per_marker = True
+    ids = sorted(md.marker_id for md in det.detect(_image(0), 9_000_000))
+    assert 5 in ids and len(ids) >= 3, ids
+    assert det.detect(_image(0, alone=True), 9_100_000) == []
+    assert det.counters["dropped_moved"] == 1
