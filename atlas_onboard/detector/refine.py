@@ -25,6 +25,10 @@ MIN_CONTRAST = 20.0  # grey levels between a profile's ends for an edge to be pl
 EDGE_OFFSET_FLOOR_PX = 0.02  # an edge's offset that its scatter cannot show (blur ramps, the background)
 # A shift of all four corners alike that no edge shows: the lens model's residual, motion during the exposure.
 SHIFT_FLOOR_PX = 0.02
+# Blur's inward pull on an edge (:func:`_shrink_px`): from a ramp of SHRINK_ONSET_CELLS of a cell on, at
+# SHRINK_PER_PX of each pixel of ramp beyond (measured against rendered truth: bench_detector's check).
+SHRINK_ONSET_CELLS = 0.55
+SHRINK_PER_PX = 0.17
 MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
 MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
 # The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
@@ -140,6 +144,8 @@ def refine_corners_undistorted(
     ss, npts = 0.0, []
     lag0 = lag1 = 0.0
     spread: list[float] = []
+    ramps: list[float] = []
+    cells: list[float] = []
     sides = _sides(corners_und)
     if sides is None:
         return None
@@ -154,7 +160,8 @@ def refine_corners_undistorted(
         pts = (base[:, None, :] + offsets[None, :, None] * n[None, None, :]).reshape(-1, 2)
         px = _distort(pts, K, dist, fisheye).reshape(len(ts), len(offsets), 2).astype(np.float32)
         prof = cv2.remap(img, px[..., 0], px[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        edge = [base[row] + off * n for row, off in enumerate(_half_level(prof, offsets)) if np.isfinite(off)]
+        found, ramp = _half_level(prof, offsets)
+        edge = [base[row] + off * n for row, off in enumerate(found) if np.isfinite(off)]
         if len(edge) < SAMPLES_PER_SIDE // 2:
             return None
         e = np.array(edge)
@@ -168,6 +175,8 @@ def refine_corners_undistorted(
         lag1 += float(r[1:] @ r[:-1])
         u = (e - mean) @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
+        ramps.append(float(np.nanmedian(ramp)) if np.any(np.isfinite(ramp)) else 0.0)
+        cells.append(depth / 8.0)  # the smaller cell of the families (8 across tag36h11's border)
     out = _crossings(lines, corners_und, max_move_px=np.inf)
     if out is None:
         return None
@@ -185,7 +194,8 @@ def refine_corners_undistorted(
     rho = float(np.clip(lag1 / lag0, 0.0, MAX_EDGE_CORRELATION)) if lag0 > 0 else 0.0
     inflate = (1.0 + rho) / (1.0 - rho)
     n_eff = float(np.mean(npts)) / inflate
-    cov = _corner_covariance(lines, out, scatter2 * inflate, np.array(npts, float), np.array(spread))
+    shrink = _shrink_px(np.array(ramps), np.array(cells))
+    cov = _corner_covariance(lines, out, scatter2 * inflate, np.array(npts, float), np.array(spread), shrink)
     return RefinedCorners(out, float(np.sqrt(7.1 * scatter2 / n_eff)) / max(sin_min, 0.2), cov)
 
 
@@ -221,12 +231,21 @@ def _bend_px(
     return worst
 
 
+def _shrink_px(ramp_px: NDArray[np.float64], cell_px: NDArray[np.float64]) -> NDArray[np.float64]:
+    """How far (px) each edge may sit inside the true one because of blur: once an edge's ramp is wider
+    than about half a cell, the white quiet zone (a cell wide) no longer reaches its level between the
+    black border and the background beyond it, so the half level, and the edge, fall inwards."""
+    ramp = np.nan_to_num(ramp_px, nan=0.0)
+    return SHRINK_PER_PX * np.maximum(ramp - SHRINK_ONSET_CELLS * cell_px, 0.0)
+
+
 def _corner_covariance(
     lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
     corners: NDArray[np.float64],
     var_px2: float,
     npts: NDArray[np.float64],
     spread: NDArray[np.float64],
+    shrink_px: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
     """(8, 8) covariance of the four corners (x0 y0 x1 y1 ...) that the four fitted lines place.
 
@@ -235,6 +254,8 @@ def _corner_covariance(
     independent of each other and of the other lines. A point x of the line then moves across it by
     a_l + b_l (x - m_l) . d_l, and corner k, the crossing of lines k-1 and k, by dx with
     n_{k-1} . dx and n_k . dx those two shifts. Adjacent corners share a line, so they are correlated.
+    ``shrink_px`` (4,): each line's possible inward offset from blur (:func:`_shrink_px`), one cause for
+    all four lines, so their offsets are fully correlated in it (the quadrilateral too small).
     """
     G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
     for k in range(4):
@@ -248,7 +269,11 @@ def _corner_covariance(
     D[0::2] = var_px2 / npts + EDGE_OFFSET_FLOOR_PX**2
     D[1::2] = var_px2 / np.maximum(spread, 1e-9)
     common = np.tile(np.eye(2), (4, 1))  # (8, 2): every corner moved alike
-    return (G * D) @ G.T + SHIFT_FLOOR_PX**2 * (common @ common.T)
+    out = (G * D) @ G.T + SHIFT_FLOOR_PX**2 * (common @ common.T)
+    if shrink_px is not None:
+        s = G[:, 0::2] @ shrink_px  # the corners' displacement when every line moves in by its shrink
+        out += np.outer(s, s)
+    return out
 
 
 @dataclass(frozen=True)
@@ -262,9 +287,12 @@ class RefinedCorners:
     covariance: NDArray[np.float64]
 
 
-def _half_level(prof: NDArray[np.float32], offsets: NDArray[np.float64]) -> NDArray[np.float64]:
+def _half_level(
+    prof: NDArray[np.float32], offsets: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Where each profile (rows: dark marker border inside, light quiet zone outside) crosses halfway
-    between its two ends, as an offset; NaN where it has too little contrast or no single crossing.
+    between its two ends, as an offset; NaN where it has too little contrast or no single crossing. And
+    each profile's ramp width (px, NaN without contrast): how far blur spreads the edge.
 
     Motion blur and defocus spread an edge into a ramp whose gradient is a plateau: its peak wanders
     with the noise, while the half-level crossing of a symmetric blur stays on the edge.
@@ -274,6 +302,9 @@ def _half_level(prof: NDArray[np.float32], offsets: NDArray[np.float64]) -> NDAr
     level = (lo + hi) / 2.0
     above = prof > level[:, None]
     out = np.full(len(prof), np.nan)
+    # The ramp's width (px): the contrast over the steepest slope; about a pixel for a sharp edge, more with blur.
+    slope = np.max(np.diff(prof, axis=1), axis=1) / (offsets[1] - offsets[0])
+    ramp = np.where((slope > 0) & (hi - lo >= MIN_CONTRAST), (hi - lo) / np.maximum(slope, 1e-9), np.nan)
     for row in np.flatnonzero(hi - lo >= MIN_CONTRAST):
         cross = np.flatnonzero(~above[row, :-1] & above[row, 1:])
         if len(cross) != 1:
@@ -281,4 +312,4 @@ def _half_level(prof: NDArray[np.float32], offsets: NDArray[np.float64]) -> NDAr
         j = cross[0]
         a, b = prof[row, j], prof[row, j + 1]
         out[row] = offsets[j] + (level[row] - a) / (b - a) * (offsets[j + 1] - offsets[j])
-    return out
+    return out, ramp
