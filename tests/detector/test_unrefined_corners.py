@@ -16,14 +16,19 @@ SC = scenarios.get("hard-near")
 FRAMES = range(138, 143)  # marker 6 drifts to the left border; the edge fit fails on some of them
 
 
-@pytest.fixture(scope="module")
-def detections():
+def _camera():
+    """The hard-near drone's camera: its world, sensor, renderer and a fresh detector."""
     world = SC.world()
     sensor = world.sensors[1]
     render = FrameRenderer(SC, world, sensor, 0)
     intr = render.intr
     cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
-    det = Detector(sensor, world, cal, decimate=2.0)
+    return world, sensor, render, Detector(sensor, world, cal, decimate=2.0)
+
+
+@pytest.fixture(scope="module")
+def detections():
+    world, sensor, render, det = _camera()
     out = []
     for j in FRAMES:
         t = j / render.fps
@@ -58,12 +63,7 @@ def test_a_big_tag_bent_by_the_lens_is_refined_not_refused(detections):
 
 def test_a_failed_edge_fit_is_counted_and_explained():
     # Frame 494 of hard-near: marker 6 whose edge fit fails (with a fresh detector, as here).
-    world = SC.world()
-    sensor = world.sensors[1]
-    render = FrameRenderer(SC, world, sensor, 0)
-    intr = render.intr
-    cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
-    det = Detector(sensor, world, cal, decimate=2.0)
+    _, _, render, det = _camera()
     assert det.detect(render(494), 0) == []
     assert det.counters["refine_failed"] >= 1
     assert "corner refinement failed" in det.report.explain()
