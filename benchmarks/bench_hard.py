@@ -44,6 +44,7 @@ import os
 import re
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -217,6 +218,26 @@ class Floor:
         )  # fmt: skip
 
 
+def drone_cameras(
+    sim_world: SimWorld, world: Any, directory: Path | None, duration_s: float
+) -> Iterator[tuple[Any, Detector, Any, float, int]]:
+    """Each camera of the drone with the run's pre-rendered frames: (sensor, a fresh detector with the
+    node's settings, the frames, their rate, how many of them fall within ``duration_s``)."""
+    for sid, (sensor, intr) in sim_world.cameras.items():
+        if sensor.entity != ENTITY or directory is None:
+            continue
+        frames = np.load(frames_path(directory, sid), mmap_mode="r")
+        fps = sensor.camera.fps if sensor.camera and sensor.camera.fps > 0 else 30.0
+        cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
+        yield (
+            sensor,
+            Detector(sensor, world, cal, decimate=2.0),
+            frames,
+            fps,
+            min(len(frames), math.floor(duration_s * fps)),
+        )
+
+
 def per_frame_floor(scenario_name: str, duration_s: float, seed: int = 0, directory: Path | None = None) -> list[Floor]:
     """The per-frame floor of a scenario: the node's detector (same settings, frames in order, so its
     tracking is the node's) on the run's pre-rendered frames; each detection made an edge by the
@@ -236,16 +257,9 @@ def per_frame_floor(scenario_name: str, duration_s: float, seed: int = 0, direct
     bias = rng.normal(0.0, bias_rad, 2)
     out = {k: Floor(k, np.empty(0), 0, 0) for k in ("detector", "detector+attitude")}
     errors: dict[str, list[float]] = {k: [] for k in out}
-    for sid, (sensor, intr) in sim_world.cameras.items():
-        if sensor.entity != ENTITY or directory is None:
-            continue
-        frames = np.load(frames_path(directory, sid), mmap_mode="r")
-        fps = sensor.camera.fps if sensor.camera and sensor.camera.fps > 0 else 30.0
-        cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
-        det = Detector(sensor, world, cal, decimate=2.0)
+    for _sensor, det, frames, fps, n in drone_cameras(sim_world, world, directory, duration_s):
         plain = Listener(world, make_graph(world, ENTITY), ambiguity_threshold=1.0)
         with_att = Listener(world, make_graph(world, ENTITY), ambiguity_threshold=1.0)
-        n = min(len(frames), math.floor(duration_s * fps))
         for j in range(n):
             t = j / fps
             truth = sim_world.truth(t, (ENTITY,))[ENTITY]

@@ -14,7 +14,6 @@ the detections of the frame it was captured in.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -22,12 +21,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_hard import drone_cameras
 
 from atlas_onboard.core.markerdata import upper_to_matrix
-from atlas_onboard.detector.calibration import Calibration
-from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.sim import report, runner, scenarios
-from atlas_onboard.sim.camera import frames_path
 from atlas_onboard.sim.command import score_run
 from atlas_onboard.sim.runner import WARMUP_S, SimOptions, run
 from atlas_onboard.sim.world import SimWorld
@@ -42,14 +41,8 @@ def detections(scenario_name: str, duration_s: float) -> tuple[dict[int, list[di
     directory = runner._rendered_frames(scenario, 0, duration_s, lambda _m: None)
     out: dict[int, list[dict]] = {}
     fps = 30.0
-    for sid, (sensor, intr) in sim_world.cameras.items():
-        if sensor.entity != ENTITY or directory is None:
-            continue
-        frames = np.load(frames_path(directory, sid), mmap_mode="r")
-        fps = sensor.camera.fps if sensor.camera and sensor.camera.fps > 0 else 30.0
-        cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
-        det = Detector(sensor, world, cal, decimate=2.0)
-        for j in range(min(len(frames), math.floor(duration_s * fps))):
+    for sensor, det, frames, fps, n in drone_cameras(sim_world, world, directory, duration_s):
+        for j in range(n):
             t = j / fps
             T_world_sensor = sim_world.truth(t, (ENTITY,))[ENTITY] * sensor.T_entity_sensor
             rows = []
