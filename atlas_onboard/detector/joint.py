@@ -21,8 +21,7 @@ from atlas_onboard.detector import pose
 from atlas_onboard.detector.families import family
 from atlas_onboard.detector.search import _side
 
-# The detector's log (one name for all its parts, as before they were split).
-_logger = logging.getLogger("atlas_onboard.detector.pipeline")
+_logger = logging.getLogger(__name__)
 
 JOINT_MISFIT = 3.0  # a joint fit this many times worse than its worst single square is not used
 CLEAR_OFFSET_M = 0.03  # a moved or suspect marker fits again when its square is this close to where others put it

@@ -154,7 +154,7 @@ def test_a_moved_marker_costs_only_itself_and_is_named(caplog):
     world, spots = moved_marker_world(5, 0.10)
     det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
     img, T_cam_world = moved_marker_image(spots)
-    with caplog.at_level(logging.WARNING, logger="atlas_onboard.detector.pipeline"):
+    with caplog.at_level(logging.WARNING, logger="atlas_onboard.detector"):
         found = det.detect(img, 1_000_000)
     # The entity's pose from the three that fit, at marker 1, within millimetres of the truth.
     (md,) = found

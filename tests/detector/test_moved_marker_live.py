@@ -36,7 +36,7 @@ def test_a_marker_off_in_the_world_file_is_named_and_then_not_used_alone(caplog)
     (md,) = det.detect(_image(0, alone=True), 500_000)
     assert md.marker_id == 5
     det.take_status()
-    with caplog.at_level(logging.WARNING, logger="atlas_onboard.detector.pipeline"):
+    with caplog.at_level(logging.WARNING, logger="atlas_onboard.detector"):
         _fly(det, range(MIN_VIEWS - 1))
         assert det.counters["markers_moved"] == 0  # one image short of the evidence it needs
         _fly(det, range(MIN_VIEWS - 1, MIN_VIEWS + 5))
@@ -95,7 +95,7 @@ def test_a_marker_seen_only_in_pairs_is_named_once_the_pairs_evidence_is_sound(c
     for _ in range(2):
         det.detect(trusted, t_us)
         t_us += FRAME_US
-    with caplog.at_level(logging.WARNING, logger="atlas_onboard.detector.pipeline"):
+    with caplog.at_level(logging.WARNING, logger="atlas_onboard.detector"):
         poses = []
         for _ in range(MIN_VIEWS + 1):
             poses.append([md.p_sensor_marker_m for md in det.detect(pair, t_us) if md.marker_id == 1])
