@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import errno
 import logging
-import threading
 import time
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from atlas_onboard.detector.sources import CameraWorker
 from atlas_onboard.mapping import onboard
 from atlas_onboard.mapping import recording as rec
 from tests.e2e.helpers import wait_for, write_world
+from tests.mapping.test_recording import gated_writer
 
 K = np.array([[100.0, 0.0, 15.5], [0.0, 100.0, 11.5], [0.0, 0.0, 1.0]])
 CAL = Calibration(32, 24, K, np.zeros(5))
@@ -163,15 +163,7 @@ def test_run_record_options_are_checked_before_anything_starts(tmp_path: Path, c
 
 
 def test_a_hung_disk_does_not_hang_the_node_s_shutdown(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    w = rec.RecordingWriter(tmp_path / "r", CAL)
-    gate = threading.Event()
-    real = w.write
-
-    def hung(*args: object) -> bool:
-        gate.wait(10.0)
-        return real(*args)  # type: ignore[arg-type]
-
-    w.write = hung  # type: ignore[method-assign]
+    w, gate = gated_writer(tmp_path / "r", CAL, 10.0)
     bg = rec.BackgroundRecorder(w, queue_size=2)
     for k in range(4):
         bg.offer(np.zeros((24, 32), np.uint8), k)

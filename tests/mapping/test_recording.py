@@ -62,16 +62,22 @@ def test_a_full_disk_is_one_clear_error(tmp_path: Path, monkeypatch: pytest.Monk
         w.write(_frame(1), 1)
 
 
-def test_a_slow_disk_drops_frames_and_never_blocks(tmp_path: Path) -> None:
-    w = rec.RecordingWriter(tmp_path / "r", CAL)
+def gated_writer(path: Path, cal: Calibration, wait_s: float) -> tuple[rec.RecordingWriter, threading.Event]:
+    """A recording writer on a slow or hung disk: each write waits for the event (at most ``wait_s``)."""
+    w = rec.RecordingWriter(path, cal)
     gate = threading.Event()
     real = w.write
 
     def slow(*args: object) -> bool:
-        gate.wait(5.0)
+        gate.wait(wait_s)
         return real(*args)  # type: ignore[arg-type]
 
     w.write = slow  # type: ignore[method-assign]
+    return w, gate
+
+
+def test_a_slow_disk_drops_frames_and_never_blocks(tmp_path: Path) -> None:
+    w, gate = gated_writer(tmp_path / "r", CAL, 5.0)
     bg = rec.BackgroundRecorder(w, queue_size=4)
     offered = [bg.offer(_frame(k), k) for k in range(12)]  # returns at once even though writing waits
     assert not all(offered) and bg.dropped_queue_full == offered.count(False)
