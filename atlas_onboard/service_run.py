@@ -72,8 +72,8 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
             cameras.append(factory(world, config, sensor))
             continue
         from atlas_onboard.detector.calibration import load as load_calibration
+        from atlas_onboard.detector.camera import CameraWorker
         from atlas_onboard.detector.pipeline import Detector
-        from atlas_onboard.detector.sources import CameraWorker
         from atlas_onboard.mapping.recording import is_recording, read_info
 
         if cam.calibration is not None:
