@@ -22,20 +22,25 @@ from pathlib import Path
 
 from atlas_onboard.config import (
     WORLD,
-    ConfigError,
     NodeConfig,
     RefineConfig,
     WorldConfig,
-    load_node,
 )
 from atlas_onboard.core.graph import GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
+from atlas_onboard.node_intake import Intake
 from atlas_onboard.node_output import NS, NodeOutput, Stats, _make_ekf  # noqa: F401 (_make_ekf: was defined here)
 from atlas_onboard.node_ports import Camera, Transport  # were defined here (imported from here elsewhere)
 from atlas_onboard.node_refine import LiveRefinement
-from atlas_onboard.node_setup import WorldBlocks, install_signal_handlers, wire, write_refined_map  # noqa: F401
+from atlas_onboard.node_setup import (  # noqa: F401 (install_signal_handlers: was defined here)
+    WorldBlocks,
+    install_signal_handlers,
+    reread_world,
+    wire,
+    write_refined_map,
+)
 from atlas_onboard.publisher import PoseState
-from atlas_onboard.schedule import Changes, FrameCount, Inbound, Inbox, Item, ParkingBuffer, Relevance, relevance
+from atlas_onboard.schedule import Changes, FrameCount, Inbound
 
 _logger = logging.getLogger(__name__)
 
@@ -66,26 +71,27 @@ class Node:
         self.wall = wall_ns  # capture times are on the swarm's wall clock: the EKF predicts to it
         self.notifier = notifier
         self.config_path = config_path
-        self._use(wire(world, config, transport))
+        blocks = wire(world, config, transport)
+        self._use(blocks)
         self.refinement: LiveRefinement | None = None  # live map refinement (issue 21), opt-in
         if config.refine is not None:
             self.enable_refinement(config.refine)
-        self.inbox = Inbox(config.queue_size)
         self.stats = Stats()
         self.changes = Changes(COALESCE_NS)  # when the graph is to be evaluated
         self.output = NodeOutput(
             world, config, self.graph, self.listener, transport, self.stats, self.changes, monotonic_ns, wall_ns
         )
-        self._seq = 0
+        # The producers' side (camera and link threads): its entry points are the node's.
+        self.intake = Intake(config, blocks, monotonic_ns, self.output)
+        self.inbox, self.parking, self._may_read = self.intake.inbox, self.intake.parking, self.intake.may_read
+        self.deliver_local, self.deliver_peers = self.intake.deliver_local, self.intake.deliver_peers
+        self.deliver_peer = self.intake.deliver_peer
         self._stop = threading.Event()
-        self._may_read = threading.Event()  # cleared while the own pose is evaluated and published
-        self._may_read.set()
         self._reload = threading.Event()
         # Peer observations that cannot move the own pose are parked and accepted together, as often
         # as the fused poses of others go out (at least every COALESCE_NS, at most every half edge
         # timeout so that no edge expires while its refresh waits): others' poses are needed no
         # faster, and one vectorised batch costs far less than dozens of small ones.
-        self.parking = ParkingBuffer(config.queue_size * 4, self._supersedes)
         timeout_ns = round(world.fusion.edge_timeout_s * NS)
         self.park_ns = int(min(max(NS / config.fused_rate_hz, COALESCE_NS), timeout_ns // 2))
         self._next_status_ns = 0
@@ -94,61 +100,11 @@ class Node:
 
     def _use(self, blocks: WorldBlocks) -> None:
         self.world, self.graph, self.listener = blocks.world, blocks.graph, blocks.listener
-        self._entity_of, self._supersedes = blocks.entity_of, blocks.supersedes
 
     @property
     def last_result(self) -> GraphResult | None:
         """The last evaluation's result (the output side's)."""
         return self.output.last_result
-
-    # --- producers (any thread) ---------------------------------------------------------------------
-
-    def deliver_local(self, frame: Sequence[MarkerData]) -> None:
-        """One image's detections from one of this node's cameras, queued together: each stamped with
-        our system id, a sequence number and how many of the image's observations follow it."""
-        now = self.clock()
-        items = []
-        for i, md in enumerate(frame):
-            self._seq = (self._seq + 1) & 0xFFFF
-            stamped = replace(md, origin=self.config.system_id, seq=self._seq, frame_remaining=len(frame) - 1 - i)
-            items.append((stamped, now, True))
-        self.inbox.put_many(items)
-
-    def deliver_peers(self, items: Sequence[Inbound]) -> None:
-        """Observations from a peer (those of one datagram), as the transport delivers them (checked
-        before decoding), with their arrival times. Those that can move the own pose (:func:`relevance`)
-        are taken (decoded and checked) here, in the link's thread, and queued together; the others
-        are parked. Where only the newest of an edge counts they are parked undecoded: most are
-        superseded before the park period ends, and are never decoded.
-
-        The last observation of an image that can move the own pose also pauses the peer links (see
-        :meth:`_process`): the link's thread stops before its next datagram and leaves the processor
-        to the loop, which would otherwise wait its turn behind the decoding of the rest of a burst.
-        Parked views do not wake the loop: it takes them when their park period ends (at most
-        ``LOOP_TICK_S`` late), so that a swarm's traffic does not switch threads hundreds of times a second.
-        """
-        now: list[Item] = []
-        parked: list[Inbound] = []
-        pause = False
-        for item in items:
-            if self._relevance(item.sensor_id, item.marker_id) is Relevance.PARK:
-                if self.parking.newest_wins or item.take() is not None:  # every one counts: decoded here
-                    parked.append(item)
-                continue
-            md = item.take()
-            if md is not None:
-                now.append((md, item.arrival_ns, False))
-                pause |= md.frame_remaining == 0 and self.output.near is not None
-        if parked:
-            self.parking.put(parked)
-        if pause:
-            self._may_read.clear()  # before the put: the loop sets it again once it has published
-        if now:
-            self.inbox.put_many(now)
-
-    def deliver_peer(self, md: MarkerData, arrival_ns: int) -> None:
-        """One observation from a peer, already decoded and checked (:meth:`deliver_peers`)."""
-        self.deliver_peers((Inbound.of(md, arrival_ns),))
 
     def enable_refinement(self, refine: RefineConfig) -> None:
         """Refine the world markers' poses from the observations this node accepts (docs/mapping.md)."""
@@ -223,7 +179,7 @@ class Node:
         most ``FRAME_WAIT_S``: an image's observations are evaluated together, never part of them with
         the previous image. (Images that cannot move it are parked or sent on, not waited for.)"""
         batch = [first, *self.inbox.drain()]
-        frames = FrameCount(self._concerns_own_pose, self.parking.parked_of)
+        frames = FrameCount(self.intake.concerns_own_pose, self.parking.parked_of)
         frames.add(batch)
         deadline = time.monotonic() + FRAME_WAIT_S
         while frames.incomplete and not self._stop.is_set():
@@ -239,9 +195,9 @@ class Node:
     def _process(self, batch: list[tuple[MarkerData, int, bool]]) -> None:
         """Accept a batch. The observations that can move the own pose go first, and the own pose is
         evaluated and published before the others are even accepted: they can wait (see
-        :meth:`_concerns_own_pose`), the autopilot should not. Meanwhile the peer links hold their
+        :meth:`Intake.concerns_own_pose`), the autopilot should not. Meanwhile the peer links hold their
         reading (their datagrams wait in the sockets), so that this thread has the interpreter."""
-        concerns = [self._concerns_own_pose(md) for md, _, _ in batch]
+        concerns = [self.intake.concerns_own_pose(md) for md, _, _ in batch]
         first = [x for x, c in zip(batch, concerns, strict=True) if c]
         rest = [x for x, c in zip(batch, concerns, strict=True) if not c]
         local: list[MarkerData] = []
@@ -301,9 +257,10 @@ class Node:
                 changes = self.changes
                 changes.pending = True
                 if not changes.urgent:
-                    changes.urgent = self._concerns_own_pose(md)
+                    changes.urgent = self.intake.concerns_own_pose(md)
                 if not changes.others:
-                    ends = (self._entity_of[0].get(md.sensor_id), self._entity_of[1].get(md.marker_id))
+                    entity_of = self.intake.entity_of
+                    ends = (entity_of[0].get(md.sensor_id), entity_of[1].get(md.marker_id))
                     changes.others = not all(e in (self.config.entity, WORLD) for e in ends)
                 _logger.debug(
                     "obs %d/%d cap %d sigma %.4f err %.3f ambiguity %.3f p %s", md.sensor_id, md.marker_id,
@@ -387,32 +344,17 @@ class Node:
         if self.notifier is not None:
             self.notifier.notify(*lines)  # type: ignore[attr-defined]
 
-    def _concerns_own_pose(self, md: MarkerData) -> bool:
-        """Whether an observation can change this node's own pose right away (:func:`relevance`):
-        every one while the own entity has no pose or paths are Dijkstra's. Others (a ceiling
-        camera's view of another drone) are evaluated together, at most ``park_ns`` later: in a
-        swarm they are most of a node's input."""
-        return self._relevance(md.sensor_id, md.marker_id) is Relevance.NOW
-
-    def _relevance(self, sensor_id: int, marker_id: int) -> Relevance:
-        return relevance(self._entity_of[0].get(sensor_id), self._entity_of[1].get(marker_id), self.output.near)
-
     def _do_reload(self) -> None:
         """SIGHUP: switch to the re-read world file only if it is valid and has the same entities."""
         if self.config_path is None:
             return
-        try:
-            world, config = load_node(self.config_path, self.config.entity)
-        except ConfigError as exc:
-            _logger.error("reload refused, keeping the running configuration: %s", exc)
-            self._notify("STATUS=reload refused: invalid world file")
-            return
-        if world.entity_names != self.world.entity_names or config != self.config:
-            _logger.error("reload refused: entities or node settings changed; restart the service to apply them")
+        world = reread_world(self.config_path, self.world, self.config, self._notify)
+        if world is None:
             return
         self.graph.clear()
-        self._use(wire(world, self.config, self.transport))
-        self.parking.clear(newest_wins=self._supersedes)
+        blocks = wire(world, self.config, self.transport)
+        self._use(blocks)
+        self.intake.use(blocks)
         if self.refinement is not None:  # the re-read file's poses, refined afresh
             self.enable_refinement(self.refinement.config)
         self.output.attach(world, self.graph, self.listener)

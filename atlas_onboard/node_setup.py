@@ -1,15 +1,17 @@
 """A node's start-up and reconfiguration: the blocks a world file gives it (graph, listener, the lookups
-of its intake), the refined map written at exit, the signal handlers.
+of its intake), the world file re-read on SIGHUP, the refined map written at exit, the signal handlers.
 The loop that uses them is :class:`atlas_onboard.node.Node`."""
 
 from __future__ import annotations
 
 import logging
 import signal
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
-from atlas_onboard.config import NodeConfig, WorldConfig
+from atlas_onboard.config import ConfigError, NodeConfig, WorldConfig, load_node
 from atlas_onboard.core.graph import TransformGraph
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.listener import Listener, make_graph
@@ -49,6 +51,23 @@ def supersedes(world: WorldConfig) -> bool:
     """Whether each observation simply replaces its edge (the paper's setting: ``ema_alpha`` 1, no
     ``age_sigma_m_per_s``), so that of several waiting observations of an edge only the newest counts."""
     return world.fusion.ema_alpha == 1.0 and world.fusion.age_sigma_m_per_s == 0.0
+
+
+def reread_world(
+    path: Path, world: WorldConfig, config: NodeConfig, notify: Callable[[str], None]
+) -> WorldConfig | None:
+    """SIGHUP: the re-read world file, or None (said in the log; an invalid file to systemd too through
+    ``notify``) when it is invalid or its entities or this node's settings changed."""
+    try:
+        new_world, new_config = load_node(path, config.entity)
+    except ConfigError as exc:
+        _logger.error("reload refused, keeping the running configuration: %s", exc)
+        notify("STATUS=reload refused: invalid world file")
+        return None
+    if new_world.entity_names != world.entity_names or new_config != config:
+        _logger.error("reload refused: entities or node settings changed; restart the service to apply them")
+        return None
+    return new_world
 
 
 def write_refined_map(refinement: LiveRefinement | None) -> None:

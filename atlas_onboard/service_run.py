@@ -21,7 +21,8 @@ from atlas_onboard.config import (
     read_yaml,
 )
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.node import Camera, Node, install_signal_handlers
+from atlas_onboard.node import Camera, Node
+from atlas_onboard.node_setup import install_signal_handlers
 from atlas_onboard.service import Notifier, watchdog_interval_us
 
 _logger = logging.getLogger(__name__)
