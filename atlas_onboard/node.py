@@ -78,9 +78,7 @@ class Node:
             self.enable_refinement(config.refine)
         self.stats = Stats()
         self.changes = Changes(COALESCE_NS)  # when the graph is to be evaluated
-        self.output = NodeOutput(
-            world, config, self.graph, self.listener, transport, self.stats, self.changes, monotonic_ns, wall_ns
-        )
+        self.output = NodeOutput(config, blocks, transport, self.stats, self.changes, clock=monotonic_ns, wall=wall_ns)
         # The producers' side (camera and link threads): its entry points are the node's.
         self.intake = Intake(config, blocks, monotonic_ns, self.output)
         self.inbox, self.parking, self._may_read = self.intake.inbox, self.intake.parking, self.intake.may_read
@@ -357,5 +355,5 @@ class Node:
         self.intake.use(blocks)
         if self.refinement is not None:  # the re-read file's poses, refined afresh
             self.enable_refinement(self.refinement.config)
-        self.output.attach(world, self.graph, self.listener)
+        self.output.attach(blocks)
         _logger.info("reloaded %s (fingerprint %08x)", self.config_path, world.fingerprint())

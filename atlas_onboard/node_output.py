@@ -10,10 +10,10 @@ from dataclasses import dataclass
 from atlas_onboard.config import AutopilotConfig, NodeConfig, WorldConfig, defaults
 from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_ATTITUDE_SIGMA_RAD, MANOEUVRE_TIME_S, EkfSettings
 from atlas_onboard.core.ekfbank import EkfBank
-from atlas_onboard.core.graph import EntityPose, GraphResult, TransformGraph
+from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.listener import Listener
 from atlas_onboard.node_ports import Transport
+from atlas_onboard.node_setup import WorldBlocks
 from atlas_onboard.publisher import PoseState, Publisher, Telemetry
 from atlas_onboard.schedule import Changes, near_entities
 from atlas_onboard.state import ResetCounterStore
@@ -52,20 +52,19 @@ class NodeOutput:
 
     def __init__(
         self,
-        world: WorldConfig,
         config: NodeConfig,
-        graph: TransformGraph,
-        listener: Listener,
+        blocks: WorldBlocks,
         transport: Transport,
         stats: Stats,
         changes: Changes,
+        *,
         clock: Callable[[], int],
         wall: Callable[[], int],
     ) -> None:
         self.config = config
         self.transport = transport
         self.stats = stats
-        self.changes = changes  # when the graph is to be evaluated (the node's intake marks it)
+        self.changes = changes  # when the graph is to be evaluated (the node marks what it accepts)
         self.clock = clock
         self.wall = wall
         ap = config.autopilot
@@ -75,7 +74,7 @@ class NodeOutput:
             rate_hz=ap.rate_hz if ap else ap_default["rate_hz"],
             fused_rate_hz=config.fused_rate_hz,
             reset_jump_m=ap.reset_jump_m if ap else ap_default["reset_jump_m"],
-            reset_gap_s=world.fusion.edge_timeout_s,  # lost means no observation for this long
+            reset_gap_s=blocks.world.fusion.edge_timeout_s,  # lost means no observation for this long
         )
         self._reset_store = ResetCounterStore(config.state_dir, config.entity)
         self.publisher.reset_counter = self._reset_store.initial(self.wall())  # a restart is a reset
@@ -88,12 +87,12 @@ class NodeOutput:
         self._next_late_report_ns = 0
         self._min_age_us: int | None = None  # the smallest age of an own observation seen (see LATE_S)
         self._late_streak = 0  # own images in a row with a late observation
-        self.attach(world, graph, listener)
+        self.attach(blocks)
 
-    def attach(self, world: WorldConfig, graph: TransformGraph, listener: Listener) -> None:
+    def attach(self, blocks: WorldBlocks) -> None:
         """The world, graph and listener to evaluate (at start and on reload); a fresh EKF for the world."""
-        self.world, self.graph, self.listener = world, graph, listener
-        self.ekf = _make_ekf(world)
+        self.world, self.graph, self.listener = blocks.world, blocks.graph, blocks.listener
+        self.ekf = _make_ekf(blocks.world)
 
     def start(self) -> None:
         self._telemetry_since = (self.clock(), 0)
