@@ -203,7 +203,7 @@ class AmbiguityResolver:
             )
             if kept and observer == own and md.covariance:
                 C = C_sm[j] if C_sm is not None else upper_to_matrix(np.array([md.covariance]))[0]
-                new = attitude.constrain_tilt(p2[j], R2[j], C, M_es, M_em, up)
+                new = attitude.constrain_tilt(attitude.TagPose(p2[j], R2[j], C), M_es, M_em, up)
                 scale = _camera_spread(new.p_sensor_marker_m, new.R_sensor_marker, new.covariance) / max(
                     _camera_spread(p2[j], R2[j], C), 1e-300
                 )

@@ -13,7 +13,6 @@ entities. systemd's notify protocol (READY, WATCHDOG, STOPPING) is spoken when N
 from __future__ import annotations
 
 import logging
-import signal
 import threading
 import time
 from collections import Counter
@@ -23,35 +22,25 @@ from pathlib import Path
 
 from atlas_onboard.config import (
     WORLD,
-    AutopilotConfig,
-    ConfigError,
     NodeConfig,
     RefineConfig,
     WorldConfig,
-    defaults,
-    load_node,
 )
 from atlas_onboard.core.graph import GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
-from atlas_onboard.errors import AtlasError
-from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.node_output import (  # noqa: F401 (were defined here)
-    LATE_REPORT_NS,
-    LATE_S,
-    LATE_STREAK,
-    NS,
-    PREDICT_NS,
-    TELEMETRY_NS,
-    NodeOutput,
-    Stats,
-    _make_ekf,
-    fused_poses,
-)
+from atlas_onboard.node_intake import Intake
+from atlas_onboard.node_output import NS, NodeOutput, Stats, _make_ekf  # noqa: F401 (_make_ekf: was defined here)
 from atlas_onboard.node_ports import Camera, Transport  # were defined here (imported from here elsewhere)
 from atlas_onboard.node_refine import LiveRefinement
-from atlas_onboard.publisher import PoseState, Publisher
-from atlas_onboard.schedule import Changes, FrameCount, Inbound, Inbox, Item, ParkingBuffer, Relevance, relevance
-from atlas_onboard.state import ResetCounterStore
+from atlas_onboard.node_setup import (  # noqa: F401 (install_signal_handlers: was defined here)
+    WorldBlocks,
+    install_signal_handlers,
+    reread_world,
+    wire,
+    write_refined_map,
+)
+from atlas_onboard.publisher import PoseState
+from atlas_onboard.schedule import Changes, FrameCount, Inbound
 
 _logger = logging.getLogger(__name__)
 
@@ -60,7 +49,7 @@ FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observ
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
 
 
-class Node(NodeOutput):
+class Node:
     """The service of one entity. Construct, then :meth:`run` until :meth:`stop` or a signal."""
 
     def __init__(
@@ -75,9 +64,6 @@ class Node(NodeOutput):
         notifier: object | None = None,
         config_path: Path | None = None,
     ) -> None:
-        self.world = world
-        self._entity_of = _entity_lookup(world)
-        self._supersedes = _supersedes(world)
         self.config = config
         self.transport = transport
         self.cameras = list(cameras)
@@ -85,101 +71,38 @@ class Node(NodeOutput):
         self.wall = wall_ns  # capture times are on the swarm's wall clock: the EKF predicts to it
         self.notifier = notifier
         self.config_path = config_path
-        self.graph = make_graph(world, config.entity)
-        self.listener = Listener(world, self.graph)
-        self._attach_attitude()
+        blocks = wire(world, config, transport)
+        self._use(blocks)
         self.refinement: LiveRefinement | None = None  # live map refinement (issue 21), opt-in
         if config.refine is not None:
             self.enable_refinement(config.refine)
-        self.ekf = _make_ekf(world)
-        ap = config.autopilot
-        ap_default = defaults(AutopilotConfig)
-        self.publisher = Publisher(
-            config.entity,
-            rate_hz=ap.rate_hz if ap else ap_default["rate_hz"],
-            fused_rate_hz=config.fused_rate_hz,
-            reset_jump_m=ap.reset_jump_m if ap else ap_default["reset_jump_m"],
-            reset_gap_s=world.fusion.edge_timeout_s,  # lost means no observation for this long
-        )
-        self._reset_store = ResetCounterStore(config.state_dir, config.entity)
-        self.publisher.reset_counter = self._reset_store.initial(self.wall())  # a restart is a reset
-        self.inbox = Inbox(config.queue_size)
         self.stats = Stats()
-        self.last_result: GraphResult | None = None
-        self._seq = 0
-        self._stop = threading.Event()
-        self._may_read = threading.Event()  # cleared while the own pose is evaluated and published
-        self._may_read.set()
-        self._reload = threading.Event()
         self.changes = Changes(COALESCE_NS)  # when the graph is to be evaluated
-        self._last_publish_ns = 0
+        self.output = NodeOutput(config, blocks, transport, self.stats, self.changes, clock=monotonic_ns, wall=wall_ns)
+        # The producers' side (camera and link threads): its entry points are the node's.
+        self.intake = Intake(config, blocks, monotonic_ns, self.output)
+        self.inbox, self.parking, self._may_read = self.intake.inbox, self.intake.parking, self.intake.may_read
+        self.deliver_local, self.deliver_peers = self.intake.deliver_local, self.intake.deliver_peers
+        self.deliver_peer = self.intake.deliver_peer
+        self._stop = threading.Event()
+        self._reload = threading.Event()
         # Peer observations that cannot move the own pose are parked and accepted together, as often
         # as the fused poses of others go out (at least every COALESCE_NS, at most every half edge
         # timeout so that no edge expires while its refresh waits): others' poses are needed no
         # faster, and one vectorised batch costs far less than dozens of small ones.
-        self.parking = ParkingBuffer(config.queue_size * 4, _supersedes(world))
         timeout_ns = round(world.fusion.edge_timeout_s * NS)
         self.park_ns = int(min(max(NS / config.fused_rate_hz, COALESCE_NS), timeout_ns // 2))
-        self._near: frozenset[str] | None = None  # entities whose observations are evaluated at once
         self._next_status_ns = 0
-        self._next_telemetry_ns = 0
-        self._telemetry_since = (0, 0)  # (monotonic ns, local observations) at the last telemetry
-        self._latency_sum_ms, self._latency_n = 0.0, 0
-
-        self._next_late_report_ns = 0
-        self._min_age_us: int | None = None  # the smallest age of an own observation seen (see LATE_S)
-        self._late_streak = 0  # own images in a row with a late observation
         self._next_watchdog_ns = 0
         self.watchdog_interval_ns = NS  # the service layer shortens it to half of WatchdogSec if needed
 
-    # --- producers (any thread) ---------------------------------------------------------------------
+    def _use(self, blocks: WorldBlocks) -> None:
+        self.world, self.graph, self.listener = blocks.world, blocks.graph, blocks.listener
 
-    def deliver_local(self, frame: Sequence[MarkerData]) -> None:
-        """One image's detections from one of this node's cameras, queued together: each stamped with
-        our system id, a sequence number and how many of the image's observations follow it."""
-        now = self.clock()
-        items = []
-        for i, md in enumerate(frame):
-            self._seq = (self._seq + 1) & 0xFFFF
-            stamped = replace(md, origin=self.config.system_id, seq=self._seq, frame_remaining=len(frame) - 1 - i)
-            items.append((stamped, now, True))
-        self.inbox.put_many(items)
-
-    def deliver_peers(self, items: Sequence[Inbound]) -> None:
-        """Observations from a peer (those of one datagram), as the transport delivers them (checked
-        before decoding), with their arrival times. Those that can move the own pose (:func:`relevance`)
-        are taken (decoded and checked) here, in the link's thread, and queued together; the others
-        are parked. Where only the newest of an edge counts they are parked undecoded: most are
-        superseded before the park period ends, and are never decoded.
-
-        The last observation of an image that can move the own pose also pauses the peer links (see
-        :meth:`_process`): the link's thread stops before its next datagram and leaves the processor
-        to the loop, which would otherwise wait its turn behind the decoding of the rest of a burst.
-        Parked views do not wake the loop: it takes them when their park period ends (at most
-        ``LOOP_TICK_S`` late), so that a swarm's traffic does not switch threads hundreds of times a second.
-        """
-        now: list[Item] = []
-        parked: list[Inbound] = []
-        pause = False
-        for item in items:
-            if self._relevance(item.sensor_id, item.marker_id) is Relevance.PARK:
-                if self.parking.newest_wins or item.take() is not None:  # every one counts: decoded here
-                    parked.append(item)
-                continue
-            md = item.take()
-            if md is not None:
-                now.append((md, item.arrival_ns, False))
-                pause |= md.frame_remaining == 0 and self._near is not None
-        if parked:
-            self.parking.put(parked)
-        if pause:
-            self._may_read.clear()  # before the put: the loop sets it again once it has published
-        if now:
-            self.inbox.put_many(now)
-
-    def deliver_peer(self, md: MarkerData, arrival_ns: int) -> None:
-        """One observation from a peer, already decoded and checked (:meth:`deliver_peers`)."""
-        self.deliver_peers((Inbound.of(md, arrival_ns),))
+    @property
+    def last_result(self) -> GraphResult | None:
+        """The last evaluation's result (the output side's)."""
+        return self.output.last_result
 
     def enable_refinement(self, refine: RefineConfig) -> None:
         """Refine the world markers' poses from the observations this node accepts (docs/mapping.md)."""
@@ -199,7 +122,7 @@ class Node(NodeOutput):
         """Run until stopped; returns the exit status (0)."""
         self.transport.start(self.deliver_peers, self._may_read)
         self.transport.set_pose_state(PoseState.NONE)
-        self._telemetry_since = (self.clock(), 0)
+        self.output.start()
         for cam in self.cameras:
             cam.start(self.deliver_local)
         self._notify("READY=1", f"STATUS=running as {self.config.entity}")
@@ -217,13 +140,13 @@ class Node(NodeOutput):
                     self._do_reload()
         finally:
             self._notify("STOPPING=1")
-            if self.publisher.has_pose:  # the autopilot and the GCS hear it from us, not from a timeout
+            if self.output.publisher.has_pose:  # the autopilot and the GCS hear it from us, not from a timeout
                 _logger.warning("%s: pose lost (node stopping)", self.config.entity)
                 self.transport.send_status(f"atlas {self.config.entity}: pose lost (stopping)", 4)
             for cam in self.cameras:
                 cam.stop()
             self.transport.close()
-            self._write_refined_map()
+            write_refined_map(self.refinement)
             self._log_status(final=True)
         return 0
 
@@ -236,16 +159,16 @@ class Node(NodeOutput):
             now + int(LOOP_TICK_S * NS),
             self._next_watchdog_ns,
             self._next_status_ns,
-            self.publisher.next_fused_ns(),
+            self.output.publisher.next_fused_ns(),
         ]
         since = self.parking.since_ns()
         if since is not None:
             due.append(since + self.park_ns)
-        for t in (self.changes.due_ns(now), self.graph.next_expiry_ns(), self.publisher.next_autopilot_ns()):
+        output = self.output
+        for t in (self.changes.due_ns(now), self.graph.next_expiry_ns(), output.publisher.next_autopilot_ns(),
+                  output.next_prediction_ns()):  # fmt: skip
             if t is not None:
                 due.append(t)
-        if self.ekf is not None and self.last_result is not None:
-            due.append(self._last_publish_ns + PREDICT_NS)
         return max(min(due) - now, 0) / NS
 
     def _collect(self, first: tuple[MarkerData, int, bool]) -> list[tuple[MarkerData, int, bool]]:
@@ -254,7 +177,7 @@ class Node(NodeOutput):
         most ``FRAME_WAIT_S``: an image's observations are evaluated together, never part of them with
         the previous image. (Images that cannot move it are parked or sent on, not waited for.)"""
         batch = [first, *self.inbox.drain()]
-        frames = FrameCount(self._concerns_own_pose, self.parking.parked_of)
+        frames = FrameCount(self.intake.concerns_own_pose, self.parking.parked_of)
         frames.add(batch)
         deadline = time.monotonic() + FRAME_WAIT_S
         while frames.incomplete and not self._stop.is_set():
@@ -270,9 +193,9 @@ class Node(NodeOutput):
     def _process(self, batch: list[tuple[MarkerData, int, bool]]) -> None:
         """Accept a batch. The observations that can move the own pose go first, and the own pose is
         evaluated and published before the others are even accepted: they can wait (see
-        :meth:`_concerns_own_pose`), the autopilot should not. Meanwhile the peer links hold their
+        :meth:`Intake.concerns_own_pose`), the autopilot should not. Meanwhile the peer links hold their
         reading (their datagrams wait in the sockets), so that this thread has the interpreter."""
-        concerns = [self._concerns_own_pose(md) for md, _, _ in batch]
+        concerns = [self.intake.concerns_own_pose(md) for md, _, _ in batch]
         first = [x for x, c in zip(batch, concerns, strict=True) if c]
         rest = [x for x, c in zip(batch, concerns, strict=True) if not c]
         local: list[MarkerData] = []
@@ -280,7 +203,7 @@ class Node(NodeOutput):
             self._may_read.clear()
             try:
                 local = self._handle(first)
-                self._evaluate_and_publish(self.clock(), own_first=True)
+                self.output.evaluate_and_publish(self.clock(), own_first=True)
             finally:
                 self._may_read.set()
         # Our own camera's views of others go out at once (they may be urgent for them); a peer's
@@ -321,27 +244,21 @@ class Node(NodeOutput):
         reasons = self.listener.accept_many([(md, arrival) for md, arrival, _ in batch])
         if self.refinement is not None:
             self.refinement.add([md for (md, _, _), r in zip(batch, reasons, strict=True) if r is None], self.clock())
-        wall_us = self.wall() // 1000
-        late, oldest_us = 0, 0
         for (md, _, is_local), reason in zip(batch, reasons, strict=True):
             if is_local:
                 self.stats.local_observations += 1
                 if reason is None:
                     local.append(md)
-                    age_us = wall_us - md.capture_time_us
-                    if self._min_age_us is None or age_us < self._min_age_us:
-                        self._min_age_us = age_us
-                    if age_us - self._min_age_us > LATE_S * 1e6:
-                        late, oldest_us = late + 1, max(oldest_us, age_us - self._min_age_us)
             else:
                 self.stats.peer_observations += 1
             if reason is None:
                 changes = self.changes
                 changes.pending = True
                 if not changes.urgent:
-                    changes.urgent = self._concerns_own_pose(md)
+                    changes.urgent = self.intake.concerns_own_pose(md)
                 if not changes.others:
-                    ends = (self._entity_of[0].get(md.sensor_id), self._entity_of[1].get(md.marker_id))
+                    entity_of = self.intake.entity_of
+                    ends = (entity_of[0].get(md.sensor_id), entity_of[1].get(md.marker_id))
                     changes.others = not all(e in (self.config.entity, WORLD) for e in ends)
                 _logger.debug(
                     "obs %d/%d cap %d sigma %.4f err %.3f ambiguity %.3f p %s", md.sensor_id, md.marker_id,
@@ -351,13 +268,7 @@ class Node(NodeOutput):
                 _logger.debug(
                     "rejected observation %s from %d: %s", (md.sensor_id, md.marker_id), md.origin, reason.value
                 )
-        if late:
-            self.stats.late_observations += late
-            self._late_streak += 1
-            if self._late_streak >= LATE_STREAK:
-                self._report_late(oldest_us / 1e6)
-        elif local:
-            self._late_streak = 0
+        self.output.check_lateness(local)
         return local
 
     def _step(self, now: int) -> None:
@@ -371,83 +282,78 @@ class Node(NodeOutput):
         since = self.parking.since_ns()
         if since is not None and now - since >= self.park_ns:
             self._flush_parked()
-        self._evaluate_and_publish(now)
+        self.output.evaluate_and_publish(now)
         self._duties(now)
         if self.refinement is not None:
             self.refinement.step(now, self.listener)
             for text in self.refinement.take_status():
                 self.transport.send_status(text, 4)  # WARNING
 
-    def _concerns_own_pose(self, md: MarkerData) -> bool:
-        """Whether an observation can change this node's own pose right away (:func:`relevance`):
-        every one while the own entity has no pose or paths are Dijkstra's. Others (a ceiling
-        camera's view of another drone) are evaluated together, at most ``park_ns`` later: in a
-        swarm they are most of a node's input."""
-        return self._relevance(md.sensor_id, md.marker_id) is Relevance.NOW
+    def _duties(self, now: int) -> None:
+        """The rest: fused poses to peers and telemetry (the output's), the links' periodic messages,
+        the cameras' warnings, systemd, the status line."""
+        self.output.duties(now)
+        self.transport.tick(now)
+        for cam in self.cameras:  # a camera's detector's warnings (a marker that disagrees), rate-limited there
+            for text in getattr(cam, "take_status", tuple)():
+                self.transport.send_status(text, 4)  # WARNING
+        if now >= self._next_watchdog_ns:
+            self._notify("WATCHDOG=1")
+            self._next_watchdog_ns = now + self.watchdog_interval_ns
+        if now >= self._next_status_ns:
+            if self._next_status_ns:
+                self._log_status()
+            self._next_status_ns = now + int(self.config.status_interval_s * NS)
 
-    def _relevance(self, sensor_id: int, marker_id: int) -> Relevance:
-        return relevance(self._entity_of[0].get(sensor_id), self._entity_of[1].get(marker_id), self._near)
+    def counters(self) -> dict[str, int]:
+        """Every counter of the node: rejections by reason, drops, rates, links, cameras."""
+        out: dict[str, int] = self.listener.rejected.snapshot()
+        out.update(
+            accepted=self.listener.accepted,
+            inbox_dropped=self.inbox.dropped + self.parking.dropped,
+            local_observations=self.stats.local_observations,
+            peer_observations=self.stats.peer_observations,
+            evaluations=self.stats.evaluations,
+            autopilot_sent=self.stats.autopilot_sent,
+            autopilot_rate_suppressed=self.output.publisher.suppressed_rate,
+            fused_sent=self.stats.fused_sent,
+            superseded=self.stats.superseded + self.parking.superseded,
+            late_observations=self.stats.late_observations,
+            reset_counter=self.output.publisher.reset_counter,
+        )
+        out.update(self.listener.counters.snapshot())  # ambiguity resolved / swapped / undecided, alt ignored
+        out[Rejection.OUTLIER.counter] = out.get(Rejection.OUTLIER.counter, 0) + self.graph.gated_total
+        if self.output.ekf is not None:
+            out.update({f"ekf_{k}": v for k, v in self.output.ekf.outcomes.items()})
+        for name, n in self.transport.counters().items():  # a reason both refuse for (unknown_sensor): summed
+            out[name] = out.get(name, 0) + n
+        for cam in self.cameras:
+            out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})
+        if self.refinement is not None:
+            out.update(self.refinement.counters())
+        return out
+
+    def _log_status(self, final: bool = False) -> None:
+        c = Counter(self.counters())
+        text = " ".join(f"{k}={v}" for k, v in sorted(c.items()))
+        _logger.info("%s %s", "final" if final else "status", text)
+
+    def _notify(self, *lines: str) -> None:
+        if self.notifier is not None:
+            self.notifier.notify(*lines)  # type: ignore[attr-defined]
 
     def _do_reload(self) -> None:
         """SIGHUP: switch to the re-read world file only if it is valid and has the same entities."""
         if self.config_path is None:
             return
-        try:
-            world, config = load_node(self.config_path, self.config.entity)
-        except ConfigError as exc:
-            _logger.error("reload refused, keeping the running configuration: %s", exc)
-            self._notify("STATUS=reload refused: invalid world file")
+        world = reread_world(self.config_path, self.world, self.config, self._notify)
+        if world is None:
             return
-        if world.entity_names != self.world.entity_names or config != self.config:
-            _logger.error("reload refused: entities or node settings changed; restart the service to apply them")
-            return
-        self.world = world
-        self._entity_of = _entity_lookup(world)
-        self._supersedes = _supersedes(world)
-        self.parking.clear(newest_wins=self._supersedes)
         self.graph.clear()
-        self.graph = make_graph(world, self.config.entity)
-        self.listener = Listener(world, self.graph)
-        self._attach_attitude()
+        blocks = wire(world, self.config, self.transport)
+        self._use(blocks)
+        self.intake.use(blocks)
         if self.refinement is not None:  # the re-read file's poses, refined afresh
             self.enable_refinement(self.refinement.config)
-        self.ekf = _make_ekf(world)
+        self.output.attach(blocks)
         _logger.info("reloaded %s (fingerprint %08x)", self.config_path, world.fingerprint())
-
-    def _write_refined_map(self) -> None:
-        """At exit, the refined world file, if asked (``refine.write_map`` or ``run --write-map``)."""
-        if self.refinement is None or self.refinement.config.write_map is None:
-            return
-        path = self.refinement.config.write_map
-        try:
-            self.refinement.write(path)
-        except AtlasError as exc:
-            _logger.error("%s", exc)
-            return
-        _logger.info(
-            "refined world file written to %s (%d marker(s) refined)", path, len(self.refinement.markers_refined)
-        )
-
-    def _attach_attitude(self) -> None:
-        """The autopilot's attitude (issue 19), if the transport keeps one, resolves single tags' flips."""
-        history = getattr(self.transport, "attitude", None)
-        if history is not None and self.config.autopilot is not None:
-            self.listener.set_attitude(self.config.entity, history.up_at)
-
-
-def _entity_lookup(world: WorldConfig) -> tuple[dict[int, str], dict[int, str]]:
-    """The entity of every sensor id and of every marker id."""
-    return {s.id: s.entity for s in world.sensors.values()}, {m.id: m.entity for m in world.markers.values()}
-
-
-def _supersedes(world: WorldConfig) -> bool:
-    """Whether each observation simply replaces its edge (the paper's setting: ``ema_alpha`` 1, no
-    ``age_sigma_m_per_s``), so that of several waiting observations of an edge only the newest counts."""
-    return world.fusion.ema_alpha == 1.0 and world.fusion.age_sigma_m_per_s == 0.0
-
-
-def install_signal_handlers(node: Node) -> None:
-    """SIGTERM/SIGINT stop the loop; SIGHUP asks for a reload. Handlers only set flags."""
-    signal.signal(signal.SIGTERM, lambda *_: node.stop())
-    signal.signal(signal.SIGINT, lambda *_: node.stop())
-    signal.signal(signal.SIGHUP, lambda *_: node.request_reload())

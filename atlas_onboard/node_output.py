@@ -1,19 +1,22 @@
 """The node's output side: evaluating the graph, the autopilot's pose (the EKF's, if enabled), fused poses
-to peers, telemetry, the lateness report, counters and the status line (the loop is in :mod:`atlas_onboard.node`)."""
+to peers, telemetry and the lateness report (the loop and the intake are in :mod:`atlas_onboard.node`)."""
 
 from __future__ import annotations
 
 import logging
-from collections import Counter
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-from atlas_onboard.config import WorldConfig
+from atlas_onboard.config import AutopilotConfig, NodeConfig, WorldConfig, defaults
 from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_ATTITUDE_SIGMA_RAD, MANOEUVRE_TIME_S, EkfSettings
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
-from atlas_onboard.core.markerdata import Rejection
-from atlas_onboard.publisher import PoseState, Telemetry
-from atlas_onboard.schedule import near_entities
+from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.node_ports import Transport
+from atlas_onboard.node_setup import WorldBlocks
+from atlas_onboard.publisher import PoseState, Publisher, Telemetry
+from atlas_onboard.schedule import Changes, near_entities
+from atlas_onboard.state import ResetCounterStore
 
 _logger = logging.getLogger(__name__)
 
@@ -43,8 +46,80 @@ class Stats:
 
 
 class NodeOutput:
-    """The part of :class:`atlas_onboard.node.Node` that evaluates and sends; it uses the node's attributes
-    (graph, listener, publisher, ekf, transport, stats, clocks), set up by the node's constructor."""
+    """The node's output side, a collaborator of :class:`atlas_onboard.node.Node`: it evaluates the graph
+    the node hands it (:meth:`attach`, again on reload) and sends what follows to the autopilot, the peers
+    and the ground station. It owns the publisher, the EKF, the last result and its own timers."""
+
+    def __init__(
+        self,
+        config: NodeConfig,
+        blocks: WorldBlocks,
+        transport: Transport,
+        stats: Stats,
+        changes: Changes,
+        *,
+        clock: Callable[[], int],
+        wall: Callable[[], int],
+    ) -> None:
+        self.config = config
+        self.transport = transport
+        self.stats = stats
+        self.changes = changes  # when the graph is to be evaluated (the node marks what it accepts)
+        self.clock = clock
+        self.wall = wall
+        ap = config.autopilot
+        ap_default = defaults(AutopilotConfig)
+        self.publisher = Publisher(
+            config.entity,
+            rate_hz=ap.rate_hz if ap else ap_default["rate_hz"],
+            fused_rate_hz=config.fused_rate_hz,
+            reset_jump_m=ap.reset_jump_m if ap else ap_default["reset_jump_m"],
+            reset_gap_s=blocks.world.fusion.edge_timeout_s,  # lost means no observation for this long
+        )
+        self._reset_store = ResetCounterStore(config.state_dir, config.entity)
+        self.publisher.reset_counter = self._reset_store.initial(self.wall())  # a restart is a reset
+        self.last_result: GraphResult | None = None
+        self.near: frozenset[str] | None = None  # entities whose observations are evaluated at once
+        self._last_publish_ns = 0
+        self._next_telemetry_ns = 0
+        self._telemetry_since = (0, 0)  # (monotonic ns, local observations) at the last telemetry
+        self._latency_sum_ms, self._latency_n = 0.0, 0
+        self._next_late_report_ns = 0
+        self._min_age_us: int | None = None  # the smallest age of an own observation seen (see LATE_S)
+        self._late_streak = 0  # own images in a row with a late observation
+        self.attach(blocks)
+
+    def attach(self, blocks: WorldBlocks) -> None:
+        """The world, graph and listener to evaluate (at start and on reload); a fresh EKF for the world."""
+        self.world, self.graph, self.listener = blocks.world, blocks.graph, blocks.listener
+        self.ekf = _make_ekf(blocks.world)
+
+    def start(self) -> None:
+        self._telemetry_since = (self.clock(), 0)
+
+    def next_prediction_ns(self) -> int | None:
+        """When the EKF's prediction to now is next due (None without the EKF or a result)."""
+        if self.ekf is None or self.last_result is None:
+            return None
+        return self._last_publish_ns + PREDICT_NS
+
+    def check_lateness(self, accepted_local: Sequence[MarkerData]) -> None:
+        """Counts the own observations of a batch that are late (see ``LATE_S``) and reports a streak."""
+        wall_us = self.wall() // 1000
+        late, oldest_us = 0, 0
+        for md in accepted_local:
+            age_us = wall_us - md.capture_time_us
+            if self._min_age_us is None or age_us < self._min_age_us:
+                self._min_age_us = age_us
+            if age_us - self._min_age_us > LATE_S * 1e6:
+                late, oldest_us = late + 1, max(oldest_us, age_us - self._min_age_us)
+        if late:
+            self.stats.late_observations += late
+            self._late_streak += 1
+            if self._late_streak >= LATE_STREAK:
+                self._report_late(oldest_us / 1e6)
+        elif accepted_local:
+            self._late_streak = 0
 
     def _report_late(self, age_s: float) -> None:
         """Own observations arrive ``age_s`` later than the promptest did (a file replayed every frame, a
@@ -61,47 +136,35 @@ class NodeOutput:
         )  # fmt: skip
         self.transport.send_status(f"atlas {self.config.entity}: vision {age_s:.1f} s late", 4)  # WARNING
 
-    def _evaluate_and_publish(self, now: int, own_first: bool = False) -> None:
-        """The part of :meth:`_step` that can give the autopilot a pose. With ``own_first`` (new
-        observations that can move the own pose, :meth:`_process`), only the own pose is evaluated
-        when that is possible (see :meth:`_evaluate`)."""
+    def evaluate_and_publish(self, now: int, own_first: bool = False) -> None:
+        """What can give the autopilot a pose. With ``own_first`` (new observations that can move the
+        own pose), only the own pose is evaluated when that is possible (see :meth:`evaluate`)."""
         expiry = self.graph.next_expiry_ns()
         expired = expiry is not None and now >= expiry
         if self.changes.due(now) or expired:
-            self._evaluate(now, own_only=own_first and not expired)
-            self._publish(now)
+            self.evaluate(now, own_only=own_first and not expired)
+            self.publish(now)
         elif self.last_result is not None:
             held = self.publisher.next_autopilot_ns()
             due_hold = held is not None and now >= held and self.publisher.has_pose
             if due_hold or (self.ekf is not None and now - self._last_publish_ns >= PREDICT_NS):
-                self._publish(now)
+                self.publish(now)
 
-    def _duties(self, now: int) -> None:
-        """The rest: fused poses to peers, the links' periodic messages, systemd, the status line."""
+    def duties(self, now: int) -> None:
+        """Fused poses to peers and the ground station's telemetry, when due."""
         if self.publisher.fused_due(now) and self.last_result is not None:
             self.transport.send_fused(fused_poses(self.last_result), self.world)
             self.stats.fused_sent += 1
         if now >= self._next_telemetry_ns:
             self._next_telemetry_ns = now + TELEMETRY_NS
             self._send_telemetry(now)
-        self.transport.tick(now)
-        for cam in self.cameras:  # a camera's detector's warnings (a marker that disagrees), rate-limited there
-            for text in getattr(cam, "take_status", tuple)():
-                self.transport.send_status(text, 4)  # WARNING
-        if now >= self._next_watchdog_ns:
-            self._notify("WATCHDOG=1")
-            self._next_watchdog_ns = now + self.watchdog_interval_ns
-        if now >= self._next_status_ns:
-            if self._next_status_ns:
-                self._log_status()
-            self._next_status_ns = now + int(self.config.status_interval_s * NS)
 
-    def _evaluate(self, now: int, own_only: bool = False) -> None:
+    def evaluate(self, now: int, own_only: bool = False) -> None:
         """Evaluate the graph. With ``own_only``, and when the paper's BFS has placed the own entity
         (and no filter needs every entity's candidates), only the own pose and those it rests on are
         computed (the same pose as a full evaluation); the others keep their last poses and are
         evaluated together within ``COALESCE_NS``, unless the graph says those are still current."""
-        partial = own_only and self._near is not None and self.ekf is None
+        partial = own_only and self.near is not None and self.ekf is None
         self.listener.forget_expired(now)
         result = self.graph.evaluate(now, target=self.config.entity if partial else None, previous=self.last_result)
         if result.complete:
@@ -110,13 +173,13 @@ class NodeOutput:
             self.changes.evaluated(now, complete=False, rest_unchanged=result.current)
         self.last_result = result
         bfs = self.world.fusion.path == "bfs"
-        self._near = near_entities(self.config.entity, result.levels if bfs else None)
+        self.near = near_entities(self.config.entity, result.levels if bfs else None)
         self.listener.set_estimates(result.poses)
         self.stats.evaluations += 1
         if self.ekf is not None:
             self.ekf.update(result, self.wall() // 1000, only=self.config.entity)
 
-    def _publish(self, now: int) -> None:
+    def publish(self, now: int) -> None:
         """The autopilot's pose from the last evaluation (the EKF's, predicted to now, if enabled)."""
         assert self.last_result is not None
         self._last_publish_ns = now
@@ -154,43 +217,6 @@ class NodeOutput:
                 latency_ms=latency,
             )
         )
-
-    def counters(self) -> dict[str, int]:
-        """Every counter of the node: rejections by reason, drops, rates, links, cameras."""
-        out: dict[str, int] = self.listener.rejected.snapshot()
-        out.update(
-            accepted=self.listener.accepted,
-            inbox_dropped=self.inbox.dropped + self.parking.dropped,
-            local_observations=self.stats.local_observations,
-            peer_observations=self.stats.peer_observations,
-            evaluations=self.stats.evaluations,
-            autopilot_sent=self.stats.autopilot_sent,
-            autopilot_rate_suppressed=self.publisher.suppressed_rate,
-            fused_sent=self.stats.fused_sent,
-            superseded=self.stats.superseded + self.parking.superseded,
-            late_observations=self.stats.late_observations,
-            reset_counter=self.publisher.reset_counter,
-        )
-        out.update(self.listener.counters.snapshot())  # ambiguity resolved / swapped / undecided, alt ignored
-        out[Rejection.OUTLIER.counter] = out.get(Rejection.OUTLIER.counter, 0) + self.graph.gated_total
-        if self.ekf is not None:
-            out.update({f"ekf_{k}": v for k, v in self.ekf.outcomes.items()})
-        for name, n in self.transport.counters().items():  # a reason both refuse for (unknown_sensor): summed
-            out[name] = out.get(name, 0) + n
-        for cam in self.cameras:
-            out.update({f"camera_{cam.name}_{k}": v for k, v in cam.counters().items()})
-        if self.refinement is not None:  # type: ignore[attr-defined]
-            out.update(self.refinement.counters())  # type: ignore[attr-defined]
-        return out
-
-    def _log_status(self, final: bool = False) -> None:
-        c = Counter(self.counters())
-        text = " ".join(f"{k}={v}" for k, v in sorted(c.items()))
-        _logger.info("%s %s", "final" if final else "status", text)
-
-    def _notify(self, *lines: str) -> None:
-        if self.notifier is not None:
-            self.notifier.notify(*lines)  # type: ignore[attr-defined]
 
 
 def fused_poses(result: GraphResult) -> list[EntityPose]:

@@ -21,7 +21,8 @@ from atlas_onboard.config import (
     read_yaml,
 )
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.node import Camera, Node, install_signal_handlers
+from atlas_onboard.node import Camera, Node
+from atlas_onboard.node_setup import install_signal_handlers
 from atlas_onboard.service import Notifier, watchdog_interval_us
 
 _logger = logging.getLogger(__name__)
@@ -72,8 +73,8 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
             cameras.append(factory(world, config, sensor))
             continue
         from atlas_onboard.detector.calibration import load as load_calibration
+        from atlas_onboard.detector.camera import CameraWorker
         from atlas_onboard.detector.pipeline import Detector
-        from atlas_onboard.detector.sources import CameraWorker
         from atlas_onboard.mapping.recording import is_recording, read_info
 
         if cam.calibration is not None:

@@ -486,8 +486,8 @@ def test_peer_views_parked_undecoded_are_taken_newest_of_each_edge():
     node._process(node.inbox.drain())
     at(0, (observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), True))  # d1 sees the floor
     accepted = node.listener.accepted
-    assert node._relevance(10, 6) is Relevance.PARK  # the ceiling's view of d2
-    assert all(node._relevance(s, m) is Relevance.NOW for s, m in ((10, 5), (1, 0), (1, 6), (99, 6), (10, 99)))
+    assert node.intake.relevance(10, 6) is Relevance.PARK  # the ceiling's view of d2
+    assert all(node.intake.relevance(s, m) is Relevance.NOW for s, m in ((10, 5), (1, 0), (1, 6), (99, 6), (10, 99)))
     decoded.clear()
     views = [observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + dt) for dt in (5, 7, 6)]
     node.deliver_peers([undecoded(md, set_ms(5), decoded) for md in views])

@@ -196,8 +196,8 @@ class AttitudeHistory:
 
 
 @dataclass(frozen=True, slots=True)
-class Constrained:
-    """A single tag's pose T_sensor_marker after the gravity update (:func:`constrain_tilt`)."""
+class TagPose:
+    """A single tag's pose T_sensor_marker with its covariance: what :func:`constrain_tilt` updates."""
 
     p_sensor_marker_m: NDArray[np.float64]  # (3,)
     R_sensor_marker: NDArray[np.float64]  # (3, 3)
@@ -213,14 +213,12 @@ def _tangent_basis(u: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def constrain_tilt(
-    p_sensor_marker_m: NDArray[np.float64],
-    R_sensor_marker: NDArray[np.float64],
-    C_sensor_marker: NDArray[np.float64],
+    tag: TagPose,
     R_body_sensor: NDArray[np.float64],
     R_world_marker: NDArray[np.float64],
     up_body: NDArray[np.float64],
     sigma_rad: float = AUTOPILOT_TILT_SIGMA_RAD,
-) -> Constrained:
+) -> TagPose:
     """The MegaTag2 idea, as a Kalman update: a single tag's pose T_sensor_marker (position (3,) m,
     rotation (3, 3), 6x6 covariance in the core.covariance convention) updated with the autopilot's up
     vector ``up_body`` (unit, body frame; per-axis standard deviation ``sigma_rad``).
@@ -231,8 +229,8 @@ def constrain_tilt(
     covariance's coupling of tilt and position (a single tag's camera position is range x tilt), and the
     covariance shrinks as the update says (Joseph form).
     """
-    C = np.asarray(C_sensor_marker, dtype=float)
-    R_sm = np.asarray(R_sensor_marker, dtype=float)
+    C = np.asarray(tag.covariance, dtype=float)
+    R_sm = np.asarray(tag.R_sensor_marker, dtype=float)
     m = np.asarray(R_world_marker, dtype=float).T @ UP
     u0 = np.asarray(R_body_sensor, dtype=float) @ R_sm @ m
     B = _tangent_basis(u0 / np.linalg.norm(u0))
@@ -246,4 +244,4 @@ def constrain_tilt(
     I_KH = np.eye(6) - K @ H
     C_new = I_KH @ C @ I_KH.T + sigma_rad**2 * (K @ K.T)
     R_new = R_sm @ Rotation.from_rotvec(x[3:]).as_matrix()
-    return Constrained(np.asarray(p_sensor_marker_m, dtype=float) + x[:3], R_new, 0.5 * (C_new + C_new.T))
+    return TagPose(np.asarray(tag.p_sensor_marker_m, dtype=float) + x[:3], R_new, 0.5 * (C_new + C_new.T))

@@ -100,7 +100,7 @@ class FrameReport:
 
 
 @dataclass
-class Detector(RegionSearch, JointSolve):
+class Detector(JointSolve):
     """The detector of one sensor."""
 
     sensor: SensorConfig
@@ -123,12 +123,11 @@ class Detector(RegionSearch, JointSolve):
         self.marker_pose = {m.id: m.T_entity_marker for m in others}
         wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
         self.finder = MarkerFinder(wanted, self.decimate, extra=(MAX_REGION_DECIMATE,) if self.track else ())
-        self._last: list[NDArray[np.float64]] = []  # regions (x0, y0, x1, y1, decimate) to search next
         self._corners: dict[int, NDArray[np.float64]] = {}  # the previous frame's markers' corners
         # Whole-image searches and tiles in a phase of their own for each sensor: the cameras of one
         # node do not all search at once (their frames come at the same instants).
         self._frame = self.sensor.id % SCAN_EVERY
-        self._tile = self.sensor.id % (TILES[0] * TILES[1])
+        self.search = RegionSearch(self.calibration, self.finder, self.counters, self.sensor.id % (TILES[0] * TILES[1]))
         self._quiet_until = np.zeros((0, 0), np.int64)  # per cell: the frame until which it is not a candidate
         self.report = FrameReport()
         self.disagreements: Counter[int] = Counter()  # marker id -> images in which it disagreed
@@ -145,6 +144,11 @@ class Detector(RegionSearch, JointSolve):
         self.consistency = MarkerConsistency()
         self.motion = MotionCheck()
         self._misfit_pair: list[int] = []  # the last joint solve's two markers that disagreed
+
+    @property
+    def tracking(self) -> bool:
+        """Whether markers of the previous frame are tracked (False: the next frame is a hunt)."""
+        return self.search.tracking
 
     def find(self, gray: NDArray[np.uint8], R_prev_now: Rotation | None = None) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.
@@ -171,18 +175,18 @@ class Detector(RegionSearch, JointSolve):
         h, w = gray.shape[:2]
         found: dict[int, Detection] = {}
         if R_prev_now is not None and self._corners:
-            self._last = [_box(self._rotated(c, R_prev_now)) for c in self._corners.values()]
-        hunting = not self._last
+            self.search.regions = [_box(self.search.rotated(c, R_prev_now)) for c in self._corners.values()]
+        hunting = not self.search.regions
         k = self._frame
         if not hunting:
-            self._roi_search(gray, self._last, found)
+            self.search.find_in(gray, self.search.regions, found)
         if hunting or k % SCAN_EVERY == 0:
             new = []
             for d in self.finder.find(gray, MAX_REGION_DECIMATE):
                 if d.marker_id not in found:
                     found[d.marker_id] = d
                     new.append(_box(d.corners_px))  # found again at the region's own decimation
-            self._roi_search(gray, new, found)
+            self.search.find_in(gray, new, found)
             self.counters["scans"] += 1
         cells = (-(-h // CELL_PX), -(-w // CELL_PX))
         if self._quiet_until.shape != cells:
@@ -194,20 +198,20 @@ class Detector(RegionSearch, JointSolve):
         taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
         for region in _contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet):
             before = len(found)
-            self._roi_search(gray, [region], found, only_new=True)
+            self.search.find_in(gray, [region], found, only_new=True)
             self.counters["candidate_regions"] += 1
             if len(found) == before:
                 x0, y0, x1, y1 = (max(int(v), 0) // CELL_PX for v in region[:4])
                 self._quiet_until[y0 : y1 + 1, x0 : x1 + 1] = k + QUIET_FRAMES
                 self._quiet_level[y0 : y1 + 1, x0 : x1 + 1] = contrast[y0 : y1 + 1, x0 : x1 + 1]
         if k % SCAN_EVERY == SCAN_EVERY // 2 or (hunting and k % 2 == 1):
-            self._roi_search(gray, [self._next_tile(w, h)], found, only_new=True)
+            self.search.find_in(gray, [self.search.next_tile(w, h)], found, only_new=True)
         self.counters["hunts" if hunting else "tracked_frames"] += 1
         self._frame += 1
         # Where each marker will be: moved on by its last motion in the image (constant velocity).
         previous = self._corners
         self._corners = {i: d.corners_px for i, d in found.items()}
-        self._last = [_box(2 * c - previous[i] if i in previous else c) for i, c in self._corners.items()]
+        self.search.regions = [_box(2 * c - previous[i] if i in previous else c) for i, c in self._corners.items()]
         return list(found.values())
 
     def detect(

@@ -1,10 +1,11 @@
 """The detector's search for markers in a frame: the regions where the previous frame's markers are predicted
-to be, the cells of strong black-white contrast, the tiles of a full-resolution grid (part of
+to be, the cells of strong black-white contrast, the tiles of a full-resolution grid (a collaborator of
 :class:`atlas_onboard.detector.pipeline.Detector`, whose :meth:`find` drives them)."""
 
 from __future__ import annotations
 
 import math
+from collections import Counter
 
 import cv2
 import numpy as np
@@ -12,7 +13,8 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.detector import pose
-from atlas_onboard.detector.backends import Detection
+from atlas_onboard.detector.backends import Detection, MarkerFinder
+from atlas_onboard.detector.calibration import Calibration
 
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
 ROI_MARGIN = 0.4  # a region is the marker's predicted box grown by this fraction of its size on each side
@@ -26,10 +28,18 @@ MIN_CONTRAST = 20  # grey levels: a cell with less is not a marker's black and w
 
 
 class RegionSearch:
-    """The region searches of :class:`~atlas_onboard.detector.pipeline.Detector` (a base of it: the state
-    they use is the detector's)."""
+    """The region searches of :class:`~atlas_onboard.detector.pipeline.Detector`: it owns the regions to
+    search in the next frame and the next tile of the grid, and searches with the detector's finder
+    (counting into the detector's counters)."""
 
-    def _rotated(self, corners_px: NDArray[np.float64], R_prev_now: Rotation) -> NDArray[np.float64]:
+    def __init__(self, calibration: Calibration, finder: MarkerFinder, counters: Counter[str], tile: int) -> None:
+        self.calibration = calibration
+        self.finder = finder
+        self.counters = counters
+        self.regions: list[NDArray[np.float64]] = []  # regions (x0, y0, x1, y1, decimate) to search next
+        self._tile = tile  # the next tile of the grid (in a phase of its own for each sensor)
+
+    def rotated(self, corners_px: NDArray[np.float64], R_prev_now: Rotation) -> NDArray[np.float64]:
         """Where corners (N, 2) of the previous image are seen now after the camera turned by
         ``R_prev_now`` (far points: a turn moves them alike whatever their depth)."""
         cal = self.calibration
@@ -49,9 +59,9 @@ class RegionSearch:
     @property
     def tracking(self) -> bool:
         """Whether markers of the previous frame are tracked (False: the next frame is a hunt)."""
-        return bool(self._last)
+        return bool(self.regions)
 
-    def _next_tile(self, w: int, h: int) -> NDArray[np.float64]:
+    def next_tile(self, w: int, h: int) -> NDArray[np.float64]:
         """The next tile of the grid, grown so that every small marker (the decimated search finds
         the others) lies wholly inside one tile."""
         cols, rows = TILES
@@ -63,7 +73,7 @@ class RegionSearch:
             [tx * w // cols - m, ty * h // rows - m, (tx + 1) * w // cols + m, (ty + 1) * h // rows + m], float
         )
 
-    def _checked(
+    def checked(
         self, found: list[Detection], shape: tuple[int, ...], region: tuple[int, int, int, int]
     ) -> list[Detection]:
         """``found`` in a ``region`` (x0, y0, x1, y1) of the image without the detections whose corners
@@ -86,7 +96,7 @@ class RegionSearch:
             out.append(d)
         return out
 
-    def _roi_search(
+    def find_in(
         self,
         gray: NDArray[np.uint8],
         boxes: list[NDArray[np.float64]],
@@ -102,7 +112,7 @@ class RegionSearch:
                     continue
                 c = d.corners_px + np.array([x0, y0], dtype=float)
                 shifted.append(Detection(d.marker_id, d.family, c, d.decision_margin))
-            for d in self._checked(shifted, gray.shape, (x0, y0, x1, y1)):
+            for d in self.checked(shifted, gray.shape, (x0, y0, x1, y1)):
                 found[d.marker_id] = d
                 self.counters["roi_finds"] += 1
 

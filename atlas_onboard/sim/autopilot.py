@@ -83,6 +83,23 @@ class Received:
     estimator_type: int = 0
     quality: int = 0
 
+    @classmethod
+    def of(cls, msg: mavlink.MAVLink_message, arrival_s: float) -> Received:
+        """The record of a VISION_POSITION_ESTIMATE or an ODOMETRY message."""
+        kind = msg.get_type()
+        common = {
+            "arrival_s": arrival_s, "kind": kind, "xyz_m": (msg.x, msg.y, msg.z), "reset_counter": msg.reset_counter,
+            "src_system": msg.get_srcSystem(), "src_component": msg.get_srcComponent(),
+        }  # fmt: skip
+        if kind == "ODOMETRY":
+            return cls(
+                usec=msg.time_usec, rpy_rad=None, q_wxyz=tuple(msg.q), covariance=tuple(msg.pose_covariance),
+                frame_id=msg.frame_id, child_frame_id=msg.child_frame_id, estimator_type=msg.estimator_type,
+                quality=msg.quality, **common,
+            )  # fmt: skip
+        rpy = (msg.roll, msg.pitch, msg.yaw)
+        return cls(usec=msg.usec, rpy_rad=rpy, q_wxyz=None, covariance=tuple(msg.covariance), **common)
+
 
 @dataclass
 class SimAutopilot:
@@ -269,38 +286,8 @@ class SimAutopilot:
             # payload (after tc1 and ts1; MAVLink 2 trims trailing zero bytes).
             payload = bytes(msg.get_msgbuf()[10 : 10 + msg.get_msgbuf()[1]]).ljust(18, b"\0")
             self.timesync_replies.append((msg.tc1, msg.ts1, payload[16], payload[17]))
-        elif kind == "VISION_POSITION_ESTIMATE":
-            rec = Received(
-                arrival,
-                kind,
-                msg.usec,
-                (msg.x, msg.y, msg.z),
-                (msg.roll, msg.pitch, msg.yaw),
-                None,
-                tuple(msg.covariance),
-                msg.reset_counter,
-                msg.get_srcSystem(),
-                msg.get_srcComponent(),
-            )
-            with self._lock:
-                self.received.append(rec)
-        elif kind == "ODOMETRY":
-            rec = Received(
-                arrival,
-                kind,
-                msg.time_usec,
-                (msg.x, msg.y, msg.z),
-                None,
-                tuple(msg.q),
-                tuple(msg.pose_covariance),
-                msg.reset_counter,
-                msg.get_srcSystem(),
-                msg.get_srcComponent(),
-                msg.frame_id,
-                msg.child_frame_id,
-                msg.estimator_type,
-                msg.quality,
-            )
+        elif kind in ("VISION_POSITION_ESTIMATE", "ODOMETRY"):
+            rec = Received.of(msg, arrival)
             with self._lock:
                 self.received.append(rec)
         else:

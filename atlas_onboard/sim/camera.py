@@ -25,7 +25,8 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import RefineConfig, SensorConfig, WorldConfig, load_world
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.detector.sources import CameraWorker, ImageFolder, ReplayClock
+from atlas_onboard.detector.camera import CameraWorker
+from atlas_onboard.detector.sources import ImageFolder, ReplayClock
 from atlas_onboard.sim.scenarios import Scenario
 from atlas_onboard.sim.sources import SimContext
 from atlas_onboard.sim.world import Sighting, SimWorld

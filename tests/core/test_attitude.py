@@ -87,7 +87,7 @@ def _pose_scene(seed: int):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_constrain_tilt_pulls_a_tilted_single_tag_back_along_its_coupling(seed):
-    from atlas_onboard.core.attitude import constrain_tilt
+    from atlas_onboard.core.attitude import TagPose, constrain_tilt
 
     R_wm, R_bs, R_sm_true, p_true = _pose_scene(seed)
     up = up_in_body(R_wm * R_sm_true.inv() * R_bs.inv())
@@ -97,7 +97,8 @@ def test_constrain_tilt_pulls_a_tilted_single_tag_back_along_its_coupling(seed):
     d = np.array([math.radians(3.0), 0.0, 0.0])
     R_sm = R_sm_true * Rotation.from_rotvec(d)
     C = np.diag([1e-8] * 3 + [math.radians(3.0) ** 2, math.radians(3.0) ** 2, 1e-6])
-    new = constrain_tilt(p_true, R_sm.as_matrix(), C, R_bs.as_matrix(), R_wm.as_matrix(), up, math.radians(0.3))
+    tag = TagPose(p_true, R_sm.as_matrix(), C)
+    new = constrain_tilt(tag, R_bs.as_matrix(), R_wm.as_matrix(), up, math.radians(0.3))
 
     def camera_in_marker(R, p):
         return -R.inv().apply(p)
@@ -114,12 +115,12 @@ def test_constrain_tilt_pulls_a_tilted_single_tag_back_along_its_coupling(seed):
 
 
 def test_constrain_tilt_with_the_implied_up_changes_nothing_but_the_covariance():
-    from atlas_onboard.core.attitude import constrain_tilt
+    from atlas_onboard.core.attitude import TagPose, constrain_tilt
 
     R_wm, R_bs, R_sm, p = _pose_scene(9)
     up = up_in_body(R_wm * R_sm.inv() * R_bs.inv())
     C = np.diag([1e-4] * 3 + [1e-3] * 3)
-    new = constrain_tilt(p, R_sm.as_matrix(), C, R_bs.as_matrix(), R_wm.as_matrix(), up)
+    new = constrain_tilt(TagPose(p, R_sm.as_matrix(), C), R_bs.as_matrix(), R_wm.as_matrix(), up)
     np.testing.assert_allclose(new.p_sensor_marker_m, p, atol=1e-12)
     np.testing.assert_allclose(new.R_sensor_marker, R_sm.as_matrix(), atol=1e-12)
     # Yaw (about world up) stays as uncertain as it was; the tilt shrinks.

@@ -144,7 +144,7 @@ def test_a_rotation_moves_the_prediction_where_the_marker_is_seen():
     det = wide_tracker()
     poses = turning(8)
     for (R0, T0), (R1, T1) in itertools.pairwise(poses):
-        predicted = det._rotated(distorted_corners(T0), R0.inv() * R1)
+        predicted = det.search.rotated(distorted_corners(T0), R0.inv() * R1)
         # A pure turn moves every point alike whatever its depth: the prediction is exact.
         assert np.abs(predicted - distorted_corners(T1)).max() < 0.05
 

@@ -15,13 +15,15 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import CameraConfig, parse_world
+from atlas_onboard.detector import camera as camera_module
 from atlas_onboard.detector import sources
 from atlas_onboard.detector.backends import MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.commands import marker_svg
 from atlas_onboard.detector.families import family
 from atlas_onboard.detector.pipeline import Detector
-from atlas_onboard.detector.sources import CameraWorker, Frame, ImageFolder, Source, SourceError
+from atlas_onboard.detector.sources import Frame, ImageFolder, Source, SourceError
 from tests.helpers import write_ubiquity_calibration
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -83,8 +85,8 @@ def test_camera_worker_survives_a_source_that_dies_and_comes_back(monkeypatch):
             raise SourceError("no such device")
         return Flaky(dies=attempts["n"] == 3)
 
-    monkeypatch.setattr(sources, "open_source", fake_open)
-    monkeypatch.setattr(sources, "BACKOFF_S", (0.01,))
+    monkeypatch.setattr(camera_module, "open_source", fake_open)
+    monkeypatch.setattr(camera_module, "BACKOFF_S", (0.01,))
     worker = CameraWorker("c", CameraConfig(source="/dev/video9"), photo_detector())
     got = []
     worker.start(got.append)
@@ -224,7 +226,7 @@ def test_an_http_camera_that_hangs_up_is_reopened_and_delivers_again(monkeypatch
     ok, jpeg = cv2.imencode(".jpg", gray, [cv2.IMWRITE_JPEG_QUALITY, 95])
     assert ok
     server = _MjpegServer(jpeg.tobytes(), [4, 4, 0])
-    monkeypatch.setattr(sources, "BACKOFF_S", (0.05,))
+    monkeypatch.setattr(camera_module, "BACKOFF_S", (0.05,))
     worker = CameraWorker("c", CameraConfig(source=server.url), photo_detector())
     got = []
     try:
@@ -256,9 +258,9 @@ def test_a_file_source_says_end_only_when_it_ran_out(monkeypatch, caplog, stoppe
                 time.sleep(0.01)
                 yield Frame(gray, k)
 
-    monkeypatch.setattr(sources, "open_source", lambda camera, fast=False, start_us=None: Folder())
+    monkeypatch.setattr(camera_module, "open_source", lambda cam, fast=False, start_us=None: Folder())
     worker = CameraWorker("c", CameraConfig(source="/data/frames"), photo_detector())
-    with caplog.at_level("INFO", logger="atlas_onboard.detector.sources"):
+    with caplog.at_level("INFO", logger="atlas_onboard.detector.camera"):
         worker.start(lambda image: None)
         if stopped:
             time.sleep(0.1)

@@ -16,7 +16,7 @@ from atlas_onboard.cli import main
 from atlas_onboard.config import CameraConfig, ConfigError, RecordConfig, load_node
 from atlas_onboard.detector import sources
 from atlas_onboard.detector.calibration import Calibration
-from atlas_onboard.detector.sources import CameraWorker
+from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.mapping import onboard
 from atlas_onboard.mapping import recording as rec
 from tests.e2e.helpers import wait_for, write_world
