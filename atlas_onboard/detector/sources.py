@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from atlas_onboard.config import REPLAY_EVERY_FRAME, REPLAY_REALTIME, CameraConfig
+from atlas_onboard.core.attitude import CameraTurn
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mapping.recording import BackgroundRecorder, RecordingError, is_recording, read_frames, read_info
@@ -294,6 +295,7 @@ class CameraWorker(SensorWorker):
         self._have = threading.Event()
         # ``run --record`` (mapping.onboard): each detected frame goes to it after its observations.
         self.recorder: BackgroundRecorder | None = None
+        self._turn = CameraTurn(detector.sensor.T_entity_sensor.rotation)
 
     def counters(self) -> dict[str, int]:
         out = dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}
@@ -339,8 +341,10 @@ class CameraWorker(SensorWorker):
 
     def _detect(self, frame: Frame, deliver: Deliver) -> None:
         self.counts["frames"] += 1
+        t_us = frame.capture_time_us
+        R_prev_now = self._turn.since_last(self.attitude_at(t_us)) if self.attitude_at is not None else None
         try:
-            found = list(self.detector.detect(frame.gray, frame.capture_time_us))
+            found = list(self.detector.detect(frame.gray, t_us, R_prev_now))
             if found:
                 deliver(found)
         except AtlasError as exc:  # e.g. frames of another size than the calibration
