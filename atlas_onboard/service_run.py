@@ -24,6 +24,7 @@ from atlas_onboard.errors import AtlasError
 from atlas_onboard.node import Camera, Node
 from atlas_onboard.node_setup import install_signal_handlers
 from atlas_onboard.service import Notifier, watchdog_interval_us
+from atlas_onboard.worker import SensorWorker
 
 _logger = logging.getLogger(__name__)
 
@@ -121,6 +122,9 @@ def run_node(
         refine = replace(refine or RefineConfig(), write_map=write_map)
     transport = MavlinkTransport(world, config)
     cameras = build_cameras(world, config, refine)
+    for camera in cameras:  # a turn the autopilot reports moves the markers in the image: cameras predict it
+        if isinstance(camera, SensorWorker):
+            camera.attitude_at = transport.attitude_at
     node = Node(world, config, transport, cameras, notifier=Notifier.from_environ(), config_path=config_path)
     if refine is not None:
         node.enable_refinement(refine)

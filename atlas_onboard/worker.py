@@ -7,10 +7,14 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Sequence
 
+from scipy.spatial.transform import Rotation
+
 from atlas_onboard.core.markerdata import MarkerData
 
 Deliver = Callable[[Sequence[MarkerData]], None]
 """Called once per image with all of its detections (never with none)."""
+AttitudeAt = Callable[[int], Rotation | None]
+"""The autopilot's attitude (body FLU in a level ENU frame) at a capture stamp (us), or None."""
 
 
 class SensorWorker:
@@ -18,6 +22,9 @@ class SensorWorker:
 
     name: str = "sensor"
     join_timeout_s = 3.0
+    attitude_at: AttitudeAt | None = None
+    """Set by the node's start-up when the autopilot reports its attitude: cameras predict from it where
+    a turn moves the markers (:class:`atlas_onboard.core.attitude.CameraTurn`)."""
 
     def __init__(self) -> None:
         self._stop = threading.Event()

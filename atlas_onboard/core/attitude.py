@@ -245,3 +245,25 @@ def constrain_tilt(
     C_new = I_KH @ C @ I_KH.T + sigma_rad**2 * (K @ K.T)
     R_new = R_sm @ Rotation.from_rotvec(x[3:]).as_matrix()
     return TagPose(np.asarray(tag.p_sensor_marker_m, dtype=float) + x[:3], R_new, 0.5 * (C_new + C_new.T))
+
+
+class CameraTurn:
+    """A camera's rotation between its consecutive frames from the autopilot's attitude at their capture
+    times: where a turn will move the markers in the image (a fast yaw moves them far more than their
+    last image motion says). ``R_body_sensor``: the camera's optical frame in the body (FLU) frame.
+
+    Unlike the tilt check, the whole attitude is used, yaw too: over one frame period the autopilot's
+    heading drifts by far less than the gyros' turn, whatever its absolute error."""
+
+    def __init__(self, R_body_sensor: Rotation) -> None:
+        self._R_body_sensor = R_body_sensor
+        self._previous: Rotation | None = None
+
+    def since_last(self, R_level_body: Rotation | None) -> Rotation | None:
+        """The turn from the previous frame to this one (maps directions in the camera frame now into
+        the camera frame then), given this frame's attitude (None: no attitude near its capture time);
+        None when either frame has no attitude."""
+        previous, self._previous = self._previous, R_level_body
+        if previous is None or R_level_body is None:
+            return None
+        return self._R_body_sensor.inv() * previous.inv() * R_level_body * self._R_body_sensor

@@ -12,6 +12,7 @@ import threading
 from collections import Counter
 
 from atlas_onboard.config import CameraConfig
+from atlas_onboard.core.attitude import CameraTurn
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import Frame, Source, SourceError, open_source
 from atlas_onboard.errors import AtlasError
@@ -38,6 +39,7 @@ class CameraWorker(SensorWorker):
         self._have = threading.Event()
         # ``run --record`` (mapping.onboard): each detected frame goes to it after its observations.
         self.recorder: BackgroundRecorder | None = None
+        self._turn = CameraTurn(detector.sensor.T_entity_sensor.rotation)
 
     def counters(self) -> dict[str, int]:
         out = dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}
@@ -83,8 +85,10 @@ class CameraWorker(SensorWorker):
 
     def _detect(self, frame: Frame, deliver: Deliver) -> None:
         self.counts["frames"] += 1
+        t_us = frame.capture_time_us
+        R_prev_now = self._turn.since_last(self.attitude_at(t_us)) if self.attitude_at is not None else None
         try:
-            found = list(self.detector.detect(frame.gray, frame.capture_time_us))
+            found = list(self.detector.detect(frame.gray, t_us, R_prev_now))
             if found:
                 deliver(found)
         except AtlasError as exc:  # e.g. frames of another size than the calibration

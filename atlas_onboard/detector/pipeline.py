@@ -124,6 +124,7 @@ class Detector(JointSolve):
         wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
         self.finder = MarkerFinder(wanted, self.decimate, extra=(MAX_REGION_DECIMATE,) if self.track else ())
         self._corners: dict[int, NDArray[np.float64]] = {}  # the previous frame's markers' corners
+        self._drift: dict[int, NDArray[np.float64]] = {}  # their last image motion that the turn did not explain
         # Whole-image searches and tiles in a phase of their own for each sensor: the cameras of one
         # node do not all search at once (their frames come at the same instants).
         self._frame = self.sensor.id % SCAN_EVERY
@@ -155,8 +156,9 @@ class Detector(JointSolve):
 
         ``R_prev_now``: the camera's rotation since the previous frame (maps directions in the camera
         frame now into the camera frame then, OpenCV axes), e.g. from the autopilot's attitude; given,
-        the previous markers are predicted where that rotation moves them instead of by their last
-        image motion (a fast turn moves a marker far more than its past motion says).
+        the previous markers are predicted where that rotation moves them, plus the part of their last
+        image motion that the previous turn did not explain (the drone's travel), instead of by their
+        last image motion alone (a fast turn moves a marker far more than its past motion says).
 
         Every frame: the regions where the markers of the previous frame are predicted to be (moved on
         by their last motion in the image) are searched at a decimation that keeps each marker at least
@@ -174,8 +176,11 @@ class Detector(JointSolve):
             return self.finder.find(gray, 1.0)
         h, w = gray.shape[:2]
         found: dict[int, Detection] = {}
+        turned: dict[int, NDArray[np.float64]] = {}
         if R_prev_now is not None and self._corners:
-            self.search.regions = [_box(self.search.rotated(c, R_prev_now)) for c in self._corners.values()]
+            # The turn from the attitude, plus the motion (the drone's travel) that the last turn left over.
+            turned = {i: self.search.rotated(c, R_prev_now) for i, c in self._corners.items()}
+            self.search.regions = [_box(c + self._drift.get(i, 0.0)) for i, c in turned.items()]
         hunting = not self.search.regions
         k = self._frame
         if not hunting:
@@ -211,6 +216,7 @@ class Detector(JointSolve):
         # Where each marker will be: moved on by its last motion in the image (constant velocity).
         previous = self._corners
         self._corners = {i: d.corners_px for i, d in found.items()}
+        self._drift = {i: c - turned[i] for i, c in self._corners.items() if i in turned}
         self.search.regions = [_box(2 * c - previous[i] if i in previous else c) for i, c in self._corners.items()]
         return list(found.values())
 

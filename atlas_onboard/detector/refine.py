@@ -138,7 +138,6 @@ def refine_corners_undistorted(
     the four edges), and a corner lies on two lines crossing at an angle phi, which adds 1 / sin(phi);
     blur and pixel noise raise s.
     """
-    img = gray.astype(np.float32)
     ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
     lines = []
     ss, npts = 0.0, []
@@ -149,6 +148,8 @@ def refine_corners_undistorted(
     sides = _sides(corners_und)
     if sides is None:
         return None
+    # Every side's sample points at once: one projection through the lens, one crop of the image.
+    grids = []
     for i, (a, d, n) in enumerate(sides):
         # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
@@ -157,14 +158,22 @@ def refine_corners_undistorted(
         half = float(np.clip(0.1 * depth, 1.0, 2 * HALF_WIDTH_PX))
         offsets = np.arange(-half, half + 1e-9, STEP_PX)
         base = a[None, :] + ts[:, None] * d[None, :]
-        pts = (base[:, None, :] + offsets[None, :, None] * n[None, None, :]).reshape(-1, 2)
-        px = _distort(pts, K, dist, fisheye).reshape(len(ts), len(offsets), 2).astype(np.float32)
+        grids.append((base, offsets, n, depth, base[:, None, :] + offsets[None, :, None] * n[None, None, :]))
+    pts = np.concatenate([g[4].reshape(-1, 2) for g in grids])
+    px_all = _distort(pts, K, dist, fisheye)
+    img, origin = _crop(gray, px_all)
+    px_all = (px_all - origin).astype(np.float32)
+    start = 0
+    for base, offsets, n, depth, grid in grids:
+        count = grid.shape[0] * grid.shape[1]
+        px = px_all[start : start + count].reshape(grid.shape)
+        start += count
         prof = cv2.remap(img, px[..., 0], px[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         found, ramp = _half_level(prof, offsets)
-        edge = [base[row] + off * n for row, off in enumerate(found) if np.isfinite(off)]
-        if len(edge) < SAMPLES_PER_SIDE // 2:
+        keep = np.isfinite(found)
+        if np.count_nonzero(keep) < SAMPLES_PER_SIDE // 2:
             return None
-        e = np.array(edge)
+        e = base[keep] + found[keep, None] * n
         mean = e.mean(axis=0)
         _, sv, vt = np.linalg.svd(e - mean)
         lines.append((mean, vt[0]))
@@ -175,7 +184,8 @@ def refine_corners_undistorted(
         lag1 += float(r[1:] @ r[:-1])
         u = (e - mean) @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
-        ramps.append(float(np.nanmedian(ramp)) if np.any(np.isfinite(ramp)) else 0.0)
+        finite = ramp[np.isfinite(ramp)]
+        ramps.append(float(np.median(finite)) if len(finite) else 0.0)
         cells.append(depth / 8.0)  # the smaller cell of the families (8 across tag36h11's border)
     out = _crossings(lines, corners_und, max_move_px=np.inf)
     if out is None:
@@ -209,6 +219,18 @@ def _distort(
     else:
         px = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
     return px.reshape(-1, 2)
+
+
+def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
+    """The part of ``gray`` that bilinear sampling at ``px`` (N, 2) reads, as float32, and its top-left
+    corner (x, y): sampling it at ``px - corner`` gives what sampling the whole image gives (a sample
+    beyond the crop's edge is beyond the image's there, where both replicate the border)."""
+    h, w = gray.shape[:2]
+    lo = np.floor(np.nan_to_num(px.min(axis=0), nan=0.0)) - 2
+    hi = np.ceil(np.nan_to_num(px.max(axis=0), nan=0.0)) + 3
+    x0, y0 = int(np.clip(lo[0], 0, w - 1)), int(np.clip(lo[1], 0, h - 1))
+    x1, y1 = int(np.clip(hi[0], x0 + 1, w)), int(np.clip(hi[1], y0 + 1, h))
+    return gray[y0:y1, x0:x1].astype(np.float32), np.array([x0, y0], dtype=float)
 
 
 def _bend_px(
@@ -301,15 +323,15 @@ def _half_level(
     hi = prof[:, -2:].mean(axis=1)
     level = (lo + hi) / 2.0
     above = prof > level[:, None]
-    out = np.full(len(prof), np.nan)
     # The ramp's width (px): the contrast over the steepest slope; about a pixel for a sharp edge, more with blur.
     slope = np.max(np.diff(prof, axis=1), axis=1) / (offsets[1] - offsets[0])
-    ramp = np.where((slope > 0) & (hi - lo >= MIN_CONTRAST), (hi - lo) / np.maximum(slope, 1e-9), np.nan)
-    for row in np.flatnonzero(hi - lo >= MIN_CONTRAST):
-        cross = np.flatnonzero(~above[row, :-1] & above[row, 1:])
-        if len(cross) != 1:
-            continue
-        j = cross[0]
-        a, b = prof[row, j], prof[row, j + 1]
-        out[row] = offsets[j] + (level[row] - a) / (b - a) * (offsets[j + 1] - offsets[j])
-    return out, ramp
+    contrast = hi - lo >= MIN_CONTRAST
+    ramp = np.where((slope > 0) & contrast, (hi - lo) / np.maximum(slope, 1e-9), np.nan)
+    cross = ~above[:, :-1] & above[:, 1:]
+    single = contrast & (np.count_nonzero(cross, axis=1) == 1)
+    j = np.argmax(cross, axis=1)
+    rows = np.arange(len(prof))
+    a, b = prof[rows, j], prof[rows, j + 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        at = offsets[j] + (level - a) / (b - a) * (offsets[j + 1] - offsets[j])
+    return np.where(single, at, np.nan), ramp

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import RefineConfig, SensorConfig, WorldConfig, load_world
+from atlas_onboard.core.attitude import CameraTurn
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.sources import ImageFolder, ReplayClock
@@ -51,6 +52,7 @@ class SimCameraWorker(SensorWorker):
         self.intrinsics = self.sim.cameras[sensor.id][1]
         self.fps = sensor.camera.fps if sensor.camera is not None and sensor.camera.fps > 0 else 30.0
         self.detect = detect
+        self._turn = CameraTurn(sensor.T_entity_sensor.rotation)
         self.frames = 0
         self.skipped = 0
         self.detections = 0
@@ -68,8 +70,11 @@ class SimCameraWorker(SensorWorker):
             # Ground truth only when the detector needs it (not for images rendered before the run).
             truth = self.sim.truth(t) if getattr(self.detect, "needs_truth", True) else {}
             sightings = self.sim.sightings(self.sensor.id, truth, t) if truth else []
+            info: dict[str, object] = {"truth": truth, "epoch": epoch, "index": index}
+            if self.attitude_at is not None:  # the autopilot's, as a real camera's (CameraWorker)
+                info["R_prev_now"] = self._turn.since_last(self.attitude_at(round((epoch + t) * 1e6)))
             try:
-                found = self.detect(t, sightings, {"truth": truth, "epoch": epoch, "index": index})
+                found = self.detect(t, sightings, info)
             except Exception:  # a detector bug must not kill the camera thread; the frame is lost
                 _logger.exception("camera %s: detection failed", self.name)
                 continue
@@ -265,7 +270,7 @@ def rendered_detector(
         epoch = float(info["epoch"])  # type: ignore[arg-type]
         index = int(info["index"])  # type: ignore[call-overload]
         img = np.array(frames[index]) if frames is not None and index < len(frames) else render_now(index)
-        return detector.detect(img, round((epoch + t) * 1e6))
+        return detector.detect(img, round((epoch + t) * 1e6), info.get("R_prev_now"))  # type: ignore[arg-type]
 
     detect.needs_truth = False  # type: ignore[attr-defined]  # it renders from the index alone
     return detect

@@ -11,6 +11,7 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.core.attitude import (
     AttitudeHistory,
     BootClock,
+    CameraTurn,
     TiltVerdict,
     choose_by_tilt,
     tilt_error_rad,
@@ -125,3 +126,30 @@ def test_constrain_tilt_with_the_implied_up_changes_nothing_but_the_covariance()
     np.testing.assert_allclose(new.R_sensor_marker, R_sm.as_matrix(), atol=1e-12)
     # Yaw (about world up) stays as uncertain as it was; the tilt shrinks.
     assert np.trace(new.covariance[3:, 3:]) < np.trace(C[3:, 3:])
+
+
+rotations = st.tuples(st.floats(-180, 180), st.floats(-80, 80), st.floats(-180, 180)).map(
+    lambda a: Rotation.from_euler("ZYX", a, degrees=True)
+)
+
+
+@given(rotations, rotations, rotations, st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(0.1, 1)))
+def test_the_camera_turn_maps_a_fixed_direction_seen_now_to_where_it_was_seen(R_then, R_now, R_body_cam, d):
+    """Whatever the mount and the attitudes, a direction fixed in the level frame, seen by the camera now,
+    is turned to where the camera saw it at the previous frame."""
+    turn = CameraTurn(R_body_cam)
+    assert turn.since_last(R_then) is None  # no previous frame
+    R = turn.since_last(R_now)
+    seen_then = (R_then * R_body_cam).inv().apply(d)
+    seen_now = (R_now * R_body_cam).inv().apply(d)
+    assert np.allclose(R.apply(seen_now), seen_then, atol=1e-9)
+
+
+def test_a_frame_without_attitude_breaks_the_chain_of_turns():
+    turn = CameraTurn(Rotation.identity())
+    yaw = [Rotation.from_euler("z", a, degrees=True) for a in (0, 10, 20, 30)]
+    assert turn.since_last(yaw[0]) is None
+    assert turn.since_last(yaw[1]).magnitude() == pytest.approx(10 * DEG)
+    assert turn.since_last(None) is None
+    assert turn.since_last(yaw[3]) is None  # the previous frame had none: no turn to give
+    assert turn.since_last(yaw[2]).magnitude() == pytest.approx(10 * DEG)

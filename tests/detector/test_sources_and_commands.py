@@ -2,6 +2,7 @@
 markers commands."""
 
 import json
+import math
 import re
 import subprocess
 import sys
@@ -12,9 +13,9 @@ import cv2
 import numpy as np
 import pytest
 import yaml
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import CameraConfig, parse_world
+from atlas_onboard.config import CameraConfig, SensorConfig, parse_world
 from atlas_onboard.detector import camera as camera_module
 from atlas_onboard.detector import sources
 from atlas_onboard.detector.backends import MarkerFinder
@@ -25,6 +26,12 @@ from atlas_onboard.detector.families import family
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import Frame, ImageFolder, Source, SourceError
 from tests.helpers import write_ubiquity_calibration
+
+# A camera looking forward and 30 degrees down, off the body's centre (its optical frame in the body FLU frame).
+MOUNT = RigidTransform.from_components(
+    [0.1, 0.02, -0.05],
+    Rotation.from_euler("y", 30, degrees=True) * Rotation.from_matrix([[0, 0, 1], [-1, 0, 0], [0, -1, 0]]),
+)
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 REPO = Path(__file__).resolve().parents[2]
@@ -318,18 +325,24 @@ class _SlowDetector:
         self.delay_s = delay_s
         self.counters: dict[str, int] = {}
         self.stamps: list[int] = []
+        self.turns: list[Rotation | None] = []
+        self.sensor = SensorConfig("c", 1, "drone", MOUNT)
 
-    def detect(self, gray, capture_time_us):
+    def detect(self, gray, capture_time_us, R_prev_now=None):
         self.stamps.append(capture_time_us)
+        self.turns.append(R_prev_now)
         time.sleep(self.delay_s)
         return []
 
 
-def _replay(tmp_path, replay: str, n: int, fps: float, delay_s: float) -> tuple[CameraWorker, _SlowDetector, int]:
+def _replay(
+    tmp_path, replay: str, n: int, fps: float, delay_s: float, attitude_at=None
+) -> tuple[CameraWorker, _SlowDetector, int]:
     for k in range(n):
         cv2.imwrite(str(tmp_path / f"img{k:03d}.png"), np.zeros((8, 8), np.uint8))
     det = _SlowDetector(delay_s)
     worker = CameraWorker("c", CameraConfig(source=str(tmp_path), fps=fps, replay=replay), det)  # type: ignore[arg-type]
+    worker.attitude_at = attitude_at
     start_us = time.time_ns() // 1000
     worker.start(lambda found: None)
     worker._thread.join(timeout=30)
@@ -359,3 +372,36 @@ def test_every_frame_replay_detects_every_frame_in_order(tmp_path):
     c = worker.counters()
     assert c["frames"] == n and not c.get("frames_dropped") and not c.get("frames_skipped")
     assert [s - det.stamps[0] for s in det.stamps] == [round(k * 1e6 / fps) for k in range(n)]
+
+
+def test_the_camera_hands_the_detector_its_turn_since_the_previous_frame_from_the_autopilot(tmp_path):
+    """With the autopilot's attitude (yawing 90 deg/s, rolling, except around the fourth frame), each frame
+    is detected with the camera's turn since the previous one: a world-fixed direction seen now maps to
+    where it was seen then; without an attitude near either capture, no turn."""
+    n, fps = 8, 40.0
+    stamps: list[int] = []
+
+    def attitude_at(t_us: int) -> Rotation | None:
+        stamps.append(t_us)
+        k = len(stamps) - 1
+        s = (t_us - stamps[0]) / 1e6
+        return None if k == 3 else Rotation.from_euler("ZYX", [90.0 * s, 3.0 * s, 20.0 * s], degrees=True)
+
+    _, det, _ = _replay(tmp_path, "every_frame", n, fps, 0.0, attitude_at)
+    assert det.stamps == stamps and len(det.turns) == n
+    R_body_cam = MOUNT.rotation
+    world_dir = np.array([0.3, -0.5, 0.8])
+    for k, R in enumerate(det.turns):
+        if k in (0, 3, 4):  # no previous frame, or no attitude at this or the previous frame
+            assert R is None
+            continue
+        assert R is not None
+        R_then, R_now = (attitude_at_rotation(stamps, j) * R_body_cam for j in (k - 1, k))
+        seen_now, seen_then = R_now.inv().apply(world_dir), R_then.inv().apply(world_dir)
+        assert np.allclose(R.apply(seen_now), seen_then, atol=1e-9)
+        assert R.magnitude() > math.radians(2.0)  # the test is not vacuous: the camera really turned
+
+
+def attitude_at_rotation(stamps: list[int], k: int) -> Rotation:
+    s = (stamps[k] - stamps[0]) / 1e6
+    return Rotation.from_euler("ZYX", [90.0 * s, 3.0 * s, 20.0 * s], degrees=True)
