@@ -18,7 +18,7 @@ from atlas_onboard.config import WORLD
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
 from atlas_onboard.core.refine import Sighting as PlacedSighting
-from atlas_onboard.core.worldcheck import MeasuredPlace, PairVerdict, Sighting
+from atlas_onboard.core.worldcheck import MOTION_MAX_ALLOWANCE_M, MeasuredPlace, PairVerdict, Sighting
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.families import family
 from atlas_onboard.detector.search import _side
@@ -346,14 +346,21 @@ class JointSolve:
             self._offsets = {m: v.offset_m for m, v in trusted.items() if not v.agree}
             self._check_world(entity, sorted(trusted), capture_time_us)
 
-    def _jumped(self, entity: str, m: int, verdicts: list[PairVerdict], capture_time_us: int) -> bool:
+    def _jumped(
+        self, entity: str, m: int, verdicts: list[PairVerdict], capture_time_us: int, place: MeasuredPlace | None = None
+    ) -> bool:
         """Whether marker ``m`` put the camera this image where it cannot have moved to from where a
-        better supported marker put it a frame ago."""
+        better supported marker put it a frame ago. At its measured ``place`` (the verdicts judge the world
+        file's): when what it shows is off that place by more than any comparison allows."""
         own = self.consistency.support(entity, m, capture_time_us)
-        return any(
-            v.marker_id == m and not v.agree and self.consistency.support(entity, v.other, capture_time_us) > own
-            for v in verdicts
-        )
+        for v in verdicts:
+            if v.marker_id != m or self.consistency.support(entity, v.other, capture_time_us) <= own:
+                continue
+            if place is None and not v.agree:
+                return True
+            if place is not None and np.linalg.norm(v.offset_m - place.offset_m) > MOTION_MAX_ALLOWANCE_M:
+                return True
+        return False
 
     def _disagrees(self, entity: str, m: int, offset_m: float, capture_time_us: int) -> None:
         self.counters["marker_disagrees"] += 1

@@ -317,6 +317,10 @@ class Detector(RegionSearch, JointSolve):
                 place = None if each or mp.covariance is None else self._place_of(entity, mid, capture_time_us)
                 if place is None and not each and self._doubtful_alone(entity, mid, verdicts, capture_time_us):
                     continue
+                if place is not None and self._jumped(entity, mid, verdicts, capture_time_us, place):
+                    self.counters["dropped_jump"] += 1  # moved again since? the trusted markers' images will say
+                    self.report.dropped[mid] = "off its measured place by more than the camera can have moved"
+                    continue
                 ambiguous = mp.ambiguity > AMBIGUITY_THRESHOLD
                 if mp.ambiguity > self.max_ambiguity or (ambiguous and mp.p_alt_m is None):
                     # Too poor a fit, or nothing downstream could resolve it: drop it here.
