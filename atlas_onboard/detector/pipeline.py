@@ -17,7 +17,9 @@ entity's pose, and the one that disagrees is counted, logged and announced (:met
 Every pair seen together and every marker seen a frame after another (the camera cannot jump) is
 evidence in a consistency graph over the markers (:class:`MarkerConsistency`, :class:`MotionCheck`): a
 marker that disagrees with markers that agree among themselves is suspect, never used alone nor in a
-joint solve, while the other member of a pair that disagrees is used.
+joint solve, while the other member of a pair that disagrees is used. A moved or suspect world marker
+whose place has been measured (:class:`MeasuredPlaces`: where trusted markers' images put it, with its
+covariance) is used alone at that place, the place's covariance carried into its pose.
 """
 
 from __future__ import annotations
