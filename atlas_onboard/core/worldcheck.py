@@ -510,8 +510,10 @@ class MeasuredPlaces:
             checks.append((capture_time_us, place.fits(item.p_world_marker_m, item.R_world_marker, item.cov)))
             misfits = [t for t, fits in checks if not fits]
             if len(misfits) >= RECHECK_MISFITS:
-                out.append(self._places.pop(s.marker_id))
-                del self._checks[s.marker_id]
+                self._checks.pop(s.marker_id, None)
+                withdrawn = self._places.pop(s.marker_id, None)  # (None: dropped meanwhile by another thread)
+                if withdrawn is not None:
+                    out.append(withdrawn)
                 self.refiner.forget(s.marker_id, misfits[0])
         return out
 

@@ -315,7 +315,7 @@ class Detector(RegionSearch, JointSolve):
                 self._feed_world_check(entity, verdicts, capture_time_us)
             for mid in ids:
                 mp = singles[mid].pose
-                # A marker reported moved whose place has been measured is used there, with that place's covariance.
+                # A moved or suspect marker whose place has been measured is used there, with the place's covariance.
                 place = None if each or mp.covariance is None else self._place_of(entity, mid, capture_time_us)
                 if place is None and not each and self._doubtful_alone(entity, mid, verdicts, capture_time_us):
                     continue
