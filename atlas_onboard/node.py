@@ -285,7 +285,9 @@ class Node:
         self.output.evaluate_and_publish(now)
         self._duties(now)
         if self.refinement is not None:
-            self.refinement.step(now, self.listener)
+            for u in self.refinement.step(now, self.listener):  # the detectors' places are relative to the file
+                for cam in self.cameras:
+                    getattr(getattr(cam, "detector", None), "map_pose_changed", lambda _m: None)(u.marker_id)
             for text in self.refinement.take_status():
                 self.transport.send_status(text, 4)  # WARNING
 

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter, deque
-from collections.abc import Hashable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Hashable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -105,6 +105,7 @@ class Estimate:
     offset_m: NDArray[np.float64]
     offset_deg: float
     distance2: float
+    scatter: float = 1.0  # the inliers' median squared distance over its chi-square median (at least 1)
 
     @property
     def sigma_m(self) -> NDArray[np.float64]:
@@ -219,7 +220,8 @@ class MapRefiner:
         R_wm = R_ws @ R_sm
         to_camera = -(np.swapaxes(R_sm, -1, -2) @ p_sm[..., None])[..., 0]
         directions = to_camera / np.maximum(np.linalg.norm(to_camera, axis=1, keepdims=True), 1e-9)
-        limit = chi2.isf(self.options.consistency_p, 6 * (n - 2))
+        # With one other there is nothing to check it against: min_others 1 leaves trust to the caller.
+        limit = chi2.isf(self.options.consistency_p, 6 * (n - 2)) if n > 2 else math.inf
         added = 0
         ids_seen = frozenset(ids)
         for i, s in enumerate(seen):
@@ -261,8 +263,14 @@ class MapRefiner:
     def evidence(self, marker_id: int) -> list[Evidence]:
         return list(self._evidence.get(marker_id, ()))
 
-    def estimate(self, marker_id: int) -> Estimate | None:
-        """The marker's refined pose from its evidence (None without two items or if singular).
+    def latest(self, marker_id: int) -> Evidence | None:
+        """The marker's newest evidence item (None without any)."""
+        items = self._evidence.get(marker_id)
+        return items[-1] if items else None
+
+    def estimate(self, marker_id: int, accept: Callable[[Evidence], bool] | None = None) -> Estimate | None:
+        """The marker's refined pose from its evidence (None without two items or if singular);
+        ``accept``: only the items it accepts count (e.g. those whose ``others`` are trusted now).
 
         A robust start (the median position, the rotation of the item nearest it), then the
         information-weighted mean, iterated with outliers gated: an item is an outlier when its
@@ -271,6 +279,8 @@ class MapRefiner:
         ``outlier_p``. The mean's covariance is the inliers' information inverted, scaled by that
         scatter and by frames per independent view."""
         items = self._evidence.get(marker_id)
+        if items is not None and accept is not None:
+            items = [e for e in items if accept(e)]
         if not items or len(items) < 2:
             return None
         o = self.options
@@ -288,10 +298,10 @@ class MapRefiner:
         scale = 1.0
         gate = chi2.isf(o.outlier_p, 6)
         for _ in range(5):
-            r = _residuals(P, Rs, p_ref, R_ref)  # (n, 6) about the reference
+            r = residuals(P, Rs, p_ref, R_ref)  # (n, 6) about the reference
             x = np.linalg.solve(W[inlier].sum(axis=0), np.einsum("nij,nj->i", W[inlier], r[inlier]))
             p_ref, R_ref = p_ref + x[:3], R_ref @ Rotation.from_rotvec(x[3:]).as_matrix()
-            r = _residuals(P, Rs, p_ref, R_ref)
+            r = residuals(P, Rs, p_ref, R_ref)
             d2 = np.einsum("ni,nij,nj->n", r, W, r)
             scale = max(1.0, float(np.median(d2[inlier])) / chi2.median(6))
             new = d2 / scale <= gate
@@ -309,15 +319,21 @@ class MapRefiner:
         mean_dir /= max(float(np.linalg.norm(mean_dir)), 1e-9)
         spread = float(np.degrees(np.arccos(np.clip(dirs @ mean_dir, -1.0, 1.0)).max()))
         m = self._map[marker_id]
-        delta = _residuals(m.p[None], m.R[None], p_ref, R_ref)[0]  # current map pose about the estimate
+        delta = residuals(m.p[None], m.R[None], p_ref, R_ref)[0]  # current map pose about the estimate
         try:
             d2_map = float(delta @ np.linalg.solve(cov, delta))
         except np.linalg.LinAlgError:
             return None
         return Estimate(
             marker_id, p_ref, R_ref, cov, len(items), int((~inlier).sum()), views, spread,
-            p_ref - m.p, float(np.degrees(np.linalg.norm(delta[3:]))), d2_map,
+            p_ref - m.p, float(np.degrees(np.linalg.norm(delta[3:]))), d2_map, scale,
         )  # fmt: skip
+
+    def forget(self, marker_id: int, before_us: int) -> None:
+        """Drop a marker's evidence captured before ``before_us`` (it has moved since)."""
+        items = self._evidence.get(marker_id)
+        if items:
+            self._evidence[marker_id] = deque((e for e in items if e.capture_time_us >= before_us), items.maxlen)
 
     def verdict(self, est: Estimate) -> str | None:
         """Why ``est`` may not replace the map pose (None: it may)."""
@@ -374,7 +390,7 @@ class MapRefiner:
         return [Update(mid, m.p.copy(), m.R.copy(), m.cov.copy(), f * dist, f * ang, f == 1.0, est)]
 
 
-def _residuals(P: NDArray, Rs: NDArray, p_ref: NDArray, R_ref: NDArray) -> NDArray[np.float64]:
+def residuals(P: NDArray, Rs: NDArray, p_ref: NDArray, R_ref: NDArray) -> NDArray[np.float64]:
     """(n, 6) errors ``[p - p_ref, Log(R_ref^T R)]`` of poses about a reference (dtheta in its axes)."""
     rot = Rotation.from_matrix(np.swapaxes(R_ref, -1, -2) @ Rs).as_rotvec()
     return np.concatenate([P - p_ref, rot], axis=1)
@@ -410,7 +426,7 @@ def _leave_one_out(P: NDArray, Rs: NDArray, C: NDArray) -> tuple[NDArray, NDArra
 
 
 def _residuals_each(P: NDArray, Rs: NDArray, p_ref: NDArray, R_ref: NDArray) -> NDArray[np.float64]:
-    """(m, n, 6): the n poses' errors about each of m references (:func:`_residuals`)."""
+    """(m, n, 6): the n poses' errors about each of m references (:func:`residuals`)."""
     m, n = len(p_ref), len(P)
     rel = np.swapaxes(R_ref, -1, -2)[:, None] @ Rs[None]
     rot = Rotation.from_matrix(rel.reshape(m * n, 3, 3)).as_rotvec().reshape(m, n, 3)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,7 +17,8 @@ from scipy.spatial.transform import RigidTransform, Rotation
 from atlas_onboard.config import WORLD
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
-from atlas_onboard.core.worldcheck import PairVerdict, Sighting
+from atlas_onboard.core.refine import Sighting as PlacedSighting
+from atlas_onboard.core.worldcheck import MOTION_MAX_ALLOWANCE_M, MeasuredPlace, PairVerdict, Sighting
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.families import family
 from atlas_onboard.detector.search import _side
@@ -27,6 +29,7 @@ JOINT_MISFIT = 3.0  # a joint fit this many times worse than its worst single sq
 CLEAR_OFFSET_M = 0.03  # a moved or suspect marker fits again when its square is this close to where others put it
 STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagreeing markers
 LOG_INTERVAL_US = 5_000_000
+PLACE_RETRY_US = 250_000  # a moved marker's measured place is sought again at most this often
 
 
 @dataclass(frozen=True)
@@ -133,6 +136,7 @@ class JointSolve:
             if (entity, mid) in self.moved and mid not in still and mid not in self._offsets:
                 if not self.world_check.disagrees(entity, mid):
                     del self.moved[(entity, mid)]
+                    self.places.drop(mid)
                     _logger.warning("sensor %s: %s marker %d fits the world file again", self.sensor.name, entity, mid)
         for moved in verdicts:
             key = (entity, moved.marker_id)
@@ -145,7 +149,7 @@ class JointSolve:
                 self._moved_log_us[key] = capture_time_us
                 _logger.warning(
                     "sensor %s: %s marker %d has moved: seen %.1f cm from its place in the world file"
-                    " (%+.3f %+.3f %+.3f m) in %d of %d images; it is not used while it disagrees",
+                    " (%+.3f %+.3f %+.3f m) in %d of %d images; it is not used where the world file has it",
                     self.sensor.name, entity, moved.marker_id, moved.distance_m * 100, dx, dy, dz,
                     moved.disagreeing, moved.views,
                 )  # fmt: skip
@@ -155,6 +159,99 @@ class JointSolve:
                     f"atlas: marker {moved.marker_id} moved {round(dx * 100):+d} {round(dy * 100):+d}"
                     f" {round(dz * 100):+d} cm"[:50]
                 )
+
+    # --- a moved world marker used at its measured place ------------------------------------------------
+
+    def _trusted(self, now_us: int) -> Callable[[frozenset[int]], bool]:
+        """Whether markers that placed the camera in an image are trusted now: none moved or suspect, and
+        two or more (checked against each other), or one that agrees with another marker."""
+        suspects = self.consistency.suspects(WORLD, now_us)
+
+        def trusted(others: frozenset[int]) -> bool:
+            if not others or any(m in suspects or (WORLD, m) in self.moved for m in others):
+                return False
+            return len(others) >= 2 or self.consistency.support(WORLD, next(iter(others)), now_us) >= 2
+
+        return trusted
+
+    def _gather_places(self, ids: list[int], singles: dict[int, _Single], capture_time_us: int) -> None:
+        """This image's world markers as evidence of where each is (:class:`MeasuredPlaces`); a place that
+        new evidence no longer fits is withdrawn, said and counted."""
+        seen = []
+        for m in ids:
+            mp = singles[m].pose
+            if mp.covariance is not None and mp.ambiguity <= AMBIGUITY_THRESHOLD:  # not maybe the mirrored one
+                seen.append(PlacedSighting(m, mp.p_m, Rotation.from_quat(mp.q_xyzw).as_matrix(), mp.covariance))
+        for place in self.places.add_image(self.sensor.id, capture_time_us, seen, self._trusted(capture_time_us)):
+            self.counters["places_withdrawn"] += 1
+            _logger.warning(
+                "sensor %s: world marker %d no longer fits its measured place (%+.3f %+.3f %+.3f m from the"
+                " world file): it keeps moving; it is not used until it stays in one place",
+                self.sensor.name, place.marker_id, *place.offset_m,
+            )  # fmt: skip
+            self._say_status(f"atlas: marker {place.marker_id} keeps moving, unused", capture_time_us)
+
+    def _place_of(self, entity: str, mid: int, capture_time_us: int) -> MeasuredPlace | None:
+        """The measured place of a world marker reported moved or suspect, sought when there is none yet (at
+        most every ``PLACE_RETRY_US``); said once when found (log and STATUSTEXT at most once a minute),
+        counted. A marker no longer doubted is used where the world file has it: its place is forgotten."""
+        if entity != WORLD or mid in self._map_changed:
+            return None
+        if (entity, mid) not in self.moved and not self.consistency.is_suspect(entity, mid, capture_time_us):
+            self.places.drop(mid)
+            return None
+        place = self.places.place(mid)
+        last = self._place_tried_us.get(mid)
+        if place is not None or (last is not None and 0 <= capture_time_us - last < PLACE_RETRY_US):
+            return place
+        self._place_tried_us[mid] = capture_time_us
+        found = self.places.establish(mid, capture_time_us, self._trusted(capture_time_us))
+        if isinstance(found, str):
+            return None
+        self.counters["places_measured"] += 1
+        dx, dy, dz = found.offset_m
+        _logger.warning(
+            "sensor %s: world marker %d has moved %.1f cm from its place in the world file (%+.3f %+.3f %+.3f m);"
+            " using its measured place (sigma %.1f mm, %.2f deg; %d images in %d views, scatter %.1f)",
+            self.sensor.name, mid, float(np.linalg.norm(found.offset_m)) * 100, dx, dy, dz, found.sigma_m * 1000,
+            found.sigma_deg, found.items, found.views, found.scatter,
+        )  # fmt: skip
+        self._say_status(
+            f"atlas: marker {mid} at {round(dx * 100):+d} {round(dy * 100):+d} {round(dz * 100):+d} cm, used",
+            capture_time_us,
+        )
+        return found
+
+    def map_pose_changed(self, marker_id: int) -> None:
+        """The node's map now holds another pose of the marker than the world file's (live refinement): its
+        measured place here, relative to the world file's, must no longer be used."""
+        self._map_changed.add(marker_id)
+        self.places.drop(marker_id)
+
+    def _at_place(self, mid: int, mp: pose.MarkerPose, place: MeasuredPlace, capture_time_us: int) -> MarkerData:
+        """Marker ``mid``'s own square as an observation of its world-file pose that places the sensor where
+        its measured place does, with the place's covariance carried along."""
+        T_file = self.marker_pose[mid]
+        R_file = T_file.rotation.as_matrix()
+        R = Rotation.from_quat(mp.q_xyzw).as_matrix()
+        p, R_new, cov, C_sensor = place.correct(mp.p_m, R, mp.covariance, R_file, T_file.translation)
+        alt = None
+        if mp.p_alt_m is not None and mp.q_alt_xyzw is not None:  # the other planar solution, moved alike
+            R_alt = Rotation.from_quat(mp.q_alt_xyzw).as_matrix()
+            p_alt, R_alt_new, _, _ = place.correct(mp.p_alt_m, R_alt, mp.covariance, R_file, T_file.translation)
+            alt = (p_alt, Rotation.from_matrix(R_alt_new).as_quat())
+        sigma = math.hypot(mp.sigma_m, math.sqrt(max(float(np.linalg.eigvalsh(C_sensor)[-1]), 0.0)))
+        self.counters["placed_used"] += 1
+        return self._markerdata(
+            mid, p, Rotation.from_matrix(R_new).as_quat(), sigma, mp.reprojection_error_px, mp.ambiguity,
+            capture_time_us, alt, cov,
+        )  # fmt: skip
+
+    def _say_status(self, text: str, capture_time_us: int) -> None:
+        """A STATUSTEXT about moved markers, at most one a minute."""
+        if self._moved_status_us is None or capture_time_us - self._moved_status_us >= STATUS_INTERVAL_US:
+            self._moved_status_us = capture_time_us
+            self._status.append(text[:50])
 
     def _doubtful(self, entity: str, ids: list[int], capture_time_us: int) -> set[int]:
         """Those of ``ids`` reported moved or suspect."""
@@ -249,14 +346,21 @@ class JointSolve:
             self._offsets = {m: v.offset_m for m, v in trusted.items() if not v.agree}
             self._check_world(entity, sorted(trusted), capture_time_us)
 
-    def _jumped(self, entity: str, m: int, verdicts: list[PairVerdict], capture_time_us: int) -> bool:
+    def _jumped(
+        self, entity: str, m: int, verdicts: list[PairVerdict], capture_time_us: int, place: MeasuredPlace | None = None
+    ) -> bool:
         """Whether marker ``m`` put the camera this image where it cannot have moved to from where a
-        better supported marker put it a frame ago."""
+        better supported marker put it a frame ago. At its measured ``place`` (the verdicts judge the world
+        file's): when what it shows is off that place by more than any comparison allows."""
         own = self.consistency.support(entity, m, capture_time_us)
-        return any(
-            v.marker_id == m and not v.agree and self.consistency.support(entity, v.other, capture_time_us) > own
-            for v in verdicts
-        )
+        for v in verdicts:
+            if v.marker_id != m or self.consistency.support(entity, v.other, capture_time_us) <= own:
+                continue
+            if place is None and not v.agree:
+                return True
+            if place is not None and np.linalg.norm(v.offset_m - place.offset_m) > MOTION_MAX_ALLOWANCE_M:
+                return True
+        return False
 
     def _disagrees(self, entity: str, m: int, offset_m: float, capture_time_us: int) -> None:
         self.counters["marker_disagrees"] += 1

@@ -17,7 +17,9 @@ entity's pose, and the one that disagrees is counted, logged and announced (:met
 Every pair seen together and every marker seen a frame after another (the camera cannot jump) is
 evidence in a consistency graph over the markers (:class:`MarkerConsistency`, :class:`MotionCheck`): a
 marker that disagrees with markers that agree among themselves is suspect, never used alone nor in a
-joint solve, while the other member of a pair that disagrees is used.
+joint solve, while the other member of a pair that disagrees is used. A moved or suspect world marker
+whose place has been measured (:class:`MeasuredPlaces`: where trusted markers' images put it, with its
+covariance) is used alone at that place, the place's covariance carried into its pose.
 """
 
 from __future__ import annotations
@@ -29,10 +31,17 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import SensorConfig, WorldConfig
+from atlas_onboard.config import WORLD, SensorConfig, WorldConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.core.worldcheck import MarkerConsistency, MotionCheck, MovedMarker, MovedMarkerCheck, PairVerdict
+from atlas_onboard.core.worldcheck import (
+    MarkerConsistency,
+    MeasuredPlaces,
+    MotionCheck,
+    MovedMarker,
+    MovedMarkerCheck,
+    PairVerdict,
+)
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
@@ -145,6 +154,11 @@ class Detector(JointSolve):
         self.consistency = MarkerConsistency()
         self.motion = MotionCheck()
         self._misfit_pair: list[int] = []  # the last joint solve's two markers that disagreed
+        # Where moved world markers really are, to use them there (evidence from every image of two or more).
+        world_markers = {m: T for m, T in self.marker_pose.items() if self.entity_of[m] == WORLD}
+        self.places = MeasuredPlaces({m: (T.translation, T.rotation.as_matrix()) for m, T in world_markers.items()})
+        self._place_tried_us: dict[int, int] = {}
+        self._map_changed: set[int] = set()  # markers whose pose the node's map no longer takes from the file
 
     @property
     def tracking(self) -> bool:
@@ -268,6 +282,8 @@ class Detector(JointSolve):
         for mid in sorted(singles):
             groups.setdefault(self.entity_of[mid], []).append(mid)
         for entity, ids in groups.items():
+            if entity == WORLD and len(ids) > 1:  # evidence of where each world marker is, placed by the others
+                self._gather_places(ids, singles, capture_time_us)
             # Evidence for the consistency of the markers over time (the camera cannot jump) and in pairs.
             verdicts = self._consistency_evidence(entity, ids, singles, capture_time_us)
             fed = False
@@ -308,9 +324,15 @@ class Detector(JointSolve):
             else:
                 self._feed_world_check(entity, verdicts, capture_time_us)
             for mid in ids:
-                if not each and self._doubtful_alone(entity, mid, verdicts, capture_time_us):
-                    continue
                 mp = singles[mid].pose
+                # A moved or suspect marker whose place has been measured is used there, with the place's covariance.
+                place = None if each or mp.covariance is None else self._place_of(entity, mid, capture_time_us)
+                if place is None and not each and self._doubtful_alone(entity, mid, verdicts, capture_time_us):
+                    continue
+                if place is not None and self._jumped(entity, mid, verdicts, capture_time_us, place):
+                    self.counters["dropped_jump"] += 1  # moved again since? the trusted markers' images will say
+                    self.report.dropped[mid] = "off its measured place by more than the camera can have moved"
+                    continue
                 ambiguous = mp.ambiguity > AMBIGUITY_THRESHOLD
                 if mp.ambiguity > self.max_ambiguity or (ambiguous and mp.p_alt_m is None):
                     # Too poor a fit, or nothing downstream could resolve it: drop it here.
@@ -318,6 +340,10 @@ class Detector(JointSolve):
                     self.report.dropped[mid] = "ambiguous"
                     continue
                 self.counters["ambiguous"] += ambiguous
+                if place is not None:
+                    out.append(self._at_place(mid, mp, place, capture_time_us))
+                    self.report.reported.append(mid)
+                    continue
                 alt = (mp.p_alt_m, mp.q_alt_xyzw) if mp.p_alt_m is not None and mp.q_alt_xyzw is not None else None
                 out.append(self._markerdata(mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px, mp.ambiguity,
                                             capture_time_us, alt, mp.covariance))  # fmt: skip

@@ -8,7 +8,9 @@ import functools
 import logging
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
+from atlas_onboard.core import covariance
 from atlas_onboard.core.worldcheck import MIN_VIEWS
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
@@ -29,7 +31,20 @@ def _fly(det: Detector, frames: range) -> None:
         det.detect(_image(k), 1_000_000 + k * FRAME_US)
 
 
-def test_a_marker_off_in_the_world_file_is_named_and_then_not_used_alone(caplog):
+def _camera_error(world, md) -> tuple[np.ndarray, np.ndarray]:
+    """Where a world marker's observation puts the camera by eq. 1 with the world file's pose of the marker
+    (the camera sensor's pose in its entity is the identity here), and its (3,) 1-sigma per axis."""
+    T_world_marker = world.markers[md.marker_id].T_entity_marker
+    R = Rotation.from_quat([*md.q_sensor_marker_wxyz[1:], md.q_sensor_marker_wxyz[0]]).as_matrix()
+    p = np.array(md.p_sensor_marker_m)
+    p_world_cam = T_world_marker.apply(-R.T @ p)
+    Ji = covariance.inverse_jacobian(p, R)
+    R_wm = T_world_marker.rotation.as_matrix()
+    C = R_wm @ covariance.transform(Ji, md.covariance_matrix())[:3, :3] @ R_wm.T
+    return p_world_cam, np.sqrt(np.diag(C))
+
+
+def test_a_marker_off_in_the_world_file_is_named_and_then_used_at_its_measured_place(caplog):
     world, _ = moved_marker_world(5, 0.10)  # the world file puts marker 5 10 cm off its true place
     det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
     # Before the check has seen enough, marker 5 alone is reported (nothing yet says it moved).
@@ -40,13 +55,26 @@ def test_a_marker_off_in_the_world_file_is_named_and_then_not_used_alone(caplog)
         _fly(det, range(MIN_VIEWS - 1))
         assert det.counters["markers_moved"] == 0  # one image short of the evidence it needs
         _fly(det, range(MIN_VIEWS - 1, MIN_VIEWS + 5))
-    assert det.counters["markers_moved"] == 1 and list(det.moved) == [("world", 5)]
-    np.testing.assert_allclose(det.moved[("world", 5)].offset_m, [-0.10, 0.0, 0.0], atol=0.02)
-    assert sum("world marker 5 has moved" in r.getMessage() for r in caplog.records) == 1
-    assert [t for t in det.take_status() if "moved" in t] == ["atlas: marker 5 moved -10 +0 +0 cm"]
-    # Now marker 5 alone gives no observation (it would put the camera 10 cm off).
-    assert det.detect(_image(0, alone=True), 9_000_000) == []
-    assert det.counters["dropped_moved"] == 1
+        assert det.counters["markers_moved"] == 1 and list(det.moved) == [("world", 5)]
+        np.testing.assert_allclose(det.moved[("world", 5)].offset_m, [-0.10, 0.0, 0.0], atol=0.02)
+        assert sum("world marker 5 has moved" in r.getMessage() for r in caplog.records) == 1
+        assert [t for t in det.take_status() if "moved" in t] == ["atlas: marker 5 moved -10 +0 +0 cm"]
+        # Now marker 5 alone is used where it really is: the camera at the truth within 3 sigma per axis,
+        # where the world file's place would put it 10 cm off; as close as the same square gives with a
+        # world file that has it right (a lone 15 cm square at 1.6 m), and less certain by the place's sigma.
+        world_right, spots = moved_marker_world(None, 0.0)
+        img, T_cam_world = moved_marker_image({5: spots[5]}, yaw_deg=2.0)
+        right = Detector(world_right.sensors[1], world_right, Calibration(W, H, K, DIST), decimate=1.0, track=False)
+        p_right, sigma_right = _camera_error(world_right, right.detect(img, 9_000_000)[0])
+        for t_us in (9_000_000, 9_100_000):
+            (md,) = det.detect(img, t_us)
+            p_world_cam, sigma = _camera_error(world, md)
+            err = p_world_cam - T_cam_world.inv().translation
+            assert md.marker_id == 5 and np.all(np.abs(err) <= 3 * sigma), (err, sigma)
+            assert np.linalg.norm(p_world_cam - p_right) < 0.01 and np.all(sigma >= sigma_right)
+    assert det.counters["placed_used"] == 2 and det.counters["places_measured"] == 1
+    assert det.counters["dropped_moved"] == 0
+    assert sum("using its measured place" in r.getMessage() for r in caplog.records) == 1
 
 
 def test_markers_where_the_world_file_has_them_are_never_named():
@@ -113,7 +141,8 @@ def test_a_marker_seen_only_in_pairs_is_named_once_the_pairs_evidence_is_sound(c
 
 def test_per_marker_images_report_a_moved_marker_only_beside_two_others():
     """Live refinement's per-marker images: a marker named moved is reported on its own when two or more
-    others are seen with it (the evidence to refine it; the graph weighs it against them), never alone."""
+    others are seen with it (the evidence to refine it; the graph weighs it against them); alone, only at
+    its measured place, and not at all once the node's map has its refined pose instead."""
     world, _ = moved_marker_world(5, 0.10)
     det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
     _fly(det, range(MIN_VIEWS + 5))
@@ -121,5 +150,9 @@ def test_per_marker_images_report_a_moved_marker_only_beside_two_others():
     det.per_marker = True
     ids = sorted(md.marker_id for md in det.detect(_image(0), 9_000_000))
     assert 5 in ids and len(ids) >= 3, ids
-    assert det.detect(_image(0, alone=True), 9_100_000) == []
+    (md,) = det.detect(_image(0, alone=True), 9_100_000)
+    assert md.marker_id == 5 and det.counters["placed_used"] == 1
+    # The listener now holds a refined pose of marker 5: correcting for the world file's would count twice.
+    det.map_pose_changed(5)
+    assert det.detect(_image(0, alone=True), 9_200_000) == []
     assert det.counters["dropped_moved"] == 1

@@ -1,0 +1,170 @@
+"""A moved world marker's measured place (core/worldcheck.py MeasuredPlaces): from images in which trusted
+markers placed the camera, with an honest covariance; never from itself or from doubted markers; withdrawn
+when it keeps moving."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.core import covariance
+from atlas_onboard.core.refine import Sighting
+from atlas_onboard.core.worldcheck import (
+    PLACE_MIN_VIEWS,
+    RECHECK_LAST,
+    RECHECK_MISFITS,
+    MeasuredPlace,
+    MeasuredPlaces,
+)
+
+FRAME_US = 33_333
+SIGMA_M = 0.001
+SIGMA_RAD = np.radians(0.2)
+COV = np.diag([SIGMA_M**2] * 3 + [SIGMA_RAD**2] * 3)
+FILE = {1: [0.0, 0.0, 0.0], 2: [0.6, 0.0, 0.0], 3: [0.6, 0.4, 0.0], 5: [0.0, 0.4, 0.0]}  # floor tags, ENU
+MOVED = np.array([-0.10, 0.0, 0.0])  # marker 2 is really here from its world-file place
+
+
+def _places() -> MeasuredPlaces:
+    return MeasuredPlaces({m: (np.array(p), np.eye(3)) for m, p in FILE.items()})
+
+
+def _image(rng, t_s: float, ids, true: dict[int, np.ndarray]) -> list[Sighting]:
+    """Sightings of ``ids`` from a camera 1.5 m above the tags, drifting with ``t_s``; each square's own pose
+    noisy by ``COV`` (position in the camera frame, rotation about the marker's axes)."""
+    R_ws = Rotation.from_euler("xyz", [180 + 5 * np.sin(t_s), 4 * np.cos(t_s), 10 * t_s], degrees=True).as_matrix()
+    p_ws = np.array([0.3 + 0.1 * np.sin(t_s), 0.2, 1.5])
+    out = []
+    for m in ids:
+        p_sm = R_ws.T @ (true[m] - p_ws) + rng.normal(0.0, SIGMA_M, 3)
+        R_sm = R_ws.T @ Rotation.from_rotvec(rng.normal(0.0, SIGMA_RAD, 3)).as_matrix()
+        out.append(Sighting(m, p_sm, R_sm, COV))
+    return out
+
+
+def _truth(moved: np.ndarray = MOVED) -> dict[int, np.ndarray]:
+    true = {m: np.array(p) for m, p in FILE.items()}
+    true[2] = true[2] + moved
+    return true
+
+
+def _fly(places, rng, t0_s, seconds, ids, true, trusted):
+    withdrawn = []
+    for k in range(round(seconds * 1e6 / FRAME_US)):
+        t_us = round(t0_s * 1e6) + k * FRAME_US
+        withdrawn += places.add_image("cam", t_us, _image(rng, t_us / 1e6, ids, true), trusted)
+    return withdrawn, t_us
+
+
+def _not_2(others: frozenset[int]) -> bool:
+    return 2 not in others
+
+
+def test_a_moved_marker_is_placed_where_it_is_with_an_honest_covariance():
+    rng = np.random.default_rng(4)
+    places = _places()
+    _, t_us = _fly(places, rng, 0.0, 0.6, (1, 2, 5), _truth(), _not_2)
+    # One view (0.6 s of frames from about one place) is one burst, however many images: not enough.
+    assert isinstance(places.establish(2, t_us, _not_2), str)
+    _, t_us = _fly(places, rng, 1.0, 2.0, (1, 2, 3), _truth(), _not_2)
+    place = places.establish(2, t_us, _not_2)
+    assert isinstance(place, MeasuredPlace) and place.views >= PLACE_MIN_VIEWS
+    err = place.p_world_marker_m - _truth()[2]
+    sigma = np.sqrt(np.diag(place.cov)[:3])
+    assert np.all(np.abs(err) <= 3 * sigma), (err, sigma)
+    assert np.linalg.norm(err) < 0.003 and place.sigma_m < 0.003
+    np.testing.assert_allclose(place.offset_m, MOVED, atol=0.003)
+    assert places.place(2) is place
+
+
+def test_evidence_placed_by_doubted_markers_or_by_the_marker_itself_never_places_it():
+    rng = np.random.default_rng(5)
+    places = _places()
+
+    # Marker 2 seen only beside marker 5, which the caller does not trust (suspect or moved itself).
+    def untrusted_5(others: frozenset[int]) -> bool:
+        return 5 not in others and 2 not in others
+
+    _, t_us = _fly(places, rng, 0.0, 3.0, (2, 5), _truth(), untrusted_5)
+    assert places.establish(2, t_us, untrusted_5) == "too little evidence from trusted markers"
+    # Alone, a marker gives no evidence of itself (leave-one-out: the camera must be placed by others).
+    places = _places()
+    _, t_us = _fly(places, rng, 0.0, 3.0, (2,), _truth(), _not_2)
+    assert places.establish(2, t_us, _not_2) == "too little evidence from trusted markers"
+    # The same images with a trusted marker beside it: placed.
+    _, t_us = _fly(places, rng, 3.0, 3.0, (2, 1), _truth(), _not_2)
+    assert isinstance(places.establish(2, t_us, _not_2), MeasuredPlace)
+
+
+def test_a_marker_that_keeps_moving_is_withdrawn_and_placed_again_only_from_what_was_seen_since():
+    rng = np.random.default_rng(6)
+    places = _places()
+    _, t_us = _fly(places, rng, 0.0, 2.5, (1, 2, 3), _truth(), _not_2)
+    first = places.establish(2, t_us, _not_2)
+    assert isinstance(first, MeasuredPlace)
+    # Bumped another 4 cm: a few trusted images later its place is withdrawn (once).
+    bumped = _truth(MOVED + np.array([0.0, 0.04, 0.0]))
+    withdrawn, t_us = _fly(places, rng, 3.0, RECHECK_LAST * FRAME_US / 1e6 + 0.01, (1, 2, 3), bumped, _not_2)
+    assert [w.marker_id for w in withdrawn] == [2] and places.place(2) is None
+    # Placed again from the new evidence only: at the new place, not between the two.
+    _, t_us = _fly(places, rng, 4.0, 2.5, (1, 2, 3), bumped, _not_2)
+    again = places.establish(2, t_us, _not_2)
+    assert isinstance(again, MeasuredPlace)
+    np.testing.assert_allclose(again.p_world_marker_m, bumped[2], atol=0.003)
+
+
+def test_a_marker_that_stays_keeps_its_place():
+    rng = np.random.default_rng(7)
+    places = _places()
+    _, t_us = _fly(places, rng, 0.0, 2.5, (1, 2, 3), _truth(), _not_2)
+    place = places.establish(2, t_us, _not_2)
+    withdrawn, _ = _fly(places, rng, 3.0, 3.0, (1, 2, 3), _truth(), _not_2)
+    assert withdrawn == [] and places.place(2) is place
+    assert RECHECK_MISFITS <= RECHECK_LAST
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9),
+    st.lists(st.floats(-3.0, 3.0), min_size=9, max_size=9),
+)
+def test_a_sighting_corrected_for_the_file_pose_places_the_sensor_where_the_measured_place_does(p, r):
+    """eq. 1 with the file pose and the corrected sighting == the measured place and the raw sighting."""
+    p_place, p_file, p_sm = (np.array(p[i : i + 3]) for i in (0, 3, 6))
+    R_place, R_file, R_sm = (Rotation.from_rotvec(r[i : i + 3]).as_matrix() for i in (0, 3, 6))
+    place = MeasuredPlace(2, p_place, R_place, COV, p_place - p_file, 1.0, 10, 3, 0)
+    p_new, R_new, cov, C_sensor = place.correct(p_sm, R_sm, COV, R_file, p_file)
+
+    def sensor_in_world(p_wm, R_wm, p_sm_, R_sm_):
+        return p_wm - R_wm @ R_sm_.T @ p_sm_, R_wm @ R_sm_.T
+
+    a = sensor_in_world(p_file, R_file, p_new, R_new)
+    b = sensor_in_world(p_place, R_place, p_sm, R_sm)
+    np.testing.assert_allclose(a[0], b[0], atol=1e-9)
+    np.testing.assert_allclose(a[1], b[1], atol=1e-9)
+    assert np.all(np.linalg.eigvalsh(cov) > 0) and np.all(np.linalg.eigvalsh(C_sensor) > -1e-12)
+
+
+def test_the_corrected_sightings_covariance_is_the_sightings_and_the_places_together():
+    """Monte Carlo: the sensor's position through the file pose and the corrected sighting's covariance
+    spreads as sampling the sighting's and the place's errors does."""
+    rng = np.random.default_rng(8)
+    p_place, R_place = np.array([0.5, 0.0, 0.01]), Rotation.from_rotvec([0.02, -0.01, 0.3]).as_matrix()
+    p_file, R_file = np.array([0.6, 0.0, 0.0]), Rotation.from_rotvec([0.0, 0.0, 0.3]).as_matrix()
+    p_sm, R_sm = np.array([0.2, -0.1, 1.4]), Rotation.from_euler("x", 170, degrees=True).as_matrix()
+    C_place = np.diag([0.002**2, 0.001**2, 0.003**2] + [np.radians(0.5) ** 2] * 3)
+    place = MeasuredPlace(2, p_place, R_place, C_place, p_place - p_file, 1.0, 10, 3, 0)
+    p_new, R_new, cov, C_sensor = place.correct(p_sm, R_sm, COV, R_file, p_file)
+    # Predicted: the sensor's position p_file - R_file R'^T p' with T' = (p', R') uncertain by ``cov``.
+    Ji = covariance.inverse_jacobian(p_new, R_new)
+    predicted = R_file @ covariance.transform(Ji, cov)[:3, :3] @ R_file.T
+    n = 20000
+    e, f = rng.multivariate_normal(np.zeros(6), COV, n), rng.multivariate_normal(np.zeros(6), C_place, n)
+    p_s, R_s = p_sm + e[:, :3], R_sm @ Rotation.from_rotvec(e[:, 3:]).as_matrix()
+    p_w, R_w = p_place + f[:, :3], R_place @ Rotation.from_rotvec(f[:, 3:]).as_matrix()
+    sampled = np.cov((p_w - (R_w @ np.swapaxes(R_s, 1, 2) @ p_s[..., None])[..., 0]).T)
+    np.testing.assert_allclose(np.sqrt(np.diag(predicted)), np.sqrt(np.diag(sampled)), rtol=0.05)
+    # The place's share alone is smaller than the whole and larger than nothing.
+    assert np.all(np.diag(C_sensor) < np.diag(predicted)) and np.all(np.diag(C_sensor) > 0)
