@@ -39,7 +39,7 @@ class CameraWorker(SensorWorker):
         self._have = threading.Event()
         # ``run --record`` (mapping.onboard): each detected frame goes to it after its observations.
         self.recorder: BackgroundRecorder | None = None
-        self._turn = CameraTurn(detector.sensor.T_entity_sensor.rotation)
+        self._turn: CameraTurn | None = None  # made when the autopilot's attitude is first there
 
     def counters(self) -> dict[str, int]:
         out = dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}
@@ -86,7 +86,11 @@ class CameraWorker(SensorWorker):
     def _detect(self, frame: Frame, deliver: Deliver) -> None:
         self.counts["frames"] += 1
         t_us = frame.capture_time_us
-        R_prev_now = self._turn.since_last(self.attitude_at(t_us)) if self.attitude_at is not None else None
+        R_prev_now = None
+        if self.attitude_at is not None:
+            if self._turn is None:
+                self._turn = CameraTurn(self.detector.sensor.T_entity_sensor.rotation)
+            R_prev_now = self._turn.since_last(self.attitude_at(t_us))
         try:
             found = list(self.detector.detect(frame.gray, t_us, R_prev_now))
             if found:

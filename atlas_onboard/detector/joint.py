@@ -185,7 +185,7 @@ class JointSolve:
         for place in self.places.add_image(self.sensor.id, capture_time_us, seen, self._trusted(capture_time_us)):
             self.counters["places_withdrawn"] += 1
             _logger.warning(
-                "sensor %s: world marker %d no longer fits its measured place (%+.3f %+.3f %+.3f m from the"
+                "sensor %s: world marker %d has left its measured place (%+.3f %+.3f %+.3f m from the"
                 " world file): it keeps moving; it is not used until it stays in one place",
                 self.sensor.name, place.marker_id, *place.offset_m,
             )  # fmt: skip
