@@ -2,17 +2,20 @@
 (issue 19: ``R_prev_now`` from :class:`atlas_onboard.core.attitude.CameraTurn`) against its anchor, the
 same detector predicting from the markers' last image motion (no attitude), on the same frames.
 
-The frames are the simulator's pre-rendered images of the drone's camera (``hard-near`` and ``hard``:
-figure-eight flights with yaw swings, 640x480 with distortion, blur and noise, textured floor). Both
-detectors see every frame in order, interleaved frame by frame. The attitude is the simulated
-autopilot's as the node reads it: the truth 15 ms earlier (the link's delay, which the node's boot-clock
-mapping does not remove), with a per-run bias and per-sample noise of 0.5 degree on roll and pitch.
+The frames are the simulator's images of the drone's camera, rendered here: ``hard-near`` and ``hard``
+(figure-eight flights with yaw swings of up to 50 deg/s, 640x480 with distortion, blur and noise, textured
+floor), and ``turns``: hard-near's flight with its yaw swings four times as fast (up to 195 deg/s). Three
+detectors see every frame in order, interleaved frame by frame: the anchor (image motion, no attitude),
+and two given the turn from an attitude as the node reads it: the truth 15 ms earlier (the link's delay,
+which the node's boot-clock mapping does not remove) with a per-run bias on roll and pitch and per-sample
+noise, 0.5 degree (``attitude``: the simulated autopilot's, pessimistic from frame to frame) or 0.05
+degree (``gyro-grade``: an EKF's attitude, integrated from the gyros, between two frames).
 
 Per detector: recall (markers fully in view, as the simulator's truth says, that the detector found),
 over all frames and over the frames of fast turns (the camera turned by more than ``FAST_DEG`` since
 the previous frame); the share of frames spent hunting (nothing tracked); the detector's thread CPU time
-per frame, mean, median and p95, for tracking and hunting frames. Bars: recall with attitude >= recall
-without (all frames and fast turns), mean time per frame with attitude <= 1.05x without.
+per frame, mean, median and p95, for tracking and hunting frames. Bars, with the simulated autopilot's
+attitude: recall >= the anchor's (all frames and fast turns), mean time per frame <= 1.05x the anchor's.
 
     taskset -c 0 python benchmarks/bench_turns.py [--duration 30] [--scenario hard-near|turns|hard|all]
 """

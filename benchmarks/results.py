@@ -51,7 +51,7 @@ BENCHES = (
     ),
     Bench("attack", ("benchmarks/attack.py",), "A hostile peer against a node with a live camera path."),
     Bench("detector", ("benchmarks/bench_detector.py",), "The detector against the AprilTag library, per state."),
-    Bench("turns", ("benchmarks/bench_turns.py",), "Tracking through turns: predicted from the autopilot's attitude or not."),
+    Bench("turns", ("benchmarks/bench_turns.py",), "Tracking through turns, with and without the attitude."),
     Bench("graph", ("benchmarks/bench_graph.py",), "The transform graph's evaluation time against a naive anchor."),
     Bench("node", ("benchmarks/bench_node.py",), "The node's overhead from observation to autopilot message."),
     Bench("latency", ("benchmarks/bench_latency.py",), "Latency steadiness with the rate cap at the camera's rate."),
