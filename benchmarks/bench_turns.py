@@ -160,8 +160,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"{att['mean'] / plain['mean']:.3f}")  # fmt: skip
             bars.append((f"{cam}.recall_gain", 100 * (att["recall"] - plain["recall"]), "pts", "0",
                          att["recall"] >= plain["recall"]))  # fmt: skip
-            bars.append((f"{cam}.fast_turn_recall_gain", 100 * (att["fast"] - plain["fast"]), "pts", "0",
-                         att["fast"] >= plain["fast"]))  # fmt: skip
+            if plain["fast_seen"]:  # a scene without fast turns has no such bar
+                bars.append((f"{cam}.fast_turn_recall_gain", 100 * (att["fast"] - plain["fast"]), "pts", "0",
+                             att["fast"] >= plain["fast"]))  # fmt: skip
             ratio = att["mean"] / plain["mean"]
             bars.append((f"{cam}.time_ratio", ratio, "ratio", "1.05", ratio <= 1.05))
     print()
