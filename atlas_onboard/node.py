@@ -20,6 +20,7 @@ from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from atlas_onboard.config import (
     WORLD,
@@ -48,10 +49,12 @@ from atlas_onboard.node_output import (  # noqa: F401 (were defined here)
     fused_poses,
 )
 from atlas_onboard.node_ports import Camera, Transport  # were defined here (imported from here elsewhere)
-from atlas_onboard.node_refine import LiveRefinement
 from atlas_onboard.publisher import PoseState, Publisher
 from atlas_onboard.schedule import Changes, FrameCount, Inbound, Inbox, Item, ParkingBuffer, Relevance, relevance
 from atlas_onboard.state import ResetCounterStore
+
+if TYPE_CHECKING:
+    from atlas_onboard.node_refine import LiveRefinement
 
 _logger = logging.getLogger(__name__)
 
@@ -183,6 +186,8 @@ class Node(NodeOutput):
 
     def enable_refinement(self, refine: RefineConfig) -> None:
         """Refine the world markers' poses from the observations this node accepts (docs/mapping.md)."""
+        from atlas_onboard.node_refine import LiveRefinement  # here: its scipy.stats costs every start-up
+
         self.refinement = LiveRefinement(self.world, refine)
 
     def stop(self) -> None:

@@ -18,6 +18,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -88,11 +89,10 @@ class SimReplayWorker(CameraWorker):
     ) -> None:
         from atlas_onboard.detector.calibration import load as load_calibration
         from atlas_onboard.detector.pipeline import Detector
-        from atlas_onboard.node_refine import sampled
 
         assert sensor.camera is not None and sensor.camera.calibration is not None
         camera = replace(sensor.camera, source=str(folder), replay=context.replay)
-        detector = sampled(Detector(sensor, world, load_calibration(camera.calibration), decimate=2.0), world, refine)
+        detector = _sampled(Detector(sensor, world, load_calibration(camera.calibration), decimate=2.0), world, refine)
         super().__init__(sensor.name, camera, detector)
         self.context = context
 
@@ -234,6 +234,15 @@ class FrameRenderer:
         return self.room.render(M[0], M[1], M[2], entities, seed)
 
 
+def _sampled(detector: Any, world: WorldConfig, refine: RefineConfig | None) -> Any:
+    """node_refine.sampled, imported only for a refining node (its scipy.stats costs every start-up)."""
+    if refine is None:
+        return detector
+    from atlas_onboard.node_refine import sampled
+
+    return sampled(detector, world, refine)
+
+
 def rendered_detector(
     context: SimContext, world: WorldConfig, sensor: SensorConfig, seed: int, refine: RefineConfig | None = None
 ) -> FrameHandler:
@@ -242,10 +251,9 @@ def rendered_detector(
     the map (the detector reports some images marker by marker, as a real camera's does)."""
     from atlas_onboard.detector.calibration import load as load_calibration
     from atlas_onboard.detector.pipeline import Detector
-    from atlas_onboard.node_refine import sampled
 
     assert sensor.camera is not None and sensor.camera.calibration is not None
-    detector = sampled(
+    detector = _sampled(
         Detector(sensor, world, load_calibration(sensor.camera.calibration), decimate=2.0), world, refine
     )
     frames: NDArray[np.uint8] | None = None
