@@ -323,9 +323,18 @@ def prerender(
         total += n
     if not jobs:
         return 0
-    # Fork when this process has no other thread (fast, nothing to import again); spawn otherwise.
-    method = "fork" if threading.active_count() == 1 and "fork" in mp.get_all_start_methods() else "spawn"
-    with ProcessPoolExecutor(max_workers=min(len(jobs), os.cpu_count() or 1), mp_context=mp.get_context(method)) as ex:
+    # Fork when this process has no other thread (fast, nothing to import again); otherwise fork from a
+    # fork server that has this module imported (forking a process with threads is unsafe; spawning
+    # workers imports everything again for each render), or spawn where there is none.
+    methods = mp.get_all_start_methods()
+    if threading.active_count() == 1 and "fork" in methods:
+        context = mp.get_context("fork")
+    elif "forkserver" in methods:
+        context = mp.get_context("forkserver")
+        context.set_forkserver_preload([__name__])
+    else:
+        context = mp.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=min(len(jobs), os.cpu_count() or 1), mp_context=context) as ex:
         list(ex.map(_render_frames, jobs))
     return total
 
