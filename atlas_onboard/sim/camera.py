@@ -28,6 +28,7 @@ from atlas_onboard.core.attitude import CameraTurn
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.sources import ImageFolder, ReplayClock
+from atlas_onboard.node_refine import sampled
 from atlas_onboard.sim.scenarios import Scenario
 from atlas_onboard.sim.sources import SimContext
 from atlas_onboard.sim.world import Sighting, SimWorld
@@ -94,7 +95,6 @@ class SimReplayWorker(CameraWorker):
     ) -> None:
         from atlas_onboard.detector.calibration import load as load_calibration
         from atlas_onboard.detector.pipeline import Detector
-        from atlas_onboard.node_refine import sampled
 
         assert sensor.camera is not None and sensor.camera.calibration is not None
         camera = replace(sensor.camera, source=str(folder), replay=context.replay)
@@ -248,7 +248,6 @@ def rendered_detector(
     the map (the detector reports some images marker by marker, as a real camera's does)."""
     from atlas_onboard.detector.calibration import load as load_calibration
     from atlas_onboard.detector.pipeline import Detector
-    from atlas_onboard.node_refine import sampled
 
     assert sensor.camera is not None and sensor.camera.calibration is not None
     detector = sampled(
@@ -321,9 +320,18 @@ def prerender(
         total += n
     if not jobs:
         return 0
-    # Fork when this process has no other thread (fast, nothing to import again); spawn otherwise.
-    method = "fork" if threading.active_count() == 1 and "fork" in mp.get_all_start_methods() else "spawn"
-    with ProcessPoolExecutor(max_workers=min(len(jobs), os.cpu_count() or 1), mp_context=mp.get_context(method)) as ex:
+    # Fork when this process has no other thread (fast, nothing to import again); otherwise fork from a
+    # fork server that has this module imported (forking a process with threads is unsafe; spawning
+    # workers imports everything again for each render), or spawn where there is none.
+    methods = mp.get_all_start_methods()
+    if threading.active_count() == 1 and "fork" in methods:
+        context = mp.get_context("fork")
+    elif "forkserver" in methods:
+        context = mp.get_context("forkserver")
+        context.set_forkserver_preload([__name__])
+    else:
+        context = mp.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=min(len(jobs), os.cpu_count() or 1), mp_context=context) as ex:
         list(ex.map(_render_frames, jobs))
     return total
 

@@ -16,13 +16,14 @@ The errors follow :mod:`atlas_onboard.core.covariance`'s convention ``[dp, dthet
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import WorldConfig
+from atlas_onboard.config import FusionConfig, WorldConfig
 from atlas_onboard.core.markerdata import upper_to_matrix
 from atlas_onboard.listener import Listener, make_graph
 from atlas_onboard.mavlink.autopilot import covariance_21_from_enu_flu
@@ -85,6 +86,22 @@ def run(
 ) -> tuple[StageErrors, dict[str, StageErrors]]:
     """``frames`` frames of every camera of the scenario from ``start_s``: the detection stage's errors
     and each drone's output errors (see the module's docstring)."""
+    scenario = scenarios.get(scenario_name)
+    world = world if world is not None else scenario.world()
+    detections, outputs = run_fusions(scenario_name, frames, {"": world.fusion}, seed, world, start_s)
+    return detections, outputs[""]
+
+
+def run_fusions(
+    scenario_name: str,
+    frames: int,
+    fusions: dict[str, FusionConfig],
+    seed: int = 0,
+    world: WorldConfig | None = None,
+    start_s: float = 1.0,
+) -> tuple[StageErrors, dict[str, dict[str, StageErrors]]]:
+    """As :func:`run`, with each drone's listener and graph run once per fusion setting on the same
+    detections: each setting's output errors, by its key in ``fusions``, then by drone."""
     from atlas_onboard.detector.calibration import Calibration
     from atlas_onboard.detector.pipeline import Detector
     from atlas_onboard.sim.camera import FrameRenderer, camera_seed
@@ -98,11 +115,13 @@ def run(
         renderer = FrameRenderer(scenario, world, sensor, camera_seed(seed, sid))
         cams.append((sensor, renderer, Detector(sensor, world, cal, decimate=2.0)))
     nodes = {}
-    for drone in scenario.drones:
-        graph = make_graph(world, drone)
-        nodes[drone] = (graph, Listener(world, graph))
+    for key, fusion in fusions.items():
+        variant = dataclasses.replace(world, fusion=fusion)
+        for drone in scenario.drones:
+            graph = make_graph(variant, drone)
+            nodes[key, drone] = (graph, Listener(variant, graph))
     detections = StageErrors()
-    outputs = {d: StageErrors() for d in scenario.drones}
+    outputs = {key: {d: StageErrors() for d in scenario.drones} for key in fusions}
     fps = min(r.fps for _, r, _ in cams)
     first = round(start_s * fps)
     for j in range(first, first + frames):
@@ -126,7 +145,7 @@ def run(
                 e = pose_error(md.p_sensor_marker_m, Rotation.from_quat([x, y, z, w]), T_true.translation,
                                T_true.rotation)  # fmt: skip
                 detections.add(e, upper_to_matrix(np.array(md.covariance)))
-        for drone, (graph, listener) in nodes.items():
+        for (key, drone), (graph, listener) in nodes.items():
             listener.accept_many([(md, now_ns) for md in mds])
             result = graph.evaluate(now_ns)
             listener.set_estimates(result.poses)
@@ -135,5 +154,5 @@ def run(
                 continue  # not seen in this frame: nothing new to send
             T = truth[drone]
             e = pose_error(est.p_world_m, Rotation.from_quat(est.q_world_xyzw), T.translation, T.rotation)
-            outputs[drone].add(_J_ENU_NED @ e, published_covariance(est.covariance))
+            outputs[key][drone].add(_J_ENU_NED @ e, published_covariance(est.covariance))
     return detections, outputs

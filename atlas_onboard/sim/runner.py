@@ -65,6 +65,10 @@ class SimOptions:
     # Faults to inject, (seconds after the start, "kill" or "start", entity): a node crashes (SIGKILL)
     # and is started again, to check what its peers do meanwhile.
     faults: tuple[tuple[float, str, str], ...] = ()
+    # With ``until``, the run goes on past ``duration_s`` (to at most ``max_duration_s``) until
+    # ``until(autopilots, epoch)`` holds: a test waits for an event, not a window a loaded machine may miss.
+    until: Callable[[dict[str, SimAutopilot], float], bool] | None = None
+    max_duration_s: float = 60.0
     # "realtime" or "every_frame": the drones' cameras replay the run's pre-rendered images from an image
     # folder (the ``camera.source: <folder>`` path, detector.sources), started at the run's epoch.
     replay: str = ""
@@ -85,6 +89,7 @@ class SimRun:
     logs: dict[str, str]
     ports: list[int] = field(default_factory=list)  # every UDP port the runner opened (all closed now)
     pids: list[int] = field(default_factory=list)  # every node process it started (all ended now)
+    faults_s: list[tuple[float, str, str]] = field(default_factory=list)  # when each fault was injected
 
 
 def write_calibration(path: Path, intr: Intrinsics) -> None:
@@ -263,6 +268,7 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
     exit_codes: dict[str, int | None] = {}
     pids: list[int] = []
     epoch = 0.0
+    faults_s: list[tuple[float, str, str]] = []
     try:
         world_file = build_run_config(
             scenario, run_dir, hub.port, {n: a.port for n, a in autopilots.items()}, options.world_overrides
@@ -313,9 +319,18 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
             say(f"running {scenario.name} for {duration:g} s")
             pending = sorted(options.faults)
             killed: set[str] = set()
-            while time.time() < epoch + duration:
+
+            def going_on() -> bool:
+                now = time.time()
+                if now < epoch + duration:
+                    return True
+                waiting = options.until is not None and not options.until(autopilots, epoch)
+                return waiting and now < epoch + max(duration, options.max_duration_s)
+
+            while going_on():
                 while pending and time.time() >= epoch + pending[0][0]:
                     _, action, name = pending.pop(0)
+                    faults_s.append((time.time() - epoch, action, name))
                     if action == "kill":
                         procs[name].kill()
                         procs[name].wait()
@@ -328,6 +343,8 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
                 if dead:
                     raise AtlasError(f"node {dead[0]} died during the run: {_tail(run_dir / f'{dead[0]}.log')}")
                 time.sleep(0.02)
+            if options.until is not None:  # the run's length: longer when it waited for ``until``
+                duration = max(duration, time.time() - epoch)
         exit_codes = {n: p.returncode for n, p in procs.items()}
         logs = {n: (run_dir / f"{n}.log").read_text(encoding="utf-8", errors="replace") for n in entities}
     finally:
@@ -337,9 +354,8 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
         if not options.keep_dir:
             shutil.rmtree(run_dir, ignore_errors=True)
     ports = [hub.port, *(a.port for a in autopilots.values())]
-    return SimRun(
-        scenario, SimWorld(scenario), epoch, duration, run_dir, autopilots, taps, exit_codes, logs, ports, pids
-    )
+    world = SimWorld(scenario)
+    return SimRun(scenario, world, epoch, duration, run_dir, autopilots, taps, exit_codes, logs, ports, pids, faults_s)
 
 
 def _tail(path: Path, lines: int = 3) -> str:

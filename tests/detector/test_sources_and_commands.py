@@ -6,6 +6,7 @@ import math
 import re
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -72,6 +73,7 @@ def test_camera_worker_survives_a_source_that_dies_and_comes_back(monkeypatch):
     the detector and the worker keeps running."""
     gray = cv2.imread(str(DATA / "swatbotics_mapping" / "IMG_1368.JPG"), cv2.IMREAD_GRAYSCALE)
     attempts = {"n": 0}
+    released = threading.Event()  # ends the endless source with the test: its reader thread would outlive it
 
     class Flaky(Source):
         def __init__(self, dies):
@@ -82,7 +84,7 @@ def test_camera_worker_survives_a_source_that_dies_and_comes_back(monkeypatch):
                 yield Frame(gray, k)
             if self.dies:
                 raise SourceError("camera unplugged")
-            while True:
+            while not released.is_set():
                 time.sleep(0.05)
                 yield from ()
 
@@ -103,6 +105,7 @@ def test_camera_worker_survives_a_source_that_dies_and_comes_back(monkeypatch):
         time.sleep(0.02)
     alive = worker._thread.is_alive()
     worker.stop()
+    released.set()
     c = worker.counters()
     assert c["open_errors"] == 2 and c["source_failures"] == 1 and c["opened"] == 2
     assert c["frames"] + c.get("frames_dropped", 0) == 6 and alive

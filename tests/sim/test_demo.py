@@ -48,8 +48,10 @@ def test_demo_world_runs_and_the_autopilot_gets_the_rendered_hover(tmp_path):
 
     node = NodeProcess(world, ENTITY)
     try:
-        # The image folder plays once in real time: wait until poses came and then stopped for 1.5 s.
-        ended = wait_for(lambda: _quiet_since(autopilot) > 1.5, timeout=SECONDS + 20)
+        # The image folder plays once in real time: wait until the node says it reached its end, then
+        # until the poses stopped (the last images' poses on their way).
+        ended = wait_for(lambda: "end of" in node.log(), timeout=SECONDS + 20)
+        ended = ended and wait_for(lambda: _quiet_since(autopilot) > 0.5, timeout=20)
     finally:
         node.stop()
         autopilot.stop()
