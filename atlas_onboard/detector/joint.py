@@ -16,9 +16,10 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WORLD
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
+from atlas_onboard.core.consistency import MOTION_MAX_ALLOWANCE_M, PairVerdict, Sighting
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
+from atlas_onboard.core.places import MeasuredPlace
 from atlas_onboard.core.refine import Sighting as PlacedSighting
-from atlas_onboard.core.worldcheck import MOTION_MAX_ALLOWANCE_M, MeasuredPlace, PairVerdict, Sighting
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.families import family
 from atlas_onboard.detector.search import _side

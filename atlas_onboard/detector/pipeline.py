@@ -33,15 +33,10 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import WORLD, SensorConfig, WorldConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
+from atlas_onboard.core.consistency import MarkerConsistency, MotionCheck, PairVerdict
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.core.worldcheck import (
-    MarkerConsistency,
-    MeasuredPlaces,
-    MotionCheck,
-    MovedMarker,
-    MovedMarkerCheck,
-    PairVerdict,
-)
+from atlas_onboard.core.places import MeasuredPlaces
+from atlas_onboard.core.worldcheck import MovedMarker, MovedMarkerCheck
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
