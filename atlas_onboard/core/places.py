@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from scipy.special import chdtri  # chi-square's inverse survival function (scipy.stats costs 0.6 s to import)
 
 from atlas_onboard.core import covariance
-from atlas_onboard.core.refine import MapRefiner, RefineOptions, residuals
+from atlas_onboard.core.refine import MapRefiner, RefineOptions, WorldMarkerPose, residuals
 from atlas_onboard.core.refine import Sighting as PlacedSighting
 from atlas_onboard.core.worldcheck import MAX_EVIDENCE, WINDOW_S
 
@@ -35,7 +35,7 @@ RECHECK_MISFITS = 3  # of those, this many that do not fit: the marker has moved
 
 
 @dataclass(frozen=True)
-class MeasuredPlace:
+class MeasuredPlace(WorldMarkerPose):
     """Where a moved world marker really is, from images in which trusted markers placed the camera.
 
     Attributes:
@@ -50,25 +50,11 @@ class MeasuredPlace:
         since_us: capture time of the image in which it was established.
     """
 
-    marker_id: int
-    p_world_marker_m: NDArray[np.float64]
-    R_world_marker: NDArray[np.float64]
-    cov: NDArray[np.float64]
     offset_m: NDArray[np.float64]
     scatter: float
     items: int
     views: int
     since_us: int
-
-    @property
-    def sigma_m(self) -> float:
-        """The position's largest 1-sigma, m."""
-        return float(math.sqrt(max(np.linalg.eigvalsh(self.cov[:3, :3])[-1], 0.0)))
-
-    @property
-    def sigma_deg(self) -> float:
-        """The rotation's largest 1-sigma, degrees."""
-        return float(math.degrees(math.sqrt(max(np.linalg.eigvalsh(self.cov[3:, 3:])[-1], 0.0))))
 
     def fits(
         self, p_world_marker_m: NDArray[np.float64], R_world_marker: NDArray[np.float64], cov: NDArray[np.float64]

@@ -138,9 +138,8 @@ class Detector(JointSolve):
         # The live world-file check (issue 21): moved and suspect markers, measured places, what is said.
         world_markers = {m: T for m, T in self.marker_pose.items() if self.entity_of[m] == WORLD}
         self.world_check = WorldCheck(
-            self.sensor.name, self.sensor.id, self.marker_pose, world_markers, self.counters, self._offset,
-            self._markerdata,
-        )  # fmt: skip
+            self.sensor, self.marker_pose, world_markers, self.counters, self._offset, self._markerdata
+        )
 
     @property
     def tracking(self) -> bool:

@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import WORLD
+from atlas_onboard.config import WORLD, SensorConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.consistency import MOTION_MAX_ALLOWANCE_M, MarkerConsistency, MotionCheck, PairVerdict, Sighting
 from atlas_onboard.core.markerdata import MarkerData
@@ -46,24 +46,23 @@ MarkerDataOf = Callable[..., MarkerData]
 class WorldCheck:
     """The world check of one sensor's detector (see the module).
 
-    ``marker_pose``: every marker's pose in its entity (``T_entity_marker``); ``world_markers``: the world's
-    markers among them, whose measured places are sought; ``counters``: the detector's (shared);
+    ``sensor``: the detector's camera; ``marker_pose``: every marker's pose in its entity
+    (``T_entity_marker``); ``world_markers``: the world's markers among them, whose measured places are
+    sought; ``counters``: the detector's (shared);
     ``offset_of(m, others, singles)``: where marker ``m``'s square is minus where the joint pose of ``others``
     puts it (entity frame, m; None when they cannot be solved); ``markerdata_of``: the detector's record maker.
     """
 
     def __init__(
         self,
-        sensor_name: str,
-        sensor_id: int,
+        sensor: SensorConfig,
         marker_pose: Mapping[int, RigidTransform],
         world_markers: Mapping[int, RigidTransform],
         counters: Counter[str],
         offset_of: OffsetOf,
         markerdata_of: MarkerDataOf,
     ) -> None:
-        self.sensor_name = sensor_name
-        self.sensor_id = sensor_id
+        self.sensor = sensor
         self.marker_pose = marker_pose
         self.counters = counters
         self._offset_of = offset_of
@@ -96,7 +95,7 @@ class WorldCheck:
                 if not self.moved_check.disagrees(entity, mid):
                     del self.moved[(entity, mid)]
                     self.places.drop(mid)
-                    _logger.warning("sensor %s: %s marker %d fits the world file again", self.sensor_name, entity, mid)
+                    _logger.warning("sensor %s: %s marker %d fits the world file again", self.sensor.name, entity, mid)
         for moved in verdicts:
             key = (entity, moved.marker_id)
             if key not in self.moved:
@@ -109,7 +108,7 @@ class WorldCheck:
                 _logger.warning(
                     "sensor %s: %s marker %d has moved: seen %.1f cm from its place in the world file"
                     " (%+.3f %+.3f %+.3f m) in %d of %d images; it is not used where the world file has it",
-                    self.sensor_name, entity, moved.marker_id, moved.distance_m * 100, dx, dy, dz,
+                    self.sensor.name, entity, moved.marker_id, moved.distance_m * 100, dx, dy, dz,
                     moved.disagreeing, moved.views,
                 )  # fmt: skip
             if self._moved_status_us is None or capture_time_us - self._moved_status_us >= STATUS_INTERVAL_US:
@@ -141,12 +140,12 @@ class WorldCheck:
             mp = singles[m].pose
             if mp.covariance is not None and mp.ambiguity <= AMBIGUITY_THRESHOLD:  # not maybe the mirrored one
                 seen.append(PlacedSighting(m, mp.p_m, Rotation.from_quat(mp.q_xyzw).as_matrix(), mp.covariance))
-        for place in self.places.add_image(self.sensor_id, capture_time_us, seen, self._trusted(capture_time_us)):
+        for place in self.places.add_image(self.sensor.id, capture_time_us, seen, self._trusted(capture_time_us)):
             self.counters["places_withdrawn"] += 1
             _logger.warning(
                 "sensor %s: world marker %d no longer fits its measured place (%+.3f %+.3f %+.3f m from the"
                 " world file): it keeps moving; it is not used until it stays in one place",
-                self.sensor_name, place.marker_id, *place.offset_m,
+                self.sensor.name, place.marker_id, *place.offset_m,
             )  # fmt: skip
             self._say_status(f"atlas: marker {place.marker_id} keeps moving, unused", capture_time_us)
 
@@ -172,8 +171,8 @@ class WorldCheck:
         _logger.warning(
             "sensor %s: world marker %d has moved %.1f cm from its place in the world file (%+.3f %+.3f %+.3f m);"
             " using its measured place (sigma %.1f mm, %.2f deg; %d images in %d views, scatter %.1f)",
-            self.sensor_name, mid, float(np.linalg.norm(found.offset_m)) * 100, dx, dy, dz, found.sigma_m * 1000,
-            found.sigma_deg, found.items, found.views, found.scatter,
+            self.sensor.name, mid, float(np.linalg.norm(found.offset_m)) * 100, dx, dy, dz, found.max_sigma_m * 1000,
+            found.max_sigma_deg, found.items, found.views, found.scatter,
         )  # fmt: skip
         self._say_status(
             f"atlas: marker {mid} at {round(dx * 100):+d} {round(dy * 100):+d} {round(dz * 100):+d} cm, used",
@@ -334,7 +333,7 @@ class WorldCheck:
         text = f"{entity}: {what} by {offset_m * 100:.1f} cm"
         if self._last_log_us is None or abs(capture_time_us - self._last_log_us) >= LOG_INTERVAL_US:
             self._last_log_us = capture_time_us
-            _logger.warning("sensor %s: %s with the world file (not used)", self.sensor_name, text)
+            _logger.warning("sensor %s: %s with the world file (not used)", self.sensor.name, text)
         if self._last_status_us is None or abs(capture_time_us - self._last_status_us) >= STATUS_INTERVAL_US:
             self._last_status_us = capture_time_us
             self.status.append(f"atlas {text}"[:50])

@@ -74,7 +74,7 @@ def test_a_moved_marker_is_placed_where_it_is_with_an_honest_covariance():
     err = place.p_world_marker_m - _truth()[2]
     sigma = np.sqrt(np.diag(place.cov)[:3])
     assert np.all(np.abs(err) <= 3 * sigma), (err, sigma)
-    assert np.linalg.norm(err) < 0.003 and place.sigma_m < 0.003
+    assert np.linalg.norm(err) < 0.003 and place.max_sigma_m < 0.003
     np.testing.assert_allclose(place.offset_m, MOVED, atol=0.003)
     assert places.place(2) is place
 

@@ -29,7 +29,7 @@ of one image place the camera, leave-one-out), :mod:`.mean` (the robust mean of 
 """
 
 from atlas_onboard.core.refine.mean import residuals
-from atlas_onboard.core.refine.records import Estimate, Evidence, RefineOptions, Sighting, Update
+from atlas_onboard.core.refine.records import Estimate, Evidence, RefineOptions, Sighting, Update, WorldMarkerPose
 from atlas_onboard.core.refine.refiner import MapRefiner
 
-__all__ = ["Estimate", "Evidence", "MapRefiner", "RefineOptions", "Sighting", "Update", "residuals"]
+__all__ = ["Estimate", "Evidence", "MapRefiner", "RefineOptions", "Sighting", "Update", "WorldMarkerPose", "residuals"]

@@ -61,7 +61,28 @@ class Evidence:
 
 
 @dataclass(frozen=True)
-class Estimate:
+class WorldMarkerPose:
+    """A marker's pose in the world frame and its 6x6 covariance: ``p_world_marker_m`` (3,), ``R_world_marker``
+    (3, 3), ``cov`` (6, 6) of ``[dp, dtheta]`` (dp world frame m, dtheta about the marker's axes rad)."""
+
+    marker_id: int
+    p_world_marker_m: NDArray[np.float64]
+    R_world_marker: NDArray[np.float64]
+    cov: NDArray[np.float64]
+
+    @property
+    def max_sigma_m(self) -> float:
+        """The position's largest 1-sigma, m."""
+        return float(math.sqrt(max(np.linalg.eigvalsh(self.cov[:3, :3])[-1], 0.0)))
+
+    @property
+    def max_sigma_deg(self) -> float:
+        """The rotation's largest 1-sigma, degrees."""
+        return float(math.degrees(math.sqrt(max(np.linalg.eigvalsh(self.cov[3:, 3:])[-1], 0.0))))
+
+
+@dataclass(frozen=True)
+class Estimate(WorldMarkerPose):
     """A marker's refined pose in the world frame, from its inlying evidence.
 
     ``cov`` (6, 6) is the refined pose's covariance; ``views`` the independent views among the inliers;
@@ -69,10 +90,6 @@ class Estimate:
     ``offset_deg`` how far it is from the current map pose; ``distance2`` that offset's squared
     Mahalanobis distance under ``cov``."""
 
-    marker_id: int
-    p_world_marker_m: NDArray[np.float64]
-    R_world_marker: NDArray[np.float64]
-    cov: NDArray[np.float64]
     items: int
     outliers: int
     views: int
@@ -93,23 +110,11 @@ class Estimate:
         R = self.R_world_marker
         return np.degrees(np.sqrt(np.diag(R @ self.cov[3:, 3:] @ R.T)))
 
-    @property
-    def max_sigma_m(self) -> float:
-        return float(math.sqrt(max(np.linalg.eigvalsh(self.cov[:3, :3])[-1], 0.0)))
-
-    @property
-    def max_sigma_deg(self) -> float:
-        return float(math.degrees(math.sqrt(max(np.linalg.eigvalsh(self.cov[3:, 3:])[-1], 0.0))))
-
 
 @dataclass(frozen=True)
-class Update:
+class Update(WorldMarkerPose):
     """A marker moved by :meth:`MapRefiner.step`: its new map pose and covariance, and the estimate."""
 
-    marker_id: int
-    p_world_marker_m: NDArray[np.float64]
-    R_world_marker: NDArray[np.float64]
-    cov: NDArray[np.float64]
     step_m: float
     step_deg: float
     reached: bool  # the step reached the estimate (not cut short by the step bound)
