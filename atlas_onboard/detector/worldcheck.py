@@ -62,6 +62,8 @@ class WorldCheck:
         offset_of: OffsetOf,
         markerdata_of: MarkerDataOf,
     ) -> None:
+        # Where moved world markers really are, to use them there (evidence from every image of two or more).
+        self.places = MeasuredPlaces({m: (T.translation, T.rotation.as_matrix()) for m, T in world_markers.items()})
         self.sensor = sensor
         self.marker_pose = marker_pose
         self.counters = counters
@@ -80,8 +82,6 @@ class WorldCheck:
         # Faster evidence: pairs and frame-to-frame motion, in a consistency graph over the markers.
         self.consistency = MarkerConsistency()
         self.motion = MotionCheck()
-        # Where moved world markers really are, to use them there (evidence from every image of two or more).
-        self.places = MeasuredPlaces({m: (T.translation, T.rotation.as_matrix()) for m, T in world_markers.items()})
         self._place_tried_us: dict[int, int] = {}
         self._map_changed: set[int] = set()  # markers whose pose the node's map no longer takes from the file
 
