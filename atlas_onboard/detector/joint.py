@@ -1,12 +1,11 @@
-"""The joint solve of the markers of one entity seen together, and the live check of the world file: a
-marker that does not fit with the others is left out, counted, logged and announced (part of
-:class:`atlas_onboard.detector.pipeline.Detector`)."""
+"""The joint solve of the markers of one entity seen together: a marker that does not fit with the others
+is left out, and the verdict goes to the live check of the world file (:mod:`atlas_onboard.detector.worldcheck`,
+which counts, logs and announces it) (part of :class:`atlas_onboard.detector.pipeline.Detector`)."""
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,11 +13,8 @@ from numpy.typing import NDArray
 from scipy.linalg import block_diag
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import WORLD
-from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
+from atlas_onboard.core.consistency import MarkerConsistency
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
-from atlas_onboard.core.refine import Sighting as PlacedSighting
-from atlas_onboard.core.worldcheck import MOTION_MAX_ALLOWANCE_M, MeasuredPlace, PairVerdict, Sighting
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.families import family
 from atlas_onboard.detector.search import _side
@@ -26,10 +22,6 @@ from atlas_onboard.detector.search import _side
 _logger = logging.getLogger(__name__)
 
 JOINT_MISFIT = 3.0  # a joint fit this many times worse than its worst single square is not used
-CLEAR_OFFSET_M = 0.03  # a moved or suspect marker fits again when its square is this close to where others put it
-STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagreeing markers
-LOG_INTERVAL_US = 5_000_000
-PLACE_RETRY_US = 250_000  # a moved marker's measured place is sought again at most this often
 
 
 @dataclass(frozen=True)
@@ -56,8 +48,8 @@ class _Single:
 
 
 class JointSolve:
-    """The joint solve and the world check of :class:`~atlas_onboard.detector.pipeline.Detector` (a base of
-    it: the state they use is the detector's)."""
+    """The joint solve of :class:`~atlas_onboard.detector.pipeline.Detector` (a base of it: the state it uses
+    is the detector's; the world check is the detector's ``world_check``)."""
 
     def _sigma_px(self, family_name: str) -> float:
         return pose.SIGMA_PX_APRILTAG if family(family_name).is_apriltag else pose.SIGMA_PX_ARUCO
@@ -127,255 +119,27 @@ class JointSolve:
             self._offsets[m] = offset
         return math.nan if offset is None else float(np.linalg.norm(offset))
 
-    def _check_world(self, entity: str, ids: list[int], capture_time_us: int) -> None:
-        """Feed the image's verdict to the live check; say a marker that has moved (log at most once a
-        minute per marker, a STATUSTEXT at most once a minute, ``markers_moved`` counts distinct markers)."""
-        verdicts = self.world_check.add(capture_time_us, entity, ids, self._offsets)
-        still = {m.marker_id for m in verdicts}
-        for mid in ids:  # a marker put back (it fits again in most images) is used again
-            if (entity, mid) in self.moved and mid not in still and mid not in self._offsets:
-                if not self.world_check.disagrees(entity, mid):
-                    del self.moved[(entity, mid)]
-                    self.places.drop(mid)
-                    _logger.warning("sensor %s: %s marker %d fits the world file again", self.sensor.name, entity, mid)
-        for moved in verdicts:
-            key = (entity, moved.marker_id)
-            if key not in self.moved:
-                self.counters["markers_moved"] += 1
-            self.moved[key] = moved
-            dx, dy, dz = moved.offset_m
-            last = self._moved_log_us.get(key)
-            if last is None or capture_time_us - last >= STATUS_INTERVAL_US:
-                self._moved_log_us[key] = capture_time_us
-                _logger.warning(
-                    "sensor %s: %s marker %d has moved: seen %.1f cm from its place in the world file"
-                    " (%+.3f %+.3f %+.3f m) in %d of %d images; it is not used where the world file has it",
-                    self.sensor.name, entity, moved.marker_id, moved.distance_m * 100, dx, dy, dz,
-                    moved.disagreeing, moved.views,
-                )  # fmt: skip
-            if self._moved_status_us is None or capture_time_us - self._moved_status_us >= STATUS_INTERVAL_US:
-                self._moved_status_us = capture_time_us
-                self._status.append(
-                    f"atlas: marker {moved.marker_id} moved {round(dx * 100):+d} {round(dy * 100):+d}"
-                    f" {round(dz * 100):+d} cm"[:50]
-                )
+    # --- the world check's part in the joint solve: held by the detector (detector/worldcheck.py) ---------
 
-    # --- a moved world marker used at its measured place ------------------------------------------------
+    @property
+    def consistency(self) -> MarkerConsistency:
+        return self.world_check.consistency
 
-    def _trusted(self, now_us: int) -> Callable[[frozenset[int]], bool]:
-        """Whether markers that placed the camera in an image are trusted now: none moved or suspect, and
-        two or more (checked against each other), or one that agrees with another marker."""
-        suspects = self.consistency.suspects(WORLD, now_us)
-
-        def trusted(others: frozenset[int]) -> bool:
-            if not others or any(m in suspects or (WORLD, m) in self.moved for m in others):
-                return False
-            return len(others) >= 2 or self.consistency.support(WORLD, next(iter(others)), now_us) >= 2
-
-        return trusted
-
-    def _gather_places(self, ids: list[int], singles: dict[int, _Single], capture_time_us: int) -> None:
-        """This image's world markers as evidence of where each is (:class:`MeasuredPlaces`); a place that
-        new evidence no longer fits is withdrawn, said and counted."""
-        seen = []
-        for m in ids:
-            mp = singles[m].pose
-            if mp.covariance is not None and mp.ambiguity <= AMBIGUITY_THRESHOLD:  # not maybe the mirrored one
-                seen.append(PlacedSighting(m, mp.p_m, Rotation.from_quat(mp.q_xyzw).as_matrix(), mp.covariance))
-        for place in self.places.add_image(self.sensor.id, capture_time_us, seen, self._trusted(capture_time_us)):
-            self.counters["places_withdrawn"] += 1
-            _logger.warning(
-                "sensor %s: world marker %d has left its measured place (%+.3f %+.3f %+.3f m from the"
-                " world file): it keeps moving; it is not used until it stays in one place",
-                self.sensor.name, place.marker_id, *place.offset_m,
-            )  # fmt: skip
-            self._say_status(f"atlas: marker {place.marker_id} keeps moving, unused", capture_time_us)
-
-    def _place_of(self, entity: str, mid: int, capture_time_us: int) -> MeasuredPlace | None:
-        """The measured place of a world marker reported moved or suspect, sought when there is none yet (at
-        most every ``PLACE_RETRY_US``); said once when found (log and STATUSTEXT at most once a minute),
-        counted. A marker no longer doubted is used where the world file has it: its place is forgotten."""
-        if entity != WORLD or mid in self._map_changed:
-            return None
-        if (entity, mid) not in self.moved and not self.consistency.is_suspect(entity, mid, capture_time_us):
-            self.places.drop(mid)
-            return None
-        place = self.places.place(mid)
-        last = self._place_tried_us.get(mid)
-        if place is not None or (last is not None and 0 <= capture_time_us - last < PLACE_RETRY_US):
-            return place
-        self._place_tried_us[mid] = capture_time_us
-        found = self.places.establish(mid, capture_time_us, self._trusted(capture_time_us))
-        if isinstance(found, str):
-            return None
-        self.counters["places_measured"] += 1
-        dx, dy, dz = found.offset_m
-        _logger.warning(
-            "sensor %s: world marker %d has moved %.1f cm from its place in the world file (%+.3f %+.3f %+.3f m);"
-            " using its measured place (sigma %.1f mm, %.2f deg; %d images in %d views, scatter %.1f)",
-            self.sensor.name, mid, float(np.linalg.norm(found.offset_m)) * 100, dx, dy, dz, found.sigma_m * 1000,
-            found.sigma_deg, found.items, found.views, found.scatter,
-        )  # fmt: skip
-        self._say_status(
-            f"atlas: marker {mid} at {round(dx * 100):+d} {round(dy * 100):+d} {round(dz * 100):+d} cm, used",
-            capture_time_us,
-        )
-        return found
-
-    def map_pose_changed(self, marker_id: int) -> None:
-        """The node's map now holds another pose of the marker than the world file's (live refinement): its
-        measured place here, relative to the world file's, must no longer be used."""
-        self._map_changed.add(marker_id)
-        self.places.drop(marker_id)
-
-    def _at_place(self, mid: int, mp: pose.MarkerPose, place: MeasuredPlace, capture_time_us: int) -> MarkerData:
-        """Marker ``mid``'s own square as an observation of its world-file pose that places the sensor where
-        its measured place does, with the place's covariance carried along."""
-        T_file = self.marker_pose[mid]
-        R_file = T_file.rotation.as_matrix()
-        R = Rotation.from_quat(mp.q_xyzw).as_matrix()
-        p, R_new, cov, C_sensor = place.correct(mp.p_m, R, mp.covariance, R_file, T_file.translation)
-        alt = None
-        if mp.p_alt_m is not None and mp.q_alt_xyzw is not None:  # the other planar solution, moved alike
-            R_alt = Rotation.from_quat(mp.q_alt_xyzw).as_matrix()
-            p_alt, R_alt_new, _, _ = place.correct(mp.p_alt_m, R_alt, mp.covariance, R_file, T_file.translation)
-            alt = (p_alt, Rotation.from_matrix(R_alt_new).as_quat())
-        sigma = math.hypot(mp.sigma_m, math.sqrt(max(float(np.linalg.eigvalsh(C_sensor)[-1]), 0.0)))
-        self.counters["placed_used"] += 1
-        return self._markerdata(
-            mid, p, Rotation.from_matrix(R_new).as_quat(), sigma, mp.reprojection_error_px, mp.ambiguity,
-            capture_time_us, alt, cov,
-        )  # fmt: skip
-
-    def _say_status(self, text: str, capture_time_us: int) -> None:
-        """A STATUSTEXT about moved markers, at most one a minute."""
-        if self._moved_status_us is None or capture_time_us - self._moved_status_us >= STATUS_INTERVAL_US:
-            self._moved_status_us = capture_time_us
-            self._status.append(text[:50])
-
-    def _doubtful(self, entity: str, ids: list[int], capture_time_us: int) -> set[int]:
-        """Those of ``ids`` reported moved or suspect."""
-        suspects = self.consistency.suspects(entity, capture_time_us)
-        return {m for m in ids if m in suspects or (entity, m) in self.moved}
+    @property
+    def _offsets(self) -> dict[int, NDArray[np.float64]]:
+        """This image's disagreeing markers (entity frame), kept by the world check."""
+        return self.world_check.offsets
 
     def _record_group(
         self, entity: str, fitted: list[int], left_out: list[int], singles: dict[int, _Single], capture_time_us: int
     ) -> None:
-        """A joint solve's verdicts to the consistency graph. A moved or suspect marker that fitted is
-        judged by its offset from the others instead: the joint fit cannot see a move along the line of
-        sight of far squares, and such a marker must not be cleared by it."""
-        doubtful = self._doubtful(entity, fitted, capture_time_us)
-        trusted = [m for m in fitted if m not in doubtful]
-        if not trusted or not doubtful:
-            self.consistency.add_group(capture_time_us, entity, fitted, left_out)
-            return
-        self.consistency.add_group(capture_time_us, entity, trusted, left_out)
-        for m in doubtful:
-            offset = self._offset(m, trusted, singles)
-            if offset is not None:
-                agree = bool(np.linalg.norm(offset) <= CLEAR_OFFSET_M)
-                for b in trusted:
-                    self.consistency.add(capture_time_us, entity, m, b, agree)
-
-    def _sighting(self, m: int, single: _Single, capture_time_us: int) -> Sighting | None:
-        """Where marker ``m``'s own square puts the camera in its entity's frame, with the (3, 3)
-        covariance of that position from the pose's 6x6 (None without one, or when the pose may be the
-        mirrored planar solution)."""
-        mp = single.pose
-        if mp.covariance is None or not mp.ambiguity <= AMBIGUITY_THRESHOLD:
-            return None
-        R_cm = Rotation.from_quat(mp.q_xyzw).as_matrix()
-        u = R_cm.T @ mp.p_m  # minus the camera's position in the marker frame
-        # c = -R^T p; with p + dp and R exp(dtheta): dc = -R^T dp - [u]x dtheta (pose_covariance's error vector)
-        ux = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
-        J = np.hstack([-R_cm.T, -ux])
-        T_entity_marker = self.marker_pose[m]
-        R_em = T_entity_marker.rotation.as_matrix()
-        cov = R_em @ J @ mp.covariance @ J.T @ R_em.T
-        return Sighting(capture_time_us, T_entity_marker.apply(-u), (cov + cov.T) / 2.0)
-
-    def _consistency_evidence(
-        self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int
-    ) -> list[PairVerdict]:
-        """The temporal verdicts of this image's markers of ``entity`` (:class:`MotionCheck`), added to
-        the consistency graph and returned. Only for the world's markers: the camera's motion in the
-        world's frame is bounded by its vehicle alone; in another entity's frame that entity's motion and
-        turns add to it."""
-        if entity != WORLD:
-            return []
-        now = {m: s for m in ids if (s := self._sighting(m, singles[m], capture_time_us)) is not None}
-        verdicts = self.motion.compare(entity, now)
-        for v in verdicts:
-            self.consistency.add(capture_time_us, entity, v.marker_id, v.other, v.agree)
-        self.counters["motion_disagrees"] += sum(not v.agree for v in verdicts)
-        return verdicts
-
-    def _trusted_verdicts(
-        self, entity: str, verdicts: list[PairVerdict], capture_time_us: int
-    ) -> dict[int, PairVerdict]:
-        """Per marker, its verdict against the best supported marker that is not suspect and agrees with
-        at least one other (the reference the world check can trust)."""
-        best: dict[int, tuple[int, PairVerdict]] = {}
-        suspects = self.consistency.suspects(entity, capture_time_us)
-        for v in verdicts:
-            if v.other in suspects:
-                continue
-            support = self.consistency.support(entity, v.other, capture_time_us)
-            if support >= 2 and (v.marker_id not in best or support > best[v.marker_id][0]):
-                best[v.marker_id] = (support, v)
-        return {m: v for m, (_, v) in best.items()}
-
-    def _pair_verdicts(
-        self, entity: str, a: int, b: int, agree: bool, singles: dict[int, _Single], capture_time_us: int
-    ) -> list[PairVerdict]:
-        """The joint solve's verdict on a pair for each of its markers, for the world check (a moved or
-        suspect one that fitted is judged by its offset, as in :meth:`_record_group`)."""
-        out = []
-        for m, other in ((a, b), (b, a)):
-            doubtful = bool(self._doubtful(entity, [m], capture_time_us))
-            offset = np.zeros(3) if agree and not doubtful else self._offset(m, [other], singles)
-            if offset is not None:
-                fits = agree and (not doubtful or bool(np.linalg.norm(offset) <= CLEAR_OFFSET_M))
-                out.append(PairVerdict(m, other, fits, offset))
-        return out
-
-    def _feed_world_check(self, entity: str, verdicts: list[PairVerdict], capture_time_us: int) -> None:
-        """Pair and temporal verdicts against trusted markers, one per marker and image, to the live check."""
-        trusted = self._trusted_verdicts(entity, verdicts, capture_time_us)
-        if trusted:
-            self._offsets = {m: v.offset_m for m, v in trusted.items() if not v.agree}
-            self._check_world(entity, sorted(trusted), capture_time_us)
-
-    def _jumped(
-        self, entity: str, m: int, verdicts: list[PairVerdict], capture_time_us: int, place: MeasuredPlace | None = None
-    ) -> bool:
-        """Whether marker ``m`` put the camera this image where it cannot have moved to from where a
-        better supported marker put it a frame ago. At its measured ``place`` (the verdicts judge the world
-        file's): when what it shows is off that place by more than any comparison allows."""
-        own = self.consistency.support(entity, m, capture_time_us)
-        for v in verdicts:
-            if v.marker_id != m or self.consistency.support(entity, v.other, capture_time_us) <= own:
-                continue
-            if place is None and not v.agree:
-                return True
-            if place is not None and np.linalg.norm(v.offset_m - place.offset_m) > MOTION_MAX_ALLOWANCE_M:
-                return True
-        return False
+        self.world_check.record_group(entity, fitted, left_out, singles, capture_time_us)
 
     def _disagrees(self, entity: str, m: int, offset_m: float, capture_time_us: int) -> None:
-        self.counters["marker_disagrees"] += 1
-        self.disagreements[m] += 1
-        self.report.dropped[m] = f"joint misfit, marker {m} disagrees by {offset_m * 100:.1f} cm"
-        self._log_disagreement(entity, f"marker {m} disagrees", offset_m, capture_time_us)
+        self.world_check.disagrees(entity, m, offset_m, capture_time_us, self.report)
 
     def _log_disagreement(self, entity: str, what: str, offset_m: float, capture_time_us: int) -> None:
-        text = f"{entity}: {what} by {offset_m * 100:.1f} cm"
-        if self._last_log_us is None or abs(capture_time_us - self._last_log_us) >= LOG_INTERVAL_US:
-            self._last_log_us = capture_time_us
-            _logger.warning("sensor %s: %s with the world file (not used)", self.sensor.name, text)
-        if self._last_status_us is None or abs(capture_time_us - self._last_status_us) >= STATUS_INTERVAL_US:
-            self._last_status_us = capture_time_us
-            self._status.append(f"atlas {text}"[:50])
+        self.world_check.log_disagreement(entity, what, offset_m, capture_time_us)
 
     def _joint_solution(self, ids: list[int], singles: dict[int, _Single]) -> tuple | None:
         """rvec, tvec (T_camera_entity), RMS error and sigma of the joint solve of ``ids``, or None."""

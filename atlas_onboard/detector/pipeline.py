@@ -15,16 +15,17 @@ in undistorted pixels (:func:`refine.refine_corners_undistorted`), which also me
 Markers of one entity that do not fit together are found by leaving each out in turn: the rest give the
 entity's pose, and the one that disagrees is counted, logged and announced (:meth:`Detector.take_status`).
 Every pair seen together and every marker seen a frame after another (the camera cannot jump) is
-evidence in a consistency graph over the markers (:class:`MarkerConsistency`, :class:`MotionCheck`): a
+evidence in a consistency graph over the markers (:mod:`atlas_onboard.core.consistency`): a
 marker that disagrees with markers that agree among themselves is suspect, never used alone nor in a
 joint solve, while the other member of a pair that disagrees is used. A moved or suspect world marker
-whose place has been measured (:class:`MeasuredPlaces`: where trusted markers' images put it, with its
-covariance) is used alone at that place, the place's covariance carried into its pose.
+whose place has been measured (:mod:`atlas_onboard.core.places`: where trusted markers' images put it, with its
+covariance) is used alone at that place, the place's covariance carried into its pose. The world check
+(:class:`atlas_onboard.detector.worldcheck.WorldCheck`) owns that state, its logs and STATUSTEXT.
 """
 
 from __future__ import annotations
 
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,15 +34,9 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import WORLD, SensorConfig, WorldConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
+from atlas_onboard.core.consistency import PairVerdict
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.core.worldcheck import (
-    MarkerConsistency,
-    MeasuredPlaces,
-    MotionCheck,
-    MovedMarker,
-    MovedMarkerCheck,
-    PairVerdict,
-)
+from atlas_onboard.core.worldcheck import MovedMarker
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
@@ -49,8 +44,6 @@ from atlas_onboard.detector.calibration import Calibration
 # The joint solve and the region search live in modules of their own; their names are re-exported here.
 from atlas_onboard.detector.joint import (  # noqa: F401
     JOINT_MISFIT,
-    LOG_INTERVAL_US,
-    STATUS_INTERVAL_US,
     Disagreement,
     JointSolve,
     _Single,
@@ -75,6 +68,7 @@ from atlas_onboard.detector.search import (  # noqa: F401
     _merge,
     _side,
 )
+from atlas_onboard.detector.worldcheck import LOG_INTERVAL_US, STATUS_INTERVAL_US, WorldCheck  # noqa: F401
 
 MAX_AMBIGUITY = 1.0
 """Detections whose IPPE ratio (chosen over other solution's reprojection error) exceeds this are
@@ -140,25 +134,12 @@ class Detector(JointSolve):
         self.search = RegionSearch(self.calibration, self.finder, self.counters, self.sensor.id % (TILES[0] * TILES[1]))
         self._quiet_until = np.zeros((0, 0), np.int64)  # per cell: the frame until which it is not a candidate
         self.report = FrameReport()
-        self.disagreements: Counter[int] = Counter()  # marker id -> images in which it disagreed
-        self._status: deque[str] = deque()
-        self._last_status_us: int | None = None
-        self._last_log_us: int | None = None
-        # The live world-file check (issue 21): the joint solves' verdicts over many images.
-        self.world_check = MovedMarkerCheck()
-        self._offsets: dict[int, NDArray[np.float64]] = {}  # this image's disagreeing markers (entity frame)
-        self._moved_log_us: dict[tuple[str, int], int] = {}
-        self._moved_status_us: int | None = None
-        self.moved: dict[tuple[str, int], MovedMarker] = {}  # reported so far, the latest verdict of each
-        # Faster evidence: pairs and frame-to-frame motion, in a consistency graph over the markers.
-        self.consistency = MarkerConsistency()
-        self.motion = MotionCheck()
         self._misfit_pair: list[int] = []  # the last joint solve's two markers that disagreed
-        # Where moved world markers really are, to use them there (evidence from every image of two or more).
+        # The live world-file check (issue 21): moved and suspect markers, measured places, what is said.
         world_markers = {m: T for m, T in self.marker_pose.items() if self.entity_of[m] == WORLD}
-        self.places = MeasuredPlaces({m: (T.translation, T.rotation.as_matrix()) for m, T in world_markers.items()})
-        self._place_tried_us: dict[int, int] = {}
-        self._map_changed: set[int] = set()  # markers whose pose the node's map no longer takes from the file
+        self.world_check = WorldCheck(
+            self.sensor, self.marker_pose, world_markers, self.counters, self._offset, self._markerdata
+        )
 
     @property
     def tracking(self) -> bool:
@@ -283,23 +264,23 @@ class Detector(JointSolve):
             groups.setdefault(self.entity_of[mid], []).append(mid)
         for entity, ids in groups.items():
             if entity == WORLD and len(ids) > 1:  # evidence of where each world marker is, placed by the others
-                self._gather_places(ids, singles, capture_time_us)
+                self.world_check.gather_places(ids, singles, capture_time_us)
             # Evidence for the consistency of the markers over time (the camera cannot jump) and in pairs.
-            verdicts = self._consistency_evidence(entity, ids, singles, capture_time_us)
+            verdicts = self.world_check.consistency_evidence(entity, ids, singles, capture_time_us)
             fed = False
             each = self.per_marker and len(ids) >= 3
             if self.joint and len(ids) > 1 and not each:
-                self._offsets = {}
-                doubtful = self._doubtful(entity, ids, capture_time_us)
+                self.world_check.offsets = {}
+                doubtful = self.world_check.doubtful(entity, ids, capture_time_us)
                 md, used = self._robust_joint(entity, ids, singles, capture_time_us)
                 if len(ids) >= 3 and used is not None:  # one that does not fit can be singled out
-                    self._check_world(entity, ids, capture_time_us)
+                    self.world_check.check(entity, ids, capture_time_us)
                     fed = True
                 elif len(ids) == 2 and (md is not None or used is None):
                     a, b = ids
-                    verdicts += self._pair_verdicts(entity, a, b, md is not None, singles, capture_time_us)
+                    verdicts += self.world_check.pair_verdicts(entity, a, b, md is not None, singles, capture_time_us)
                 if not fed:
-                    self._feed_world_check(entity, verdicts, capture_time_us)
+                    self.world_check.feed(entity, verdicts, capture_time_us)
                 if md is not None and used is not None and doubtful & set(used):
                     # A moved or suspect marker that fitted is still left out: the rest give the pose.
                     for m in doubtful & set(used):
@@ -316,20 +297,22 @@ class Detector(JointSolve):
                 if used is None:
                     # The squares contradict each other: a pair's member that others trust is used alone,
                     # when the other is suspect; otherwise none of them is trusted in this image.
-                    suspects = self._doubtful(entity, self._misfit_pair, capture_time_us)
+                    suspects = self.world_check.doubtful(entity, self._misfit_pair, capture_time_us)
                     rest = [m for m in self._misfit_pair if m not in suspects]
                     if len(rest) != 1 or len(self._misfit_pair) != 2:
                         continue
                     ids = rest
             else:
-                self._feed_world_check(entity, verdicts, capture_time_us)
+                self.world_check.feed(entity, verdicts, capture_time_us)
             for mid in ids:
                 mp = singles[mid].pose
                 # A moved or suspect marker whose place has been measured is used there, with the place's covariance.
-                place = None if each or mp.covariance is None else self._place_of(entity, mid, capture_time_us)
+                place = (
+                    None if each or mp.covariance is None else self.world_check.place_of(entity, mid, capture_time_us)
+                )
                 if place is None and not each and self._doubtful_alone(entity, mid, verdicts, capture_time_us):
                     continue
-                if place is not None and self._jumped(entity, mid, verdicts, capture_time_us, place):
+                if place is not None and self.world_check.jumped(entity, mid, verdicts, capture_time_us, place):
                     self.counters["dropped_jump"] += 1  # moved again since? the trusted markers' images will say
                     self.report.dropped[mid] = "off its measured place by more than the camera can have moved"
                     continue
@@ -341,7 +324,7 @@ class Detector(JointSolve):
                     continue
                 self.counters["ambiguous"] += ambiguous
                 if place is not None:
-                    out.append(self._at_place(mid, mp, place, capture_time_us))
+                    out.append(self.world_check.at_place(mid, mp, place, capture_time_us))
                     self.report.reported.append(mid)
                     continue
                 alt = (mp.p_alt_m, mp.q_alt_xyzw) if mp.p_alt_m is not None and mp.q_alt_xyzw is not None else None
@@ -353,14 +336,14 @@ class Detector(JointSolve):
 
     def _doubtful_alone(self, entity: str, mid: int, verdicts: list[PairVerdict], capture_time_us: int) -> bool:
         """Whether a marker seen alone must not give the pose (counted and explained in the report)."""
-        if (entity, mid) in self.moved:  # alone it would move the pose by its offset
+        if (entity, mid) in self.world_check.moved:  # alone it would move the pose by its offset
             self.counters["dropped_moved"] += 1
             self.report.dropped[mid] = "reported moved (the world file disagrees with what is seen)"
-        elif self.consistency.is_suspect(entity, mid, capture_time_us):
+        elif self.world_check.consistency.is_suspect(entity, mid, capture_time_us):
             # It disagrees with markers that agree among themselves: alone it would move the pose.
             self.counters["dropped_suspect"] += 1
             self.report.dropped[mid] = "suspect: disagrees with markers that agree with each other"
-        elif self._jumped(entity, mid, verdicts, capture_time_us):
+        elif self.world_check.jumped(entity, mid, verdicts, capture_time_us):
             # It puts the camera where it cannot have gone since a better supported marker saw it.
             self.counters["dropped_jump"] += 1
             self.report.dropped[mid] = "puts the camera where it cannot have moved since the last frame"
@@ -368,9 +351,23 @@ class Detector(JointSolve):
             return False
         return True
 
+    @property
+    def moved(self) -> dict[tuple[str, int], MovedMarker]:
+        """The markers reported moved so far, (entity, id) -> the latest verdict (the world check's)."""
+        return self.world_check.moved
+
+    @property
+    def disagreements(self) -> Counter[int]:
+        """Marker id -> images in which it disagreed with the other markers (the world check's)."""
+        return self.world_check.disagreements
+
+    def map_pose_changed(self, marker_id: int) -> None:
+        """The node's map now holds another pose of the marker than the world file's (live refinement)."""
+        self.world_check.map_pose_changed(marker_id)
+
     def take_status(self) -> list[str]:
         """STATUSTEXT lines to send (at most one a minute), emptied by the call."""
         out = []
-        while self._status:  # a deque: the camera thread appends while the node's thread takes
-            out.append(self._status.popleft())
+        while self.world_check.status:  # a deque: the camera thread appends while the node's thread takes
+            out.append(self.world_check.status.popleft())
         return out

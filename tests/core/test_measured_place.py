@@ -1,4 +1,4 @@
-"""A moved world marker's measured place (core/worldcheck.py MeasuredPlaces): from images in which trusted
+"""A moved world marker's measured place (core/places.py MeasuredPlaces): from images in which trusted
 markers placed the camera, with an honest covariance; never from itself or from doubted markers; withdrawn
 when it keeps moving."""
 
@@ -10,14 +10,14 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core import covariance
-from atlas_onboard.core.refine import Sighting
-from atlas_onboard.core.worldcheck import (
+from atlas_onboard.core.places import (
     PLACE_MIN_VIEWS,
     RECHECK_LAST,
     RECHECK_MISFITS,
     MeasuredPlace,
     MeasuredPlaces,
 )
+from atlas_onboard.core.refine import Sighting
 
 FRAME_US = 33_333
 SIGMA_M = 0.001
@@ -74,7 +74,7 @@ def test_a_moved_marker_is_placed_where_it_is_with_an_honest_covariance():
     err = place.p_world_marker_m - _truth()[2]
     sigma = np.sqrt(np.diag(place.cov)[:3])
     assert np.all(np.abs(err) <= 3 * sigma), (err, sigma)
-    assert np.linalg.norm(err) < 0.003 and place.sigma_m < 0.003
+    assert np.linalg.norm(err) < 0.003 and place.max_sigma_m < 0.003
     np.testing.assert_allclose(place.offset_m, MOVED, atol=0.003)
     assert places.place(2) is place
 

@@ -6,14 +6,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from atlas_onboard.core.worldcheck import (
-    A_MAX_M_S2,
-    MIN_VIEWS,
-    MarkerConsistency,
-    MotionCheck,
-    MovedMarkerCheck,
-    Sighting,
-)
+from atlas_onboard.core.consistency import A_MAX_M_S2, MarkerConsistency, MotionCheck, Sighting
+from atlas_onboard.core.worldcheck import MIN_VIEWS, MovedMarkerCheck
 
 FRAME_US = 66_667  # 15 fps
 
