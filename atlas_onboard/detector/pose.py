@@ -219,6 +219,68 @@ def fitted_covariance(
     return C * max(1.0, chi2 / dof)
 
 
+# How well a calibrated lens model is known, as a fraction of the correction it applies at a point: a
+# calibration's residual (tenths of a pixel where the lens bends the image by a hundred) grows with the
+# distortion it corrects, and differs between image regions.
+LENS_RESIDUAL = 0.002
+
+
+def lens_residual_covariance(
+    corners_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> NDArray[np.float64]:
+    """(8, 8) covariance (undistorted px^2) of one square's four corners ``corners_und`` (4, 2) moved
+    alike along the radius by the lens model's residual where the square lies: standard deviation
+    ``LENS_RESIDUAL`` times how far the model moves the square's centre (undistorted minus image
+    pixels). Different for squares in different parts of the image, which a joint solve's rotation
+    rests on; zero without distortion."""
+    if not np.any(dist):
+        return np.zeros((8, 8))
+    c = np.asarray(corners_und, dtype=float).reshape(4, 2).mean(axis=0)
+    ray = np.array([[(c[0] - K[0, 2]) / K[0, 0], (c[1] - K[1, 2]) / K[1, 1], 1.0]])
+    if fisheye:
+        img = cv2.fisheye.projectPoints(ray.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
+    else:
+        img = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), K, dist)[0]
+    moved = c - img.reshape(2)
+    v = np.tile(moved, 4)  # every corner along the radius, by the model's correction there
+    return LENS_RESIDUAL**2 * np.outer(v, v)
+
+
+def refine_weighted(
+    R_sm: NDArray[np.float64],
+    p_sm: NDArray[np.float64],
+    obj_m: NDArray[np.float64],
+    K: NDArray[np.float64],
+    img_px: NDArray[np.float64],
+    corner_cov: NDArray[np.float64],
+    iterations: int = 3,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+    """The pose ``(R_sm, p_sm)`` moved to the generalised least-squares fit of the corners ``obj_m``
+    ((N, 3)) to the undistorted pixels ``img_px`` ((N, 2)) with their (2N, 2N) covariance: a few
+    Gauss-Newton steps on :func:`_pose_jacobian`. The estimate whose spread ``(J^T C^-1 J)^-1``
+    (:func:`pose_covariance_from_corners`) describes; an unweighted fit spreads more wherever the corners'
+    noise differs. None when a step fails (singular, not finite, behind the camera)."""
+    R, p = np.asarray(R_sm, dtype=float), np.asarray(p_sm, dtype=float)
+    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
+    target = np.asarray(img_px, dtype=float).reshape(-1, 2)
+    for _ in range(iterations):
+        P = X @ R.T + p
+        if np.any(P[:, 2] <= 0):
+            return None
+        r = (target - (P @ K.T)[:, :2] / P[:, 2:]).ravel()
+        J = _pose_jacobian(R, p, X, K)
+        try:
+            Wj, Wr = np.linalg.solve(corner_cov, J), np.linalg.solve(corner_cov, r)
+            step = np.linalg.solve(J.T @ Wj, J.T @ Wr)
+        except np.linalg.LinAlgError:
+            return None
+        if not np.all(np.isfinite(step)):
+            return None
+        p = p + step[:3]
+        R = R @ Rotation.from_rotvec(step[3:]).as_matrix()  # dtheta about the marker's own axes
+    return R, p
+
+
 def _pose_jacobian(
     R_sm: NDArray[np.float64], p_sm: NDArray[np.float64], X: NDArray[np.float64], K: NDArray[np.float64]
 ) -> NDArray[np.float64]:
