@@ -10,7 +10,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import block_diag
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WORLD
@@ -343,18 +342,13 @@ class JointSolve:
         img: NDArray[np.float64],
         squares: list[_Single],
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]:
-        """The joint pose (R, p of the anchor, ``obj`` its corners (N, 3)) refitted with the corners'
-        own covariances and its 6x6 (:func:`pose.fitted_covariance`). Each square's block is its edge
-        fit's covariance plus the lens model's residual where it lies (:func:`pose.lens_residual_covariance`):
-        the squares' relative places, on which the joint rotation rests, are only as good as the lens
-        model between them. The pose as given when the weighted fit fails."""
+        """The joint pose (R, p of the anchor, ``obj`` its corners (N, 3)) refitted with the corners' own
+        covariances, and its 6x6 (:func:`pose.joint_fit`). Each square's block is its edge fit's covariance
+        plus the lens model's residual where it lies (:func:`pose.lens_residual_covariance`): the squares'
+        relative places, on which the joint rotation rests, are only as good as the lens model between them."""
         cal = self.calibration
-        W = block_diag(*[s.corner_cov + pose.lens_residual_covariance(s.corners, cal.K, cal.dist, cal.fisheye)
-                         for s in squares])  # fmt: skip
-        fit = pose.refine_weighted(R, p, obj, cal.K, img, W)
-        if fit is not None and np.all(np.isfinite(fit[0])) and np.all(np.isfinite(fit[1])):
-            R, p = fit
-        return R, p, pose.fitted_covariance(R, p, obj, cal.K, img, W)
+        covs = [s.corner_cov + pose.lens_residual_covariance(s.corners, cal.K, cal.dist, cal.fisheye) for s in squares]
+        return pose.joint_fit(R, p, obj, cal.K, img, covs)
 
     def _markerdata(
         self,

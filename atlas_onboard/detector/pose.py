@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
@@ -279,6 +280,39 @@ def refine_weighted(
         p = p + step[:3]
         R = R @ Rotation.from_rotvec(step[3:]).as_matrix()  # dtheta about the marker's own axes
     return R, p
+
+
+def joint_fit(
+    R_sm: NDArray[np.float64],
+    p_sm: NDArray[np.float64],
+    obj_m: NDArray[np.float64],
+    K: NDArray[np.float64],
+    img_px: NDArray[np.float64],
+    square_covs: list[NDArray[np.float64]],
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]:
+    """The pose of several squares' corners (``obj_m`` (4M, 3), ``img_px`` (4M, 2) undistorted, square
+    by square) refitted by weighted least squares (:func:`refine_weighted`) and its 6x6
+    (:func:`fitted_covariance`), each square's (8, 8) covariance in ``square_covs`` scaled by how badly
+    the fit misses that square: a square's edge fit can be off by more than its scatter shows (its own
+    background, blur, place in the lens), and the other squares reveal it. A square's share of the fit's
+    degrees of freedom is 8 - 6 / M; its block grows by its chi-square over that when above 1 (one round
+    of variance component estimation), and the pose is refitted with the grown blocks. The pose as given
+    where a weighted fit fails."""
+    R, p = np.asarray(R_sm, dtype=float), np.asarray(p_sm, dtype=float)
+    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
+    target = np.asarray(img_px, dtype=float).reshape(-1, 2)
+    covs = [np.asarray(c, dtype=float) for c in square_covs]
+    fit = refine_weighted(R, p, X, K, target, block_diag(*covs))
+    if fit is not None:
+        R, p = fit
+        P = X @ R.T + p
+        r = (target - (P @ K.T)[:, :2] / P[:, 2:]).reshape(len(covs), 8)
+        share = 8.0 - 6.0 / len(covs)
+        covs = [c * max(1.0, float(rm @ np.linalg.solve(c, rm)) / share) for c, rm in zip(covs, r, strict=True)]
+        fit = refine_weighted(R, p, X, K, target, block_diag(*covs))
+        if fit is not None:
+            R, p = fit
+    return R, p, fitted_covariance(R, p, X, K, target, block_diag(*covs))
 
 
 def _pose_jacobian(
