@@ -326,29 +326,28 @@ class JointSolve:
         covs = [singles[m].corner_cov for m in ids]
         img = np.vstack([singles[m].corners for m in ids])
         if all(c is not None for c in covs):
-            R, p, cov = self._weighted(R, p, obj_anchor, img, [singles[m] for m in ids])
-            T = RigidTransform.from_components(p, Rotation.from_matrix(R))
+            cov = self._joint_covariance(R, p, obj_anchor, img, [singles[m] for m in ids])
         else:
             cov = pose.pose_covariance(R, p, obj_anchor, self.calibration.K, sigma_px, err, stretch)
         self.counters["joint"] += count
         md = self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us, None, cov)
         return (md, False, err / limit) if with_error else (md, False)
 
-    def _weighted(
+    def _joint_covariance(
         self,
         R: NDArray[np.float64],
         p: NDArray[np.float64],
         obj: NDArray[np.float64],
         img: NDArray[np.float64],
         squares: list[_Single],
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]:
-        """The joint pose (R, p of the anchor, ``obj`` its corners (N, 3)) refitted with the corners' own
-        covariances, and its 6x6 (:func:`pose.joint_fit`). Each square's block is its edge fit's covariance
-        plus the lens model's residual where it lies (:func:`pose.lens_residual_covariance`): the squares'
-        relative places, on which the joint rotation rests, are only as good as the lens model between them."""
+    ) -> NDArray[np.float64] | None:
+        """The joint pose's 6x6 (R, p of the anchor, ``obj`` its corners (N, 3)): :func:`pose.joint_covariance`
+        of the squares' corners, each square's block its edge fit's covariance plus the lens model's residual
+        where it lies (:func:`pose.lens_residual_covariance`): the squares' relative places, on which the
+        joint rotation rests, are only as good as the lens model between them."""
         cal = self.calibration
         covs = [s.corner_cov + pose.lens_residual_covariance(s.corners, cal.K, cal.dist, cal.fisheye) for s in squares]
-        return pose.joint_fit(R, p, obj, cal.K, img, covs)
+        return pose.joint_covariance(R, p, obj, cal.K, img, covs)
 
     def _markerdata(
         self,

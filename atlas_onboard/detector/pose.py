@@ -247,72 +247,47 @@ def lens_residual_covariance(
     return LENS_RESIDUAL**2 * np.outer(v, v)
 
 
-def refine_weighted(
-    R_sm: NDArray[np.float64],
-    p_sm: NDArray[np.float64],
-    obj_m: NDArray[np.float64],
-    K: NDArray[np.float64],
-    img_px: NDArray[np.float64],
-    corner_cov: NDArray[np.float64],
-    iterations: int = 3,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-    """The pose ``(R_sm, p_sm)`` moved to the generalised least-squares fit of the corners ``obj_m``
-    ((N, 3)) to the undistorted pixels ``img_px`` ((N, 2)) with their (2N, 2N) covariance: a few
-    Gauss-Newton steps on :func:`_pose_jacobian`. The estimate whose spread ``(J^T C^-1 J)^-1``
-    (:func:`pose_covariance_from_corners`) describes; an unweighted fit spreads more wherever the corners'
-    noise differs. None when a step fails (singular, not finite, behind the camera)."""
-    R, p = np.asarray(R_sm, dtype=float), np.asarray(p_sm, dtype=float)
-    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
-    target = np.asarray(img_px, dtype=float).reshape(-1, 2)
-    for _ in range(iterations):
-        P = X @ R.T + p
-        if np.any(P[:, 2] <= 0):
-            return None
-        r = (target - (P @ K.T)[:, :2] / P[:, 2:]).ravel()
-        J = _pose_jacobian(R, p, X, K)
-        try:
-            Wj, Wr = np.linalg.solve(corner_cov, J), np.linalg.solve(corner_cov, r)
-            step = np.linalg.solve(J.T @ Wj, J.T @ Wr)
-        except np.linalg.LinAlgError:
-            return None
-        if not np.all(np.isfinite(step)):
-            return None
-        p = p + step[:3]
-        R = R @ Rotation.from_rotvec(step[3:]).as_matrix()  # dtheta about the marker's own axes
-    return R, p
-
-
-def joint_fit(
+def joint_covariance(
     R_sm: NDArray[np.float64],
     p_sm: NDArray[np.float64],
     obj_m: NDArray[np.float64],
     K: NDArray[np.float64],
     img_px: NDArray[np.float64],
     square_covs: list[NDArray[np.float64]],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64] | None]:
-    """The pose of several squares' corners (``obj_m`` (4M, 3), ``img_px`` (4M, 2) undistorted, square
-    by square) refitted by weighted least squares (:func:`refine_weighted`) and its 6x6
-    (:func:`fitted_covariance`), each square's (8, 8) covariance in ``square_covs`` scaled by how badly
-    the fit misses that square: a square's edge fit can be off by more than its scatter shows (its own
-    background, blur, place in the lens), and the other squares reveal it. A square's share of the fit's
-    degrees of freedom is 8 - 6 / M; its block grows by its chi-square over that when above 1 (one round
-    of variance component estimation), and the pose is refitted with the grown blocks. The pose as given
-    where a weighted fit fails."""
-    R, p = np.asarray(R_sm, dtype=float), np.asarray(p_sm, dtype=float)
+) -> NDArray[np.float64] | None:
+    """6x6 covariance of the pose ``(p_sm, R_sm)`` that an unweighted least-squares fit (:func:`solve_joint`)
+    found from several squares' corners (``obj_m`` (4M, 3), ``img_px`` (4M, 2) undistorted, square by
+    square), each square's corners with their (8, 8) covariance in ``square_covs``.
+
+    The fit weighs every corner alike, so its spread is the sandwich ``A^-1 J^T W J A^-1`` (A = J^T J,
+    W the corners' block-diagonal covariance), not the weighted fit's ``(J^T W^-1 J)^-1``, which is
+    smaller wherever the corners' noise differs. A square's edge fit can be off by more than its own
+    scatter shows (its background, blur, place in the lens) and the other squares reveal it: its block
+    grows by how much more the fit misses it than W allows (its residual's quadratic form over that
+    form's expectation ``tr(W_m^-1 [(I - H) W (I - H)^T]_mm)``, H = J A^-1 J^T), when above 1. None if
+    J is singular."""
     X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
-    target = np.asarray(img_px, dtype=float).reshape(-1, 2)
+    J = _pose_jacobian(R_sm, p_sm, X, K)
+    A = J.T @ J
+    if len(X) < 3 or not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e14:
+        return None
+    Ai = np.linalg.inv(A)
+    P = X @ R_sm.T + p_sm
+    r = (np.asarray(img_px, dtype=float).reshape(-1, 2) - (P @ K.T)[:, :2] / P[:, 2:]).ravel()
     covs = [np.asarray(c, dtype=float) for c in square_covs]
-    fit = refine_weighted(R, p, X, K, target, block_diag(*covs))
-    if fit is not None:
-        R, p = fit
-        P = X @ R.T + p
-        r = (target - (P @ K.T)[:, :2] / P[:, 2:]).reshape(len(covs), 8)
-        share = 8.0 - 6.0 / len(covs)
-        covs = [c * max(1.0, float(rm @ np.linalg.solve(c, rm)) / share) for c, rm in zip(covs, r, strict=True)]
-        fit = refine_weighted(R, p, X, K, target, block_diag(*covs))
-        if fit is not None:
-            R, p = fit
-    return R, p, fitted_covariance(R, p, X, K, target, block_diag(*covs))
+    M = np.eye(len(r)) - J @ Ai @ J.T
+    expected = M @ block_diag(*covs) @ M.T
+    grown = []
+    for k, c in enumerate(covs):
+        sl = slice(8 * k, 8 * k + 8)
+        try:
+            seen = float(r[sl] @ np.linalg.solve(c, r[sl]))
+            allowed = float(np.trace(np.linalg.solve(c, expected[sl, sl])))
+        except np.linalg.LinAlgError:
+            return None
+        grown.append(c * max(1.0, seen / allowed) if allowed > 0 else c)
+    C = Ai @ (J.T @ block_diag(*grown) @ J) @ Ai
+    return (C + C.T) / 2.0
 
 
 def _pose_jacobian(
