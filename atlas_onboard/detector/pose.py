@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 
@@ -247,6 +248,9 @@ def lens_residual_covariance(
     return LENS_RESIDUAL**2 * np.outer(v, v)
 
 
+SQUARE_MISFIT_LEVEL = 0.9  # a square's miss in a joint fit beyond this quantile of its chi-square grows its block
+
+
 def joint_covariance(
     R_sm: NDArray[np.float64],
     p_sm: NDArray[np.float64],
@@ -264,8 +268,8 @@ def joint_covariance(
     smaller wherever the corners' noise differs. A square's edge fit can be off by more than its own
     scatter shows (its background, blur, place in the lens) and the other squares reveal it: its block
     grows by how much more the fit misses it than W allows (its residual's quadratic form over that
-    form's expectation ``tr(W_m^-1 [(I - H) W (I - H)^T]_mm)``, H = J A^-1 J^T), when above 1. None if
-    J is singular."""
+    form's expectation ``tr(W_m^-1 [(I - H) W (I - H)^T]_mm)``, H = J A^-1 J^T), when the miss is
+    significant (``SQUARE_MISFIT_LEVEL``). None if J is singular."""
     X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
     J = _pose_jacobian(R_sm, p_sm, X, K)
     A = J.T @ J
@@ -285,7 +289,9 @@ def joint_covariance(
             allowed = float(np.trace(np.linalg.solve(c, expected[sl, sl])))
         except np.linalg.LinAlgError:
             return None
-        grown.append(c * max(1.0, seen / allowed) if allowed > 0 else c)
+        # Grown only when the miss is unlikely under W (the form about chi-square with ``allowed`` degrees
+        # of freedom): growing on every chance excess would make consistent squares cautious.
+        grown.append(c * (seen / allowed) if allowed > 0 and seen > stats.chi2.ppf(SQUARE_MISFIT_LEVEL, allowed) else c)
     C = Ai @ (J.T @ block_diag(*grown) @ J) @ Ai
     return (C + C.T) / 2.0
 
