@@ -10,7 +10,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import block_diag
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core.consistency import MarkerConsistency
@@ -191,16 +190,32 @@ class JointSolve:
         sigma_px = math.hypot(max(measured), pose.CORNER_FLOOR_PX) if min(measured) > 0 else model_px
         stretches = [singles[m].stretch for m in ids]
         stretch = None if any(x is None for x in stretches) else np.concatenate(stretches)
-        R = T.rotation.as_matrix()
+        R, p = T.rotation.as_matrix(), T.translation
         covs = [singles[m].corner_cov for m in ids]
         img = np.vstack([singles[m].corners for m in ids])
-        if all(c is not None for c in covs):  # the squares' own corner covariances, one block each
-            cov = pose.fitted_covariance(R, T.translation, obj_anchor, self.calibration.K, img, block_diag(*covs))
+        if all(c is not None for c in covs):
+            cov = self._joint_covariance(R, p, obj_anchor, img, [singles[m] for m in ids])
         else:
-            cov = pose.pose_covariance(R, T.translation, obj_anchor, self.calibration.K, sigma_px, err, stretch)
+            cov = pose.pose_covariance(R, p, obj_anchor, self.calibration.K, sigma_px, err, stretch)
         self.counters["joint"] += count
         md = self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us, None, cov)
         return (md, False, err / limit) if with_error else (md, False)
+
+    def _joint_covariance(
+        self,
+        R: NDArray[np.float64],
+        p: NDArray[np.float64],
+        obj: NDArray[np.float64],
+        img: NDArray[np.float64],
+        squares: list[_Single],
+    ) -> NDArray[np.float64] | None:
+        """The joint pose's 6x6 (R, p of the anchor, ``obj`` its corners (N, 3)): :func:`pose.joint_covariance`
+        of the squares' corners, each square's block its edge fit's covariance plus the lens model's residual
+        where it lies (:func:`pose.lens_residual_covariance`): the squares' relative places, on which the
+        joint rotation rests, are only as good as the lens model between them."""
+        cal = self.calibration
+        covs = [s.corner_cov + pose.lens_residual_covariance(s.corners, cal.K, cal.dist, cal.fisheye) for s in squares]
+        return pose.joint_covariance(R, p, obj, cal.K, img, covs)
 
     def _markerdata(
         self,
