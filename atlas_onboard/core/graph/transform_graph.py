@@ -155,6 +155,9 @@ class TransformGraph:
         else:
             cov = np.asarray(cov_a_b, dtype=float)
         edge = Edge(key, a, b, p, q, float(sigma_m), int(now_ns), int(capture_time_us), cov)
+        replaced = self._store.edges.get(key)
+        if replaced is not None:  # the key may have joined other entities: they lose that edge
+            self._touched[replaced.a] = self._touched[replaced.b] = True
         self._store.put(edge, anchored=key[0] in self.anchor_sensors)
         self._touched[a] = self._touched[b] = True
         # A camera's newer image of an entity replaces its older views of it through other markers: the

@@ -156,3 +156,23 @@ def test_a_targeted_evaluation_without_a_previous_result_holds_only_what_it_comp
     got = g.evaluate(10 * MS, target="E")
     assert not got.complete and not got.current
     assert set(got.poses) == {"world", "E"}  # the lower stages and the target, not its own stage's others
+
+
+def test_an_edge_key_that_comes_to_join_other_entities_makes_the_old_ones_not_current():
+    """Found by the property above (n=3, seed 10547): a key that joined world and C, refreshed joining world
+    and A (the target), took C's edge away; C's pose from the previous full evaluation is no longer what a
+    full evaluation gives, so a targeted evaluation must not call it current."""
+    truth = {"world": RigidTransform.identity(), "A": pose([1, 0, 1]), "C": pose([0, 2, 1], [0, 0, 40])}
+    g = TransformGraph(list(truth), 250 * MS)
+    add(g, (2, 1), "world", "C", truth["C"] * pose([0.05, 0, 0]), now_ns=0)
+    add(g, (3, 1), "world", "C", truth["C"], now_ns=0)
+    add(g, (1, 1), "world", "A", truth["A"], now_ns=0)
+    previous = g.evaluate(0)
+    add(g, (2, 1), "world", "A", truth["A"], now_ns=10 * MS)  # the key (2, 1) now joins world and A
+    full_now = TransformGraph(list(truth), 250 * MS)
+    for key, b, T in (((3, 1), "C", truth["C"]), ((1, 1), "A", truth["A"]), ((2, 1), "A", truth["A"])):
+        add(full_now, key, "world", b, T, now_ns=0)
+    got = g.evaluate(10 * MS, target="A", previous=previous)
+    full = full_now.evaluate(10 * MS)
+    assert not np.allclose(previous.poses["C"].p_world_m, full.poses["C"].p_world_m)  # C's pose did change
+    assert not got.current
