@@ -12,6 +12,16 @@ from scipy.spatial.transform import RigidTransform, Rotation
 from atlas_onboard.config import WorldConfig, parse_world
 from atlas_onboard.core.markerdata import MarkerData
 
+PAPER_FUSION = {  # the paper's method, every key listed (the gate, the attitude's ageing): as the runs set it
+    "method": "paper",
+    "path": "bfs",
+    "weighting": "sigma_min",
+    "age_sigma_m_per_s": 0.0,
+    "ema_alpha": 1.0,
+    "outlier_gate_sigma": 0.0,
+    "filter": "none",
+}
+
 
 def world_from(doc: dict[str, Any]) -> WorldConfig:
     return parse_world(doc)

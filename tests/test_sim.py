@@ -12,6 +12,7 @@ import numpy as np
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.command import score_run, write_outputs
 from atlas_onboard.sim.runner import WARMUP_S, SimOptions, _rendered_frames, run
+from tests.helpers import PAPER_FUSION
 
 # The paper's method with ageing: what the replica files and relay/swarm ran before issue 19.
 AGEING = {"method": "paper", "age_sigma_m_per_s": 1.0}
@@ -45,8 +46,8 @@ def gaps_runs():
         # The images first, once (two runs rendering them at the same time would each render them all).
         _rendered_frames(scenarios.get("gaps"), SimOptions(scenario="gaps").seed, 8, lambda _text: None)
         paper, ekf = run_together(
-            ("gaps", 8, {"world_overrides": {"fusion": PAPER}}),
-            ("gaps", 8, {"world_overrides": {"fusion": {**PAPER, "filter": "ekf"}}}),
+            ("gaps", 8, {"world_overrides": {"fusion": PAPER_FUSION}}),
+            ("gaps", 8, {"world_overrides": {"fusion": {**PAPER_FUSION, "filter": "ekf"}}}),
         )
         _GAPS.update(paper=paper, ekf=ekf)
     return _GAPS
@@ -160,17 +161,6 @@ def test_when_a_relay_drone_dies_its_follower_stops_then_resumes():
     during = [t for t in t_a if kill_s < t < start_s]
     assert len(during) >= 20 and max(b - a for a, b in itertools.pairwise(during)) < 0.3
     assert sim.exit_codes["drone_c"] == 0 and sim.exit_codes["drone_a"] == 0
-
-
-PAPER = {
-    "method": "paper",  # every key not listed too (the gate, the attitude's ageing)
-    "path": "bfs",
-    "weighting": "sigma_min",
-    "age_sigma_m_per_s": 0.0,
-    "ema_alpha": 1.0,
-    "outlier_gate_sigma": 0.0,
-    "filter": "none",
-}
 
 
 def test_gaps_availability_follows_the_expected_gaps():

@@ -14,7 +14,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core.consistency import MarkerConsistency
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
-from atlas_onboard.detector import pose
+from atlas_onboard.detector import joint_covariance, pose
 from atlas_onboard.detector.families import family
 from atlas_onboard.detector.search import _side
 
@@ -209,13 +209,14 @@ class JointSolve:
         img: NDArray[np.float64],
         squares: list[_Single],
     ) -> NDArray[np.float64] | None:
-        """The joint pose's 6x6 (R, p of the anchor, ``obj`` its corners (N, 3)): :func:`pose.joint_covariance`
-        of the squares' corners, each square's block its edge fit's covariance plus the lens model's residual
-        where it lies (:func:`pose.lens_residual_covariance`): the squares' relative places, on which the
-        joint rotation rests, are only as good as the lens model between them."""
+        """The joint pose's 6x6 (R, p of the anchor, ``obj`` its corners (N, 3)) from the squares' corners
+        (:func:`joint_covariance.joint_covariance`), each square's block its edge fit's covariance plus the
+        lens model's residual where it lies (:func:`joint_covariance.lens_residual_covariance`): the squares'
+        relative places, on which the joint rotation rests, are only as good as the lens model between them."""
         cal = self.calibration
-        covs = [s.corner_cov + pose.lens_residual_covariance(s.corners, cal.K, cal.dist, cal.fisheye) for s in squares]
-        return pose.joint_covariance(R, p, obj, cal.K, img, covs)
+        residual = joint_covariance.lens_residual_covariance
+        covs = [s.corner_cov + residual(s.corners, cal.K, cal.dist, cal.fisheye) for s in squares]
+        return joint_covariance.joint_covariance(R, p, obj, cal.K, img, covs)
 
     def _markerdata(
         self,

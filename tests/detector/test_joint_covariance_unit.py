@@ -1,4 +1,4 @@
-"""pose.joint_covariance against Monte Carlo: the unweighted joint fit's spread when the squares' corners
+"""joint_covariance.joint_covariance against Monte Carlo: the unweighted joint fit's spread when the squares' corners
 are not equally noisy (synthetic corners, no rendering)."""
 
 import numpy as np
@@ -6,7 +6,7 @@ from scipy.linalg import block_diag
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from atlas_onboard.detector import pose
+from atlas_onboard.detector import joint_covariance, pose
 
 K = np.array([[320.0, 0.0, 319.5], [0.0, 320.0, 239.5], [0.0, 0.0, 1.0]])
 TRIALS = 300
@@ -28,7 +28,7 @@ def test_joint_covariance_describes_the_unweighted_fit_of_unequally_noisy_square
         rvec, tvec, _, _ = pose.solve_joint(obj, img, K, 0.1, (R.as_rotvec(), t))
         R_est = Rotation.from_rotvec(rvec)
         e = np.concatenate([t - tvec, (R_est.inv() * R).as_rotvec()])
-        C = pose.joint_covariance(R_est.as_matrix(), tvec, obj, K, img, covs)
+        C = joint_covariance.joint_covariance(R_est.as_matrix(), tvec, obj, K, img, covs)
         nees.append(e @ np.linalg.solve(C, e))
         # What main gave it: the weighted fit's covariance, grown by the fit's reduced chi-square.
         Cw = pose.fitted_covariance(R_est.as_matrix(), tvec, obj, K, img, W)

@@ -6,17 +6,8 @@ import yaml
 
 from atlas_onboard.config.read_world import parse_world
 from atlas_onboard.sim import offline, scenarios
+from tests.helpers import PAPER_FUSION
 
-# The paper's method, every key listed (the gate, the attitude's ageing): as the live runs set it.
-PAPER = {
-    "method": "paper",
-    "path": "bfs",
-    "weighting": "sigma_min",
-    "age_sigma_m_per_s": 0.0,
-    "ema_alpha": 1.0,
-    "outlier_gate_sigma": 0.0,
-    "filter": "none",
-}
 FRAMES = 105  # 7 s of the 15 fps cameras from 1 s: what an 8 s live run scores after its warm-up
 
 
@@ -30,7 +21,7 @@ def _fusion(settings):
 def test_paths_dijkstra_beats_bfs_for_the_drone_with_a_noisy_short_path():
     """The lead sees a far wall tag (noisy) and is seen precisely by the wing, which the ceiling
     camera sees: BFS keeps only the direct edge, Dijkstra weighs the whole precise chain."""
-    fusions = {"bfs": _fusion(PAPER), "dijkstra": _fusion({**PAPER, "path": "dijkstra"})}
+    fusions = {"bfs": _fusion(PAPER_FUSION), "dijkstra": _fusion({**PAPER_FUSION, "path": "dijkstra"})}
     assert fusions["bfs"].path == "bfs" and fusions["dijkstra"].path == "dijkstra"
     _, outputs = offline.run_fusions("paths", FRAMES, fusions)
     bfs, dij = outputs["bfs"], outputs["dijkstra"]

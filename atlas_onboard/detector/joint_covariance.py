@@ -1,0 +1,87 @@
+"""The covariance of a joint solve (one pose fitted to the corners of several squares of an entity):
+the unweighted fit's spread, each square's corners with their own covariance, the lens model's residual
+where the square lies, and a square that the fit misses by more than its covariance allows grown."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import block_diag
+from scipy.special import chdtri  # chi-square's inverse survival function
+
+from atlas_onboard.detector.pose import pose_jacobian
+
+# How well a calibrated lens model is known, as a fraction of the correction it applies at a point: a
+# calibration's residual (tenths of a pixel where the lens bends the image by a hundred) grows with the
+# distortion it corrects, and differs between image regions.
+LENS_RESIDUAL = 0.002
+
+
+def lens_residual_covariance(
+    corners_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> NDArray[np.float64]:
+    """(8, 8) covariance (undistorted px^2) of one square's four corners ``corners_und`` (4, 2) moved
+    alike along the radius by the lens model's residual where the square lies: standard deviation
+    ``LENS_RESIDUAL`` times how far the model moves the square's centre (undistorted minus image
+    pixels). Different for squares in different parts of the image, which a joint solve's rotation
+    rests on; zero without distortion."""
+    if not np.any(dist):
+        return np.zeros((8, 8))
+    c = np.asarray(corners_und, dtype=float).reshape(4, 2).mean(axis=0)
+    ray = np.array([[(c[0] - K[0, 2]) / K[0, 0], (c[1] - K[1, 2]) / K[1, 1], 1.0]])
+    if fisheye:
+        img = cv2.fisheye.projectPoints(ray.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
+    else:
+        img = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), K, dist)[0]
+    moved = c - img.reshape(2)
+    v = np.tile(moved, 4)  # every corner along the radius, by the model's correction there
+    return LENS_RESIDUAL**2 * np.outer(v, v)
+
+
+SQUARE_MISFIT_LEVEL = 0.9  # a square's miss in a joint fit beyond this quantile of its chi-square grows its block
+
+
+def joint_covariance(
+    R_sm: NDArray[np.float64],
+    p_sm: NDArray[np.float64],
+    obj_m: NDArray[np.float64],
+    K: NDArray[np.float64],
+    img_px: NDArray[np.float64],
+    square_covs: list[NDArray[np.float64]],
+) -> NDArray[np.float64] | None:
+    """6x6 covariance of the pose ``(p_sm, R_sm)`` that an unweighted least-squares fit (:func:`pose.solve_joint`)
+    found from several squares' corners (``obj_m`` (4M, 3), ``img_px`` (4M, 2) undistorted, square by
+    square), each square's corners with their (8, 8) covariance in ``square_covs``.
+
+    The fit weighs every corner alike, so its spread is the sandwich ``A^-1 J^T W J A^-1`` (A = J^T J,
+    W the corners' block-diagonal covariance), not the weighted fit's ``(J^T W^-1 J)^-1``, which is
+    smaller wherever the corners' noise differs. A square's edge fit can be off by more than its own
+    scatter shows (its background, blur, place in the lens) and the other squares reveal it: its block
+    grows by how much more the fit misses it than W allows (its residual's quadratic form over that
+    form's expectation ``tr(W_m^-1 [(I - H) W (I - H)^T]_mm)``, H = J A^-1 J^T), when the miss is
+    significant (``SQUARE_MISFIT_LEVEL``). None if J is singular."""
+    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
+    J = pose_jacobian(R_sm, p_sm, X, K)
+    A = J.T @ J
+    if len(X) < 3 or not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e14:
+        return None
+    Ai = np.linalg.inv(A)
+    P = X @ R_sm.T + p_sm
+    r = (np.asarray(img_px, dtype=float).reshape(-1, 2) - (P @ K.T)[:, :2] / P[:, 2:]).ravel()
+    covs = [np.asarray(c, dtype=float) for c in square_covs]
+    M = np.eye(len(r)) - J @ Ai @ J.T
+    expected = M @ block_diag(*covs) @ M.T
+    grown = []
+    for k, c in enumerate(covs):
+        sl = slice(8 * k, 8 * k + 8)
+        try:
+            seen = float(r[sl] @ np.linalg.solve(c, r[sl]))
+            allowed = float(np.trace(np.linalg.solve(c, expected[sl, sl])))
+        except np.linalg.LinAlgError:
+            return None
+        # Grown only when the miss is unlikely under W (the form about chi-square with ``allowed`` degrees
+        # of freedom): growing on every chance excess would make consistent squares cautious.
+        grown.append(c * (seen / allowed) if allowed > 0 and seen > chdtri(allowed, 1.0 - SQUARE_MISFIT_LEVEL) else c)
+    C = Ai @ (J.T @ block_diag(*grown) @ J) @ Ai
+    return (C + C.T) / 2.0
