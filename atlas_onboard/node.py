@@ -287,7 +287,9 @@ class Node:
         if self.refinement is not None:
             for u in self.refinement.step(now, self.listener):  # the detectors' places are relative to the file
                 for cam in self.cameras:
-                    getattr(getattr(cam, "detector", None), "map_pose_changed", lambda _m: None)(u.marker_id)
+                    changed = getattr(cam, "map_pose_changed", None)  # SensorWorker's; other cameras have none
+                    if changed is not None:
+                        changed(u.marker_id)
             for text in self.refinement.take_status():
                 self.transport.send_status(text, 4)  # WARNING
 

@@ -42,5 +42,9 @@ class SensorWorker:
     def counters(self) -> dict[str, int]:
         return {}
 
+    def map_pose_changed(self, marker_id: int) -> None:
+        """The node's map moved world marker ``marker_id`` from the world file's pose (live refinement):
+        a detector that corrects sightings relative to the file stops doing so for it."""
+
     def _run(self, deliver: Deliver) -> None:  # pragma: no cover - abstract
         raise NotImplementedError

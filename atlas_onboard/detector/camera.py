@@ -52,6 +52,9 @@ class CameraWorker(SensorWorker):
 
             finish(self.recorder, self.name)
 
+    def map_pose_changed(self, marker_id: int) -> None:
+        self.detector.map_pose_changed(marker_id)
+
     def take_status(self) -> list[str]:
         """The detector's STATUSTEXT lines since the last call (thread-safe: a list swap)."""
         return self.detector.take_status()

@@ -61,6 +61,11 @@ class SimCameraWorker(SensorWorker):
     def counters(self) -> dict[str, int]:
         return {"frames": self.frames, "frames_skipped": self.skipped, "detections": self.detections}
 
+    def map_pose_changed(self, marker_id: int) -> None:
+        forward = getattr(self.detect, "map_pose_changed", None)  # a rendered camera's detector; geometry has none
+        if forward is not None:
+            forward(marker_id)
+
     def _skip(self, missed: int) -> None:
         self.skipped += missed
 
@@ -272,6 +277,7 @@ def rendered_detector(
         return detector.detect(img, round((epoch + t) * 1e6), info.get("R_prev_now"))  # type: ignore[arg-type]
 
     detect.needs_truth = False  # type: ignore[attr-defined]  # it renders from the index alone
+    detect.map_pose_changed = detector.map_pose_changed  # type: ignore[attr-defined]
     return detect
 
 
