@@ -101,8 +101,6 @@ class Link:
         self.name = name
         self.system_id = system_id
         self.component_id = component_id
-        self.state_dir = state_dir
-        self.link_id = link_id
         self.counters = Counters()
         self.dialect = dialect.load()
         names = set(deferred)

@@ -197,9 +197,7 @@ class FrameRenderer:
         if scenario.room is not None:
             from atlas_onboard.sim.room import RoomRenderer
 
-            self.room = RoomRenderer(
-                scenario.room, world, sensor, self.intr, self.optics.noise_sigma, self.optics.exposure_s
-            )
+            self.room = RoomRenderer(scenario.room, world, sensor, self.intr, self.optics.noise_sigma)
 
     def __call__(self, index: int) -> NDArray[np.uint8]:
         from atlas_onboard.detector.render import MarkerView, render

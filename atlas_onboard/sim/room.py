@@ -72,18 +72,14 @@ class RoomRenderer:
     """The image camera ``sensor`` takes in ``room`` at a given pose (see the module docstring).
 
     ``intr`` is the camera's :class:`atlas_onboard.sim.world.Intrinsics`; ``noise_sigma`` the read
-    noise (grey levels) and ``exposure_s`` the exposure time of the optics.
+    noise (grey levels). The exposure comes with each frame, as the camera's poses when it opened and
+    closed (see :meth:`render`).
     """
 
-    def __init__(
-        self, room: Room, world: WorldConfig, sensor: SensorConfig, intr: object, noise_sigma: float, exposure_s: float
-    ) -> None:
+    def __init__(self, room: Room, world: WorldConfig, sensor: SensorConfig, intr: object, noise_sigma: float) -> None:
         self.room = room
-        self.world = world
-        self.sensor = sensor
         self.intr = intr
         self.noise_sigma = noise_sigma
-        self.exposure_s = exposure_s
         w, h = intr.width_px, intr.height_px  # type: ignore[attr-defined]
         self.cam = Camera(w, h, intr.camera_matrix, np.array(intr.distortion))  # type: ignore[attr-defined]
         self.atlas = _Atlas(room)
