@@ -9,7 +9,7 @@ import logging
 import math
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -54,6 +54,7 @@ class _Single:
     corner_cov: NDArray[np.float64] | None = None  # (8, 8), px^2: refine.RefinedCorners.covariance
 
 
+@dataclass
 class JointSolve:
     """The joint solve of one sensor's detector, held by :class:`~atlas_onboard.detector.pipeline.Detector`:
     the robust leave-one-out, the joint solution and its covariance, and the sensor's MarkerData records.
@@ -64,24 +65,14 @@ class JointSolve:
     once made (that check in turn asks this solve for offsets and records).
     """
 
-    world_check: WorldCheck
-
-    def __init__(
-        self,
-        sensor: SensorConfig,
-        world: WorldConfig,
-        calibration: Calibration,
-        marker_pose: Mapping[int, RigidTransform],
-        sizes: Mapping[int, float],
-        counters: Counter[str],
-    ) -> None:
-        self.sensor = sensor
-        self.world = world
-        self.calibration = calibration
-        self.marker_pose = marker_pose
-        self.sizes = sizes
-        self.counters = counters
-        self.misfit_pair: list[int] = []  # the last robust solve's two markers that disagreed
+    sensor: SensorConfig
+    world: WorldConfig
+    calibration: Calibration
+    marker_pose: Mapping[int, RigidTransform]
+    sizes: Mapping[int, float]
+    counters: Counter[str]
+    misfit_pair: list[int] = field(default_factory=list)  # the last robust solve's two markers that disagreed
+    world_check: WorldCheck = field(init=False)
 
     def robust(
         self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int, report: FrameReport
