@@ -195,12 +195,12 @@ class Listener:
             C_sm = None
         # eq. 1, T = T1 T2 T3^-1, its translation: p_a_b = R_a_s (p_s_m + R_s_m p_m_b) + p_a_s
         R_as = T1[:, :3, :3]
-        p_sb = p2 + (R2 @ T3_inv[:, :3, 3, None])[:, :, 0]
-        p_ab = T1[:, :3, 3] + (R_as @ p_sb[:, :, None])[:, :, 0]
+        chain = covariance.Chain(R_as, R2, p2, T3_inv)
+        p_ab = T1[:, :3, 3] + (R_as @ chain.p_sb[:, :, None])[:, :, 0]
         q1 = np.array([self._sensor_q[md.sensor_id] for md in valid])
         q3_inv = np.array([self._marker_inv_q[md.marker_id] for md in valid])
         q_all = geometry.quat_multiply(geometry.quat_multiply(q1, q2), q3_inv)  # eq. 1's rotation
-        cov = _covariances(valid, R_as, R2, T3_inv, p2, p_sb, C_sm)
+        cov = _covariances(valid, chain, C_sm)
         if self._marker_cov:
             placed = [j for j, md in enumerate(valid) if md.marker_id in self._marker_cov]
             if placed:  # T_a_b = T_a_m T_m_b: a refined marker's own uncertainty enters through T_m_b

@@ -134,8 +134,8 @@ class AmbiguityResolver:
             np.hypot([b.sigma_m for _, _, b in todo], move_b[:, 1]), move_a[:, 0], move_b[:, 0],
         )  # fmt: skip
         verdicts, _, _ = ambiguity.resolve_arrays(
-            p_a, q2[idx], p_b, q_b,
-            pred[:, :3, 3], Rotation.from_matrix(pred[:, :3, :3]).as_quat(),
+            ambiguity.Poses(p_a, q2[idx]), ambiguity.Poses(p_b, q_b),
+            ambiguity.Poses(pred[:, :3, 3], Rotation.from_matrix(pred[:, :3, :3]).as_quat()),
             sigma_rad, sigma_m, self.gate_r2, self.min_likelihood_ratio,
         )  # fmt: skip
         for j, verdict in zip(idx, verdicts, strict=True):

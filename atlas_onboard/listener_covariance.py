@@ -39,27 +39,21 @@ def _positive_definite(
 
 
 def _covariances(
-    valid: list[MarkerData],
-    R_as: NDArray[np.float64],
-    R_sm: NDArray[np.float64],
-    T_m_b: NDArray[np.float64],
-    p_sm: NDArray[np.float64],
-    p_sb: NDArray[np.float64],
-    C_sm: NDArray[np.float64] | None = None,
+    valid: list[MarkerData], chain: covariance.Chain, C_sm: NDArray[np.float64] | None = None
 ) -> NDArray[np.float64]:
-    """Each edge's 6x6 covariance: the detector's own, carried through eq. 1's mountings, where the
-    record has one; otherwise modelled from its sigma and range (:func:`covariance.observation_parts`).
-    ``C_sm``: the records' detection covariances as matrices, if already made (every record has one)."""
+    """Each edge's 6x6 covariance (``chain``: eq. 1's parts of each record in ``valid``): the detector's own,
+    carried through eq. 1's mountings, where the record has one; otherwise modelled from its sigma and
+    range (:func:`covariance.observation_parts`). ``C_sm``: the records' detection covariances as matrices,
+    if already made (every record has one)."""
     have = [i for i, md in enumerate(valid) if md.covariance]
-    R_mb = T_m_b[:, :3, :3]
     if len(have) == len(valid):
         if C_sm is None:
             C_sm = upper_to_matrix(np.array([md.covariance for md in valid]))
-        return covariance.detection(R_as, R_as @ R_sm, T_m_b[:, :3, 3], R_mb, C_sm)
-    cov = covariance.observation_parts(R_as, R_sm, R_mb, p_sm, p_sb, np.array([md.sigma_m for md in valid]))
+        return covariance.detection(chain, C_sm)
+    cov = covariance.observation_parts(chain, np.array([md.sigma_m for md in valid]))
     if have:
         C_sm = upper_to_matrix(np.array([valid[i].covariance for i in have]))
-        cov[have] = covariance.detection(R_as[have], R_as[have] @ R_sm[have], T_m_b[have, :3, 3], R_mb[have], C_sm)
+        cov[have] = covariance.detection(chain[have], C_sm)
     return cov
 
 

@@ -61,9 +61,10 @@ def detection_covariance(T_sensor_marker: RigidTransform, size_m: float) -> tupl
     """The 6x6 covariance a camera's detector reports with such a view (a 640x480 camera, 0.1 px
     corners), so that the load carries what real observations carry on the wire."""
     K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
-    C = pose.pose_covariance(
-        T_sensor_marker.rotation.as_matrix(), T_sensor_marker.translation, pose.object_corners(size_m), K, 0.1, 0.05
+    seen = pose.CornerFit(
+        T_sensor_marker.rotation.as_matrix(), T_sensor_marker.translation, pose.object_corners(size_m), K
     )
+    C = pose.pose_covariance(seen, 0.1, 0.05)
     return matrix_to_upper(C) if C is not None else ()
 
 

@@ -220,8 +220,9 @@ def test_a_record_with_its_own_covariance_replaces_its_edge_and_keeps_it():
     np.testing.assert_allclose(edge.p_a_b, listener.edge_from(second).p_a_b, atol=1e-12)  # replaced
     T1 = world.sensors[1].T_entity_sensor.as_matrix()
     T3_inv = world.markers[5].T_entity_marker.inv().as_matrix()
-    expected = covariance.detection(T1[None, :3, :3], T1[None, :3, :3], T3_inv[None, :3, 3], T3_inv[None, :3, :3],
-                                    C_sm[None])[0]  # fmt: skip
+    # The record's T_s_m is a pure translation: R_sm = I.
+    chain = covariance.Chain(T1[None, :3, :3], np.eye(3)[None], np.array([[0.0, 0.0, 2.3]]), T3_inv[None])
+    expected = covariance.detection(chain, C_sm[None])[0]
     np.testing.assert_allclose(graph.edges[(1, 5)].cov_a_b, expected, rtol=1e-12, atol=1e-18)
     model = listener.edge_from(replace(second, covariance=())).cov_a_b
     assert model[0, 0] > 100 * expected[0, 0]  # the sigma model: the isotropic camera position, far wider

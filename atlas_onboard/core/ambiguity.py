@@ -114,28 +114,35 @@ def prediction_sigmas(
     return sigma_rad, sigma_m
 
 
+@dataclass(frozen=True, slots=True)
+class Poses:
+    """N poses of a marker in the sensor frame: positions ``p_m`` (N, 3) in metres, x-first quaternions
+    ``q_xyzw`` (N, 4)."""
+
+    p_m: NDArray[np.float64]
+    q_xyzw: NDArray[np.float64]
+
+    def distances_to(self, other: Poses) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Each pose's rotation angle (rad) and distance (m) from ``other``'s pose of the same index."""
+        theta = (Rotation.from_quat(other.q_xyzw).inv() * Rotation.from_quat(self.q_xyzw)).magnitude()
+        return theta, np.linalg.norm(np.asarray(self.p_m) - other.p_m, axis=-1)
+
+
 def resolve_arrays(
-    p_primary: NDArray[np.float64],
-    q_primary_xyzw: NDArray[np.float64],
-    p_alt: NDArray[np.float64],
-    q_alt_xyzw: NDArray[np.float64],
-    p_pred: NDArray[np.float64],
-    q_pred_xyzw: NDArray[np.float64],
+    primary: Poses,
+    alt: Poses,
+    pred: Poses,
     sigma_rad: float | NDArray[np.float64],
     sigma_m: float | NDArray[np.float64],
     gate_r2: float = GATE_R2,
     min_likelihood_ratio: float = MIN_LIKELIHOOD_RATIO,
 ) -> tuple[list[Verdict], NDArray[np.float64], NDArray[np.float64]]:
-    """The rule of this module for N observations at once (one scipy call per step).
-
-    Positions (N, 3) in metres and x-first quaternions (N, 4), all in the sensor frame; ``sigma_rad``
-    and ``sigma_m`` scalars or shape (N,), > 0. Returns the verdicts and r^2 of both solutions.
+    """The rule of this module for N observations at once (one scipy call per step): which of the
+    ``primary`` and ``alt`` solutions agrees with the prediction ``pred`` (all in the sensor frame);
+    ``sigma_rad`` and ``sigma_m`` scalars or shape (N,), > 0. Returns the verdicts and r^2 of both solutions.
     """
-    R_pred_inv = Rotation.from_quat(q_pred_xyzw).inv()
-    theta_a = (R_pred_inv * Rotation.from_quat(q_primary_xyzw)).magnitude()
-    theta_b = (R_pred_inv * Rotation.from_quat(q_alt_xyzw)).magnitude()
-    d_a = np.linalg.norm(np.asarray(p_primary) - p_pred, axis=-1)
-    d_b = np.linalg.norm(np.asarray(p_alt) - p_pred, axis=-1)
+    theta_a, d_a = primary.distances_to(pred)
+    theta_b, d_b = alt.distances_to(pred)
     s_rad = np.asarray(sigma_rad, dtype=float)
     s_m = np.asarray(sigma_m, dtype=float)
     r2_a = np.atleast_1d((theta_a / s_rad) ** 2 + (d_a / s_m) ** 2)
@@ -171,10 +178,11 @@ def resolve(
         raise GeometryError(f"expected sigma_rad > 0 and sigma_m > 0, got {sigma_rad!r} rad, {sigma_m!r} m")
     if T_pred is None:
         return Resolution(Verdict.NO_PREDICTION, math.nan, math.nan)
+
+    def one(T: RigidTransform) -> Poses:
+        return Poses(T.translation[None], T.rotation.as_quat()[None])
+
     verdicts, r2_a, r2_b = resolve_arrays(
-        T_primary.translation[None], T_primary.rotation.as_quat()[None],
-        T_alt.translation[None], T_alt.rotation.as_quat()[None],
-        T_pred.translation[None], T_pred.rotation.as_quat()[None],
-        sigma_rad, sigma_m, gate_r2, min_likelihood_ratio,
-    )  # fmt: skip
+        one(T_primary), one(T_alt), one(T_pred), sigma_rad, sigma_m, gate_r2, min_likelihood_ratio
+    )
     return Resolution(verdicts[0], float(r2_a[0]), float(r2_b[0]))

@@ -19,6 +19,8 @@ Everything here is batched over a leading axis (numpy ``matmul``) and pure.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -59,6 +61,27 @@ def attitude_sigma_rad(
     return np.minimum(np.maximum(s, MIN_ATTITUDE_SIGMA_RAD), MAX_ATTITUDE_SIGMA_RAD)
 
 
+@dataclass(frozen=True)
+class Chain:
+    """Edges ``T_a_b = T_a_s T_s_m T_m_b`` (eq. 1), batched over a leading axis: the sensor's fixed mounting
+    rotation ``R_as`` (..., 3, 3), the detection ``(p_sm, R_sm)`` ((..., 3), (..., 3, 3)) and the fixed
+    ``T_m_b`` (..., 4, 4)."""
+
+    R_as: NDArray[np.float64]
+    R_sm: NDArray[np.float64]
+    p_sm: NDArray[np.float64]
+    T_m_b: NDArray[np.float64]
+
+    @cached_property
+    def p_sb(self) -> NDArray[np.float64]:
+        """(..., 3): b's origin in the sensor frame, ``p_sm + R_sm p_mb`` (eq. 1's translation needs it too)."""
+        return self.p_sm + (self.R_sm @ self.T_m_b[..., :3, 3, None])[..., 0]
+
+    def __getitem__(self, index: object) -> Chain:
+        """The edges at ``index`` (an index of the leading axis)."""
+        return Chain(self.R_as[index], self.R_sm[index], self.p_sm[index], self.T_m_b[index])
+
+
 def observation(
     T_a_s: NDArray[np.float64], T_s_m: NDArray[np.float64], T_m_b: NDArray[np.float64], sigma_m: NDArray[np.float64]
 ) -> NDArray[np.float64]:
@@ -70,56 +93,41 @@ def observation(
     Carried through the fixed mountings it keeps its real geometry: an entity far from the marker
     it is known by inherits the attitude error over that lever arm, and nothing else does.
     """
+    return observation_parts(Chain(T_a_s[..., :3, :3], T_s_m[..., :3, :3], T_s_m[..., :3, 3], T_m_b), sigma_m)
+
+
+def observation_parts(chain: Chain, sigma_m: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`observation` of the edges of ``chain`` (the parts eq. 1 computes anyway)."""
     # C_ms is diagonal: (sigma^2 x3, att^2 x3). T_a_b's error is M times the detection's error, with M
     # the inverse's Jacobian (T_m_s -> T_s_m), then left by the fixed T_a_s (positions rotate into a,
     # rotations stay about m's axes), then right by the fixed T_m_b (the parent part of a composition).
     # Multiplied out (docs/covariance.md), M = [[-R_am, K], [0, -R_bs]] with K = R_as [p_sb]x, so
     # C = [[sigma^2 I + att^2 K K^T, -att^2 K R_sb], [., att^2 I]]: a handful of products, however
     # many observations (tested equal to the product of the three Jacobians).
-    R_sm, p_sm = T_s_m[..., :3, :3], T_s_m[..., :3, 3]
-    p_sb = p_sm + (R_sm @ T_m_b[..., :3, 3, None])[..., 0]
-    return observation_parts(T_a_s[..., :3, :3], R_sm, T_m_b[..., :3, :3], p_sm, p_sb, sigma_m)
-
-
-def observation_parts(
-    R_as: NDArray[np.float64],
-    R_sm: NDArray[np.float64],
-    R_mb: NDArray[np.float64],
-    p_sm: NDArray[np.float64],
-    p_sb: NDArray[np.float64],
-    sigma_m: NDArray[np.float64],
-) -> NDArray[np.float64]:
-    """:func:`observation` from the parts eq. 1 computes anyway: the three rotations, the detected
-    position ``p_sm`` and ``p_sb = p_sm + R_sm p_mb`` (b's origin in the sensor frame)."""
+    p_sm = chain.p_sm
     rng = np.sqrt(np.einsum("...i,...i->...", p_sm, p_sm))
     sigma = np.asarray(sigma_m, dtype=float)
     var_att = attitude_sigma_rad(sigma, rng) ** 2
     # With G = [[K], [-R_sb^T]] (6x3), C = att^2 G G^T + sigma^2 diag(1, 1, 1, 0, 0, 0).
-    K = R_as @ skew(p_sb)
-    G = np.concatenate((K, -np.swapaxes(R_sm @ R_mb, -1, -2)), axis=-2)
+    K = chain.R_as @ skew(chain.p_sb)
+    G = np.concatenate((K, -np.swapaxes(chain.R_sm @ chain.T_m_b[..., :3, :3], -1, -2)), axis=-2)
     return var_att[..., None, None] * (G @ np.swapaxes(G, -1, -2)) + (sigma**2)[..., None, None] * _POSITION_BLOCK
 
 
 _POSITION_BLOCK = np.diag([1.0, 1.0, 1.0, 0.0, 0.0, 0.0])
 
 
-def detection(
-    R_as: NDArray[np.float64],
-    R_am: NDArray[np.float64],
-    p_mb: NDArray[np.float64],
-    R_mb: NDArray[np.float64],
-    C_sm: NDArray[np.float64],
-) -> NDArray[np.float64]:
-    """Covariances of edges ``T_a_b = T_a_s T_s_m T_m_b`` from the detector's own covariance of
-    ``T_s_m`` (``C_sm``, batched (..., 6, 6): dp in the sensor frame, dtheta about the marker's axes),
-    carried through the fixed mountings: left by ``T_a_s`` the position error turns into frame a,
-    right by ``T_m_b`` the marker's rotation error swings b over the lever arm ``p_mb`` and turns
-    into b's axes. ``J = [[R_as, -R_am [p_mb]x], [0, R_mb^T]]``, ``C_ab = J C_sm J^T``."""
+def detection(chain: Chain, C_sm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Covariances of the edges of ``chain`` from the detector's own covariance of ``T_s_m`` (``C_sm``,
+    batched (..., 6, 6): dp in the sensor frame, dtheta about the marker's axes), carried through the
+    fixed mountings: left by ``T_a_s`` the position error turns into frame a, right by ``T_m_b`` the
+    marker's rotation error swings b over the lever arm ``p_mb`` and turns into b's axes.
+    ``J = [[R_as, -R_am [p_mb]x], [0, R_mb^T]]``, ``C_ab = J C_sm J^T``."""
     n = np.shape(C_sm)[:-2]
     J = np.zeros((*n, 6, 6))
-    J[..., :3, :3] = R_as
-    J[..., :3, 3:] = -R_am @ skew(p_mb)
-    J[..., 3:, 3:] = np.swapaxes(R_mb, -1, -2)
+    J[..., :3, :3] = chain.R_as
+    J[..., :3, 3:] = -(chain.R_as @ chain.R_sm) @ skew(chain.T_m_b[..., :3, 3])
+    J[..., 3:, 3:] = np.swapaxes(chain.T_m_b[..., :3, :3], -1, -2)
     return transform(J, C_sm)
 
 
@@ -170,31 +178,6 @@ _JP_TEMPLATE[3:, 3:] = 0.0
 _JE_TEMPLATE = np.eye(6)
 
 
-def fuse(
-    child: NDArray[np.intp],
-    parent: NDArray[np.intp],
-    n: int,
-    weights: NDArray[np.float64],
-    Jp: NDArray[np.float64],
-    C_parent: NDArray[np.float64],
-    edge_term: NDArray[np.float64],
-) -> NDArray[np.float64]:
-    """Covariance of each child's weighted mean of candidates, shape (n, 6, 6).
-
-    Candidate i of ``child[i]`` comes from ``parent[i]`` (covariance ``C_parent[parent[i]]``, Jacobian
-    ``Jp[i]``) with its own edge error ``edge_term[i] = Je C_e Je^T``. With normalised weights w_i,
-    the mean's error is ``sum_i w_i (Jp_i e_parent + Je_i e_edge_i)``: the edge terms add as
-    ``w_i^2``, and each parent's term as ``(sum of w_i Jp_i over its candidates) C_parent (...)^T``.
-    """
-    out = np.zeros((n, 6, 6))
-    if len(child) == 0:
-        return out
-    order = np.lexsort((parent, child))
-    kids, pairs = runs_by_parent(child[order], parent[order])
-    out[kids.ids] = fuse_runs(kids, pairs, weights[order], Jp[order], C_parent, edge_term[order])
-    return out
-
-
 def runs_by_parent(child: NDArray[np.intp], parent: NDArray[np.intp]) -> tuple[fusion.Runs, fusion.Runs]:
     """For candidates sorted by child, then parent: the runs of each child, and the runs of each
     (child, parent) pair (their ``ids`` are the parents; their ``sizes`` count pairs per child)."""
@@ -213,8 +196,14 @@ def fuse_runs(
     C_parent: NDArray[np.float64],
     edge_term: NDArray[np.float64],
 ) -> NDArray[np.float64]:
-    """:func:`fuse` on candidates sorted by child, then parent (:func:`runs_by_parent`): one 6x6
-    covariance per child run. ``Jp`` None: the parents' poses are exact (the root of the graph).
+    """Covariance of each child's weighted mean of candidates, for candidates sorted by child, then
+    parent (:func:`runs_by_parent`): one 6x6 per child run. ``Jp`` None: the parents' poses are exact
+    (the root of the graph).
+
+    Candidate i comes from its parent (covariance ``C_parent[parent]``, Jacobian ``Jp[i]``) with its own
+    edge error ``edge_term[i] = Je C_e Je^T``. With normalised weights w_i, the mean's error is
+    ``sum_i w_i (Jp_i e_parent + Je_i e_edge_i)``: the edge terms add as ``w_i^2``, and each parent's
+    term as ``(sum of w_i Jp_i over its candidates) C_parent (...)^T``.
 
     The fused position is the mean weighted by w_i, the fused rotation the chordal mean weighted by
     w_i^2 (eq. 5, :func:`fusion.fuse_runs`): to first order the rotation error is the mean of the

@@ -17,6 +17,7 @@ q_nom * Exp(dtheta).
 
 from __future__ import annotations
 
+from collections import Counter
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -93,10 +94,7 @@ class PoseEkf:
     t_s: float = 0.0
     initialized: bool = False
     t_update_s: float = 0.0
-    accepted: int = 0
-    gated: int = 0
-    late: int = 0
-    resets: int = 0
+    outcomes: Counter[str] = field(default_factory=Counter)  # of update(): accepted, reset, gated, late
     last_nis: float = float("nan")
     a: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
 
@@ -112,7 +110,7 @@ class PoseEkf:
         self.P[12:15, 12:15] = np.eye(3) * self.settings.manoeuvre_accel_sigma**2  # its stationary spread
         self.t_s = self.t_update_s = t_s
         self.initialized = True
-        self.resets += 1
+        self.outcomes["reset"] += 1
 
     def predict(self, t_s: float) -> None:
         """Propagate the state and covariance to time ``t_s`` (no-op backwards in time)."""
@@ -166,7 +164,7 @@ class PoseEkf:
             self.reset(t_s, p_meas, q_meas, R)
             return "reset"
         if t_s < self.t_s - self.settings.max_lag_s:
-            self.late += 1
+            self.outcomes["late"] += 1
             return "late"
         # Predict a copy first: a gated measurement leaves the filter exactly as it was.
         saved = (self.p, self.v, self.q, self.w, self.a, self.P, self.t_s)
@@ -181,7 +179,7 @@ class PoseEkf:
         self.last_nis = nis
         if nis > self.settings.gate_chi2:
             self.p, self.v, self.q, self.w, self.a, self.P, self.t_s = saved
-            self.gated += 1
+            self.outcomes["gated"] += 1
             return "gated"
         K = np.linalg.solve(S, H @ self.P).T  # K = P H^T S^-1 (S symmetric)
         if not self.settings.estimate_accel:
@@ -196,7 +194,7 @@ class PoseEkf:
         I_KH = np.eye(N) - K @ H
         self.P = I_KH @ self.P @ I_KH.T + K @ R @ K.T
         self.t_update_s = max(self.t_update_s, t_s)
-        self.accepted += 1
+        self.outcomes["accepted"] += 1
         return "accepted"
 
     def pose_at(self, t_s: float) -> tuple[NDArray[np.float64], Rotation, NDArray[np.float64]]:

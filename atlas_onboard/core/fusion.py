@@ -113,36 +113,6 @@ def runs_of(sorted_ids: NDArray[np.intp]) -> Runs:
     return Runs(starts, g[starts], np.diff(np.append(starts, len(g))))
 
 
-def fuse_groups(
-    group: NDArray[np.intp],
-    n_groups: int,
-    p: NDArray[np.float64],
-    q_xyzw: NDArray[np.float64],
-    sigmas: NDArray[np.float64],
-    weights: NDArray[np.float64],
-) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.intp]]:
-    """Fuse many groups of candidates at once (eq. 4-7 per group).
-
-    Args:
-        group: (N,) group index in [0, n_groups) of each candidate.
-        p, q_xyzw, sigmas, weights: (N, 3), (N, 4), (N,), (N,) candidates and their weights.
-    Returns:
-        positions (G, 3), quaternions (G, 4), sigmas (G,), counts (G,); a group with no candidate
-        has count 0 and NaN values.
-    """
-    counts = np.bincount(group, minlength=n_groups)
-    pos = np.full((n_groups, 3), np.nan)
-    quat = np.full((n_groups, 4), np.nan)
-    sig = np.full(n_groups, np.nan)
-    if len(group) == 0:
-        return pos, quat, sig, counts
-    order = np.argsort(group, kind="stable")
-    runs = runs_of(group[order])
-    fused = fuse_runs(runs, p[order], q_xyzw[order], sigmas[order], weights[order])
-    pos[runs.ids], quat[runs.ids], sig[runs.ids] = fused
-    return pos, quat, sig, counts
-
-
 def fuse_runs(
     runs: Runs,
     p: NDArray[np.float64],
@@ -150,8 +120,9 @@ def fuse_runs(
     sigmas: NDArray[np.float64],
     weights: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`fuse_groups` on candidates already sorted by group (the graph sorts them once per
-    shape of the graph): positions, quaternions and sigmas, one per run."""
+    """Fuse many groups of candidates at once (eq. 4-7 per group), sorted by group (the graph sorts them
+    once per shape of the graph): ``p``, ``q_xyzw``, ``sigmas``, ``weights`` (N, 3), (N, 4), (N,), (N,)
+    candidates and their weights. Returns positions, quaternions and sigmas, one per run."""
     starts = runs.starts
     wsum = np.add.reduceat(weights, starts)
     pos = np.add.reduceat(weights[:, None] * p, starts) / wsum[:, None]

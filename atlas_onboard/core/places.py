@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import RigidTransform
 from scipy.special import chdtri  # chi-square's inverse survival function (scipy.stats costs 0.6 s to import)
 
 from atlas_onboard.core import covariance
@@ -81,14 +82,14 @@ class MeasuredPlace(WorldMarkerPose):
         p_sensor_marker_m: NDArray[np.float64],
         R_sensor_marker: NDArray[np.float64],
         cov: NDArray[np.float64],
-        R_world_file: NDArray[np.float64],
-        p_world_file_m: NDArray[np.float64],
+        T_world_file: RigidTransform,
     ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """A sighting of the marker re-expressed for its world-file pose (``p_world_file_m``,
-        ``R_world_file``): ``T_sensor_marker' = T_sensor_marker T_place^-1 T_file``, so that eq. 1 with the
-        file pose places the sensor where the measured place does. Returns p' (3,), R' (3, 3), its
-        covariance (6, 6: the sighting's ``cov`` and the place's together) and the (3, 3) covariance the
-        place adds to the sensor's position in the world frame."""
+        """A sighting of the marker re-expressed for its world-file pose ``T_world_file``:
+        ``T_sensor_marker' = T_sensor_marker T_place^-1 T_file``, so that eq. 1 with the file pose places
+        the sensor where the measured place does. Returns p' (3,), R' (3, 3), its covariance (6, 6: the
+        sighting's ``cov`` and the place's together) and the (3, 3) covariance the place adds to the
+        sensor's position in the world frame."""
+        R_world_file, p_world_file_m = T_world_file.rotation.as_matrix(), T_world_file.translation
         # D = T_place^-1 T_file: the place's error through the inverse, then composed with the exact file pose.
         R_mw = self.R_world_marker.T
         C_inv = covariance.transform(covariance.inverse_jacobian(self.p_world_marker_m, self.R_world_marker), self.cov)

@@ -1,22 +1,30 @@
 """The joint solve of the markers of one entity seen together: a marker that does not fit with the others
 is left out, and the verdict goes to the live check of the world file (:mod:`atlas_onboard.detector.worldcheck`,
-which counts, logs and announces it) (part of :class:`atlas_onboard.detector.pipeline.Detector`)."""
+which counts, logs and announces it). The detector (:class:`atlas_onboard.detector.pipeline.Detector`) holds a
+:class:`JointSolve` and calls it."""
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.core.consistency import MarkerConsistency
+from atlas_onboard.config import SensorConfig, WorldConfig
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
 from atlas_onboard.detector import joint_covariance, pose
-from atlas_onboard.detector.families import family
+from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.search import _side
+
+if TYPE_CHECKING:  # annotations only: these modules import this one
+    from atlas_onboard.detector.pipeline import FrameReport
+    from atlas_onboard.detector.worldcheck import WorldCheck
 
 _logger = logging.getLogger(__name__)
 
@@ -46,65 +54,80 @@ class _Single:
     corner_cov: NDArray[np.float64] | None = None  # (8, 8), px^2: refine.RefinedCorners.covariance
 
 
+@dataclass
 class JointSolve:
-    """The joint solve of :class:`~atlas_onboard.detector.pipeline.Detector` (a base of it: the state it uses
-    is the detector's; the world check is the detector's ``world_check``)."""
+    """The joint solve of one sensor's detector, held by :class:`~atlas_onboard.detector.pipeline.Detector`:
+    the robust leave-one-out, the joint solution and its covariance, and the sensor's MarkerData records.
 
-    def _sigma_px(self, family_name: str) -> float:
-        return pose.SIGMA_PX_APRILTAG if family(family_name).is_apriltag else pose.SIGMA_PX_ARUCO
+    ``sensor``, ``world``, ``calibration``: the detector's; ``marker_pose``: the pose of each marker it sees
+    in its entity (``T_entity_marker``); ``sizes``: their sides (m); ``counters``: the detector's (shared).
+    ``world_check``: the live check of the world file that the solve's verdicts go to, set by the detector
+    once made (that check in turn asks this solve for offsets and records).
+    """
 
-    def _robust_joint(
-        self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int
+    sensor: SensorConfig
+    world: WorldConfig
+    calibration: Calibration
+    marker_pose: Mapping[int, RigidTransform]
+    sizes: Mapping[int, float]
+    counters: Counter[str]
+    misfit_pair: list[int] = field(default_factory=list)  # the last robust solve's two markers that disagreed
+    world_check: WorldCheck = field(init=False)
+
+    def robust(
+        self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int, report: FrameReport
     ) -> tuple[MarkerData | None, list[int] | None]:
         """The entity's observation from the markers that fit together, and the ids used.
 
-        When all of them do not fit (:meth:`_joint`), the marker whose removal fits the rest best is
+        When all of them do not fit (:meth:`solve`), the marker whose removal fits the rest best is
         left out, again while they do not fit and at least two remain: a moved or mis-measured marker
-        costs only itself. Two markers that disagree cannot say which of them moved: neither is used.
-        Returns (None, ids) when the joint solve failed (the squares are then reported one by one),
-        (None, None) when no subset of two or more fits.
+        costs only itself. Two markers that disagree cannot say which of them moved: neither is used
+        (they are :attr:`misfit_pair`). Returns (None, ids) when the joint solve failed (the squares are
+        then reported one by one), (None, None) when no subset of two or more fits. Why a marker was not
+        used goes to ``report``.
         """
-        md, misfit = self._joint(ids, singles, capture_time_us)
-        self._misfit_pair = []
+        check = self.world_check
+        md, misfit = self.solve(ids, singles, capture_time_us)
+        self.misfit_pair = []
         if md is not None or not misfit:
             if md is not None:
-                self._record_group(entity, ids, [], singles, capture_time_us)
+                check.record_group(entity, ids, [], singles, capture_time_us)
             return md, ids
         used = list(ids)
         while len(used) > 2:
             trials = []
             for m in used:
                 rest = [i for i in used if i != m]
-                md_r, misfit_r, err = self._joint(rest, singles, capture_time_us, count=False, with_error=True)
+                md_r, misfit_r, err = self.solve(rest, singles, capture_time_us, count=False, with_error=True)
                 if md_r is not None or misfit_r:
                     trials.append((err, m, rest, md_r))
             if not trials:
                 break
             _, m, used, md = min(trials, key=lambda t: t[0])
             offset = self._offset_m(m, used, singles)
-            self._disagrees(entity, m, offset, capture_time_us)
+            check.disagrees(entity, m, offset, capture_time_us, report)
             if md is not None:
                 self.counters["joint"] += 1
                 self.counters["joint_without_disagreeing"] += 1
-                self._record_group(entity, used, [i for i in ids if i not in used], singles, capture_time_us)
+                check.record_group(entity, used, [i for i in ids if i not in used], singles, capture_time_us)
                 return md, used
         for m in used:
-            self.report.dropped.setdefault(m, "joint misfit: the markers do not fit together as placed")
+            report.dropped.setdefault(m, "joint misfit: the markers do not fit together as placed")
         if len(used) == 2:
             a, b = used
-            self._misfit_pair = [a, b]
-            self.consistency.add(capture_time_us, entity, a, b, False)
+            self.misfit_pair = [a, b]
+            check.consistency.add(capture_time_us, entity, a, b, False)
             offset = self._offset_m(b, [a], singles)
-            self.report.dropped[a] = self.report.dropped[b] = (
+            report.dropped[a] = report.dropped[b] = (
                 f"joint misfit, markers {a} and {b} disagree by {offset * 100:.1f} cm"
             )
-            self._log_disagreement(entity, f"markers {a} and {b} disagree", offset, capture_time_us)
+            check.log_disagreement(entity, f"markers {a} and {b} disagree", offset, capture_time_us)
         return None, None
 
-    def _offset(self, m: int, others: list[int], singles: dict[int, _Single]) -> NDArray[np.float64] | None:
+    def offset(self, m: int, others: list[int], singles: dict[int, _Single]) -> NDArray[np.float64] | None:
         """(3,) where marker ``m``'s own square is minus where the joint pose of ``others`` puts it,
         in the entity's frame (m); None when the others cannot be solved."""
-        sol = self._joint_solution(others, singles)
+        sol = self.solution(others, singles)
         if sol is None:
             return None
         T_cam_entity = RigidTransform.from_components(sol[1], Rotation.from_rotvec(sol[0]))
@@ -112,35 +135,14 @@ class JointSolve:
         return T_cam_entity.rotation.inv().apply(singles[m].pose.p_m - predicted)
 
     def _offset_m(self, m: int, others: list[int], singles: dict[int, _Single]) -> float:
-        """How far marker ``m``'s own square is from where the joint pose of ``others`` puts it (m)."""
-        offset = self._offset(m, others, singles)
+        """How far marker ``m``'s own square is from where the joint pose of ``others`` puts it (m); kept
+        by the world check as this image's offset of ``m``."""
+        offset = self.offset(m, others, singles)
         if offset is not None:
-            self._offsets[m] = offset
+            self.world_check.offsets[m] = offset
         return math.nan if offset is None else float(np.linalg.norm(offset))
 
-    # --- the world check's part in the joint solve: held by the detector (detector/worldcheck.py) ---------
-
-    @property
-    def consistency(self) -> MarkerConsistency:
-        return self.world_check.consistency
-
-    @property
-    def _offsets(self) -> dict[int, NDArray[np.float64]]:
-        """This image's disagreeing markers (entity frame), kept by the world check."""
-        return self.world_check.offsets
-
-    def _record_group(
-        self, entity: str, fitted: list[int], left_out: list[int], singles: dict[int, _Single], capture_time_us: int
-    ) -> None:
-        self.world_check.record_group(entity, fitted, left_out, singles, capture_time_us)
-
-    def _disagrees(self, entity: str, m: int, offset_m: float, capture_time_us: int) -> None:
-        self.world_check.disagrees(entity, m, offset_m, capture_time_us, self.report)
-
-    def _log_disagreement(self, entity: str, what: str, offset_m: float, capture_time_us: int) -> None:
-        self.world_check.log_disagreement(entity, what, offset_m, capture_time_us)
-
-    def _joint_solution(self, ids: list[int], singles: dict[int, _Single]) -> tuple | None:
+    def solution(self, ids: list[int], singles: dict[int, _Single]) -> tuple | None:
         """rvec, tvec (T_camera_entity), RMS error and sigma of the joint solve of ``ids``, or None."""
         obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
         img = np.vstack([singles[m].corners for m in ids])
@@ -152,9 +154,9 @@ class JointSolve:
         )
         guess = (T_cam_entity.rotation.as_rotvec(), T_cam_entity.translation)
         fam = self.world.markers[ids[0]].family
-        return pose.solve_joint(obj, img, self.calibration.K, self._sigma_px(fam), guess)
+        return pose.solve_joint(obj, img, self.calibration.K, pose.model_sigma_px(fam), guess)
 
-    def _joint(
+    def solve(
         self,
         ids: list[int],
         singles: dict[int, _Single],
@@ -167,8 +169,8 @@ class JointSolve:
         ``with_error``: the joint RMS error relative to its limit as a third element."""
         anchor = ids[0]
         T_entity_anchor = self.marker_pose[anchor]
-        fam = self.world.markers[anchor].family
-        sol = self._joint_solution(ids, singles)
+        model_sigma_px = pose.model_sigma_px(self.world.markers[anchor].family)
+        sol = self.solution(ids, singles)
         if sol is None:
             self.counters["joint_failed"] += count
             return (None, False, math.inf) if with_error else (None, False)
@@ -177,48 +179,43 @@ class JointSolve:
         # corner, motion blur that moves each square differently) give a joint fit far worse than
         # each square's own: the joint pose is then wrong in a way no sigma describes.
         worst_single = max(singles[m].pose.reprojection_error_px for m in ids)
-        limit = JOINT_MISFIT * max(worst_single, self._sigma_px(fam))
+        limit = JOINT_MISFIT * max(worst_single, model_sigma_px)
         if err > limit:
             self.counters["joint_misfit"] += count
             return (None, True, err / limit) if with_error else (None, True)
         T = RigidTransform.from_components(tvec, Rotation.from_rotvec(rvec)) * T_entity_anchor
         # The covariance of the anchor's pose: the same corners, in the anchor's frame.
         obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
-        obj_anchor = T_entity_anchor.inv().apply(obj)
-        model_px = pose.corner_noise_px(self._sigma_px(fam), float(np.median([_side(singles[m].corners) for m in ids])))
-        measured = [singles[m].measured_px for m in ids]
-        sigma_px = math.hypot(max(measured), pose.CORNER_FLOOR_PX) if min(measured) > 0 else model_px
-        stretches = [singles[m].stretch for m in ids]
-        stretch = None if any(x is None for x in stretches) else np.concatenate(stretches)
-        R, p = T.rotation.as_matrix(), T.translation
-        covs = [singles[m].corner_cov for m in ids]
-        img = np.vstack([singles[m].corners for m in ids])
-        if all(c is not None for c in covs):
-            cov = self._joint_covariance(R, p, obj_anchor, img, [singles[m] for m in ids])
+        fit = pose.CornerFit(
+            T.rotation.as_matrix(), T.translation, T_entity_anchor.inv().apply(obj), self.calibration.K
+        )
+        squares = [singles[m] for m in ids]
+        if all(s.corner_cov is not None for s in squares):
+            cov = self._covariance(fit, squares)
         else:
-            cov = pose.pose_covariance(R, p, obj_anchor, self.calibration.K, sigma_px, err, stretch)
+            model_px = pose.corner_noise_px(model_sigma_px, float(np.median([_side(s.corners) for s in squares])))
+            measured = [s.measured_px for s in squares]
+            sigma_px = math.hypot(max(measured), pose.CORNER_FLOOR_PX) if min(measured) > 0 else model_px
+            stretches = [s.stretch for s in squares]
+            stretch = None if any(x is None for x in stretches) else np.concatenate(stretches)
+            cov = pose.pose_covariance(fit, sigma_px, err, stretch)
         self.counters["joint"] += count
-        md = self._markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us, None, cov)
+        md = self.markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us, None, cov)
         return (md, False, err / limit) if with_error else (md, False)
 
-    def _joint_covariance(
-        self,
-        R: NDArray[np.float64],
-        p: NDArray[np.float64],
-        obj: NDArray[np.float64],
-        img: NDArray[np.float64],
-        squares: list[_Single],
-    ) -> NDArray[np.float64] | None:
-        """The joint pose's 6x6 (R, p of the anchor, ``obj`` its corners (N, 3)) from the squares' corners
-        (:func:`joint_covariance.joint_covariance`), each square's block its edge fit's covariance plus the
-        lens model's residual where it lies (:func:`joint_covariance.lens_residual_covariance`): the squares'
-        relative places, on which the joint rotation rests, are only as good as the lens model between them."""
+    def _covariance(self, fit: pose.CornerFit, squares: list[_Single]) -> NDArray[np.float64] | None:
+        """The joint pose's 6x6 (``fit``: the anchor's pose and the squares' corners in its frame) from the
+        squares' corners (:func:`joint_covariance.joint_covariance`), each square's block its edge fit's
+        covariance plus the lens model's residual where it lies (:func:`joint_covariance.lens_residual_covariance`):
+        the squares' relative places, on which the joint rotation rests, are only as good as the lens model
+        between them."""
         cal = self.calibration
         residual = joint_covariance.lens_residual_covariance
         covs = [s.corner_cov + residual(s.corners, cal.K, cal.dist, cal.fisheye) for s in squares]
-        return joint_covariance.joint_covariance(R, p, obj, cal.K, img, covs)
+        img = np.vstack([s.corners for s in squares])
+        return joint_covariance.joint_covariance(fit, img, covs)
 
-    def _markerdata(
+    def markerdata(
         self,
         marker_id: int,
         p: NDArray[np.float64],

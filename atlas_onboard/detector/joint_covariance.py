@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from scipy.linalg import block_diag
 from scipy.special import chdtri  # chi-square's inverse survival function
 
-from atlas_onboard.detector.pose import pose_jacobian
+from atlas_onboard.detector.pose import CornerFit
 
 # How well a calibrated lens model is known, as a fraction of the correction it applies at a point: a
 # calibration's residual (tenths of a pixel where the lens bends the image by a hundred) grows with the
@@ -43,15 +43,10 @@ SQUARE_MISFIT_LEVEL = 0.9  # a square's miss in a joint fit beyond this quantile
 
 
 def joint_covariance(
-    R_sm: NDArray[np.float64],
-    p_sm: NDArray[np.float64],
-    obj_m: NDArray[np.float64],
-    K: NDArray[np.float64],
-    img_px: NDArray[np.float64],
-    square_covs: list[NDArray[np.float64]],
+    fit: CornerFit, img_px: NDArray[np.float64], square_covs: list[NDArray[np.float64]]
 ) -> NDArray[np.float64] | None:
-    """6x6 covariance of the pose ``(p_sm, R_sm)`` that an unweighted least-squares fit (:func:`pose.solve_joint`)
-    found from several squares' corners (``obj_m`` (4M, 3), ``img_px`` (4M, 2) undistorted, square by
+    """6x6 covariance of the pose of ``fit`` that an unweighted least-squares fit (:func:`pose.solve_joint`)
+    found from several squares' corners (``fit.obj_m`` (4M, 3), ``img_px`` (4M, 2) undistorted, square by
     square), each square's corners with their (8, 8) covariance in ``square_covs``.
 
     The fit weighs every corner alike, so its spread is the sandwich ``A^-1 J^T W J A^-1`` (A = J^T J,
@@ -61,14 +56,12 @@ def joint_covariance(
     grows by how much more the fit misses it than W allows (its residual's quadratic form over that
     form's expectation ``tr(W_m^-1 [(I - H) W (I - H)^T]_mm)``, H = J A^-1 J^T), when the miss is
     significant (``SQUARE_MISFIT_LEVEL``). None if J is singular."""
-    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
-    J = pose_jacobian(R_sm, p_sm, X, K)
+    J = fit.jacobian()
     A = J.T @ J
-    if len(X) < 3 or not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e14:
+    if fit.n_corners < 3 or not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e14:
         return None
     Ai = np.linalg.inv(A)
-    P = X @ R_sm.T + p_sm
-    r = (np.asarray(img_px, dtype=float).reshape(-1, 2) - (P @ K.T)[:, :2] / P[:, 2:]).ravel()
+    r = (np.asarray(img_px, dtype=float).reshape(-1, 2) - fit.projected_px()).ravel()
     covs = [np.asarray(c, dtype=float) for c in square_covs]
     M = np.eye(len(r)) - J @ Ai @ J.T
     expected = M @ block_diag(*covs) @ M.T

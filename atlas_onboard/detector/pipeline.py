@@ -103,7 +103,7 @@ class FrameReport:
 
 
 @dataclass
-class Detector(JointSolve):
+class Detector:
     """The detector of one sensor."""
 
     sensor: SensorConfig
@@ -134,12 +134,21 @@ class Detector(JointSolve):
         self.search = RegionSearch(self.calibration, self.finder, self.counters, self.sensor.id % (TILES[0] * TILES[1]))
         self._quiet_until = np.zeros((0, 0), np.int64)  # per cell: the frame until which it is not a candidate
         self.report = FrameReport()
-        self._misfit_pair: list[int] = []  # the last joint solve's two markers that disagreed
+        # The joint solve of an entity's markers seen together, and the sensor's MarkerData records.
+        self.joint_solve = JointSolve(
+            self.sensor, self.world, self.calibration, self.marker_pose, self.sizes, self.counters
+        )
         # The live world-file check (issue 21): moved and suspect markers, measured places, what is said.
         world_markers = {m: T for m, T in self.marker_pose.items() if self.entity_of[m] == WORLD}
         self.world_check = WorldCheck(
-            self.sensor, self.marker_pose, world_markers, self.counters, self._offset, self._markerdata
+            self.sensor,
+            self.marker_pose,
+            world_markers,
+            self.counters,
+            self.joint_solve.offset,
+            self.joint_solve.markerdata,
         )
+        self.joint_solve.world_check = self.world_check
 
     @property
     def tracking(self) -> bool:
@@ -251,7 +260,7 @@ class Detector(JointSolve):
             corners, measured_px, corner_cov = refined.corners, refined.sigma_px, refined.covariance
             stretch = pose.undistortion_jacobian(d.corners_px, K, cal.dist, cal.fisheye)
             size_m = self.sizes[d.marker_id]
-            mp = pose.solve(corners, size_m, K, self._sigma_px(d.family), stretch, measured_px, corner_cov)
+            mp = pose.solve(corners, size_m, K, pose.model_sigma_px(d.family), stretch, measured_px, corner_cov)
             if mp is None:
                 self.counters["pnp_failed"] += 1
                 self.report.dropped[d.marker_id] = "no pose"
@@ -272,7 +281,7 @@ class Detector(JointSolve):
             if self.joint and len(ids) > 1 and not each:
                 self.world_check.offsets = {}
                 doubtful = self.world_check.doubtful(entity, ids, capture_time_us)
-                md, used = self._robust_joint(entity, ids, singles, capture_time_us)
+                md, used = self.joint_solve.robust(entity, ids, singles, capture_time_us, self.report)
                 if len(ids) >= 3 and used is not None:  # one that does not fit can be singled out
                     self.world_check.check(entity, ids, capture_time_us)
                     fed = True
@@ -287,7 +296,9 @@ class Detector(JointSolve):
                         self.counters["dropped_suspect"] += 1
                         self.report.dropped[m] = "moved or suspect: left out of the joint solve"
                     used = [m for m in used if m not in doubtful]
-                    md = self._joint(used, singles, capture_time_us, count=False)[0] if len(used) > 1 else None
+                    md = None
+                    if len(used) > 1:
+                        md = self.joint_solve.solve(used, singles, capture_time_us, count=False)[0]
                     if md is None:
                         ids = used
                 if md is not None:
@@ -297,9 +308,10 @@ class Detector(JointSolve):
                 if used is None:
                     # The squares contradict each other: a pair's member that others trust is used alone,
                     # when the other is suspect; otherwise none of them is trusted in this image.
-                    suspects = self.world_check.doubtful(entity, self._misfit_pair, capture_time_us)
-                    rest = [m for m in self._misfit_pair if m not in suspects]
-                    if len(rest) != 1 or len(self._misfit_pair) != 2:
+                    pair = self.joint_solve.misfit_pair
+                    suspects = self.world_check.doubtful(entity, pair, capture_time_us)
+                    rest = [m for m in pair if m not in suspects]
+                    if len(rest) != 1 or len(pair) != 2:
                         continue
                     ids = rest
             else:
@@ -328,8 +340,8 @@ class Detector(JointSolve):
                     self.report.reported.append(mid)
                     continue
                 alt = (mp.p_alt_m, mp.q_alt_xyzw) if mp.p_alt_m is not None and mp.q_alt_xyzw is not None else None
-                out.append(self._markerdata(mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px, mp.ambiguity,
-                                            capture_time_us, alt, mp.covariance))  # fmt: skip
+                out.append(self.joint_solve.markerdata(mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px,
+                                                       mp.ambiguity, capture_time_us, alt, mp.covariance))  # fmt: skip
                 self.report.reported.append(mid)
         self.counters["detections"] += len(out)
         return out

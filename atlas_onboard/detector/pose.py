@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
+from atlas_onboard.detector.families import family
 
 SIGMA_PX_APRILTAG = 0.08  # corner noise at a 50 px side, scaled by sqrt(50 / side): corner_noise_px
 SIGMA_PX_ARUCO = 0.2
@@ -59,6 +60,11 @@ class MarkerPose:
     ambiguity: float  # error of the chosen over the other solution (1: indistinguishable)
     sigma_m: float
     covariance: NDArray[np.float64] | None = None  # of the chosen solution: see pose_covariance
+
+
+def model_sigma_px(family_name: str) -> float:
+    """The corner noise model's ``sigma_px`` (at a 50 px side: :func:`corner_noise_px`) of a marker family."""
+    return SIGMA_PX_APRILTAG if family(family_name).is_apriltag else SIGMA_PX_ARUCO
 
 
 def object_corners(size_m: float) -> NDArray[np.float64]:
@@ -146,98 +152,95 @@ def camera_position_sigma(
     return math.sqrt(max(var, 0.0)) * fit
 
 
+@dataclass(frozen=True)
+class CornerFit:
+    """A pose ``T_s_m = (p_sm, R_sm)`` of an object (a square, or the squares of an entity) in an undistorted
+    pinhole camera ``K`` (3, 3), with the object's corners ``obj_m`` ((N, 3), object frame): what the
+    covariances of this module are computed about, made once where the pose is fitted."""
+
+    R_sm: NDArray[np.float64]
+    p_sm: NDArray[np.float64]
+    obj_m: NDArray[np.float64]
+    K: NDArray[np.float64]
+
+    def jacobian(self) -> NDArray[np.float64]:
+        """(2N, 6): the corners' undistorted pixels with respect to the pose error ``[dp, dtheta]``."""
+        X = np.asarray(self.obj_m, dtype=float).reshape(-1, 3)
+        P = X @ self.R_sm.T + self.p_sm
+        z = P[:, 2]
+        fx, fy = self.K[0, 0], self.K[1, 1]
+        # d(pixel)/dP, (N, 2, 3): [[fx / z, 0, -fx x / z^2], [0, fy / z, -fy y / z^2]]
+        D = np.zeros((len(X), 2, 3))
+        D[:, 0, 0], D[:, 1, 1] = fx / z, fy / z
+        D[:, 0, 2], D[:, 1, 2] = -fx * P[:, 0] / z**2, -fy * P[:, 1] / z**2
+        # dP/d[dp, dtheta], (N, 3, 6): [I, -R [X]x]; R [X]x dtheta = R (X x dtheta) = -(R [dtheta]x X)
+        dP = np.zeros((len(X), 3, 6))
+        dP[:, :, :3] = np.eye(3)
+        hat = np.zeros((len(X), 3, 3))
+        hat[:, 0, 1], hat[:, 0, 2], hat[:, 1, 2] = -X[:, 2], X[:, 1], -X[:, 0]
+        hat[:, 1, 0], hat[:, 2, 0], hat[:, 2, 1] = X[:, 2], -X[:, 1], X[:, 0]
+        dP[:, :, 3:] = -self.R_sm @ hat
+        return (D @ dP).reshape(-1, 6)
+
+    def projected_px(self) -> NDArray[np.float64]:
+        """(N, 2): where the pose puts the corners, in undistorted pixels."""
+        P = np.asarray(self.obj_m, dtype=float).reshape(-1, 3) @ self.R_sm.T + self.p_sm
+        return (P @ self.K.T)[:, :2] / P[:, 2:]
+
+    @property
+    def n_corners(self) -> int:
+        return len(np.asarray(self.obj_m).reshape(-1, 3))
+
+
 def pose_covariance(
-    R_sm: NDArray[np.float64],
-    p_sm: NDArray[np.float64],
-    obj_m: NDArray[np.float64],
-    K: NDArray[np.float64],
-    sigma_px: float,
-    err_px: float,
-    stretch: NDArray[np.float64] | None = None,
+    fit: CornerFit, sigma_px: float, err_px: float, stretch: NDArray[np.float64] | None = None
 ) -> NDArray[np.float64] | None:
-    """First-order 6x6 covariance of a marker's pose ``T_s_m = (p_sm, R_sm)`` found from the corners
-        ``obj_m`` ((N, 3), marker frame) seen by an undistorted pinhole camera ``K`` with independent
-        corner noise ``sigma_px``: ``sigma_px^2 (J^T J)^-1``, with J the corners' pixels with respect to
-        atlas-onboard's error vector ``[dp, dtheta]`` (dp in the camera frame, dtheta about the marker's
-        own axes: :mod:`atlas_onboard.core.covariance`). A corner X moves by ``dp - R [X]x dtheta``, and
-        its pixel by the pinhole's derivative. A poor fit inflates it as sigma is inflated
-        (``1 + (err / sigma_px)^2``). ``stretch``: :func:`undistortion_jacobian` of the corners, whose
+    """First-order 6x6 covariance of the pose of ``fit`` found from its corners with independent corner
+    noise ``sigma_px``: ``sigma_px^2 (J^T J)^-1``, with J the corners' pixels with respect to
+    atlas-onboard's error vector ``[dp, dtheta]`` (dp in the camera frame, dtheta about the object's
+    own axes: :mod:`atlas_onboard.core.covariance`). A corner X moves by ``dp - R [X]x dtheta``, and
+    its pixel by the pinhole's derivative. A poor fit (RMS error ``err_px``) inflates it as sigma is
+    inflated (``1 + (err / sigma_px)^2``). ``stretch``: :func:`undistortion_jacobian` of the corners, whose
     noise is ``sigma_px`` in the distorted image (None: no distortion). None if J is singular (fewer
     than three distinct corners)."""
-    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
-    J = _whiten(pose_jacobian(R_sm, p_sm, X, K), stretch)
+    J = _whiten(fit.jacobian(), stretch)
     A = J.T @ J
-    if len(X) < 3 or np.linalg.cond(A) > 1e14:
+    if fit.n_corners < 3 or np.linalg.cond(A) > 1e14:
         return None
-    fit = 1.0 + (err_px / sigma_px) ** 2 if math.isfinite(err_px) else 4.0
-    C = sigma_px**2 * fit * np.linalg.inv(A)
+    fit_scale = 1.0 + (err_px / sigma_px) ** 2 if math.isfinite(err_px) else 4.0
+    C = sigma_px**2 * fit_scale * np.linalg.inv(A)
     return (C + C.T) / 2.0
 
 
-def pose_covariance_from_corners(
-    R_sm: NDArray[np.float64],
-    p_sm: NDArray[np.float64],
-    obj_m: NDArray[np.float64],
-    K: NDArray[np.float64],
-    corner_cov: NDArray[np.float64],
-) -> NDArray[np.float64] | None:
+def pose_covariance_from_corners(fit: CornerFit, corner_cov: NDArray[np.float64]) -> NDArray[np.float64] | None:
     """The 6x6 covariance of :func:`pose_covariance` from the corners' own (2N, 2N) covariance in
     undistorted pixels (x0 y0 x1 y1 ..., correlated: :class:`refine.RefinedCorners`), by generalised
     least squares: ``(J^T corner_cov^-1 J)^-1``. None if it is singular."""
-    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
-    J = pose_jacobian(R_sm, p_sm, X, K)
+    J = fit.jacobian()
     try:
         A = J.T @ np.linalg.solve(corner_cov, J)
     except np.linalg.LinAlgError:
         return None
-    if len(X) < 3 or not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e14:
+    if fit.n_corners < 3 or not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e14:
         return None
     C = np.linalg.inv(A)
     return (C + C.T) / 2.0
 
 
 def fitted_covariance(
-    R_sm: NDArray[np.float64],
-    p_sm: NDArray[np.float64],
-    obj_m: NDArray[np.float64],
-    K: NDArray[np.float64],
-    img_px: NDArray[np.float64],
-    corner_cov: NDArray[np.float64],
+    fit: CornerFit, img_px: NDArray[np.float64], corner_cov: NDArray[np.float64]
 ) -> NDArray[np.float64] | None:
-    """:func:`pose_covariance_from_corners` of the pose ``(p_sm, R_sm)`` fitted to the undistorted
-    corners ``img_px`` (N, 2), scaled by how well it fits them: a fit worse than the corners' covariance
+    """:func:`pose_covariance_from_corners` of the pose of ``fit`` fitted to the undistorted corners
+    ``img_px`` (N, 2), scaled by how well it fits them: a fit worse than the corners' covariance
     explains (its chi-square over the 2N - 6 degrees of freedom the pose leaves) scales the covariance
     by that ratio, as least squares with an unknown noise scale does; a better one changes nothing."""
-    C = pose_covariance_from_corners(R_sm, p_sm, obj_m, K, corner_cov)
+    C = pose_covariance_from_corners(fit, corner_cov)
     if C is None:
         return None
-    X = np.asarray(obj_m, dtype=float).reshape(-1, 3)
-    P = X @ R_sm.T + p_sm
-    r = ((P @ K.T)[:, :2] / P[:, 2:] - np.asarray(img_px, dtype=float).reshape(-1, 2)).ravel()
+    r = (fit.projected_px() - np.asarray(img_px, dtype=float).reshape(-1, 2)).ravel()
     dof = max(len(r) - 6, 1)
     chi2 = float(r @ np.linalg.solve(corner_cov, r))
     return C * max(1.0, chi2 / dof)
-
-
-def pose_jacobian(
-    R_sm: NDArray[np.float64], p_sm: NDArray[np.float64], X: NDArray[np.float64], K: NDArray[np.float64]
-) -> NDArray[np.float64]:
-    """(2N, 6): the corners' undistorted pixels with respect to the pose error ``[dp, dtheta]``."""
-    P = X @ R_sm.T + p_sm
-    z = P[:, 2]
-    fx, fy = K[0, 0], K[1, 1]
-    # d(pixel)/dP, (N, 2, 3): [[fx / z, 0, -fx x / z^2], [0, fy / z, -fy y / z^2]]
-    D = np.zeros((len(X), 2, 3))
-    D[:, 0, 0], D[:, 1, 1] = fx / z, fy / z
-    D[:, 0, 2], D[:, 1, 2] = -fx * P[:, 0] / z**2, -fy * P[:, 1] / z**2
-    # dP/d[dp, dtheta], (N, 3, 6): [I, -R [X]x]; R [X]x dtheta = R (X x dtheta) = -(R [dtheta]x X)
-    dP = np.zeros((len(X), 3, 6))
-    dP[:, :, :3] = np.eye(3)
-    hat = np.zeros((len(X), 3, 3))
-    hat[:, 0, 1], hat[:, 0, 2], hat[:, 1, 2] = -X[:, 2], X[:, 1], -X[:, 0]
-    hat[:, 1, 0], hat[:, 2, 0], hat[:, 2, 1] = X[:, 2], -X[:, 1], X[:, 0]
-    dP[:, :, 3:] = -R_sm @ hat
-    return (D @ dP).reshape(-1, 6)
 
 
 def corner_noise_px(base_px: float, side_px: float) -> float:
@@ -302,43 +305,38 @@ def solve(
     cap = z * math.sqrt((sigma_px / side_px) ** 2 + 2.0 * sigma_px / side_px)
     fit = math.sqrt(1.0 + (e[0] / sigma_px) ** 2)
     sigma = max(min(sigma, cap * fit), MIN_SIGMA_M)
-    R0 = cv2.Rodrigues(r0)[0]
+    fitted = CornerFit(cv2.Rodrigues(r0)[0], t0, obj, K)
     cov = None
     if corner_cov is not None:
-        cov = fitted_covariance(R0, t0, obj, K, img.reshape(-1, 2), corner_cov)
+        cov = fitted_covariance(fitted, img.reshape(-1, 2), corner_cov)
     if cov is None:
-        cov = pose_covariance(R0, t0, obj, K, sigma_px, float(e[0]), stretch)
+        cov = pose_covariance(fitted, sigma_px, float(e[0]), stretch)
     if cov is not None and alt[0] is not None and ambiguity <= AMBIGUITY_THRESHOLD:
-        cov = cov + _flip_moment(R0, t0, alt[0], alt[1], obj, img, K, sigma_px, float(e[0]), stretch)
+        other = CornerFit(Rotation.from_quat(alt[1]).as_matrix(), alt[0], obj, K)
+        cov = cov + _flip_moment(fitted, other, img, sigma_px, float(e[0]), stretch)
     return MarkerPose(t0, Rotation.from_rotvec(r0).as_quat(), float(e[0]), alt[0], alt[1], ambiguity, sigma, cov)
 
 
 def _flip_moment(
-    R0: NDArray[np.float64],
-    t0: NDArray[np.float64],
-    p_alt: NDArray[np.float64],
-    q_alt_xyzw: NDArray[np.float64],
-    obj: NDArray[np.float64],
+    chosen: CornerFit,
+    other: CornerFit,
     img: NDArray[np.float64],
-    K: NDArray[np.float64],
     sigma_px: float,
     err_px: float,
     stretch: NDArray[np.float64] | None,
 ) -> NDArray[np.float64]:
-    """The second moment, about the chosen solution, that the other planar solution adds: w d d^T.
+    """The second moment, about the ``chosen`` solution, that the ``other`` planar solution adds: w d d^T.
 
-    A small or near face-on square has two poses that fit its corners almost equally (IPPE's pair,
+    A small or near face-on square has two poses that fit its corners ``img`` almost equally (IPPE's pair,
     mirrored in tilt). The first-order covariance describes the neighbourhood of the chosen one only;
     with the corner noise, the other is the truth with the posterior weight
     w = 1 / (1 + exp((chi2_alt - chi2_chosen) / 2)), chi2 = sum of squared residuals / sigma_px^2, and
     d its offset in the error convention [dp, dtheta] of :func:`pose_covariance`.
     """
-    R1 = Rotation.from_quat(q_alt_xyzw).as_matrix()
-    proj = (obj @ R1.T + p_alt) @ K.T
-    res = _whiten((proj[:, :2] / proj[:, 2:] - img.reshape(-1, 2)).reshape(-1, 1), stretch)
+    res = _whiten((other.projected_px() - img.reshape(-1, 2)).reshape(-1, 1), stretch)
     dchi2 = (float(np.sum(res**2)) - 4.0 * err_px**2) / sigma_px**2
     w = 1.0 / (1.0 + math.exp(min(max(dchi2, 0.0) / 2.0, 700.0)))
-    d = np.concatenate([p_alt - t0, Rotation.from_matrix(R0.T @ R1).as_rotvec()])
+    d = np.concatenate([other.p_sm - chosen.p_sm, Rotation.from_matrix(chosen.R_sm.T @ other.R_sm).as_rotvec()])
     return w * np.outer(d, d)
 
 

@@ -190,13 +190,12 @@ class WorldCheck:
         """Marker ``mid``'s own square as an observation of its world-file pose that places the sensor where
         its measured place does, with the place's covariance carried along."""
         T_file = self.marker_pose[mid]
-        R_file = T_file.rotation.as_matrix()
         R = Rotation.from_quat(mp.q_xyzw).as_matrix()
-        p, R_new, cov, C_sensor = place.correct(mp.p_m, R, mp.covariance, R_file, T_file.translation)
+        p, R_new, cov, C_sensor = place.correct(mp.p_m, R, mp.covariance, T_file)
         alt = None
         if mp.p_alt_m is not None and mp.q_alt_xyzw is not None:  # the other planar solution, moved alike
             R_alt = Rotation.from_quat(mp.q_alt_xyzw).as_matrix()
-            p_alt, R_alt_new, _, _ = place.correct(mp.p_alt_m, R_alt, mp.covariance, R_file, T_file.translation)
+            p_alt, R_alt_new, _, _ = place.correct(mp.p_alt_m, R_alt, mp.covariance, T_file)
             alt = (p_alt, Rotation.from_matrix(R_alt_new).as_quat())
         sigma = math.hypot(mp.sigma_m, math.sqrt(max(float(np.linalg.eigvalsh(C_sensor)[-1]), 0.0)))
         self.counters["placed_used"] += 1

@@ -121,7 +121,7 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
     import cv2
 
     from atlas_onboard.core.markerdata import matrix_to_upper
-    from atlas_onboard.detector.pose import pose_covariance
+    from atlas_onboard.detector.pose import CornerFit, pose_covariance
     from atlas_onboard.sim.world import marker_corners
 
     rng = np.random.default_rng(seed)
@@ -144,7 +144,7 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
             side_px = float(np.mean(np.linalg.norm(np.roll(img, -1, axis=0) - img, axis=1)))
             # Range error of a square seen at side_px pixels with corner noise of NOISE_PX.
             sigma = max(0.001, float(np.linalg.norm(p)) * 2.0 * NOISE_PX / max(side_px, 1.0))
-            cov = pose_covariance(r.as_matrix(), p, obj, K, NOISE_PX, float(e[0]) if len(e) else math.nan)
+            cov = pose_covariance(CornerFit(r.as_matrix(), p, obj, K), NOISE_PX, float(e[0]) if len(e) else math.nan)
             out.append(
                 MarkerData(
                     sensor_id=sensor.id,

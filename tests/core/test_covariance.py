@@ -97,15 +97,24 @@ def test_inverse_of_inverse_is_identity_on_covariance(s_p, s_a):
     np.testing.assert_allclose(covariance.transform(J2, covariance.transform(J1, C)), C, rtol=1e-9, atol=1e-15)
 
 
+def fuse(child, parent, n, weights, Jp, C_parent, edge_term):
+    """covariance.fuse_runs on unsorted candidates: the (n, 6, 6) covariance of each child's mean."""
+    out = np.zeros((n, 6, 6))
+    order = np.lexsort((parent, child))
+    kids, pairs = covariance.runs_by_parent(child[order], parent[order])
+    out[kids.ids] = covariance.fuse_runs(kids, pairs, weights[order], Jp[order], C_parent, edge_term[order])
+    return out
+
+
 def test_fusion_averages_edge_errors_but_not_the_shared_parent():
     # Two equal candidates of one child: from the same parent (its error is common to both) and
     # from world (exact). Identity Jacobians make the figures exact.
     edge = np.eye(6) * 4.0
     parent_cov = np.stack([np.zeros((6, 6)), np.eye(6) * 9.0])
     Jp = np.stack([np.eye(6), np.eye(6)])
-    same = covariance.fuse(np.array([0, 0]), np.array([1, 1]), 1, np.ones(2), Jp, parent_cov, np.stack([edge, edge]))
+    same = fuse(np.array([0, 0]), np.array([1, 1]), 1, np.ones(2), Jp, parent_cov, np.stack([edge, edge]))
     np.testing.assert_allclose(same[0], np.eye(6) * (9.0 + 4.0 / 2))
-    both = covariance.fuse(np.array([0, 0]), np.array([0, 1]), 1, np.ones(2), Jp, parent_cov, np.stack([edge, edge]))
+    both = fuse(np.array([0, 0]), np.array([0, 1]), 1, np.ones(2), Jp, parent_cov, np.stack([edge, edge]))
     np.testing.assert_allclose(both[0], np.eye(6) * (9.0 / 4 + 4.0 / 2))
 
 
@@ -220,13 +229,10 @@ def test_detection_covariance_matches_monte_carlo():
     T_sm = pose([0.3, -0.2, 2.5], [170, 10, 30])
     T_mb = pose([1.5, -0.8, 0.2], [0, 0, 40])  # the entity's origin far from the marker
     C_sm = random_cov(rng, 0.003, 0.01)
-    predicted = covariance.detection(
-        T_as.rotation.as_matrix()[None],
-        (T_as.rotation * T_sm.rotation).as_matrix()[None],
-        T_mb.translation[None],
-        T_mb.rotation.as_matrix()[None],
-        C_sm[None],
-    )[0]
+    chain = covariance.Chain(
+        T_as.rotation.as_matrix()[None], T_sm.rotation.as_matrix()[None], T_sm.translation[None], T_mb.as_matrix()[None]
+    )
+    predicted = covariance.detection(chain, C_sm[None])[0]
     n = 20000
     E = rng.normal(size=(n, 6)) @ np.linalg.cholesky(C_sm).T
     got = sampled_cov(error(T_as * T_sm * T_mb, T_as * perturb(T_sm, E) * T_mb))

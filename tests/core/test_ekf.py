@@ -65,7 +65,7 @@ def test_outlier_is_gated_and_changes_nothing():
         ekf.update(k / 30, np.zeros(3), q, R_of(0.01, 0.01))
     before = (ekf.p.copy(), ekf.q.as_quat().copy(), ekf.P.copy())
     assert ekf.update(1.0, np.array([1.0, 0, 0]), q, R_of(0.01, 0.01)) == "gated"  # 1 m jump at 1 cm sigma
-    assert ekf.gated == 1
+    assert ekf.outcomes["gated"] == 1
     # A flipped orientation (the planar ambiguity) is gated too.
     assert ekf.update(1.0, np.zeros(3), Rotation.from_euler("x", 40, degrees=True), R_of(0.01, 0.01)) == "gated"
     np.testing.assert_array_equal(ekf.p, before[0])

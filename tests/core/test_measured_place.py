@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core import covariance
 from atlas_onboard.core.places import (
@@ -125,6 +125,10 @@ def test_a_marker_that_stays_keeps_its_place():
     assert RECHECK_MISFITS <= RECHECK_LAST
 
 
+def file_pose(p_file, R_file):
+    return RigidTransform.from_components(p_file, Rotation.from_matrix(R_file))
+
+
 @settings(max_examples=50, deadline=None)
 @given(
     st.lists(st.floats(-1.0, 1.0), min_size=9, max_size=9),
@@ -135,7 +139,7 @@ def test_a_sighting_corrected_for_the_file_pose_places_the_sensor_where_the_meas
     p_place, p_file, p_sm = (np.array(p[i : i + 3]) for i in (0, 3, 6))
     R_place, R_file, R_sm = (Rotation.from_rotvec(r[i : i + 3]).as_matrix() for i in (0, 3, 6))
     place = MeasuredPlace(2, p_place, R_place, COV, p_place - p_file, 1.0, 10, 3, 0)
-    p_new, R_new, cov, C_sensor = place.correct(p_sm, R_sm, COV, R_file, p_file)
+    p_new, R_new, cov, C_sensor = place.correct(p_sm, R_sm, COV, file_pose(p_file, R_file))
 
     def sensor_in_world(p_wm, R_wm, p_sm_, R_sm_):
         return p_wm - R_wm @ R_sm_.T @ p_sm_, R_wm @ R_sm_.T
@@ -156,7 +160,7 @@ def test_the_corrected_sightings_covariance_is_the_sightings_and_the_places_toge
     p_sm, R_sm = np.array([0.2, -0.1, 1.4]), Rotation.from_euler("x", 170, degrees=True).as_matrix()
     C_place = np.diag([0.002**2, 0.001**2, 0.003**2] + [np.radians(0.5) ** 2] * 3)
     place = MeasuredPlace(2, p_place, R_place, C_place, p_place - p_file, 1.0, 10, 3, 0)
-    p_new, R_new, cov, C_sensor = place.correct(p_sm, R_sm, COV, R_file, p_file)
+    p_new, R_new, cov, C_sensor = place.correct(p_sm, R_sm, COV, file_pose(p_file, R_file))
     # Predicted: the sensor's position p_file - R_file R'^T p' with T' = (p', R') uncertain by ``cov``.
     Ji = covariance.inverse_jacobian(p_new, R_new)
     predicted = R_file @ covariance.transform(Ji, cov)[:3, :3] @ R_file.T

@@ -28,10 +28,11 @@ def test_joint_covariance_describes_the_unweighted_fit_of_unequally_noisy_square
         rvec, tvec, _, _ = pose.solve_joint(obj, img, K, 0.1, (R.as_rotvec(), t))
         R_est = Rotation.from_rotvec(rvec)
         e = np.concatenate([t - tvec, (R_est.inv() * R).as_rotvec()])
-        C = joint_covariance.joint_covariance(R_est.as_matrix(), tvec, obj, K, img, covs)
+        fit = pose.CornerFit(R_est.as_matrix(), tvec, obj, K)
+        C = joint_covariance.joint_covariance(fit, img, covs)
         nees.append(e @ np.linalg.solve(C, e))
         # What main gave it: the weighted fit's covariance, grown by the fit's reduced chi-square.
-        Cw = pose.fitted_covariance(R_est.as_matrix(), tvec, obj, K, img, W)
+        Cw = pose.fitted_covariance(fit, img, W)
         nees_weighted.append(e @ np.linalg.solve(Cw, e))
     lo, hi = chi2.ppf([0.0005, 0.9995], 6 * TRIALS) / TRIALS
     assert np.mean(nees_weighted) > hi  # the check can fail: that was overconfident

@@ -27,7 +27,7 @@ def test_first_order_covariance_matches_monte_carlo_of_ippe(angle):
     clean = (obj @ R_true.T + p_true) @ K.T
     clean = clean[:, :2] / clean[:, 2:]
     sigma_px = 0.1  # the AprilTag library's corner noise at about 50 px (pose.SIGMA_PX_APRILTAG)
-    predicted = pose.pose_covariance(R_true, p_true, obj, K, sigma_px, 0.0)
+    predicted = pose.pose_covariance(pose.CornerFit(R_true, p_true, obj, K), sigma_px, 0.0)
     errors = []
     for _ in range(2500):
         mp = pose.solve(clean + rng.normal(0.0, sigma_px, clean.shape), SIZE, K, pose.SIGMA_PX_APRILTAG)
@@ -44,7 +44,7 @@ def test_covariance_is_in_the_marker_axes_and_the_camera_frame():
     """A far marker seen face-on: its centre is precise across the line of sight, less so in depth,
     and its tilt (about its own x and y) is the least known; its spin about its normal is precise."""
     R = Rotation.from_euler("x", 180, degrees=True).as_matrix()
-    C = pose.pose_covariance(R, np.array([0.0, 0.0, 3.0]), pose.object_corners(SIZE), K, 0.1, 0.0)
+    C = pose.pose_covariance(pose.CornerFit(R, np.array([0.0, 0.0, 3.0]), pose.object_corners(SIZE), K), 0.1, 0.0)
     s = np.sqrt(np.diag(C))
     assert s[0] < s[2] / 5 and s[1] < s[2] / 5  # lateral << depth
     assert s[3] > 5 * s[5] and s[4] > 5 * s[5]  # tilt >> spin about the normal

@@ -269,7 +269,7 @@ def _detection_covariance():
 
     K = np.array([[480.0, 0, 480], [0, 480.0, 270], [0, 0, 1]])
     R = np.diag([1.0, -1.0, -1.0])  # face up, seen from above
-    C = pose.pose_covariance(R, np.array([0.6, -0.3, 2.8]), pose.object_corners(0.2), K, 0.1, 0.05)
+    C = pose.pose_covariance(pose.CornerFit(R, np.array([0.6, -0.3, 2.8]), pose.object_corners(0.2), K), 0.1, 0.05)
     return C, matrix_to_upper(C)
 
 
