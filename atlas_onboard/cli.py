@@ -88,8 +88,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return run_node(args.config, args.entity, args.record, args.record_max_mb, args.write_map)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser with every subcommand."""
+_BUILT_IN = ("run", "check-config")  # the commands build_parser defines itself
+
+
+def build_parser(every_command: bool = True) -> argparse.ArgumentParser:
+    """The argument parser with every subcommand (``every_command``), or with the built-in ones only."""
     parser = _Parser(prog="atlas-onboard", description=__doc__.splitlines()[0] if __doc__ else None)
     parser.add_argument("--version", action="version", version=f"atlas-onboard {__version__}")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
@@ -111,6 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="refine the world markers live; write the refined world file at exit",
     )
     p.set_defaults(func=_cmd_run)
+    if not every_command:
+        return parser
 
     from atlas_onboard.detector.commands import add_commands as add_detector
     from atlas_onboard.install import add_commands as add_install
@@ -153,7 +158,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(argv: Sequence[str] | None) -> int:
-    parser = build_parser()
+    # The service (started by systemd, and by the simulator for every drone) needs none of the other
+    # commands' modules, whose imports (OpenCV, scipy.optimize) would only slow its start.
+    words = [a for a in (sys.argv[1:] if argv is None else argv) if not a.startswith("-")]
+    parser = build_parser(every_command=not words or words[0] not in _BUILT_IN)
     args = parser.parse_args(argv)
     level = (logging.INFO if args.command in ("run", "sim") else logging.WARNING) - 10 * min(args.verbose, 1)
     logging.basicConfig(level=level, stream=sys.stderr, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -38,3 +38,27 @@ def test_ctrl_c_is_one_line_and_status_130():
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 130
     assert err.decode() == "atlas-onboard: interrupted\n" and out == b""
+
+
+def test_the_service_starts_without_the_other_commands_modules():
+    """``run`` (every node's start, under systemd and in the simulator) builds only the built-in commands:
+    the other commands' modules and what they import (OpenCV, scipy.optimize) stay out of its start-up;
+    ``--help`` still lists every command."""
+    code = (
+        "import sys\n"
+        "import atlas_onboard.cli as cli\n"
+        "cli._cmd_run = lambda args: print(' '.join(sorted(sys.modules))) or 0\n"
+        "sys.exit(cli.main(['-v', 'run', '--config', 'x.yaml']))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    loaded = set(done.stdout.split())
+    assert "atlas_onboard.cli" in loaded
+    heavy = ("cv2", "scipy.optimize", "atlas_onboard.sim", "atlas_onboard.mapping", "atlas_onboard.detector.commands")
+    assert loaded.isdisjoint(heavy), sorted(loaded.intersection(heavy))
+    helped = subprocess.run(
+        [sys.executable, "-m", "atlas_onboard", "--help"], capture_output=True, text=True, timeout=60, check=False
+    )
+    assert helped.returncode == 0, helped.stderr
+    for command in ("check-config", "run", "sim", "demo", "detect", "markers", "params", "record", "map"):
+        assert command in helped.stdout, command
