@@ -1,6 +1,7 @@
 """The command line in a real subprocess: a reader that closes the pipe early and Ctrl-C end any
 subcommand with one line at most and a conventional status, never a traceback."""
 
+import os
 import signal
 import subprocess
 import sys
@@ -62,3 +63,38 @@ def test_the_service_starts_without_the_other_commands_modules():
     assert helped.returncode == 0, helped.stderr
     for command in ("check-config", "run", "sim", "demo", "detect", "markers", "params", "record", "map"):
         assert command in helped.stdout, command
+
+
+def test_a_terminated_sim_stops_its_nodes_and_leaves_no_folders(tmp_path):
+    """SIGTERM (systemd, a CI timeout, ``kill``) mid-run: the nodes stopped, the run's and the rendered
+    frames' temporary folders removed, status 143, one line; the default action left both folders."""
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "atlas_onboard", "sim", "--scenario", "paper-test1", "--duration", "4"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+    )  # fmt: skip
+    try:
+        for line in proc.stderr:  # the progress lines: signal once the nodes run
+            if b"starting" in line or b"running" in line:
+                break
+        runs = list(tmp_path.glob("atlas-sim-paper-test1-*"))
+        assert runs and list(tmp_path.glob("atlas-sim-frames-*")), sorted(p.name for p in tmp_path.iterdir())
+        logs = sorted(runs[0].glob("*.log"))
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 143, err.decode()
+    assert "Traceback" not in err.decode() and "terminated" in err.decode()
+    assert list(tmp_path.iterdir()) == [], sorted(p.name for p in tmp_path.iterdir())
+    assert logs, "no node had started"
+    alive = [c for c in Path("/proc").glob("[0-9]*/cmdline") if _reads(c).find(str(runs[0]).encode()) >= 0]
+    assert alive == [], "node processes left running"
+
+
+def _reads(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError:  # a process that ended meanwhile
+        return b""

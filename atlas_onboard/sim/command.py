@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -127,6 +130,23 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
     return rep, tracks
 
 
+@contextlib.contextmanager
+def _terminate_cleanly() -> Iterator[None]:
+    """SIGTERM (a service manager, a CI timeout, ``kill``) ends the run as an exception would: its nodes
+    stopped and its temporary folders (run, rendered frames) removed, where the default action would
+    leave them behind. Exit status 143, as the signal's."""
+
+    def stop(signum: int, _frame: object) -> None:
+        sys.stderr.write("atlas-onboard sim: terminated\n")
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def _cmd_sim(args: argparse.Namespace) -> int:
     overrides: dict[str, dict[str, object]] = {}
     for item in args.set or []:
@@ -138,7 +158,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     options = SimOptions(
         scenario=args.scenario, duration_s=args.duration, seed=args.seed, out_dir=args.out, world_overrides=overrides
     )
-    sim = run(options, progress=lambda msg: print(f"atlas-onboard sim: {msg}", file=sys.stderr))
+    with _terminate_cleanly():
+        sim = run(options, progress=lambda msg: print(f"atlas-onboard sim: {msg}", file=sys.stderr))
     rep, tracks = score_run(sim)
     rep.seed = args.seed
     if args.json:
