@@ -10,6 +10,7 @@ its corners the same way.
 
 from __future__ import annotations
 
+import statistics
 from dataclasses import dataclass
 
 import cv2
@@ -148,28 +149,34 @@ def refine_corners_undistorted(
     sides = _sides(corners_und)
     if sides is None:
         return None
-    # Every side's sample points at once: one projection through the lens, one crop of the image.
-    grids = []
+    # Every side's sample points at once: one projection through the lens, one crop of the image, one
+    # sampling. A side with a shorter search than the longest repeats its outermost sample (which leaves
+    # its profile's half level and ramp as they are: see _half_level).
+    bases, offsets, depths = [], [], []
     for i, (a, d, n) in enumerate(sides):
         # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
         # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
         depth = min(abs(float(n @ (corners_und[(i + k) % 4] - a))) for k in (2, 3))
         half = float(np.clip(0.1 * depth, 1.0, 2 * HALF_WIDTH_PX))
-        offsets = np.arange(-half, half + 1e-9, STEP_PX)
-        base = a[None, :] + ts[:, None] * d[None, :]
-        grids.append((base, offsets, n, depth, base[:, None, :] + offsets[None, :, None] * n[None, None, :]))
-    pts = np.concatenate([g[4].reshape(-1, 2) for g in grids])
-    px_all = _distort(pts, K, dist, fisheye)
+        offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
+        bases.append(a[None, :] + ts[:, None] * d[None, :])
+        depths.append(depth)
+    counts = [len(o) for o in offsets]
+    width = max(counts)
+    padded = np.array([np.pad(o, (0, width - len(o)), mode="edge") for o in offsets])  # (4, width)
+    normals = np.array([n for _, _, n in sides])
+    grid = np.array(bases)[:, :, None, :] + padded[:, None, :, None] * normals[:, None, None, :]  # (4, S, width, 2)
+    px_all = _distort(grid.reshape(-1, 2), K, dist, fisheye)
     img, origin = _crop(gray, px_all)
-    px_all = (px_all - origin).astype(np.float32)
-    start = 0
-    for base, offsets, n, depth, grid in grids:
-        count = grid.shape[0] * grid.shape[1]
-        px = px_all[start : start + count].reshape(grid.shape)
-        start += count
-        prof = cv2.remap(img, px[..., 0], px[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        found, ramp = _half_level(prof, offsets)
+    px_all = (px_all - origin).astype(np.float32).reshape(4 * SAMPLES_PER_SIDE, width, 2)
+    prof = cv2.remap(img, px_all[..., 0], px_all[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    rows_offsets = np.repeat(padded, SAMPLES_PER_SIDE, axis=0)
+    found_all, ramp_all = _half_level(prof, rows_offsets, np.repeat(counts, SAMPLES_PER_SIDE))
+    for i, (base, depth) in enumerate(zip(bases, depths, strict=True)):
+        n = normals[i]
+        found = found_all[i * SAMPLES_PER_SIDE : (i + 1) * SAMPLES_PER_SIDE]
+        ramp = ramp_all[i * SAMPLES_PER_SIDE : (i + 1) * SAMPLES_PER_SIDE]
         keep = np.isfinite(found)
         if np.count_nonzero(keep) < SAMPLES_PER_SIDE // 2:
             return None
@@ -185,7 +192,7 @@ def refine_corners_undistorted(
         u = (e - mean) @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
         finite = ramp[np.isfinite(ramp)]
-        ramps.append(float(np.median(finite)) if len(finite) else 0.0)
+        ramps.append(statistics.median(finite.tolist()) if len(finite) else 0.0)  # np.median's value, cheaper
         cells.append(depth / 8.0)  # the smaller cell of the families (8 across tag36h11's border)
     out = _crossings(lines, corners_und, max_move_px=np.inf)
     if out is None:
@@ -214,11 +221,63 @@ def _distort(
 ) -> NDArray[np.float64]:
     """Undistorted pixels (N, 2) (an ideal pinhole with the same K) -> image pixels (N, 2)."""
     rays = np.column_stack([pts_und, np.ones(len(pts_und))]) @ np.linalg.inv(K).T  # normalized, z = 1
+    k = np.asarray(dist, dtype=np.float64).ravel()
     if fisheye:
-        px = cv2.fisheye.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
-    else:
-        px = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
-    return px.reshape(-1, 2)
+        return _project_fisheye(rays, K, k)
+    if len(k) not in (4, 5, 8, 12, 14) or (len(k) == 14 and np.any(k[12:])):  # a tilted sensor: OpenCV's own
+        return cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, k)[0].reshape(-1, 2)
+    return _project(rays, K, k)
+
+
+def _project(rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Camera-frame points (N, 3) -> image pixels (N, 2) through OpenCV's standard lens model (radial,
+    tangential, rational and thin-prism terms; 4 to 12 coefficients ``k``): cv2.projectPoints' value,
+    evaluated in its order of operations (bit for bit) without the Jacobians it also computes."""
+    k = np.concatenate([k, np.zeros(12 - len(k))]) if len(k) < 12 else k
+    x, y = rays[:, 0], rays[:, 1]
+    z = rays[:, 2]
+    z = np.where(z != 0, 1.0 / np.where(z != 0, z, 1.0), 1.0)
+    x, y = x * z, y * z
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    r6 = r4 * r2
+    a1 = 2 * x * y
+    a2 = r2 + 2 * x * x
+    a3 = r2 + 2 * y * y
+    cdist = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6
+    xd, yd = x * cdist, y * cdist
+    if np.any(k[5:8]):  # the rational terms' denominator (exactly 1 without them)
+        icdist2 = 1.0 / (1 + k[5] * r2 + k[6] * r4 + k[7] * r6)
+        xd, yd = xd * icdist2, yd * icdist2
+    xd = xd + k[2] * a1 + k[3] * a2
+    yd = yd + k[2] * a3 + k[3] * a1
+    if np.any(k[8:12]):  # thin prism (adding zeros changes nothing)
+        xd = xd + k[8] * r2 + k[9] * r4
+        yd = yd + k[10] * r2 + k[11] * r4
+    return np.column_stack([xd * K[0, 0] + K[0, 2], yd * K[1, 1] + K[1, 2]])
+
+
+def _project_fisheye(rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Camera-frame points (N, 3) -> image pixels (N, 2) through OpenCV's fisheye model (4 coefficients):
+    cv2.fisheye.projectPoints' value (to the last bits of its arctangent) without the Jacobians it also
+    computes."""
+    z = np.where(np.abs(rays[:, 2]) < np.finfo(float).tiny, 1.0, rays[:, 2])
+    x, y = rays[:, 0] / z, rays[:, 1] / z
+    r = np.sqrt(x * x + y * y)
+    theta = np.arctan(r)
+    theta2 = theta * theta
+    theta3 = theta2 * theta
+    theta4 = theta2 * theta2
+    theta5 = theta4 * theta
+    theta6 = theta3 * theta3
+    theta7 = theta6 * theta
+    theta8 = theta4 * theta4
+    theta9 = theta8 * theta
+    theta_d = theta + k[0] * theta3 + k[1] * theta5 + k[2] * theta7 + k[3] * theta9
+    big = r > 1e-8
+    cdist = np.where(big, theta_d * (1.0 / np.where(big, r, 1.0)), 1.0)
+    # (cv2.fisheye.projectPoints given K takes no skew from it: nor does this)
+    return np.column_stack([x * cdist * K[0, 0] + K[0, 2], y * cdist * K[1, 1] + K[1, 2]])
 
 
 def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
@@ -310,28 +369,36 @@ class RefinedCorners:
 
 
 def _half_level(
-    prof: NDArray[np.float32], offsets: NDArray[np.float64]
+    prof: NDArray[np.float32], offsets: NDArray[np.float64], counts: NDArray[np.int64] | None = None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Where each profile (rows: dark marker border inside, light quiet zone outside) crosses halfway
     between its two ends, as an offset; NaN where it has too little contrast or no single crossing. And
     each profile's ramp width (px, NaN without contrast): how far blur spreads the edge.
 
+    ``offsets``: the samples' offsets, (L,) for every row or (rows, L) each row its own; ``counts``
+    (rows,): each row's samples, the rest of a shorter row being its last sample repeated (which adds no
+    crossing and no slope); all L if not given.
+
     Motion blur and defocus spread an edge into a ramp whose gradient is a plateau: its peak wanders
     with the noise, while the half-level crossing of a symmetric blur stays on the edge.
     """
-    lo = prof[:, :2].mean(axis=1)
-    hi = prof[:, -2:].mean(axis=1)
+    rows = np.arange(len(prof))
+    offsets = np.broadcast_to(offsets, prof.shape)
+    lo = (prof[:, 0] + prof[:, 1]) / 2  # each end the mean of its two samples (float32, as np.mean)
+    if counts is None:
+        hi = (prof[:, -2] + prof[:, -1]) / 2
+    else:
+        hi = (prof[rows, counts - 2] + prof[rows, counts - 1]) / 2
     level = (lo + hi) / 2.0
     above = prof > level[:, None]
     # The ramp's width (px): the contrast over the steepest slope; about a pixel for a sharp edge, more with blur.
-    slope = np.max(np.diff(prof, axis=1), axis=1) / (offsets[1] - offsets[0])
+    slope = np.max(np.diff(prof, axis=1), axis=1) / (offsets[:, 1] - offsets[:, 0])
     contrast = hi - lo >= MIN_CONTRAST
     ramp = np.where((slope > 0) & contrast, (hi - lo) / np.maximum(slope, 1e-9), np.nan)
     cross = ~above[:, :-1] & above[:, 1:]
     single = contrast & (np.count_nonzero(cross, axis=1) == 1)
     j = np.argmax(cross, axis=1)
-    rows = np.arange(len(prof))
     a, b = prof[rows, j], prof[rows, j + 1]
     with np.errstate(divide="ignore", invalid="ignore"):
-        at = offsets[j] + (level - a) / (b - a) * (offsets[j + 1] - offsets[j])
+        at = offsets[rows, j] + (level - a) / (b - a) * (offsets[rows, j + 1] - offsets[rows, j])
     return np.where(single, at, np.nan), ramp
