@@ -10,6 +10,7 @@ its corners the same way.
 
 from __future__ import annotations
 
+import math
 import statistics
 from dataclasses import dataclass
 
@@ -67,14 +68,14 @@ def _crossings(
     """The corners (4, 2) where adjacent fitted edges (point, direction) cross; None where two are
     parallel or a corner moved more than ``max_move_px`` from ``corners`` (a fit that moves it this far
     is wrong)."""
-    out = np.empty_like(corners)
-    for i in range(4):
-        (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
-        A = np.array([d1, -d2]).T
-        if abs(np.linalg.det(A)) < 1e-9:
-            return None
-        s, _ = np.linalg.solve(A, p2 - p1)
-        out[i] = p1 + s * d1
+    p = np.array([m for m, _ in lines])
+    d = np.array([u for _, u in lines])
+    p1, d1 = np.roll(p, 1, axis=0), np.roll(d, 1, axis=0)  # corner i: lines i - 1 and i
+    A = np.stack([d1, -d], axis=2)  # (4, 2, 2): A[i] = [d1, -d2] as columns
+    if np.any(np.abs(np.linalg.det(A)) < 1e-9):
+        return None
+    s = np.linalg.solve(A, (p - p1)[:, :, None])[:, 0, :]  # (4, 1): how far along d1
+    out = p1 + s * d1
     if np.abs(out - corners).max() > max_move_px:
         return None
     return out
@@ -163,8 +164,10 @@ def refine_corners_undistorted(
         bases.append(a[None, :] + ts[:, None] * d[None, :])
         depths.append(depth)
     counts = [len(o) for o in offsets]
-    width = max(counts)
-    padded = np.array([np.pad(o, (0, width - len(o)), mode="edge") for o in offsets])  # (4, width)
+    padded = np.empty((4, max(counts)))
+    for i, o in enumerate(offsets):
+        padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
+    width = padded.shape[1]
     normals = np.array([n for _, _, n in sides])
     grid = np.array(bases)[:, :, None, :] + padded[:, None, :, None] * normals[:, None, None, :]  # (4, S, width, 2)
     px_all = _distort(grid.reshape(-1, 2), K, dist, fisheye)
@@ -233,25 +236,28 @@ def _project(rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.fl
     """Camera-frame points (N, 3) -> image pixels (N, 2) through OpenCV's standard lens model (radial,
     tangential, rational and thin-prism terms; 4 to 12 coefficients ``k``): cv2.projectPoints' value,
     evaluated in its order of operations (bit for bit) without the Jacobians it also computes."""
-    k = np.concatenate([k, np.zeros(12 - len(k))]) if len(k) < 12 else k
-    x, y = rays[:, 0], rays[:, 1]
-    z = rays[:, 2]
-    z = np.where(z != 0, 1.0 / np.where(z != 0, z, 1.0), 1.0)
-    x, y = x * z, y * z
+    k = k.tolist() + [0.0] * (12 - len(k))
+    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
+    if np.any(z != 1):
+        z = np.where(z != 0, 1.0 / np.where(z != 0, z, 1.0), 1.0)
+        x, y = x * z, y * z
     r2 = x * x + y * y
     r4 = r2 * r2
-    r6 = r4 * r2
-    a1 = 2 * x * y
-    a2 = r2 + 2 * x * x
-    a3 = r2 + 2 * y * y
-    cdist = 1 + k[0] * r2 + k[1] * r4 + k[4] * r6
+    # A group of terms whose coefficients are all zero is left out: adding its zeros (or dividing by its 1)
+    # changes nothing but the sign of a zero.
+    cdist = 1 + k[0] * r2 + k[1] * r4
+    if k[4] != 0:
+        cdist = cdist + k[4] * (r4 * r2)
     xd, yd = x * cdist, y * cdist
-    if np.any(k[5:8]):  # the rational terms' denominator (exactly 1 without them)
+    if any(k[5:8]):  # the rational terms' denominator
+        r6 = r4 * r2
         icdist2 = 1.0 / (1 + k[5] * r2 + k[6] * r4 + k[7] * r6)
         xd, yd = xd * icdist2, yd * icdist2
-    xd = xd + k[2] * a1 + k[3] * a2
-    yd = yd + k[2] * a3 + k[3] * a1
-    if np.any(k[8:12]):  # thin prism (adding zeros changes nothing)
+    if any(k[2:4]):
+        a1 = 2 * x * y
+        xd = xd + k[2] * a1 + k[3] * (r2 + 2 * x * x)
+        yd = yd + k[2] * (r2 + 2 * y * y) + k[3] * a1
+    if any(k[8:12]):  # thin prism
         xd = xd + k[8] * r2 + k[9] * r4
         yd = yd + k[10] * r2 + k[11] * r4
     return np.column_stack([xd * K[0, 0] + K[0, 2], yd * K[1, 1] + K[1, 2]])
@@ -285,10 +291,11 @@ def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.
     corner (x, y): sampling it at ``px - corner`` gives what sampling the whole image gives (a sample
     beyond the crop's edge is beyond the image's there, where both replicate the border)."""
     h, w = gray.shape[:2]
-    lo = np.floor(np.nan_to_num(px.min(axis=0), nan=0.0)) - 2
-    hi = np.ceil(np.nan_to_num(px.max(axis=0), nan=0.0)) + 3
-    x0, y0 = int(np.clip(lo[0], 0, w - 1)), int(np.clip(lo[1], 0, h - 1))
-    x1, y1 = int(np.clip(hi[0], x0 + 1, w)), int(np.clip(hi[1], y0 + 1, h))
+    # (python floats: a NaN bound counts as 0, an infinite one is clipped to the image)
+    lo = [0.0 if math.isnan(v) else min(max(v, -8.0), 8.0 + max(w, h)) for v in px.min(axis=0).tolist()]
+    hi = [0.0 if math.isnan(v) else min(max(v, -8.0), 8.0 + max(w, h)) for v in px.max(axis=0).tolist()]
+    x0, y0 = min(max(math.floor(lo[0]) - 2, 0), w - 1), min(max(math.floor(lo[1]) - 2, 0), h - 1)
+    x1, y1 = min(max(math.ceil(hi[0]) + 3, x0 + 1), w), min(max(math.ceil(hi[1]) + 3, y0 + 1), h)
     return gray[y0:y1, x0:x1].astype(np.float32), np.array([x0, y0], dtype=float)
 
 
@@ -339,9 +346,11 @@ def _corner_covariance(
     all four lines, so their offsets are fully correlated in it (the quadrilateral too small).
     """
     G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
+    normals = np.array([(-d[1], d[0]) for _, d in lines])
+    Ninvs = np.linalg.inv(np.stack([np.roll(normals, 1, axis=0), normals], axis=1))  # corner k: lines k - 1, k
     for k in range(4):
         pair = ((k - 1) % 4, k)
-        Ninv = np.linalg.inv(np.array([(-lines[j][1][1], lines[j][1][0]) for j in pair]))
+        Ninv = Ninvs[k]
         for row, j in enumerate(pair):
             m, d = lines[j]
             G[2 * k : 2 * k + 2, 2 * j] = Ninv[:, row]
