@@ -38,6 +38,11 @@ MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (
 BEND_ALLOWANCE = 1.5
 
 
+_PREVIOUS = [3, 0, 1, 2]  # side (or corner) i - 1 of i, around the quadrilateral
+# Every corner moved alike: common @ common.T with common = np.tile(np.eye(2), (4, 1)), (8, 2).
+_COMMON_SHIFT = np.tile(np.eye(2), (4, 4))
+
+
 def _sides(
     corners: NDArray[np.float64],
 ) -> list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] | None:
@@ -49,7 +54,7 @@ def _sides(
     for i in range(4):
         a, b = corners[i], corners[(i + 1) % 4]
         d = b - a
-        length = float(np.linalg.norm(d))
+        length = math.sqrt(d.dot(d))  # np.linalg.norm's value
         if length < 8:
             return None
         u = d / length
@@ -70,7 +75,7 @@ def _crossings(
     is wrong)."""
     p = np.array([m for m, _ in lines])
     d = np.array([u for _, u in lines])
-    p1, d1 = np.roll(p, 1, axis=0), np.roll(d, 1, axis=0)  # corner i: lines i - 1 and i
+    p1, d1 = p[_PREVIOUS], d[_PREVIOUS]  # corner i: lines i - 1 and i
     A = np.stack([d1, -d], axis=2)  # (4, 2, 2): A[i] = [d1, -d2] as columns
     if np.any(np.abs(np.linalg.det(A)) < 1e-9):
         return None
@@ -213,7 +218,7 @@ def refine_corners_undistorted(
     # independent ones (an AR(1) sequence's effective sample size).
     rho = float(np.clip(lag1 / lag0, 0.0, MAX_EDGE_CORRELATION)) if lag0 > 0 else 0.0
     inflate = (1.0 + rho) / (1.0 - rho)
-    n_eff = float(np.mean(npts)) / inflate
+    n_eff = sum(npts) / len(npts) / inflate
     shrink = _shrink_px(np.array(ramps), np.array(cells))
     cov = _corner_covariance(lines, out, scatter2 * inflate, np.array(npts, float), np.array(spread), shrink)
     return RefinedCorners(out, float(np.sqrt(7.1 * scatter2 / n_eff)) / max(sin_min, 0.2), cov)
@@ -223,22 +228,28 @@ def _distort(
     pts_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
 ) -> NDArray[np.float64]:
     """Undistorted pixels (N, 2) (an ideal pinhole with the same K) -> image pixels (N, 2)."""
-    rays = np.column_stack([pts_und, np.ones(len(pts_und))]) @ np.linalg.inv(K).T  # normalized, z = 1
+    Kinv = np.linalg.inv(K)
+    hom = np.empty((len(pts_und), 3))
+    hom[:, :2], hom[:, 2] = pts_und, 1.0
+    rays = hom @ Kinv.T  # normalized, z = 1
     k = np.asarray(dist, dtype=np.float64).ravel()
     if fisheye:
         return _project_fisheye(rays, K, k)
     if len(k) not in (4, 5, 8, 12, 14) or (len(k) == 14 and np.any(k[12:])):  # a tilted sensor: OpenCV's own
         return cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, k)[0].reshape(-1, 2)
-    return _project(rays, K, k)
+    # An inverse whose last row is exactly (0, 0, 1) gives every ray a z of exactly 1 (nothing to divide).
+    return _project(rays, K, k, unit_z=Kinv[2].tolist() == [0.0, 0.0, 1.0])
 
 
-def _project(rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64]) -> NDArray[np.float64]:
+def _project(
+    rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64], unit_z: bool = False
+) -> NDArray[np.float64]:
     """Camera-frame points (N, 3) -> image pixels (N, 2) through OpenCV's standard lens model (radial,
     tangential, rational and thin-prism terms; 4 to 12 coefficients ``k``): cv2.projectPoints' value,
     evaluated in its order of operations (bit for bit) without the Jacobians it also computes."""
     k = k.tolist() + [0.0] * (12 - len(k))
     x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
-    if np.any(z != 1):
+    if not unit_z:
         z = np.where(z != 0, 1.0 / np.where(z != 0, z, 1.0), 1.0)
         x, y = x * z, y * z
     r2 = x * x + y * y
@@ -260,7 +271,9 @@ def _project(rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.fl
     if any(k[8:12]):  # thin prism
         xd = xd + k[8] * r2 + k[9] * r4
         yd = yd + k[10] * r2 + k[11] * r4
-    return np.column_stack([xd * K[0, 0] + K[0, 2], yd * K[1, 1] + K[1, 2]])
+    out = np.empty((len(rays), 2))
+    out[:, 0], out[:, 1] = xd * K[0, 0] + K[0, 2], yd * K[1, 1] + K[1, 2]
+    return out
 
 
 def _project_fisheye(rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -292,8 +305,10 @@ def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.
     beyond the crop's edge is beyond the image's there, where both replicate the border)."""
     h, w = gray.shape[:2]
     # (python floats: a NaN bound counts as 0, an infinite one is clipped to the image)
-    lo = [0.0 if math.isnan(v) else min(max(v, -8.0), 8.0 + max(w, h)) for v in px.min(axis=0).tolist()]
-    hi = [0.0 if math.isnan(v) else min(max(v, -8.0), 8.0 + max(w, h)) for v in px.max(axis=0).tolist()]
+    # (per column: a reduction along axis 0 of an (N, 2) array is many times slower)
+    lo = [float(px[:, i].min()) for i in (0, 1)]
+    hi = [float(px[:, i].max()) for i in (0, 1)]
+    lo, hi = ([0.0 if math.isnan(v) else min(max(v, -8.0), 8.0 + max(w, h)) for v in b] for b in (lo, hi))
     x0, y0 = min(max(math.floor(lo[0]) - 2, 0), w - 1), min(max(math.floor(lo[1]) - 2, 0), h - 1)
     x1, y1 = min(max(math.ceil(hi[0]) + 3, x0 + 1), w), min(max(math.ceil(hi[1]) + 3, y0 + 1), h)
     return gray[y0:y1, x0:x1].astype(np.float32), np.array([x0, y0], dtype=float)
@@ -347,7 +362,7 @@ def _corner_covariance(
     """
     G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
     normals = np.array([(-d[1], d[0]) for _, d in lines])
-    Ninvs = np.linalg.inv(np.stack([np.roll(normals, 1, axis=0), normals], axis=1))  # corner k: lines k - 1, k
+    Ninvs = np.linalg.inv(np.stack([normals[_PREVIOUS], normals], axis=1))  # corner k: lines k - 1 and k
     for k in range(4):
         pair = ((k - 1) % 4, k)
         Ninv = Ninvs[k]
@@ -358,8 +373,7 @@ def _corner_covariance(
     D = np.empty(8)
     D[0::2] = var_px2 / npts + EDGE_OFFSET_FLOOR_PX**2
     D[1::2] = var_px2 / np.maximum(spread, 1e-9)
-    common = np.tile(np.eye(2), (4, 1))  # (8, 2): every corner moved alike
-    out = (G * D) @ G.T + SHIFT_FLOOR_PX**2 * (common @ common.T)
+    out = (G * D) @ G.T + SHIFT_FLOOR_PX**2 * _COMMON_SHIFT
     if shrink_px is not None:
         s = G[:, 0::2] @ shrink_px  # the corners' displacement when every line moves in by its shrink
         out += np.outer(s, s)
@@ -392,7 +406,8 @@ def _half_level(
     with the noise, while the half-level crossing of a symmetric blur stays on the edge.
     """
     rows = np.arange(len(prof))
-    offsets = np.broadcast_to(offsets, prof.shape)
+    if offsets.ndim == 1:
+        offsets = np.broadcast_to(offsets, prof.shape)
     lo = (prof[:, 0] + prof[:, 1]) / 2  # each end the mean of its two samples (float32, as np.mean)
     if counts is None:
         hi = (prof[:, -2] + prof[:, -1]) / 2
