@@ -10,6 +10,7 @@ its corners the same way.
 
 from __future__ import annotations
 
+import functools
 import math
 import statistics
 from dataclasses import dataclass
@@ -164,7 +165,7 @@ def refine_corners_undistorted(
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
         # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
         depth = min(abs(float(n @ (corners_und[(i + k) % 4] - a))) for k in (2, 3))
-        half = float(np.clip(0.1 * depth, 1.0, 2 * HALF_WIDTH_PX))
+        half = min(max(0.1 * depth, 1.0), 2 * HALF_WIDTH_PX)  # np.clip's value
         offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
         bases.append(a[None, :] + ts[:, None] * d[None, :])
         depths.append(depth)
@@ -181,23 +182,23 @@ def refine_corners_undistorted(
     prof = cv2.remap(img, px_all[..., 0], px_all[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     rows_offsets = np.repeat(padded, SAMPLES_PER_SIDE, axis=0)
     found_all, ramp_all = _half_level(prof, rows_offsets, np.repeat(counts, SAMPLES_PER_SIDE))
-    for i, (base, depth) in enumerate(zip(bases, depths, strict=True)):
+    edges = []
+    ramps_all = ramp_all.reshape(4, SAMPLES_PER_SIDE)
+    for i, (base, found) in enumerate(zip(bases, found_all.reshape(4, SAMPLES_PER_SIDE), strict=True)):
         n = normals[i]
-        found = found_all[i * SAMPLES_PER_SIDE : (i + 1) * SAMPLES_PER_SIDE]
-        ramp = ramp_all[i * SAMPLES_PER_SIDE : (i + 1) * SAMPLES_PER_SIDE]
         keep = np.isfinite(found)
         if np.count_nonzero(keep) < SAMPLES_PER_SIDE // 2:
             return None
-        e = base[keep] + found[keep, None] * n
-        mean = e.mean(axis=0)
-        _, sv, vt = np.linalg.svd(e - mean)
+        edges.append(base[keep] + found[keep, None] * n)
+    for e, (mean, sv, vt), ramp, depth in zip(edges, _principal_axes(edges), ramps_all, depths, strict=True):
         lines.append((mean, vt[0]))
         ss += float(sv[1] ** 2)  # squared distances of the points from their line
         npts.append(len(e))
-        r = (e - mean) @ np.array([-vt[0][1], vt[0][0]])  # signed distances, in order along the edge
+        centred = e - mean
+        r = centred @ np.array([-vt[0][1], vt[0][0]])  # signed distances, in order along the edge
         lag0 += float(r @ r)
         lag1 += float(r[1:] @ r[:-1])
-        u = (e - mean) @ vt[0]
+        u = centred @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
         finite = ramp[np.isfinite(ramp)]
         ramps.append(statistics.median(finite.tolist()) if len(finite) else 0.0)  # np.median's value, cheaper
@@ -224,11 +225,38 @@ def refine_corners_undistorted(
     return RefinedCorners(out, float(np.sqrt(7.1 * scatter2 / n_eff)) / max(sin_min, 0.2), cov)
 
 
+def _principal_axes(
+    edges: list[NDArray[np.float64]],
+) -> list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
+    """Each point set's (n_i, 2) mean, and the singular values and right singular vectors (rows) of
+    its points about it: one batched call where all have as many points (each set's result is the
+    same as alone), otherwise one each."""
+    if len({len(e) for e in edges}) == 1:
+        stacked = np.array(edges)
+        means = stacked.mean(axis=1)
+        _, svs, vts = np.linalg.svd(stacked - means[:, None, :], full_matrices=False)
+        return list(zip(means, svs, vts, strict=True))
+    out = []
+    for e in edges:
+        mean = e.mean(axis=0)
+        _, sv, vt = np.linalg.svd(e - mean, full_matrices=False)
+        out.append((mean, sv, vt))
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _inverse(K_bytes: bytes) -> NDArray[np.float64]:
+    """np.linalg.inv of a camera matrix (its 9 float64 bytes): a camera's is computed once."""
+    out = np.linalg.inv(np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3))
+    out.flags.writeable = False
+    return out
+
+
 def _distort(
     pts_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
 ) -> NDArray[np.float64]:
     """Undistorted pixels (N, 2) (an ideal pinhole with the same K) -> image pixels (N, 2)."""
-    Kinv = np.linalg.inv(K)
+    Kinv = _inverse(np.ascontiguousarray(K, dtype=np.float64).tobytes())
     hom = np.empty((len(pts_und), 3))
     hom[:, :2], hom[:, 2] = pts_und, 1.0
     rays = hom @ Kinv.T  # normalized, z = 1
@@ -392,37 +420,32 @@ class RefinedCorners:
 
 
 def _half_level(
-    prof: NDArray[np.float32], offsets: NDArray[np.float64], counts: NDArray[np.int64] | None = None
+    prof: NDArray[np.float32], offsets: NDArray[np.float64], counts: NDArray[np.int64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Where each profile (rows: dark marker border inside, light quiet zone outside) crosses halfway
     between its two ends, as an offset; NaN where it has too little contrast or no single crossing. And
     each profile's ramp width (px, NaN without contrast): how far blur spreads the edge.
 
-    ``offsets``: the samples' offsets, (L,) for every row or (rows, L) each row its own; ``counts``
-    (rows,): each row's samples, the rest of a shorter row being its last sample repeated (which adds no
-    crossing and no slope); all L if not given.
+    ``offsets`` (rows, L): each row's samples' offsets; ``counts`` (rows,): each row's samples, the rest
+    of a shorter row being its last sample repeated (which adds no crossing and no slope).
 
     Motion blur and defocus spread an edge into a ramp whose gradient is a plateau: its peak wanders
     with the noise, while the half-level crossing of a symmetric blur stays on the edge.
     """
     rows = np.arange(len(prof))
-    if offsets.ndim == 1:
-        offsets = np.broadcast_to(offsets, prof.shape)
     lo = (prof[:, 0] + prof[:, 1]) / 2  # each end the mean of its two samples (float32, as np.mean)
-    if counts is None:
-        hi = (prof[:, -2] + prof[:, -1]) / 2
-    else:
-        hi = (prof[rows, counts - 2] + prof[rows, counts - 1]) / 2
+    hi = (prof[rows, counts - 2] + prof[rows, counts - 1]) / 2
     level = (lo + hi) / 2.0
     above = prof > level[:, None]
     # The ramp's width (px): the contrast over the steepest slope; about a pixel for a sharp edge, more with blur.
-    slope = np.max(np.diff(prof, axis=1), axis=1) / (offsets[:, 1] - offsets[:, 0])
+    slope = (prof[:, 1:] - prof[:, :-1]).max(axis=1) / (offsets[:, 1] - offsets[:, 0])
     contrast = hi - lo >= MIN_CONTRAST
     ramp = np.where((slope > 0) & contrast, (hi - lo) / np.maximum(slope, 1e-9), np.nan)
     cross = ~above[:, :-1] & above[:, 1:]
-    single = contrast & (np.count_nonzero(cross, axis=1) == 1)
-    j = np.argmax(cross, axis=1)
-    a, b = prof[rows, j], prof[rows, j + 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        at = offsets[rows, j] + (level - a) / (b - a) * (offsets[rows, j + 1] - offsets[rows, j])
-    return np.where(single, at, np.nan), ramp
+    single = np.flatnonzero(contrast & (np.count_nonzero(cross, axis=1) == 1))
+    j = np.argmax(cross[single], axis=1)
+    a, b = prof[single, j], prof[single, j + 1]  # a <= level < b
+    off, off_next = offsets[single, j], offsets[single, j + 1]
+    found = np.full(len(prof), np.nan)
+    found[single] = off + (level[single] - a) / (b - a) * (off_next - off)
+    return found, ramp
