@@ -42,6 +42,7 @@ BEND_ALLOWANCE = 1.5
 _PREVIOUS = [3, 0, 1, 2]  # side (or corner) i - 1 of i, around the quadrilateral
 # Every corner moved alike: common @ common.T with common = np.tile(np.eye(2), (4, 1)), (8, 2).
 _COMMON_SHIFT = np.tile(np.eye(2), (4, 4))
+_CORNER, _LINE, _ROW = [0, 0, 1, 1, 2, 2, 3, 3], [3, 0, 0, 1, 1, 2, 2, 3], [0, 1] * 4  # corner k: lines k - 1, k
 
 
 def _sides(
@@ -391,13 +392,12 @@ def _corner_covariance(
     G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
     normals = np.array([(-d[1], d[0]) for _, d in lines])
     Ninvs = np.linalg.inv(np.stack([normals[_PREVIOUS], normals], axis=1))  # corner k: lines k - 1 and k
-    for k in range(4):
-        pair = ((k - 1) % 4, k)
-        Ninv = Ninvs[k]
-        for row, j in enumerate(pair):
-            m, d = lines[j]
-            G[2 * k : 2 * k + 2, 2 * j] = Ninv[:, row]
-            G[2 * k : 2 * k + 2, 2 * j + 1] = Ninv[:, row] * float((corners[k] - m) @ d)
+    # Corner k's two lines: j = k - 1 (row 0 of its system) and k (row 1).
+    t = np.array([float((corners[k] - lines[j][0]) @ lines[j][1]) for k, j in zip(_CORNER, _LINE, strict=True)])
+    blocks = G.reshape(4, 2, 4, 2)  # (corner, x/y, line, offset/turn)
+    column = Ninvs[_CORNER, :, _ROW]  # (8, 2): Ninv[:, row] of each corner's each line
+    blocks[_CORNER, :, _LINE, 0] = column
+    blocks[_CORNER, :, _LINE, 1] = column * t[:, None]
     D = np.empty(8)
     D[0::2] = var_px2 / npts + EDGE_OFFSET_FLOOR_PX**2
     D[1::2] = var_px2 / np.maximum(spread, 1e-9)
