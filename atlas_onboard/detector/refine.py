@@ -262,10 +262,12 @@ def _distort(
     hom[:, :2], hom[:, 2] = pts_und, 1.0
     rays = hom @ Kinv.T  # normalized, z = 1
     k = np.asarray(dist, dtype=np.float64).ravel()
-    if fisheye:
+    if fisheye and len(k) == 4:
         return _project_fisheye(rays, K, k)
-    if len(k) not in (4, 5, 8, 12, 14) or (len(k) == 14 and np.any(k[12:])):  # a tilted sensor: OpenCV's own
-        return cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, k)[0].reshape(-1, 2)
+    if fisheye or len(k) not in (4, 5, 8, 12, 14) or (len(k) == 14 and np.any(k[12:])):
+        # A tilted sensor (or coefficients OpenCV refuses, with its own error): OpenCV itself.
+        project = cv2.fisheye.projectPoints if fisheye else cv2.projectPoints
+        return project(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, k)[0].reshape(-1, 2)
     # An inverse whose last row is exactly (0, 0, 1) gives every ray a z of exactly 1 (nothing to divide).
     return _project(rays, K, k, unit_z=Kinv[2].tolist() == [0.0, 0.0, 1.0])
 
@@ -333,8 +335,8 @@ def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.
     corner (x, y): sampling it at ``px - corner`` gives what sampling the whole image gives (a sample
     beyond the crop's edge is beyond the image's there, where both replicate the border)."""
     h, w = gray.shape[:2]
-    # (python floats: a NaN bound counts as 0, an infinite one is clipped to the image)
-    # (per column: a reduction along axis 0 of an (N, 2) array is many times slower)
+    # Per column (a reduction along axis 0 of an (N, 2) array is many times slower), in python floats: a
+    # NaN bound counts as 0, an infinite one is clipped to the image.
     lo = [float(px[:, i].min()) for i in (0, 1)]
     hi = [float(px[:, i].max()) for i in (0, 1)]
     lo, hi = ([0.0 if math.isnan(v) else min(max(v, -8.0), 8.0 + max(w, h)) for v in b] for b in (lo, hi))
