@@ -39,6 +39,7 @@ MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (
 BEND_ALLOWANCE = 1.5
 
 
+_TS = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)  # where along a side its edge is sampled
 _PREVIOUS = [3, 0, 1, 2]  # side (or corner) i - 1 of i, around the quadrilateral
 # Every corner moved alike: common @ common.T with common = np.tile(np.eye(2), (4, 1)), (8, 2).
 _COMMON_SHIFT = np.tile(np.eye(2), (4, 4))
@@ -78,8 +79,11 @@ def _crossings(
     p = np.array([m for m, _ in lines])
     d = np.array([u for _, u in lines])
     p1, d1 = p[_PREVIOUS], d[_PREVIOUS]  # corner i: lines i - 1 and i
-    A = np.stack([d1, -d], axis=2)  # (4, 2, 2): A[i] = [d1, -d2] as columns
-    if np.any(np.abs(np.linalg.det(A)) < 1e-9):
+    A = np.empty((4, 2, 2))  # A[i] = [d1, -d2] as columns
+    A[:, :, 0], A[:, :, 1] = d1, -d
+    # (the cross product is np.linalg.det's value to a few ulps: only near the threshold is LAPACK's needed)
+    cross = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    if np.abs(cross).min() < 2e-9 and np.any(np.abs(np.linalg.det(A)) < 1e-9):
         return None
     s = np.linalg.solve(A, (p - p1)[:, :, None])[:, 0, :]  # (4, 1): how far along d1
     out = p1 + s * d1
@@ -147,7 +151,6 @@ def refine_corners_undistorted(
     the four edges), and a corner lies on two lines crossing at an angle phi, which adds 1 / sin(phi);
     blur and pixel noise raise s.
     """
-    ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
     lines = []
     ss, npts = 0.0, []
     lag0 = lag1 = 0.0
@@ -160,23 +163,24 @@ def refine_corners_undistorted(
     # Every side's sample points at once: one projection through the lens, one crop of the image, one
     # sampling. A side with a shorter search than the longest repeats its outermost sample (which leaves
     # its profile's half level and ramp as they are: see _half_level).
-    bases, offsets, depths = [], [], []
-    for i, (a, d, n) in enumerate(sides):
+    offsets, depths = [], []
+    for i, (a, _, n) in enumerate(sides):
         # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
         # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
-        depth = min(abs(float(n @ (corners_und[(i + k) % 4] - a))) for k in (2, 3))
+        depth = min(abs(float(n @ (corners_und[(i + 2) % 4] - a))), abs(float(n @ (corners_und[(i + 3) % 4] - a))))
         half = min(max(0.1 * depth, 1.0), 2 * HALF_WIDTH_PX)  # np.clip's value
         offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
-        bases.append(a[None, :] + ts[:, None] * d[None, :])
         depths.append(depth)
+    # (4, S, 2): each side's base points, from its first corner along it
+    bases = corners_und[:, None, :] + _TS[None, :, None] * np.array([d for _, d, _ in sides])[:, None, :]
     counts = [len(o) for o in offsets]
     padded = np.empty((4, max(counts)))
     for i, o in enumerate(offsets):
         padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
     width = padded.shape[1]
     normals = np.array([n for _, _, n in sides])
-    grid = np.array(bases)[:, :, None, :] + padded[:, None, :, None] * normals[:, None, None, :]  # (4, S, width, 2)
+    grid = bases[:, :, None, :] + padded[:, None, :, None] * normals[:, None, None, :]  # (4, S, width, 2)
     px_all = _distort(grid.reshape(-1, 2), K, dist, fisheye)
     img, origin = _crop(gray, px_all)
     px_all = (px_all - origin).astype(np.float32).reshape(4 * SAMPLES_PER_SIDE, width, 2)
@@ -218,7 +222,7 @@ def refine_corners_undistorted(
     # Neighbouring edge points share pixels, blur and aliasing, so their errors are correlated along the
     # edge: with a lag-one correlation rho, n points carry the information of n (1 - rho) / (1 + rho)
     # independent ones (an AR(1) sequence's effective sample size).
-    rho = float(np.clip(lag1 / lag0, 0.0, MAX_EDGE_CORRELATION)) if lag0 > 0 else 0.0
+    rho = min(max(lag1 / lag0, 0.0), MAX_EDGE_CORRELATION) if lag0 > 0 else 0.0  # np.clip's value
     inflate = (1.0 + rho) / (1.0 - rho)
     n_eff = sum(npts) / len(npts) / inflate
     shrink = _shrink_px(np.array(ramps), np.array(cells))
@@ -369,7 +373,7 @@ def _shrink_px(ramp_px: NDArray[np.float64], cell_px: NDArray[np.float64]) -> ND
     """How far (px) each edge may sit inside the true one because of blur: once an edge's ramp is wider
     than about half a cell, the white quiet zone (a cell wide) no longer reaches its level between the
     black border and the background beyond it, so the half level, and the edge, fall inwards."""
-    ramp = np.nan_to_num(ramp_px, nan=0.0)
+    ramp = ramp_px if np.isfinite(ramp_px).all() else np.nan_to_num(ramp_px, nan=0.0)
     return SHRINK_PER_PX * np.maximum(ramp - SHRINK_ONSET_CELLS * cell_px, 0.0)
 
 
@@ -392,8 +396,11 @@ def _corner_covariance(
     all four lines, so their offsets are fully correlated in it (the quadrilateral too small).
     """
     G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
-    normals = np.array([(-d[1], d[0]) for _, d in lines])
-    Ninvs = np.linalg.inv(np.stack([normals[_PREVIOUS], normals], axis=1))  # corner k: lines k - 1 and k
+    dirs = np.array([d for _, d in lines])
+    N = np.empty((4, 2, 2))  # corner k: the normals (-d_y, d_x) of lines k - 1 and k as rows
+    N[:, 0, 0], N[:, 0, 1] = -dirs[_PREVIOUS, 1], dirs[_PREVIOUS, 0]
+    N[:, 1, 0], N[:, 1, 1] = -dirs[:, 1], dirs[:, 0]
+    Ninvs = np.linalg.inv(N)
     # Corner k's two lines: j = k - 1 (row 0 of its system) and k (row 1).
     t = np.array([float((corners[k] - lines[j][0]) @ lines[j][1]) for k, j in zip(_CORNER, _LINE, strict=True)])
     blocks = G.reshape(4, 2, 4, 2)  # (corner, x/y, line, offset/turn)
