@@ -180,21 +180,23 @@ def refine_corners_undistorted(
         padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
     width = padded.shape[1]
     normals = np.array([n for _, _, n in sides])
-    grid = bases[:, :, None, :] + padded[:, None, :, None] * normals[:, None, None, :]  # (4, S, width, 2)
-    px_all = _distort(grid.reshape(-1, 2), K, dist, fisheye)
+    grid = np.empty((4, SAMPLES_PER_SIDE, width, 3))  # (4, S, width): each sample point, homogeneous
+    np.add(bases[:, :, None, :], padded[:, None, :, None] * normals[:, None, None, :], out=grid[..., :2])
+    grid[..., 2] = 1.0
+    px_all = _distort_homogeneous(grid.reshape(-1, 3), K, dist, fisheye)
     img, origin = _crop(gray, px_all)
     px_all = (px_all - origin).astype(np.float32).reshape(4 * SAMPLES_PER_SIDE, width, 2)
     prof = cv2.remap(img, px_all[..., 0], px_all[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     rows_offsets = np.repeat(padded, SAMPLES_PER_SIDE, axis=0)
     found_all, ramp_all = _half_level(prof, rows_offsets, np.repeat(counts, SAMPLES_PER_SIDE))
-    edges = []
+    keep = np.isfinite(found_all).reshape(4, SAMPLES_PER_SIDE)
+    kept = np.count_nonzero(keep, axis=1)
+    if kept.min() < SAMPLES_PER_SIDE // 2:
+        return None
+    # Every side's edge points (where no edge was placed, NaN), then each side's placed ones in order.
+    points = bases + found_all.reshape(4, SAMPLES_PER_SIDE, 1) * normals[:, None, :]
+    edges = list(points) if kept.min() == SAMPLES_PER_SIDE else [p[k] for p, k in zip(points, keep, strict=True)]
     ramps_all = ramp_all.reshape(4, SAMPLES_PER_SIDE)
-    for i, (base, found) in enumerate(zip(bases, found_all.reshape(4, SAMPLES_PER_SIDE), strict=True)):
-        n = normals[i]
-        keep = np.isfinite(found)
-        if np.count_nonzero(keep) < SAMPLES_PER_SIDE // 2:
-            return None
-        edges.append(base[keep] + found[keep, None] * n)
     for e, (mean, sv, vt), ramp, depth in zip(edges, _principal_axes(edges), ramps_all, depths, strict=True):
         lines.append((mean, vt[0]))
         ss += float(sv[1] ** 2)  # squared distances of the points from their line
@@ -261,9 +263,14 @@ def _distort(
     pts_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
 ) -> NDArray[np.float64]:
     """Undistorted pixels (N, 2) (an ideal pinhole with the same K) -> image pixels (N, 2)."""
+    return _distort_homogeneous(np.column_stack([pts_und, np.ones(len(pts_und))]), K, dist, fisheye)
+
+
+def _distort_homogeneous(
+    hom: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> NDArray[np.float64]:
+    """:func:`_distort` of undistorted pixels given as (N, 3) rows (u, v, 1)."""
     Kinv = _inverse(np.ascontiguousarray(K, dtype=np.float64).tobytes())
-    hom = np.empty((len(pts_und), 3))
-    hom[:, :2], hom[:, 2] = pts_und, 1.0
     rays = hom @ Kinv.T  # normalized, z = 1
     k = np.asarray(dist, dtype=np.float64).ravel()
     if fisheye and len(k) == 4:
