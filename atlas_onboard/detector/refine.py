@@ -41,6 +41,7 @@ BEND_ALLOWANCE = 1.5
 
 _TS = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)  # where along a side its edge is sampled
 _PREVIOUS = [3, 0, 1, 2]  # side (or corner) i - 1 of i, around the quadrilateral
+_NEXT = [1, 2, 3, 0]
 # Every corner moved alike: common @ common.T with common = np.tile(np.eye(2), (4, 1)), (8, 2).
 _COMMON_SHIFT = np.tile(np.eye(2), (4, 4))
 _CORNER, _LINE, _ROW = [0, 0, 1, 1, 2, 2, 3, 3], [3, 0, 0, 1, 1, 2, 2, 3], [0, 1] * 4  # corner k: lines k - 1, k
@@ -53,15 +54,14 @@ def _sides(
     vector and its unit normal pointing out of the marker; None if a side is shorter than 8 px (no edge
     to fit)."""
     center = corners.mean(axis=0)
+    vectors = corners[_NEXT] - corners
     out = []
     for i in range(4):
-        a, b = corners[i], corners[(i + 1) % 4]
-        d = b - a
+        a, d = corners[i], vectors[i]
         length = math.sqrt(d.dot(d))  # np.linalg.norm's value
         if length < 8:
             return None
-        u = d / length
-        n = np.array([-u[1], u[0]])
+        n = np.array([-float(d[1]) / length, float(d[0]) / length])  # (d / length turned a quarter)
         if n @ (center - a) > 0:  # normal pointing out of the marker
             n = -n
         out.append((a, d, n))
@@ -197,18 +197,21 @@ def refine_corners_undistorted(
     points = bases + found_all.reshape(4, SAMPLES_PER_SIDE, 1) * normals[:, None, :]
     edges = list(points) if kept.min() == SAMPLES_PER_SIDE else [p[k] for p, k in zip(points, keep, strict=True)]
     ramps_all = ramp_all.reshape(4, SAMPLES_PER_SIDE)
-    for e, (mean, sv, vt), ramp, depth in zip(edges, _principal_axes(edges), ramps_all, depths, strict=True):
+    ramps_finite = np.isfinite(ramps_all)
+    fits = _principal_axes(edges)
+    across = np.array([(-vt[0][1], vt[0][0]) for _, _, vt in fits])  # each line's normal
+    for i, (e, (mean, sv, vt), depth) in enumerate(zip(edges, fits, depths, strict=True)):
         lines.append((mean, vt[0]))
         ss += float(sv[1] ** 2)  # squared distances of the points from their line
         npts.append(len(e))
         centred = e - mean
-        r = centred @ np.array([-vt[0][1], vt[0][0]])  # signed distances, in order along the edge
+        r = centred @ across[i]  # signed distances, in order along the edge
         lag0 += float(r @ r)
         lag1 += float(r[1:] @ r[:-1])
         u = centred @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
-        finite = ramp[np.isfinite(ramp)]
-        ramps.append(statistics.median(finite.tolist()) if len(finite) else 0.0)  # np.median's value, cheaper
+        finite = ramps_all[i][ramps_finite[i]].tolist()
+        ramps.append(statistics.median(finite) if finite else 0.0)  # np.median's value, cheaper
         cells.append(depth / 8.0)  # the smaller cell of the families (8 across tag36h11's border)
     out = _crossings(lines, corners_und, max_move_px=np.inf)
     if out is None:
