@@ -10,6 +10,9 @@ its corners the same way.
 
 from __future__ import annotations
 
+import functools
+import math
+import statistics
 from dataclasses import dataclass
 
 import cv2
@@ -36,6 +39,14 @@ MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (
 BEND_ALLOWANCE = 1.5
 
 
+_TS = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)  # where along a side its edge is sampled
+_PREVIOUS = [3, 0, 1, 2]  # side (or corner) i - 1 of i, around the quadrilateral
+_NEXT = [1, 2, 3, 0]
+# Every corner moved alike: common @ common.T with common = np.tile(np.eye(2), (4, 1)), (8, 2).
+_COMMON_SHIFT = np.tile(np.eye(2), (4, 4))
+_CORNER, _LINE, _ROW = [0, 0, 1, 1, 2, 2, 3, 3], [3, 0, 0, 1, 1, 2, 2, 3], [0, 1] * 4  # corner k: lines k - 1, k
+
+
 def _sides(
     corners: NDArray[np.float64],
 ) -> list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] | None:
@@ -43,15 +54,14 @@ def _sides(
     vector and its unit normal pointing out of the marker; None if a side is shorter than 8 px (no edge
     to fit)."""
     center = corners.mean(axis=0)
+    vectors = corners[_NEXT] - corners
     out = []
     for i in range(4):
-        a, b = corners[i], corners[(i + 1) % 4]
-        d = b - a
-        length = float(np.linalg.norm(d))
+        a, d = corners[i], vectors[i]
+        length = math.sqrt(d.dot(d))  # np.linalg.norm's value
         if length < 8:
             return None
-        u = d / length
-        n = np.array([-u[1], u[0]])
+        n = np.array([-float(d[1]) / length, float(d[0]) / length])  # (d / length turned a quarter)
         if n @ (center - a) > 0:  # normal pointing out of the marker
             n = -n
         out.append((a, d, n))
@@ -66,14 +76,17 @@ def _crossings(
     """The corners (4, 2) where adjacent fitted edges (point, direction) cross; None where two are
     parallel or a corner moved more than ``max_move_px`` from ``corners`` (a fit that moves it this far
     is wrong)."""
-    out = np.empty_like(corners)
-    for i in range(4):
-        (p1, d1), (p2, d2) = lines[(i - 1) % 4], lines[i]
-        A = np.array([d1, -d2]).T
-        if abs(np.linalg.det(A)) < 1e-9:
-            return None
-        s, _ = np.linalg.solve(A, p2 - p1)
-        out[i] = p1 + s * d1
+    p = np.array([m for m, _ in lines])
+    d = np.array([u for _, u in lines])
+    p1, d1 = p[_PREVIOUS], d[_PREVIOUS]  # corner i: lines i - 1 and i
+    A = np.empty((4, 2, 2))  # A[i] = [d1, -d2] as columns
+    A[:, :, 0], A[:, :, 1] = d1, -d
+    # (the cross product is np.linalg.det's value to a few ulps: only near the threshold is LAPACK's needed)
+    cross = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    if np.abs(cross).min() < 2e-9 and np.any(np.abs(np.linalg.det(A)) < 1e-9):
+        return None
+    s = np.linalg.solve(A, (p - p1)[:, :, None])[:, 0, :]  # (4, 1): how far along d1
+    out = p1 + s * d1
     if np.abs(out - corners).max() > max_move_px:
         return None
     return out
@@ -138,7 +151,6 @@ def refine_corners_undistorted(
     the four edges), and a corner lies on two lines crossing at an angle phi, which adds 1 / sin(phi);
     blur and pixel noise raise s.
     """
-    ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
     lines = []
     ss, npts = 0.0, []
     lag0 = lag1 = 0.0
@@ -148,44 +160,58 @@ def refine_corners_undistorted(
     sides = _sides(corners_und)
     if sides is None:
         return None
-    # Every side's sample points at once: one projection through the lens, one crop of the image.
-    grids = []
-    for i, (a, d, n) in enumerate(sides):
+    # Every side's sample points at once: one projection through the lens, one crop of the image, one
+    # sampling. A side with a shorter search than the longest repeats its outermost sample (which leaves
+    # its profile's half level and ramp as they are: see _half_level).
+    offsets, depths = [], []
+    for i, (a, _, n) in enumerate(sides):
         # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
         # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
-        depth = min(abs(float(n @ (corners_und[(i + k) % 4] - a))) for k in (2, 3))
-        half = float(np.clip(0.1 * depth, 1.0, 2 * HALF_WIDTH_PX))
-        offsets = np.arange(-half, half + 1e-9, STEP_PX)
-        base = a[None, :] + ts[:, None] * d[None, :]
-        grids.append((base, offsets, n, depth, base[:, None, :] + offsets[None, :, None] * n[None, None, :]))
-    pts = np.concatenate([g[4].reshape(-1, 2) for g in grids])
-    px_all = _distort(pts, K, dist, fisheye)
+        depth = min(abs(float(n @ (corners_und[(i + 2) % 4] - a))), abs(float(n @ (corners_und[(i + 3) % 4] - a))))
+        half = min(max(0.1 * depth, 1.0), 2 * HALF_WIDTH_PX)  # np.clip's value
+        offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
+        depths.append(depth)
+    # (4, S, 2): each side's base points, from its first corner along it
+    bases = corners_und[:, None, :] + _TS[None, :, None] * np.array([d for _, d, _ in sides])[:, None, :]
+    counts = [len(o) for o in offsets]
+    padded = np.empty((4, max(counts)))
+    for i, o in enumerate(offsets):
+        padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
+    width = padded.shape[1]
+    normals = np.array([n for _, _, n in sides])
+    grid = np.empty((4, SAMPLES_PER_SIDE, width, 3))  # (4, S, width): each sample point, homogeneous
+    np.add(bases[:, :, None, :], padded[:, None, :, None] * normals[:, None, None, :], out=grid[..., :2])
+    grid[..., 2] = 1.0
+    px_all = _distort_homogeneous(grid.reshape(-1, 3), K, dist, fisheye)
     img, origin = _crop(gray, px_all)
-    px_all = (px_all - origin).astype(np.float32)
-    start = 0
-    for base, offsets, n, depth, grid in grids:
-        count = grid.shape[0] * grid.shape[1]
-        px = px_all[start : start + count].reshape(grid.shape)
-        start += count
-        prof = cv2.remap(img, px[..., 0], px[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        found, ramp = _half_level(prof, offsets)
-        keep = np.isfinite(found)
-        if np.count_nonzero(keep) < SAMPLES_PER_SIDE // 2:
-            return None
-        e = base[keep] + found[keep, None] * n
-        mean = e.mean(axis=0)
-        _, sv, vt = np.linalg.svd(e - mean)
+    px_all = (px_all - origin).astype(np.float32).reshape(4 * SAMPLES_PER_SIDE, width, 2)
+    prof = cv2.remap(img, px_all[..., 0], px_all[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    rows_offsets = np.repeat(padded, SAMPLES_PER_SIDE, axis=0)
+    found_all, ramp_all = _half_level(prof, rows_offsets, np.repeat(counts, SAMPLES_PER_SIDE))
+    keep = np.isfinite(found_all).reshape(4, SAMPLES_PER_SIDE)
+    kept = np.count_nonzero(keep, axis=1)
+    if kept.min() < SAMPLES_PER_SIDE // 2:
+        return None
+    # Every side's edge points (where no edge was placed, NaN), then each side's placed ones in order.
+    points = bases + found_all.reshape(4, SAMPLES_PER_SIDE, 1) * normals[:, None, :]
+    edges = list(points) if kept.min() == SAMPLES_PER_SIDE else [p[k] for p, k in zip(points, keep, strict=True)]
+    ramps_all = ramp_all.reshape(4, SAMPLES_PER_SIDE)
+    ramps_finite = np.isfinite(ramps_all)
+    fits = _principal_axes(edges)
+    across = np.array([(-vt[0][1], vt[0][0]) for _, _, vt in fits])  # each line's normal
+    for i, (e, (mean, sv, vt), depth) in enumerate(zip(edges, fits, depths, strict=True)):
         lines.append((mean, vt[0]))
         ss += float(sv[1] ** 2)  # squared distances of the points from their line
         npts.append(len(e))
-        r = (e - mean) @ np.array([-vt[0][1], vt[0][0]])  # signed distances, in order along the edge
+        centred = e - mean
+        r = centred @ across[i]  # signed distances, in order along the edge
         lag0 += float(r @ r)
         lag1 += float(r[1:] @ r[:-1])
-        u = (e - mean) @ vt[0]
+        u = centred @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
-        finite = ramp[np.isfinite(ramp)]
-        ramps.append(float(np.median(finite)) if len(finite) else 0.0)
+        finite = ramps_all[i][ramps_finite[i]].tolist()
+        ramps.append(statistics.median(finite) if finite else 0.0)  # np.median's value, cheaper
         cells.append(depth / 8.0)  # the smaller cell of the families (8 across tag36h11's border)
     out = _crossings(lines, corners_und, max_move_px=np.inf)
     if out is None:
@@ -201,24 +227,121 @@ def refine_corners_undistorted(
     # Neighbouring edge points share pixels, blur and aliasing, so their errors are correlated along the
     # edge: with a lag-one correlation rho, n points carry the information of n (1 - rho) / (1 + rho)
     # independent ones (an AR(1) sequence's effective sample size).
-    rho = float(np.clip(lag1 / lag0, 0.0, MAX_EDGE_CORRELATION)) if lag0 > 0 else 0.0
+    rho = min(max(lag1 / lag0, 0.0), MAX_EDGE_CORRELATION) if lag0 > 0 else 0.0  # np.clip's value
     inflate = (1.0 + rho) / (1.0 - rho)
-    n_eff = float(np.mean(npts)) / inflate
+    n_eff = sum(npts) / len(npts) / inflate
     shrink = _shrink_px(np.array(ramps), np.array(cells))
     cov = _corner_covariance(lines, out, scatter2 * inflate, np.array(npts, float), np.array(spread), shrink)
     return RefinedCorners(out, float(np.sqrt(7.1 * scatter2 / n_eff)) / max(sin_min, 0.2), cov)
+
+
+def _principal_axes(
+    edges: list[NDArray[np.float64]],
+) -> list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]]:
+    """Each point set's (n_i, 2) mean, and the singular values and right singular vectors (rows) of
+    its points about it: one batched call where all have as many points (each set's result is the
+    same as alone), otherwise one each."""
+    if len({len(e) for e in edges}) == 1:
+        stacked = np.array(edges)
+        means = stacked.mean(axis=1)
+        _, svs, vts = np.linalg.svd(stacked - means[:, None, :], full_matrices=False)
+        return list(zip(means, svs, vts, strict=True))
+    out = []
+    for e in edges:
+        mean = e.mean(axis=0)
+        _, sv, vt = np.linalg.svd(e - mean, full_matrices=False)
+        out.append((mean, sv, vt))
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def _inverse(K_bytes: bytes) -> NDArray[np.float64]:
+    """np.linalg.inv of a camera matrix (its 9 float64 bytes): a camera's is computed once."""
+    out = np.linalg.inv(np.frombuffer(K_bytes, dtype=np.float64).reshape(3, 3))
+    out.flags.writeable = False
+    return out
 
 
 def _distort(
     pts_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
 ) -> NDArray[np.float64]:
     """Undistorted pixels (N, 2) (an ideal pinhole with the same K) -> image pixels (N, 2)."""
-    rays = np.column_stack([pts_und, np.ones(len(pts_und))]) @ np.linalg.inv(K).T  # normalized, z = 1
-    if fisheye:
-        px = cv2.fisheye.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
-    else:
-        px = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
-    return px.reshape(-1, 2)
+    return _distort_homogeneous(np.column_stack([pts_und, np.ones(len(pts_und))]), K, dist, fisheye)
+
+
+def _distort_homogeneous(
+    hom: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> NDArray[np.float64]:
+    """:func:`_distort` of undistorted pixels given as (N, 3) rows (u, v, 1)."""
+    Kinv = _inverse(np.ascontiguousarray(K, dtype=np.float64).tobytes())
+    rays = hom @ Kinv.T  # normalized, z = 1
+    k = np.asarray(dist, dtype=np.float64).ravel()
+    if fisheye and len(k) == 4:
+        return _project_fisheye(rays, K, k)
+    if fisheye or len(k) not in (4, 5, 8, 12, 14) or (len(k) == 14 and np.any(k[12:])):
+        # A tilted sensor (or coefficients OpenCV refuses, with its own error): OpenCV itself.
+        project = cv2.fisheye.projectPoints if fisheye else cv2.projectPoints
+        return project(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, k)[0].reshape(-1, 2)
+    # An inverse whose last row is exactly (0, 0, 1) gives every ray a z of exactly 1 (nothing to divide).
+    return _project(rays, K, k, unit_z=Kinv[2].tolist() == [0.0, 0.0, 1.0])
+
+
+def _project(
+    rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64], unit_z: bool = False
+) -> NDArray[np.float64]:
+    """Camera-frame points (N, 3) -> image pixels (N, 2) through OpenCV's standard lens model (radial,
+    tangential, rational and thin-prism terms; 4 to 12 coefficients ``k``): cv2.projectPoints' value,
+    evaluated in its order of operations (bit for bit) without the Jacobians it also computes."""
+    k = k.tolist() + [0.0] * (12 - len(k))
+    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
+    if not unit_z:
+        z = np.where(z != 0, 1.0 / np.where(z != 0, z, 1.0), 1.0)
+        x, y = x * z, y * z
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    # A group of terms whose coefficients are all zero is left out: adding its zeros (or dividing by its 1)
+    # changes nothing but the sign of a zero.
+    cdist = 1 + k[0] * r2 + k[1] * r4
+    if k[4] != 0:
+        cdist = cdist + k[4] * (r4 * r2)
+    xd, yd = x * cdist, y * cdist
+    if any(k[5:8]):  # the rational terms' denominator
+        r6 = r4 * r2
+        icdist2 = 1.0 / (1 + k[5] * r2 + k[6] * r4 + k[7] * r6)
+        xd, yd = xd * icdist2, yd * icdist2
+    if any(k[2:4]):
+        a1 = 2 * x * y
+        xd = xd + k[2] * a1 + k[3] * (r2 + 2 * x * x)
+        yd = yd + k[2] * (r2 + 2 * y * y) + k[3] * a1
+    if any(k[8:12]):  # thin prism
+        xd = xd + k[8] * r2 + k[9] * r4
+        yd = yd + k[10] * r2 + k[11] * r4
+    out = np.empty((len(rays), 2))
+    out[:, 0], out[:, 1] = xd * K[0, 0] + K[0, 2], yd * K[1, 1] + K[1, 2]
+    return out
+
+
+def _project_fisheye(rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Camera-frame points (N, 3) -> image pixels (N, 2) through OpenCV's fisheye model (4 coefficients):
+    cv2.fisheye.projectPoints' value (to the last bits of its arctangent) without the Jacobians it also
+    computes."""
+    z = np.where(np.abs(rays[:, 2]) < np.finfo(float).tiny, 1.0, rays[:, 2])
+    x, y = rays[:, 0] / z, rays[:, 1] / z
+    r = np.sqrt(x * x + y * y)
+    theta = np.arctan(r)
+    theta2 = theta * theta
+    theta3 = theta2 * theta
+    theta4 = theta2 * theta2
+    theta5 = theta4 * theta
+    theta6 = theta3 * theta3
+    theta7 = theta6 * theta
+    theta8 = theta4 * theta4
+    theta9 = theta8 * theta
+    theta_d = theta + k[0] * theta3 + k[1] * theta5 + k[2] * theta7 + k[3] * theta9
+    big = r > 1e-8
+    cdist = np.where(big, theta_d * (1.0 / np.where(big, r, 1.0)), 1.0)
+    # (cv2.fisheye.projectPoints given K takes no skew from it: nor does this)
+    return np.column_stack([x * cdist * K[0, 0] + K[0, 2], y * cdist * K[1, 1] + K[1, 2]])
 
 
 def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
@@ -226,10 +349,13 @@ def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.
     corner (x, y): sampling it at ``px - corner`` gives what sampling the whole image gives (a sample
     beyond the crop's edge is beyond the image's there, where both replicate the border)."""
     h, w = gray.shape[:2]
-    lo = np.floor(np.nan_to_num(px.min(axis=0), nan=0.0)) - 2
-    hi = np.ceil(np.nan_to_num(px.max(axis=0), nan=0.0)) + 3
-    x0, y0 = int(np.clip(lo[0], 0, w - 1)), int(np.clip(lo[1], 0, h - 1))
-    x1, y1 = int(np.clip(hi[0], x0 + 1, w)), int(np.clip(hi[1], y0 + 1, h))
+    # Per column (a reduction along axis 0 of an (N, 2) array is many times slower), in python floats: a
+    # NaN bound counts as 0, an infinite one is clipped to the image.
+    lo = [float(px[:, i].min()) for i in (0, 1)]
+    hi = [float(px[:, i].max()) for i in (0, 1)]
+    lo, hi = ([0.0 if math.isnan(v) else min(max(v, -8.0), 8.0 + max(w, h)) for v in b] for b in (lo, hi))
+    x0, y0 = min(max(math.floor(lo[0]) - 2, 0), w - 1), min(max(math.floor(lo[1]) - 2, 0), h - 1)
+    x1, y1 = min(max(math.ceil(hi[0]) + 3, x0 + 1), w), min(max(math.ceil(hi[1]) + 3, y0 + 1), h)
     return gray[y0:y1, x0:x1].astype(np.float32), np.array([x0, y0], dtype=float)
 
 
@@ -257,7 +383,7 @@ def _shrink_px(ramp_px: NDArray[np.float64], cell_px: NDArray[np.float64]) -> ND
     """How far (px) each edge may sit inside the true one because of blur: once an edge's ramp is wider
     than about half a cell, the white quiet zone (a cell wide) no longer reaches its level between the
     black border and the background beyond it, so the half level, and the edge, fall inwards."""
-    ramp = np.nan_to_num(ramp_px, nan=0.0)
+    ramp = ramp_px if np.isfinite(ramp_px).all() else np.nan_to_num(ramp_px, nan=0.0)
     return SHRINK_PER_PX * np.maximum(ramp - SHRINK_ONSET_CELLS * cell_px, 0.0)
 
 
@@ -280,18 +406,21 @@ def _corner_covariance(
     all four lines, so their offsets are fully correlated in it (the quadrilateral too small).
     """
     G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
-    for k in range(4):
-        pair = ((k - 1) % 4, k)
-        Ninv = np.linalg.inv(np.array([(-lines[j][1][1], lines[j][1][0]) for j in pair]))
-        for row, j in enumerate(pair):
-            m, d = lines[j]
-            G[2 * k : 2 * k + 2, 2 * j] = Ninv[:, row]
-            G[2 * k : 2 * k + 2, 2 * j + 1] = Ninv[:, row] * float((corners[k] - m) @ d)
+    dirs = np.array([d for _, d in lines])
+    N = np.empty((4, 2, 2))  # corner k: the normals (-d_y, d_x) of lines k - 1 and k as rows
+    N[:, 0, 0], N[:, 0, 1] = -dirs[_PREVIOUS, 1], dirs[_PREVIOUS, 0]
+    N[:, 1, 0], N[:, 1, 1] = -dirs[:, 1], dirs[:, 0]
+    Ninvs = np.linalg.inv(N)
+    # Corner k's two lines: j = k - 1 (row 0 of its system) and k (row 1).
+    t = np.array([float((corners[k] - lines[j][0]) @ lines[j][1]) for k, j in zip(_CORNER, _LINE, strict=True)])
+    blocks = G.reshape(4, 2, 4, 2)  # (corner, x/y, line, offset/turn)
+    column = Ninvs[_CORNER, :, _ROW]  # (8, 2): Ninv[:, row] of each corner's each line
+    blocks[_CORNER, :, _LINE, 0] = column
+    blocks[_CORNER, :, _LINE, 1] = column * t[:, None]
     D = np.empty(8)
     D[0::2] = var_px2 / npts + EDGE_OFFSET_FLOOR_PX**2
     D[1::2] = var_px2 / np.maximum(spread, 1e-9)
-    common = np.tile(np.eye(2), (4, 1))  # (8, 2): every corner moved alike
-    out = (G * D) @ G.T + SHIFT_FLOOR_PX**2 * (common @ common.T)
+    out = (G * D) @ G.T + SHIFT_FLOOR_PX**2 * _COMMON_SHIFT
     if shrink_px is not None:
         s = G[:, 0::2] @ shrink_px  # the corners' displacement when every line moves in by its shrink
         out += np.outer(s, s)
@@ -310,28 +439,32 @@ class RefinedCorners:
 
 
 def _half_level(
-    prof: NDArray[np.float32], offsets: NDArray[np.float64]
+    prof: NDArray[np.float32], offsets: NDArray[np.float64], counts: NDArray[np.int64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Where each profile (rows: dark marker border inside, light quiet zone outside) crosses halfway
     between its two ends, as an offset; NaN where it has too little contrast or no single crossing. And
     each profile's ramp width (px, NaN without contrast): how far blur spreads the edge.
 
+    ``offsets`` (rows, L): each row's samples' offsets; ``counts`` (rows,): each row's samples, the rest
+    of a shorter row being its last sample repeated (which adds no crossing and no slope).
+
     Motion blur and defocus spread an edge into a ramp whose gradient is a plateau: its peak wanders
     with the noise, while the half-level crossing of a symmetric blur stays on the edge.
     """
-    lo = prof[:, :2].mean(axis=1)
-    hi = prof[:, -2:].mean(axis=1)
+    rows = np.arange(len(prof))
+    lo = (prof[:, 0] + prof[:, 1]) / 2  # each end the mean of its two samples (float32, as np.mean)
+    hi = (prof[rows, counts - 2] + prof[rows, counts - 1]) / 2
     level = (lo + hi) / 2.0
     above = prof > level[:, None]
     # The ramp's width (px): the contrast over the steepest slope; about a pixel for a sharp edge, more with blur.
-    slope = np.max(np.diff(prof, axis=1), axis=1) / (offsets[1] - offsets[0])
+    slope = (prof[:, 1:] - prof[:, :-1]).max(axis=1) / (offsets[:, 1] - offsets[:, 0])
     contrast = hi - lo >= MIN_CONTRAST
     ramp = np.where((slope > 0) & contrast, (hi - lo) / np.maximum(slope, 1e-9), np.nan)
     cross = ~above[:, :-1] & above[:, 1:]
-    single = contrast & (np.count_nonzero(cross, axis=1) == 1)
-    j = np.argmax(cross, axis=1)
-    rows = np.arange(len(prof))
-    a, b = prof[rows, j], prof[rows, j + 1]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        at = offsets[j] + (level - a) / (b - a) * (offsets[j + 1] - offsets[j])
-    return np.where(single, at, np.nan), ramp
+    single = np.flatnonzero(contrast & (np.count_nonzero(cross, axis=1) == 1))
+    j = np.argmax(cross[single], axis=1)
+    a, b = prof[single, j], prof[single, j + 1]  # a <= level < b
+    off, off_next = offsets[single, j], offsets[single, j + 1]
+    found = np.full(len(prof), np.nan)
+    found[single] = off + (level[single] - a) / (b - a) * (off_next - off)
+    return found, ramp

@@ -1,0 +1,142 @@
+"""The detector's CPU per marker in view, this tree against a base git revision, in one run.
+
+The demo's scene (a drone 1 m over five 16 cm floor tags, 640x480, lens distortion) with one, two and all
+five tags in the world file (the others in view are not looked for): ``Detector.detect`` as the node runs
+it (decimate 2 with tracking), its thread CPU per frame, and the same minus its marker search (``find``):
+the work after the search. Each measurement is a child process pinned to core 0 (``taskset -c 0``, OpenCV
+on one thread) running one tree's code on the same frames; the trees' children alternate, so a change of
+the machine's load touches both alike. The per-marker cost is the slope of the mean over the number of
+tags (1 -> 2 includes the start of the joint solve; 2 -> 5 is the bar's).
+
+    python benchmarks/bench_per_marker.py [--base main] [--repeats 2] [--seconds 4]
+
+The base is exported with ``git archive`` into a temporary directory (nothing in the work tree changes).
+Bars: this tree's per-marker CPU (2 -> 5 tags) at least 30 % below the base's, of the whole ``detect`` and
+of its work after the search.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+TAGS = (1, 2, 5)
+BAR_CUT = 0.30
+
+
+def child(tree: Path, scene: Path, n_tags: int) -> None:
+    """Print [detect ms, find ms] per frame of the scene's frames with the first ``n_tags`` tags configured."""
+    sys.path.insert(0, str(tree))
+    import cv2
+    import yaml
+
+    from atlas_onboard.config import parse_world
+    from atlas_onboard.detector.calibration import load as load_calibration
+    from atlas_onboard.detector.pipeline import Detector
+
+    cv2.setNumThreads(1)
+    doc = yaml.safe_load((scene / "world.yaml").read_text())
+    doc["entities"]["world"]["markers"] = doc["entities"]["world"]["markers"][:n_tags]
+    world = parse_world(doc)
+    cal = load_calibration(scene / "calibration.yaml")
+    frames = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in sorted((scene / "frames").iterdir())]
+    det = Detector(world.sensors[next(iter(world.sensors))], world, cal, decimate=2.0)
+    spent = [0.0]
+    find = det.find
+
+    def timed_find(*args, **kwargs):  # type: ignore[no-untyped-def]
+        t0 = time.thread_time()
+        try:
+            return find(*args, **kwargs)
+        finally:
+            spent[0] += time.thread_time() - t0
+
+    det.find = timed_find  # type: ignore[method-assign]
+    for img in frames[:5]:  # warm up (imports, caches)
+        det.detect(img, 0)
+    out = []
+    for k, img in enumerate(frames):
+        spent[0] = 0.0
+        t0 = time.thread_time()
+        det.detect(img, 33_333 * k)
+        out.append(((time.thread_time() - t0) * 1e3, spent[0] * 1e3))
+    print(json.dumps(out))
+
+
+def _stats(ms: list[float]) -> str:
+    return (
+        f"{statistics.mean(ms):>6.2f} {statistics.median(ms):>6.2f} {float(np.percentile(ms, 95)):>6.2f} {len(ms):>5}"
+    )
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--base", default="main", help="git revision to compare against (default main)")
+    ap.add_argument("--repeats", type=int, default=2, help="children per tree and tag count (default 2)")
+    ap.add_argument("--seconds", type=float, default=4.0, help="demo camera time, s (default 4: 120 frames)")
+    ap.add_argument("--child", nargs=3, help=argparse.SUPPRESS)  # tree, scene, tags
+    args = ap.parse_args()
+    if args.child:
+        child(Path(args.child[0]), Path(args.child[1]), int(args.child[2]))
+        return 0
+    with tempfile.TemporaryDirectory() as tmp_s:
+        tmp = Path(tmp_s)
+        base = tmp / "base"
+        base.mkdir()
+        try:
+            archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.base], capture_output=True, check=True)
+            subprocess.run(["tar", "-x", "-C", str(base)], input=archive.stdout, check=True)
+        except (OSError, subprocess.CalledProcessError) as exc:
+            print(f"bench_per_marker: cannot export {args.base!r} with git archive: {exc}", file=sys.stderr)
+            return 2
+        sys.path.insert(0, str(ROOT))
+        from atlas_onboard.sim.demo import write_demo
+
+        scene = tmp / "scene"
+        write_demo(scene, seconds=args.seconds)
+        trees = {f"base {args.base}": base, "this tree": ROOT}
+        ms: dict[tuple[str, int, str], list[float]] = {}
+        for r in range(args.repeats):
+            for n in TAGS:
+                order = list(trees.items()) if r % 2 == 0 else list(trees.items())[::-1]
+                for name, tree in order:
+                    cmd = ["taskset", "-c", "0", sys.executable, __file__, "--child", str(tree), str(scene), str(n)]
+                    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+                    run = subprocess.run(cmd, capture_output=True, text=True, check=True, env=env)
+                    for detect_ms, find_ms in json.loads(run.stdout.strip().splitlines()[-1]):
+                        ms.setdefault((name, n, "detect"), []).append(detect_ms)
+                        ms.setdefault((name, n, "after search"), []).append(detect_ms - find_ms)
+    print("Detector.detect on the demo scene (640x480), thread CPU ms per frame, one core (taskset -c 0)")
+    print(f"{'tree':16} {'tags':>4} {'part':13} {'mean':>6} {'median':>6} {'p95':>6} {'n':>5}")
+    for n in TAGS:
+        for name in trees:
+            for part in ("detect", "after search"):
+                print(f"{name:16} {n:>4} {part:13} {_stats(ms[(name, n, part)])}")
+    print("per marker in view (slope of the means), ms CPU; ratio this tree / base")
+    slopes: dict[tuple[str, str], tuple[float, float, float]] = {}
+    for part in ("detect", "after search"):
+        for name in trees:
+            m = {n: statistics.mean(ms[(name, n, part)]) for n in TAGS}
+            slopes[(name, part)] = (m[2] - m[1], (m[5] - m[1]) / 4, (m[5] - m[2]) / 3)
+        a, b = (slopes[(name, part)] for name in trees)
+        print(f"  {part:13} 1->2 tags {a[0]:.3f} -> {b[0]:.3f} ({b[0] / a[0]:.2f}); 1->5 {a[1]:.3f} -> {b[1]:.3f}"
+              f" ({b[1] / a[1]:.2f}); 2->5 {a[2]:.3f} -> {b[2]:.3f} ({b[2] / a[2]:.2f})")  # fmt: skip
+    base_name = next(iter(trees))
+    for part, name in (("detect", "per_marker_cpu_cut_2to5"), ("after search", "per_marker_cpu_cut_2to5_after_search")):
+        cut = 1 - slopes[("this tree", part)][2] / slopes[(base_name, part)][2]
+        print(f"BAR {name} {100 * cut:.1f} % {100 * BAR_CUT:g} {'pass' if cut >= BAR_CUT else 'fail'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
