@@ -276,8 +276,8 @@ def _distort_homogeneous(
     Kinv = _inverse(np.ascontiguousarray(K, dtype=np.float64).tobytes())
     rays = hom @ Kinv.T  # normalized, z = 1
     k = np.asarray(dist, dtype=np.float64).ravel()
-    if fisheye and len(k) == 4:
-        return _project_fisheye(rays, K, k)
+    if fisheye and len(k) == 4:  # OpenCV's own, which computes no Jacobians (unlike projectPoints)
+        return cv2.fisheye.distortPoints((rays[:, :2] / rays[:, 2:]).reshape(-1, 1, 2), K, k).reshape(-1, 2)
     if fisheye or len(k) not in (4, 5, 8, 12, 14) or (len(k) == 14 and np.any(k[12:])):
         # A tilted sensor (or coefficients OpenCV refuses, with its own error): OpenCV itself.
         project = cv2.fisheye.projectPoints if fisheye else cv2.projectPoints
@@ -319,29 +319,6 @@ def _project(
     out = np.empty((len(rays), 2))
     out[:, 0], out[:, 1] = xd * K[0, 0] + K[0, 2], yd * K[1, 1] + K[1, 2]
     return out
-
-
-def _project_fisheye(rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Camera-frame points (N, 3) -> image pixels (N, 2) through OpenCV's fisheye model (4 coefficients):
-    cv2.fisheye.projectPoints' value (to the last bits of its arctangent) without the Jacobians it also
-    computes."""
-    z = np.where(np.abs(rays[:, 2]) < np.finfo(float).tiny, 1.0, rays[:, 2])
-    x, y = rays[:, 0] / z, rays[:, 1] / z
-    r = np.sqrt(x * x + y * y)
-    theta = np.arctan(r)
-    theta2 = theta * theta
-    theta3 = theta2 * theta
-    theta4 = theta2 * theta2
-    theta5 = theta4 * theta
-    theta6 = theta3 * theta3
-    theta7 = theta6 * theta
-    theta8 = theta4 * theta4
-    theta9 = theta8 * theta
-    theta_d = theta + k[0] * theta3 + k[1] * theta5 + k[2] * theta7 + k[3] * theta9
-    big = r > 1e-8
-    cdist = np.where(big, theta_d * (1.0 / np.where(big, r, 1.0)), 1.0)
-    # (cv2.fisheye.projectPoints given K takes no skew from it: nor does this)
-    return np.column_stack([x * cdist * K[0, 0] + K[0, 2], y * cdist * K[1, 1] + K[1, 2]])
 
 
 def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
