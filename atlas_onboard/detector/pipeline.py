@@ -297,7 +297,7 @@ class Detector(JointSolve):
                 if used is None:
                     # The squares contradict each other: a pair's member that others trust is used alone,
                     # when the other is suspect; otherwise none of them is trusted in this image. The suspect
-                    # one is used too where its place has been measured (the pair judged the world file's).
+                    # one is used too where its place has already been measured (the pair judged the file's).
                     suspects = self.world_check.doubtful(entity, self._misfit_pair, capture_time_us)
                     rest = [m for m in self._misfit_pair if m not in suspects]
                     if len(rest) != 1 or len(self._misfit_pair) != 2:
