@@ -282,17 +282,14 @@ class Detector(JointSolve):
                 if not fed:
                     self.world_check.feed(entity, verdicts, capture_time_us)
                 if md is not None and used is not None and doubtful & set(used):
-                    # A moved or suspect marker that fitted is still left out: the rest give the pose. When
-                    # one is left, those with a measured place are used there beside it.
-                    left = doubtful & set(used)
-                    used = [m for m in used if m not in doubtful]
-                    md = self._joint(used, singles, capture_time_us, count=False)[0] if len(used) > 1 else None
-                    placed = [] if md is not None else [m for m in left if self.world_check.places.place(m)]
-                    for m in left.difference(placed):
+                    # A moved or suspect marker that fitted is still left out: the rest give the pose.
+                    for m in doubtful & set(used):
                         self.counters["dropped_suspect"] += 1
                         self.report.dropped[m] = "moved or suspect: left out of the joint solve"
+                    used = [m for m in used if m not in doubtful]
+                    md = self._joint(used, singles, capture_time_us, count=False)[0] if len(used) > 1 else None
                     if md is None:
-                        ids = sorted(used + placed)
+                        ids = used
                 if md is not None:
                     out.append(md)
                     self.report.reported += used
