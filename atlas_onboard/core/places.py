@@ -21,6 +21,7 @@ from atlas_onboard.core import covariance
 from atlas_onboard.core.refine import Estimate, MapRefiner, RefineOptions, WorldMarkerPose, residuals
 from atlas_onboard.core.refine import Sighting as PlacedSighting
 from atlas_onboard.core.worldcheck import MAX_EVIDENCE, WINDOW_S
+from atlas_onboard.errors import GeometryError
 
 PLACE_MIN_VIEWS = 2  # independent views (refine's view gap): one burst cannot show its own shared error or a move
 PLACE_MAX_SCATTER = 9.0  # the evidence (images, and views about each other) may scatter at most 3x (in sigma)
@@ -45,7 +46,7 @@ def place_covariance(est: Estimate) -> NDArray[np.float64]:
     quantile with probability ``1 - PLACE_SCALE_P``. Few views give a wide bound (a large factor), many a
     factor near their scatter; never below the model or the images' own scatter."""
     if est.view_cov is None or est.view_dof < 6:
-        raise ValueError(f"expected an estimate from two or more views, got {est.views}")
+        raise GeometryError(f"expected an estimate from two or more views, got {est.views}")
     k = max(1.0, est.scatter, est.view_chi2 / chdtri(est.view_dof, 1.0 - PLACE_SCALE_P))
     return est.view_cov * k
 
