@@ -5,7 +5,8 @@ the nodes' world file (marker 2 moved 10 cm along x) by :func:`atlas_onboard.sim
 scenario's start; the anchor is the same frames with the true world file. A live run on a loaded machine
 drops frames, which moves its availability by more than a measured place does; this one does not.
 
-Per world: the drone's output messages, availability against the time a tag is fully in view (``cover``,
+Per world: the drone's output messages, position error mean, median and p95 per state (``view``: a tag
+fully in view at that frame; ``blind``: none), availability against the time a tag is fully in view (``cover``,
 as bench_hard scores it, from the ideal frames after the warm-up; an output counts at its capture time),
 position RMSE and max (mm), share within 3 sigma per axis, pose NEES; the frames with a tag in view and
 no output; the measured places established, with their error against the true marker pose in their own
@@ -157,6 +158,12 @@ def main(argv: list[str] | None = None) -> int:
             k = int(np.argmax(norms))
             print(f"  {r.name}: max at {r.output_s[k]:.3f} s; frames with a tag in view and no output:"
                   f" {' '.join(f'{t:.3f}' for t in r.lost_s[:40]) or 'none'}")  # fmt: skip
+            ideal_set = set(np.round(ideal, 3))
+            view = np.array([round(t, 3) in ideal_set for t in r.output_s], dtype=bool)
+            for state, sel in (("all", np.ones(len(norms), bool)), ("view", view), ("blind", ~view)):
+                v = norms[sel]
+                figs = f"{v.mean():.2f} {np.median(v):.2f} {np.percentile(v, 95):.2f}" if len(v) else "nan nan nan"
+                print(f"  {r.name} {state:<5} n {len(v):>4}  mean median p95 (mm): {figs}")
             for t, mid, nees, mm, views in r.places:
                 print(f"  {r.name}: marker {mid} placed at {t:.3f} s from {views} views: {mm:.2f} mm off,"
                       f" NEES6 {nees:.2f}")  # fmt: skip
