@@ -89,8 +89,10 @@ def run_world(scenario: str, name: str, world, frames: int) -> Run:
         return out
 
     def add(self, e, C):
-        adds.append((id(self), now[0]))
+        n = len(self.errors)
         orig_add(self, e, C)
+        if len(self.errors) > n:  # (one not positive definite is counted, not kept)
+            adds.append((id(self), now[0]))
 
     def establish(self, marker_id, now_us, trusted):
         had = self.place(marker_id)
