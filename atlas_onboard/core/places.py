@@ -19,12 +19,14 @@ from scipy.spatial.transform import RigidTransform
 from scipy.special import chdtri  # chi-square's inverse survival function (scipy.stats costs 0.6 s to import)
 
 from atlas_onboard.core import covariance
-from atlas_onboard.core.refine import MapRefiner, RefineOptions, WorldMarkerPose, residuals
+from atlas_onboard.core.refine import Estimate, MapRefiner, RefineOptions, WorldMarkerPose, residuals
 from atlas_onboard.core.refine import Sighting as PlacedSighting
 from atlas_onboard.core.worldcheck import MAX_EVIDENCE, WINDOW_S
+from atlas_onboard.errors import GeometryError
 
-PLACE_MIN_VIEWS = 3  # independent views (refine's view gap) behind a measured place: not one burst of frames
-PLACE_MAX_SCATTER = 9.0  # the evidence may scatter at most 3x (in sigma) what its covariances say
+PLACE_MIN_VIEWS = 2  # independent views (refine's view gap): one burst cannot show its own shared error or a move
+PLACE_MAX_SCATTER = 9.0  # the evidence (images, and views about each other) may scatter at most 3x (in sigma)
+PLACE_SCALE_P = 0.05  # the views' scatter ratio is taken at its upper bound of this tail probability
 PLACE_MAX_OUTLIERS = 0.25  # of the evidence items, the share the robust mean may set aside
 PLACE_MAX_SIGMA_M = 0.02  # a place more uncertain than this is not used (its poses would be worth little)
 PLACE_MAX_SIGMA_DEG = 3.0
@@ -33,6 +35,21 @@ RECHECK_MIN_M = 0.01  # and it is at least this far (closer, the pose errs by le
 RECHECK_MIN_DEG = 2.0  # or turned by at least this much (and beyond the same distance, in rotation)
 RECHECK_LAST = 5  # the newest trusted items that decide whether the place still holds
 RECHECK_MISFITS = 3  # of those, this many that do not fit: the marker has moved again
+
+
+def place_covariance(est: Estimate) -> NDArray[np.float64]:
+    """(6, 6) an honest covariance of a marker's estimated pose however few views back it.
+
+    Images of one view share their errors, so the views are the samples: the pose's covariance with each
+    view worth one average image of it (``est.view_cov``), times the views' scatter ratio at its upper
+    bound: if that model is right up to a factor k, the views' chi-square is k times a chi-square variable
+    of ``est.view_dof`` degrees of freedom, so k is below it over the chi-square's ``PLACE_SCALE_P``
+    quantile with probability ``1 - PLACE_SCALE_P``. Few views give a wide bound (a large factor), many a
+    factor near their scatter; never below the model or the images' own scatter."""
+    if est.view_cov is None or est.view_dof < 6:
+        raise GeometryError(f"expected an estimate from two or more views, got {est.views}")
+    k = max(1.0, est.scatter, est.view_chi2 / chdtri(est.view_dof, 1.0 - PLACE_SCALE_P))
+    return est.view_cov * k
 
 
 @dataclass(frozen=True)
@@ -44,7 +61,7 @@ class MeasuredPlace(WorldMarkerPose):
         p_world_marker_m: (3,) its measured position, world frame, m.
         R_world_marker: (3, 3) its measured rotation.
         cov: (6, 6) the place's covariance (``[dp, dtheta]``, dp world frame m, dtheta marker axes rad):
-            the evidence's information inverted, inflated by its scatter and by frames per view.
+            :func:`place_covariance`, honest however few views back it.
         offset_m: (3,) measured position minus the world file's, world frame, m.
         scatter: the evidence's scatter factor (squared distances over what the covariances say, >= 1).
         items: evidence items used; views: independent views among them.
@@ -174,14 +191,19 @@ class MeasuredPlaces:
             return "too little evidence from trusted markers"
         if est.views < PLACE_MIN_VIEWS:
             return f"{est.views} independent views (needs {PLACE_MIN_VIEWS})"
-        if est.scatter > PLACE_MAX_SCATTER or est.outliers > PLACE_MAX_OUTLIERS * est.items:
-            return f"inconsistent evidence (scatter {est.scatter:.1f}, {est.outliers} of {est.items} outliers)"
-        if est.max_sigma_m > PLACE_MAX_SIGMA_M or est.max_sigma_deg > PLACE_MAX_SIGMA_DEG:
-            return f"not precise enough (sigma {est.max_sigma_m * 1000:.1f} mm, {est.max_sigma_deg:.2f} deg)"
+        view_scatter = est.view_chi2 / est.view_dof
+        if max(est.scatter, view_scatter) > PLACE_MAX_SCATTER or est.outliers > PLACE_MAX_OUTLIERS * est.items:
+            return (
+                f"inconsistent evidence (scatter {est.scatter:.1f}, views {view_scatter:.1f},"
+                f" {est.outliers} of {est.items} outliers)"
+            )
+        cov = place_covariance(est)
         place = MeasuredPlace(
-            marker_id, est.p_world_marker_m, est.R_world_marker, est.cov, est.offset_m, est.scatter,
+            marker_id, est.p_world_marker_m, est.R_world_marker, cov, est.offset_m, est.scatter,
             est.items - est.outliers, est.views, now_us,
         )  # fmt: skip
+        if place.max_sigma_m > PLACE_MAX_SIGMA_M or place.max_sigma_deg > PLACE_MAX_SIGMA_DEG:
+            return f"not precise enough (sigma {place.max_sigma_m * 1000:.1f} mm, {place.max_sigma_deg:.2f} deg)"
         self._places[marker_id] = place
         return place
 

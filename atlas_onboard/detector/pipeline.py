@@ -307,13 +307,14 @@ class Detector:
                     continue
                 if used is None:
                     # The squares contradict each other: a pair's member that others trust is used alone,
-                    # when the other is suspect; otherwise none of them is trusted in this image.
+                    # when the other is suspect; otherwise none of them is trusted in this image. The suspect
+                    # one is used too where its place has already been measured (the pair judged the file's).
                     pair = self.joint_solve.misfit_pair
                     suspects = self.world_check.doubtful(entity, pair, capture_time_us)
                     rest = [m for m in pair if m not in suspects]
                     if len(rest) != 1 or len(pair) != 2:
                         continue
-                    ids = rest
+                    ids = sorted(rest + [m for m in suspects if self.world_check.places.place(m) is not None])
             else:
                 self.world_check.feed(entity, verdicts, capture_time_us)
             for mid in ids:

@@ -169,7 +169,7 @@ class WorldCheck:
         self.counters["places_measured"] += 1
         dx, dy, dz = found.offset_m
         _logger.warning(
-            "sensor %s: world marker %d has moved %.1f cm from its place in the world file (%+.3f %+.3f %+.3f m);"
+            "sensor %s: world marker %d is %.1f cm from its place in the world file (%+.3f %+.3f %+.3f m):"
             " using its measured place (sigma %.1f mm, %.2f deg; %d images in %d views, scatter %.1f)",
             self.sensor.name, mid, float(np.linalg.norm(found.offset_m)) * 100, dx, dy, dz, found.max_sigma_m * 1000,
             found.max_sigma_deg, found.items, found.views, found.scatter,

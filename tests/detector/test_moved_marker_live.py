@@ -77,6 +77,25 @@ def test_a_marker_off_in_the_world_file_is_named_and_then_used_at_its_measured_p
     assert sum("using its measured place" in r.getMessage() for r in caplog.records) == 1
 
 
+def test_a_pair_with_a_placed_marker_uses_it_at_its_place_beside_the_other():
+    """A moved marker whose place has been measured, seen beside one trusted marker: the pair misfits as
+    the world file has them, but the moved one is used at its place (the camera at the truth within its
+    sigma) as well as the other, not dropped leaving the other alone."""
+    world, spots = moved_marker_world(5, 0.10)
+    det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
+    _fly(det, range(MIN_VIEWS + 5))
+    assert ("world", 5) in det.moved
+    det.detect(_image(0, alone=True), 8_900_000)  # seen alone: its place is measured and used
+    assert det.counters["places_measured"] == 1
+    img, T_cam_world = moved_marker_image({1: spots[1], 5: spots[5]}, yaw_deg=6.0)
+    by_id = {md.marker_id: md for md in det.detect(img, 9_000_000)}
+    assert sorted(by_id) == [1, 5] and det.counters["placed_used"] == 2, det.report.explain()
+    for md in by_id.values():
+        p_world_cam, sigma = _camera_error(world, md)
+        err = p_world_cam - T_cam_world.inv().translation
+        assert np.all(np.abs(err) <= 3 * sigma), (md.marker_id, err, sigma)
+
+
 def test_markers_where_the_world_file_has_them_are_never_named():
     world, _ = moved_marker_world(None, 0.0)
     det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
@@ -102,9 +121,14 @@ def test_a_pair_that_disagrees_uses_the_marker_others_agree_with_and_a_put_back_
     (md,) = det.detect(img, next(t))
     assert md.marker_id == 1
     np.testing.assert_allclose(md.p_sensor_marker_m, T_cam_world.translation, atol=0.01)
-    # Marker 5 alone is suspect: not used (alone it would move the pose 10 cm).
-    assert det.detect(moved_marker_image({5: spots[5]}, 6.0)[0], next(t)) == []
-    assert det.counters["dropped_suspect"] == 1
+    # Marker 5 alone is suspect, but two views (the pair images 0.6 s apart, placed by 1, which others agree
+    # with) have measured its place: used there, not where the world file has it (which would move the pose
+    # 10 cm): the camera at the truth within the sigma the place adds.
+    (md,) = det.detect(moved_marker_image({5: spots[5]}, 6.0)[0], next(t))
+    p_world_cam, sigma = _camera_error(world, md)
+    err = p_world_cam - T_cam_world.inv().translation
+    assert md.marker_id == 5 and np.all(np.abs(err) <= 3 * sigma), (err, sigma)
+    assert det.counters["placed_used"] == 1 and det.counters["dropped_suspect"] == 0
     # Put back where the world file has it: it agrees with 1 again, and is cleared after a few images.
     back = {1: spots[1], 5: (spots[5][0] + 0.10, spots[5][1])}
     for yaw in (4.0, 4.5, 5.0):

@@ -54,16 +54,53 @@ def residuals(P: NDArray, Rs: NDArray, p_ref: NDArray, R_ref: NDArray) -> NDArra
     return np.concatenate([P - p_ref, rot], axis=1)
 
 
-def independent_views(items: Sequence[Evidence], inlier: NDArray[np.bool_], gap_s: float) -> int:
-    """Independent views among the inliers: per camera, images at least ``gap_s`` after the last counted."""
-    last: dict[Hashable, int] = {}
+def view_labels(items: Sequence[Evidence], inlier: NDArray[np.bool_], gap_s: float) -> NDArray[np.int_]:
+    """(n,) the independent view of each inlier (0, 1, ...; -1 for outliers): per camera, a view starts with
+    the first image at least ``gap_s`` after the last view's start and holds the images until the next."""
+    labels = np.full(len(items), -1, dtype=int)
+    last: dict[Hashable, tuple[int, int]] = {}  # camera -> (its current view's start us, its label)
     n = 0
     gap_us = gap_s * 1e6
-    for e, ok in sorted(zip(items, inlier, strict=True), key=lambda t: t[0].capture_time_us):
-        if not ok:
+    for k in sorted(range(len(items)), key=lambda k: items[k].capture_time_us):
+        if not inlier[k]:
             continue
-        t = last.get(e.camera)
-        if t is None or e.capture_time_us - t >= gap_us:
-            last[e.camera] = e.capture_time_us
+        e = items[k]
+        cur = last.get(e.camera)
+        if cur is None or e.capture_time_us - cur[0] >= gap_us:
+            cur = last[e.camera] = (e.capture_time_us, n)
             n += 1
-    return n
+        labels[k] = cur[1]
+    return labels
+
+
+def independent_views(items: Sequence[Evidence], inlier: NDArray[np.bool_], gap_s: float) -> int:
+    """Independent views among the inliers: per camera, images at least ``gap_s`` after the last counted."""
+    return int(view_labels(items, inlier, gap_s).max(initial=-1)) + 1
+
+
+def view_scatter(r: NDArray, W: NDArray, labels: NDArray[np.int_]) -> tuple[NDArray[np.float64], float, int] | None:
+    """The views' scatter about each other: residuals ``r`` (n, 6) about the mean, information ``W`` (n, 6, 6),
+    each item's view ``labels`` (n,; -1 left out).
+
+    Images of one view share their errors (the same placing markers at about the same geometry), so a view
+    is worth one average image of it, not its count: its nominal information is its items' summed over their
+    number. Returns the covariance of the views' combined mean under that nominal model (6, 6), the views'
+    chi-square about their combined mean (if the nominal model is right up to a factor k, k times a
+    chi-square variable) and its degrees of freedom (6 per view beyond the first); None when an information
+    matrix is singular."""
+    views = int(labels.max(initial=-1)) + 1
+    info = np.zeros((views, 6, 6))
+    x = np.zeros((views, 6))
+    try:
+        for j in range(views):
+            sel = labels == j
+            I_j = W[sel].sum(axis=0)
+            x[j] = np.linalg.solve(I_j, np.einsum("nij,nj->i", W[sel], r[sel]))
+            info[j] = I_j / sel.sum()
+        cov = np.linalg.inv(info.sum(axis=0))
+    except np.linalg.LinAlgError:
+        return None
+    mean = cov @ np.einsum("vij,vj->i", info, x)
+    d = x - mean
+    chi2 = float(np.einsum("vi,vij,vj->", d, info, d))
+    return 0.5 * (cov + cov.T), chi2, 6 * (views - 1)

@@ -88,7 +88,8 @@ class Estimate(WorldMarkerPose):
     ``cov`` (6, 6) is the refined pose's covariance; ``views`` the independent views among the inliers;
     ``spread_deg`` the widest angle of a viewing direction from their mean; ``offset_m`` /
     ``offset_deg`` how far it is from the current map pose; ``distance2`` that offset's squared
-    Mahalanobis distance under ``cov``."""
+    Mahalanobis distance under ``cov``; ``view_cov``, ``view_chi2``, ``view_dof``: see
+    :func:`~atlas_onboard.core.refine.mean.view_scatter`."""
 
     items: int
     outliers: int
@@ -98,6 +99,9 @@ class Estimate(WorldMarkerPose):
     offset_deg: float
     distance2: float
     scatter: float = 1.0  # the inliers' median squared distance over its chi-square median (at least 1)
+    view_cov: NDArray[np.float64] | None = None  # (6, 6) the pose's covariance with each view one average image
+    view_chi2: float = 0.0  # the views' chi-square about their mean under view_cov's model
+    view_dof: int = 0  # its degrees of freedom: 6 per view beyond the first
 
     @property
     def sigma_m(self) -> NDArray[np.float64]:

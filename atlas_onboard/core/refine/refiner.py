@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 from scipy.special import chdtri  # chi-square's inverse survival function (scipy.stats costs 0.6 s to import)
 
 from atlas_onboard.core import covariance
-from atlas_onboard.core.refine.mean import independent_views, residuals, robust_mean
+from atlas_onboard.core.refine.mean import residuals, robust_mean, view_labels, view_scatter
 from atlas_onboard.core.refine.placement import leave_one_out
 from atlas_onboard.core.refine.records import Estimate, Evidence, RefineOptions, Sighting, Update
 
@@ -156,7 +156,8 @@ class MapRefiner:
 
         The robust mean of the evidence (:func:`~atlas_onboard.core.refine.mean.robust_mean`); its
         covariance is the inliers' information inverted, scaled by the evidence's scatter and by frames
-        per independent view."""
+        per independent view; the views' scatter about each other comes with it
+        (:func:`~atlas_onboard.core.refine.mean.view_scatter`)."""
         items = self._evidence.get(marker_id)
         if items is not None and accept is not None:
             items = [e for e in items if accept(e)]
@@ -174,7 +175,11 @@ class MapRefiner:
         if mean is None:
             return None
         p_ref, R_ref, inlier, scale = mean
-        views = independent_views(items, inlier, o.view_gap_s)
+        labels = view_labels(items, inlier, o.view_gap_s)
+        views = int(labels.max()) + 1
+        by_view = view_scatter(residuals(P, Rs, p_ref, R_ref), W, labels)
+        if by_view is None:
+            return None
         info = W[inlier].sum(axis=0)
         cov = np.linalg.inv(info) * scale * max(1.0, inlier.sum() / max(views, 1))
         cov = 0.5 * (cov + cov.T)
@@ -190,7 +195,7 @@ class MapRefiner:
             return None
         return Estimate(
             marker_id, p_ref, R_ref, cov, len(items), int((~inlier).sum()), views, spread,
-            p_ref - m.p, float(np.degrees(np.linalg.norm(delta[3:]))), d2_map, scale,
+            p_ref - m.p, float(np.degrees(np.linalg.norm(delta[3:]))), d2_map, scale, *by_view,
         )  # fmt: skip
 
     def forget(self, marker_id: int, before_us: int) -> None:
