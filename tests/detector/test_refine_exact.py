@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from atlas_onboard.detector import refine
+from atlas_onboard.detector import lens, refine
 
 K = np.array([[457.0, 0.0, 319.5], [0.0, 459.0, 241.25], [0.0, 0.0, 1.0]])
 
@@ -35,7 +35,7 @@ def test_standard_lens_model_equals_opencv_bit_for_bit(size: int, coeffs: list[f
     among them: the image pixels are exactly cv2.projectPoints'."""
     dist = np.where(zero, 0.0, coeffs)[:size] * np.array([1, 1, 0.01, 0.01] + [0.3] * 10)[:size]
     pts = np.random.default_rng(seed).uniform(-40, 680, (300, 2))
-    assert np.array_equal(refine._distort(pts, K, dist, False), _cv2_distort(pts, K, dist, False))
+    assert np.array_equal(lens.distort(pts, K, dist, False), _cv2_distort(pts, K, dist, False))
 
 
 @settings(max_examples=60, deadline=None)
@@ -44,7 +44,7 @@ def test_fisheye_lens_model_equals_opencv(coeffs: list[float], seed: int):
     """The fisheye model (an arctangent, whose last bit numpy and the C library may round apart)."""
     pts = np.random.default_rng(seed).uniform(-40, 680, (300, 2))
     dist = np.array(coeffs)
-    assert np.abs(refine._distort(pts, K, dist, True) - _cv2_distort(pts, K, dist, True)).max() < 1e-9
+    assert np.abs(lens.distort(pts, K, dist, True) - _cv2_distort(pts, K, dist, True)).max() < 1e-9
 
 
 @settings(max_examples=100, deadline=None)
