@@ -180,3 +180,22 @@ def test_per_marker_images_report_a_moved_marker_only_beside_two_others():
     det.map_pose_changed(5)
     assert det.detect(_image(0, alone=True), 9_200_000) == []
     assert det.counters["dropped_moved"] == 1
+
+
+def test_a_suspect_marker_without_a_measured_place_is_not_used_alone():
+    """As above, but every image within one view (refine's view gap): one burst cannot show its own shared
+    error, so no place is measured, and marker 5 seen alone is dropped as suspect, counted and explained,
+    rather than used where the world file has it (which would move the pose 10 cm)."""
+    world, spots = moved_marker_world(5, 0.10)
+    det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
+    pair_15 = {1: spots[1], 5: spots[5]}
+    t = iter(range(1_000_000, 100_000_000, 50_000))
+    assert det.detect(moved_marker_image(pair_15)[0], next(t)) == []
+    for yaw in (3.0, 5.0):
+        det.detect(moved_marker_image({1: spots[1], 2: spots[2]}, yaw)[0], next(t))
+    (md,) = det.detect(moved_marker_image(pair_15, 6.0)[0], next(t))
+    assert md.marker_id == 1
+    assert det.detect(moved_marker_image({5: spots[5]}, 6.0)[0], next(t)) == []
+    assert det.counters["dropped_suspect"] == 1 and det.counters["placed_used"] == 0
+    assert det.counters["places_measured"] == 0
+    assert "suspect" in det.report.dropped[5]
