@@ -298,26 +298,32 @@ def per_frame_floor(scenario_name: str, duration_s: float, seed: int = 0, direct
     return list(out.values())
 
 
-def node_attitude(sim_world: SimWorld, duration_s: float, seed: int) -> Callable[[int], NDArray[np.float64] | None]:
+def node_attitude(
+    sim_world: SimWorld, duration_s: float, seed: int, lag_s: float | None = PROCESS_LAG_S, bias: bool = True
+) -> Callable[[int], NDArray[np.float64] | None]:
     """World up in the body frame at a capture time (us) as the node gets it from the simulated autopilot
     (its defaults; the run's bias, drawn as its autopilot draws it): roll and pitch with a per-run bias and
     per-sample noise, sampled at ``attitude_hz``, stamped ``attitude_delay_s`` late (the boot-time mapping
     by the smallest lag cannot see a constant send delay), slerped between the samples the node holds
-    ``PROCESS_LAG_S`` after the capture (a later one has not arrived: the newest is held)."""
+    ``lag_s`` after the capture (a later one has not arrived: the newest is held; None: every sample).
+    ``bias`` False: the same samples without the run's bias (what calibrating it away would leave)."""
     ap = SimAutopilot.__dataclass_fields__
     rng = np.random.default_rng(seed + 1)  # the run's first drone's autopilot: attitude_seed = seed + 1
-    bias = np.radians(rng.normal(0.0, ap["attitude_bias_deg"].default, 2))
+    bias_rad = np.radians(rng.normal(0.0, ap["attitude_bias_deg"].default, 2)) * bias
     noise_rad = math.radians(ap["attitude_noise_deg"].default)
     hz, delay_s = ap["attitude_hz"].default, ap["attitude_delay_s"].default
     stamps, samples = [], []
     for t in np.arange(0.0, duration_s + 1.0, 1.0 / hz) + rng.uniform(0.0, 1.0 / hz):
         R = sim_world.truth(float(t), (ENTITY,))[ENTITY].rotation
-        tilt = Rotation.from_rotvec(np.r_[bias + rng.normal(0.0, noise_rad, 2), 0.0])
+        tilt = Rotation.from_rotvec(np.r_[bias_rad + rng.normal(0.0, noise_rad, 2), 0.0])
         stamps.append(round((t + delay_s) * 1e6))
         samples.append(tilt * R)
 
     def up_at(t_us: int) -> NDArray[np.float64] | None:
-        k = int(np.searchsorted(stamps, t_us + round(PROCESS_LAG_S * 1e6), side="right"))
+        if lag_s is None:  # the samples around the capture, the next one too
+            k = min(int(np.searchsorted(stamps, t_us, side="right")) + 1, len(stamps))
+        else:
+            k = int(np.searchsorted(stamps, t_us + round(lag_s * 1e6), side="right"))
         held = AttitudeHistory()
         for i in range(max(k - 3, 0), k):
             held.add(stamps[i], samples[i])

@@ -23,11 +23,13 @@ with error > ``--limit``:
 - ``?``: none of these.
 
     python benchmarks/diag_hard_tails.py [--scenario hard] [--duration 30] [--frames DIR] [--limit 30] [--ekf]
-        [--live graph|ekf]
+        [--live graph|ekf] [--attitudes]
 
 ``--frames``: a directory of pre-rendered frames (``atlas_onboard.sim.camera.prerender`` of the scenario,
 seed 0); otherwise they are rendered. ``--live``: also one live run (a real node, real MAVLink), each
 message beside the offline output of its frame and the node's own observation from the hub.
+``--attitudes``: every record's error with variants of the attitude (none; as the node holds it; held
+at the capture; every sample; without the run's bias): what the attitude's timing and bias cost.
 """
 
 from __future__ import annotations
@@ -380,6 +382,47 @@ def live(args: argparse.Namespace, graph_outputs: list[Output], fps: float) -> N
         print(f"    {c:7.3f} {e:6.1f} mm {cls} age {age * 1e3:4.0f} ms | node's observation {said} | {off}")
 
 
+def attitudes(args: argparse.Namespace) -> None:
+    """Every record's drone error (a frame's edge, with eq. 1 and the tilt step) with variants of the
+    attitude: what the attitude's lateness, held samples and bias cost, all records and singles apart."""
+    scenario = scenarios.get(args.scenario)
+    world = scenario.world()
+    sim = SimWorld(scenario)
+    directory = args.frames or runner._rendered_frames(scenario, 0, args.duration, lambda _m: None)
+    variants: dict[str, Any] = {
+        "none (the detector's branch, no tilt step)": None,
+        "as the node holds it (10 ms after the capture)": node_attitude(sim, args.duration, 0),
+        "held at the capture (nothing after it yet)": node_attitude(sim, args.duration, 0, lag_s=0.0),
+        "every sample (none held)": node_attitude(sim, args.duration, 0, lag_s=None),
+        "every sample, no bias": node_attitude(sim, args.duration, 0, lag_s=None, bias=False),
+        "as the node holds it, no bias": node_attitude(sim, args.duration, 0, bias=False),
+    }
+    listeners = {}
+    for name, up_at in variants.items():
+        lis = Listener(world, make_graph(world, ENTITY), ambiguity_threshold=1.0 if up_at is None else 0.5)
+        if up_at is not None:
+            lis.set_attitude(ENTITY, up_at)
+        listeners[name] = lis
+    errors: dict[str, list[tuple[bool, float]]] = {name: [] for name in variants}
+    from bench_hard import drone_cameras
+
+    for _sensor, det, frames, fps, n in drone_cameras(sim, world, directory, args.duration):
+        for j in range(n):
+            truth = sim.truth(j / fps, (ENTITY,))[ENTITY]
+            for md in det.detect(np.asarray(frames[j]), round(j / fps * 1e6)):
+                for name, lis in listeners.items():
+                    e = edge_error_mm(lis, md, truth)
+                    if isinstance(e, float):
+                        errors[name].append((md.ambiguity_ratio != 0, e))
+    print(f"scenario {args.scenario}: each record's drone error (mm) by the attitude it was given")
+    print(f"  {'attitude':<48} {'n':>4} {'RMSE':>6} {'p95':>6} {'max':>7} | singles {'n':>4} {'RMSE':>6} {'max':>7}")
+    for name, rows in errors.items():
+        e = np.array([v for _, v in rows])
+        s = np.array([v for single, v in rows if single])
+        print(f"  {name:<48} {len(e):>4} {np.sqrt(np.mean(e**2)):>6.2f} {np.percentile(e, 95):>6.1f} {e.max():>7.1f} |"
+              f" singles {len(s):>4} {np.sqrt(np.mean(s**2)):>6.2f} {s.max():>7.1f}")  # fmt: skip
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="hard")
@@ -389,8 +432,11 @@ def main() -> int:
     ap.add_argument("--worst", type=int, default=50)
     ap.add_argument("--ekf", action="store_true", help="also the node's EKF on the same graph results")
     ap.add_argument("--live", default="", choices=("", "graph", "ekf"), help="also one live run with this filter")
+    ap.add_argument("--attitudes", action="store_true", help="also each record's error with variants of the attitude")
     args = ap.parse_args()
     outputs, published, fps = offline(args)
+    if args.attitudes:
+        attitudes(args)
     for o in outputs:
         o.cls = classify(o, args.limit)
     table(f"scenario {args.scenario}, the graph (defaults)", outputs, args.limit, args.worst)
