@@ -97,6 +97,13 @@ class PoseEkf:
     outcomes: Counter[str] = field(default_factory=Counter)  # of update(): accepted, reset, gated, late
     last_nis: float = float("nan")
     a: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    t_reset_s: float = 0.0  # capture time of the measurement that last reset the filter
+
+    @property
+    def velocity_observed(self) -> bool:
+        """Whether a measurement later than the one that reset the filter has been fused: before that its
+        velocity is only the reset's zero-mean prior, and a prediction would stamp a held pose as new."""
+        return self.initialized and self.t_update_s > self.t_reset_s
 
     def reset(self, t_s: float, p: NDArray[np.float64], q: Rotation, R: NDArray[np.float64]) -> None:
         """Start from a measurement: its pose and covariance, zero velocity with a wide prior."""
@@ -108,7 +115,7 @@ class PoseEkf:
         self.P[3:6, 3:6] = np.eye(3) * 1.0**2  # up to ~1 m/s unknown
         self.P[9:12, 9:12] = np.eye(3) * (1.0**2 if self.settings.constant_rate else 0.0)  # ~1 rad/s unknown
         self.P[12:15, 12:15] = np.eye(3) * self.settings.manoeuvre_accel_sigma**2  # its stationary spread
-        self.t_s = self.t_update_s = t_s
+        self.t_s = self.t_update_s = self.t_reset_s = t_s
         self.initialized = True
         self.outcomes["reset"] += 1
 

@@ -181,8 +181,13 @@ class EkfBank:
             or spacing is None
             or behind
             or elapsed <= max(self.gap_factor * spacing, self.predict_after_s)
+            or not ekf.velocity_observed
         ):
-            t = ekf.t_update_s  # detections flow: the filtered pose at the newest one
+            # Detections flow: the filtered pose at the newest one. Likewise in a gap that follows a
+            # lone measurement after a reset: with no velocity observed, a prediction is that pose held,
+            # stamped as if it were newer (off by the distance flown since); the autopilot's own
+            # inertial prediction bridges the gap instead.
+            t = ekf.t_update_s
         else:
             # A gap: predicted to the last frame time that was due (the stamps advance at the camera's
             # rate, not the caller's), no further than the horizon.
