@@ -12,6 +12,7 @@ entities. systemd's notify protocol (READY, WATCHDOG, STOPPING) is spoken when N
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 import time
@@ -205,10 +206,15 @@ class Node:
         local: list[MarkerData] = []
         if first:
             self._may_read.clear()
+            # Nor does the cyclic collector stop it halfway: it runs, if due, once the pose is out.
+            collect = gc.isenabled()
+            gc.disable()
             try:
                 local = self._handle(first)
                 self.output.evaluate_and_publish(self.clock(), own_first=True)
             finally:
+                if collect:
+                    gc.enable()
                 self._may_read.set()
         # Our own camera's views of others go out at once (they may be urgent for them); a peer's
         # views that cannot move our pose wait, to be accepted together.

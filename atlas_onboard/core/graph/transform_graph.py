@@ -280,7 +280,6 @@ class TransformGraph:
         its first entity (in world-file order), and its poses are reported relative to that entity.
         """
         self.expire(now_ns)
-        self._store.invert_new()
         slots = self._store.live_slots()
         world = self.index[WORLD]
         cands: dict[str, list[Candidate]] | None = {} if self.keep_candidates else None
@@ -334,6 +333,7 @@ class TransformGraph:
     ) -> FrameEvaluation:
         """The broad phase (kept plan or a new one) and the pose phase from ``root``."""
         plan = self._planner.plan(self._store, slots, root, goal)
+        self._store.invert_new(plan.row[plan.direction == 1])  # only the edges walked backwards need it
         return self._pose.run(self._store, plan, root, now_ns, out, goal)
 
     def _with_previous(
