@@ -48,7 +48,7 @@ _logger = logging.getLogger(__name__)
 LOOP_TICK_S = 0.05  # the loop runs at least this often (links' periodic messages, stop and reload flags)
 FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observations
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
-FLUSH_CHUNK = 16  # parked observations accepted at a time: between two chunks, the own pose's go first
+FLUSH_CHUNK = 32  # parked observations accepted at a time: between two chunks, the own pose's go first
 
 
 class Node:
