@@ -12,10 +12,11 @@ entities. systemd's notify protocol (READY, WATCHDOG, STOPPING) is spoken when N
 
 from __future__ import annotations
 
+import gc
 import logging
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -47,6 +48,7 @@ _logger = logging.getLogger(__name__)
 LOOP_TICK_S = 0.05  # the loop runs at least this often (links' periodic messages, stop and reload flags)
 FRAME_WAIT_S = 0.005  # wait at most this long for the rest of an image's observations
 COALESCE_NS = 50_000_000  # observations that cannot move the own pose wait at most this long
+FLUSH_CHUNK = 32  # parked observations accepted at a time: between two chunks, the own pose's go first
 
 
 class Node:
@@ -92,6 +94,7 @@ class Node:
         # faster, and one vectorised batch costs far less than dozens of small ones.
         timeout_ns = round(world.fusion.edge_timeout_s * NS)
         self.park_ns = int(min(max(NS / config.fused_rate_hz, COALESCE_NS), timeout_ns // 2))
+        self._unflushed: deque[Inbound] = deque()  # parked observations taken, not yet accepted
         self._next_status_ns = 0
         self._next_watchdog_ns = 0
         self.watchdog_interval_ns = NS  # the service layer shortens it to half of WatchdogSec if needed
@@ -169,6 +172,8 @@ class Node:
                   output.next_prediction_ns()):  # fmt: skip
             if t is not None:
                 due.append(t)
+        if self._unflushed:
+            return 0.0
         return max(min(due) - now, 0) / NS
 
     def _collect(self, first: tuple[MarkerData, int, bool]) -> list[tuple[MarkerData, int, bool]]:
@@ -201,10 +206,15 @@ class Node:
         local: list[MarkerData] = []
         if first:
             self._may_read.clear()
+            # Nor does the cyclic collector stop it halfway: it runs, if due, once the pose is out.
+            collect = gc.isenabled()
+            gc.disable()
             try:
                 local = self._handle(first)
                 self.output.evaluate_and_publish(self.clock(), own_first=True)
             finally:
+                if collect:
+                    gc.enable()
                 self._may_read.set()
         # Our own camera's views of others go out at once (they may be urgent for them); a peer's
         # views that cannot move our pose wait, to be accepted together.
@@ -220,21 +230,33 @@ class Node:
         if marked:
             self.transport.send_observations(marked)
 
-    def _flush_parked(self) -> None:
+    def _flush_parked(self) -> bool:
         """Accept the parked observations (decoding those parked undecoded), except those superseded:
         one whose edge has meanwhile been refreshed by a newer arrival (taken at once because the own
         pose's needs changed) or already holds a later image of the same sensor (a datagram overtaken
-        on the way). (Where only the newest of an edge counts, the parking buffer kept only that one.)"""
-        fresh = []
-        for item in self.parking.take():
-            md = item.take()
-            if md is None:
-                continue
-            if self.graph.is_superseded(item.edge, item.arrival_ns, md.capture_time_us):
-                self.stats.superseded += 1
-            else:
-                fresh.append((md, item.arrival_ns, False))
-        self._handle(fresh)
+        on the way). (Where only the newest of an edge counts, the parking buffer kept only that one.)
+
+        ``FLUSH_CHUNK`` at a time: when observations wait in the inbox after a chunk (they can move the
+        own pose), it stops and returns False, so that the loop takes them first and comes back for the
+        rest at once; True when every parked observation taken is accepted."""
+        if not self._unflushed:
+            self._unflushed.extend(self.parking.take())
+        pending = self._unflushed
+        while pending:
+            fresh = []
+            for _ in range(min(FLUSH_CHUNK, len(pending))):
+                item = pending.popleft()
+                md = item.take()
+                if md is None:
+                    continue
+                if self.graph.is_superseded(item.edge, item.arrival_ns, md.capture_time_us):
+                    self.stats.superseded += 1
+                else:
+                    fresh.append((md, item.arrival_ns, False))
+            self._handle(fresh)
+            if pending and len(self.inbox):
+                return False
+        return True
 
     def _handle(self, batch: list[tuple[MarkerData, int, bool]]) -> list[MarkerData]:
         """Accept observations; returns the local ones that were accepted (for peers)."""
@@ -280,8 +302,8 @@ class Node:
         ``PREDICT_NS``, and a pose held back by the rate cap goes when the cap allows.
         """
         since = self.parking.since_ns()
-        if since is not None and now - since >= self.park_ns:
-            self._flush_parked()
+        if (self._unflushed or (since is not None and now - since >= self.park_ns)) and not self._flush_parked():
+            return  # the inbox first: the loop is back here at once
         self.output.evaluate_and_publish(now)
         self._duties(now)
         if self.refinement is not None:
@@ -354,6 +376,7 @@ class Node:
         if world is None:
             return
         self.graph.clear()
+        self._unflushed.clear()  # observations of the old world file, like those parked
         blocks = wire(world, self.config, self.transport)
         self._use(blocks)
         self.intake.use(blocks)

@@ -11,7 +11,7 @@ from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig, parse_world
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.node import LOOP_TICK_S, Node
+from atlas_onboard.node import FLUSH_CHUNK, LOOP_TICK_S, Node
 from atlas_onboard.schedule import Inbound, Relevance
 from tests.e2e.helpers import wait_for
 from tests.helpers import assert_pose_close, observe, pose
@@ -573,3 +573,33 @@ def test_an_image_is_not_waited_for_the_observations_of_it_that_were_parked():
     node.inbox.get = waits.append  # a wait for more (its timeout recorded): none comes
     batch = node._collect(first)
     assert [md.marker_id for md, _, _ in batch] == [5, 7] and waits == []
+
+
+def test_observations_of_the_own_pose_that_arrive_during_a_flush_go_before_the_rest_of_it():
+    """On a fake clock: when the parked views are accepted (a chunk at a time), an own image that
+    waits in the inbox after a chunk is evaluated and published before the rest of them; the rest
+    follow at the next step, and then the full evaluation."""
+    fusion = {"ema_alpha": 0.5, "age_sigma_m_per_s": 0, "age_sigma_deg_per_s": 0}  # every parked view kept
+    node, tr, set_ms = clocked_node(ceiling_world([(5, [0, 0, 0.05])], fusion))
+    t_us = 1_700_000_000_000_000
+    node._process([(observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us), set_ms(0), True)])
+    node._step(set_ms(0))
+    assert node.listener.accepted == 1 and len(tr.autopilot) == 1
+    n_parked = FLUSH_CHUNK + 8
+    views = [observe(WORLD2, TRUTH2, 10, 6, capture_time_us=t_us + 1 + i) for i in range(n_parked)]
+    node.deliver_peers([Inbound.of(md, set_ms(10)) for md in views])
+    assert len(node.parking) == n_parked and node.listener.accepted == 1
+    t = set_ms(10 + node.park_ns // 1_000_000)
+    own = observe(WORLD2, TRUTH2, 1, 0, capture_time_us=t_us + 100, T_noise=pose([0.01, 0, 0]))
+    node.inbox.put((own, t, True))
+    evaluations = node.stats.evaluations
+    node._step(t)
+    assert node.listener.accepted == 1 + FLUSH_CHUNK  # one chunk, then the inbox first
+    assert node.stats.evaluations == evaluations and len(tr.autopilot) == 1
+    node._process(node._collect(node.inbox.get(0.0)))
+    assert node.listener.accepted == 2 + FLUSH_CHUNK and len(tr.autopilot) == 2
+    assert tr.autopilot[-1][1].pose.capture_time_us == t_us + 100
+    assert node._wait_s(t) == 0.0  # the loop comes back at once for the rest
+    node._step(t)
+    assert node.listener.accepted == 2 + n_parked and node.last_result.complete
+    np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)

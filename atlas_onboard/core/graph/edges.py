@@ -64,8 +64,8 @@ class EdgeStore:
         self.version = 0  # changes whenever an edge appears or goes: the graph's shape, not its values
 
     def put(self, edge: Edge, anchored: bool) -> None:
-        """Create or refresh ``edge.key`` (its row is set here). Its inverse is computed at the next
-        :meth:`invert_new`, for all new edges at once."""
+        """Create or refresh ``edge.key`` (its row is set here). Its inverse is computed by
+        :meth:`invert_new` when an evaluation first walks it backwards."""
         old = self.edges.get(edge.key)
         if old is None:
             slot = self._take()
@@ -111,9 +111,13 @@ class EdgeStore:
             return None
         return int(self.stamp[self.used].min()) + timeout_ns + 1
 
-    def invert_new(self) -> None:
-        """T_b_a and its covariance for every edge put since the last call."""
-        new = np.flatnonzero(self.used & ~self.inverted)
+    def invert_new(self, rows: NDArray[np.intp] | None = None) -> None:
+        """T_b_a and its covariance for every edge put since it was last inverted; with ``rows``, for
+        those rows only (the ones an evaluation walks backwards: the others wait until one does)."""
+        if rows is None:
+            new = np.flatnonzero(self.used & ~self.inverted)
+        else:
+            new = rows[~self.inverted[rows]]
         if new.size == 0:
             return
         p_ab, q_ab = self.p[0, new], self.q[0, new]

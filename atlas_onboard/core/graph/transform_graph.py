@@ -78,6 +78,10 @@ class TransformGraph:
         self._evaluated = False
         # Each camera's newest view of each pair of entities: (capture time, the edges of that image).
         self._views: dict[tuple[object, int, int], tuple[int, list[EdgeKey]]] = {}
+        # The older edges of the view last updated, removed (see update_edge) unless the next updates
+        # refresh them from the same image: an image's several views of an entity then keep their rows,
+        # and the graph its shape (and its kept plan).
+        self._stale: tuple[tuple[object, int, int], int, list[EdgeKey]] | None = None
 
     # --- settings and counters ----------------------------------------------------------------------
 
@@ -118,6 +122,7 @@ class TransformGraph:
     @property
     def edges(self) -> dict[EdgeKey, Edge]:
         """The edges by key (read-only: change them with :meth:`update_edge`)."""
+        self._drop_stale()
         return self._store.edges
 
     def update_edge(
@@ -155,6 +160,13 @@ class TransformGraph:
         else:
             cov = np.asarray(cov_a_b, dtype=float)
         edge = Edge(key, a, b, p, q, float(sigma_m), int(now_ns), int(capture_time_us), cov)
+        view = (key[0], a, b)
+        stale = self._stale
+        refresh = stale is not None and stale[0] == view and stale[1] == capture_time_us and key in stale[2]
+        if refresh:
+            stale[2].remove(key)  # the same image's view of it: the edge is refreshed in its row
+        else:
+            self._drop_stale()
         replaced = self._store.edges.get(key)
         if replaced is not None:  # the key may have joined other entities: they lose that edge
             self._touched[replaced.a] = self._touched[replaced.b] = True
@@ -162,19 +174,29 @@ class TransformGraph:
         self._touched[a] = self._touched[b] = True
         # A camera's newer image of an entity replaces its older views of it through other markers: the
         # joint solve reports an entity through one of its markers, which changes from image to image,
-        # and the stale edge would otherwise be fused as new (without ageing) until it expires.
-        view = (key[0], a, b)
+        # and the stale edge would otherwise be fused as new (without ageing) until it expires. They go
+        # before anything else reads or changes the graph (:meth:`_drop_stale`): where the next updates
+        # are the same image's views of them, they stay, refreshed.
         held = self._views.get(view)
         if held is None or capture_time_us > held[0]:
-            for old in held[1] if held is not None else ():
-                if old != key:
-                    self._store.remove(old)
+            older = [old for old in held[1] if old != key] if held is not None else []
+            if older:
+                self._stale = (view, int(capture_time_us), older)
             self._views[view] = (int(capture_time_us), [key])
         elif capture_time_us == held[0] and key not in held[1]:
             held[1].append(key)
 
+    def _drop_stale(self) -> None:
+        """Remove the older edges of the view last updated that its image has not refreshed (see
+        :meth:`update_edge`), in the order it held them."""
+        stale, self._stale = self._stale, None
+        if stale is not None:
+            for old in stale[2]:
+                self._store.remove(old)
+
     def clear(self) -> None:
         """Forget every edge."""
+        self._drop_stale()
         self._touched[[e.a for e in self._store.edges.values()]] = True
         self._touched[[e.b for e in self._store.edges.values()]] = True
         self._store.clear()
@@ -182,6 +204,7 @@ class TransformGraph:
 
     def expire(self, now_ns: int) -> int:
         """Remove edges older than the timeout (age > timeout); returns how many were removed."""
+        self._drop_stale()
         ends = self._store.expire(now_ns, self.edge_timeout_ns)
         if ends.size:
             self._touched[ends] = True
@@ -190,10 +213,12 @@ class TransformGraph:
     def next_expiry_ns(self) -> int | None:
         """The first time at which an edge will have expired (its age exceeds the timeout), or None
         without edges: until then a new evaluation can only differ by the age of the edges."""
+        self._drop_stale()
         return self._store.next_expiry_ns(self.edge_timeout_ns)
 
     def live_edges(self, now_ns: int) -> list[Edge]:
         """Edges whose age is at most the timeout (not removed: :meth:`expire` does that)."""
+        self._drop_stale()
         return [e for e in self._store.edges.values() if now_ns - e.stamp_ns <= self.edge_timeout_ns]
 
     def is_superseded(self, key: EdgeKey, arrival_ns: int, capture_time_us: int) -> bool:
@@ -201,6 +226,7 @@ class TransformGraph:
         :meth:`update_edge`'s ``now_ns``) from an image captured at ``capture_time_us`` would replace
         a newer one: the edge holds an observation that arrived later, or one of a later image (a
         datagram overtaken on the way). Such an observation is dropped, not inserted."""
+        self._drop_stale()
         return self._store.superseded(key, arrival_ns, capture_time_us)
 
     # --- phases -------------------------------------------------------------------------------------
@@ -208,6 +234,7 @@ class TransformGraph:
     def broad_phase(self, root: int | None = None) -> tuple[list[int], dict[int, int]]:
         """BFS over the current edges from ``root`` (world by default): the visiting order and each
         reached vertex's level."""
+        self._drop_stale()
         store = self._store
         slots = store.live_slots()
         order, level = bfs(store.a[slots], store.b[slots], self._root(root), len(self.names))
@@ -216,6 +243,7 @@ class TransformGraph:
     def dijkstra_phase(self, root: int | None = None) -> tuple[list[int], dict[int, float]]:
         """Shortest paths over the current edges from ``root`` with each edge's variance (sigma^2)
         as its length: the visiting order and each reached vertex's distance."""
+        self._drop_stale()
         store = self._store
         slots = store.live_slots()
         order, dist = dijkstra(store.a[slots], store.b[slots], store.sigma[slots], self._root(root), len(self.names))
@@ -252,7 +280,6 @@ class TransformGraph:
         its first entity (in world-file order), and its poses are reported relative to that entity.
         """
         self.expire(now_ns)
-        self._store.invert_new()
         slots = self._store.live_slots()
         world = self.index[WORLD]
         cands: dict[str, list[Candidate]] | None = {} if self.keep_candidates else None
@@ -306,6 +333,7 @@ class TransformGraph:
     ) -> FrameEvaluation:
         """The broad phase (kept plan or a new one) and the pose phase from ``root``."""
         plan = self._planner.plan(self._store, slots, root, goal)
+        self._store.invert_new(plan.row[plan.direction == 1])  # only the edges walked backwards need it
         return self._pose.run(self._store, plan, root, now_ns, out, goal)
 
     def _with_previous(

@@ -105,3 +105,22 @@ def test_a_cameras_newer_view_of_an_entity_replaces_its_older_view_through_anoth
     g.update_edge((1, 5), "d", "world", np.zeros(3), np.array([0, 0, 0, 1.0]), 0.01, 40 * MS, 20_000)  # late
     assert set(g.edges) == {(1, 5), (1, 6), (2, 5)}
     np.testing.assert_allclose(g.evaluate(40 * MS).poses["d"].n_observations, 3)
+
+
+def test_an_images_views_of_an_entity_refreshed_by_the_next_image_keep_their_rows():
+    """A camera that reports an entity through several markers per image: the next image's views of the
+    same markers refresh the edges in their rows (the graph keeps its shape, and its evaluation plan),
+    a marker the next image does not see still goes, and the poses are those of the newer image."""
+    g = TransformGraph(["world", "d"], edge_timeout_ns=250 * MS)
+    q = np.array([0, 0, 0, 1.0])
+    for m in (5, 7, 9):
+        g.update_edge((1, m), "d", "world", np.zeros(3), q, 0.01, 0, 0)
+    rows = {k: e.slot for k, e in g.edges.items()}
+    for m in (5, 7):  # the next image sees 5 and 7, not 9
+        g.update_edge((1, m), "d", "world", np.array([0.2, 0, 0]), q, 0.01, 33 * MS, 33_000)
+    assert set(g.edges) == {(1, 5), (1, 7)}
+    assert {k: e.slot for k, e in g.edges.items()} == {(1, 5): rows[(1, 5)], (1, 7): rows[(1, 7)]}
+    np.testing.assert_allclose(g.evaluate(40 * MS).poses["world"].p_world_m, 0.0)
+    d = g.evaluate(40 * MS).poses["d"]
+    assert d.n_observations == 2
+    np.testing.assert_allclose(d.p_world_m, [-0.2, 0, 0], atol=1e-12)

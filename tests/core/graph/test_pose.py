@@ -107,3 +107,21 @@ def test_fused_rotation_mean_of_two_candidates():
     add(g, (1, 2), "world", "A", pose([0, 0, 0], [0, 0, 30]), sigma=0.01)
     yaw = Rotation.from_quat(g.evaluate(0).poses["A"].q_world_xyzw).as_euler("ZYX", degrees=True)[0]
     assert yaw == pytest.approx(20.0, abs=1e-9)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(1, 9).flatmap(
+        lambda n: st.lists(
+            st.lists(st.floats(-1e6, 1e6) | st.sampled_from([0.5, np.nan, np.inf]), min_size=3, max_size=3),
+            min_size=n,
+            max_size=n,
+        )
+    )
+)
+def test_the_gates_median_is_numpys(rows):
+    """The consensus gate's median of its candidates' positions (a sort) is np.median's."""
+    from atlas_onboard.core.graph.gate import _median_rows
+
+    x = np.array(rows, dtype=float)
+    np.testing.assert_array_equal(_median_rows(x), np.median(x, axis=0))  # NaN where numpy's is (its rule)
