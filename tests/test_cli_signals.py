@@ -70,7 +70,7 @@ def test_a_terminated_sim_stops_its_nodes_and_leaves_no_folders(tmp_path):
     frames' temporary folders removed, status 143, one line; the default action left both folders."""
     env = {**os.environ, "TMPDIR": str(tmp_path)}
     proc = subprocess.Popen(
-        [sys.executable, "-m", "atlas_onboard", "sim", "--scenario", "paper-test1", "--duration", "4"],
+        [sys.executable, "-m", "atlas_onboard", "sim", "--scenario", "paper-test1", "--duration", "2"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
     )  # fmt: skip
     try:

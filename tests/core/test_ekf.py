@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.signal import lfilter
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import FusionConfig
@@ -312,22 +313,16 @@ def singer_truth(rng, t_s, sigma=1.5, tau=0.5, jitter=0.5):
     ``tau`` s) plus white acceleration (``jitter``, m/s^2/sqrt(Hz)), integrated finely."""
     dt = 0.002
     n = round(t_s[-1] / dt) + 1
-    a = rng.normal(0, sigma, 3)
-    v, p = rng.normal(0, 0.5, 3), np.zeros(3)
+    a0 = rng.normal(0, sigma, 3)
+    v0, p0 = rng.normal(0, 0.5, 3), np.zeros(3)
     decay, kick = np.exp(-dt / tau), sigma * np.sqrt(1 - np.exp(-2 * dt / tau))
-    out, j = [], 0
-    for k in range(n):
-        t = k * dt
-        while j < len(t_s) and t_s[j] <= t + 1e-9:
-            out.append(p.copy())
-            j += 1
-        p = p + v * dt + 0.5 * a * dt**2
-        v = v + a * dt + jitter * np.sqrt(dt) * rng.normal(size=3)
-        a = decay * a + kick * rng.normal(size=3)
-    while j < len(t_s):
-        out.append(p.copy())
-        j += 1
-    return np.array(out)
+    # The steps' draws in the order a step-by-step loop takes them (its velocity's jitter, then its
+    # acceleration's kick), the recursions as a filter and sums: the same flight, in one pass.
+    noise = rng.normal(size=(n, 2, 3))
+    a = lfilter([1.0], [1.0, -decay], np.vstack([a0, kick * noise[:-1, 1]]), axis=0)  # a_0 .. a_(n-1)
+    v = v0 + np.vstack([np.zeros(3), np.cumsum(a * dt + jitter * np.sqrt(dt) * noise[:, 0], axis=0)])  # v_0 .. v_n
+    p = p0 + np.vstack([np.zeros(3), np.cumsum(v[:-1] * dt + 0.5 * a * dt**2, axis=0)])  # p_0 .. p_n
+    return p[np.searchsorted(np.arange(n) * dt + 1e-9, t_s)]  # each time's first step at or after it
 
 
 def gap_end_nees(settings, truth_of, rng, gaps_s, runs, sigma_m=0.003):
@@ -383,24 +378,21 @@ def manoeuvring_pose(rng, t_s, sigma=1.5, tau=0.5, yaw_sigma=0.15):
     Gauss-Markov process (``yaw_sigma`` rad, correlation time ``tau``)."""
     dt = 0.005
     n = round(t_s[-1] / dt) + 2  # a step past the last time, which rounding may put after n - 1 steps
-    a, v, p = rng.normal(0, sigma, 3), rng.normal(0, 0.5, 3), np.zeros(3)
-    yaw = rng.normal(0, yaw_sigma)
+    a0, v0, p0 = rng.normal(0, sigma, 3), rng.normal(0, 0.5, 3), np.zeros(3)
+    yaw0 = rng.normal(0, yaw_sigma)
     decay = np.exp(-dt / tau)
     kick, yaw_kick = sigma * np.sqrt(1 - decay**2), yaw_sigma * np.sqrt(1 - decay**2)
-    ps, qs, j = [], [], 0
-    for k in range(n):
-        while j < len(t_s) and t_s[j] <= k * dt + 1e-9:
-            thrust = a + np.array([0.0, 0.0, 9.81])
-            pitch = np.arctan2(np.hypot(thrust[0], 0.0) * np.sign(thrust[0]), thrust[2])
-            roll = np.arctan2(-thrust[1], np.hypot(thrust[0], thrust[2]))
-            ps.append(p.copy())
-            qs.append(Rotation.from_euler("ZYX", [yaw, pitch, roll]))
-            j += 1
-        p = p + v * dt + 0.5 * a * dt**2
-        v = v + a * dt + 0.5 * np.sqrt(dt) * rng.normal(size=3)
-        a = decay * a + kick * rng.normal(size=3)
-        yaw = decay * yaw + yaw_kick * rng.normal()
-    return np.array(ps), qs
+    # As singer_truth: each step's draws (velocity jitter, acceleration kick, heading kick) in a loop's order.
+    noise = rng.normal(size=(n, 7))
+    a = lfilter([1.0], [1.0, -decay], np.vstack([a0, kick * noise[:-1, 3:6]]), axis=0)
+    yaw = lfilter([1.0], [1.0, -decay], np.append(yaw0, yaw_kick * noise[:-1, 6]))
+    v = v0 + np.vstack([np.zeros(3), np.cumsum(a[:-1] * dt + 0.5 * np.sqrt(dt) * noise[:-1, :3], axis=0)])
+    p = p0 + np.vstack([np.zeros(3), np.cumsum(v[:-1] * dt + 0.5 * a[:-1] * dt**2, axis=0)])
+    k = np.searchsorted(np.arange(n) * dt + 1e-9, t_s)
+    thrust = a[k] + np.array([0.0, 0.0, 9.81])
+    pitch = np.arctan2(np.hypot(thrust[:, 0], 0.0) * np.sign(thrust[:, 0]), thrust[:, 2])
+    roll = np.arctan2(-thrust[:, 1], np.hypot(thrust[:, 0], thrust[:, 2]))
+    return p[k], Rotation.from_euler("ZYX", np.column_stack([yaw[k], pitch, roll]))
 
 
 def test_prediction_pose_covariance_is_honest_at_the_end_of_a_gap():
