@@ -51,7 +51,7 @@ from atlas_onboard.detector.backends import Detection, _library_detector
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.families import opencv_dictionary
 from atlas_onboard.detector.pipeline import BORDER_MARGIN_PX, Detector
-from atlas_onboard.detector.render import Camera, MarkerView, render
+from atlas_onboard.detector.render import LENS_RESIDUAL_PX, Camera, MarkerView, render
 from atlas_onboard.listener import ESTIMATE_ATTITUDE_SIGMA_RAD
 
 SIZE = 0.15
@@ -192,7 +192,9 @@ def covariance_check(n: int, states: list[str] | None = None) -> tuple[np.ndarra
     cam = Camera(640, 480, K, dist)
     world = parse_world({"entities": {"world": {"markers": [{"id": 7, "size_m": SIZE, "pose": {}}]},
                                       "cam": {"sensors": [{"name": "c", "id": 1, "pose": {}}]}}})  # fmt: skip
-    det = Detector(world.sensors[1], world, Calibration(640, 480, K, dist), decimate=1.0, track=False)
+    # The renderer's lens is its model: the calibration states the residual a simulated camera's does.
+    cal = Calibration(640, 480, K, dist, False, LENS_RESIDUAL_PX)
+    det = Detector(world.sensors[1], world, cal, decimate=1.0, track=False)
     rng = np.random.default_rng(42)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
     errs = []
