@@ -30,6 +30,8 @@ MIN_CONTRAST = 20.0  # grey levels between a profile's ends for an edge to be pl
 SHRINK_ONSET_CELLS = 0.55
 SHRINK_PER_PX = 0.17
 MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
+AREA_HALF_WIDTH_PX = 2.0  # the area fit's window each side of the edge: at least this, or the ramp (px)
+AREA_SAMPLES = 161
 MIN_EDGE_CORRELATION = -0.5  # alternating (the pixel grid's pattern along an oblique edge): at most 3x as many
 MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
 # The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
@@ -151,8 +153,8 @@ def refine_corners_undistorted(
     The noise: a line fitted through n points spread evenly over the middle 70 % of an edge and
     extrapolated to its end has the variance 7.1 s^2 / n across it (s: the points' scatter, pooled over
     the four edges), and a corner lies on two lines crossing at an angle phi, which adds 1 / sin(phi);
-    blur and pixel noise raise s. What the scatter cannot show is added: the pixel grid's bias of a sharp
-    edge (:func:`_sampling_bias`), the blur's inward pull (:func:`_shrink_px`) and the lens residual.
+    blur and pixel noise raise s. What the scatter cannot show is added: the blur's inward pull
+    (:func:`_shrink_px`) and the lens residual.
     """
     lines = []
     ss, npts = 0.0, []
@@ -201,25 +203,11 @@ def refine_corners_undistorted(
     # Every side's edge points (where no edge was placed, NaN), then each side's placed ones in order.
     points = bases + found_all.reshape(4, SAMPLES_PER_SIDE, 1) * normals[:, None, :]
     edges = list(points) if kept.min() == SAMPLES_PER_SIDE else [p[k] for p, k in zip(points, keep, strict=True)]
-    # Where each edge point lies in the image, the image's step along its normal, and the undistorted
-    # pixels per image pixel there: the pixel grid's bias is in image pixels, along a pixel axis.
-    idx = np.clip((np.nan_to_num(found_all) - rows_offsets[:, 0]) / STEP_PX, 0.0, width - 1.001)
-    i0 = idx.astype(int)
-    rows = np.arange(len(i0))
-    step_img = (px_all[rows, i0 + 1] - px_all[rows, i0]).astype(float)  # (rows, 2) per STEP_PX undistorted
-    pos_img = px_all[rows, i0] + (idx - i0)[:, None] * step_img
-    step_len = np.maximum(np.linalg.norm(step_img, axis=1), 1e-9)
-    ramp_all = ramp_all * step_len / STEP_PX  # the ramp in image pixels
+    # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
+    step_img = np.linalg.norm(px_all[:, 1] - px_all[:, 0], axis=1)
+    scale = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
     ramps_all = ramp_all.reshape(4, SAMPLES_PER_SIDE)
     ramps_finite = np.isfinite(ramps_all)
-    axis = np.argmax(np.abs(step_img), axis=1)
-    phase_all = pos_img[rows, axis]
-    # An image pixel's shift along the axis moves the edge along its normal by |cos| of their angle, in
-    # undistorted pixels STEP_PX / step_len per image pixel along the normal.
-    gain_all = (np.abs(step_img[rows, axis]) / step_len * STEP_PX / step_len).reshape(4, SAMPLES_PER_SIDE)
-    phase_all = phase_all.reshape(4, SAMPLES_PER_SIDE)
-    scale = float(np.mean(STEP_PX / step_len))
-    sampling = np.zeros((4, 2, 2))
     fits = _principal_axes(edges)
     across = np.array([(-vt[0][1], vt[0][0]) for _, _, vt in fits])  # each line's normal
     for i, (e, (mean, sv, vt), depth) in enumerate(zip(edges, fits, depths, strict=True)):
@@ -232,8 +220,6 @@ def refine_corners_undistorted(
         finite = ramps_all[i][ramps_finite[i]].tolist()
         ramps.append(statistics.median(finite) if finite else 0.0)  # np.median's value, cheaper
         cells.append(depth / 8.0)  # the smaller cell of the families (8 across tag36h11's border)
-        k = keep[i]
-        sampling[i] = _sampling_bias(phase_all[i][k], gain_all[i][k], u, ramps[-1])
         r = centred @ across[i]  # signed distances from the line, in order along the edge
         lag0 += float(r @ r)
         lag1 += float(r[1:] @ r[:-1])
@@ -262,12 +248,9 @@ def refine_corners_undistorted(
         np.array(npts, float),
         np.array(spread),
         shrink,
-        sampling,
         scale * lens_residual_px,
     )
-    # The scalar corner noise: the scatter's, with the pixel grid's bias of an edge and the lens residual.
-    bias2 = 7.1 * float(np.mean(sampling[:, 0, 0]))
-    sigma_px = math.sqrt(7.1 * scatter2 / n_eff + bias2) / max(sin_min, 0.2)
+    sigma_px = math.sqrt(7.1 * scatter2 / n_eff) / max(sin_min, 0.2)  # with the lens residual below
     return RefinedCorners(out, math.hypot(sigma_px, lens_residual_px), cov)
 
 
@@ -325,64 +308,6 @@ def _bend_px(
     return worst
 
 
-def _step_cdf(x: NDArray[np.float64], blur_px: float) -> NDArray[np.float64]:
-    """A unit step at 0 seen through a pixel (a box 1 px wide) and a blur (a box ``blur_px`` wide), at ``x``."""
-    a, b = max(1.0, blur_px), min(1.0, blur_px)  # the trapezoid that the two boxes make
-    if b < 1e-6:
-        return np.clip(x / a + 0.5, 0.0, 1.0)
-    s1, s2 = (a - b) / 2, (a + b) / 2
-    y = -np.abs(x)  # the lower half, mirrored above
-    lower = np.where(y <= -s2, 0.0, np.where(y <= -s1, (y + s2) ** 2 / (2 * a * b), b / (2 * a) + (y + s1) / a))
-    return np.where(x > 0, 1.0 - lower, lower)
-
-
-def _sampling_table() -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """How far the half-level crossing of linearly interpolated pixels misses a step edge, by the edge's
-    phase on the pixel grid (columns: 64 phases over a pixel) and its blur (rows: ``_BLURS_PX``); and
-    the mean ramp width (px) that :func:`_half_level` measures at each blur, which identifies it."""
-    phases = np.arange(64) / 64 - 0.5
-    k = np.arange(-8, 9, dtype=float)
-    bias = np.empty((len(_BLURS_PX), len(phases)))
-    ramp = np.empty(len(_BLURS_PX))
-    for r, blur in enumerate(_BLURS_PX):
-        g = _step_cdf(k[None, :] - phases[:, None], blur)  # (phase, sample): the pixels across the edge
-        j = np.argmax((g[:, :-1] <= 0.5) & (g[:, 1:] > 0.5), axis=1)
-        rows = np.arange(len(phases))
-        g0, g1 = g[rows, j], g[rows, j + 1]
-        bias[r] = k[j] + (0.5 - g0) / (g1 - g0) - phases
-        ramp[r] = float(np.mean(1.0 / np.diff(g, axis=1).max(axis=1)))
-    return phases, bias, ramp
-
-
-_BLURS_PX = np.array([0.0, 0.5, 1.0, 1.25, 1.5, 1.75, 2.0, 2.5, 3.0])
-_PHASES, _PHASE_BIAS, _BLUR_RAMPS = _sampling_table()
-_PHASE_OFFSETS = np.arange(16) / 16
-
-
-def _sampling_bias(
-    coord_px: NDArray[np.float64], gain: NDArray[np.float64], along_px: NDArray[np.float64], ramp_px: float
-) -> NDArray[np.float64]:
-    """(2, 2) covariance of a fitted line's (offset, turn) from the pixel grid: the half-level crossing
-    of a sharp edge sampled by pixels and interpolated linearly between them misses the edge by up to
-    0.09 px, depending on where the edge falls between pixel centres (its phase), less the more the edge
-    is blurred. An edge that lies along a pixel axis keeps one phase along its length, so the bias is
-    common to its points and their scatter does not show it; one that crosses many pixel rows averages
-    it out. The edge points' coordinates across that axis ``coord_px`` (n,) (image px), ``gain`` (n,)
-    (undistorted px along the line's normal per image px along the axis), their places along the line
-    ``along_px`` (n,, about their mean) and the edge's measured ramp (image px) give the bias of each
-    point for every phase of the whole edge, and the line's offset and turn their covariance over it."""
-    blur = float(np.interp(ramp_px, _BLUR_RAMPS, _BLURS_PX))
-    r = min(int(np.searchsorted(_BLURS_PX, blur, side="right")) - 1, len(_BLURS_PX) - 2)
-    w = (blur - _BLURS_PX[r]) / (_BLURS_PX[r + 1] - _BLURS_PX[r])
-    table = (1 - w) * _PHASE_BIAS[r] + w * _PHASE_BIAS[r + 1]
-    phase = np.mod(coord_px[None, :] + _PHASE_OFFSETS[:, None] + 0.5, 1.0) - 0.5  # (offsets, n)
-    bias = np.interp(phase.ravel(), _PHASES, table, period=1.0).reshape(phase.shape) * gain
-    offset = bias.mean(axis=1)
-    turn = bias @ along_px / max(float(along_px @ along_px), 1e-9)
-    v = np.stack([offset, turn])
-    return v @ v.T / len(_PHASE_OFFSETS)
-
-
 def _shrink_px(ramp_px: NDArray[np.float64], cell_px: NDArray[np.float64]) -> NDArray[np.float64]:
     """How far (px) each edge may sit inside the true one because of blur: once an edge's ramp is wider
     than about half a cell, the white quiet zone (a cell wide) no longer reaches its level between the
@@ -398,7 +323,6 @@ def _corner_covariance(
     npts: NDArray[np.float64],
     spread: NDArray[np.float64],
     shrink_px: NDArray[np.float64] | None = None,
-    sampling: NDArray[np.float64] | None = None,
     shift_px: float = 0.0,
 ) -> NDArray[np.float64]:
     """(8, 8) covariance of the four corners (x0 y0 x1 y1 ...) that the four fitted lines place.
@@ -410,8 +334,7 @@ def _corner_covariance(
     n_{k-1} . dx and n_k . dx those two shifts. Adjacent corners share a line, so they are correlated.
     ``shrink_px`` (4,): each line's possible inward offset from blur (:func:`_shrink_px`), one cause for
     all four lines, so their offsets are fully correlated in it (the quadrilateral too small).
-    ``sampling`` (4, 2, 2): each line's (offset, turn) covariance from the pixel grid (:func:`_sampling_bias`),
-    which its scatter does not show; ``shift_px``: the standard deviation of a shift of every corner alike
+    ``shift_px``: the standard deviation of a shift of every corner alike
     (the lens model's residual over the marker), undistorted px.
     """
     G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
@@ -426,13 +349,10 @@ def _corner_covariance(
     column = Ninvs[_CORNER, :, _ROW]  # (8, 2): Ninv[:, row] of each corner's each line
     blocks[_CORNER, :, _LINE, 0] = column
     blocks[_CORNER, :, _LINE, 1] = column * t[:, None]
-    D = np.zeros((8, 8))  # of (a_0, b_0, ..., a_3, b_3): the lines independent of each other
-    D[0::2, 0::2] = np.diag(var_px2 / npts)
-    D[1::2, 1::2] = np.diag(var_px2 / np.maximum(spread, 1e-9))
-    if sampling is not None:
-        for i in range(4):
-            D[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] += sampling[i]
-    out = G @ D @ G.T + shift_px**2 * _COMMON_SHIFT
+    D = np.empty(8)
+    D[0::2] = var_px2 / npts
+    D[1::2] = var_px2 / np.maximum(spread, 1e-9)
+    out = (G * D) @ G.T + shift_px**2 * _COMMON_SHIFT
     if shrink_px is not None:
         s = G[:, 0::2] @ shrink_px  # the corners' displacement when every line moves in by its shrink
         out += np.outer(s, s)
@@ -477,25 +397,26 @@ def _half_level(
     contrast = hi - lo >= MIN_CONTRAST
     ramp = np.where((slope > 0) & contrast, (hi - lo) / np.maximum(slope, 1e-9), np.nan)
     found = _crossing(prof, offsets, (lo + hi) / 2.0, contrast, np.ones(prof.shape, bool))
-    # Second pass: the levels half a cell inside and outside the first crossing (within the profile).
+    # Second pass: the edge as the step whose area matches the profile's between its levels, over a window
+    # about the first crossing (at most half a cell each way, in the black border and the white quiet zone).
     ok = np.isfinite(found)
-    index = (np.where(ok, found, 0.0)[:, None] + np.array([-0.5, 0.5]) * cell_px[:, None] - offsets[:, :1]) / step[
+    reach = np.minimum(0.5 * cell_px, np.maximum(AREA_HALF_WIDTH_PX, np.nan_to_num(ramp)))
+    index = (np.where(ok, found, 0.0)[:, None] + reach[:, None] * np.array([-1.0, 1.0]) - offsets[:, :1]) / step[
         :, None
     ]
     index = np.clip(index, 0.0, (counts - 1)[:, None].astype(float))
-    i0 = np.minimum(index.astype(int), (counts - 2)[:, None])
-    frac = index - i0
-    # (rows, 2): dark, light; each the mean of the profile over a pixel about its place (three samples)
-    ends = np.zeros(index.shape)
-    for shift in (-2, 0, 2):
-        j = np.clip(i0 + shift, 0, (counts - 2)[:, None])
-        ends += prof[rows[:, None], j] * (1 - frac) + prof[rows[:, None], j + 1] * frac
-    ends /= 3.0
-    window = (np.arange(prof.shape[1])[None, :] >= np.floor(index[:, :1])) & (
-        np.arange(prof.shape[1])[None, :] <= np.ceil(index[:, 1:])
-    )
-    contrast2 = ok & (ends[:, 1] - ends[:, 0] >= MIN_CONTRAST)
-    return _crossing(prof, offsets, ends.mean(axis=1), contrast2, window), ramp
+    t = np.linspace(0.0, 1.0, AREA_SAMPLES)
+    at = index[:, :1] + t[None, :] * (index[:, 1:] - index[:, :1])  # (rows, M): fractional sample indices
+    j = np.minimum(at.astype(int), (counts - 2)[:, None])
+    frac = at - j
+    vals = prof[rows[:, None], j] * (1 - frac) + prof[rows[:, None], j + 1] * frac
+    dark, light = vals[:, :3].mean(axis=1), vals[:, -3:].mean(axis=1)
+    usable = ok & (light - dark >= MIN_CONTRAST)
+    bright = (vals - dark[:, None]) / np.where(usable, light - dark, 1.0)[:, None]
+    width = (index[:, 1] - index[:, 0]) * step
+    area = (bright[:, 1:] + bright[:, :-1]).sum(axis=1) / 2 * width / (AREA_SAMPLES - 1)
+    edge = offsets[:, 0] + index[:, 1] * step - area
+    return np.where(usable, edge, np.nan), ramp
 
 
 def _crossing(
