@@ -11,7 +11,6 @@ its corners the same way.
 from __future__ import annotations
 
 import math
-import statistics
 from dataclasses import dataclass
 
 import cv2
@@ -21,17 +20,14 @@ from numpy.typing import NDArray
 from atlas_onboard.detector.lens import distort, distort_homogeneous
 from atlas_onboard.detector.pose import undistort
 
-SAMPLES_PER_SIDE = 12
+SAMPLES_PER_SIDE = 24  # edge points a side: enough that the pixel grid's pattern along an edge averages out
+LIBRARY_SAMPLES_PER_SIDE = 12  # refine_corners's (the OpenCV backend's corners in the distorted image)
 HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
 STEP_PX = 0.25
 MIN_CONTRAST = 20.0  # grey levels between a profile's ends for an edge to be placed on it
-# Blur's inward pull on an edge (:func:`_shrink_px`): from a ramp of SHRINK_ONSET_CELLS of a cell on, at
-# SHRINK_PER_PX of each pixel of ramp beyond (measured against rendered truth: bench_detector's check).
-SHRINK_ONSET_CELLS = 0.55
-SHRINK_PER_PX = 0.17
 MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
 AREA_HALF_WIDTH_PX = 2.0  # the area fit's window each side of the edge: at least this, or the ramp (px)
-AREA_SAMPLES = 161
+LEVEL_SE = 2.0  # a level's shortfall counts beyond this many of its standard errors
 MIN_EDGE_CORRELATION = -0.5  # alternating (the pixel grid's pattern along an oblique edge): at most 3x as many
 MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
 # The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
@@ -101,7 +97,7 @@ def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDA
     if sides is None:
         return corners
     for a, d, n in sides:
-        ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
+        ts = np.linspace(0.15, 0.85, LIBRARY_SAMPLES_PER_SIDE)
         base = a[None, :] + ts[:, None] * d[None, :]
         pts = base[:, None, :] + offsets[None, :, None] * n[None, None, :]
         xs = pts[..., 0].astype(np.float32)
@@ -154,14 +150,13 @@ def refine_corners_undistorted(
     extrapolated to its end has the variance 7.1 s^2 / n across it (s: the points' scatter, pooled over
     the four edges), and a corner lies on two lines crossing at an angle phi, which adds 1 / sin(phi);
     blur and pixel noise raise s. What the scatter cannot show is added: the blur's inward pull
-    (:func:`_shrink_px`) and the lens residual.
+    (:func:`_contamination_px`) and the lens residual.
     """
     lines = []
     ss, npts = 0.0, []
     lag0 = lag1 = 0.0
     spread: list[float] = []
-    ramps: list[float] = []
-    cells: list[float] = []
+    edge_levels: list[NDArray[np.float64]] = []
     sides = _sides(corners_und)
     if sides is None:
         return None
@@ -193,7 +188,7 @@ def refine_corners_undistorted(
     px_all = (px_all - origin).astype(np.float32).reshape(4 * SAMPLES_PER_SIDE, width, 2)
     prof = cv2.remap(img, px_all[..., 0], px_all[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     rows_offsets = np.repeat(padded, SAMPLES_PER_SIDE, axis=0)
-    found_all, ramp_all = _half_level(
+    found_all, _, levels_all = _half_level(
         prof, rows_offsets, np.repeat(counts, SAMPLES_PER_SIDE), np.repeat(np.array(depths) / 8.0, SAMPLES_PER_SIDE)
     )
     keep = np.isfinite(found_all).reshape(4, SAMPLES_PER_SIDE)
@@ -206,20 +201,20 @@ def refine_corners_undistorted(
     # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
     step_img = np.linalg.norm(px_all[:, 1] - px_all[:, 0], axis=1)
     scale = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
-    ramps_all = ramp_all.reshape(4, SAMPLES_PER_SIDE)
-    ramps_finite = np.isfinite(ramps_all)
+    levels = levels_all.reshape(4, SAMPLES_PER_SIDE, 3)
     fits = _principal_axes(edges)
     across = np.array([(-vt[0][1], vt[0][0]) for _, _, vt in fits])  # each line's normal
-    for i, (e, (mean, sv, vt), depth) in enumerate(zip(edges, fits, depths, strict=True)):
+    for i, (e, (mean, sv, vt)) in enumerate(zip(edges, fits, strict=True)):
         lines.append((mean, vt[0]))
         ss += float(sv[1] ** 2)  # squared distances of the points from their line
         npts.append(len(e))
         centred = e - mean
         u = centred @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
-        finite = ramps_all[i][ramps_finite[i]].tolist()
-        ramps.append(statistics.median(finite) if finite else 0.0)  # np.median's value, cheaper
-        cells.append(depth / 8.0)  # the smaller cell of the families (8 across tag36h11's border)
+        kept_levels = levels[i][keep[i]]
+        # dark, light, window half width; and the standard error of the two levels' medians
+        spread_levels = 1.2533 * kept_levels[:, :2].std(axis=0) / math.sqrt(len(kept_levels))
+        edge_levels.append(np.concatenate([np.median(kept_levels, axis=0), spread_levels]))
         r = centred @ across[i]  # signed distances from the line, in order along the edge
         lag0 += float(r @ r)
         lag1 += float(r[1:] @ r[:-1])
@@ -240,7 +235,7 @@ def refine_corners_undistorted(
     rho = min(max(lag1 / lag0, MIN_EDGE_CORRELATION), MAX_EDGE_CORRELATION) if lag0 > 0 else 0.0  # np.clip
     inflate = (1.0 + rho) / (1.0 - rho)
     n_eff = sum(npts) / len(npts) / inflate
-    shrink = _shrink_px(np.array(ramps), np.array(cells))
+    shrink = _contamination_px(np.array(edge_levels))
     cov = _corner_covariance(
         lines,
         out,
@@ -308,12 +303,26 @@ def _bend_px(
     return worst
 
 
-def _shrink_px(ramp_px: NDArray[np.float64], cell_px: NDArray[np.float64]) -> NDArray[np.float64]:
-    """How far (px) each edge may sit inside the true one because of blur: once an edge's ramp is wider
-    than about half a cell, the white quiet zone (a cell wide) no longer reaches its level between the
-    black border and the background beyond it, so the half level, and the edge, fall inwards."""
-    ramp = ramp_px if np.isfinite(ramp_px).all() else np.nan_to_num(ramp_px, nan=0.0)
-    return SHRINK_PER_PX * np.maximum(ramp - SHRINK_ONSET_CELLS * cell_px, 0.0)
+def _contamination_px(edge_levels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """How far (px) each edge may sit inside the true one because its levels were not the marker's ink and
+    paper: ``edge_levels`` (4, 3), each edge's dark and light levels and its window's half width R.
+
+    Where blur (or a quiet zone narrower than the blur) reaches the background beyond the white quiet zone
+    or the data cells inside the black border, the level read there falls short of the paper (or rises
+    above the ink) by some delta, and the area fit then moves the edge by up to R delta / contrast (the
+    profile inside the window is pulled alike, which takes back part of it). The marker's paper and ink
+    are its brightest light and darkest dark level over the four edges, so a sharp, evenly lit marker
+    gets nothing. One cause for all four edges (the blur, the quiet zone's width): the quadrilateral
+    too small, fully correlated (:func:`_corner_covariance`).
+    """
+    levels = np.nan_to_num(np.asarray(edge_levels, dtype=float))
+    dark, light, reach, dark_se, light_se = levels.T
+    i_ink, i_paper = int(np.argmin(dark)), int(np.argmax(light))
+    contrast = max(float(light[i_paper] - dark[i_ink]), MIN_CONTRAST)
+    # A shortfall within twice its standard error (the levels' own noise) is no evidence of one.
+    short = np.maximum(light[i_paper] - light - LEVEL_SE * np.hypot(light_se, light_se[i_paper]), 0.0)
+    excess = np.maximum(dark - dark[i_ink] - LEVEL_SE * np.hypot(dark_se, dark_se[i_ink]), 0.0)
+    return reach * (short + excess) / contrast
 
 
 def _corner_covariance(
@@ -332,7 +341,7 @@ def _corner_covariance(
     independent of each other and of the other lines. A point x of the line then moves across it by
     a_l + b_l (x - m_l) . d_l, and corner k, the crossing of lines k-1 and k, by dx with
     n_{k-1} . dx and n_k . dx those two shifts. Adjacent corners share a line, so they are correlated.
-    ``shrink_px`` (4,): each line's possible inward offset from blur (:func:`_shrink_px`), one cause for
+    ``shrink_px`` (4,): each line's possible inward offset from blur (:func:`_contamination_px`), one cause for
     all four lines, so their offsets are fully correlated in it (the quadrilateral too small).
     ``shift_px``: the standard deviation of a shift of every corner alike
     (the lens model's residual over the marker), undistorted px.
@@ -372,21 +381,24 @@ class RefinedCorners:
 
 def _half_level(
     prof: NDArray[np.float32], offsets: NDArray[np.float64], counts: NDArray[np.int64], cell_px: NDArray[np.float64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Where each profile (rows: dark marker border inside, light quiet zone outside) crosses halfway
-    between its dark and light levels, as an offset; NaN where it has too little contrast or no single
-    crossing. And each profile's ramp width (px, NaN without contrast): how far blur spreads the edge.
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Where each profile (rows: dark marker border inside, light quiet zone outside) has its edge, as an
+    offset; NaN where it has too little contrast or no single crossing of its half level. Each profile's
+    ramp width (px, NaN without contrast): how far blur spreads the edge. And each profile's levels (rows,
+    3): dark, light and the half width of the window they were read at (NaN where no edge was placed).
 
     ``offsets`` (rows, L): each row's samples' offsets, evenly spaced; ``counts`` (rows,): each row's
     samples, the rest of a shorter row being its last sample repeated (which adds no crossing and no
     slope); ``cell_px`` (rows,): the marker's cell across the edge.
 
-    Motion blur and defocus spread an edge into a ramp whose gradient is a plateau: its peak wanders
-    with the noise, while the half-level crossing of a symmetric blur stays on the edge. The levels are
-    read in two passes: first at the profile's ends, then half a cell each side of the first crossing,
-    in the middle of the black border and of the white quiet zone (both a cell wide), where the pixel's
-    footprint and the blur reach least into the data cells inside and the background outside: a level
-    read nearer to those is pulled towards them, and with it the whole edge, which no scatter shows.
+    A first pass places the edge roughly where the profile crosses halfway between its ends. The edge is
+    then the place of the step that has the profile's area between its levels, read at both ends of a
+    window about that crossing: the ramp's width or AREA_HALF_WIDTH_PX each way, at most half a cell (the
+    black border and the white quiet zone are a cell wide, so the levels are read as far as can be from
+    the data cells inside and the background outside). Pixels integrate the image over their area, and
+    the area under a step seen through them and through any symmetric blur is the step's: the crossing
+    of linearly interpolated pixels is not (it misses a sharp edge by up to a tenth of a pixel, by where
+    the edge falls between pixel centres, alike all along an edge that lies along a pixel axis).
     """
     rows = np.arange(len(prof))
     lo = (prof[:, 0] + prof[:, 1]) / 2  # each end the mean of its two samples (float32, as np.mean)
@@ -405,18 +417,21 @@ def _half_level(
         :, None
     ]
     index = np.clip(index, 0.0, (counts - 1)[:, None].astype(float))
-    t = np.linspace(0.0, 1.0, AREA_SAMPLES)
-    at = index[:, :1] + t[None, :] * (index[:, 1:] - index[:, :1])  # (rows, M): fractional sample indices
-    j = np.minimum(at.astype(int), (counts - 2)[:, None])
-    frac = at - j
-    vals = prof[rows[:, None], j] * (1 - frac) + prof[rows[:, None], j + 1] * frac
-    dark, light = vals[:, :3].mean(axis=1), vals[:, -3:].mean(axis=1)
+    # The profile is linear between its samples: its integral from sample 0 to any fractional index.
+    cumulative = np.zeros(prof.shape)
+    np.cumsum((prof[:, 1:] + prof[:, :-1]) / 2.0, axis=1, out=cumulative[:, 1:])
+    j = np.minimum(index.astype(int), (counts - 2)[:, None])  # (rows, 2): the sample before each window end
+    frac = index - j
+    p0, p1 = prof[rows[:, None], j], prof[rows[:, None], j + 1]
+    ends = p0 + frac * (p1 - p0)  # the profile at the window's ends: dark, light
+    integral = cumulative[rows[:, None], j] + frac * (p0 + ends) / 2.0  # in samples
+    dark, light = ends[:, 0], ends[:, 1]
     usable = ok & (light - dark >= MIN_CONTRAST)
-    bright = (vals - dark[:, None]) / np.where(usable, light - dark, 1.0)[:, None]
     width = (index[:, 1] - index[:, 0]) * step
-    area = (bright[:, 1:] + bright[:, :-1]).sum(axis=1) / 2 * width / (AREA_SAMPLES - 1)
+    area = ((integral[:, 1] - integral[:, 0]) * step - dark * width) / np.where(usable, light - dark, 1.0)
     edge = offsets[:, 0] + index[:, 1] * step - area
-    return np.where(usable, edge, np.nan), ramp
+    levels = np.where(usable[:, None], np.stack([dark, light, reach], axis=1), np.nan)
+    return np.where(usable, edge, np.nan), ramp, levels
 
 
 def _crossing(
