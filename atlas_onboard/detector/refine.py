@@ -28,7 +28,6 @@ MIN_CONTRAST = 20.0  # grey levels between a profile's ends for an edge to be pl
 MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
 AREA_HALF_WIDTH_PX = 2.0  # the area fit's window each side of the edge: at least this, or the ramp (px)
 LEVEL_SE = 2.0  # a level's shortfall counts beyond this many of its standard errors
-MIN_EDGE_CORRELATION = -0.5  # alternating (the pixel grid's pattern along an oblique edge): at most 3x as many
 MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
 # The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
 # in undistorted pixels; a refit may rightly move them about that far (with a margin).
@@ -201,7 +200,7 @@ def refine_corners_undistorted(
     # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
     step_img = np.linalg.norm(px_all[:, 1] - px_all[:, 0], axis=1)
     scale = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
-    levels = levels_all.reshape(4, SAMPLES_PER_SIDE, 3)
+    levels = levels_all.reshape(4, SAMPLES_PER_SIDE, 5)
     fits = _principal_axes(edges)
     across = np.array([(-vt[0][1], vt[0][0]) for _, _, vt in fits])  # each line's normal
     for i, (e, (mean, sv, vt)) in enumerate(zip(edges, fits, strict=True)):
@@ -212,9 +211,11 @@ def refine_corners_undistorted(
         u = centred @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
         kept_levels = levels[i][keep[i]]
-        # dark, light, window half width; and the standard error of the two levels' medians
-        spread_levels = 1.2533 * kept_levels[:, :2].std(axis=0) / math.sqrt(len(kept_levels))
-        edge_levels.append(np.concatenate([np.median(kept_levels, axis=0), spread_levels]))
+        # dark, light, window half width, how unevenly the profile settles at its two ends (a symmetric
+        # ramp cut short alike at both ends moves no area); the standard errors of the three medians
+        per_row = np.column_stack([kept_levels[:, :3], kept_levels[:, 3] + kept_levels[:, 4]])
+        errors = 1.2533 * per_row[:, [0, 1, 3]].std(axis=0) / math.sqrt(len(per_row))
+        edge_levels.append(np.concatenate([np.median(per_row, axis=0), errors]))
         r = centred @ across[i]  # signed distances from the line, in order along the edge
         lag0 += float(r @ r)
         lag1 += float(r[1:] @ r[:-1])
@@ -232,7 +233,7 @@ def refine_corners_undistorted(
     # Neighbouring edge points share pixels, blur and aliasing, so their errors are correlated along the
     # edge: with a lag-one correlation rho, n points carry the information of n (1 - rho) / (1 + rho)
     # independent ones (an AR(1) sequence's effective sample size).
-    rho = min(max(lag1 / lag0, MIN_EDGE_CORRELATION), MAX_EDGE_CORRELATION) if lag0 > 0 else 0.0  # np.clip
+    rho = min(max(lag1 / lag0, 0.0), MAX_EDGE_CORRELATION) if lag0 > 0 else 0.0  # np.clip's value
     inflate = (1.0 + rho) / (1.0 - rho)
     n_eff = sum(npts) / len(npts) / inflate
     shrink = _contamination_px(np.array(edge_levels))
@@ -316,13 +317,16 @@ def _contamination_px(edge_levels: NDArray[np.float64]) -> NDArray[np.float64]:
     too small, fully correlated (:func:`_corner_covariance`).
     """
     levels = np.nan_to_num(np.asarray(edge_levels, dtype=float))
-    dark, light, reach, dark_se, light_se = levels.T
+    dark, light, reach, uneven, dark_se, light_se, uneven_se = levels.T
     i_ink, i_paper = int(np.argmin(dark)), int(np.argmax(light))
     contrast = max(float(light[i_paper] - dark[i_ink]), MIN_CONTRAST)
-    # A shortfall within twice its standard error (the levels' own noise) is no evidence of one.
+    # A shortfall within LEVEL_SE of its standard error (the levels' own noise) is no evidence of one.
     short = np.maximum(light[i_paper] - light - LEVEL_SE * np.hypot(light_se, light_se[i_paper]), 0.0)
     excess = np.maximum(dark - dark[i_ink] - LEVEL_SE * np.hypot(dark_se, dark_se[i_ink]), 0.0)
-    return reach * (short + excess) / contrast
+    # Levels read where the profile has not settled, unevenly at the two ends (a neighbour's edge within
+    # reach: every edge alike when the cells are too small for the ramp, which comparing edges cannot show).
+    unsettled = np.maximum(np.abs(uneven) - LEVEL_SE * uneven_se, 0.0)
+    return reach * np.maximum(short + excess, unsettled) / contrast
 
 
 def _corner_covariance(
@@ -385,7 +389,8 @@ def _half_level(
     """Where each profile (rows: dark marker border inside, light quiet zone outside) has its edge, as an
     offset; NaN where it has too little contrast or no single crossing of its half level. Each profile's
     ramp width (px, NaN without contrast): how far blur spreads the edge. And each profile's levels (rows,
-    3): dark, light and the half width of the window they were read at (NaN where no edge was placed).
+    5): dark, light, the half width of the window they were read at, and how much the profile still changes
+    over the last half pixel to each end, dark and light (NaN where no edge was placed).
 
     ``offsets`` (rows, L): each row's samples' offsets, evenly spaced; ``counts`` (rows,): each row's
     samples, the rest of a shorter row being its last sample repeated (which adds no crossing and no
@@ -426,11 +431,17 @@ def _half_level(
     ends = p0 + frac * (p1 - p0)  # the profile at the window's ends: dark, light
     integral = cumulative[rows[:, None], j] + frac * (p0 + ends) / 2.0  # in samples
     dark, light = ends[:, 0], ends[:, 1]
+    # How much the profile still changes over the last half pixel to each end: 0 on the plateaus of ink and
+    # paper, not where the window is too narrow for the ramp or a neighbour's edge reaches into it.
+    inner = np.clip(index + np.array([0.5, -0.5]) / step[:, None], 0.0, (counts - 1)[:, None].astype(float))
+    k = np.minimum(inner.astype(int), (counts - 2)[:, None])
+    q0, q1 = prof[rows[:, None], k], prof[rows[:, None], k + 1]
+    unsettled = ends - (q0 + (inner - k) * (q1 - q0))  # (rows, 2), signed
     usable = ok & (light - dark >= MIN_CONTRAST)
     width = (index[:, 1] - index[:, 0]) * step
     area = ((integral[:, 1] - integral[:, 0]) * step - dark * width) / np.where(usable, light - dark, 1.0)
     edge = offsets[:, 0] + index[:, 1] * step - area
-    levels = np.where(usable[:, None], np.stack([dark, light, reach], axis=1), np.nan)
+    levels = np.where(usable[:, None], np.column_stack([dark, light, reach, unsettled]), np.nan)
     return np.where(usable, edge, np.nan), ramp, levels
 
 

@@ -64,7 +64,10 @@ def test_a_blurred_small_markers_shrink_is_within_its_covariance():
 
 def test_sharp_markers_get_no_shrink():
     """The same markers unblurred: their edges are unbiased and the term adds nothing."""
-    ramp = np.array([1.2, 1.3, 1.1, 1.4])
-    assert np.all(refine._shrink_px(ramp, np.full(4, 3.3)) == 0.0)
+    # Four edges that read the same ink and paper, within their levels' noise (a sharp, evenly lit marker).
+    levels = np.array([[20.0, 220.0, 2.0, 0.5, 0.5], [20.5, 219.5, 2.0, 0.5, 0.5], [19.8, 220.0, 1.9, 0.5, 0.5]] * 2)[
+        :4
+    ]
+    assert np.all(refine._contamination_px(levels) == 0.0)
     errs = size_errors((0.0, 0.0), 2.6, 4)
     assert all(abs(e) <= 3 * s for e, s in errs)
