@@ -20,7 +20,10 @@ from numpy.typing import NDArray
 from atlas_onboard.detector.lens import distort, distort_homogeneous
 from atlas_onboard.detector.pose import undistort
 
-SAMPLES_PER_SIDE = 24  # edge points a side: enough that the pixel grid's pattern along an edge averages out
+# Edge points a side: one a pixel over the sampled 70 % of the shortest side (closer ones share pixels, so
+# their errors are not independent), between these bounds (enough for the pixel grid's pattern along an
+# edge to average out; no more than that costs).
+MIN_SAMPLES_PER_SIDE, MAX_SAMPLES_PER_SIDE = 12, 24
 LIBRARY_SAMPLES_PER_SIDE = 12  # refine_corners's (the OpenCV backend's corners in the distorted image)
 HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
 STEP_PX = 0.25
@@ -34,7 +37,6 @@ MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (
 BEND_ALLOWANCE = 1.5
 
 
-_TS = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)  # where along a side its edge is sampled
 _PREVIOUS = [3, 0, 1, 2]  # side (or corner) i - 1 of i, around the quadrilateral
 _NEXT = [1, 2, 3, 0]
 # Every corner moved alike: common @ common.T with common = np.tile(np.eye(2), (4, 1)), (8, 2).
@@ -172,35 +174,38 @@ def refine_corners_undistorted(
         offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
         depths.append(depth)
     # (4, S, 2): each side's base points, from its first corner along it
-    bases = corners_und[:, None, :] + _TS[None, :, None] * np.array([d for _, d, _ in sides])[:, None, :]
+    vectors = np.array([d for _, d, _ in sides])
+    samples = int(np.clip(0.7 * np.sqrt((vectors**2).sum(axis=1)).min(), MIN_SAMPLES_PER_SIDE, MAX_SAMPLES_PER_SIDE))
+    ts = np.linspace(0.15, 0.85, samples)  # where along a side its edge is sampled
+    bases = corners_und[:, None, :] + ts[None, :, None] * vectors[:, None, :]
     counts = [len(o) for o in offsets]
     padded = np.empty((4, max(counts)))
     for i, o in enumerate(offsets):
         padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
     width = padded.shape[1]
     normals = np.array([n for _, _, n in sides])
-    grid = np.empty((4, SAMPLES_PER_SIDE, width, 3))  # (4, S, width): each sample point, homogeneous
+    grid = np.empty((4, samples, width, 3))  # (4, S, width): each sample point, homogeneous
     np.add(bases[:, :, None, :], padded[:, None, :, None] * normals[:, None, None, :], out=grid[..., :2])
     grid[..., 2] = 1.0
     px_all = distort_homogeneous(grid.reshape(-1, 3), K, dist, fisheye)
     img, origin = _crop(gray, px_all)
-    px_all = (px_all - origin).astype(np.float32).reshape(4 * SAMPLES_PER_SIDE, width, 2)
+    px_all = (px_all - origin).astype(np.float32).reshape(4 * samples, width, 2)
     prof = cv2.remap(img, px_all[..., 0], px_all[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    rows_offsets = np.repeat(padded, SAMPLES_PER_SIDE, axis=0)
+    rows_offsets = np.repeat(padded, samples, axis=0)
     found_all, _, levels_all = _half_level(
-        prof, rows_offsets, np.repeat(counts, SAMPLES_PER_SIDE), np.repeat(np.array(depths) / 8.0, SAMPLES_PER_SIDE)
+        prof, rows_offsets, np.repeat(counts, samples), np.repeat(np.array(depths) / 8.0, samples)
     )
-    keep = np.isfinite(found_all).reshape(4, SAMPLES_PER_SIDE)
+    keep = np.isfinite(found_all).reshape(4, samples)
     kept = np.count_nonzero(keep, axis=1)
-    if kept.min() < SAMPLES_PER_SIDE // 2:
+    if kept.min() < samples // 2:
         return None
     # Every side's edge points (where no edge was placed, NaN), then each side's placed ones in order.
-    points = bases + found_all.reshape(4, SAMPLES_PER_SIDE, 1) * normals[:, None, :]
-    edges = list(points) if kept.min() == SAMPLES_PER_SIDE else [p[k] for p, k in zip(points, keep, strict=True)]
+    points = bases + found_all.reshape(4, samples, 1) * normals[:, None, :]
+    edges = list(points) if kept.min() == samples else [p[k] for p, k in zip(points, keep, strict=True)]
     # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
     step_img = np.linalg.norm(px_all[:, 1] - px_all[:, 0], axis=1)
     scale = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
-    levels = levels_all.reshape(4, SAMPLES_PER_SIDE, 5)
+    levels = levels_all.reshape(4, samples, 5)
     fits = _principal_axes(edges)
     across = np.array([(-vt[0][1], vt[0][0]) for _, _, vt in fits])  # each line's normal
     for i, (e, (mean, sv, vt)) in enumerate(zip(edges, fits, strict=True)):

@@ -15,7 +15,7 @@ from atlas_onboard.config import parse_world
 from atlas_onboard.core.markerdata import upper_to_matrix
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
-from atlas_onboard.detector.render import Camera, MarkerView, render
+from atlas_onboard.detector.render import LENS_RESIDUAL_PX, Camera, MarkerView, render
 
 W, H = 640, 480
 K = np.array([[460.0, 0.0, 319.5], [0.0, 460.0, 239.5], [0.0, 0.0, 1.0]])
@@ -33,7 +33,8 @@ def one_tag_detector(**kw) -> Detector:
             }
         }
     )
-    return Detector(world.sensors[1], world, Calibration(W, H, K, DIST), **kw)
+    # The renders' lens is exact: their calibration states the simulator's residual, as its files do.
+    return Detector(world.sensors[1], world, Calibration(W, H, K, DIST, False, LENS_RESIDUAL_PX), **kw)
 
 
 def pose_error(md, T_true: RigidTransform) -> tuple[np.ndarray, np.ndarray]:
