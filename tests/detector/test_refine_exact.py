@@ -89,7 +89,8 @@ def test_half_level_places_a_known_edge():
     found, ramp, levels = refine._half_level(prof, off[None, :], np.array([len(off)]), np.array([8.0]))
     assert abs(found[0] - (0.5 + 0.75) / 2) < 1e-9
     assert ramp[0] == 0.25  # the whole contrast within one step
-    assert levels[0].tolist() == [50.0, 200.0, refine.AREA_HALF_WIDTH_PX]  # dark, light, the window's half width
+    # dark, light, the window's half width, and no change over the last half pixel to either end (settled)
+    assert levels[0].tolist() == [50.0, 200.0, refine.AREA_HALF_WIDTH_PX, 0.0, 0.0]
 
 
 @settings(max_examples=60, deadline=None)
