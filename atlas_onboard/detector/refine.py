@@ -310,8 +310,10 @@ def _bend_px(
 
 
 def _contamination_px(edge_levels: NDArray[np.float64]) -> NDArray[np.float64]:
-    """How far (px) each edge may sit inside the true one because its levels were not the marker's ink and
-    paper: ``edge_levels`` (4, 3), each edge's dark and light levels and its window's half width R.
+    """How far (px) each edge may sit off the true one because its levels were not the marker's ink and
+    paper: ``edge_levels`` (4, 7), each edge's dark and light levels, its window's half width R, how
+    unevenly its profile settles over the last half pixel to the window's two ends, and the standard
+    errors of the two levels and of that.
 
     Where blur (or a quiet zone narrower than the blur) reaches the background beyond the white quiet zone
     or the data cells inside the black border, the level read there falls short of the paper (or rises
@@ -418,7 +420,7 @@ def _half_level(
     slope = (prof[:, 1:] - prof[:, :-1]).max(axis=1) / step
     contrast = hi - lo >= MIN_CONTRAST
     ramp = np.where((slope > 0) & contrast, (hi - lo) / np.maximum(slope, 1e-9), np.nan)
-    found = _crossing(prof, offsets, (lo + hi) / 2.0, contrast, np.ones(prof.shape, bool))
+    found = _crossing(prof, offsets, (lo + hi) / 2.0, contrast)
     # Second pass: the edge as the step whose area matches the profile's between its levels, over a window
     # about the first crossing (at most half a cell each way, in the black border and the white quiet zone).
     ok = np.isfinite(found)
@@ -455,12 +457,11 @@ def _crossing(
     offsets: NDArray[np.float64],
     level: NDArray[np.float64],
     usable: NDArray[np.bool_],
-    window: NDArray[np.bool_],
 ) -> NDArray[np.float64]:
-    """Each profile's offset where it rises through ``level`` (linear between samples), among the samples
-    in ``window`` (rows, L); NaN where it is not ``usable`` or does not rise through it exactly once."""
+    """Each profile's offset where it rises through ``level`` (linear between samples); NaN where it is
+    not ``usable`` or does not rise through it exactly once."""
     above = prof > level[:, None]
-    cross = ~above[:, :-1] & above[:, 1:] & window[:, :-1] & window[:, 1:]
+    cross = ~above[:, :-1] & above[:, 1:]
     single = np.flatnonzero(usable & (np.count_nonzero(cross, axis=1) == 1))
     j = np.argmax(cross[single], axis=1)
     a, b = prof[single, j], prof[single, j + 1]  # a <= level < b
