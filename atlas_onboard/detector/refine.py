@@ -251,8 +251,9 @@ def refine_corners_undistorted(
         shrink,
         scale * lens_residual_px,
     )
-    sigma_px = math.sqrt(7.1 * scatter2 / n_eff) / max(sin_min, 0.2)  # with the lens residual below
-    return RefinedCorners(out, math.hypot(sigma_px, lens_residual_px), cov)
+    # The scalar corner noise: the edge fits' alone (the lens residual moves the four corners alike, which
+    # turns no pose and is in ``cov``; counted per corner it would blur the tilt a gravity check needs).
+    return RefinedCorners(out, math.sqrt(7.1 * scatter2 / n_eff) / max(sin_min, 0.2), cov)
 
 
 def _principal_axes(
