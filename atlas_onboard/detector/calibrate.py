@@ -61,7 +61,7 @@ def calibrate(
     else:
         rms, K, D, _, _ = cv2.calibrateCamera(obj_pts, img_pts, size, None, None)
     return (
-        Calibration(size[0], size[1], np.asarray(K, float), np.asarray(D, float).ravel(), fisheye),
+        Calibration(size[0], size[1], np.asarray(K, float), np.asarray(D, float).ravel(), fisheye, float(rms)),
         float(rms),
         len(obj_pts),
     )

@@ -3,6 +3,7 @@ k1 k2 p1 p2 [k3 ...]) and fisheye (equidistant, k1..k4). A malformed file is a o
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,6 +13,12 @@ import yaml
 from numpy.typing import NDArray
 
 from atlas_onboard.errors import AtlasError
+
+# The calibration's residual (px) assumed when its file does not state it (ROS camera_info has no field for
+# it): a careful OpenCV calibration's RMS reprojection error is 0.1-0.3 px, the board's corner noise included.
+DEFAULT_REPROJECTION_RMS_PX = 0.3
+# Where a calibration file states its RMS reprojection error (px): OpenCV's calibration sample writes this key.
+RMS_KEY = "avg_reprojection_error"
 
 
 class CalibrationError(AtlasError):
@@ -25,6 +32,14 @@ class Calibration:
     K: NDArray[np.float64]
     dist: NDArray[np.float64]
     fisheye: bool = False
+    reprojection_rms_px: float | None = None  # the calibration's own residual, when its file states it
+
+    @property
+    def lens_residual_px(self) -> float:
+        """How far (image px, RMS) the lens model may place a point from where the lens does: the
+        calibration's RMS reprojection error when stated, else DEFAULT_REPROJECTION_RMS_PX."""
+        rms = self.reprojection_rms_px
+        return DEFAULT_REPROJECTION_RMS_PX if rms is None else rms
 
     def check_size(self, width_px: int, height_px: int, source: str) -> None:
         """Refuse frames of another size than the calibration's (a wrong file or a wrong mode)."""
@@ -53,6 +68,9 @@ def _validate(cal: Calibration, path: Path) -> Calibration:
         raise CalibrationError(
             f"{path}: principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {cal.width_px}x{cal.height_px} image"
         )
+    rms = cal.reprojection_rms_px
+    if rms is not None and not (math.isfinite(rms) and rms >= 0):
+        raise CalibrationError(f"{path}: {RMS_KEY}: expected a finite number >= 0, got {rms:g}")
     if cal.fisheye and cal.dist.size != 4:
         raise CalibrationError(f"{path}: fisheye (equidistant) needs 4 distortion coefficients, got {cal.dist.size}")
     if not cal.fisheye and cal.dist.size not in (4, 5, 8, 12, 14):
@@ -66,13 +84,14 @@ def _load_ros(doc: dict, path: Path) -> Calibration:
         d = np.asarray(doc["distortion_coefficients"]["data"], dtype=float).ravel()
         model = str(doc.get("distortion_model", "plumb_bob"))
         w, h = int(doc.get("image_width", 0)), int(doc.get("image_height", 0))
+        rms = None if doc.get(RMS_KEY) is None else float(doc[RMS_KEY])
     except (KeyError, TypeError, ValueError) as exc:
         raise CalibrationError(f"{path}: not a valid camera_info file ({exc})") from None
     if model not in ("plumb_bob", "rational_polynomial", "equidistant", "fisheye"):
         raise CalibrationError(
             f"{path}: distortion_model {model!r} is not supported (plumb_bob, rational_polynomial, equidistant)"
         )
-    return Calibration(w, h, K, d, fisheye=model in ("equidistant", "fisheye"))
+    return Calibration(w, h, K, d, fisheye=model in ("equidistant", "fisheye"), reprojection_rms_px=rms)
 
 
 def _load_opencv(path: Path) -> Calibration:
@@ -87,6 +106,8 @@ def _load_opencv(path: Path) -> Calibration:
         w = int(fs.getNode("image_width").real() or 0)
         h = int(fs.getNode("image_height").real() or 0)
         model = fs.getNode("distortion_model").string() or "plumb_bob"
+        node = fs.getNode(RMS_KEY)
+        rms = None if node.empty() else float(node.real())
     finally:
         fs.release()
     return Calibration(
@@ -95,6 +116,7 @@ def _load_opencv(path: Path) -> Calibration:
         _matrix(K, (3, 3), "camera_matrix", path),
         np.asarray(d, float).ravel(),
         model in ("equidistant", "fisheye"),
+        rms,
     )
 
 
@@ -126,4 +148,6 @@ def write_opencv(path: Path, cal: Calibration) -> None:
     fs.write("camera_matrix", cal.K)
     fs.write("distortion_coefficients", cal.dist.reshape(1, -1))
     fs.write("distortion_model", "equidistant" if cal.fisheye else "plumb_bob")
+    if cal.reprojection_rms_px is not None:
+        fs.write(RMS_KEY, float(cal.reprojection_rms_px))
     fs.release()

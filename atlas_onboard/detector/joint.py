@@ -195,7 +195,7 @@ class JointSolve:
         else:
             model_px = pose.corner_noise_px(model_sigma_px, float(np.median([_side(s.corners) for s in squares])))
             measured = [s.measured_px for s in squares]
-            sigma_px = math.hypot(max(measured), pose.CORNER_FLOOR_PX) if min(measured) > 0 else model_px
+            sigma_px = max(measured) if min(measured) > 0 else model_px
             stretches = [s.stretch for s in squares]
             stretch = None if any(x is None for x in stretches) else np.concatenate(stretches)
             cov = pose.pose_covariance(fit, sigma_px, err, stretch)

@@ -249,7 +249,7 @@ class Detector:
                 self.report.dropped[d.marker_id] = "at the image border"
                 continue
             corners = pose.undistort(d.corners_px, K, cal.dist, cal.fisheye)
-            refined = refine_corners_undistorted(gray, corners, K, cal.dist, cal.fisheye)
+            refined = refine_corners_undistorted(gray, corners, K, cal.dist, cal.fisheye, cal.lens_residual_px)
             if refined is None:
                 # The library's corners are straight-line fits in the distorted image: where the edge fit
                 # fails (near the image's edge, under strong distortion or blur) they were off by many

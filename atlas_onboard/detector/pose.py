@@ -43,9 +43,6 @@ from atlas_onboard.detector.families import family
 SIGMA_PX_APRILTAG = 0.08  # corner noise at a 50 px side, scaled by sqrt(50 / side): corner_noise_px
 SIGMA_PX_ARUCO = 0.2
 MIN_SIGMA_M = 0.0001
-# Corner error that no edge fit's scatter shows: the residual of the lens model and of the calibration,
-# added in quadrature to the measured corner noise.
-CORNER_FLOOR_PX = 0.05
 
 
 @dataclass(frozen=True)
@@ -262,8 +259,8 @@ def solve(
     """IPPE on undistorted corners of one square; None if OpenCV finds no solution in front.
 
     The corner noise is the ``measured_sigma_px`` of the corners' edge fit
-    (:func:`refine.refine_corners_undistorted`) with ``CORNER_FLOOR_PX`` when given, otherwise the
-    model's (``sigma_px`` at a 50 px side, :func:`corner_noise_px`).
+    (:func:`refine.refine_corners_undistorted`, which includes what its scatter cannot show) when given,
+    otherwise the model's (``sigma_px`` at a 50 px side, :func:`corner_noise_px`).
 
     ``stretch``: :func:`undistortion_jacobian` of the corners (None: an undistorted camera); the
     corner noise ``sigma_px``, the marker's side and the reprojection error are then in image pixels."""
@@ -294,9 +291,9 @@ def solve(
     side_px = float(np.mean(np.linalg.norm(np.diff(np.vstack([corners_px, corners_px[:1]]), axis=0), axis=1)))
     if stretch is not None:  # the side in image pixels: undistorted lengths shrunk by the local scale
         side_px /= float(np.sqrt(np.mean(np.abs(np.linalg.det(stretch)))))
-    # The edge fit's measured corner noise with what no scatter shows (CORNER_FLOOR_PX), or the model's.
+    # The edge fit's measured corner noise, or the model's.
     if measured_sigma_px > 0:
-        sigma_px = math.hypot(measured_sigma_px, CORNER_FLOOR_PX)
+        sigma_px = measured_sigma_px
     else:
         sigma_px = corner_noise_px(sigma_px, side_px)
     sigma = camera_position_sigma(r0, t0, obj, K, sigma_px, float(e[0]), stretch)

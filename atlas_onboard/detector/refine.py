@@ -11,7 +11,6 @@ its corners the same way.
 from __future__ import annotations
 
 import math
-import statistics
 from dataclasses import dataclass
 
 import cv2
@@ -21,25 +20,23 @@ from numpy.typing import NDArray
 from atlas_onboard.detector.lens import distort, distort_homogeneous
 from atlas_onboard.detector.pose import undistort
 
-SAMPLES_PER_SIDE = 12
+# Edge points a side: one a pixel over the sampled 70 % of the shortest side (closer ones share pixels, so
+# their errors are not independent), between these bounds (enough for the pixel grid's pattern along an
+# edge to average out; no more than that costs).
+MIN_SAMPLES_PER_SIDE, MAX_SAMPLES_PER_SIDE = 12, 24
+LIBRARY_SAMPLES_PER_SIDE = 12  # refine_corners's (the OpenCV backend's corners in the distorted image)
 HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
 STEP_PX = 0.25
 MIN_CONTRAST = 20.0  # grey levels between a profile's ends for an edge to be placed on it
-EDGE_OFFSET_FLOOR_PX = 0.02  # an edge's offset that its scatter cannot show (blur ramps, the background)
-# A shift of all four corners alike that no edge shows: the lens model's residual, motion during the exposure.
-SHIFT_FLOOR_PX = 0.02
-# Blur's inward pull on an edge (:func:`_shrink_px`): from a ramp of SHRINK_ONSET_CELLS of a cell on, at
-# SHRINK_PER_PX of each pixel of ramp beyond (measured against rendered truth: bench_detector's check).
-SHRINK_ONSET_CELLS = 0.55
-SHRINK_PER_PX = 0.17
 MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
+AREA_HALF_WIDTH_PX = 2.0  # the area fit's window each side of the edge: at least this, or the ramp (px)
+LEVEL_SE = 2.0  # a level's shortfall counts beyond this many of its standard errors
 MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
 # The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
 # in undistorted pixels; a refit may rightly move them about that far (with a margin).
 BEND_ALLOWANCE = 1.5
 
 
-_TS = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)  # where along a side its edge is sampled
 _PREVIOUS = [3, 0, 1, 2]  # side (or corner) i - 1 of i, around the quadrilateral
 _NEXT = [1, 2, 3, 0]
 # Every corner moved alike: common @ common.T with common = np.tile(np.eye(2), (4, 1)), (8, 2).
@@ -101,7 +98,7 @@ def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDA
     if sides is None:
         return corners
     for a, d, n in sides:
-        ts = np.linspace(0.15, 0.85, SAMPLES_PER_SIDE)
+        ts = np.linspace(0.15, 0.85, LIBRARY_SAMPLES_PER_SIDE)
         base = a[None, :] + ts[:, None] * d[None, :]
         pts = base[:, None, :] + offsets[None, :, None] * n[None, None, :]
         xs = pts[..., 0].astype(np.float32)
@@ -135,9 +132,13 @@ def refine_corners_undistorted(
     K: NDArray[np.float64],
     dist: NDArray[np.float64],
     fisheye: bool = False,
+    lens_residual_px: float = 0.0,
 ) -> RefinedCorners | None:
     """Corners (4, 2) in undistorted pixels (an ideal pinhole with the same K), refitted on the edges,
     and their noise (pixels, per axis) measured from the scatter of the edge points about their lines.
+    ``lens_residual_px``: the calibration's residual (image px, :attr:`Calibration.lens_residual_px`; 0: a
+    lens known exactly), a shift of the four corners alike that no edge shows (the model is smooth over a
+    marker).
 
     A marker's edges are straight only in the undistorted image; under barrel distortion they bend in
     the image, and corners fitted with straight lines in the image (as the AprilTag library does) are
@@ -149,14 +150,14 @@ def refine_corners_undistorted(
     The noise: a line fitted through n points spread evenly over the middle 70 % of an edge and
     extrapolated to its end has the variance 7.1 s^2 / n across it (s: the points' scatter, pooled over
     the four edges), and a corner lies on two lines crossing at an angle phi, which adds 1 / sin(phi);
-    blur and pixel noise raise s.
+    blur and pixel noise raise s. What the scatter cannot show is added: the blur's inward pull
+    (:func:`_contamination_px`) and the lens residual.
     """
     lines = []
     ss, npts = 0.0, []
     lag0 = lag1 = 0.0
     spread: list[float] = []
-    ramps: list[float] = []
-    cells: list[float] = []
+    edge_levels: list[NDArray[np.float64]] = []
     sides = _sides(corners_und)
     if sides is None:
         return None
@@ -173,46 +174,56 @@ def refine_corners_undistorted(
         offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
         depths.append(depth)
     # (4, S, 2): each side's base points, from its first corner along it
-    bases = corners_und[:, None, :] + _TS[None, :, None] * np.array([d for _, d, _ in sides])[:, None, :]
+    vectors = np.array([d for _, d, _ in sides])
+    samples = int(np.clip(0.7 * np.sqrt((vectors**2).sum(axis=1)).min(), MIN_SAMPLES_PER_SIDE, MAX_SAMPLES_PER_SIDE))
+    ts = np.linspace(0.15, 0.85, samples)  # where along a side its edge is sampled
+    bases = corners_und[:, None, :] + ts[None, :, None] * vectors[:, None, :]
     counts = [len(o) for o in offsets]
     padded = np.empty((4, max(counts)))
     for i, o in enumerate(offsets):
         padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
     width = padded.shape[1]
     normals = np.array([n for _, _, n in sides])
-    grid = np.empty((4, SAMPLES_PER_SIDE, width, 3))  # (4, S, width): each sample point, homogeneous
+    grid = np.empty((4, samples, width, 3))  # (4, S, width): each sample point, homogeneous
     np.add(bases[:, :, None, :], padded[:, None, :, None] * normals[:, None, None, :], out=grid[..., :2])
     grid[..., 2] = 1.0
     px_all = distort_homogeneous(grid.reshape(-1, 3), K, dist, fisheye)
     img, origin = _crop(gray, px_all)
-    px_all = (px_all - origin).astype(np.float32).reshape(4 * SAMPLES_PER_SIDE, width, 2)
+    px_all = (px_all - origin).astype(np.float32).reshape(4 * samples, width, 2)
     prof = cv2.remap(img, px_all[..., 0], px_all[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    rows_offsets = np.repeat(padded, SAMPLES_PER_SIDE, axis=0)
-    found_all, ramp_all = _half_level(prof, rows_offsets, np.repeat(counts, SAMPLES_PER_SIDE))
-    keep = np.isfinite(found_all).reshape(4, SAMPLES_PER_SIDE)
+    rows_offsets = np.repeat(padded, samples, axis=0)
+    found_all, _, levels_all = _half_level(
+        prof, rows_offsets, np.repeat(counts, samples), np.repeat(np.array(depths) / 8.0, samples)
+    )
+    keep = np.isfinite(found_all).reshape(4, samples)
     kept = np.count_nonzero(keep, axis=1)
-    if kept.min() < SAMPLES_PER_SIDE // 2:
+    if kept.min() < samples // 2:
         return None
     # Every side's edge points (where no edge was placed, NaN), then each side's placed ones in order.
-    points = bases + found_all.reshape(4, SAMPLES_PER_SIDE, 1) * normals[:, None, :]
-    edges = list(points) if kept.min() == SAMPLES_PER_SIDE else [p[k] for p, k in zip(points, keep, strict=True)]
-    ramps_all = ramp_all.reshape(4, SAMPLES_PER_SIDE)
-    ramps_finite = np.isfinite(ramps_all)
+    points = bases + found_all.reshape(4, samples, 1) * normals[:, None, :]
+    edges = list(points) if kept.min() == samples else [p[k] for p, k in zip(points, keep, strict=True)]
+    # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
+    step_img = np.linalg.norm(px_all[:, 1] - px_all[:, 0], axis=1)
+    scale = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
+    levels = levels_all.reshape(4, samples, 5)
     fits = _principal_axes(edges)
     across = np.array([(-vt[0][1], vt[0][0]) for _, _, vt in fits])  # each line's normal
-    for i, (e, (mean, sv, vt), depth) in enumerate(zip(edges, fits, depths, strict=True)):
+    for i, (e, (mean, sv, vt)) in enumerate(zip(edges, fits, strict=True)):
         lines.append((mean, vt[0]))
         ss += float(sv[1] ** 2)  # squared distances of the points from their line
         npts.append(len(e))
         centred = e - mean
-        r = centred @ across[i]  # signed distances, in order along the edge
-        lag0 += float(r @ r)
-        lag1 += float(r[1:] @ r[:-1])
         u = centred @ vt[0]
         spread.append(float(u @ u))  # sum of squared positions along the edge about the points' mean
-        finite = ramps_all[i][ramps_finite[i]].tolist()
-        ramps.append(statistics.median(finite) if finite else 0.0)  # np.median's value, cheaper
-        cells.append(depth / 8.0)  # the smaller cell of the families (8 across tag36h11's border)
+        kept_levels = levels[i][keep[i]]
+        # dark, light, window half width, how unevenly the profile settles at its two ends (a symmetric
+        # ramp cut short alike at both ends moves no area); the standard errors of the three medians
+        per_row = np.column_stack([kept_levels[:, :3], kept_levels[:, 3] + kept_levels[:, 4]])
+        errors = 1.2533 * per_row[:, [0, 1, 3]].std(axis=0) / math.sqrt(len(per_row))
+        edge_levels.append(np.concatenate([np.median(per_row, axis=0), errors]))
+        r = centred @ across[i]  # signed distances from the line, in order along the edge
+        lag0 += float(r @ r)
+        lag1 += float(r[1:] @ r[:-1])
     out = _crossings(lines, corners_und, max_move_px=np.inf)
     if out is None:
         return None
@@ -230,9 +241,19 @@ def refine_corners_undistorted(
     rho = min(max(lag1 / lag0, 0.0), MAX_EDGE_CORRELATION) if lag0 > 0 else 0.0  # np.clip's value
     inflate = (1.0 + rho) / (1.0 - rho)
     n_eff = sum(npts) / len(npts) / inflate
-    shrink = _shrink_px(np.array(ramps), np.array(cells))
-    cov = _corner_covariance(lines, out, scatter2 * inflate, np.array(npts, float), np.array(spread), shrink)
-    return RefinedCorners(out, float(np.sqrt(7.1 * scatter2 / n_eff)) / max(sin_min, 0.2), cov)
+    shrink = _contamination_px(np.array(edge_levels))
+    cov = _corner_covariance(
+        lines,
+        out,
+        scatter2 * inflate,
+        np.array(npts, float),
+        np.array(spread),
+        shrink,
+        scale * lens_residual_px,
+    )
+    # The scalar corner noise: the edge fits' alone (the lens residual moves the four corners alike, which
+    # turns no pose and is in ``cov``; counted per corner it would blur the tilt a gravity check needs).
+    return RefinedCorners(out, math.sqrt(7.1 * scatter2 / n_eff) / max(sin_min, 0.2), cov)
 
 
 def _principal_axes(
@@ -289,12 +310,31 @@ def _bend_px(
     return worst
 
 
-def _shrink_px(ramp_px: NDArray[np.float64], cell_px: NDArray[np.float64]) -> NDArray[np.float64]:
-    """How far (px) each edge may sit inside the true one because of blur: once an edge's ramp is wider
-    than about half a cell, the white quiet zone (a cell wide) no longer reaches its level between the
-    black border and the background beyond it, so the half level, and the edge, fall inwards."""
-    ramp = ramp_px if np.isfinite(ramp_px).all() else np.nan_to_num(ramp_px, nan=0.0)
-    return SHRINK_PER_PX * np.maximum(ramp - SHRINK_ONSET_CELLS * cell_px, 0.0)
+def _contamination_px(edge_levels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """How far (px) each edge may sit off the true one because its levels were not the marker's ink and
+    paper: ``edge_levels`` (4, 7), each edge's dark and light levels, its window's half width R, how
+    unevenly its profile settles over the last half pixel to the window's two ends, and the standard
+    errors of the two levels and of that.
+
+    Where blur (or a quiet zone narrower than the blur) reaches the background beyond the white quiet zone
+    or the data cells inside the black border, the level read there falls short of the paper (or rises
+    above the ink) by some delta, and the area fit then moves the edge by up to R delta / contrast (the
+    profile inside the window is pulled alike, which takes back part of it). The marker's paper and ink
+    are its brightest light and darkest dark level over the four edges, so a sharp, evenly lit marker
+    gets nothing. One cause for all four edges (the blur, the quiet zone's width): the quadrilateral
+    too small, fully correlated (:func:`_corner_covariance`).
+    """
+    levels = np.nan_to_num(np.asarray(edge_levels, dtype=float))
+    dark, light, reach, uneven, dark_se, light_se, uneven_se = levels.T
+    i_ink, i_paper = int(np.argmin(dark)), int(np.argmax(light))
+    contrast = max(float(light[i_paper] - dark[i_ink]), MIN_CONTRAST)
+    # A shortfall within LEVEL_SE of its standard error (the levels' own noise) is no evidence of one.
+    short = np.maximum(light[i_paper] - light - LEVEL_SE * np.hypot(light_se, light_se[i_paper]), 0.0)
+    excess = np.maximum(dark - dark[i_ink] - LEVEL_SE * np.hypot(dark_se, dark_se[i_ink]), 0.0)
+    # Levels read where the profile has not settled, unevenly at the two ends (a neighbour's edge within
+    # reach: every edge alike when the cells are too small for the ramp, which comparing edges cannot show).
+    unsettled = np.maximum(np.abs(uneven) - LEVEL_SE * uneven_se, 0.0)
+    return reach * np.maximum(short + excess, unsettled) / contrast
 
 
 def _corner_covariance(
@@ -304,6 +344,7 @@ def _corner_covariance(
     npts: NDArray[np.float64],
     spread: NDArray[np.float64],
     shrink_px: NDArray[np.float64] | None = None,
+    shift_px: float = 0.0,
 ) -> NDArray[np.float64]:
     """(8, 8) covariance of the four corners (x0 y0 x1 y1 ...) that the four fitted lines place.
 
@@ -312,8 +353,10 @@ def _corner_covariance(
     independent of each other and of the other lines. A point x of the line then moves across it by
     a_l + b_l (x - m_l) . d_l, and corner k, the crossing of lines k-1 and k, by dx with
     n_{k-1} . dx and n_k . dx those two shifts. Adjacent corners share a line, so they are correlated.
-    ``shrink_px`` (4,): each line's possible inward offset from blur (:func:`_shrink_px`), one cause for
+    ``shrink_px`` (4,): each line's possible inward offset from blur (:func:`_contamination_px`), one cause for
     all four lines, so their offsets are fully correlated in it (the quadrilateral too small).
+    ``shift_px``: the standard deviation of a shift of every corner alike
+    (the lens model's residual over the marker), undistorted px.
     """
     G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
     dirs = np.array([d for _, d in lines])
@@ -328,9 +371,9 @@ def _corner_covariance(
     blocks[_CORNER, :, _LINE, 0] = column
     blocks[_CORNER, :, _LINE, 1] = column * t[:, None]
     D = np.empty(8)
-    D[0::2] = var_px2 / npts + EDGE_OFFSET_FLOOR_PX**2
+    D[0::2] = var_px2 / npts
     D[1::2] = var_px2 / np.maximum(spread, 1e-9)
-    out = (G * D) @ G.T + SHIFT_FLOOR_PX**2 * _COMMON_SHIFT
+    out = (G * D) @ G.T + shift_px**2 * _COMMON_SHIFT
     if shrink_px is not None:
         s = G[:, 0::2] @ shrink_px  # the corners' displacement when every line moves in by its shrink
         out += np.outer(s, s)
@@ -349,32 +392,81 @@ class RefinedCorners:
 
 
 def _half_level(
-    prof: NDArray[np.float32], offsets: NDArray[np.float64], counts: NDArray[np.int64]
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Where each profile (rows: dark marker border inside, light quiet zone outside) crosses halfway
-    between its two ends, as an offset; NaN where it has too little contrast or no single crossing. And
-    each profile's ramp width (px, NaN without contrast): how far blur spreads the edge.
+    prof: NDArray[np.float32], offsets: NDArray[np.float64], counts: NDArray[np.int64], cell_px: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """Where each profile (rows: dark marker border inside, light quiet zone outside) has its edge, as an
+    offset; NaN where it has too little contrast or no single crossing of its half level. Each profile's
+    ramp width (px, NaN without contrast): how far blur spreads the edge. And each profile's levels (rows,
+    5): dark, light, the half width of the window they were read at, and how much the profile still changes
+    over the last half pixel to each end, dark and light (NaN where no edge was placed).
 
-    ``offsets`` (rows, L): each row's samples' offsets; ``counts`` (rows,): each row's samples, the rest
-    of a shorter row being its last sample repeated (which adds no crossing and no slope).
+    ``offsets`` (rows, L): each row's samples' offsets, evenly spaced; ``counts`` (rows,): each row's
+    samples, the rest of a shorter row being its last sample repeated (which adds no crossing and no
+    slope); ``cell_px`` (rows,): the marker's cell across the edge.
 
-    Motion blur and defocus spread an edge into a ramp whose gradient is a plateau: its peak wanders
-    with the noise, while the half-level crossing of a symmetric blur stays on the edge.
+    A first pass places the edge roughly where the profile crosses halfway between its ends. The edge is
+    then the place of the step that has the profile's area between its levels, read at both ends of a
+    window about that crossing: the ramp's width or AREA_HALF_WIDTH_PX each way, at most half a cell (the
+    black border and the white quiet zone are a cell wide, so the levels are read as far as can be from
+    the data cells inside and the background outside). Pixels integrate the image over their area, and
+    the area under a step seen through them and through any symmetric blur is the step's: the crossing
+    of linearly interpolated pixels is not (it misses a sharp edge by up to a tenth of a pixel, by where
+    the edge falls between pixel centres, alike all along an edge that lies along a pixel axis).
     """
     rows = np.arange(len(prof))
     lo = (prof[:, 0] + prof[:, 1]) / 2  # each end the mean of its two samples (float32, as np.mean)
     hi = (prof[rows, counts - 2] + prof[rows, counts - 1]) / 2
-    level = (lo + hi) / 2.0
-    above = prof > level[:, None]
     # The ramp's width (px): the contrast over the steepest slope; about a pixel for a sharp edge, more with blur.
-    slope = (prof[:, 1:] - prof[:, :-1]).max(axis=1) / (offsets[:, 1] - offsets[:, 0])
+    step = offsets[:, 1] - offsets[:, 0]
+    slope = (prof[:, 1:] - prof[:, :-1]).max(axis=1) / step
     contrast = hi - lo >= MIN_CONTRAST
     ramp = np.where((slope > 0) & contrast, (hi - lo) / np.maximum(slope, 1e-9), np.nan)
+    found = _crossing(prof, offsets, (lo + hi) / 2.0, contrast)
+    # Second pass: the edge as the step whose area matches the profile's between its levels, over a window
+    # about the first crossing (at most half a cell each way, in the black border and the white quiet zone).
+    ok = np.isfinite(found)
+    reach = np.minimum(0.5 * cell_px, np.maximum(AREA_HALF_WIDTH_PX, np.nan_to_num(ramp)))
+    index = (np.where(ok, found, 0.0)[:, None] + reach[:, None] * np.array([-1.0, 1.0]) - offsets[:, :1]) / step[
+        :, None
+    ]
+    index = np.clip(index, 0.0, (counts - 1)[:, None].astype(float))
+    # The profile is linear between its samples: its integral from sample 0 to any fractional index.
+    cumulative = np.zeros(prof.shape)
+    np.cumsum((prof[:, 1:] + prof[:, :-1]) / 2.0, axis=1, out=cumulative[:, 1:])
+    j = np.minimum(index.astype(int), (counts - 2)[:, None])  # (rows, 2): the sample before each window end
+    frac = index - j
+    p0, p1 = prof[rows[:, None], j], prof[rows[:, None], j + 1]
+    ends = p0 + frac * (p1 - p0)  # the profile at the window's ends: dark, light
+    integral = cumulative[rows[:, None], j] + frac * (p0 + ends) / 2.0  # in samples
+    dark, light = ends[:, 0], ends[:, 1]
+    # How much the profile still changes over the last half pixel to each end: 0 on the plateaus of ink and
+    # paper, not where the window is too narrow for the ramp or a neighbour's edge reaches into it.
+    inner = np.clip(index + np.array([0.5, -0.5]) / step[:, None], 0.0, (counts - 1)[:, None].astype(float))
+    k = np.minimum(inner.astype(int), (counts - 2)[:, None])
+    q0, q1 = prof[rows[:, None], k], prof[rows[:, None], k + 1]
+    unsettled = ends - (q0 + (inner - k) * (q1 - q0))  # (rows, 2), signed
+    usable = ok & (light - dark >= MIN_CONTRAST)
+    width = (index[:, 1] - index[:, 0]) * step
+    area = ((integral[:, 1] - integral[:, 0]) * step - dark * width) / np.where(usable, light - dark, 1.0)
+    edge = offsets[:, 0] + index[:, 1] * step - area
+    levels = np.where(usable[:, None], np.column_stack([dark, light, reach, unsettled]), np.nan)
+    return np.where(usable, edge, np.nan), ramp, levels
+
+
+def _crossing(
+    prof: NDArray[np.float32],
+    offsets: NDArray[np.float64],
+    level: NDArray[np.float64],
+    usable: NDArray[np.bool_],
+) -> NDArray[np.float64]:
+    """Each profile's offset where it rises through ``level`` (linear between samples); NaN where it is
+    not ``usable`` or does not rise through it exactly once."""
+    above = prof > level[:, None]
     cross = ~above[:, :-1] & above[:, 1:]
-    single = np.flatnonzero(contrast & (np.count_nonzero(cross, axis=1) == 1))
+    single = np.flatnonzero(usable & (np.count_nonzero(cross, axis=1) == 1))
     j = np.argmax(cross[single], axis=1)
     a, b = prof[single, j], prof[single, j + 1]  # a <= level < b
     off, off_next = offsets[single, j], offsets[single, j + 1]
     found = np.full(len(prof), np.nan)
     found[single] = off + (level[single] - a) / (b - a) * (off_next - off)
-    return found, ramp
+    return found

@@ -160,6 +160,9 @@ def _project(camera: Camera, pts_cam: NDArray[np.float64]) -> NDArray[np.float64
 
 
 GRID_STEP = 4  # the lens undistortion is computed exactly on every GRID_STEP-th sample, interpolated between
+# How far the rendered lens may be from its model (px): a bound on the error of the interpolated undistortion
+# (GRID_STEP), which a simulated camera's calibration states as its reprojection error.
+LENS_RESIDUAL_PX = 0.002
 
 _grids: dict[tuple[object, ...], NDArray[np.float64]] = {}
 

@@ -36,6 +36,8 @@ import numpy as np
 import yaml
 
 from atlas_onboard.config import WORLD
+from atlas_onboard.detector.calibration import RMS_KEY
+from atlas_onboard.detector.render import LENS_RESIDUAL_PX
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot, recording
@@ -103,6 +105,7 @@ def write_calibration(path: Path, intr: Intrinsics) -> None:
         f"   data: [ {', '.join(f'{v:.10g}' for v in k)} ]\n"
         "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
         f"   data: [ {', '.join(f'{v:.10g}' for v in d)} ]\n"
+        f"{RMS_KEY}: {LENS_RESIDUAL_PX:g}\n"  # the rendered lens is its model
     )
     path.write_text(text, encoding="utf-8")
 

@@ -41,7 +41,7 @@ def solutions(md: MarkerData) -> list[RigidTransform]:
 def frames(n: int = 40):
     rng = np.random.default_rng(3)
     for k in range(n):
-        tilt = rng.uniform(4.0, 12.0)
+        tilt = rng.uniform(2.0, 8.0)  # near face-on: with corners placed by area, 8-12 degrees is rarely ambiguous
         rot = Rotation.from_euler("zxz", [rng.uniform(0, 360), 180 + tilt, rng.uniform(0, 360)], degrees=True)
         T = RigidTransform.from_components([rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), 5.0], rot)
         yield render(CAM, [MarkerView("tag36h11", 7, SIZE_M, T)], noise_sigma=4.0, seed=k), T

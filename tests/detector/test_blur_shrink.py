@@ -64,7 +64,16 @@ def test_a_blurred_small_markers_shrink_is_within_its_covariance():
 
 def test_sharp_markers_get_no_shrink():
     """The same markers unblurred: their edges are unbiased and the term adds nothing."""
-    ramp = np.array([1.2, 1.3, 1.1, 1.4])
-    assert np.all(refine._shrink_px(ramp, np.full(4, 3.3)) == 0.0)
+    # Four edges that read the same ink and paper and settle evenly at both ends, within their noise (a sharp,
+    # evenly lit marker): dark, light, window half width, unevenness, and the standard errors of the three.
+    levels = np.array(
+        [
+            [20.0, 220.0, 2.0, 0.3, 0.5, 0.5, 0.4],
+            [20.5, 219.5, 2.0, -0.5, 0.5, 0.5, 0.4],
+            [19.8, 220.0, 1.9, 0.0, 0.5, 0.5, 0.4],
+            [20.2, 219.8, 2.0, 0.6, 0.5, 0.5, 0.4],
+        ]
+    )
+    assert np.all(refine._contamination_px(levels) == 0.0)
     errs = size_errors((0.0, 0.0), 2.6, 4)
     assert all(abs(e) <= 3 * s for e, s in errs)

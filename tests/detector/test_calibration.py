@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from atlas_onboard.detector import calibration
 from atlas_onboard.detector.calibration import Calibration, CalibrationError, load, write_opencv
 
 K = np.array([[612.5, 0.0, 320.25], [0.0, 611.0, 239.75], [0.0, 0.0, 1.0]])
@@ -134,3 +135,40 @@ def test_pose_through_the_lens_model_matches_truth(fisheye):
     # Taken as a pinhole camera, the same corners give a pose centimetres off.
     wrong = pose.solve(img, size, Kc, 0.1)
     assert np.linalg.norm(wrong.p_m - tvec) > 0.01
+
+
+def test_the_calibrations_own_residual_is_read_written_and_defaulted(tmp_path):
+    """The RMS reprojection error a calibration states (OpenCV's avg_reprojection_error) is the lens
+    residual the corners' covariance gets; a file without one (ROS camera_info has no field for it) gets
+    the documented conservative default; a bad one is refused by name."""
+    write_opencv(tmp_path / "c.yaml", Calibration(640, 480, K, D, False, 0.173))
+    assert load(tmp_path / "c.yaml").lens_residual_px == 0.173
+    write_opencv(tmp_path / "none.yaml", Calibration(640, 480, K, D))
+    unstated = load(tmp_path / "none.yaml")
+    assert unstated.reprojection_rms_px is None
+    assert unstated.lens_residual_px == calibration.DEFAULT_REPROJECTION_RMS_PX > 0
+    ros = ROS.replace("DISTORTION", "plumb_bob").replace("N", "5").replace("COEFFS", str(D.tolist()))
+    (tmp_path / "ros.yaml").write_text(ros + f"{calibration.RMS_KEY}: 0.21\n")
+    assert load(tmp_path / "ros.yaml").lens_residual_px == 0.21
+    (tmp_path / "bad.yaml").write_text(ros + f"{calibration.RMS_KEY}: -1\n")
+    with pytest.raises(CalibrationError, match=calibration.RMS_KEY):
+        load(tmp_path / "bad.yaml")
+
+
+def test_the_lens_residual_moves_the_corners_alike_in_their_covariance():
+    """A calibration's residual is a shift of a marker's four corners alike (the model is smooth over a
+    marker): it adds its square to the covariance of the corners' mean and nothing to their differences."""
+    from atlas_onboard.detector import refine
+    from tests.detector.synthetic import marker_image
+
+    img, truth = marker_image(20.3, 25.6, 6.0)
+    gray = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    Kp = np.array([[300.0, 0, 59.5], [0, 300.0, 59.5], [0, 0, 1]])
+    exact = refine.refine_corners_undistorted(gray, truth + 0.3, Kp, np.zeros(5), False, 0.0)
+    stated = refine.refine_corners_undistorted(gray, truth + 0.3, Kp, np.zeros(5), False, 0.25)
+    added = stated.covariance - exact.covariance
+    mean = np.tile(np.eye(2), 4).T / 4  # (8, 2): the corners' mean
+    np.testing.assert_allclose(mean.T @ added @ mean, 0.25**2 * np.eye(2), rtol=1e-9)
+    differences = np.kron(np.eye(4) - 0.25, np.eye(2))  # each corner less the mean
+    np.testing.assert_allclose(differences @ added @ differences.T, 0.0, atol=1e-12)
+    np.testing.assert_array_equal(stated.corners, exact.corners)

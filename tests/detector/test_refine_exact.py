@@ -69,21 +69,28 @@ def test_half_level_of_padded_sides_equals_each_side_alone(halves: list[float], 
     padded_prof = np.concatenate([np.pad(p, ((0, 0), (0, width - p.shape[1])), mode="edge") for p in profiles])
     padded_off = np.repeat([np.pad(o, (0, width - len(o)), mode="edge") for o in offsets], rows, axis=0)
     counts = np.repeat([len(o) for o in offsets], rows)
-    found, ramp = refine._half_level(padded_prof, padded_off, counts)
+    cells = np.repeat(2.5 * np.array(halves), rows)  # a cell a little larger than the search, as refine's
+    found, ramp, levels = refine._half_level(padded_prof, padded_off, counts, cells)
     for i, (prof, off) in enumerate(zip(profiles, offsets, strict=True)):
-        alone_found, alone_ramp = refine._half_level(prof, np.tile(off, (rows, 1)), np.full(rows, len(off)))
-        np.testing.assert_array_equal(found[i * rows : (i + 1) * rows], alone_found)
-        np.testing.assert_array_equal(ramp[i * rows : (i + 1) * rows], alone_ramp)
+        alone = refine._half_level(
+            prof, np.tile(off, (rows, 1)), np.full(rows, len(off)), np.full(rows, 2.5 * halves[i])
+        )
+        np.testing.assert_array_equal(found[i * rows : (i + 1) * rows], alone[0])
+        np.testing.assert_array_equal(ramp[i * rows : (i + 1) * rows], alone[1])
+        np.testing.assert_array_equal(levels[i * rows : (i + 1) * rows], alone[2])
     assert np.isfinite(found[:rows]).any()  # the first side's sharp strong edge was placed
 
 
 def test_half_level_places_a_known_edge():
-    """A clean step from 50 to 200 grey levels crossing its half level midway between two samples."""
+    """A clean step from 50 to 200 grey levels between the samples at 0.5 and 0.75: the profile, linear
+    between its samples, has the area of a step midway between them."""
     off = np.arange(-3.0, 3.0 + 1e-9, 0.25)
     prof = np.where(off < 0.6, 50.0, 200.0).astype(np.float32)[None, :]
-    found, ramp = refine._half_level(prof, off[None, :], np.array([len(off)]))
-    assert found[0] == 0.5 + 0.25 * (125 - 50) / (200 - 50)  # linear between the samples at 0.5 and 0.75
+    found, ramp, levels = refine._half_level(prof, off[None, :], np.array([len(off)]), np.array([8.0]))
+    assert abs(found[0] - (0.5 + 0.75) / 2) < 1e-9
     assert ramp[0] == 0.25  # the whole contrast within one step
+    # dark, light, the window's half width, and no change over the last half pixel to either end (settled)
+    assert levels[0].tolist() == [50.0, 200.0, refine.AREA_HALF_WIDTH_PX, 0.0, 0.0]
 
 
 @settings(max_examples=60, deadline=None)
