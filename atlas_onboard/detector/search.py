@@ -24,7 +24,7 @@ CELL_PX = 8  # contrast is measured in cells of this many pixels
 MIN_RATIO = 0.6  # a candidate cell's contrast is at least this share of its brightest pixel (ink on paper)
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
 BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
-MIN_CONTRAST = 20  # grey levels: a cell with less is not a marker's black and white (refine.MIN_CONTRAST)
+MIN_CONTRAST = 20  # grey levels: a cell with less is not a marker's black and white (edge_profile.MIN_CONTRAST)
 
 
 class RegionSearch:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.detector import pose, refine
+from atlas_onboard.detector import edge_profile, pose, refine
 from atlas_onboard.detector.backends import MarkerFinder
 from atlas_onboard.detector.render import Camera, MarkerView, render
 
@@ -74,6 +74,6 @@ def test_sharp_markers_get_no_shrink():
             [20.2, 219.8, 2.0, 0.6, 0.5, 0.5, 0.4],
         ]
     )
-    assert np.all(refine._contamination_px(levels) == 0.0)
+    assert np.all(edge_profile.contamination_px(levels) == 0.0)
     errs = size_errors((0.0, 0.0), 2.6, 4)
     assert all(abs(e) <= 3 * s for e, s in errs)

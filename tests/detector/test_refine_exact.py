@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from atlas_onboard.detector import lens, refine
+from atlas_onboard.detector import edge_profile, lens, refine
 
 K = np.array([[457.0, 0.0, 319.5], [0.0, 459.0, 241.25], [0.0, 0.0, 1.0]])
 
@@ -70,9 +70,9 @@ def test_half_level_of_padded_sides_equals_each_side_alone(halves: list[float], 
     padded_off = np.repeat([np.pad(o, (0, width - len(o)), mode="edge") for o in offsets], rows, axis=0)
     counts = np.repeat([len(o) for o in offsets], rows)
     cells = np.repeat(2.5 * np.array(halves), rows)  # a cell a little larger than the search, as refine's
-    found, ramp, levels = refine._half_level(padded_prof, padded_off, counts, cells)
+    found, ramp, levels = edge_profile.place_edges(padded_prof, padded_off, counts, cells)
     for i, (prof, off) in enumerate(zip(profiles, offsets, strict=True)):
-        alone = refine._half_level(
+        alone = edge_profile.place_edges(
             prof, np.tile(off, (rows, 1)), np.full(rows, len(off)), np.full(rows, 2.5 * halves[i])
         )
         np.testing.assert_array_equal(found[i * rows : (i + 1) * rows], alone[0])
@@ -86,11 +86,11 @@ def test_half_level_places_a_known_edge():
     between its samples, has the area of a step midway between them."""
     off = np.arange(-3.0, 3.0 + 1e-9, 0.25)
     prof = np.where(off < 0.6, 50.0, 200.0).astype(np.float32)[None, :]
-    found, ramp, levels = refine._half_level(prof, off[None, :], np.array([len(off)]), np.array([8.0]))
+    found, ramp, levels = edge_profile.place_edges(prof, off[None, :], np.array([len(off)]), np.array([8.0]))
     assert abs(found[0] - (0.5 + 0.75) / 2) < 1e-9
     assert ramp[0] == 0.25  # the whole contrast within one step
     # dark, light, the window's half width, and no change over the last half pixel to either end (settled)
-    assert levels[0].tolist() == [50.0, 200.0, refine.AREA_HALF_WIDTH_PX, 0.0, 0.0]
+    assert levels[0].tolist() == [50.0, 200.0, edge_profile.AREA_HALF_WIDTH_PX, 0.0, 0.0]
 
 
 @settings(max_examples=60, deadline=None)
