@@ -28,6 +28,11 @@ REALTIME_FILES = frozenset({
 _ROOT = Path(__file__).resolve().parent.parent
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    # pytest-xdist's mark, known also where the suite runs without it (one file, a venv without the extra).
+    config.addinivalue_line("markers", "xdist_group(name): tests that run in one worker, one after another")
+
+
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         path = item.path.resolve().relative_to(_ROOT).as_posix()
