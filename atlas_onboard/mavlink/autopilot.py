@@ -84,13 +84,15 @@ def euler_zyx(q_xyzw: np.ndarray) -> tuple[float, float, float]:
     x, y, z, w = (float(v) for v in q_xyzw)
     n = x * x + y * y + z * z + w * w
     # n R[2, 0] = -n sin(pitch); n R[2, 1] and n R[2, 2] = n cos(pitch) (sin, cos)(roll): pitch by atan2
-    # keeps its precision next to +-90 degrees, where asin would not.
-    a, b = 2.0 * (w * x + y * z), n - 2.0 * (x * x + y * y)
+    # keeps its precision next to +-90 degrees, where asin would not. Differences of squares as products
+    # of sums and differences: n - 2 (x^2 + y^2) loses n's last bits, which next to the lock (both terms
+    # of an atan2 ~cos(pitch)) turn roll and yaw by eps / cos(pitch).
+    a, b = 2.0 * (w * x + y * z), (w - y) * (w + y) + (z - x) * (z + x)
     cos_pitch = math.hypot(a, b)
     pitch = math.atan2(2.0 * (w * y - x * z), cos_pitch)
     if cos_pitch <= 1e-12 * n:  # gimbal lock: only yaw -/+ roll is defined; roll 0, as scipy does
-        return math.atan2(2.0 * (w * z - x * y), n - 2.0 * (x * x + z * z)), pitch, 0.0
-    return math.atan2(2.0 * (w * z + x * y), n - 2.0 * (y * y + z * z)), pitch, math.atan2(a, b)
+        return math.atan2(2.0 * (w * z - x * y), (w - z) * (w + z) + (y - x) * (y + x)), pitch, 0.0
+    return math.atan2(2.0 * (w * z + x * y), (w - y) * (w + y) + (x - z) * (x + z)), pitch, math.atan2(a, b)
 
 
 def _check_pose(p_ned_m: np.ndarray, q_ned_frd_xyzw: np.ndarray, capture_time_us: int) -> None:
