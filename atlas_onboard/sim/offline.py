@@ -102,9 +102,7 @@ def run_fusions(
 ) -> tuple[StageErrors, dict[str, dict[str, StageErrors]]]:
     """As :func:`run`, with each drone's listener and graph run once per fusion setting on the same
     detections: each setting's output errors, by its key in ``fusions``, then by drone."""
-    from atlas_onboard.detector.calibration import Calibration
     from atlas_onboard.detector.pipeline import Detector
-    from atlas_onboard.detector.render import LENS_RESIDUAL_PX
     from atlas_onboard.sim.camera import FrameRenderer, camera_seed
 
     scenario = scenarios.get(scenario_name)
@@ -112,9 +110,7 @@ def run_fusions(
     sim = SimWorld(scenario, world)
     cams = []
     for sid, (sensor, intr) in sorted(sim.cameras.items()):
-        cal = Calibration(
-            intr.width_px, intr.height_px, intr.camera_matrix, np.array(intr.distortion), False, LENS_RESIDUAL_PX
-        )
+        cal = intr.calibration()
         renderer = FrameRenderer(scenario, world, sensor, camera_seed(seed, sid))
         cams.append((sensor, renderer, Detector(sensor, world, cal, decimate=2.0)))
     nodes = {}

@@ -9,8 +9,6 @@ import numpy as np
 import yaml
 
 from atlas_onboard.config import load_world
-from atlas_onboard.detector.calibration import Calibration
-from atlas_onboard.detector.render import LENS_RESIDUAL_PX
 from atlas_onboard.mapping.recording import RecordingWriter
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.camera import frames_path, prerender
@@ -64,9 +62,7 @@ def record(
         prerender(scenario, world_file, seed, duration_s, Path(tmp), start_s)
         for sid in sensor_ids:
             sensor, intr = sim.cameras[sid]
-            cal = Calibration(
-                intr.width_px, intr.height_px, intr.camera_matrix, np.array(intr.distortion), False, LENS_RESIDUAL_PX
-            )
+            cal = intr.calibration()
             frames = np.load(frames_path(Path(tmp), sid), mmap_mode="r")
             fps = sensor.camera.fps
             T = sensor.T_entity_sensor

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Collection, Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -13,6 +14,9 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WORLD, MarkerConfig, SensorConfig, WorldConfig
 from atlas_onboard.sim.scenarios import Optics, Scenario
+
+if TYPE_CHECKING:
+    from atlas_onboard.detector.calibration import Calibration
 
 FRESH_S = 0.2  # PX4's EKF2 does not start fusing external vision across a gap longer than this
 FRESH_STEP_S = 0.005
@@ -43,6 +47,15 @@ class Intrinsics:
     @property
     def camera_matrix(self) -> NDArray[np.float64]:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def calibration(self) -> Calibration:
+        """The camera's calibration, as the simulator writes it for its nodes: exact, its residual the
+        rendered lens's (:data:`~atlas_onboard.detector.render.LENS_RESIDUAL_PX`)."""
+        from atlas_onboard.detector.calibration import Calibration
+        from atlas_onboard.detector.render import LENS_RESIDUAL_PX
+
+        dist = np.array(self.distortion)
+        return Calibration(self.width_px, self.height_px, self.camera_matrix, dist, False, LENS_RESIDUAL_PX)
 
     def project(self, p_cam: NDArray[np.float64]) -> NDArray[np.float64]:
         """Pixel coordinates (N, 2) of points (N, 3) in the optical frame, with distortion."""

@@ -8,9 +8,7 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import binom, chi2
 
 from atlas_onboard.core.markerdata import upper_to_matrix
-from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
-from atlas_onboard.detector.render import LENS_RESIDUAL_PX
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.camera import FrameRenderer, camera_seed
 from atlas_onboard.sim.world import SimWorld
@@ -28,9 +26,7 @@ def joint_errors() -> tuple[np.ndarray, np.ndarray]:
     sim = SimWorld(scenario, world)
     ((sid, (sensor, intr)),) = sim.cameras.items()
     # The simulator's calibration, as its files state it (its rendered lens is its model).
-    cal = Calibration(
-        intr.width_px, intr.height_px, intr.camera_matrix, np.array(intr.distortion), False, LENS_RESIDUAL_PX
-    )
+    cal = intr.calibration()
     det = Detector(sensor, world, cal, decimate=2.0)
     render = FrameRenderer(scenario, world, sensor, camera_seed(0, sid))
     errors, covs = [], []
