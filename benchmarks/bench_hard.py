@@ -61,7 +61,6 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.attitude import AttitudeHistory, up_in_body
 from atlas_onboard.core.markerdata import Rejection
-from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.listener import Listener, make_graph
 from atlas_onboard.sim import report, runner, scenarios
@@ -232,7 +231,7 @@ def drone_cameras(
             continue
         frames = np.load(frames_path(directory, sid), mmap_mode="r")
         fps = sensor.camera.fps if sensor.camera and sensor.camera.fps > 0 else 30.0
-        cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
+        cal = intr.calibration()
         yield (
             sensor,
             Detector(sensor, world, cal, decimate=2.0),

@@ -38,7 +38,6 @@ from bench_hard import ENTITY
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.attitude import CameraTurn
-from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim import trajectories as tj
@@ -94,7 +93,7 @@ def run(scenario_name: str, duration_s: float, seed: int = 0) -> dict[str, dict]
             continue
         render = FrameRenderer(scenario, world, sensor, camera_seed(seed, sensor.id))
         fps, n = render.fps, math.floor(duration_s * render.fps)
-        cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
+        cal = intr.calibration()
         variants = {  # name: (detector, attitude at t or None, its turn since the previous frame)
             "image motion": (Detector(sensor, world, cal, decimate=2.0), None, None),
             "attitude": (Detector(sensor, world, cal, decimate=2.0), noisy_attitude(sim, seed),

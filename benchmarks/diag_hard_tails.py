@@ -56,7 +56,6 @@ from bench_hard import node_attitude
 from atlas_onboard.core.attitude import up_in_body
 from atlas_onboard.core.markerdata import Rejection
 from atlas_onboard.detector import pose
-from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.refine import refine_corners_undistorted
 from atlas_onboard.listener import Listener, make_graph
@@ -167,7 +166,7 @@ def offline(args: argparse.Namespace) -> tuple[list[Output], list[Output], float
     ((sid, (sensor, intr)),) = [(k, v) for k, v in sim.cameras.items() if v[0].entity == ENTITY]
     frames = np.load(frames_path(directory, sid), mmap_mode="r")
     fps = sensor.camera.fps if sensor.camera and sensor.camera.fps > 0 else 30.0
-    cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
+    cal = intr.calibration()
     det = Detector(sensor, world, cal, decimate=2.0)
     found_now: list = []
     inner_find = det.find

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.camera import FrameRenderer
@@ -22,7 +21,7 @@ def _camera():
     sensor = world.sensors[1]
     render = FrameRenderer(SC, world, sensor, 0)
     intr = render.intr
-    cal = Calibration(intr.width_px, intr.height_px, intr.camera_matrix, np.asarray(intr.distortion, float))
+    cal = intr.calibration()
     return world, sensor, render, Detector(sensor, world, cal, decimate=2.0)
 
 
