@@ -95,6 +95,10 @@ PAPER_FUSION = FusionConfig(
 REPLAY_REALTIME = "realtime"
 REPLAY_EVERY_FRAME = "every_frame"
 REPLAY_MODES = (REPLAY_REALTIME, REPLAY_EVERY_FRAME)
+READOUT_TOP_DOWN = "top_down"
+READOUT_BOTTOM_UP = "bottom_up"
+READOUT_ORDERS = (READOUT_TOP_DOWN, READOUT_BOTTOM_UP)
+"""A frame's stamp (arrival less ``latency_ms``) is the middle of the exposure of its middle row."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -118,6 +122,15 @@ class CameraConfig:
     latency_ms: float = field(default=0.0, metadata=spec(
         "fixed delay between exposure and the frame's arrival, subtracted from its stamp",
         unit="ms", within="[0, 1000]", noun="a latency"))  # fmt: skip
+    readout_ms: float = field(default=0.0, metadata=spec(
+        "rolling shutter: time from the start of the first row's exposure to the start of the last row's"
+        " (0: a global shutter)", unit="ms", within="[0, 200]", noun="a readout time"))  # fmt: skip
+    readout_order: str = field(default=READOUT_TOP_DOWN, metadata=spec(
+        "which row a rolling shutter reads first: top_down (row 0 first) or bottom_up (a sensor mounted upside"
+        " down)", choices=READOUT_ORDERS))  # fmt: skip
+    exposure_ms: float = field(default=0.0, metadata=spec(
+        "exposure time of each row: a moving camera blurs over it (0: short enough to ignore)",
+        unit="ms", within="[0, 1000]", noun="an exposure time"))  # fmt: skip
     replay: str = field(default="", metadata=spec(
         "file sources: realtime (paced on the file's time, frames it cannot keep up with dropped) or"
         " every_frame (each frame in order, late if the detector is slow); empty: the kind's own (realtime"
