@@ -37,6 +37,14 @@ WIDTH_PX, HEIGHT_PX, FPS_HZ = 640, 480, 20
 HOVER_HEIGHT_M = 1.0
 # Floor tags (tag36h11, 16 cm): id, x, y, yaw deg. All of them fit in the view from the hover.
 TAGS = ((0, 0.0, 0.0, 0.0), (1, 0.25, 0.4, 10.0), (2, -0.25, 0.4, -5.0), (3, -0.25, -0.4, 0.0), (4, 0.25, -0.4, 20.0))
+# Five more between them, for a view of ten (the detector's cost per marker in view).
+MORE_TAGS = (
+    (5, 0.0, 0.4, 5.0),
+    (6, 0.0, -0.4, -10.0),
+    (7, 0.25, 0.0, 15.0),
+    (8, -0.25, 0.0, -15.0),
+    (9, 0.0, 0.2, 30.0),
+)
 TAG_SIZE_M = 0.16
 OPTICS = Optics(hfov_deg=70.0, distortion=(-0.05, 0.01, 0.0, 0.0, 0.0))
 FRAME_PATTERN = "frame-{:05d}.png"  # no 10-digit number: the image folder stamps frames at the camera's fps
@@ -70,10 +78,16 @@ def demo_scenario(seconds: float) -> Scenario:
     )
 
 
-def world_doc(frames_dir: Path, autopilot_port: int) -> dict[str, Any]:
+def floor_tags(n_tags: int) -> tuple[tuple[int, float, float, float], ...]:
+    """The first ``n_tags`` (1-10) floor tags: id, x m, y m, yaw deg; all in view from the hover."""
+    return (TAGS + MORE_TAGS)[:n_tags]
+
+
+def world_doc(frames_dir: Path, autopilot_port: int, n_tags: int = len(TAGS)) -> dict[str, Any]:
     """The demo's world file as a YAML document (the calibration file name is relative to it)."""
     markers = [
-        {"id": i, "size_m": TAG_SIZE_M, "pose": {"pos": [x, y, 0.0], "rpy_deg": [0, 0, yaw]}} for i, x, y, yaw in TAGS
+        {"id": i, "size_m": TAG_SIZE_M, "pose": {"pos": [x, y, 0.0], "rpy_deg": [0, 0, yaw]}}
+        for i, x, y, yaw in floor_tags(n_tags)
     ]
     camera = {
         "source": str(frames_dir),
@@ -111,8 +125,11 @@ def _prepare_dir(directory: Path, force: bool) -> Path:
     return frames_dir
 
 
-def write_demo(directory: Path, seconds: float = 20.0, autopilot_port: int = 14550, force: bool = False) -> Path:
-    """Write the demo into ``directory``: world.yaml, calibration.yaml, frames/ and truth.tum.
+def write_demo(
+    directory: Path, seconds: float = 20.0, autopilot_port: int = 14550, force: bool = False, n_tags: int = len(TAGS)
+) -> Path:
+    """Write the demo into ``directory``: world.yaml, calibration.yaml, frames/ and truth.tum, with ``n_tags``
+    (1-10) floor tags in view.
 
     Returns the path of the world file. Raises :class:`AtlasError` for a non-empty directory
     without ``force``, for arguments out of range and for a directory it cannot write."""
@@ -120,26 +137,29 @@ def write_demo(directory: Path, seconds: float = 20.0, autopilot_port: int = 145
         raise AtlasError(f"--seconds: expected 0 < seconds <= 600, got {seconds:g}")
     if not 1 <= autopilot_port <= 65535:
         raise AtlasError(f"--autopilot-port: expected a UDP port 1..65535, got {autopilot_port}")
+    if not 1 <= n_tags <= len(TAGS) + len(MORE_TAGS):
+        raise AtlasError(f"expected 1 to {len(TAGS) + len(MORE_TAGS)} demo tags, got {n_tags}")
     directory = directory.resolve()
     try:
-        return _write(directory, _prepare_dir(directory, force), seconds, autopilot_port)
+        return _write(directory, _prepare_dir(directory, force), seconds, autopilot_port, n_tags)
     except OSError as exc:
         raise AtlasError(f"{directory}: cannot write the demo ({exc.strerror or exc})") from exc
 
 
-def _write(directory: Path, frames_dir: Path, seconds: float, autopilot_port: int) -> Path:
+def _write(directory: Path, frames_dir: Path, seconds: float, autopilot_port: int, n_tags: int) -> Path:
     from atlas_onboard.sim.camera import FrameRenderer
     from atlas_onboard.sim.runner import write_calibration
     from atlas_onboard.sim.world import Intrinsics
 
     write_calibration(directory / "calibration.yaml", Intrinsics.from_fov(WIDTH_PX, HEIGHT_PX, OPTICS))
     header = WORLD_HEADER.format(
-        n_tags=len(TAGS), tag_cm=TAG_SIZE_M * 100, entity=ENTITY, height_m=HOVER_HEIGHT_M, seconds=seconds,
+        n_tags=n_tags, tag_cm=TAG_SIZE_M * 100, entity=ENTITY, height_m=HOVER_HEIGHT_M, seconds=seconds,
         fps=FPS_HZ, port=autopilot_port,
     )  # fmt: skip
     world_path = directory / "world.yaml"
     world_path.write_text(
-        header + yaml.safe_dump(world_doc(frames_dir, autopilot_port), sort_keys=False, default_flow_style=None),
+        header
+        + yaml.safe_dump(world_doc(frames_dir, autopilot_port, n_tags), sort_keys=False, default_flow_style=None),
         encoding="utf-8",
     )
     world = load_world(world_path)  # the file a user will run: it must load as written
