@@ -75,7 +75,7 @@ class Node:
         self.config_path = config_path
         blocks = wire(world, config, transport)
         self._use(blocks)
-        self.refinement: LiveRefinement | None = None  # live map refinement (issue 21), opt-in
+        self.refinement: LiveRefinement | None = None  # live map refinement, opt-in
         if config.refine is not None:
             self.enable_refinement(config.refine)
         self.stats = Stats()

@@ -1,4 +1,4 @@
-"""Live map refinement in the node (issue 21, opt-in: ``nodes.<entity>.refine`` or ``run --write-map``).
+"""Live map refinement in the node (opt-in: ``nodes.<entity>.refine`` or ``run --write-map``).
 
 The node hands every observation it accepted (its own cameras' and its peers') to :class:`LiveRefinement`,
 which groups them by image (sensor and capture stamp) and gives each image's world markers to the pure

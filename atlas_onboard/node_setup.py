@@ -36,7 +36,7 @@ class WorldBlocks:
 
 
 def wire(world: WorldConfig, config: NodeConfig, transport: Transport) -> WorldBlocks:
-    """The blocks of ``world`` for the node ``config``; the autopilot's attitude (issue 19), if the
+    """The blocks of ``world`` for the node ``config``; the autopilot's attitude, if the
     transport keeps one, resolves single tags' flips."""
     graph = make_graph(world, config.entity)
     listener = Listener(world, graph)

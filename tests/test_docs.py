@@ -1,5 +1,5 @@
 """README.md is the user's entry point: at most 10 KB, linking every document; the documents' links
-resolve; the documents describe the product as it is (git keeps its history)."""
+resolve; the documents, the code and the tests describe the product as it is (git keeps its history)."""
 
 import re
 from pathlib import Path
@@ -43,4 +43,26 @@ def test_documents_hold_no_history_of_earlier_versions():
             m = HISTORY.search(line)
             if m:
                 found.append(f"{page.relative_to(ROOT)}:{n}: {m.group(0)}")
+    assert not found, found
+
+
+# In code and tests: issue tags, comparisons with an earlier main and figures "it was": the commit
+# messages and closing notes keep those, the code says what it does now.
+CODE_HISTORY = re.compile(
+    r"\b(issue \d+|issues? #\d+|on main|this stop|last stop|in earlier versions|formerly)\b"
+    r"|\bwas \d+(\.\d+)? ?(%|mm|ms|px)",
+    re.IGNORECASE,
+)
+
+
+def test_code_and_tests_hold_no_history_of_earlier_versions():
+    found = []
+    for tree in ("atlas_onboard", "tests"):
+        for path in sorted((ROOT / tree).rglob("*.py")):
+            if path == Path(__file__).resolve():
+                continue
+            for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+                m = CODE_HISTORY.search(line)
+                if m:
+                    found.append(f"{path.relative_to(ROOT)}:{n}: {m.group(0)}")
     assert not found, found

@@ -1,4 +1,4 @@
-"""fusion.method: ``paper`` reproduces the paper's method (issue 19); the default is the best measured
+"""fusion.method: ``paper`` reproduces the paper's method; the default is the best measured
 combination; keys set beside ``method: paper`` still apply."""
 
 import dataclasses
@@ -28,7 +28,7 @@ def test_a_key_beside_method_paper_still_applies_and_no_section_is_the_default()
 
 
 def test_the_default_differs_from_the_paper():
-    """The defaults are not the paper's method (issue 19: a user who reads no table gets the best row)."""
+    """The defaults are not the paper's method (a user who reads no table gets the best row)."""
     differ = [
         k
         for k in ("path", "weighting", "age_sigma_m_per_s", "filter")

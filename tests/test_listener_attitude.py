@@ -1,4 +1,4 @@
-"""Issue 19, MegaTag2-style: the autopilot's roll and pitch pick a single tag's IPPE solution. Rendered
+"""MegaTag2-style: the autopilot's roll and pitch pick a single tag's IPPE solution. Rendered
 images of a small tag far away and nearly face-on (where IPPE flips), detected by the real detector,
 resolved by the listener with a noisy gravity reference and no pose estimate at all."""
 

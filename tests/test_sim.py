@@ -14,7 +14,7 @@ from atlas_onboard.sim.command import score_run, write_outputs
 from atlas_onboard.sim.runner import WARMUP_S, SimOptions, _rendered_frames, run
 from tests.helpers import PAPER_FUSION
 
-# The paper's method with ageing: what the replica files and relay/swarm ran before issue 19.
+# The paper's method with ageing: what the replica files and relay/swarm run.
 AGEING = {"method": "paper", "age_sigma_m_per_s": 1.0}
 
 

@@ -138,7 +138,7 @@ class Detector:
         self.joint_solve = JointSolve(
             self.sensor, self.world, self.calibration, self.marker_pose, self.sizes, self.counters
         )
-        # The live world-file check (issue 21): moved and suspect markers, measured places, what is said.
+        # The live world-file check: moved and suspect markers, measured places, what is said.
         world_markers = {m: T for m, T in self.marker_pose.items() if self.entity_of[m] == WORLD}
         self.world_check = WorldCheck(
             self.sensor,
@@ -253,7 +253,7 @@ class Detector:
             if refined is None:
                 # The library's corners are straight-line fits in the distorted image: where the edge fit
                 # fails (near the image's edge, under strong distortion or blur) they were off by many
-                # times the corner noise, a wrong pose with a small sigma (issue 19). Not used.
+                # times the corner noise, a wrong pose with a small sigma. Not used.
                 self.counters["refine_failed"] += 1
                 self.report.dropped[d.marker_id] = "corner refinement failed"
                 continue

@@ -1,5 +1,5 @@
 """The link to the own autopilot, held by :class:`~atlas_onboard.mavlink.transport.MavlinkTransport`: the
-autopilot's HEARTBEAT, TIMESYNC answers, the EKF origin, its attitude (issue 19) and the pose sent to it."""
+autopilot's HEARTBEAT, TIMESYNC answers, the EKF origin, its attitude and the pose sent to it."""
 
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ class AutopilotLink:
         self._origin_sets = 0
         self._origin_skipped = False
         self.origin_known = False
-        # --- the autopilot's attitude (issue 19): gravity for a single tag's ambiguity ---
+        # --- the autopilot's attitude: gravity for a single tag's ambiguity ---
         self.attitude = AttitudeHistory()
         self._boot_clock = BootClock()
         self._attitude_asks = 0

@@ -86,7 +86,7 @@ class MavlinkTransport:
 
     @property
     def attitude(self) -> AttitudeHistory:
-        """The autopilot's attitude history (issue 19): gravity for a single tag's ambiguity."""
+        """The autopilot's attitude history: gravity for a single tag's ambiguity."""
         return self.autopilot_link.attitude
 
     # --- Transport ------------------------------------------------------------------------------------

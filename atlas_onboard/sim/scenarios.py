@@ -308,7 +308,7 @@ def _hard_near() -> Scenario:
     return _flights(
         {"drone": _figure_eight(near)},
         name="hard-near",
-        description="hard with 30 cm tags and every length x0.63 (a per-frame floor like issue 19's scene)",
+        description="hard with 30 cm tags and every length x0.63 (a per-frame floor like a real hangar's scene)",
         world_file="hard-near.yaml",
         duration_s=30.0,
         optics={"drone.front": _HARD_OPTICS},
@@ -323,7 +323,7 @@ def _hard_near() -> Scenario:
 
 
 def _map() -> Scenario:
-    # Issue 21: two drones survey a room (floor and walls) for the mapper; yaw sweeps so every wall is seen.
+    # Two drones survey a room (floor and walls) for the mapper; yaw sweeps so every wall is seen.
     def drone(k: int, center: tuple[float, float, float], amp: tuple[float, float, float]) -> tj.Quadrotor:
         return tj.Quadrotor(
             path=tj.lissajous(center, amp, (0.043 + 0.01 * k, 0.067, 0.05), (0.0, k * 1.3, 0.5)),

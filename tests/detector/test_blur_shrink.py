@@ -1,4 +1,4 @@
-"""Blur pulls a small marker's edges inwards (issue 19): once an edge's ramp spans more than about half
+"""Blur pulls a small marker's edges inwards: once an edge's ramp spans more than about half
 a cell, the one-cell white quiet zone never reaches its level between the black border and the darker
 floor beyond it, so the half-level edges sit inside the true ones and the square looks too small (its
 depth too large). The corners' covariance must cover that, measured against rendered truth."""

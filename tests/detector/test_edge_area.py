@@ -1,4 +1,4 @@
-"""The edge fit against markers drawn by exact pixel area (issue 19: a single tag's covariance honest, not
+"""The edge fit against markers drawn by exact pixel area (a single tag's covariance honest, not
 only safe): pixels integrate the image over their area, so an edge is where a step of the same area
 would be; the half-level crossing of interpolated pixels misses a sharp edge by up to a tenth of a pixel
 by where it falls between pixel centres, alike all along an edge that lies along a pixel axis, which no

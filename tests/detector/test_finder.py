@@ -1,4 +1,4 @@
-"""The tracking finder (issue 19, class 5) on rendered 640x480 frames over a concrete floor, against the
+"""The tracking finder on rendered 640x480 frames over a concrete floor, against the
 drawn truth: small far markers found on the first frame of a hunt (not a grid's worth of frames later),
 a marker that comes into a part of the floor searched just before, a small marker kept through a fast
 turn of the camera, and no false ids on the floor's texture."""

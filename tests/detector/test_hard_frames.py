@@ -1,4 +1,4 @@
-"""The detector on hard frames (issue 19), against ground truth: markers cut by the image border, single
+"""The detector on hard frames, against ground truth: markers cut by the image border, single
 markers over the whole of a strongly distorted 640x480 image with noise and blur on a concrete floor
 (the 6x6 covariance must be honest there too), and a world file with one marker moved."""
 
@@ -116,7 +116,7 @@ def test_single_marker_covariance_is_honest_over_the_whole_distorted_image(whole
 
 
 def test_single_marker_covariance_is_neither_cautious_nor_overconfident(whole_image_errors):
-    """Issue 19: honest means both. Over the whole distorted image (blur, noise, 0.4-3 m, 0-70 deg) the
+    """Honest means both. Over the whole distorted image (blur, noise, 0.4-3 m, 0-70 deg) the
     mean NEES is near its dimension (3 for the position, 6 for the pose; a covariance several times too
     large hides real errors in the autopilot's gate as surely as one too small), and at least 99 % of
     the detections lie within 3 sigma on every axis. The position's lower bound is 1.0, not 1.5: the

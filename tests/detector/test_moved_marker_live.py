@@ -1,4 +1,4 @@
-"""The live world-file check in the detector (issue 21): a marker the world file puts 10 cm off is
+"""The live world-file check in the detector: a marker the world file puts 10 cm off is
 named after many images, with its offset, and is then no longer used on its own; one that fits is
 never named."""
 
@@ -138,7 +138,7 @@ def test_a_pair_that_disagrees_uses_the_marker_others_agree_with_and_a_put_back_
 
 
 def test_a_marker_seen_only_in_pairs_is_named_once_the_pairs_evidence_is_sound(caplog):
-    """No three markers together (the scene of issue 19): pairs alone name the marker, with its offset."""
+    """No three markers together (a hangar's scene): pairs alone name the marker, with its offset."""
     world, spots = moved_marker_world(5, 0.10)
     det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
     trusted = moved_marker_image({1: spots[1], 2: spots[2]})[0]

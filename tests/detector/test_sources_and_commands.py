@@ -157,8 +157,7 @@ def test_detect_command_on_a_real_photo(tmp_path):
     rows = [json.loads(line) for line in proc.stdout.splitlines()]
     assert [r["marker_id"] for r in rows] == [403]
     # The source's own expectation (fiducial_slam's auto_init_403 test): marker 403 in base_link at
-    # (0.7611, 0.2505, 0.4028) m, with the camera at base_link (x y z yaw pitch roll) below. IPPE
-    # alone was 4.8 mm off (0.7656, 0.2511, 0.4043); refined to the least-squares pose, 0.5 mm.
+    # (0.7611, 0.2505, 0.4028) m, with the camera at base_link (x y z yaw pitch roll) below.
     cam = Rotation.from_euler("ZYX", [-1.479119, -0.041544, -1.204205])
     p_base = cam.apply(rows[0]["p_sensor_marker_m"]) + np.array([0.035, 0.145, 0.14])
     np.testing.assert_allclose(p_base, [0.7611, 0.2505, 0.4028], atol=0.002)

@@ -1,4 +1,4 @@
-"""Issue 19, failure class 2: a single full tag near the edge of a distorted image whose corners the edge
+"""A single full tag near the edge of a distorted image whose corners the edge
 fit cannot refine was reported from the library's straight-line corners, centimetres off with a sigma
 of about 2 mm. On rendered frames of the hard-near scenario (tags of ~70 px near the left border, barrel
 distortion, blur): every reported detection must lie within 5 of its sigmas of the truth."""

@@ -1,4 +1,4 @@
-"""End to end (issue 19): a node process whose autopilot does not stream ATTITUDE asks for it
+"""End to end: a node process whose autopilot does not stream ATTITUDE asks for it
 (MAV_CMD_SET_MESSAGE_INTERVAL), and then uses the autopilot's roll and pitch to pick the right solution
 of a single tag seen with IPPE's flip chosen, with no pose estimate to resolve it otherwise."""
 

@@ -1,4 +1,4 @@
-"""End to end over 127.0.0.1 (issue 21): node processes replay a simulated flight's recording (its
+"""End to end over 127.0.0.1: node processes replay a simulated flight's recording (its
 frames at their recorded capture stamps) to simulated autopilots, at the same time:
 
 - ``plain``: the poses are the recorded flight's truth, and nothing is reported moved;

@@ -1,4 +1,4 @@
-"""End to end over 127.0.0.1 (issue 21, live map refinement): two drones' node processes replay their
+"""End to end over 127.0.0.1 (live map refinement): two drones' node processes replay their
 simulated cameras (the ``map`` scenario, recorded once) and share their observations over MAVLink; their
 world file has one marker 10 cm from where it is.
 

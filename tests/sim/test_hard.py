@@ -1,4 +1,4 @@
-"""The hard scenario (issue 19): the scene has the features it is built for (checked on geometry and on
+"""The hard scenario: the scene has the features it is built for (checked on geometry and on
 its rendered images), and a short run of it is scored against ground truth."""
 
 import cv2
@@ -101,7 +101,7 @@ def test_a_marker_cut_by_the_border_is_drawn(render):
 
 def test_a_short_run_of_the_hard_scenario_against_ground_truth():
     """4 s of the hard scene through the real node with the default settings: what holds today (the
-    bars of issue 19 are the benchmark's, benchmarks/bench_hard.py)."""
+    bars are the benchmark's, benchmarks/bench_hard.py)."""
     sim = run(SimOptions(scenario="hard", duration_s=4))
     rep, _ = score_run(sim)
     print(rep.table())

@@ -1,4 +1,4 @@
-"""Issue 19: the 6x6 covariance a relay's drones publish is honest as a whole (rendered frames, the real
+"""The 6x6 covariance a relay's drones publish is honest as a whole (rendered frames, the real
 detector, listener and graph of each drone's node, the 21 floats of the message as float32)."""
 
 import numpy as np

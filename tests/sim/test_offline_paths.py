@@ -1,4 +1,4 @@
-"""Issue 19's path choice scored offline: the same rendered frames, real detector, listener and graph as
+"""The path choice scored offline: the same rendered frames, real detector, listener and graph as
 a live run (:mod:`atlas_onboard.sim.offline`), with no processes or clocks, so the comparison of two
 estimators measures the estimators, not the machine's load."""
 

@@ -1,4 +1,4 @@
-"""The scores issue 19's bars need, on constructed records: share within 3 sigma per axis, availability
+"""The scores the benchmarks' bars need, on constructed records: share within 3 sigma per axis, availability
 against the time a tag is in view, and reset_counter changes against real re-acquisitions."""
 
 import numpy as np

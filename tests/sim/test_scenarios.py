@@ -1,4 +1,4 @@
-"""The scenarios built for issue 7, checked on geometry alone (no node runs): the detection gaps of
+"""The scenarios, checked on geometry alone (no node runs): the detection gaps of
 ``gaps`` and the two paths of ``paths`` are where they are meant to be."""
 
 import dataclasses

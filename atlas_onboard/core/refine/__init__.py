@@ -1,4 +1,4 @@
-"""Live refinement of the world map from the swarm's observations (issue 21): evidence per marker,
+"""Live refinement of the world map from the swarm's observations: evidence per marker,
 its robust mean and covariance, and when a marker's refined pose may replace the world file's.
 
 Evidence comes one image at a time: the world markers one camera saw in one image, each with its own
