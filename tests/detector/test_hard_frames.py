@@ -101,20 +101,6 @@ def whole_image_errors():
     return out
 
 
-def test_single_marker_covariance_is_honest_over_the_whole_distorted_image(whole_image_errors):
-    assert len(whole_image_errors) >= 40
-    nees3 = np.array([e[:3] @ np.linalg.solve(C[:3, :3], e[:3]) for e, C in whole_image_errors])
-    nees6 = np.array([e @ np.linalg.solve(C, e) for e, C in whole_image_errors])
-    within = np.mean([np.abs(e) <= 3 * np.sqrt(np.diag(C)) for e, C in whole_image_errors], axis=0)
-    print(f"NEES3 mean {nees3.mean():.2f} median {np.median(nees3):.2f}; NEES6 mean {nees6.mean():.2f}; "
-          f"within 3 sigma per axis {np.round(within, 3)}")  # fmt: skip
-    # Overconfidence is what crashes a drone: the tails must be within 3 sigma, the means not above
-    # their dimension (3 and 6) by half, nor so far below it that the covariance says nothing.
-    assert np.all(within >= 0.98)
-    assert 0.3 <= nees3.mean() <= 4.5
-    assert 0.6 <= nees6.mean() <= 9.0
-
-
 def test_single_marker_covariance_is_neither_cautious_nor_overconfident(whole_image_errors):
     """Honest means both. Over the whole distorted image (blur, noise, 0.4-3 m, 0-70 deg) the
     mean NEES is near its dimension (3 for the position, 6 for the pose; a covariance several times too
@@ -122,6 +108,7 @@ def test_single_marker_covariance_is_neither_cautious_nor_overconfident(whole_im
     the detections lie within 3 sigma on every axis. The position's lower bound is 1.0, not 1.5: the
     scatter of a sharp oblique edge's points holds the pixel grid's pattern, which the line fit averages
     out, so sharp markers stay cautious (the bench's bar, over more detections, is 1.5)."""
+    assert len(whole_image_errors) >= 40
     nees3 = np.array([e[:3] @ np.linalg.solve(C[:3, :3], e[:3]) for e, C in whole_image_errors])
     nees6 = np.array([e @ np.linalg.solve(C, e) for e, C in whole_image_errors])
     within = np.mean([np.abs(e) <= 3 * np.sqrt(np.diag(C)) for e, C in whole_image_errors], axis=0)
