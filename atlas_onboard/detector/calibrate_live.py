@@ -18,7 +18,6 @@ at the end of a file, or on Ctrl-C; then it calibrates with what it kept (:func:
 
 from __future__ import annotations
 
-import argparse
 import enum
 import math
 from collections import Counter
@@ -29,10 +28,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from atlas_onboard.config import CameraConfig
-from atlas_onboard.detector.calibrate import MIN_CORNERS, MIN_VIEWS
-from atlas_onboard.detector.sources import open_source
-from atlas_onboard.errors import AtlasError
+from atlas_onboard.detector.calibrate import MIN_CORNERS
 
 GRID_COLS, GRID_ROWS = 6, 4
 TILT_BINS_DEG = (15.0, 30.0)  # below 15 deg: facing; 15-30 and above 30 deg, in four directions each
@@ -248,43 +244,3 @@ def collect_views(
         elif selector.frames % report_every == 0:
             report(f"{selector.frames} frames: refused {selector.refusals_text()}; coverage {selector.coverage.text()}")
     return selector
-
-
-def capture_views(args: argparse.Namespace, board: cv2.aruco.CharucoBoard) -> list[NDArray[np.uint8]]:
-    """The CLI's ``--device``: views kept from the camera until enough, its end or Ctrl-C, with the
-    coverage printed as it goes and at the end; they are written to ``--save-views`` if given."""
-    if args.views < MIN_VIEWS or not MIN_VIEWS <= args.min_views <= args.views:
-        raise AtlasError(f"--views/--min-views: expected {MIN_VIEWS} <= min-views <= views, got {args.min_views}"
-                         f" and {args.views}")  # fmt: skip
-    camera = CameraConfig(
-        source=str(args.device), width_px=args.width, height_px=args.height, fps=args.fps, fourcc=args.fourcc
-    )
-    source = open_source(camera, fast=True)
-    selector = ViewSelector(board, max_edge_px=args.max_edge_px, max_motion_px=args.max_motion_px)
-    print(f"capturing from {args.device}: hold the board still in many places, tilts and distances; Ctrl-C ends",
-          flush=True)  # fmt: skip
-    try:
-        collect_views((f.gray for f in source.frames()), selector, args.views, args.min_views,
-                      lambda line: print(line, flush=True))  # fmt: skip
-    except KeyboardInterrupt:
-        print("stopped (Ctrl-C)", flush=True)
-    finally:
-        source.close()
-    print(f"{len(selector.kept)} views kept of {selector.frames} frames; refused {selector.refusals_text()}")
-    print(f"coverage {selector.coverage.text()} (image cells, '#' covered):")
-    print(selector.coverage.grid())
-    missing = sorted(Coverage.all_pose_bins() - selector.coverage.pose_bins)
-    if missing:
-        print(f"poses not seen: {', '.join(missing)}")
-    if not selector.kept and selector.refused[Refusal.BLURRED]:
-        print(f"every view with the board was blurred: more light, focus, or a larger --max-edge-px"
-              f" (now {args.max_edge_px:g})")  # fmt: skip
-    if args.save_views is not None:
-        try:
-            args.save_views.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise AtlasError(f"--save-views: cannot create {args.save_views} ({exc.strerror})") from None
-        for k, img in enumerate(selector.kept):
-            if not cv2.imwrite(str(args.save_views / f"view-{k:03d}.png"), img):
-                raise AtlasError(f"--save-views: cannot write {args.save_views}")
-    return selector.kept

@@ -137,10 +137,7 @@ def marker_svg(family_name: str, marker_id: int, size_m: float) -> str:
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Register ``detect``, ``markers`` and ``calibrate``."""
-    from atlas_onboard.detector.calibrate import add_commands as add_calibrate
-
-    add_calibrate(sub)
+    """Register ``detect`` and ``markers``."""
     p = sub.add_parser("detect", help="run the detector on an image, a video or a device and print MarkerData")
     p.add_argument("--config", required=True, type=Path, help="world file")
     p.add_argument("--sensor", required=True, help="sensor name or id")

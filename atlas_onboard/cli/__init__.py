@@ -117,6 +117,7 @@ def build_parser(every_command: bool = True) -> argparse.ArgumentParser:
     if not every_command:
         return parser
 
+    from atlas_onboard.cli.calibrate import add_commands as add_calibrate
     from atlas_onboard.detector.commands import add_commands as add_detector
     from atlas_onboard.install import add_commands as add_install
     from atlas_onboard.mapping.command import add_commands as add_mapping
@@ -126,6 +127,7 @@ def build_parser(every_command: bool = True) -> argparse.ArgumentParser:
 
     add_sim(sub)
     add_demo(sub)
+    add_calibrate(sub)
     add_detector(sub)
     add_install(sub)
     add_params(sub)
