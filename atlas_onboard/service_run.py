@@ -76,7 +76,7 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
         from atlas_onboard.detector.calibration import load as load_calibration
         from atlas_onboard.detector.camera import CameraWorker
         from atlas_onboard.detector.pipeline import Detector
-        from atlas_onboard.mapping.recording import is_recording, read_info
+        from atlas_onboard.recording.format import is_recording, read_info
 
         if cam.calibration is not None:
             calibration = load_calibration(cam.calibration)
@@ -129,7 +129,7 @@ def run_node(
     if refine is not None:
         node.enable_refinement(refine)
     if record is not None:
-        from atlas_onboard.mapping import onboard
+        from atlas_onboard.recording import onboard
 
         for recorder in onboard.start(cameras, world, name, record):
             recorder.attitude_at = _attitude_wxyz(transport)

@@ -232,7 +232,7 @@ def localise(result: mb.MapResult, doc: dict, recording: Path) -> None:
     together) against the truth, on the true map and on the built one."""
     from atlas_onboard.config import parse_world
     from atlas_onboard.detector.pipeline import Detector
-    from atlas_onboard.mapping.recording import read_frames, read_info
+    from atlas_onboard.recording.format import read_frames, read_info
     from atlas_onboard.sim import scenarios
     from atlas_onboard.sim.world import SimWorld
 

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from atlas_onboard.mapping.recording import read_frames
+from atlas_onboard.recording.format import read_frames
 from atlas_onboard.sim import recordings, scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 

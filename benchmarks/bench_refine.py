@@ -33,8 +33,8 @@ import yaml
 from atlas_onboard.config import RefineConfig, load_world
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.mapping.recording import read_frames, read_info
 from atlas_onboard.node_refine import LiveRefinement, PerMarkerSampler
+from atlas_onboard.recording.format import read_frames, read_info
 from atlas_onboard.sim import recordings, scenarios
 from atlas_onboard.sim.world import SimWorld
 

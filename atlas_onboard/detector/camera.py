@@ -16,7 +16,7 @@ from atlas_onboard.core.attitude import CameraTurn
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import Frame, Source, SourceError, open_source
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mapping.recording import BackgroundRecorder
+from atlas_onboard.recording.format import BackgroundRecorder
 from atlas_onboard.worker import Deliver, SensorWorker
 
 _logger = logging.getLogger(__name__)
@@ -37,7 +37,7 @@ class CameraWorker(SensorWorker):
         self._latest: Frame | None = None
         self._lock = threading.Lock()
         self._have = threading.Event()
-        # ``run --record`` (mapping.onboard): each detected frame goes to it after its observations.
+        # ``run --record`` (recording.onboard): each detected frame goes to it after its observations.
         self.recorder: BackgroundRecorder | None = None
         self._turn: CameraTurn | None = None  # made when the autopilot's attitude is first there
 
@@ -48,7 +48,7 @@ class CameraWorker(SensorWorker):
     def stop(self) -> None:
         super().stop()
         if self.recorder is not None:  # what is queued is written before the node's final counters
-            from atlas_onboard.mapping.onboard import finish
+            from atlas_onboard.recording.onboard import finish
 
             finish(self.recorder, self.name)
 

@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 from atlas_onboard.config import REPLAY_EVERY_FRAME, REPLAY_REALTIME, CameraConfig
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mapping.recording import RecordingError, is_recording, read_frames, read_info
+from atlas_onboard.recording.format import RecordingError, is_recording, read_frames, read_info
 
 _logger = logging.getLogger(__name__)
 
@@ -166,7 +166,7 @@ class ImageFolder(Source):
 
 
 class RecordingSource(Source):
-    """A recording's frames (:mod:`atlas_onboard.mapping.recording`), each at its recorded capture
+    """A recording's frames (:mod:`atlas_onboard.recording.format`), each at its recorded capture
     stamp shifted to the replay's start: the node sees the flight's own frame timing."""
 
     live = False

@@ -1,6 +1,6 @@
 """``atlas-onboard record`` and ``atlas-onboard map``: record what a camera sees; build the marker map.
 
-Both are thin layers over :mod:`atlas_onboard.mapping.recording` and :mod:`atlas_onboard.mapping.build`.
+Both are thin layers over :mod:`atlas_onboard.recording.format` and :mod:`atlas_onboard.mapping.build`.
 Nothing is written when the map cannot be built: the world file and the report are written to
 temporary files and renamed at the end.
 """
@@ -250,7 +250,7 @@ def _cmd_record(args: argparse.Namespace) -> int:
     from atlas_onboard.detector.calibration import load as load_calibration
     from atlas_onboard.detector.pipeline import Detector
     from atlas_onboard.detector.sources import SourceError, open_source
-    from atlas_onboard.mapping.recording import BackgroundRecorder, RecordingWriter, disk_free_bytes
+    from atlas_onboard.recording.format import BackgroundRecorder, RecordingWriter, disk_free_bytes
 
     world = load_world(args.config)
     sensor = next((s for s in world.sensors.values() if args.sensor in (s.name, str(s.id))), None)

@@ -20,7 +20,7 @@ from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.calibration import load as load_calibration
 from atlas_onboard.detector.sources import IMAGE_SUFFIXES, SourceError
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mapping.recording import RecordingError, is_recording, read_frames, read_info
+from atlas_onboard.recording.format import RecordingError, is_recording, read_frames, read_info
 
 
 class MapError(AtlasError):

@@ -9,7 +9,7 @@ import numpy as np
 import yaml
 
 from atlas_onboard.config import load_world
-from atlas_onboard.mapping.recording import RecordingWriter
+from atlas_onboard.recording.format import RecordingWriter
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.camera import frames_path, prerender
 from atlas_onboard.sim.world import SimWorld

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from atlas_onboard.config import load_world
-from atlas_onboard.mapping.recording import read_frames
+from atlas_onboard.recording.format import read_frames
 from atlas_onboard.sim import recordings, scenarios
 from atlas_onboard.sim.autopilot import Received, SimAutopilot
 from atlas_onboard.sim.world import SimWorld

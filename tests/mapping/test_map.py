@@ -172,7 +172,7 @@ def test_unreadable_recording_is_refused(tmp_path: Path, capsys: pytest.CaptureF
 
 def test_recording_without_frames_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from atlas_onboard.detector.calibration import Calibration
-    from atlas_onboard.mapping.recording import RecordingWriter
+    from atlas_onboard.recording.format import RecordingWriter
 
     K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
     RecordingWriter(tmp_path / "rec", Calibration(640, 480, K, np.zeros(5))).close()

@@ -11,7 +11,7 @@ import pytest
 
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.calibration import Calibration
-from atlas_onboard.mapping import recording as rec
+from atlas_onboard.recording import format as rec
 
 K = np.array([[400.0, 0.0, 79.5], [0.0, 400.0, 59.5], [0.0, 0.0, 1.0]])
 CAL = Calibration(160, 120, K, np.array([-0.1, 0.01, 0.0, 0.0, 0.0]))

@@ -17,10 +17,10 @@ from atlas_onboard.config import CameraConfig, ConfigError, RecordConfig, load_n
 from atlas_onboard.detector import sources
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.camera import CameraWorker
-from atlas_onboard.mapping import onboard
-from atlas_onboard.mapping import recording as rec
+from atlas_onboard.recording import format as rec
+from atlas_onboard.recording import onboard
 from tests.e2e.helpers import wait_for, write_world
-from tests.mapping.test_recording import gated_writer
+from tests.recording.test_format import gated_writer
 
 K = np.array([[100.0, 0.0, 15.5], [0.0, 100.0, 11.5], [0.0, 0.0, 1.0]])
 CAL = Calibration(32, 24, K, np.zeros(5))

@@ -1,6 +1,6 @@
 """``run --record``: the running node records each of its cameras as it flies (docs/mapping.md).
 
-Each camera gets a :class:`~atlas_onboard.mapping.recording.BackgroundRecorder` in a new directory
+Each camera gets a :class:`~atlas_onboard.recording.format.BackgroundRecorder` in a new directory
 ``DIR/<UTC time>-<entity>-<sensor>``: the camera thread offers each frame it detected, after its
 observations went to the node, to a bounded queue; a writer thread encodes and writes it (OpenCV's
 encoder and the file writes release the GIL). Nothing here can stop the node: a directory that cannot
@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from atlas_onboard.config import RecordConfig, WorldConfig
-from atlas_onboard.mapping.recording import BackgroundRecorder, RecordingError, RecordingWriter, disk_free_bytes
+from atlas_onboard.recording.format import BackgroundRecorder, RecordingError, RecordingWriter, disk_free_bytes
 
 _logger = logging.getLogger(__name__)
 
