@@ -50,8 +50,9 @@ from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, _library_detector
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.families import opencv_dictionary
-from atlas_onboard.detector.pipeline import BORDER_MARGIN_PX, Detector
+from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.render import LENS_RESIDUAL_PX, Camera, MarkerView, render
+from atlas_onboard.detector.search import BORDER_MARGIN_PX
 from atlas_onboard.listener import ESTIMATE_ATTITUDE_SIGMA_RAD
 
 SIZE = 0.15

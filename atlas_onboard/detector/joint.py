@@ -1,7 +1,7 @@
 """The joint solve of the markers of one entity seen together: a marker that does not fit with the others
-is left out, and the verdict goes to the live check of the world file (:mod:`atlas_onboard.detector.worldcheck`,
-which counts, logs and announces it). The detector (:class:`atlas_onboard.detector.pipeline.Detector`) holds a
-:class:`JointSolve` and calls it."""
+is left out. Its result (:class:`~atlas_onboard.detector.records.JointResult`) goes to the live check of the
+world file (:mod:`atlas_onboard.detector.worldcheck`, which counts, logs and announces the verdicts). The
+detector (:class:`atlas_onboard.detector.pipeline.Detector`) holds a :class:`JointSolve` and calls it."""
 
 from __future__ import annotations
 
@@ -9,22 +9,17 @@ import logging
 import math
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import SensorConfig, WorldConfig
-from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper
 from atlas_onboard.detector import joint_covariance, pose
 from atlas_onboard.detector.calibration import Calibration
-from atlas_onboard.detector.search import _side
-
-if TYPE_CHECKING:  # annotations only: these modules import this one
-    from atlas_onboard.detector.pipeline import FrameReport
-    from atlas_onboard.detector.worldcheck import WorldCheck
+from atlas_onboard.detector.records import JointResult, LeftOut, SingleSolve, marker_data
+from atlas_onboard.detector.search import side
 
 _logger = logging.getLogger(__name__)
 
@@ -42,18 +37,6 @@ class Disagreement:
     capture_time_us: int
 
 
-@dataclass(frozen=True)
-class _Single:
-    """One marker's own solve: its pose, undistorted corners (4, 2), their undistortion Jacobian
-    (:func:`pose.undistortion_jacobian`, None without distortion) and measured corner noise (px)."""
-
-    pose: pose.MarkerPose
-    corners: NDArray[np.float64]
-    stretch: NDArray[np.float64] | None
-    measured_px: float
-    corner_cov: NDArray[np.float64] | None = None  # (8, 8), px^2: refine.RefinedCorners.covariance
-
-
 @dataclass
 class JointSolve:
     """The joint solve of one sensor's detector, held by :class:`~atlas_onboard.detector.pipeline.Detector`:
@@ -61,8 +44,6 @@ class JointSolve:
 
     ``sensor``, ``world``, ``calibration``: the detector's; ``marker_pose``: the pose of each marker it sees
     in its entity (``T_entity_marker``); ``sizes``: their sides (m); ``counters``: the detector's (shared).
-    ``world_check``: the live check of the world file that the solve's verdicts go to, set by the detector
-    once made (that check in turn asks this solve for offsets and records).
     """
 
     sensor: SensorConfig
@@ -71,29 +52,21 @@ class JointSolve:
     marker_pose: Mapping[int, RigidTransform]
     sizes: Mapping[int, float]
     counters: Counter[str]
-    misfit_pair: list[int] = field(default_factory=list)  # the last robust solve's two markers that disagreed
-    world_check: WorldCheck = field(init=False)
 
-    def robust(
-        self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int, report: FrameReport
-    ) -> tuple[MarkerData | None, list[int] | None]:
+    def robust(self, ids: list[int], singles: dict[int, SingleSolve], capture_time_us: int) -> JointResult:
         """The entity's observation from the markers that fit together, and the ids used.
 
         When all of them do not fit (:meth:`solve`), the marker whose removal fits the rest best is
         left out, again while they do not fit and at least two remain: a moved or mis-measured marker
         costs only itself. Two markers that disagree cannot say which of them moved: neither is used
-        (they are :attr:`misfit_pair`). Returns (None, ids) when the joint solve failed (the squares are
-        then reported one by one), (None, None) when no subset of two or more fits. Why a marker was not
-        used goes to ``report``.
+        (they are the result's ``misfit_pair``). The result's ``used`` is all ids when the joint solve
+        failed (the squares are then reported one by one), None when no subset of two or more fits.
         """
-        check = self.world_check
         md, misfit = self.solve(ids, singles, capture_time_us)
-        self.misfit_pair = []
         if md is not None or not misfit:
-            if md is not None:
-                check.record_group(entity, ids, [], singles, capture_time_us)
-            return md, ids
+            return JointResult(md, ids)
         used = list(ids)
+        left_out: list[LeftOut] = []
         while len(used) > 2:
             trials = []
             for m in used:
@@ -104,27 +77,17 @@ class JointSolve:
             if not trials:
                 break
             _, m, used, md = min(trials, key=lambda t: t[0])
-            offset = self._offset_m(m, used, singles)
-            check.disagrees(entity, m, offset, capture_time_us, report)
+            left_out.append(self._left_out(m, used, singles))
             if md is not None:
                 self.counters["joint"] += 1
                 self.counters["joint_without_disagreeing"] += 1
-                check.record_group(entity, used, [i for i in ids if i not in used], singles, capture_time_us)
-                return md, used
-        for m in used:
-            report.dropped.setdefault(m, "joint misfit: the markers do not fit together as placed")
+                return JointResult(md, used, left_out)
         if len(used) == 2:
             a, b = used
-            self.misfit_pair = [a, b]
-            check.consistency.add(capture_time_us, entity, a, b, False)
-            offset = self._offset_m(b, [a], singles)
-            report.dropped[a] = report.dropped[b] = (
-                f"joint misfit, markers {a} and {b} disagree by {offset * 100:.1f} cm"
-            )
-            check.log_disagreement(entity, f"markers {a} and {b} disagree", offset, capture_time_us)
-        return None, None
+            return JointResult(None, None, left_out, [a, b], self._left_out(b, [a], singles))
+        return JointResult(None, None, left_out, list(used))
 
-    def offset(self, m: int, others: list[int], singles: dict[int, _Single]) -> NDArray[np.float64] | None:
+    def offset(self, m: int, others: list[int], singles: dict[int, SingleSolve]) -> NDArray[np.float64] | None:
         """(3,) where marker ``m``'s own square is minus where the joint pose of ``others`` puts it,
         in the entity's frame (m); None when the others cannot be solved."""
         sol = self.solution(others, singles)
@@ -134,15 +97,12 @@ class JointSolve:
         predicted = (T_cam_entity * self.marker_pose[m]).translation
         return T_cam_entity.rotation.inv().apply(singles[m].pose.p_m - predicted)
 
-    def _offset_m(self, m: int, others: list[int], singles: dict[int, _Single]) -> float:
-        """How far marker ``m``'s own square is from where the joint pose of ``others`` puts it (m); kept
-        by the world check as this image's offset of ``m``."""
+    def _left_out(self, m: int, others: list[int], singles: dict[int, SingleSolve]) -> LeftOut:
+        """Marker ``m`` left out: how far its own square is from where the joint pose of ``others`` puts it."""
         offset = self.offset(m, others, singles)
-        if offset is not None:
-            self.world_check.offsets[m] = offset
-        return math.nan if offset is None else float(np.linalg.norm(offset))
+        return LeftOut(m, offset, math.nan if offset is None else float(np.linalg.norm(offset)))
 
-    def solution(self, ids: list[int], singles: dict[int, _Single]) -> tuple | None:
+    def solution(self, ids: list[int], singles: dict[int, SingleSolve]) -> tuple | None:
         """rvec, tvec (T_camera_entity), RMS error and sigma of the joint solve of ``ids``, or None."""
         obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
         img = np.vstack([singles[m].corners for m in ids])
@@ -159,7 +119,7 @@ class JointSolve:
     def solve(
         self,
         ids: list[int],
-        singles: dict[int, _Single],
+        singles: dict[int, SingleSolve],
         capture_time_us: int,
         count: bool = True,
         with_error: bool = False,
@@ -193,17 +153,18 @@ class JointSolve:
         if all(s.corner_cov is not None for s in squares):
             cov = self._covariance(fit, squares)
         else:
-            model_px = pose.corner_noise_px(model_sigma_px, float(np.median([_side(s.corners) for s in squares])))
+            model_px = pose.corner_noise_px(model_sigma_px, float(np.median([side(s.corners) for s in squares])))
             measured = [s.measured_px for s in squares]
             sigma_px = max(measured) if min(measured) > 0 else model_px
             stretches = [s.stretch for s in squares]
             stretch = None if any(x is None for x in stretches) else np.concatenate(stretches)
             cov = pose.pose_covariance(fit, sigma_px, err, stretch)
         self.counters["joint"] += count
-        md = self.markerdata(anchor, T.translation, T.rotation.as_quat(), sigma, err, 0.0, capture_time_us, None, cov)
+        q = T.rotation.as_quat()
+        md = marker_data(self.sensor.id, anchor, T.translation, q, sigma, err, 0.0, capture_time_us, None, cov)
         return (md, False, err / limit) if with_error else (md, False)
 
-    def _covariance(self, fit: pose.CornerFit, squares: list[_Single]) -> NDArray[np.float64] | None:
+    def _covariance(self, fit: pose.CornerFit, squares: list[SingleSolve]) -> NDArray[np.float64] | None:
         """The joint pose's 6x6 (``fit``: the anchor's pose and the squares' corners in its frame) from the
         squares' corners (:func:`joint_covariance.joint_covariance`), each square's block its edge fit's
         covariance plus the lens model's residual where it lies (:func:`joint_covariance.lens_residual_covariance`):
@@ -214,37 +175,3 @@ class JointSolve:
         covs = [s.corner_cov + residual(s.corners, cal.K, cal.dist, cal.fisheye) for s in squares]
         img = np.vstack([s.corners for s in squares])
         return joint_covariance.joint_covariance(fit, img, covs)
-
-    def markerdata(
-        self,
-        marker_id: int,
-        p: NDArray[np.float64],
-        q_xyzw: NDArray[np.float64],
-        sigma: float,
-        err: float,
-        ambiguity: float,
-        capture_time_us: int,
-        alt: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
-        covariance: NDArray[np.float64] | None = None,
-    ) -> MarkerData:
-        """``alt``: the other IPPE solution (p, q_xyzw), carried along for the listener; ``covariance``:
-        the chosen solution's 6x6 (:func:`pose.pose_covariance`; None: the record carries none)."""
-        x, y, z, w = q_xyzw
-        if alt is None:
-            p_alt, q_alt = (math.nan,) * 3, (math.nan,) * 4
-        else:
-            pa, (xa, ya, za, wa) = alt
-            p_alt, q_alt = (float(pa[0]), float(pa[1]), float(pa[2])), (float(wa), float(xa), float(ya), float(za))
-        return MarkerData(
-            sensor_id=self.sensor.id,
-            marker_id=marker_id,
-            sigma_m=float(sigma),
-            p_sensor_marker_m=(float(p[0]), float(p[1]), float(p[2])),
-            q_sensor_marker_wxyz=(float(w), float(x), float(y), float(z)),
-            capture_time_us=capture_time_us,
-            reprojection_error_px=float(err),
-            ambiguity_ratio=float(ambiguity),
-            p_sensor_marker_alt_m=p_alt,  # type: ignore[arg-type]
-            q_sensor_marker_alt_wxyz=q_alt,  # type: ignore[arg-type]
-            covariance=matrix_to_upper(covariance) if covariance is not None else (),
-        )

@@ -40,35 +40,21 @@ from atlas_onboard.core.worldcheck import MovedMarker
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
-
-# The joint solve and the region search live in modules of their own; their names are re-exported here.
-from atlas_onboard.detector.joint import (  # noqa: F401
-    JOINT_MISFIT,
-    Disagreement,
-    JointSolve,
-    _Single,
-)
+from atlas_onboard.detector.joint import JointSolve
+from atlas_onboard.detector.records import FrameReport, SingleSolve, marker_data
 from atlas_onboard.detector.refine import refine_corners_undistorted
-from atlas_onboard.detector.search import (  # noqa: F401
-    BORDER_MARGIN_PX,
+from atlas_onboard.detector.search import (
     CELL_PX,
     MAX_REGION_DECIMATE,
     MIN_CONTRAST,
-    MIN_RATIO,
-    ROI_MARGIN,
-    SMALL_SIDE_PX,
-    TILE_OVERLAP_PX,
     TILES,
     RegionSearch,
-    _area,
-    _at_border,
-    _box,
-    _cell_contrast,
-    _contrast_regions,
-    _merge,
-    _side,
+    at_border,
+    box,
+    cell_contrast,
+    contrast_regions,
 )
-from atlas_onboard.detector.worldcheck import LOG_INTERVAL_US, STATUS_INTERVAL_US, WorldCheck  # noqa: F401
+from atlas_onboard.detector.worldcheck import WorldCheck
 
 MAX_AMBIGUITY = 1.0
 """Detections whose IPPE ratio (chosen over other solution's reprojection error) exceeds this are
@@ -79,27 +65,6 @@ the current estimates (:mod:`atlas_onboard.core.ambiguity`). 1.0 keeps them all.
 SCAN_EVERY = 4  # frames between whole-image searches while tracking
 CANDIDATE_AREA = 0.06  # the most of the image searched each frame at full resolution around strong contrast
 QUIET_FRAMES = 4  # a candidate region in which nothing was found is not searched again for this many frames
-
-
-@dataclass
-class FrameReport:
-    """What the last frame gave: ids found, ids reported, and why the others were not (id -> reason)."""
-
-    found: list[int] = field(default_factory=list)
-    reported: list[int] = field(default_factory=list)
-    dropped: dict[int, str] = field(default_factory=dict)
-
-    def explain(self) -> str:
-        """One line saying why nothing (or not everything) found was reported."""
-        if not self.found:
-            return "no tag found"
-        ids = ", ".join(str(i) for i in self.found)
-        why = "; ".join(f"marker {i}: {r}" for i, r in sorted(self.dropped.items()))
-        n = len(self.found)
-        head = f"{n} tag{'s' if n != 1 else ''} found (ids {ids})"
-        if not self.reported:
-            return f"{head}; none reported: {why}"
-        return f"{head}; reported {', '.join(str(i) for i in self.reported)}" + (f"; not: {why}" if why else "")
 
 
 @dataclass
@@ -145,10 +110,8 @@ class Detector:
             self.marker_pose,
             world_markers,
             self.counters,
-            self.joint_solve.offset,
-            self.joint_solve.markerdata,
+            self.joint_solve,
         )
-        self.joint_solve.world_check = self.world_check
 
     @property
     def tracking(self) -> bool:
@@ -168,7 +131,7 @@ class Detector:
         by their last motion in the image) are searched at a decimation that keeps each marker at least
         ``SMALL_SIDE_PX`` wide (the library fits the edges at full resolution whatever the decimation);
         then the regions of strong black-white contrast outside the markers found
-        (:func:`_contrast_regions`: black ink on white paper, and the library spends most of its time on
+        (:func:`contrast_regions`: black ink on white paper, and the library spends most of its time on
         the texture elsewhere), at most ``CANDIDATE_AREA`` of the image's
         pixels (divided by each region's decimation squared). For markers of weak contrast: the whole
         image at ``MAX_REGION_DECIMATE`` (large markers), every frame while hunting and every
@@ -184,7 +147,7 @@ class Detector:
         if R_prev_now is not None and self._corners:
             # The turn from the attitude, plus the motion (the drone's travel) that the last turn left over.
             turned = {i: self.search.rotated(c, R_prev_now) for i, c in self._corners.items()}
-            self.search.regions = [_box(c + self._drift.get(i, 0.0)) for i, c in turned.items()]
+            self.search.regions = [box(c + self._drift.get(i, 0.0)) for i, c in turned.items()]
         hunting = not self.search.regions
         k = self._frame
         if not hunting:
@@ -194,18 +157,18 @@ class Detector:
             for d in self.finder.find(gray, MAX_REGION_DECIMATE):
                 if d.marker_id not in found:
                     found[d.marker_id] = d
-                    new.append(_box(d.corners_px))  # found again at the region's own decimation
+                    new.append(box(d.corners_px))  # found again at the region's own decimation
             self.search.find_in(gray, new, found)
             self.counters["scans"] += 1
         cells = (-(-h // CELL_PX), -(-w // CELL_PX))
         if self._quiet_until.shape != cells:
             self._quiet_until = np.zeros(cells, np.int64)
             self._quiet_level = np.zeros(cells, np.uint8)
-        contrast, top = _cell_contrast(gray)
+        contrast, top = cell_contrast(gray)
         # Texture searched lately is not searched again unless its contrast rose (a marker came in).
         quiet = (self._quiet_until > k) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
         taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
-        for region in _contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet):
+        for region in contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet):
             before = len(found)
             self.search.find_in(gray, [region], found, only_new=True)
             self.counters["candidate_regions"] += 1
@@ -221,7 +184,7 @@ class Detector:
         previous = self._corners
         self._corners = {i: d.corners_px for i, d in found.items()}
         self._drift = {i: c - turned[i] for i, c in self._corners.items() if i in turned}
-        self.search.regions = [_box(2 * c - previous[i] if i in previous else c) for i, c in self._corners.items()]
+        self.search.regions = [box(2 * c - previous[i] if i in previous else c) for i, c in self._corners.items()]
         return list(found.values())
 
     def detect(
@@ -239,10 +202,10 @@ class Detector:
         self.report = FrameReport()
         cal = self.calibration
         K = cal.K
-        singles: dict[int, _Single] = {}
+        singles: dict[int, SingleSolve] = {}
         for d in self.find(gray, R_prev_now):
             self.report.found.append(d.marker_id)
-            if _at_border(d.corners_px, w, h):
+            if at_border(d.corners_px, w, h):
                 # A marker cut by the border, or one whose corner is extrapolated or nearly outside: its
                 # edges cannot be fitted, and such poses were off by many of their sigmas.
                 self.counters["dropped_image_border"] += 1
@@ -265,7 +228,7 @@ class Detector:
                 self.counters["pnp_failed"] += 1
                 self.report.dropped[d.marker_id] = "no pose"
                 continue
-            singles[d.marker_id] = _Single(mp, corners, stretch, measured_px, corner_cov)
+            singles[d.marker_id] = SingleSolve(mp, corners, stretch, measured_px, corner_cov)
         self.report.found.sort()
         out = []
         groups: dict[str, list[int]] = {}
@@ -281,7 +244,9 @@ class Detector:
             if self.joint and len(ids) > 1 and not each:
                 self.world_check.offsets = {}
                 doubtful = self.world_check.doubtful(entity, ids, capture_time_us)
-                md, used = self.joint_solve.robust(entity, ids, singles, capture_time_us, self.report)
+                joint = self.joint_solve.robust(ids, singles, capture_time_us)
+                self.world_check.take_joint(entity, ids, joint, singles, capture_time_us, self.report)
+                md, used = joint.md, joint.used
                 if len(ids) >= 3 and used is not None:  # one that does not fit can be singled out
                     self.world_check.check(entity, ids, capture_time_us)
                     fed = True
@@ -309,7 +274,7 @@ class Detector:
                     # The squares contradict each other: a pair's member that others trust is used alone,
                     # when the other is suspect; otherwise none of them is trusted in this image. The suspect
                     # one is used too where its place has already been measured (the pair judged the file's).
-                    pair = self.joint_solve.misfit_pair
+                    pair = joint.misfit_pair
                     suspects = self.world_check.doubtful(entity, pair, capture_time_us)
                     rest = [m for m in pair if m not in suspects]
                     if len(rest) != 1 or len(pair) != 2:
@@ -341,8 +306,8 @@ class Detector:
                     self.report.reported.append(mid)
                     continue
                 alt = (mp.p_alt_m, mp.q_alt_xyzw) if mp.p_alt_m is not None and mp.q_alt_xyzw is not None else None
-                out.append(self.joint_solve.markerdata(mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px,
-                                                       mp.ambiguity, capture_time_us, alt, mp.covariance))  # fmt: skip
+                out.append(marker_data(self.sensor.id, mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px,
+                                       mp.ambiguity, capture_time_us, alt, mp.covariance))  # fmt: skip
                 self.report.reported.append(mid)
         self.counters["detections"] += len(out)
         return out

@@ -117,28 +117,28 @@ class RegionSearch:
                 self.counters["roi_finds"] += 1
 
 
-def _at_border(c: NDArray[np.float64], w: int, h: int) -> bool:
+def at_border(c: NDArray[np.float64], w: int, h: int) -> bool:
     """Whether any corner (c: (4, 2) pixels) lies within ``BORDER_MARGIN_PX`` of the image's border or outside."""
     lo, hi = c.min(axis=0), c.max(axis=0)
     m = BORDER_MARGIN_PX
     return bool(lo[0] < m or lo[1] < m or hi[0] > w - 1 - m or hi[1] > h - 1 - m)
 
 
-def _side(c: NDArray[np.float64]) -> float:
+def side(c: NDArray[np.float64]) -> float:
     return float(np.mean(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
 
 
-def _box(c: NDArray[np.float64]) -> NDArray[np.float64]:
+def box(c: NDArray[np.float64]) -> NDArray[np.float64]:
     """The region (x0, y0, x1, y1, decimate) to search for a marker with corners ``c`` in the next
     frame: its box grown by ``ROI_MARGIN``, decimated while the marker stays ``SMALL_SIDE_PX`` wide
     (at most ``MAX_REGION_DECIMATE``)."""
     lo, hi = c.min(axis=0), c.max(axis=0)
     grow = (hi - lo) * ROI_MARGIN + 8
-    decimate = float(min(max(math.floor(_side(c) / SMALL_SIDE_PX), 1), MAX_REGION_DECIMATE))
+    decimate = float(min(max(math.floor(side(c) / SMALL_SIDE_PX), 1), MAX_REGION_DECIMATE))
     return np.concatenate([lo - grow, hi + grow, [decimate]])
 
 
-def _cell_contrast(gray: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+def cell_contrast(gray: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
     """Each ``CELL_PX`` cell's contrast (brightest minus darkest pixel) and brightest pixel, after a 2x2
     average (so that one noisy pixel does not count); each of shape (ceil(h / CELL_PX), ceil(w / CELL_PX))."""
     h, w = gray.shape[:2]
@@ -150,7 +150,7 @@ def _cell_contrast(gray: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[
     return cv2.subtract(top, bottom), top
 
 
-def _contrast_regions(
+def contrast_regions(
     contrast: NDArray[np.uint8],
     top: NDArray[np.uint8],
     taken: list[NDArray[np.float64]],
@@ -161,7 +161,7 @@ def _contrast_regions(
     ``taken`` (x0, y0, x1, y1: the markers found already) and the ``quiet`` cells, the strongest first,
     at most ``budget_px`` pixels (divided by the decimation squared) in all.
 
-    ``contrast`` and ``top``: :func:`_cell_contrast`. Black ink reflects a tenth or less of what white
+    ``contrast`` and ``top``: :func:`cell_contrast`. Black ink reflects a tenth or less of what white
     paper does, whatever the light: a printed marker's outline crosses cells whose darkest pixel is at
     most ``1 - MIN_RATIO`` of their brightest; such cells (with at least ``MIN_CONTRAST``), with their
     neighbours, are joined into regions, strongest contrast first.

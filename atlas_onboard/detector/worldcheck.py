@@ -3,8 +3,9 @@ moved world marker really is, and what is said about it (logs, STATUSTEXT, count
 
 It owns the moved-marker verdicts (:class:`~atlas_onboard.core.worldcheck.MovedMarkerCheck`), the
 consistency graph and the motion check (:mod:`atlas_onboard.core.consistency`) and the measured places
-(:mod:`atlas_onboard.core.places`); the joint solve (:mod:`atlas_onboard.detector.joint`) gives it its
-verdicts and asks it which markers to doubt.
+(:mod:`atlas_onboard.core.places`); it takes the joint solve's results
+(:class:`~atlas_onboard.detector.records.JointResult`) and asks that solve (:mod:`atlas_onboard.detector.joint`)
+where a marker's square lies from the others.
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import logging
 import math
 from collections import Counter, deque
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,10 +27,8 @@ from atlas_onboard.core.places import MeasuredPlace, MeasuredPlaces
 from atlas_onboard.core.refine import Sighting as PlacedSighting
 from atlas_onboard.core.worldcheck import MovedMarker, MovedMarkerCheck
 from atlas_onboard.detector import pose
-
-if TYPE_CHECKING:  # annotations only: the detector imports this module
-    from atlas_onboard.detector.joint import _Single
-    from atlas_onboard.detector.pipeline import FrameReport
+from atlas_onboard.detector.joint import JointSolve
+from atlas_onboard.detector.records import FrameReport, JointResult, SingleSolve, marker_data
 
 _logger = logging.getLogger(__name__)
 
@@ -39,18 +37,14 @@ STATUS_INTERVAL_US = 60_000_000  # at most one STATUSTEXT a minute about disagre
 LOG_INTERVAL_US = 5_000_000
 PLACE_RETRY_US = 250_000  # a moved marker's measured place is sought again at most this often
 
-OffsetOf = Callable[[int, list[int], "dict[int, _Single]"], "NDArray[np.float64] | None"]
-MarkerDataOf = Callable[..., MarkerData]
-
 
 class WorldCheck:
     """The world check of one sensor's detector (see the module).
 
     ``sensor``: the detector's camera; ``marker_pose``: every marker's pose in its entity
     (``T_entity_marker``); ``world_markers``: the world's markers among them, whose measured places are
-    sought; ``counters``: the detector's (shared);
-    ``offset_of(m, others, singles)``: where marker ``m``'s square is minus where the joint pose of ``others``
-    puts it (entity frame, m; None when they cannot be solved); ``markerdata_of``: the detector's record maker.
+    sought; ``counters``: the detector's (shared); ``joint``: the detector's joint solve, asked where a
+    marker's square is minus where the joint pose of others puts it (:meth:`JointSolve.offset`).
     """
 
     def __init__(
@@ -59,16 +53,14 @@ class WorldCheck:
         marker_pose: Mapping[int, RigidTransform],
         world_markers: Mapping[int, RigidTransform],
         counters: Counter[str],
-        offset_of: OffsetOf,
-        markerdata_of: MarkerDataOf,
+        joint: JointSolve,
     ) -> None:
         # Where moved world markers really are, to use them there (evidence from every image of two or more).
         self.places = MeasuredPlaces({m: (T.translation, T.rotation.as_matrix()) for m, T in world_markers.items()})
         self.sensor = sensor
         self.marker_pose = marker_pose
         self.counters = counters
-        self._offset_of = offset_of
-        self._markerdata_of = markerdata_of
+        self.joint = joint
         self.disagreements: Counter[int] = Counter()  # marker id -> images in which it disagreed
         self.status: deque[str] = deque()  # STATUSTEXT lines to send (the detector's take_status empties it)
         self._last_status_us: int | None = None
@@ -132,7 +124,7 @@ class WorldCheck:
 
         return trusted
 
-    def gather_places(self, ids: list[int], singles: dict[int, _Single], capture_time_us: int) -> None:
+    def gather_places(self, ids: list[int], singles: dict[int, SingleSolve], capture_time_us: int) -> None:
         """This image's world markers as evidence of where each is (:class:`MeasuredPlaces`); a place that
         new evidence no longer fits is withdrawn, said and counted."""
         seen = []
@@ -199,9 +191,9 @@ class WorldCheck:
             alt = (p_alt, Rotation.from_matrix(R_alt_new).as_quat())
         sigma = math.hypot(mp.sigma_m, math.sqrt(max(float(np.linalg.eigvalsh(C_sensor)[-1]), 0.0)))
         self.counters["placed_used"] += 1
-        return self._markerdata_of(
-            mid, p, Rotation.from_matrix(R_new).as_quat(), sigma, mp.reprojection_error_px, mp.ambiguity,
-            capture_time_us, alt, cov,
+        return marker_data(
+            self.sensor.id, mid, p, Rotation.from_matrix(R_new).as_quat(), sigma, mp.reprojection_error_px,
+            mp.ambiguity, capture_time_us, alt, cov,
         )  # fmt: skip
 
     def _say_status(self, text: str, capture_time_us: int) -> None:
@@ -216,7 +208,7 @@ class WorldCheck:
         return {m for m in ids if m in suspects or (entity, m) in self.moved}
 
     def record_group(
-        self, entity: str, fitted: list[int], left_out: list[int], singles: dict[int, _Single], capture_time_us: int
+        self, entity: str, fitted: list[int], left_out: list[int], singles: dict[int, SingleSolve], capture_time_us: int
     ) -> None:
         """A joint solve's verdicts to the consistency graph. A moved or suspect marker that fitted is
         judged by its offset from the others instead: the joint fit cannot see a move along the line of
@@ -228,13 +220,13 @@ class WorldCheck:
             return
         self.consistency.add_group(capture_time_us, entity, trusted, left_out)
         for m in doubtful:
-            offset = self._offset_of(m, trusted, singles)
+            offset = self.joint.offset(m, trusted, singles)
             if offset is not None:
                 agree = bool(np.linalg.norm(offset) <= CLEAR_OFFSET_M)
                 for b in trusted:
                     self.consistency.add(capture_time_us, entity, m, b, agree)
 
-    def _sighting(self, m: int, single: _Single, capture_time_us: int) -> Sighting | None:
+    def _sighting(self, m: int, single: SingleSolve, capture_time_us: int) -> Sighting | None:
         """Where marker ``m``'s own square puts the camera in its entity's frame, with the (3, 3)
         covariance of that position from the pose's 6x6 (None without one, or when the pose may be the
         mirrored planar solution)."""
@@ -252,7 +244,7 @@ class WorldCheck:
         return Sighting(capture_time_us, T_entity_marker.apply(-u), (cov + cov.T) / 2.0)
 
     def consistency_evidence(
-        self, entity: str, ids: list[int], singles: dict[int, _Single], capture_time_us: int
+        self, entity: str, ids: list[int], singles: dict[int, SingleSolve], capture_time_us: int
     ) -> list[PairVerdict]:
         """The temporal verdicts of this image's markers of ``entity`` (:class:`MotionCheck`), added to
         the consistency graph and returned. Only for the world's markers: the camera's motion in the
@@ -283,14 +275,14 @@ class WorldCheck:
         return {m: v for m, (_, v) in best.items()}
 
     def pair_verdicts(
-        self, entity: str, a: int, b: int, agree: bool, singles: dict[int, _Single], capture_time_us: int
+        self, entity: str, a: int, b: int, agree: bool, singles: dict[int, SingleSolve], capture_time_us: int
     ) -> list[PairVerdict]:
         """The joint solve's verdict on a pair for each of its markers, for the world check (a moved or
         suspect one that fitted is judged by its offset, as in :meth:`_record_group`)."""
         out = []
         for m, other in ((a, b), (b, a)):
             doubtful = bool(self.doubtful(entity, [m], capture_time_us))
-            offset = np.zeros(3) if agree and not doubtful else self._offset_of(m, [other], singles)
+            offset = np.zeros(3) if agree and not doubtful else self.joint.offset(m, [other], singles)
             if offset is not None:
                 fits = agree and (not doubtful or bool(np.linalg.norm(offset) <= CLEAR_OFFSET_M))
                 out.append(PairVerdict(m, other, fits, offset))
@@ -318,6 +310,41 @@ class WorldCheck:
             if place is not None and np.linalg.norm(v.offset_m - place.offset_m) > MOTION_MAX_ALLOWANCE_M:
                 return True
         return False
+
+    def take_joint(
+        self,
+        entity: str,
+        ids: list[int],
+        result: JointResult,
+        singles: dict[int, SingleSolve],
+        capture_time_us: int,
+        report: FrameReport,
+    ) -> None:
+        """A joint solve's result (:meth:`JointSolve.robust`) of ``ids``: each marker left out counted,
+        explained and logged, its offset kept as this image's; the fitted markers' verdicts to the
+        consistency graph; two that disagree recorded as such, explained and logged."""
+        for out in result.left_out:
+            if out.offset is not None:
+                self.offsets[out.marker_id] = out.offset
+            self.disagrees(entity, out.marker_id, out.distance_m, capture_time_us, report)
+        if result.md is not None and result.used is not None:
+            left_out = [i for i in ids if i not in result.used]
+            self.record_group(entity, result.used, left_out, singles, capture_time_us)
+            return
+        if result.used is not None:  # the joint solve failed: nothing was judged
+            return
+        for m in result.unfit:
+            report.dropped.setdefault(m, "joint misfit: the markers do not fit together as placed")
+        if result.pair_offset is not None:
+            a, b = result.unfit
+            self.consistency.add(capture_time_us, entity, a, b, False)
+            if result.pair_offset.offset is not None:
+                self.offsets[b] = result.pair_offset.offset
+            offset = result.pair_offset.distance_m
+            report.dropped[a] = report.dropped[b] = (
+                f"joint misfit, markers {a} and {b} disagree by {offset * 100:.1f} cm"
+            )
+            self.log_disagreement(entity, f"markers {a} and {b} disagree", offset, capture_time_us)
 
     def disagrees(self, entity: str, m: int, offset_m: float, capture_time_us: int, report: FrameReport) -> None:
         """Marker ``m`` left out of a joint solve: counted, explained in this frame's ``report``, logged."""

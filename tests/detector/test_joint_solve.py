@@ -12,8 +12,8 @@ from scipy.spatial.transform import RigidTransform, Rotation
 from atlas_onboard.config import WORLD
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
-from atlas_onboard.detector.joint import JointSolve, _Single
-from atlas_onboard.detector.pipeline import FrameReport
+from atlas_onboard.detector.joint import JointSolve
+from atlas_onboard.detector.records import FrameReport, SingleSolve
 from atlas_onboard.detector.worldcheck import WorldCheck
 from tests.detector.test_hard_frames import SIZE, H, K, W, moved_marker_world
 
@@ -21,7 +21,7 @@ T_CAM_WORLD = RigidTransform.from_components([-0.3, -0.2, 1.6], Rotation.from_eu
 IDS = [1, 2, 3, 5]
 
 
-def _singles(spots: dict[int, tuple[float, float]], noise_px: float, seed: int) -> dict[int, _Single]:
+def _singles(spots: dict[int, tuple[float, float]], noise_px: float, seed: int) -> dict[int, SingleSolve]:
     """Each square's own solve from its true corners (an undistorted camera) with corner noise."""
     rng = np.random.default_rng(seed)
     out = {}
@@ -30,7 +30,7 @@ def _singles(spots: dict[int, tuple[float, float]], noise_px: float, seed: int) 
         img = (P @ K.T)[:, :2] / P[:, 2:] + rng.normal(0.0, noise_px, (4, 2))
         mp = pose.solve(img, SIZE, K, pose.SIGMA_PX_APRILTAG)
         assert mp is not None
-        out[i] = _Single(mp, img, None, 0.0)
+        out[i] = SingleSolve(mp, img, None, 0.0)
     return out
 
 
@@ -59,14 +59,15 @@ def test_the_leave_one_out_drops_the_misplaced_marker_and_tells_the_world_check(
     world, spots = moved_marker_world(5, 0.10)  # the world file puts marker 5 10 cm off along x
     joint = _joint_solve(world)
     world_markers = {m: T for m, T in joint.marker_pose.items() if world.markers[m].entity == WORLD}
-    joint.world_check = WorldCheck(
-        joint.sensor, joint.marker_pose, world_markers, joint.counters, joint.offset, joint.markerdata
-    )
+    check = WorldCheck(joint.sensor, joint.marker_pose, world_markers, joint.counters, joint)
     report = FrameReport()
-    md, used = joint.robust(WORLD, IDS, _singles(spots, 0.05, seed=2), 1_000_000, report)
+    singles = _singles(spots, 0.05, seed=2)
+    result = joint.robust(IDS, singles, 1_000_000)
+    check.take_joint(WORLD, IDS, result, singles, 1_000_000, report)
+    md, used = result.md, result.used
     assert used == [1, 2, 3] and md is not None
     np.testing.assert_allclose(md.p_sensor_marker_m, T_CAM_WORLD.translation, atol=0.002)
     # Marker 5's own square is 10 cm short of where the world file has it, along the world's x.
-    np.testing.assert_allclose(joint.world_check.offsets[5], [-0.10, 0.0, 0.0], atol=0.005)
-    assert joint.world_check.disagreements == Counter({5: 1}) and "marker 5 disagrees" in report.dropped[5]
+    np.testing.assert_allclose(check.offsets[5], [-0.10, 0.0, 0.0], atol=0.005)
+    assert check.disagreements == Counter({5: 1}) and "marker 5 disagrees" in report.dropped[5]
     assert joint.counters["joint_misfit"] == 1 and joint.counters["joint_without_disagreeing"] == 1
