@@ -366,6 +366,7 @@ class Link:
         if conn is None:
             self.counters.inc("tx_dropped_link_down", len(msgs))
             return False
+        cpu_ns = time.thread_time_ns()
         try:
             with self._send_lock:
                 if self.signing is not None:
@@ -394,6 +395,8 @@ class Link:
             return False
         for kind, n in Tally(msg.get_type().lower() for msg in msgs).items():
             self.counters.inc(f"tx_{kind}", n)
+        self.counters.inc("tx_calls")  # and their CPU time: what every send costs this thread
+        self.counters.inc("tx_cpu_ns", time.thread_time_ns() - cpu_ns)
         return True
 
     @property
