@@ -63,7 +63,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from attack_wire import WireAttack, Witness, node_cpu_s
+from attack_wire import WireAttack, Witness, node_cpu_s, node_peak_rss_mb, node_threads
 
 from atlas_onboard.config import load_world
 from atlas_onboard.install import write_key
@@ -227,6 +227,8 @@ def one_run(attack: str | None, seconds: float, key_path: Path | None, rendered:
             thread.start()
         time.sleep(max(0.0, epoch + seconds + 0.3 - time.time()))
         extra["cpu_s"] = node_cpu_s(node.proc.pid)
+        extra["rss_mb"] = node_peak_rss_mb(node.proc.pid)
+        extra["threads"] = node_threads(node.proc.pid)
     finally:
         stop.set()
         if thread is not None:
@@ -321,7 +323,8 @@ def wire_report(attack: str, mode: str, run: dict, clean: dict, bars: list) -> N
     hb, got, ok = run["witness"]
     print(
         f"    pose messages/s at the autopilot {run['rate_hz']:.1f} (clean {clean['rate_hz']:.1f}); node CPU"
-        f" {run['cpu_s']:.2f} s (clean {clean['cpu_s']:.2f}); send CPU {_send_us(run):.1f} us/call (clean"
+        f" {run['cpu_s']:.2f} s (clean {clean['cpu_s']:.2f}), peak RSS {run['rss_mb']:.0f} MB (clean"
+        f" {clean['rss_mb']:.0f}), {run['threads']} threads; send CPU {_send_us(run):.1f} us/call (clean"
         f" {_send_us(clean):.1f}); witness sent {hb} HEARTBEATs, received {got} datagrams, {ok} frames accepted"
     )
     ratio = run["rate_hz"] / clean["rate_hz"] if clean["rate_hz"] else 0.0

@@ -39,6 +39,20 @@ def node_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def node_peak_rss_mb(pid: int) -> float:
+    """A process's peak resident memory so far (VmHWM), in MB."""
+    with open(f"/proc/{pid}/status", encoding="ascii") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def node_threads(pid: int) -> int:
+    """A process's threads (systemd's TasksMax counts them)."""
+    return len(os.listdir(f"/proc/{pid}/task"))
+
+
 def _frames(data: bytes) -> list[bytes]:
     """The MAVLink 2 frames of a datagram the node wrote (whole frames, back to back)."""
     out, i = [], 0

@@ -5,7 +5,9 @@ The autopilot is one (system, component), pinned for the link's life: the first 
 HEARTBEAT from component 1 of the configured system id (``system_id``, the autopilot's), or, when none
 came for AUTOPILOT_WAIT_NS, from another system (a misconfigured id: warned). No other HEARTBEAT
 replaces it (behind a router, other vehicles' flight controllers and ground stations talk too), and
-ATTITUDE, TIMESYNC, GPS_GLOBAL_ORIGIN and the autopilot type count only from it."""
+ATTITUDE, TIMESYNC, GPS_GLOBAL_ORIGIN and the autopilot type count only from it. On a link with
+``signing`` and ``require`` (an autopilot that signs: docs/mavlink-router.md), only from its signed
+frames."""
 
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mavlink import autopilot, codec
+from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.link import Link
 from atlas_onboard.publisher import AutopilotPose
 
@@ -65,6 +67,8 @@ class AutopilotLink:
             else None
         )  # fmt: skip
         self.counters = Counters()
+        signing = self.settings.link.signing if self.settings is not None else None
+        self._signed_only = signing is not None and signing.require
         self.autopilot_system: int | None = None  # from the autopilot's HEARTBEAT
         self.autopilot_component: int | None = None
         self.autopilot_type: int | None = None  # MAV_AUTOPILOT_* (PX4 12, ArduPilot 3)
@@ -90,7 +94,9 @@ class AutopilotLink:
         return system_id == self.system_id or (self._candidate is not None and system_id == self._candidate[0])
 
     def is_autopilot(self, msg: Any) -> bool:
-        """Whether ``msg`` comes from the pinned autopilot."""
+        """Whether ``msg`` comes from the pinned autopilot (signed, where the link requires it)."""
+        if self._signed_only and not framing.is_signed(msg):
+            return False
         return self.autopilot_system is not None and (msg.get_srcSystem(), msg.get_srcComponent()) == (
             self.autopilot_system,
             self.autopilot_component,
@@ -219,6 +225,9 @@ class AutopilotLink:
         """Pin the autopilot (see the module); an autopilot-typed HEARTBEAT from anyone else is counted."""
         if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.get_srcComponent() != MAV_COMP_ID_AUTOPILOT1:
             return  # a GCS, a companion, another component of the vehicle: never the autopilot
+        if self._signed_only and not framing.is_signed(msg):
+            self.counters.inc("heartbeat_not_from_autopilot")
+            return
         if self.is_autopilot(msg):
             self.autopilot_type = msg.autopilot
             return

@@ -59,15 +59,19 @@ KEY_LEN = 32
 
 
 def read_key(path: Path) -> bytes:
-    """A 32-byte signing key: 32 raw bytes, or 64 hex characters. Refused if group or others may read it."""
+    """A 32-byte signing key: 32 raw bytes, or 64 hex characters. Refused if others may read it, or its
+    group unless root owns it and the group is another (root:atlas mode 640: the service's group
+    reads it, the service cannot change it)."""
     try:
         st = path.stat()
         data = path.read_bytes()
     except OSError as exc:
         raise AtlasError(f"signing key {path}: cannot read: {exc.strerror}") from None
-    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+    group_ok = stat.S_IRGRP if st.st_uid == 0 and st.st_gid != 0 else 0
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO) & ~group_ok:
         raise AtlasError(
             f"signing key {path}: readable by group or others (mode {stat.S_IMODE(st.st_mode):o}); chmod 600 it"
+            " (or root-owned, chmod 640, group the service's)"
         )
     text = data.strip()
     if len(text) == 2 * KEY_LEN:
