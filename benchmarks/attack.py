@@ -229,6 +229,10 @@ def one_run(attack: str | None, seconds: float, key_path: Path | None, rendered:
         extra["cpu_s"] = node_cpu_s(node.proc.pid)
         extra["rss_mb"] = node_peak_rss_mb(node.proc.pid)
         extra["threads"] = node_threads(node.proc.pid)
+        states = sorted((node.run_dir / "state").glob("signing-*.json"))  # saved every 10 s; gone after stop
+        if states:
+            saved = int(json.loads(states[0].read_text(encoding="utf-8"))["timestamp"])
+            extra["state_ahead_s"] = (saved - signing_timestamp(time.time())) / SIGNING_TICKS_PER_S
     finally:
         stop.set()
         if thread is not None:
@@ -246,10 +250,6 @@ def one_run(attack: str | None, seconds: float, key_path: Path | None, rendered:
     first_s = extra.get("first_s")
     if first_s is not None:
         extra["after_row3"] = witness.accepted_since(first_s + AFTER_ROW3_S)
-    states = sorted((node.run_dir / "state").glob("signing-*.json"))
-    if states:
-        saved = int(json.loads(states[0].read_text(encoding="utf-8"))["timestamp"])
-        extra["state_ahead_s"] = (saved - signing_timestamp(time.time())) / SIGNING_TICKS_PER_S
     extra["autopilots_found"] = re.findall(r"autopilot found: system (\d+)", node.log)
     extra["witness"] = (witness.heartbeats, len(witness.received), sum(ok for _, _, ok in witness.received))
     track = autopilot_track(node.autopilot.snapshot(), node.epoch_s)

@@ -93,6 +93,20 @@ def _is_bad(msg: Any) -> bool:
     return type(msg).__name__ == "MAVLink_unknown" and msg.get_msgId() not in known_elsewhere()
 
 
+def _crc_wrong(module: ModuleType, frame: bytes) -> bool:
+    """Whether a MAVLink 2 frame of a known id has a wrong checksum (False for anything else: the
+    parser decides those)."""
+    if frame[0] != _MAGIC_V2:
+        return False
+    msgtype = module.mavlink_map.get(frame[7] | frame[8] << 8 | frame[9] << 16)
+    if msgtype is None:
+        return False
+    trailer = 2 + (_SIGNATURE_LEN if frame[2] & _IFLAG_SIGNED else 0)
+    crc = module.x25crc(frame[1:-trailer])
+    crc.accumulate(bytes([msgtype.crc_extra]))
+    return bool(crc.crc != frame[-trailer] | frame[1 - trailer] << 8)
+
+
 def parse_datagram(module: ModuleType, mav: Any, data: bytes) -> DatagramParse:
     """The frames of one UDP datagram, each parsed on its own by ``mav`` (the fast path's or
     pymavlink's parser), from a fresh parser state: a datagram holds whole frames, so a frame cut by
@@ -122,9 +136,14 @@ def parse_datagram(module: ModuleType, mav: Any, data: bytes) -> DatagramParse:
         if end > n:
             out.append(bad_data(bytearray(data[i:]), "Frame cut by the end of the datagram"))
             break
-        msgs = mav.parse_buffer(data[i:end]) or []
-        reset(mav)
+        frame = data[i:end]
         i = end
+        if bad and _crc_wrong(module, frame):  # garbage seen: the checksum first, without a parser
+            out.append(bad_data(bytearray(frame), "invalid MAVLink CRC"))
+            bad += 1
+            continue
+        msgs = mav.parse_buffer(frame) or []
+        reset(mav)
         bad = bad + 1 if not msgs or all(_is_bad(m) for m in msgs) else 0
         out.extend(msgs)
     return DatagramParse(out, False)
