@@ -15,12 +15,15 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import math
 import os
 import socket
 import threading
 import time
 from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 from atlas_onboard.mavlink import dialect
 from atlas_onboard.mavlink.signing import SIGNING_TICKS_PER_S, signing_timestamp
@@ -29,6 +32,7 @@ from atlas_onboard.sim.solo import Radio, SoloNode
 WITNESS = 250
 SOURCES = 500
 TICKS_2_48 = (1 << 48) - 1
+AFTER_ROW3_S = 10.0  # signed traffic must still flow this long after the future stamp
 D = dialect.load()
 
 
@@ -216,3 +220,57 @@ class WireAttack:
         self.radio.close()
         for s in self.sources:
             s.close()
+
+
+def _send_us(run: dict) -> float:
+    c = run["counters"]
+    return c.get("peer0_tx_cpu_ns", 0) / max(c.get("peer0_tx_calls", 0), 1) / 1e3
+
+
+def wire_report(attack: str, mode: str, run: dict, clean: dict, bars: list) -> None:
+    """The figures and bars of every run (pose rate, CPU) and of the wire's attacks."""
+    hb, got, ok = run["witness"]
+    print(
+        f"    pose messages/s at the autopilot {run['rate_hz']:.1f} (clean {clean['rate_hz']:.1f}); node CPU"
+        f" {run['cpu_s']:.2f} s (clean {clean['cpu_s']:.2f}), peak RSS {run['rss_mb']:.0f} MB (clean"
+        f" {clean['rss_mb']:.0f}), {run['threads']} threads; send CPU {_send_us(run):.1f} us/call (clean"
+        f" {_send_us(clean):.1f}); witness sent {hb} HEARTBEATs, received {got} datagrams, {ok} frames accepted"
+    )
+    ratio = run["rate_hz"] / clean["rate_hz"] if clean["rate_hz"] else 0.0
+    bars.append((f"autopilot_rate_ratio_{attack}_signing_{mode}", ratio, "x", 0.95, ratio >= 0.95))
+    c = run["counters"]
+    if attack == "partial":
+        lost = hb - c.get("peer0_rx_heartbeat", 0)
+        print(f"    the witness's HEARTBEAT datagrams lost: {lost} of {hb}")
+        bars.append((f"real_frames_lost_partial_signing_{mode}", lost, "count", 0, lost == 0))
+    elif attack == "sources":
+        ratio = _send_us(run) / max(_send_us(clean), 1e-9)
+        to = run["to_sources"]
+        print(f"    datagrams the node sent to the sources: {to}; send CPU {ratio:.2f}x clean")
+        bars.append((f"send_cpu_ratio_sources_signing_{mode}", ratio, "x", 2.0, ratio <= 2.0))
+        bars.append((f"datagrams_to_unproven_sources_signing_{mode}", to, "count", 0, to == 0))
+    elif attack == "future_stamp":
+        frames, accepted = run.get("after_row3", (0, 0))
+        ahead = run.get("state_ahead_s", math.nan)
+        print(
+            f"    {AFTER_ROW3_S:g} s after it: the witness received {frames} frames, {accepted} of them accepted by a"
+            f" right clock; the saved signing timestamp is {ahead:.1f} s ahead of the clock"
+        )
+        flowing = accepted > 0 and accepted == frames and ahead < 60.0
+        bars.append(("signed_traffic_10s_after_future_stamp", accepted, "frames", 1, flowing))
+    elif attack == "impostor":
+        found = run["autopilots_found"]
+        print(
+            f"    autopilot found: {', '.join(found)}; SET_GPS_GLOBAL_ORIGIN sent {run['origin_sets']} (clean"
+            f" {clean['origin_sets']}); TIMESYNC answers to others {run['timesync_to_others']}"
+        )
+        changes = len(found) - 1 if found and found[0] == "1" else len(found) + 1
+        bars.append((f"autopilot_identity_changes_impostor_signing_{mode}", changes, "count", 0, changes == 0))
+    elif attack == "garbage":
+        lat, ref = run["lat_ms"], clean["lat_ms"]
+        if len(lat) and len(ref):
+            print(
+                f"    capture->autopilot latency ms: mean {lat.mean():.1f} median {np.median(lat):.1f} p95"
+                f" {np.percentile(lat, 95):.1f}; clean mean {ref.mean():.1f} median {np.median(ref):.1f} p95"
+                f" {np.percentile(ref, 95):.1f}"
+            )

@@ -8,6 +8,9 @@ therefore reads and writes the connection's socket itself, through :class:`UdpEn
   CLIENT_IDLE_S without such a frame; nothing is sent to an address that has not proven itself;
 - ``udpbcast``: always to its broadcast address, whoever sends to it;
 - ``udpout``: always to its destination.
+
+And how a datagram is read (:func:`parse_datagram`): its frames alone, from a fresh parser state,
+within a budget of bad frames.
 """
 
 from __future__ import annotations
