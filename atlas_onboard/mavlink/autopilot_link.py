@@ -86,9 +86,10 @@ class AutopilotLink:
         self._attitude_taken_ns: int | None = None
         self._attitude_refused_since_ns: int | None = None
 
-    def may_be_autopilot(self, system_id: int) -> bool:
-        """Whether a frame from ``system_id`` may prove a UDP source address the autopilot's: the pinned
-        autopilot's, or before one is pinned the configured system id or another system's candidate."""
+    def may_be_autopilot(self, msg: Any) -> bool:
+        """Whether ``msg`` may prove a UDP source address the autopilot's: from the pinned autopilot's
+        system, or before one is pinned from the configured system id or another system's candidate."""
+        system_id = msg.get_srcSystem()
         if self.autopilot_system is not None:
             return system_id == self.autopilot_system
         return system_id == self.system_id or (self._candidate is not None and system_id == self._candidate[0])

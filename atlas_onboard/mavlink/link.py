@@ -38,7 +38,7 @@ DROPS_CHECK_S = 1.0  # how often a UDP link reads the kernel's drop count of its
 MAX_HOLD_S = 0.02  # a reader held by the node waits no longer than this
 MAX_DATAGRAM_BYTES = 1400  # several messages in one UDP datagram, below a network's MTU
 Handler = Callable[["Link", Any, int], None]
-OriginCheck = Callable[[int], bool]
+OriginCheck = Callable[[Any], bool]
 
 
 def is_serial(url: str) -> bool:
@@ -58,9 +58,9 @@ class Link:
         wall_clock: UNIX time in seconds (signing timestamps); injectable for tests.
         deferred: names of messages handed on as :class:`framing.Deferred` (checked, decoded only when
             a field is read) where the fast path can (unsigned MAVLink 2); others are decoded as they come.
-        origin_ok: which system ids may prove a UDP source address a client (see :mod:`.udp`): a
-            frame from such a system that passed the checks (signed, on a link that requires it) makes
-            its address one the link sends to. Default: any system.
+        origin_ok: which messages may prove a UDP source address a client (see :mod:`.udp`): such a
+            message that passed the checks (signed, on a link that requires it) makes its sender's
+            address one the link sends to. Default: any message.
     """
 
     def __init__(
@@ -226,8 +226,8 @@ class Link:
 
     def _proves(self, msg: Any) -> bool:
         """Whether ``msg`` (which passed the link's checks) makes its sender's address a client: from
-        a system ``origin_ok`` allows, and signed where the link requires signatures."""
-        if self._origin_ok is not None and not self._origin_ok(msg.get_srcSystem()):
+        a sender ``origin_ok`` allows, and signed where the link requires signatures."""
+        if self._origin_ok is not None and not self._origin_ok(msg):
             return False
         signing = self.signing
         return signing is None or not signing.config.require or framing.is_signed(msg)

@@ -44,6 +44,7 @@ __all__ = ["MavlinkTransport", "TokenBucket"]
 
 NS = 1_000_000_000
 MAV_TYPE_ONBOARD_CONTROLLER = autopilot.MAV_TYPE_ONBOARD_CONTROLLER
+MAV_TYPE_GCS = 6
 PEER_LOST_NS = 3 * NS
 REPORT_EVERY_S = 10.0  # a STATUSTEXT or a warning of one reason goes out at most this often
 
@@ -94,8 +95,12 @@ class MavlinkTransport:
         self._peers_alive: set[int] = set()
         self._fingerprint_warned: set[int] = set()
 
-    def _is_peer(self, system_id: int) -> bool:
-        """A node of the world file other than this one (whose frames may prove a UDP client)."""
+    def _is_peer(self, msg: Any) -> bool:
+        """Whether ``msg`` may prove its sender a UDP client: from a node of the world file other than
+        this one, or a ground station's HEARTBEAT (it reads the STATUSTEXT and telemetry)."""
+        system_id = msg.get_srcSystem()
+        if msg.get_type() == "HEARTBEAT" and msg.type == MAV_TYPE_GCS:
+            return system_id != self.config.system_id
         return system_id != self.config.system_id and self.binding.is_node(system_id)
 
     @staticmethod
