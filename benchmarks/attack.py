@@ -63,7 +63,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from attack_wire import AFTER_ROW3_S, WireAttack, Witness, node_cpu_s, node_peak_rss_mb, node_threads, wire_report
+from attack_wire import AFTER_ROW3_S, WireAttack, Witness, node_cpu_s, node_rss_mb, node_threads, wire_report
 
 from atlas_onboard.config import load_world
 from atlas_onboard.install import write_key
@@ -226,7 +226,7 @@ def one_run(attack: str | None, seconds: float, key_path: Path | None, rendered:
             thread.start()
         time.sleep(max(0.0, epoch + seconds + 0.3 - time.time()))
         extra["cpu_s"] = node_cpu_s(node.proc.pid)
-        extra["rss_mb"] = node_peak_rss_mb(node.proc.pid)
+        extra["rss_mb"] = node_rss_mb(node.proc.pid)
         extra["threads"] = node_threads(node.proc.pid)
         states = sorted((node.run_dir / "state").glob("signing-*.json"))  # saved every 10 s; gone after stop
         if states:

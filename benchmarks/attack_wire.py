@@ -43,13 +43,16 @@ def node_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-def node_peak_rss_mb(pid: int) -> float:
-    """A process's peak resident memory so far (VmHWM), in MB."""
+def node_rss_mb(pid: int) -> tuple[float, float]:
+    """A process's peak resident memory so far (VmHWM) and its anonymous resident memory now (RssAnon:
+    without mapped files, such as the simulator's memory-mapped pre-rendered frames), in MB."""
+    got = {}
     with open(f"/proc/{pid}/status", encoding="ascii") as f:
         for line in f:
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    return float("nan")
+            key, _, value = line.partition(":")
+            if key in ("VmHWM", "RssAnon"):
+                got[key] = int(value.split()[0]) / 1024
+    return got.get("VmHWM", math.nan), got.get("RssAnon", math.nan)
 
 
 def node_threads(pid: int) -> int:
@@ -232,8 +235,9 @@ def wire_report(attack: str, mode: str, run: dict, clean: dict, bars: list) -> N
     hb, got, ok = run["witness"]
     print(
         f"    pose messages/s at the autopilot {run['rate_hz']:.1f} (clean {clean['rate_hz']:.1f}); node CPU"
-        f" {run['cpu_s']:.2f} s (clean {clean['cpu_s']:.2f}), peak RSS {run['rss_mb']:.0f} MB (clean"
-        f" {clean['rss_mb']:.0f}), {run['threads']} threads; send CPU {_send_us(run):.1f} us/call (clean"
+        f" {run['cpu_s']:.2f} s (clean {clean['cpu_s']:.2f}), peak RSS {run['rss_mb'][0]:.0f} MB, anonymous"
+        f" {run['rss_mb'][1]:.0f} MB (clean {clean['rss_mb'][0]:.0f}, {clean['rss_mb'][1]:.0f}), {run['threads']}"
+        f" threads; send CPU {_send_us(run):.1f} us/call (clean"
         f" {_send_us(clean):.1f}); witness sent {hb} HEARTBEATs, received {got} datagrams, {ok} frames accepted"
     )
     ratio = run["rate_hz"] / clean["rate_hz"] if clean["rate_hz"] else 0.0
