@@ -222,8 +222,8 @@ def next_steps(root: Path, entity: str | None, script: str | None) -> list[str]:
             script = None
         steps.append(f"ln -s {script or '/opt/atlas-onboard/bin/atlas-onboard'} /{EXEC_PATH}")
     steps.append(
-        f"chown {SERVICE_USER}: /{KEY_FILE}   # the service reads it; use one drone's key on every drone"
-        " (docs/signing.md)"
+        f"chown root:{SERVICE_USER} /{KEY_FILE} && chmod 640 /{KEY_FILE}   # the service's group reads it, the"
+        " service cannot change it; use one drone's key on every drone (docs/signing.md)"
     )
     steps.append(f"atlas-onboard check-config /{WORLD_FILE}   # after editing it for your swarm and this drone")
     steps.append("systemctl daemon-reload")

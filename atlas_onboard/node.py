@@ -108,8 +108,13 @@ class Node:
         return self.output.last_result
 
     def enable_refinement(self, refine: RefineConfig) -> None:
-        """Refine the world markers' poses from the observations this node accepts (docs/mapping.md)."""
-        self.refinement = LiveRefinement(self.world, refine)
+        """Refine the world markers' poses from the observations this node accepts (docs/mapping.md): its
+        peers' only when every peer link requires signatures (else anyone on the network could move the map)."""
+        signed = all(p.signing is not None and p.signing.require for p in self.config.peers)
+        own = frozenset(s.id for s in self.world.entity(self.config.entity).sensors)
+        if not signed:
+            _logger.warning("refine: a peer link is not signed (require: true): only this node's cameras move the map")
+        self.refinement = LiveRefinement(self.world, refine, None if signed else own)
 
     def stop(self) -> None:
         """Ask the loop to end (safe from a signal handler: it only sets a flag; the loop polls it)."""

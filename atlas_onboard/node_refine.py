@@ -89,9 +89,11 @@ def sampled(detector: object, world: WorldConfig, refine: RefineConfig | None) -
 class LiveRefinement:
     """The node's side of the refinement: images in, the listener's marker poses out (see the module)."""
 
-    def __init__(self, world: WorldConfig, config: RefineConfig) -> None:
+    def __init__(self, world: WorldConfig, config: RefineConfig, sensors: frozenset[int] | None = None) -> None:
+        """``sensors``: the only sensors whose observations are evidence (None: every accepted one)."""
         self.world = world
         self.config = config
+        self._sensors = sensors
         markers = {m.id: m for m in world.entity(WORLD).markers}
         self.refiner = MapRefiner(
             {
@@ -116,7 +118,8 @@ class LiveRefinement:
         """Accepted observations (any order, any images); an image is used once its last one is in."""
         for md in accepted:
             key = (md.sensor_id, md.capture_time_us)
-            if md.marker_id in self._world_ids and md.sensor_id not in self._world_sensors:
+            evidence = self._sensors is None or md.sensor_id in self._sensors
+            if evidence and md.marker_id in self._world_ids and md.sensor_id not in self._world_sensors:
                 if md.ambiguity_ratio > AMBIGUITY_THRESHOLD:  # its square may be the mirrored one
                     self.skipped_ambiguous += 1
                 else:

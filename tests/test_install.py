@@ -84,6 +84,8 @@ def test_unit_contract(name, exec_start, environment_file):
         "StateDirectory": ["atlas-onboard"],
         "ConfigurationDirectory": ["atlas-onboard"],
         "CacheDirectory": ["atlas-onboard"],
+        "MemoryMax": ["512M"],
+        "TasksMax": ["64"],
         "Environment": ["ATLAS_ONBOARD_CACHE=%C/atlas-onboard", "PYTHONUNBUFFERED=1"],
         "NoNewPrivileges": ["yes"],
         "ProtectSystem": ["strict"],
@@ -226,8 +228,8 @@ def test_a_missing_root_is_refused(tmp_path):
 
 
 CHOWN_KEY = (
-    "chown atlas: /etc/atlas-onboard/swarm.key   # the service reads it; use one drone's key on every drone"
-    " (docs/signing.md)"
+    "chown root:atlas /etc/atlas-onboard/swarm.key && chmod 640 /etc/atlas-onboard/swarm.key   # the service's group"
+    " reads it, the service cannot change it; use one drone's key on every drone (docs/signing.md)"
 )
 
 

@@ -189,3 +189,13 @@ def test_one_image_per_half_second_is_reported_marker_by_marker():
     for k in range(30, 60):
         sampler.detect(None, k * 66_667)
     assert all(det.calls)
+
+
+def test_only_the_given_sensors_observations_are_evidence():
+    world = world_from(DOC)
+    peers_only = LiveRefinement(world, RefineConfig(), frozenset({7}))  # sensor 1 is a peer's here
+    peers_only.add(_image(world, [0, 1, 2], 1_000), 0)
+    assert peers_only.refiner.counters["evidence"] == 0
+    own = LiveRefinement(world, RefineConfig(), frozenset({1}))
+    own.add(_image(world, [0, 1, 2], 1_000), 0)
+    assert own.refiner.counters["evidence"] == 3

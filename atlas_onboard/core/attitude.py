@@ -137,6 +137,14 @@ class BootClock:
             self._offset_us = offset
         return time_boot_us + self._offset_us
 
+    def lead_us(self, time_boot_us: int, arrival_wall_us: int) -> int:
+        """How far after its own arrival a sample stamped ``time_boot_us`` would map on the offset so
+        far (0 before any, or after a reboot): never positive for a real sample, but for the clocks'
+        drift since the offset was set; a stamp ahead of the autopilot's clock is what makes it so."""
+        if self._offset_us is None or time_boot_us < self._last_boot_us - REBOOT_BACK_US:
+            return 0
+        return time_boot_us + self._offset_us - arrival_wall_us
+
 
 class AttitudeHistory:
     """The autopilot's recent attitudes (body FLU in a level ENU frame of arbitrary heading), by time.

@@ -1,5 +1,13 @@
 """The link to the own autopilot, held by :class:`~atlas_onboard.mavlink.transport.MavlinkTransport`: the
-autopilot's HEARTBEAT, TIMESYNC answers, the EKF origin, its attitude and the pose sent to it."""
+autopilot's HEARTBEAT, TIMESYNC answers, the EKF origin, its attitude and the pose sent to it.
+
+The autopilot is one (system, component), pinned for the link's life: the first autopilot-typed
+HEARTBEAT from component 1 of the configured system id (``system_id``, the autopilot's), or, when none
+came for AUTOPILOT_WAIT_NS, from another system (a misconfigured id: warned). No other HEARTBEAT
+replaces it (behind a router, other vehicles' flight controllers and ground stations talk too), and
+ATTITUDE, TIMESYNC, GPS_GLOBAL_ORIGIN and the autopilot type count only from it. On a link with
+``signing`` and ``require`` (an autopilot that signs: docs/mavlink-router.md), only from its signed
+frames."""
 
 from __future__ import annotations
 
@@ -14,7 +22,7 @@ from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mavlink import autopilot, codec
+from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.link import Link
 from atlas_onboard.publisher import AutopilotPose
 
@@ -29,6 +37,13 @@ ATTITUDE_INTERVAL_US = 20_000  # ATTITUDE asked for at 50 Hz (MAV_CMD_SET_MESSAG
 ATTITUDE_WAIT_NS = 2 * NS  # silence after which ATTITUDE is asked for again (at most ATTITUDE_ASKS times)
 ATTITUDE_ASKS = 5
 MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
+AUTOPILOT_WAIT_NS = 3 * NS  # an autopilot of another system id is taken only after this without the configured one
+ATTITUDE_LEAD_US = 20_000
+"""An ATTITUDE stamped so that it maps this far after its own arrival (plus ATTITUDE_DRIFT of the time
+since the last one taken) is refused (``attitude_ahead``): a real one never maps after its arrival
+but for the clocks' drift, and one stamped ahead would hold back every real sample after it."""
+ATTITUDE_DRIFT = 1e-3
+ATTITUDE_REMAP_NS = 2 * NS  # every sample refused as ahead for this long: the wall clock stepped back, remap
 
 
 def wall_ns(wall_clock: Callable[[], float]) -> int:
@@ -47,14 +62,17 @@ class AutopilotLink:
         self.wall = wall_clock
         self.link = (
             Link(self.settings.link, "autopilot", config.system_id, component_id, config.state_dir, link_id=0,
-                 wall_clock=wall_clock)
+                 wall_clock=wall_clock, origin_ok=self.may_be_autopilot)
             if self.settings is not None
             else None
         )  # fmt: skip
         self.counters = Counters()
+        signing = self.settings.link.signing if self.settings is not None else None
+        self._signed_only = signing is not None and signing.require
         self.autopilot_system: int | None = None  # from the autopilot's HEARTBEAT
         self.autopilot_component: int | None = None
         self.autopilot_type: int | None = None  # MAV_AUTOPILOT_* (PX4 12, ArduPilot 3)
+        self._candidate: tuple[int, int, int] | None = None  # another system's autopilot: (system, type, first ns)
         self._next_origin_ns = 0
         self._origin_unanswered = 0  # origin requests since the last SET_GPS_GLOBAL_ORIGIN, unanswered
         self._origin_sets = 0
@@ -65,6 +83,25 @@ class AutopilotLink:
         self._boot_clock = BootClock()
         self._attitude_asks = 0
         self._next_attitude_ask_ns = 0
+        self._attitude_taken_ns: int | None = None
+        self._attitude_refused_since_ns: int | None = None
+
+    def may_be_autopilot(self, msg: Any) -> bool:
+        """Whether ``msg`` may prove a UDP source address the autopilot's: from the pinned autopilot's
+        system, or before one is pinned from the configured system id or another system's candidate."""
+        system_id = msg.get_srcSystem()
+        if self.autopilot_system is not None:
+            return system_id == self.autopilot_system
+        return system_id == self.system_id or (self._candidate is not None and system_id == self._candidate[0])
+
+    def is_autopilot(self, msg: Any) -> bool:
+        """Whether ``msg`` comes from the pinned autopilot (signed, where the link requires it)."""
+        if self._signed_only and not framing.is_signed(msg):
+            return False
+        return self.autopilot_system is not None and (msg.get_srcSystem(), msg.get_srcComponent()) == (
+            self.autopilot_system,
+            self.autopilot_component,
+        )
 
     def start(self) -> None:
         if self.link is not None:
@@ -131,7 +168,20 @@ class AutopilotLink:
             self.counters.inc("attitude_rejected")
             return
         arrival_wall_us = (wall_ns(self.wall) - (time.monotonic_ns() - arrival_ns)) // 1000
-        self.attitude.add(self._boot_clock.wall_us(int(msg.time_boot_ms) * 1000, arrival_wall_us), R)
+        boot_us = int(msg.time_boot_ms) * 1000
+        since_us = (arrival_ns - self._attitude_taken_ns) // 1000 if self._attitude_taken_ns is not None else 0
+        if self._boot_clock.lead_us(boot_us, arrival_wall_us) > ATTITUDE_LEAD_US + ATTITUDE_DRIFT * since_us:
+            self.counters.inc("attitude_ahead")
+            if self._attitude_refused_since_ns is None:
+                self._attitude_refused_since_ns = arrival_ns
+            if arrival_ns - self._attitude_refused_since_ns < ATTITUDE_REMAP_NS:
+                return
+            _logger.warning("every ATTITUDE for %.0f s maps after its arrival: the clock stepped; mapped anew",
+                            ATTITUDE_REMAP_NS / NS)  # fmt: skip
+            self._boot_clock = BootClock()
+        self._attitude_refused_since_ns = None
+        self._attitude_taken_ns = arrival_ns
+        self.attitude.add(self._boot_clock.wall_us(boot_us, arrival_wall_us), R)
 
     def _origin_tick(self, now_ns: int) -> None:
         """The EKF origin: asked for (MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) every
@@ -172,26 +222,37 @@ class AutopilotLink:
         self.link.send(d.MAVLink_command_long_message(**fields))
         self._origin_unanswered += 1
 
+    def _on_heartbeat(self, msg: Any, arrival_ns: int) -> None:
+        """Pin the autopilot (see the module); an autopilot-typed HEARTBEAT from anyone else is counted."""
+        if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.get_srcComponent() != MAV_COMP_ID_AUTOPILOT1:
+            return  # a GCS, a companion, another component of the vehicle: never the autopilot
+        if self._signed_only and not framing.is_signed(msg):
+            self.counters.inc("heartbeat_not_from_autopilot")
+            return
+        if self.is_autopilot(msg):
+            self.autopilot_type = msg.autopilot
+            return
+        system = msg.get_srcSystem()
+        if self.autopilot_system is not None:
+            self.counters.inc("heartbeat_not_from_autopilot")
+            return
+        if system != self.system_id:
+            if self._candidate is None:
+                self._candidate = (system, msg.autopilot, arrival_ns)
+            if self._candidate[0] != system or arrival_ns - self._candidate[2] < AUTOPILOT_WAIT_NS:
+                self.counters.inc("heartbeat_not_from_autopilot")
+                return
+            _logger.warning(
+                "no autopilot of system_id %d in the node settings after %.0f s: taking system %d's (fix system_id)",
+                self.system_id, AUTOPILOT_WAIT_NS / NS, system,
+            )  # fmt: skip
+        self.autopilot_system, self.autopilot_component, self.autopilot_type = system, 1, msg.autopilot
+        _logger.info("autopilot found: system %d, component 1, autopilot type %d", system, msg.autopilot)
+
     def _on_message(self, link: Link, msg: Any, arrival_ns: int) -> None:
         kind = msg.get_type()
-        if kind == "HEARTBEAT" and msg.autopilot != MAV_AUTOPILOT_INVALID:
-            source = (msg.get_srcSystem(), msg.get_srcComponent())
-            if self.autopilot_system is not None and source != (self.autopilot_system, self.autopilot_component):
-                if source[1] != MAV_COMP_ID_AUTOPILOT1:
-                    return  # another component of the vehicle (a gimbal, a camera): the autopilot stays
-            if self.autopilot_system is None:
-                _logger.info(
-                    "autopilot found: system %d, component %d, autopilot type %d",
-                    msg.get_srcSystem(), msg.get_srcComponent(), msg.autopilot,
-                )  # fmt: skip
-                if msg.get_srcSystem() != self.system_id:
-                    _logger.warning(
-                        "autopilot's system id %d differs from system_id %d in the node settings",
-                        msg.get_srcSystem(), self.system_id,
-                    )  # fmt: skip
-            self.autopilot_system = msg.get_srcSystem()
-            self.autopilot_component = msg.get_srcComponent()
-            self.autopilot_type = msg.autopilot
+        if kind == "HEARTBEAT":
+            self._on_heartbeat(msg, arrival_ns)
         elif kind == "TIMESYNC":
             # Answer only the autopilot's own requests (PX4 trusts our usec once this converges), on
             # the wall clock of our usec stamps, addressed to it: behind a router a GCS's or MAVSDK's
@@ -206,9 +267,14 @@ class AutopilotLink:
             if reply is not None:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION"):
-            if (msg.get_srcSystem(), msg.get_srcComponent()) == (self.autopilot_system, self.autopilot_component):
+            if self.is_autopilot(msg):
                 self._on_attitude(msg, arrival_ns)
+            else:
+                self.counters.inc("attitude_not_from_autopilot")
         elif kind == "GPS_GLOBAL_ORIGIN":
+            if not self.is_autopilot(msg):
+                self.counters.inc("origin_not_from_autopilot")
+                return
             if not self.origin_known:
                 _logger.info(
                     "autopilot reports its EKF origin (%.7f, %.7f, %.1f m): no more requests",

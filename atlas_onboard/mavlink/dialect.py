@@ -3,6 +3,11 @@
 Generated code is never committed: the module is written once into a cache directory keyed by the
 hash of the XML (and pymavlink's version), atomically, and imported from there. Generation takes
 well under a second and needs no network.
+
+Importing runs the cached file's code, so the cache is used only where nobody else could have
+written it: the directory, the module and its bytecode owned by the running user and writable by
+nobody else (:func:`private`). Otherwise (a cache directory of another user, a shared /tmp) the
+module is generated again into a fresh private temporary directory and imported from there.
 """
 
 from __future__ import annotations
@@ -16,6 +21,7 @@ import os
 import py_compile
 import re
 import shutil
+import stat
 import sys
 import tempfile
 import threading
@@ -41,6 +47,28 @@ def cache_dir() -> Path:
         return Path(env)
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "atlas-onboard"
+
+
+def private(path: Path) -> bool:
+    """Whether ``path`` (if it exists) is owned by the running user and writable by nobody else."""
+    try:
+        st = path.lstat()
+    except FileNotFoundError:
+        return True
+    except OSError:
+        return False
+    return st.st_uid == os.getuid() and not st.st_mode & (stat.S_IWGRP | stat.S_IWOTH) and not stat.S_ISLNK(st.st_mode)
+
+
+def _usable(base: Path, path: Path) -> bool:
+    """Whether the cache directory ``base`` may hold ``path``: it, the module and its bytecode private
+    (the directory created, mode 0700, if missing)."""
+    try:
+        base.mkdir(parents=True, exist_ok=True, mode=0o700)
+    except OSError:
+        return False
+    pyc = Path(importlib.util.cache_from_source(str(path)))
+    return all(private(p) for p in (base, path, pyc.parent, pyc))
 
 
 def definitions_dir() -> Path:
@@ -190,17 +218,22 @@ def _import(path: Path, name: str) -> ModuleType:
 def load() -> ModuleType:
     """The generated dialect module (``MAVLink``, ``MAVLink_atlas_observation_message``, ...).
 
-    Generated at the first call into ``cache_dir()`` (or a per-user temp directory when that is not
-    writable) and imported from there; later calls return the same module.
+    Generated at the first call into ``cache_dir()`` (or, when that is not private to the running user
+    or not writable, into a fresh private temporary directory) and imported from there; later calls
+    return the same module.
     """
     with _lock:
         if "module" in _cache:
             return _cache["module"]
         key = digest()
         name = f"atlas_onboard_mavlink_dialect_{key}"
-        candidates = [cache_dir(), Path(tempfile.gettempdir()) / f"atlas-onboard-{os.getuid()}"]
         last_error: Exception | None = None
-        for base in candidates:
+        for base in (cache_dir(), None):
+            if base is not None and not _usable(base, base / f"atlas_dialect_{key}.py"):
+                _logger.warning("MAVLink dialect cache %s is not private to this user: not used", base)
+                continue
+            if base is None:
+                base = Path(tempfile.mkdtemp(prefix="atlas-onboard-dialect-"))  # mode 0700, a new name
             path = base / f"atlas_dialect_{key}.py"
             try:
                 if not path.exists():

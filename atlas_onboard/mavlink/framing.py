@@ -57,10 +57,20 @@ def raise_on_close(conn: Any) -> None:
 
 
 _MAGIC_V2 = 0xFD
+_V1_OVERHEAD = 8  # MAVLink 1: 6-byte header, 2-byte checksum
 _IFLAG_SIGNED = 0x01
 _V2_OVERHEAD = 12  # 10-byte header, 2-byte checksum (unsigned)
 _V2_HEADER = 10
 _SIGNATURE_LEN = 13  # link id, 6-byte timestamp, 6-byte signature
+
+
+def reset(mav: Any) -> None:
+    """The parser's state as new: nothing of a previous datagram (a partial frame, a prefix error)
+    may carry over into the next one. pymavlink's own attributes, as its constructor sets them."""
+    mav.buf = bytearray()
+    mav.buf_index = 0
+    mav.expected_length = _V1_OVERHEAD
+    mav.have_prefix_error = False
 
 
 def parser_class(module: ModuleType) -> type:
@@ -130,6 +140,9 @@ class Deferred:
     def get_seq(self) -> int:
         return self._msgbuf[4]
 
+    def get_signed(self) -> bool:
+        return self._sig_ok
+
     def decoded(self) -> Any:
         """pymavlink's message for this frame (decoded once)."""
         if self._msg is None:
@@ -141,6 +154,11 @@ class Deferred:
 
     def __repr__(self) -> str:
         return f"Deferred({self.get_type()} from {self.get_srcSystem()}/{self.get_srcComponent()})"
+
+
+def is_signed(msg: Any) -> bool:
+    """Whether a message that passed the parser came in a frame whose signature passed the check."""
+    return bool(msg.get_signed())
 
 
 _deferred: dict[Any, type[Deferred]] = {}  # by message class: a regenerated dialect gets its own

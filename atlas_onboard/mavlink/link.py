@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
-import os
 import socket
 import threading
 import time
@@ -29,6 +28,7 @@ from atlas_onboard.core.rejection import Rejection
 from atlas_onboard.counters import Counters
 from atlas_onboard.mavlink import dialect, framing
 from atlas_onboard.mavlink.signing import LinkSigning
+from atlas_onboard.mavlink.udp import RCVBUF_BYTES, UdpEndpoint, parse_datagram, udp_socket_drops
 
 _logger = logging.getLogger(__name__)
 
@@ -37,33 +37,8 @@ DATAGRAMS_PER_POLL = 16
 DROPS_CHECK_S = 1.0  # how often a UDP link reads the kernel's drop count of its socket
 MAX_HOLD_S = 0.02  # a reader held by the node waits no longer than this
 MAX_DATAGRAM_BYTES = 1400  # several messages in one UDP datagram, below a network's MTU
-RCVBUF_BYTES = 512 * 1024
-"""The receive buffer asked for on a UDP link (Linux caps it at net.core.rmem_max; the node logs what
-it got). Sized for what is worth keeping: a swarm's traffic for one edge timeout. 16 drones, each
-sending a datagram per camera frame at 30 Hz plus fused poses and heartbeats, make about 600
-datagrams a second; 250 ms of it at the kernel's ~2 KiB accounting per small datagram is ~300 KiB.
-A larger buffer would only hold datagrams older than the edge timeout when a flood fills it; a
-smaller one drops the real peers' first under a burst. What does not fit is dropped by the kernel
-(``kernel_drops``); the node refuses a forged datagram for its origin before decoding it, so a
-flood costs it a header read per datagram, never its own camera's path."""
-
 Handler = Callable[["Link", Any, int], None]
-
-
-def udp_socket_drops(sock: Any) -> int | None:
-    """Datagrams the kernel dropped for this UDP socket because its receive buffer was full (Linux's
-    /proc/net/udp, matched by the socket's inode), or None where that is not available."""
-    try:
-        inode = str(os.fstat(sock.fileno()).st_ino)
-        for table in ("/proc/net/udp", "/proc/net/udp6"):
-            with open(table, encoding="ascii") as f:
-                for line in f:
-                    cols = line.split()
-                    if len(cols) > 12 and cols[9] == inode:
-                        return int(cols[-1])
-    except (OSError, ValueError, AttributeError):
-        return None
-    return None
+OriginCheck = Callable[[Any], bool]
 
 
 def is_serial(url: str) -> bool:
@@ -83,6 +58,9 @@ class Link:
         wall_clock: UNIX time in seconds (signing timestamps); injectable for tests.
         deferred: names of messages handed on as :class:`framing.Deferred` (checked, decoded only when
             a field is read) where the fast path can (unsigned MAVLink 2); others are decoded as they come.
+        origin_ok: which messages may prove a UDP source address a client (see :mod:`.udp`): such a
+            message that passed the checks (signed, on a link that requires it) makes its sender's
+            address one the link sends to. Default: any message.
     """
 
     def __init__(
@@ -96,6 +74,7 @@ class Link:
         *,
         wall_clock: Callable[[], float] = time.time,
         deferred: Collection[str] = (),
+        origin_ok: OriginCheck | None = None,
     ) -> None:
         self.config = config
         self.name = name
@@ -119,7 +98,9 @@ class Link:
             if config.signing is not None
             else None
         )
+        self._origin_ok = origin_ok
         self._conn: Any = None
+        self._udp: UdpEndpoint | None = None
         self._send_lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -155,9 +136,12 @@ class Link:
         conn.first_byte = False
         if self.signing is not None:
             self.signing.setup(conn)
+        udp = None
         if isinstance(conn, mavutil.mavudp):
             self._size_receive_buffer(conn.port)
-        self._conn = conn
+            udp = UdpEndpoint(conn, self.counters)
+        with self._send_lock:
+            self._conn, self._udp = conn, udp
         self._kernel_drops = 0  # a new socket counts from zero
         self.connected.set()
         if self._opened_before:
@@ -212,17 +196,41 @@ class Link:
             return
         # A UDP socket holds one datagram per message: take what is queued (up to a bound) per
         # wake-up rather than one select per datagram. Streams return many messages per read.
-        for _ in range(DATAGRAMS_PER_POLL if ready and isinstance(conn, mavutil.mavudp) else int(ready)):
+        udp = self._udp
+        for _ in range(DATAGRAMS_PER_POLL if ready and udp is not None else int(ready)):
             try:
-                data = conn.recv(4096)
-                msgs = conn.mav.parse_buffer(data) if data else None
+                if udp is not None:
+                    data, source = udp.recv()
+                    msgs = self._datagram(conn, data) if data else None
+                else:
+                    data = conn.recv(4096)
+                    msgs = conn.mav.parse_buffer(data) if data else None
             except Exception as exc:  # the device vanished or the peer went away: reopen with backoff
                 self._failed(exc)
                 return
             if not data:
                 break
-            yield [m for m in msgs or () if self._accept(m)]
+            passed = [m for m in msgs or () if self._accept(m)]
+            if udp is not None and any(self._proves(m) for m in passed):
+                with self._send_lock:
+                    udp.prove(source, time.monotonic())
+            yield passed
         self._housekeeping(conn)
+
+    def _datagram(self, conn: Any, data: bytes) -> list[Any]:
+        """One UDP datagram's frames, parsed from a fresh parser state within a budget of bad frames."""
+        parsed = parse_datagram(self.dialect, conn.mav, data)
+        if parsed.cut:
+            self.counters.inc("datagrams_cut")
+        return parsed.messages
+
+    def _proves(self, msg: Any) -> bool:
+        """Whether ``msg`` (which passed the link's checks) makes its sender's address a client: from
+        a sender ``origin_ok`` allows, and signed where the link requires signatures."""
+        if self._origin_ok is not None and not self._origin_ok(msg):
+            return False
+        signing = self.signing
+        return signing is None or not signing.config.require or framing.is_signed(msg)
 
     def _failed(self, exc: Exception) -> None:
         self.counters.inc("read_errors")
@@ -280,7 +288,8 @@ class Link:
 
     def _drop(self) -> None:
         self.connected.clear()
-        conn, self._conn = self._conn, None
+        with self._send_lock:
+            conn, self._conn, self._udp = self._conn, None, None
         self._next_open_s = time.monotonic() + BACKOFF_S[0]
         if conn is not None:
             with contextlib.suppress(Exception):
@@ -357,6 +366,7 @@ class Link:
         if conn is None:
             self.counters.inc("tx_dropped_link_down", len(msgs))
             return False
+        cpu_ns = time.thread_time_ns()
         try:
             with self._send_lock:
                 if self.signing is not None:
@@ -373,14 +383,20 @@ class Link:
                         chunk = b""
                     chunk += buf
                 chunks.append(chunk)
+                udp = self._udp
                 for chunk in chunks:
-                    conn.write(chunk)
+                    if udp is not None:
+                        udp.write(chunk, time.monotonic())
+                    else:
+                        conn.write(chunk)
         except Exception as exc:  # a write error is a dead link: the reader reopens it when its read fails
             self.counters.inc("tx_errors")
             _logger.debug("%s: send failed: %s", self.name, exc)
             return False
         for kind, n in Tally(msg.get_type().lower() for msg in msgs).items():
             self.counters.inc(f"tx_{kind}", n)
+        self.counters.inc("tx_calls")  # and their CPU time: what every send costs this thread
+        self.counters.inc("tx_cpu_ns", time.thread_time_ns() - cpu_ns)
         return True
 
     @property

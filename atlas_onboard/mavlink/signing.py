@@ -10,6 +10,14 @@ Two fixes over pymavlink's signing, both needed by a swarm:
 - pymavlink's outgoing timestamp only counts messages (+1 each), never the clock, so a node that has
   run a while signs far behind real time and a peer that restarts rejects it (more than 60 s behind)
   for good. Here it follows the wall clock, and never goes below the value persisted in ``state_dir``.
+- pymavlink adopts any received timestamp as its own: one validly signed frame stamped near 2^48
+  (a key holder, or a node with a broken clock) would push every node's timestamp there, wrap it,
+  and persist it. Here a frame stamped more than REFUSE_AHEAD_S ahead of the wall clock is refused
+  (counted, and said: it is this node's clock that may be behind), and the own timestamp is raised
+  by what is received or loaded at most to MAX_AHEAD_S ahead of the wall clock.
+
+The streams' last timestamps (the replay table) belong to the link, not to one connection: a reopened
+connection keeps refusing what was seen before.
 """
 
 from __future__ import annotations
@@ -38,20 +46,32 @@ SIGNING_EPOCH_S = 1420070400  # MAVLink signing timestamps count 10 us units sin
 SIGNING_TICKS_PER_S = 100_000
 STREAM_MAX_BEHIND_TICKS = 60 * SIGNING_TICKS_PER_S  # a new stream more than 60 s behind is refused
 TIMESTAMP_SAVE_EVERY_S = 10.0
+MAX_AHEAD_S = 10.0
+"""How far ahead of the wall clock the own signing timestamp may be raised by a received or a saved
+one (pymavlink raises it to any received value). It covers the save period added at a restart."""
+REFUSE_AHEAD_S = 60.0
+"""A signed frame stamped further than this ahead of the wall clock is refused (``signature_ahead``):
+peers sign at most MAX_AHEAD_S ahead of their clocks, so this leaves 50 s of clock difference, as
+pymavlink leaves 60 s behind (STREAM_MAX_BEHIND_TICKS)."""
+CLOCK_WARN_EVERY_S = 10.0
 PROTECTED = frozenset({"ATLAS_OBSERVATION", "ATLAS_FUSED_POSE", "TUNNEL"})  # never accepted unsigned when required
 KEY_LEN = 32
 
 
 def read_key(path: Path) -> bytes:
-    """A 32-byte signing key: 32 raw bytes, or 64 hex characters. Refused if group or others may read it."""
+    """A 32-byte signing key: 32 raw bytes, or 64 hex characters. Refused if others may read it, or its
+    group unless root owns it and the group is another (root:atlas mode 640: the service's group
+    reads it, the service cannot change it)."""
     try:
         st = path.stat()
         data = path.read_bytes()
     except OSError as exc:
         raise AtlasError(f"signing key {path}: cannot read: {exc.strerror}") from None
-    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO):
+    group_ok = stat.S_IRGRP if st.st_uid == 0 and st.st_gid != 0 else 0
+    if st.st_mode & (stat.S_IRWXG | stat.S_IRWXO) & ~group_ok:
         raise AtlasError(
             f"signing key {path}: readable by group or others (mode {stat.S_IMODE(st.st_mode):o}); chmod 600 it"
+            " (or root-owned, chmod 640, group the service's)"
         )
     text = data.strip()
     if len(text) == 2 * KEY_LEN:
@@ -99,6 +119,9 @@ class LinkSigning:
         self._wall = wall_clock
         self._bad_signature = False  # the frame being decoded was signed and failed the check
         self._last_save_s = time.monotonic()
+        self.streams: dict[tuple[int, int, int], int] = {}  # (link id, system, component) -> last timestamp
+        self._timestamp = 0  # the last own timestamp seen on a connection of this link
+        self._next_clock_warn_s = 0.0
 
     def setup(self, conn: Any) -> None:
         """Sign (per ``sign_outgoing``) and check (per ``require``) on ``conn``'s parser."""
@@ -120,10 +143,11 @@ class LinkSigning:
             self.key,
             sign_outgoing=signing.sign_outgoing,
             allow_unsigned_callback=allow_unsigned,
-            initial_timestamp=max(signing_timestamp(self._wall()), self._load_timestamp() + 1),
+            initial_timestamp=max(signing_timestamp(self._wall()), self._load_timestamp() + 1, self._timestamp + 1),
             link_id=self.link_id,
         )
         mav = conn.mav
+        mav.signing.stream_timestamps = self.streams  # the replay table outlives the connection
         mav.check_signature = lambda buf, src_system, src_component: self.check(mav, buf, src_system, src_component)
 
     def check(self, mav: Any, msgbuf: bytearray, src_system: int, src_component: int) -> bool:
@@ -137,6 +161,11 @@ class LinkSigning:
         if not hmac.compare_digest(digest, bytes(msgbuf[-6:])):
             self.counters.inc("signature_mismatch")
             return False
+        now_ticks = signing_timestamp(self._wall())
+        if timestamp > now_ticks + int(REFUSE_AHEAD_S * SIGNING_TICKS_PER_S):
+            self.counters.inc("signature_ahead")
+            self._clock_behind(src_system, timestamp - now_ticks)
+            return False
         stream = (link_id, src_system, src_component)
         last = signing.stream_timestamps.get(stream)
         if last is not None and timestamp <= last:
@@ -147,14 +176,31 @@ class LinkSigning:
             return False
         self._bad_signature = False
         signing.stream_timestamps[stream] = timestamp
-        signing.timestamp = max(signing.timestamp, timestamp)
+        bound = now_ticks + int(MAX_AHEAD_S * SIGNING_TICKS_PER_S)
+        if timestamp > bound:
+            self._clock_behind(src_system, timestamp - now_ticks)
+        signing.timestamp = max(signing.timestamp, min(timestamp, bound))
         return True
+
+    def _clock_behind(self, src_system: int, ahead_ticks: int) -> None:
+        """A peer signs ahead of this node's clock by more than MAX_AHEAD_S: counted, and said at most
+        every CLOCK_WARN_EVERY_S (the peer's clock may be wrong, or this node's behind the mesh)."""
+        self.counters.inc("signing_clock_behind")
+        now = time.monotonic()
+        if now >= self._next_clock_warn_s:
+            self._next_clock_warn_s = now + CLOCK_WARN_EVERY_S
+            _logger.warning(
+                "signed frames from system %d are stamped %.0f s ahead of this node's clock: this node's clock"
+                " may be behind the mesh (sync it: chrony); more than %.0f s ahead is refused",
+                src_system, ahead_ticks / SIGNING_TICKS_PER_S, REFUSE_AHEAD_S,
+            )  # fmt: skip
 
     def advance(self, conn: Any) -> None:
         """Keep the signing timestamp at least at the wall clock (it must rise with real time)."""
         signing = conn.mav.signing
         if signing.secret_key is not None:
             signing.timestamp = max(signing.timestamp, signing_timestamp(self._wall()))
+            self._timestamp = signing.timestamp
 
     def save_due(self) -> bool:
         """Whether the timestamp is due to be persisted (every TIMESTAMP_SAVE_EVERY_S)."""
@@ -169,10 +215,20 @@ class LinkSigning:
             return 0
         try:
             saved = int(json.loads(path.read_text(encoding="utf-8"))["timestamp"])
+            saved_at_s = path.stat().st_mtime  # the wall clock when it was written
         except (OSError, ValueError, KeyError, TypeError):
             return 0
+        # Never beyond MAX_AHEAD_S ahead of the clock when it was saved (or now, if later): no timestamp
+        # this node signed was (see check()); a larger one is a future value adopted by an older version.
+        bound = signing_timestamp(max(self._wall(), saved_at_s)) + int(MAX_AHEAD_S * SIGNING_TICKS_PER_S)
+        if saved > bound:
+            self.counters.inc("signing_state_repaired")
+            _logger.warning(
+                "signing timestamp in %s is %.0f s ahead of the clock it was saved with (adopted from a peer by an"
+                " older version): repaired", path, (saved - bound) / SIGNING_TICKS_PER_S + MAX_AHEAD_S,
+            )  # fmt: skip
         # Saved periodically: add the save period so a restart never reuses a timestamp.
-        return saved + int(TIMESTAMP_SAVE_EVERY_S * SIGNING_TICKS_PER_S)
+        return min(saved, bound) + int(TIMESTAMP_SAVE_EVERY_S * SIGNING_TICKS_PER_S)
 
     def save(self, conn: Any, name: str) -> None:
         """Persist ``conn``'s signing timestamp (a companion without an RTC restarts with a clock in the past)."""
@@ -181,7 +237,8 @@ class LinkSigning:
             return
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            write_atomic(path, json.dumps({"timestamp": int(conn.mav.signing.timestamp)}))
+            self._timestamp = max(self._timestamp, int(conn.mav.signing.timestamp))
+            write_atomic(path, json.dumps({"timestamp": self._timestamp}))
         except OSError as exc:
             self.counters.inc("signing_state_write_errors")
             _logger.warning("%s: cannot save signing timestamp to %s: %s", name, path, exc.strerror)

@@ -44,6 +44,7 @@ __all__ = ["MavlinkTransport", "TokenBucket"]
 
 NS = 1_000_000_000
 MAV_TYPE_ONBOARD_CONTROLLER = autopilot.MAV_TYPE_ONBOARD_CONTROLLER
+MAV_TYPE_GCS = 6
 PEER_LOST_NS = 3 * NS
 REPORT_EVERY_S = 10.0  # a STATUSTEXT or a warning of one reason goes out at most this often
 
@@ -64,7 +65,17 @@ class MavlinkTransport:
         # their edge, and the others are never taken); its fused poses only say that it is alive.
         lazy = ("ATLAS_OBSERVATION", "ATLAS_FUSED_POSE")
         self.peers = [
-            Link(p, f"peer{i}", config.system_id, compid, config.state_dir, i + 1, wall_clock=wall_clock, deferred=lazy)
+            Link(
+                p,
+                f"peer{i}",
+                config.system_id,
+                compid,
+                config.state_dir,
+                i + 1,
+                wall_clock=wall_clock,
+                deferred=lazy,
+                origin_ok=self._is_peer,
+            )
             for i, p in enumerate(config.peers)
         ]
         self.entity_index = {name: i for i, name in enumerate(world.entity_names)}
@@ -83,6 +94,19 @@ class MavlinkTransport:
         self.peers_seen: dict[int, int] = {}  # system id -> last arrival (ns)
         self._peers_alive: set[int] = set()
         self._fingerprint_warned: set[int] = set()
+
+    def _is_peer(self, msg: Any) -> bool:
+        """Whether ``msg`` may prove its sender a UDP client: from a node of the world file other than
+        this one, or a ground station's HEARTBEAT (it reads the STATUSTEXT and telemetry)."""
+        system_id = msg.get_srcSystem()
+        if msg.get_type() == "HEARTBEAT" and msg.type == MAV_TYPE_GCS:
+            return system_id != self.config.system_id
+        return system_id != self.config.system_id and self.binding.is_node(system_id)
+
+    @staticmethod
+    def _alive(link: Link, msg: Any) -> bool:
+        """Whether ``msg`` may say its sender is alive: on a signed link, only a signed frame."""
+        return link.signing is None or framing.is_signed(msg)
 
     @property
     def attitude(self) -> AttitudeHistory:
@@ -229,9 +253,9 @@ class MavlinkTransport:
         kind = msg.get_type()
         origin = msg.get_srcSystem()
         if kind not in ("ATLAS_OBSERVATION", "TUNNEL"):
-            if kind == "HEARTBEAT" and self.binding.is_node(origin):
+            if kind == "HEARTBEAT" and self.binding.is_node(origin) and self._alive(link, msg):
                 self.peers_seen[origin] = arrival_ns  # a stranger's heartbeat makes no peer
-            elif kind == "ATLAS_FUSED_POSE":
+            elif kind == "ATLAS_FUSED_POSE" and self._alive(link, msg):
                 self._on_fused(msg, origin, arrival_ns)
             return
         if kind == "TUNNEL":  # its sensor is known only once decoded: decoded and checked now
@@ -338,7 +362,8 @@ class MavlinkTransport:
         if reason is not None:
             self._refuse(reason, origin)
             return None
-        self.peers_seen[origin] = arrival_ns
+        if self._alive(link, msg):
+            self.peers_seen[origin] = arrival_ns
         if wall_ns is None:
             wall_ns = self._wall_ns()
         skew = self.gate.check_skew(md, wall_ns, arrival_ns)

@@ -34,7 +34,7 @@ from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.command import autopilot_track
 from atlas_onboard.sim.report import EntityScore, score
-from atlas_onboard.sim.runner import NODE_MODULE, WARMUP_S, _rendered_frames, build_run_config
+from atlas_onboard.sim.runner import NODE_MODULE, WARMUP_S, WORLD_NODE_SYSTEM_ID, _rendered_frames, build_run_config
 from atlas_onboard.sim.sources import SIM_ENV
 from atlas_onboard.sim.world import SimWorld
 
@@ -113,9 +113,11 @@ def start_solo(
     geometric: bool = True,
     seed: int = 0,
     node_args: tuple[str, ...] = (),
+    world_node: bool = False,
 ) -> SoloNode:
     """Start the node of ``entity`` (default: the scenario's first drone); the scenario's clock starts
-    at :meth:`SoloNode.start_scenario`. ``signing`` is the peer link's ``signing`` section."""
+    at :meth:`SoloNode.start_scenario`. ``signing`` is the peer link's ``signing`` section.
+    ``world_node``: the world file names a node of the world (system 250), a peer the tests can play."""
     scenario = scenarios.get(scenario_name)
     entity = entity or scenario.drones[0]
     system_id = scenario.drones.index(entity) + 1  # as build_run_config numbers them
@@ -129,6 +131,8 @@ def start_solo(
     if signing is not None:
         peer["signing"] = signing
     doc["nodes"][entity].update(peers=[peer], state_dir=str(run_dir / "state"), status_interval_s=1)
+    if world_node:
+        doc["nodes"].setdefault("world", {"system_id": WORLD_NODE_SYSTEM_ID})
     path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
     env = dict(os.environ)
     env[SIM_ENV] = json.dumps(

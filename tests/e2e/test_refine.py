@@ -3,7 +3,8 @@ simulated cameras (the ``map`` scenario, recorded once) and share their observat
 world file has one marker 10 cm from where it is.
 
 - ``on``: both refine (``nodes.defaults.refine``) and write the refined world file at exit
-  (``--write-map``). This flight shows the marker with two or more others in about 11 to 14 views
+  (``--write-map``); their link is signed (a peer's observations are evidence only on signed
+  links). This flight shows the marker with two or more others in about 11 to 14 views
   (images 0.5 s apart, its own and its peer's) to each node, around the 12 a move needs: a node that
   has them places the marker where it truly is, within a few mm, logs, counts and announces it once;
   one that has not leaves it as it was and says why. At least one of the two has them, and neither
@@ -14,6 +15,7 @@ world file has one marker 10 cm from where it is.
 from __future__ import annotations
 
 import copy
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +45,7 @@ class Run:
     written: Path
 
 
-def _node_doc(doc: dict, recs: dict[int, Path], port: int, aps: dict[str, int], refine: bool) -> dict:
+def _node_doc(doc: dict, recs: dict[int, Path], port: int, aps: dict[str, int], refine: bool, key: Path) -> dict:
     d = copy.deepcopy(doc)
     for sid, entity in SENSORS.items():
         for s in d["entities"][entity]["sensors"]:
@@ -51,7 +53,11 @@ def _node_doc(doc: dict, recs: dict[int, Path], port: int, aps: dict[str, int], 
                 # Every frame, stamped by the recording: the views the refinement counts do not depend on
                 # how loaded the machine is (realtime replay drops frames and left a drone a view short).
                 s["camera"] = {"source": str(recs[sid]), "replay": "every_frame", "fps": FPS}
-    links = {"mapper1": f"udpin:127.0.0.1:{port}", "mapper2": f"udpout:127.0.0.1:{port}"}
+    signing = {"key_file": str(key), "require": True}
+    links = {
+        "mapper1": {"url": f"udpin:127.0.0.1:{port}", "signing": signing},
+        "mapper2": {"url": f"udpout:127.0.0.1:{port}", "signing": signing},
+    }
     d["nodes"] = {
         e: {
             "system_id": k,
@@ -75,13 +81,16 @@ def truth_and_runs(tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, dict
             sensor["camera"]["fps"] = FPS
     recs = recordings.record(SCENARIO, doc, tuple(SENSORS), DURATION_S, 1, out, detect=False, start_s=START_S)
     moved = recordings.edit_marker(doc, MOVED_ID, move_m=MOVE_M)
+    key = out / "swarm.key"
+    key.write_bytes(os.urandom(32))
+    key.chmod(0o600)
     started = {}
     try:
         for name in ("on", "off"):
             (out / name).mkdir()
             aps = {e: SimAutopilot(system_id=k).start() for k, e in SENSORS.items()}
             ports = {e: a.port for e, a in aps.items()}
-            path = write_world(out / name, _node_doc(moved, recs, free_udp_port(), ports, name == "on"))
+            path = write_world(out / name, _node_doc(moved, recs, free_udp_port(), ports, name == "on", key))
             # off: mapper1 alone, which is all it needs to show, at less CPU
             entities = ("mapper1", "mapper2") if name == "on" else ("mapper1",)
             nodes = {}

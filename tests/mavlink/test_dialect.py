@@ -1,6 +1,7 @@
 """The generated dialect: made by mavgen into a cache keyed by a hash, atomically, regenerated when
 damaged; and the numbers in docs/wire-format.md are the generated ones."""
 
+import os
 import re
 import sys
 from pathlib import Path
@@ -68,3 +69,36 @@ def test_the_document_states_the_generated_numbers():
         layout[name] = at
         at += sizes[code] * int(count or 1)
     assert {name: int(off) for off, name in offsets.items()} == layout
+
+
+PLANTED = "PLANTED = True\nMAVLink = None\n"
+
+
+def _plant(monkeypatch, cache):
+    monkeypatch.setenv("ATLAS_ONBOARD_CACHE", str(cache))
+    monkeypatch.setattr(dialect, "_cache", {})
+    (cache / f"atlas_dialect_{dialect.digest()}.py").write_text(PLANTED, encoding="utf-8")
+
+
+def test_a_cache_writable_by_others_is_never_imported(tmp_path, monkeypatch):
+    cache = tmp_path / "shared"
+    cache.mkdir()
+    cache.chmod(0o777)  # a shared /tmp-like directory: anyone could have planted the module
+    _plant(monkeypatch, cache)
+    module = dialect.load()
+    assert not hasattr(module, "PLANTED") and module.MAVLink_atlas_observation_message.id == 43100
+    assert not str(module.__file__).startswith(str(cache))
+
+
+def test_a_module_writable_by_others_or_owned_by_another_user_is_never_imported(tmp_path, monkeypatch):
+    cache = tmp_path / "cache"
+    cache.mkdir(mode=0o700)
+    _plant(monkeypatch, cache)
+    planted = cache / f"atlas_dialect_{dialect.digest()}.py"
+    planted.chmod(0o666)
+    assert not hasattr(dialect.load(), "PLANTED")
+    if os.getuid() == 0:  # as root: the file handed to another user
+        planted.chmod(0o644)
+        os.chown(planted, 65534, 65534)
+        monkeypatch.setattr(dialect, "_cache", {})
+        assert not hasattr(dialect.load(), "PLANTED")

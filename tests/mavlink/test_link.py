@@ -490,3 +490,18 @@ def test_many_messages_travel_in_few_datagrams(tmp_path, closing, signed):
     assert [m.seq for m in msgs] == list(range(60)) and rx.counters["rejected_bad_signature"] == 0
     header_seqs = [m.get_seq() for m in msgs]
     assert all((b - a) % 256 == 1 for a, b in itertools.pairwise(header_seqs))
+
+
+@pytest.mark.skipif(os.getuid() != 0, reason="needs root to hand the file to another owner and group")
+def test_a_root_owned_key_readable_by_the_services_group_only_is_accepted(tmp_path):
+    key = bytes(range(32))
+    path = write_key(tmp_path, key, 0o640)
+    os.chown(path, 0, 65534)  # root:the service's group, mode 640
+    assert read_key(path) == key
+    os.chown(path, 65534, 65534)  # the service's own file, group-readable: refused
+    with pytest.raises(AtlasError, match="readable by group or others"):
+        read_key(path)
+    os.chown(path, 0, 65534)
+    path.chmod(0o644)  # and others never
+    with pytest.raises(AtlasError, match="readable by group or others"):
+        read_key(path)

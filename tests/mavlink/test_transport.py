@@ -511,3 +511,61 @@ def test_what_px4_and_ardupilot_stream_is_not_counted_as_unknown_ids(rig):
     assert (c["autopilot_rx_current_mode"], c["autopilot_rx_available_modes"]) == (1, 1)
     assert c["autopilot_rx_time_estimate_to_target"] == 1 and c["autopilot_rx_other_dialect"] == 1
     assert (c["autopilot_rx_event"], c["autopilot_rx_current_event_sequence"]) == (1, 1)
+
+
+def test_on_a_signed_link_only_signed_frames_say_a_peer_is_alive(tmp_path):
+    from atlas_onboard.config import SigningConfig
+    from tests.mavlink.loopback import write_key
+
+    key = write_key(tmp_path, bytes(range(32)))
+    world = world_from(CEILING_D1_D2)
+    port = free_port()
+    config = NodeConfig(
+        entity="d1",
+        system_id=1,
+        peers=(LinkConfig(f"udpin:127.0.0.1:{port}", signing=SigningConfig(key)),),
+        owners=(("world", 250), ("d1", 1), ("d2", 2)),
+    )
+    transport = MavlinkTransport(world, config)
+    transport.start(lambda items: None)
+    unsigned, signed = RawSender(port, 2), RawSender(port, 250, key.read_bytes())
+    try:
+        for _ in range(3):
+            unsigned.raw(unsigned.heartbeat())  # passes the link (not protected), but is anyone's
+        assert wait_for(lambda: transport.counters().get("peer0_rx_heartbeat", 0) == 3)
+        assert 2 not in transport.peers_seen
+        signed.raw(signed.heartbeat())
+        assert wait_for(lambda: 250 in transport.peers_seen)
+    finally:
+        transport.close()
+        unsigned.close()
+        signed.close()
+
+
+def test_only_peers_and_ground_stations_become_clients_of_a_udpin_link():
+    world = world_from(CEILING_D1_D2)
+    port = free_port()
+    config = NodeConfig(
+        entity="d1", system_id=1, peers=(LinkConfig(f"udpin:127.0.0.1:{port}"),), owners=(("d1", 1), ("d2", 2))
+    )
+    transport = MavlinkTransport(world, config)
+    transport.start(lambda items: None)
+    stranger, gcs, peer = RawSender(port, 77), RawSender(port, 255), RawSender(port, 2)
+    try:
+        stranger.raw(stranger.heartbeat())  # a valid frame, but from no node of the world file
+        gcs.raw(gcs.frame(D.MAVLink_heartbeat_message(6, 8, 0, 0, 4, 3)))  # MAV_TYPE_GCS
+        peer.raw(peer.heartbeat())
+        assert wait_for(lambda: transport.counters().get("peer0_rx_heartbeat", 0) == 3)
+        transport.send_status("atlas: test", 6)
+        got = {}
+        for name, s in (("stranger", stranger), ("gcs", gcs), ("peer", peer)):
+            s.sock.settimeout(0.3)
+            try:
+                got[name] = len(s.sock.recv(4096)) > 0
+            except TimeoutError:
+                got[name] = False
+        assert got == {"stranger": False, "gcs": True, "peer": True}
+    finally:
+        transport.close()
+        for s in (stranger, gcs, peer):
+            s.close()

@@ -1,0 +1,96 @@
+"""The autopilot's identity: pinned to the configured system id's component 1 (another system's only after a
+wait without it), never replaced by another HEARTBEAT; ATTITUDE and GPS_GLOBAL_ORIGIN only from it; an
+ATTITUDE stamped ahead of the autopilot's clock refused."""
+
+import time
+
+from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig
+from atlas_onboard.mavlink.autopilot_link import AUTOPILOT_WAIT_NS, AutopilotLink
+from tests.mavlink.loopback import D, free_port
+
+PX4, ARDUPILOT = 12, 3
+NS = 1_000_000_000
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.s = 1_700_000_000.0
+
+    def __call__(self) -> float:
+        return self.s
+
+
+def _link(clock=None) -> AutopilotLink:
+    config = NodeConfig(
+        entity="d1", system_id=1, autopilot=AutopilotConfig(LinkConfig(f"udpout:127.0.0.1:{free_port()}"))
+    )
+    return AutopilotLink(config, 197, clock or time.time)
+
+
+def _from(msg, system: int, component: int):
+    """``msg`` as received from (system, component): packed and parsed back."""
+    return D.MAVLink(None).parse_buffer(msg.pack(D.MAVLink(None, srcSystem=system, srcComponent=component)))[0]
+
+
+def _heartbeat(system, component=1, autopilot=PX4):
+    return _from(D.MAVLink_heartbeat_message(2, autopilot, 0, 0, 3, 3), system, component)
+
+
+def test_another_systems_heartbeat_never_becomes_the_autopilot():
+    ap = _link()
+    ap._on_message(None, _heartbeat(2, autopilot=ARDUPILOT), 0)  # behind a router: another vehicle, first
+    assert ap.autopilot_system is None
+    ap._on_message(None, _heartbeat(1, 2), 1)  # the vehicle's gimbal: never the autopilot
+    ap._on_message(None, _heartbeat(1), 2)
+    assert (ap.autopilot_system, ap.autopilot_component, ap.autopilot_type) == (1, 1, PX4)
+    for k in range(5):
+        ap._on_message(None, _heartbeat(2, autopilot=ARDUPILOT), 10 * NS + k)
+    assert (ap.autopilot_system, ap.autopilot_component, ap.autopilot_type) == (1, 1, PX4)
+    assert ap.counters["heartbeat_not_from_autopilot"] == 6
+
+
+def test_another_system_is_taken_only_after_the_wait_without_the_configured_one():
+    ap = _link()
+    ap._on_message(None, _heartbeat(7), 0)
+    ap._on_message(None, _heartbeat(7), AUTOPILOT_WAIT_NS - 1)
+    assert ap.autopilot_system is None
+    ap._on_message(None, _heartbeat(7), AUTOPILOT_WAIT_NS)
+    assert (ap.autopilot_system, ap.autopilot_component) == (7, 1)
+    ap._on_message(None, _heartbeat(1), AUTOPILOT_WAIT_NS + 1)  # pinned for the link's life
+    assert ap.autopilot_system == 7
+
+
+def test_origin_and_attitude_count_only_from_the_autopilot():
+    ap = _link()
+    ap._on_message(None, _heartbeat(1), 0)
+    ap._on_message(None, _from(D.MAVLink_gps_global_origin_message(1, 2, 3, 0), 2, 1), 1)
+    assert not ap.origin_known and ap.counters["origin_not_from_autopilot"] == 1
+    ap._on_message(None, _from(D.MAVLink_attitude_message(1000, 0.1, 0, 0, 0, 0, 0), 2, 1), 2)
+    assert len(ap.attitude) == 0 and ap.counters["attitude_not_from_autopilot"] == 1
+    ap._on_message(None, _from(D.MAVLink_gps_global_origin_message(1, 2, 3, 0), 1, 1), 3)
+    assert ap.origin_known
+
+
+def test_an_attitude_stamped_ahead_of_the_autopilots_clock_is_refused():
+    clock = Clock()
+    ap = _link(clock)
+    ap._on_message(None, _heartbeat(1), 0)
+    boot_ms = 5_000
+
+    def sample(boot):
+        ap._on_message(None, _from(D.MAVLink_attitude_message(boot, 0.1, 0, 0, 0, 0, 0), 1, 1), time.monotonic_ns())
+
+    for _ in range(10):
+        clock.s += 0.02
+        boot_ms += 20
+        sample(boot_ms)
+    offset_us = ap.attitude.latest_us() - boot_ms * 1000
+    sample(boot_ms + 900)  # 0.9 s ahead, arriving with the last real one
+    assert ap.counters["attitude_ahead"] == 1
+    for _ in range(10):
+        clock.s += 0.02
+        boot_ms += 20
+        sample(boot_ms)
+    assert len(ap.attitude) == 20
+    # the real samples keep their mapping (to within the arrival jitter of this process)
+    assert abs(ap.attitude.latest_us() - boot_ms * 1000 - offset_us) < 5_000
