@@ -56,10 +56,17 @@ class AutopilotLink:
     said over it. The transport starts it, ticks it, and hands it the pose to send; the attitude it keeps
     (``attitude``) is what the listener's gravity check reads."""
 
-    def __init__(self, config: NodeConfig, component_id: int, wall_clock: Callable[[], float] = time.time) -> None:
+    def __init__(
+        self,
+        config: NodeConfig,
+        component_id: int,
+        wall_clock: Callable[[], float] = time.time,
+        monotonic_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         self.settings = config.autopilot
         self.system_id = config.system_id
         self.wall = wall_clock
+        self.monotonic_ns = monotonic_ns  # the clock of the arrival stamps
         self.link = (
             Link(self.settings.link, "autopilot", config.system_id, component_id, config.state_dir, link_id=0,
                  wall_clock=wall_clock, origin_ok=self.may_be_autopilot)
@@ -167,7 +174,7 @@ class AutopilotLink:
         except AtlasError:
             self.counters.inc("attitude_rejected")
             return
-        arrival_wall_us = (wall_ns(self.wall) - (time.monotonic_ns() - arrival_ns)) // 1000
+        arrival_wall_us = (wall_ns(self.wall) - (self.monotonic_ns() - arrival_ns)) // 1000
         boot_us = int(msg.time_boot_ms) * 1000
         since_us = (arrival_ns - self._attitude_taken_ns) // 1000 if self._attitude_taken_ns is not None else 0
         if self._boot_clock.lead_us(boot_us, arrival_wall_us) > ATTITUDE_LEAD_US + ATTITUDE_DRIFT * since_us:
