@@ -324,9 +324,10 @@ def _hard_near() -> Scenario:
 
 def _rolling(name: str, world_file: str, shutter: str) -> Scenario:
     # hard-near's room, tags and camera, flown as the independent scene of the rolling-shutter report: the
-    # figure-eight a little slower (its path up to 0.6 m/s, 0.4 median) with yaw swings of +-40 deg, the controller's sway but instead of the
-    # 3-8 Hz jitter the airframe's vibration, 0.3 deg and 3 mm at 2 Hz; an 8 ms exposure. The world files
-    # differ only in the camera's readout (rolling.yaml: 25 ms, top row first; rolling-global.yaml: 0).
+    # figure-eight a little slower (its path up to 0.6 m/s, 0.4 median) with yaw swings of +-40 deg, the
+    # controller's sway but instead of the 3-8 Hz jitter the airframe's vibration, 0.3 deg and 3 mm at 2 Hz;
+    # an 8 ms exposure. The world files differ only in the camera's readout (rolling.yaml: 25 ms, top row
+    # first; rolling-global.yaml: 0).
     near = 0.63
     drone = tj.Quadrotor(
         path=tj.lissajous((0.0, 0.0, 1.35 * near), (1.8 * near, 1.0 * near, 0.2 * near), (1 / 18, 2 / 18, 0.1)),
