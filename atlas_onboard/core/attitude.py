@@ -7,14 +7,15 @@ may come from a compass or from our own poses, so it is never trusted here; up d
 so the level frame's heading is irrelevant (the world file's z is up, internally ENU).
 
 Times: samples are stamped on the node's wall clock (UNIX epoch, microseconds), the clock of capture
-times. :class:`BootClock` maps the autopilot's ``time_boot_ms`` to it by the smallest lag seen (as
-ArduPilot's jitter correction does): a stamp is then late by at most the link's smallest latency.
+times. :class:`BootClock` maps the autopilot's ``time_boot_ms`` to it by the lower envelope of the lags
+seen, which follows a clock that drifts: a stamp is then late by about the link's smallest latency.
 
 Pure: numpy, scipy and the standard library; times are passed in.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -118,32 +119,98 @@ def choose_by_tilt(
 
 
 class BootClock:
-    """Maps the autopilot's boot time (``time_boot_ms``) to the node's wall clock (us): the offset is
-    the smallest (arrival - boot time) seen, so the mapped stamp is late by at most the smallest
-    latency of the link. A boot time that goes back by more than ``REBOOT_BACK_US`` starts over."""
+    """Maps the autopilot's boot time (``time_boot_ms``) to the node's wall clock (us), following its drift.
+
+    Each sample gives ``offset = arrival - boot``: the clocks' offset, which drifts at the rate the two
+    clocks differ (their skew), plus the link's delay, never below its floor. The mapping is the lower
+    envelope of the recent offsets: the line below every (boot, offset) point of the last
+    ``BOOT_WINDOW_US`` that lies closest to them on average, a linear programme solved by the lower
+    convex hull's edge over their mean boot time (Moon, Skelly and Towsley, "Estimation and removal of
+    clock skew from network delay measurements", INFOCOM 1999). Late packets sit above it and never
+    move it; a clock that runs slow or fast tilts it. A mapped stamp is late by the link's delay floor
+    (which no one-way measurement can tell from an offset) plus the envelope's own error, a small part
+    of the delays' spread over a window of thousands of samples. One point is kept per ``BOOT_BIN_US``
+    of boot time (the lowest about the current line), so that the hull stays small.
+
+    Until the samples span ``BOOT_MIN_SPAN_US`` the offset is the smallest seen (no rate yet). A boot
+    time that goes back by more than ``REBOOT_BACK_US`` starts over.
+    """
 
     def __init__(self) -> None:
-        self._offset_us: int | None = None
+        self._points: deque[tuple[int, int]] = deque()  # (boot us, offset us): one per bin, oldest first
         self._last_boot_us = -1
+        self._line: tuple[float, float, float] | None = None  # (boot0 us, offset at boot0 us, slope)
 
     def wall_us(self, time_boot_us: int, arrival_wall_us: int) -> int:
         """The wall time (us) of a sample the autopilot stamped ``time_boot_us`` and that arrived at
-        ``arrival_wall_us`` (both integers)."""
+        ``arrival_wall_us`` (both integers); never later than its arrival."""
         if time_boot_us < self._last_boot_us - REBOOT_BACK_US:
-            self._offset_us = None
+            self._points.clear()
+            self._line = None
         self._last_boot_us = time_boot_us
         offset = arrival_wall_us - time_boot_us
-        if self._offset_us is None or offset < self._offset_us:
-            self._offset_us = offset
-        return time_boot_us + self._offset_us
+        points = self._points
+        slope = self._line[2] if self._line is not None else 0.0
+        if points and points[-1][0] // BOOT_BIN_US == time_boot_us // BOOT_BIN_US:
+            b, o = points[-1]
+            if offset - slope * time_boot_us < o - slope * b:  # lower than the bin's point about the line
+                points[-1] = (time_boot_us, offset)
+                self._line = None
+        else:
+            points.append((time_boot_us, offset))
+            while points[0][0] < time_boot_us - BOOT_WINDOW_US:
+                points.popleft()
+            self._line = None
+        if self._line is None:
+            self._line = _lower_envelope(list(points))
+        b0, o0, slope = self._line
+        return min(time_boot_us + round(o0 + slope * (time_boot_us - b0)), arrival_wall_us)
 
     def lead_us(self, time_boot_us: int, arrival_wall_us: int) -> int:
-        """How far after its own arrival a sample stamped ``time_boot_us`` would map on the offset so
-        far (0 before any, or after a reboot): never positive for a real sample, but for the clocks'
-        drift since the offset was set; a stamp ahead of the autopilot's clock is what makes it so."""
-        if self._offset_us is None or time_boot_us < self._last_boot_us - REBOOT_BACK_US:
+        """How far after its own arrival a sample stamped ``time_boot_us`` would map on the mapping so
+        far (0 before any, or after a reboot): never positive for a real sample but for the clocks'
+        drift since the mapping was set; a stamp ahead of the autopilot's clock is what makes it so."""
+        if self._line is None or time_boot_us < self._last_boot_us - REBOOT_BACK_US:
             return 0
-        return time_boot_us + self._offset_us - arrival_wall_us
+        b0, o0, slope = self._line
+        return time_boot_us + round(o0 + slope * (time_boot_us - b0)) - arrival_wall_us
+
+
+BOOT_BIN_US = 500_000
+"""Boot time per point of :class:`BootClock`'s envelope (its lowest sample about the current line)."""
+BOOT_WINDOW_US = 60_000_000
+"""How far back :class:`BootClock`'s envelope reaches: long enough that the delays' spread over it is a
+small tilt, short enough to follow a clock whose rate changes with its temperature."""
+BOOT_MIN_SPAN_US = 1_000_000
+"""The boot time the points must span before the envelope's slope is believed (before: the smallest offset)."""
+MAX_SKEW = 0.05
+"""The fastest drift believed (5 %): a steeper envelope is a degenerate fit (a reboot not seen as one)."""
+
+
+def _lower_envelope(points: list[tuple[int, int]]) -> tuple[float, float, float]:
+    """(boot0, offset0, slope) of the line below every (boot, offset) point, sorted by boot, with the
+    least summed distance to them: the lower hull's edge over their mean boot time (the smallest offset,
+    flat, while they span less than ``BOOT_MIN_SPAN_US``)."""
+    if points[-1][0] - points[0][0] < BOOT_MIN_SPAN_US:
+        lowest = min(points, key=lambda p: p[1])
+        return float(lowest[0]), float(lowest[1]), 0.0
+    hull: list[tuple[int, int]] = []  # Andrew's monotone chain, lower half
+    for p in points:
+        while len(hull) >= 2 and _cross(hull[-2], hull[-1], p) <= 0:
+            hull.pop()
+        hull.append(p)
+    mean_boot = sum(p[0] for p in points) / len(points)
+    for (b0, o0), (b1, o1) in itertools.pairwise(hull):
+        if b1 >= mean_boot:
+            slope = min(max((o1 - o0) / (b1 - b0), -MAX_SKEW), MAX_SKEW)
+            # Clamped or not, the line through the vertex nearer the mean stays below its neighbours.
+            return (float(b0), float(o0), slope) if mean_boot - b0 <= b1 - mean_boot else (float(b1), float(o1), slope)
+    return float(hull[-1][0]), float(hull[-1][1]), 0.0
+
+
+def _cross(a: tuple[int, int], b: tuple[int, int], c: tuple[int, int]) -> float:
+    """z of (b - a) x (c - a): > 0 when a, b, c turn counter-clockwise (b below the chord a-c)."""
+    return float(b[0] - a[0]) * float(c[1] - a[1]) - float(b[1] - a[1]) * float(c[0] - a[0])
 
 
 class AttitudeHistory:
@@ -154,17 +221,21 @@ class AttitudeHistory:
     """
 
     def __init__(self, capacity: int = HISTORY, max_gap_us: int = MAX_GAP_US) -> None:
-        self._samples: deque[tuple[int, NDArray[np.float64]]] = deque(maxlen=capacity)
+        self._samples: deque[tuple[int, NDArray[np.float64], NDArray[np.float64] | None]] = deque(maxlen=capacity)
         self.max_gap_us = max_gap_us
 
-    def add(self, time_us: int, R_level_body: Rotation) -> None:
-        """A sample at ``time_us`` (wall clock, us); out-of-order or repeated samples are ignored."""
+    def add(self, time_us: int, R_level_body: Rotation, rate_body: NDArray[np.float64] | None = None) -> None:
+        """A sample at ``time_us`` (wall clock, us), with the body's angular rate (rad/s, body FLU axes)
+        when the autopilot reported one; out-of-order or repeated samples are ignored."""
         if self._samples and time_us <= self._samples[-1][0]:
             return
         q = R_level_body.as_quat()
         if not np.all(np.isfinite(q)):
             return
-        self._samples.append((int(time_us), q))
+        w = None if rate_body is None else np.asarray(rate_body, dtype=float).reshape(3)
+        if w is not None and not np.all(np.isfinite(w)):
+            w = None
+        self._samples.append((int(time_us), q, w))
 
     def __len__(self) -> int:
         return len(self._samples)
@@ -188,7 +259,7 @@ class AttitudeHistory:
             return Rotation.from_quat(samples[0][1]) if times[0] - t_us <= half else None
         if k == len(samples):
             return Rotation.from_quat(samples[-1][1]) if t_us - times[-1] <= half else None
-        (t0, q0), (t1, q1) = samples[k - 1], samples[k]
+        (t0, q0, _), (t1, q1, _) = samples[k - 1], samples[k]
         if t1 - t0 > self.max_gap_us:
             if t_us - t0 <= half:
                 return Rotation.from_quat(q0)
@@ -196,6 +267,28 @@ class AttitudeHistory:
         f = (t_us - t0) / (t1 - t0)
         R0 = Rotation.from_quat(q0)
         return R0 * Rotation.from_rotvec(f * (R0.inv() * Rotation.from_quat(q1)).as_rotvec())
+
+    def rate_at(self, t_us: int) -> NDArray[np.float64] | None:
+        """The body's angular rate (3,) rad/s about its FLU axes at ``t_us`` (wall clock, us), as the
+        autopilot's gyros reported it: linear between the samples around it, the nearest within half
+        of ``max_gap_us`` (as :meth:`attitude_at`), or None where no sample near it carries a rate."""
+        samples = [(t, w) for t, _, w in list(self._samples) if w is not None]
+        if not samples:
+            return None
+        times = [s[0] for s in samples]
+        k = int(np.searchsorted(times, t_us))
+        half = self.max_gap_us // 2
+        if k == 0:
+            return samples[0][1].copy() if times[0] - t_us <= half else None
+        if k == len(samples):
+            return samples[-1][1].copy() if t_us - times[-1] <= half else None
+        (t0, w0), (t1, w1) = samples[k - 1], samples[k]
+        if t1 - t0 > self.max_gap_us:
+            if t_us - t0 <= half:
+                return w0.copy()
+            return w1.copy() if t1 - t_us <= half else None
+        f = (t_us - t0) / (t1 - t0)
+        return (1.0 - f) * w0 + f * w1
 
     def up_at(self, t_us: int) -> NDArray[np.float64] | None:
         """World up in the body frame at ``t_us`` (see :meth:`attitude_at`), or None."""

@@ -4,6 +4,11 @@ Each marker is drawn with its white quiet zone, at sub-pixel accuracy: every out
 average of ``supersample`` x ``supersample`` samples, each mapped through the lens distortion and
 the marker plane's homography into the marker bitmap. Only a region around each marker is rendered.
 The background is a smooth random texture; motion blur and pixel noise can be added.
+
+A rolling shutter exposes each row at its own instant: a :class:`MarkerView` with ``rows`` gives the
+marker's pose at each row's instant, and every sample is mapped with the pose of its own row
+(interpolated between rows, which a camera's motion over one row's 50 us changes by far less than
+a thousandth of a pixel).
 """
 
 from __future__ import annotations
@@ -41,6 +46,22 @@ class MarkerView:
     marker_id: int
     size_m: float
     T_camera_marker: RigidTransform
+    rows: NDArray[np.float64] | None = None
+    """Rolling shutter: (height, 4, 4) T_camera_marker at the instant each image row is exposed (None: every
+    row at ``T_camera_marker``, a global shutter)."""
+
+
+ROW_BOX_SAMPLES = 17  # poses of a rolling-shutter marker projected to bound its box (rows evenly spaced)
+
+
+def _rows_at(rows: NDArray[np.float64], y_px: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The poses (len(y_px), 4, 4) at pixel rows ``y_px`` (pixel-centre convention, any real value):
+    linear between the two nearest rows, the first or last beyond them."""
+    y = np.clip(np.asarray(y_px, dtype=float), 0.0, len(rows) - 1.0)
+    lo = np.minimum(np.floor(y).astype(int), len(rows) - 2) if len(rows) > 1 else np.zeros(len(y), int)
+    f = (y - lo)[:, None, None]
+    hi = np.minimum(lo + 1, len(rows) - 1)
+    return (1.0 - f) * rows[lo] + f * rows[hi]
 
 
 _bitmaps: dict[tuple[str, int], NDArray[np.float32]] = {}
@@ -202,8 +223,12 @@ def _marker_box(camera: Camera, view: MarkerView) -> tuple[int, int, int, int] |
     fam = family(view.family)
     h = view.size_m * fam.printed_cells / fam.cells / 2
     outline = np.array([[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]])
-    M = view.T_camera_marker.as_matrix()
-    pts = outline @ M[:3, :3].T + M[:3, 3]
+    if view.rows is None:
+        M = view.T_camera_marker.as_matrix()
+        pts = outline @ M[:3, :3].T + M[:3, 3]
+    else:  # every row's pose could draw some of it: the union of the outlines at poses across the frame
+        Ms = view.rows[np.linspace(0, len(view.rows) - 1, ROW_BOX_SAMPLES).round().astype(int)]
+        pts = (np.einsum("kij,nj->kni", Ms[:, :3, :3], outline) + Ms[:, None, :3, 3]).reshape(-1, 3)
     if np.any(pts[:, 2] <= 0.01):
         return None
     px = _project(camera, pts)
@@ -242,14 +267,22 @@ def draw_marker(
     nx, ny = len(range(0, w + step, step)), len(range(0, hgt + step, step))
     norm = _undistorted_grid(camera, s)[i0 : i0 + ny, j0 : j0 + nx]
     # Ray through each sample hits the marker plane: solve in the marker frame.
-    # The stored matrix (a rigid one already): scipy's .rotation would orthonormalize it again.
-    M = view.T_camera_marker.as_matrix()
-    R, t = M[:3, :3], M[:3, 3]
     rays = np.concatenate([norm, np.ones((*norm.shape[:2], 1))], axis=-1)  # camera frame directions
-    rays_m = rays @ R  # = R^T ray, in marker frame
-    origin_m = -R.T @ t
-    lam = -origin_m[2] / rays_m[..., 2]
-    hit = origin_m[None, None, :2] + lam[..., None] * rays_m[..., :2]
+    if view.rows is None:
+        # The stored matrix (a rigid one already): scipy's .rotation would orthonormalize it again.
+        M = view.T_camera_marker.as_matrix()
+        R, t = M[:3, :3], M[:3, 3]
+        rays_m = rays @ R  # = R^T ray, in marker frame
+        origin_m = -R.T @ t
+        lam = -origin_m[2] / rays_m[..., 2]
+        hit = origin_m[None, None, :2] + lam[..., None] * rays_m[..., :2]
+    else:  # each grid row with the pose of its pixel row (grid row i is sample row i * step)
+        Ms = _rows_at(view.rows, ((i0 + np.arange(len(norm))) * step + 0.5) / s - 0.5)
+        R, t = Ms[:, :3, :3], Ms[:, :3, 3]
+        rays_m = np.einsum("ijk,ikl->ijl", rays, R)  # = R_i^T ray, in marker frame
+        origin_m = -np.einsum("ikl,ik->il", R, t)
+        lam = -origin_m[:, None, 2] / rays_m[..., 2]
+        hit = origin_m[:, None, :2] + lam[..., None] * rays_m[..., :2]
     # Marker (x right, y up) -> bitmap pixel coordinates (pixel-centre convention).
     u = (hit[..., 0] + h) / side_m * n_px - 0.5
     v = (h - hit[..., 1]) / side_m * n_px - 0.5

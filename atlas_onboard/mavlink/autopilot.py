@@ -27,6 +27,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core import frames
@@ -302,6 +303,16 @@ def attitude_level_flu(roll_rad: float, pitch_rad: float, yaw_rad: float) -> Rot
         raise AtlasError(f"expected finite roll, pitch, yaw, got {(roll_rad, pitch_rad, yaw_rad)!r}")
     R_ned_frd = Rotation.from_euler("ZYX", [yaw_rad, pitch_rad, roll_rad])
     return frames.R_ENU_NED * R_ned_frd * frames.R_FLU_FRD.inv()
+
+
+def body_rates_flu(rollspeed: float, pitchspeed: float, yawspeed: float) -> NDArray[np.float64] | None:
+    """The body's angular rate (3,) rad/s about its FLU axes from ATTITUDE's (or ATTITUDE_QUATERNION's)
+    rates about FRD; None when they are not all finite or all exactly zero (an autopilot that does not
+    fill them: a real gyro's noise is never zero on three axes at once)."""
+    w = (float(rollspeed), float(pitchspeed), float(yawspeed))
+    if not all(math.isfinite(v) for v in w) or w == (0.0, 0.0, 0.0):
+        return None
+    return np.array([w[0], -w[1], -w[2]])
 
 
 def attitude_quaternion_level_flu(q_wxyz: Sequence[float]) -> Rotation:

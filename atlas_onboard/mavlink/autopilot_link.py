@@ -16,6 +16,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import NodeConfig
@@ -124,6 +126,12 @@ class AutopilotLink:
         level ENU frame of the autopilot's heading, or None (see :meth:`AttitudeHistory.attitude_at`)."""
         return self.attitude.attitude_at(t_us)
 
+    def rate_at(self, t_us: int) -> NDArray[np.float64] | None:
+        """The body's angular rate (3,) rad/s about its FLU axes at ``t_us`` (wall clock, us) from the
+        autopilot's gyros (ATTITUDE's rollspeed, pitchspeed, yawspeed), or None (see
+        :meth:`AttitudeHistory.rate_at`)."""
+        return self.attitude.rate_at(t_us)
+
     def send_autopilot(self, pose: AutopilotPose) -> None:
         """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity; a non-finite pose is counted, not sent."""
         if self.link is None or self.settings is None:
@@ -188,7 +196,8 @@ class AutopilotLink:
             self._boot_clock = BootClock()
         self._attitude_refused_since_ns = None
         self._attitude_taken_ns = arrival_ns
-        self.attitude.add(self._boot_clock.wall_us(boot_us, arrival_wall_us), R)
+        rate = autopilot.body_rates_flu(msg.rollspeed, msg.pitchspeed, msg.yawspeed)
+        self.attitude.add(self._boot_clock.wall_us(boot_us, arrival_wall_us), R, rate)
 
     def _origin_tick(self, now_ns: int) -> None:
         """The EKF origin: asked for (MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) every

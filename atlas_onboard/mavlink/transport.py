@@ -12,6 +12,8 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import AutopilotConfig, NodeConfig, WorldConfig, defaults
@@ -133,6 +135,10 @@ class MavlinkTransport:
     def attitude_at(self, t_us: int) -> Rotation | None:
         """The autopilot's attitude at ``t_us`` (see :meth:`AutopilotLink.attitude_at`)."""
         return self.autopilot_link.attitude_at(t_us)
+
+    def rate_at(self, t_us: int) -> NDArray[np.float64] | None:
+        """The body's angular rate at ``t_us`` (see :meth:`AutopilotLink.rate_at`)."""
+        return self.autopilot_link.rate_at(t_us)
 
     def _hand_on(self, index: int) -> None:
         """The observations of one read of peer link ``index``, to the node together."""

@@ -18,6 +18,10 @@ at ``attitude_hz`` (ArduPilot streams it at its SRn_EXTRA1 rate, typically 10-50
 with MAV_CMD_SET_MESSAGE_INTERVAL), in NED/FRD, stamped ``time_boot_ms`` at the measurement and sent
 ``attitude_delay_s`` later, with a per-run bias and per-sample noise on roll and pitch (an EKF's attitude
 in flight) and a heading offset (a compass's): the node must use neither the noise's absence nor the yaw.
+With ``rates`` (the body's true angular rates, FLU, at a wall time) ATTITUDE carries the gyros'
+rollspeed, pitchspeed and yawspeed of the same instant (:class:`~atlas_onboard.sim.gyro.Gyro`: white
+noise and a wandering bias); without, zeros, as an autopilot that does not fill them. ``clock_ppm``: the
+autopilot's clock runs that many parts per million fast (negative: slow) against the wall clock.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core import frames
+from atlas_onboard.sim.gyro import Gyro, GyroNoise
 
 _logger = logging.getLogger(__name__)
 
@@ -128,6 +133,9 @@ class SimAutopilot:
     attitude_bias_deg: float = 0.5  # per run, per axis (roll, pitch)
     attitude_yaw_offset_deg: float = 30.0  # the heading is the autopilot's own, not the world file's
     attitude_seed: int = 0
+    rates: Callable[[float], np.ndarray | None] | None = None  # true body rates (FLU, rad/s) at a wall time (s)
+    gyro: GyroNoise = field(default_factory=GyroNoise)
+    clock_ppm: float = 0.0  # the autopilot's clock against the wall clock (time_boot_ms)
     attitude_sent: int = 0
     attitude_interval_requests: int = 0  # MAV_CMD_SET_MESSAGE_INTERVAL for ATTITUDE received
 
@@ -164,7 +172,9 @@ class SimAutopilot:
         self._att_rng = rng
         self._att_bias_rad = np.radians(rng.normal(0.0, self.attitude_bias_deg, 2))
         self._next_attitude_s = 0.0
-        self._att_queue: list[tuple[float, float, float, float, float]] = []  # (send at, t_meas, r, p, y)
+        self._gyro = Gyro(self.gyro, self.attitude_seed * 7919 + 17)
+        # (send at, t_meas, roll, pitch, yaw, body rates FRD)
+        self._att_queue: list[tuple[float, float, float, float, float, tuple[float, float, float]]] = []
 
     def start(self) -> SimAutopilot:
         self._thread.start()
@@ -262,13 +272,22 @@ class SimAutopilot:
                 yaw, pitch, roll = R_ned_frd.as_euler("ZYX")
                 noise = self._att_rng.normal(0.0, math.radians(self.attitude_noise_deg), 2) + self._att_bias_rad
                 yaw += math.radians(self.attitude_yaw_offset_deg)
-                self._att_queue.append((now + self.attitude_delay_s, now, roll + noise[0], pitch + noise[1], yaw))
+                w = self._gyro_frd(now)
+                self._att_queue.append((now + self.attitude_delay_s, now, roll + noise[0], pitch + noise[1], yaw, w))
         while self._att_queue and self._att_queue[0][0] <= now:
-            _, t_meas, roll, pitch, yaw = self._att_queue.pop(0)
-            boot_ms = int((t_meas - self._boot_s) * 1000) & 0xFFFFFFFF
+            _, t_meas, roll, pitch, yaw, w = self._att_queue.pop(0)
+            boot_ms = int((t_meas - self._boot_s) * (1.0 + self.clock_ppm * 1e-6) * 1000) & 0xFFFFFFFF
             yaw = math.atan2(math.sin(yaw), math.cos(yaw))
-            self._send(self._mav.attitude_encode(boot_ms, roll, pitch, yaw, 0.0, 0.0, 0.0))
+            self._send(self._mav.attitude_encode(boot_ms, roll, pitch, yaw, *w))
             self.attitude_sent += 1
+
+    def _gyro_frd(self, t_s: float) -> tuple[float, float, float]:
+        """The gyros' reading at wall time ``t_s`` in the body FRD frame (ATTITUDE's), zeros without ``rates``."""
+        true = self.rates(t_s) if self.rates is not None else None
+        if true is None:
+            return (0.0, 0.0, 0.0)
+        x, y, z = self._gyro.read(t_s, np.asarray(true, dtype=float), self.attitude_hz)
+        return (float(x), float(-y), float(-z))  # FLU -> FRD
 
     def _handle(self, msg: mavlink.MAVLink_message) -> None:
         kind = msg.get_type()

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import RefineConfig, SensorConfig, WorldConfig, load_world
+from atlas_onboard.config.settings import READOUT_BOTTOM_UP
 from atlas_onboard.core.attitude import CameraTurn
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.camera import CameraWorker
@@ -176,7 +177,12 @@ def frames_path(directory: Path, sensor_id: int) -> Path:
 
 class FrameRenderer:
     """The image a simulated camera takes at frame index j (time j / fps): the markers it sees, with
-    the scenario's optics (lens distortion, pixel noise, motion blur), rendered from ground truth."""
+    the scenario's optics (lens distortion, pixel noise, motion blur), rendered from ground truth.
+
+    Timing is the camera settings' (the world file's, as the node reads them): the frame's time is the
+    mid-exposure of its middle row; with ``readout_ms`` each row is exposed at its own instant
+    (:meth:`row_times`) and drawn with the camera's pose then; the blur covers ``exposure_ms``, or the
+    optics' ``exposure_s`` where the settings leave it at 0."""
 
     def __init__(self, scenario: Scenario, world: WorldConfig, sensor: SensorConfig, seed: int) -> None:
         from atlas_onboard.detector.render import Camera, prepare
@@ -191,6 +197,11 @@ class FrameRenderer:
         self.optics = scenario.optics_of(sensor.entity, sensor.name)
         assert sensor.camera is not None
         self.fps = sensor.camera.fps if sensor.camera.fps > 0 else 30.0
+        self.readout_s = sensor.camera.readout_ms / 1000.0
+        self.bottom_up = sensor.camera.readout_order == READOUT_BOTTOM_UP
+        self.exposure_s = (
+            sensor.camera.exposure_ms / 1000.0 if sensor.camera.exposure_ms > 0 else self.optics.exposure_s
+        )
         self._M_entity_sensor = sensor.T_entity_sensor.as_matrix()
         prepare(self.cam, SUPERSAMPLE)  # the renderer's per-camera tables, before the first frame
         self.room = None
@@ -199,6 +210,21 @@ class FrameRenderer:
 
             self.room = RoomRenderer(scenario.room, world, sensor, self.intr, self.optics.noise_sigma)
 
+    def row_times(self, t: float) -> NDArray[np.float64]:
+        """The mid-exposure instant (s) of each image row of the frame stamped ``t``: row r at
+        ``t + (r_from_first / (height - 1) - 0.5) * readout``, the first row read first."""
+        h = self.intr.height_px
+        from_first = np.arange(h, dtype=float)[::-1] if self.bottom_up else np.arange(h, dtype=float)
+        return t + (from_first / max(h - 1, 1) - 0.5) * self.readout_s
+
+    def sensor_poses(self, times: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The camera's optical frame in the world (len(times), 4, 4) at ``times`` (s), vibration included."""
+        p, q = self.sim.truth_series(self.sensor.entity, times)
+        M = np.tile(np.eye(4), (len(times), 1, 1))
+        M[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+        M[:, :3, 3] = p
+        return M @ self._M_entity_sensor
+
     def __call__(self, index: int) -> NDArray[np.uint8]:
         from atlas_onboard.detector.render import MarkerView, render
 
@@ -206,11 +232,21 @@ class FrameRenderer:
         sensor, dt = self.sensor, 1e-3
         if self.room is not None:
             return self._in_room(t)
-        sightings = self.sim.sightings(sensor.id, self.sim.truth(t), t)
+        truth = self.sim.truth(t)
+        sightings = self.sim.sightings(sensor.id, truth, t)
         views = [MarkerView(s.marker.family, s.marker.id, s.marker.size_m, s.T_sensor_marker) for s in sightings]
+        if self.readout_s > 0 and views:  # each row with the camera's pose at its instant
+            rows_sensor_world = np.linalg.inv(self.sensor_poses(self.row_times(t)))
+            views = [
+                replace(
+                    v,
+                    rows=rows_sensor_world @ truth[s.marker.entity].as_matrix() @ s.marker.T_entity_marker.as_matrix(),
+                )
+                for v, s in zip(views, sightings, strict=True)
+            ]
         # Motion blur: how far the image of the marker centres moves during the exposure.
         blur = (0.0, 0.0)
-        if sightings and self.optics.exposure_s > 0:
+        if sightings and self.exposure_s > 0:
             later = self.sim.truth(t + dt, {sensor.entity} | {s.marker.entity for s in sightings})
             M_later_sensor = np.linalg.inv(later[sensor.entity].as_matrix() @ self._M_entity_sensor)
             shifts = []
@@ -218,7 +254,7 @@ class FrameRenderer:
                 M_marker = later[s.marker.entity].as_matrix() @ s.marker.T_entity_marker.as_matrix()
                 a = self.intr.project(s.T_sensor_marker.translation[None, :])[0]
                 b = self.intr.project((M_later_sensor @ M_marker)[None, :3, 3])[0]
-                shifts.append((b - a) * self.optics.exposure_s / dt)
+                shifts.append((b - a) * self.exposure_s / dt)
             blur = tuple(np.mean(shifts, axis=0))  # type: ignore[assignment]
         return render(
             self.cam,
@@ -232,7 +268,7 @@ class FrameRenderer:
     def _in_room(self, t: float) -> NDArray[np.uint8]:
         """The frame at ``t`` rendered by the scenario's room (every marker, world-space floor)."""
         assert self.room is not None
-        half = self.optics.exposure_s / 2.0
+        half = self.exposure_s / 2.0
         M = {}
         for k, tk in enumerate((t, t - half, t + half)):
             truth = self.sim.truth(tk, None if k == 0 else {self.sensor.entity})
@@ -240,7 +276,14 @@ class FrameRenderer:
             if k == 0:
                 entities = {name: T.as_matrix() for name, T in truth.items()}
         seed = self.seed * 100_003 + round(t * self.fps) + 1
-        return self.room.render(M[0], M[1], M[2], entities, seed)
+        rows = None
+        if self.readout_s > 0:
+            from atlas_onboard.sim.room import RowPoses
+
+            times = self.row_times(t)
+            poses = self.sensor_poses(np.concatenate([times, times - half, times + half]))
+            rows = RowPoses(*np.split(poses, 3))
+        return self.room.render(M[0], M[1], M[2], entities, seed, rows)
 
 
 def rendered_detector(

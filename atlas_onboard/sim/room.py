@@ -10,6 +10,8 @@ to reject. :class:`RoomRenderer` renders the whole scene a camera sees in an axi
   angles, or too small to decode (a real camera does not leave them out);
 - motion blur is the average of the sharp image sampled along each pixel's own image motion over
   the exposure (the motion of the room point it sees: rotation blurs the edges more than the centre);
+- a rolling shutter (:class:`RowPoses`) exposes each row at its own instant: the room and the markers
+  are drawn with each row's own pose, and each row blurs over its own exposure;
 - the illumination falls off towards the corners (vignetting), the sensor adds read and shot noise,
   and the frame is JPEG-compressed as an MJPEG webcam delivers it.
 """
@@ -17,6 +19,7 @@ to reject. :class:`RoomRenderer` renders the whole scene a camera sees in an axi
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -64,6 +67,16 @@ class _Atlas:
         self.image = np.ascontiguousarray(np.vstack(blocks))
 
 
+@dataclass(frozen=True)
+class RowPoses:
+    """A rolling shutter's frame: the camera's pose (optical frame in the world) at each image row's
+    mid-exposure (``mid``), and when its exposure opened and closed; each (height, 4, 4)."""
+
+    mid: NDArray[np.float64]
+    open: NDArray[np.float64]
+    close: NDArray[np.float64]
+
+
 def _px(a_m: float, b_m: float, px_per_m: float) -> tuple[int, int]:
     return max(math.ceil(a_m * px_per_m), 8), max(math.ceil(b_m * px_per_m), 8)
 
@@ -105,20 +118,33 @@ class RoomRenderer:
         M_world_sensor_close: NDArray[np.float64],
         M_world_entity: dict[str, NDArray[np.float64]],
         seed: int,
+        rows: RowPoses | None = None,
     ) -> NDArray[np.uint8]:
         """The frame (h, w) uint8 of a camera at ``M_world_sensor`` (4x4, optical frame, mid-exposure),
         which was at ``M_world_sensor_open`` when the exposure opened and ``..._close`` when it closed;
-        ``M_world_entity``: 4x4 poses of the entities whose markers may be seen."""
-        img = self._background(M_world_sensor)
+        ``M_world_entity``: 4x4 poses of the entities whose markers may be seen (at the frame's stamp:
+        a rolling shutter moves the camera between rows, not those entities). ``rows``: a rolling
+        shutter's poses per row (the three single poses are then the middle row's)."""
+        if rows is None:
+            img = self._background(M_world_sensor)
+        else:
+            img = self._background(rows.mid)
         M_sensor_world = np.linalg.inv(M_world_sensor)
+        rows_sensor_world = None if rows is None else np.linalg.inv(rows.mid)
         views = []
         for m in self.markers:
-            M = M_sensor_world @ M_world_entity[m.entity] @ m.T_entity_marker.as_matrix()
+            M_world_marker = M_world_entity[m.entity] @ m.T_entity_marker.as_matrix()
+            M = M_sensor_world @ M_world_marker
             T = RigidTransform(M, normalize=False, copy=False)  # a product of rigid matrices
-            views.append((float(np.linalg.norm(M[:3, 3])), MarkerView(m.family, m.id, m.size_m, T)))
+            per_row = None if rows_sensor_world is None else rows_sensor_world @ M_world_marker
+            views.append((float(np.linalg.norm(M[:3, 3])), MarkerView(m.family, m.id, m.size_m, T, per_row)))
         for _, view in sorted(views, key=lambda v: -v[0]):
             draw_marker(img, self.cam, view, MARKER_SUPERSAMPLE)
-        img = self._blur(img, M_world_sensor, M_world_sensor_open, M_world_sensor_close)
+        if rows is None:
+            img = self._blur(img, M_world_sensor, M_world_sensor_open, M_world_sensor_close)
+        else:
+            rows_at = np.clip(self.flow_px[:, 0, 1].round().astype(int), 0, len(rows.mid) - 1)  # flow grid rows
+            img = self._blur(img, rows.mid[rows_at], rows.open[rows_at], rows.close[rows_at])
         img = self.room.black_level + img * self.illumination
         rng = np.random.default_rng(seed)
         sigma = np.sqrt(self.noise_sigma**2 + self.room.shot_noise * np.maximum(img, 0.0))
@@ -132,10 +158,16 @@ class RoomRenderer:
 
     def _hits(self, M_world_sensor: NDArray[np.float64], rays: NDArray[np.floating]) -> tuple[NDArray, NDArray]:
         """Where each ray (..., 3, camera frame) leaves the room: the world point (..., 3) and the face
-        (..., 0 floor, 1 east, 2 west, 3 north, 4 south, 5 ceiling)."""
-        R = M_world_sensor[:3, :3].astype(rays.dtype)
-        o = M_world_sensor[:3, 3]
-        d = rays @ R.T
+        (..., 0 floor, 1 east, 2 west, 3 north, 4 south, 5 ceiling). ``M_world_sensor``: one pose (4, 4),
+        or one per row of ``rays`` (rows, cols, 3) as (rows, 4, 4)."""
+        if M_world_sensor.ndim == 2:
+            R = M_world_sensor[:3, :3].astype(rays.dtype)
+            o = M_world_sensor[:3, 3]
+            d = rays @ R.T
+        else:
+            R = M_world_sensor[:, :3, :3].astype(rays.dtype)
+            o = M_world_sensor[:, None, :3, 3]  # (rows, 1, 3)
+            d = np.einsum("rcj,rij->rci", rays, R)
         lam = np.full(d.shape[:-1], np.inf, dtype=rays.dtype)
         face = np.zeros(d.shape[:-1], dtype=np.int8)
         # face index by (axis, towards hi): x: west/east, y: south/north, z: floor/ceiling
@@ -144,7 +176,7 @@ class RoomRenderer:
             for a in range(3):
                 da = d[..., a]
                 up = da > 0
-                la = np.where(up, (self.hi[a] - o[a]) / da, (self.lo[a] - o[a]) / da)
+                la = np.where(up, (self.hi[a] - o[..., a]) / da, (self.lo[a] - o[..., a]) / da)
                 la = np.where(da == 0, np.inf, la)
                 closer = la < lam
                 lam = np.where(closer, la, lam)
@@ -153,6 +185,7 @@ class RoomRenderer:
         return hit, face
 
     def _background(self, M_world_sensor: NDArray[np.float64]) -> NDArray[np.float32]:
+        """The room's image through every pixel: at one pose (4, 4) or at each row's own (rows, 4, 4)."""
         hit, face = self._hits(M_world_sensor, self.rays)
         x, y, z = hit[..., 0], hit[..., 1], hit[..., 2]
         lo, hi, at = self.lo, self.hi, self.atlas
@@ -180,12 +213,22 @@ class RoomRenderer:
         M_open: NDArray[np.float64],
         M_close: NDArray[np.float64],
     ) -> NDArray[np.float32]:
-        """Average of the sharp image along each pixel's image motion during the exposure."""
-        hit, _ = self._hits(M_world_sensor, self.flow_rays)
+        """Average of the sharp image along each pixel's image motion during the exposure. The poses:
+        one each (4, 4), or one per row of the flow grid each (rows, 4, 4) for a rolling shutter."""
+        if M_world_sensor.ndim == 2:
+            hit, _ = self._hits(M_world_sensor, self.flow_rays)
+        else:
+            grid = self.flow_rays.reshape(*self.flow_px.shape[:2], 3)
+            hit = self._hits(M_world_sensor, grid)[0].reshape(-1, 3)
         ends = []
         for M in (M_open, M_close):
-            R, t = M[:3, :3], M[:3, 3]
-            p_cam = (hit - t) @ R  # = R^T (hit - t)
+            if M.ndim == 2:
+                R, t = M[:3, :3], M[:3, 3]
+                p_cam = (hit - t) @ R  # = R^T (hit - t)
+            else:  # each flow row's point with its own row's pose
+                n_cols = self.flow_px.shape[1]
+                rel = hit.reshape(len(M), n_cols, 3) - M[:, None, :3, 3]
+                p_cam = np.einsum("rci,rij->rcj", rel, M[:, :3, :3]).reshape(-1, 3)
             ends.append(self.intr.project(p_cam))  # type: ignore[attr-defined]
         flow = (ends[1] - ends[0]).reshape(*self.flow_px.shape[:2], 2).astype(np.float32)
         length = float(np.abs(flow).max()) if flow.size else 0.0

@@ -74,6 +74,9 @@ class SimOptions:
     # "realtime" or "every_frame": the drones' cameras replay the run's pre-rendered images from an image
     # folder (the ``camera.source: <folder>`` path, detector.sources), started at the run's epoch.
     replay: str = ""
+    # The simulated autopilots' ATTITUDE carries the gyros' angular rates (False: zeros, as an autopilot
+    # that does not fill them).
+    autopilot_rates: bool = True
 
 
 @dataclass
@@ -263,8 +266,16 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
     def attitude_of(name: str) -> Callable[[float], Any]:
         return lambda t_wall: sim_world.truth(t_wall - epoch_at[0], (name,))[name].rotation if epoch_at else None
 
+    def rates_of(name: str) -> Callable[[float], Any] | None:
+        if not options.autopilot_rates:
+            return None
+        trajectory = scenario.trajectories[name]
+        return lambda t_wall: trajectory.body_rates(np.array([t_wall - epoch_at[0]]))[0] if epoch_at else None
+
     autopilots = {
-        name: SimAutopilot(system_id=k, attitude=attitude_of(name), attitude_seed=options.seed + k).start()
+        name: SimAutopilot(
+            system_id=k, attitude=attitude_of(name), attitude_seed=options.seed + k, rates=rates_of(name)
+        ).start()
         for k, name in enumerate(scenario.drones, start=1)
     }
     logs: dict[str, str] = {}

@@ -19,6 +19,7 @@ from scipy.spatial.transform import Rotation
 G = 9.81
 PathFn = Callable[[NDArray[np.float64]], NDArray[np.float64]]  # t (N,) -> p (N, 3)
 YawFn = Callable[[NDArray[np.float64], NDArray[np.float64]], NDArray[np.float64]]  # t, p -> yaw (N,) rad
+RATE_STEP_S = 1e-4  # half the step of the attitude's central difference (body rates)
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,24 @@ class Oscillation:
 
 
 @dataclass(frozen=True)
+class Vibration:
+    """The airframe's vibration as the camera feels it: ``amplitude_deg`` of roll and pitch and
+    ``amplitude_m`` per axis of position at ``freq_hz`` (seeded phases). Unlike :class:`Oscillation`'s
+    motion it needs no thrust: it is added to the pose, not flown (a mount shaking on its dampers)."""
+
+    amplitude_deg: float = 0.0
+    amplitude_m: float = 0.0
+    freq_hz: float = 2.0
+    seed: int = 0
+
+    def offsets(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Position (N, 3) m and roll, pitch (N, 2) rad added at times ``t``."""
+        phase = np.random.default_rng(self.seed).uniform(0, 2 * np.pi, 5)
+        s = np.sin(2 * np.pi * self.freq_hz * t[:, None] + phase[None, :])
+        return self.amplitude_m * s[:, :3], np.radians(self.amplitude_deg) * s[:, 3:]
+
+
+@dataclass(frozen=True)
 class Static:
     """An entity that does not move (a tag on the floor, a parked drone)."""
 
@@ -63,6 +82,14 @@ class Static:
         q = Rotation.from_euler("ZYX", self.rpy_deg[::-1], degrees=True).as_quat()
         return np.tile(np.asarray(self.p_m, dtype=float), (n, 1)), np.tile(q, (n, 1))
 
+    def velocity(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        """World velocities (N, 3) m/s: none."""
+        return np.zeros((len(np.atleast_1d(t)), 3))
+
+    def body_rates(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Angular velocities (N, 3) rad/s in the body frame: none."""
+        return np.zeros((len(np.atleast_1d(t)), 3))
+
 
 @dataclass(frozen=True)
 class Quadrotor:
@@ -72,16 +99,23 @@ class Quadrotor:
     yaw: YawFn
     oscillation: Oscillation = field(default_factory=Oscillation)
     dt: float = 1e-3
+    vibration: Vibration | None = None
 
     def position(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Positions (N, 3) at times ``t`` (s), the vibration included."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
+        p = self._flown(t)
+        return p if self.vibration is None else p + self.vibration.offsets(t)[0]
+
+    def _flown(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The position the vehicle flies (its attitude follows its acceleration): no vibration."""
         return self.path(t) + self.oscillation(t)
 
     def pose(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Positions (N, 3) and quaternions xyzw (N, 4) at times ``t`` (s)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        p = self.position(t)
-        acc = (self.position(t + self.dt) - 2 * p + self.position(t - self.dt)) / self.dt**2
+        p = self._flown(t)
+        acc = (self._flown(t + self.dt) - 2 * p + self._flown(t - self.dt)) / self.dt**2
         yaw = self.yaw(t, p)
         # Thrust direction (body z) must be along a + g; roll/pitch follow in the yawed frame.
         thrust = acc + np.array([0.0, 0.0, G])
@@ -92,12 +126,25 @@ class Quadrotor:
         roll = np.arctan2(-left, np.hypot(fwd, thrust[:, 2]))
         jitter = self.oscillation.attitude_jitter_rad(t)
         roll, pitch = roll + jitter[:, 0], pitch + jitter[:, 1]
+        if self.vibration is not None:
+            dp, d_rp = self.vibration.offsets(t)
+            p, roll, pitch = p + dp, roll + d_rp[:, 0], pitch + d_rp[:, 1]
         q = Rotation.from_euler("ZYX", np.stack([yaw, pitch, roll], axis=1)).as_quat()
         return p, q
 
     def velocity(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        """World velocities (N, 3) m/s at times ``t`` (s): central differences over ``dt``."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
         return (self.position(t + self.dt) - self.position(t - self.dt)) / (2 * self.dt)
+
+    def body_rates(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Angular velocities (N, 3) rad/s in the body frame (FLU) at times ``t`` (s), what a gyro
+        measures: the turn between the attitudes RATE_STEP_S before and after, over that time
+        (a central difference of :meth:`pose`, exact to second order in the step)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        _, q0 = self.pose(t - RATE_STEP_S)
+        _, q1 = self.pose(t + RATE_STEP_S)
+        return (Rotation.from_quat(q0).inv() * Rotation.from_quat(q1)).as_rotvec() / (2 * RATE_STEP_S)
 
 
 def lissajous(

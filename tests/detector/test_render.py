@@ -123,3 +123,68 @@ def test_a_fisheye_calibration_is_refused_not_drawn_as_a_pinhole():
     with pytest.raises(AtlasError, match="fisheye"):
         render.render(fisheye, views(0))
     assert render.render(CAM, views(0)).shape == (720, 1280)  # the same scene as a pinhole is drawn
+
+
+# A rolling shutter: a camera panning and sliding sideways in front of a big marker, each row exposed at
+# its own instant. The marker's left edge in each rendered row is where that row's own pose projects it.
+RS_CAM = render.Camera(640, 480, np.array([[400.0, 0, 319.5], [0, 400.0, 239.5], [0, 0, 1]]), DIST)
+RS_READOUT_S, RS_PAN, RS_SLIDE = 0.060, 1.0, 0.5  # s; rad/s about the camera's y axis; m/s along its x
+RS_SIZE = 0.5
+RS_WORLD_MARKER = RigidTransform.from_components([0.05, 0.0, 1.2], Rotation.from_euler("x", 180, degrees=True))
+
+
+def _rs_camera_marker(t):
+    """T_camera_marker at time t (s) of the moving camera (the world is its frame at t = 0)."""
+    T_world_camera = RigidTransform.from_components([RS_SLIDE * t, 0.0, 0.0], Rotation.from_rotvec([0, RS_PAN * t, 0]))
+    return T_world_camera.inv() * RS_WORLD_MARKER
+
+
+def _rs_rows():
+    times = (np.arange(RS_CAM.height_px) / (RS_CAM.height_px - 1) - 0.5) * RS_READOUT_S
+    return np.stack([_rs_camera_marker(t).as_matrix() for t in times]), times
+
+
+def _left_edge_at_row(T_camera_marker, row):
+    """Pixel x where the marker's left edge (x = -size/2) crosses pixel row ``row`` under one pose."""
+    from scipy.optimize import brentq
+
+    def project(s):
+        p = T_camera_marker.apply([-RS_SIZE / 2, s, 0.0])
+        return render._project(RS_CAM, p[None, :])[0]
+
+    s = brentq(lambda s: project(s)[1] - row, -RS_SIZE / 2, RS_SIZE / 2, xtol=1e-12)
+    return project(s)[0]
+
+
+def _measured_left_edge(img, row, start):
+    """The sub-pixel x of the white-to-black step of the marker's quiet zone into its border in ``row``,
+    searched from ``start`` (a pixel of the quiet zone, a cell wide): from the area the black covers in
+    a window across the step (pixel k covers [k - 0.5, k + 0.5]), exact for an area-sampled step."""
+    prof = img[row].astype(float)
+    dark = start + int(np.argmax(prof[start:] < 60))  # a pixel inside the black border
+    white, black = prof[dark - 8 : dark - 5].mean(), prof[dark + 3 : dark + 6].mean()
+    window = prof[dark - 4 : dark + 3]
+    return (dark + 2 + 0.5) - float(np.sum((white - window) / (white - black)))
+
+
+def test_rolling_shutter_rows_are_drawn_with_their_own_pose():
+    rows, _times = _rs_rows()
+    view = render.MarkerView("tag36h11", 3, RS_SIZE, _rs_camera_marker(0.0), rows)
+    img = render.render(RS_CAM, [view], supersample=3)
+    box = render._marker_box(RS_CAM, view)
+    errors, shear = [], []
+    for row in range(box[1] + 40, box[3] - 40, 7):  # rows through the border, away from its corners
+        truth = _left_edge_at_row(RigidTransform.from_matrix(rows[row]), row)
+        errors.append(_measured_left_edge(img, row, int(truth) - 12) - truth)  # the quiet zone is ~20 px wide
+        shear.append(_left_edge_at_row(_rs_camera_marker(0.0), row) - truth)  # where a global shutter draws it
+    assert len(errors) >= 10
+    assert np.abs(errors).max() < 0.02, np.round(errors, 3)
+    assert np.abs(shear).max() > 2.0  # the motion during the readout moves the edge by pixels
+
+
+def test_rolling_shutter_at_constant_pose_is_the_global_shutter_image():
+    T = _rs_camera_marker(0.0)
+    rows = np.tile(T.as_matrix(), (RS_CAM.height_px, 1, 1))
+    still = render.render(RS_CAM, [render.MarkerView("tag36h11", 3, RS_SIZE, T)], supersample=3)
+    rolled = render.render(RS_CAM, [render.MarkerView("tag36h11", 3, RS_SIZE, T, rows)], supersample=3)
+    assert np.abs(still.astype(int) - rolled.astype(int)).max() <= 1  # the same image, to float rounding
