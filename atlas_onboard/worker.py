@@ -10,11 +10,14 @@ from collections.abc import Callable, Sequence
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.shutter import BodyRate
 
 Deliver = Callable[[Sequence[MarkerData]], None]
 """Called once per image with all of its detections (never with none)."""
 AttitudeAt = Callable[[int], Rotation | None]
 """The autopilot's attitude (body FLU in a level ENU frame) at a capture stamp (us), or None."""
+RateAt = Callable[[int], BodyRate | None]
+"""The autopilot's body angular rate at a capture stamp (us), or None (no rate near it)."""
 
 
 class SensorWorker:
@@ -25,6 +28,9 @@ class SensorWorker:
     attitude_at: AttitudeAt | None = None
     """Set by the node's start-up when the autopilot reports its attitude: cameras predict from it where
     a turn moves the markers (:class:`atlas_onboard.core.attitude.CameraTurn`)."""
+    rate_at: RateAt | None = None
+    """Set by the node's start-up when the autopilot streams its angular rates: cameras correct a rolling
+    shutter's shear by them (:mod:`atlas_onboard.core.shutter`)."""
 
     def __init__(self) -> None:
         self._stop = threading.Event()

@@ -48,6 +48,7 @@ from atlas_onboard.detector.joint import (  # noqa: F401
     JointSolve,
     _Single,
 )
+from atlas_onboard.detector.motion import CameraMotionModel
 from atlas_onboard.detector.refine import refine_corners_undistorted
 from atlas_onboard.detector.search import (  # noqa: F401
     BORDER_MARGIN_PX,
@@ -69,6 +70,7 @@ from atlas_onboard.detector.search import (  # noqa: F401
     _side,
 )
 from atlas_onboard.detector.worldcheck import LOG_INTERVAL_US, STATUS_INTERVAL_US, WorldCheck  # noqa: F401
+from atlas_onboard.worker import RateAt
 
 MAX_AMBIGUITY = 1.0
 """Detections whose IPPE ratio (chosen over other solution's reprojection error) exceeds this are
@@ -118,6 +120,7 @@ class Detector:
     # other); fewer are solved and checked as always (two that disagree cannot be told apart downstream).
     per_marker: bool = False
     counters: Counter[str] = field(default_factory=Counter)
+    rate_at: RateAt | None = None  # the autopilot's body rate at a capture stamp (detector.motion)
 
     def __post_init__(self) -> None:
         others = [m for m in self.world.markers.values() if m.entity != self.sensor.entity]
@@ -149,6 +152,7 @@ class Detector:
             self.joint_solve.markerdata,
         )
         self.joint_solve.world_check = self.world_check
+        self.motion_model: CameraMotionModel | None = None  # made at the first frame (its height)
 
     @property
     def tracking(self) -> bool:
@@ -240,6 +244,11 @@ class Detector:
         cal = self.calibration
         K = cal.K
         singles: dict[int, _Single] = {}
+        # >>> camera motion: the frame's motion (rolling shutter, exposure; detector.motion)
+        if self.motion_model is None:
+            self.motion_model = CameraMotionModel(self.sensor.camera, self.sensor.T_entity_sensor.rotation, h)
+        motion = self.motion_model.at(capture_time_us, self.rate_at(capture_time_us) if self.rate_at else None)
+        # <<< camera motion
         for d in self.find(gray, R_prev_now):
             self.report.found.append(d.marker_id)
             if _at_border(d.corners_px, w, h):
@@ -260,6 +269,10 @@ class Detector:
             corners, measured_px, corner_cov = refined.corners, refined.sigma_px, refined.covariance
             stretch = pose.undistortion_jacobian(d.corners_px, K, cal.dist, cal.fisheye)
             size_m = self.sizes[d.marker_id]
+            # >>> camera motion: corners moved to the stamp, the motion's covariance added to theirs
+            corners, corner_cov = self.motion_model.correct(motion, d.corners_px, corners, corner_cov, K, size_m)
+            measured_px = float(np.sqrt(max(measured_px**2, np.trace(corner_cov) / 8.0)))
+            # <<< camera motion
             mp = pose.solve(corners, size_m, K, pose.model_sigma_px(d.family), stretch, measured_px, corner_cov)
             if mp is None:
                 self.counters["pnp_failed"] += 1
@@ -267,6 +280,10 @@ class Detector:
                 continue
             singles[d.marker_id] = _Single(mp, corners, stretch, measured_px, corner_cov)
         self.report.found.sort()
+        # >>> camera motion: the camera's own poses (from world markers) for the next frames' velocity
+        seen = [(self.marker_pose[m], s.pose) for m, s in singles.items() if self.entity_of[m] == WORLD]
+        self.motion_model.observe(capture_time_us, seen)
+        # <<< camera motion
         out = []
         groups: dict[str, list[int]] = {}
         for mid in sorted(singles):
