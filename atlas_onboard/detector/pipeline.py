@@ -270,15 +270,17 @@ class Detector:
             stretch = pose.undistortion_jacobian(d.corners_px, K, cal.dist, cal.fisheye)
             size_m = self.sizes[d.marker_id]
             # >>> camera motion: corners moved to the stamp, the motion's covariance added to theirs
+            before = float(np.trace(corner_cov))
             corners, corner_cov = self.motion_model.correct(motion, d.corners_px, corners, corner_cov, K, size_m)
-            measured_px = float(np.sqrt(max(measured_px**2, np.trace(corner_cov) / 8.0)))
+            motion_px = float(np.sqrt(max(np.trace(corner_cov) - before, 0.0) / 8.0))
+            measured_px = float(np.hypot(measured_px, motion_px))
             # <<< camera motion
             mp = pose.solve(corners, size_m, K, pose.model_sigma_px(d.family), stretch, measured_px, corner_cov)
             if mp is None:
                 self.counters["pnp_failed"] += 1
                 self.report.dropped[d.marker_id] = "no pose"
                 continue
-            singles[d.marker_id] = _Single(mp, corners, stretch, measured_px, corner_cov)
+            singles[d.marker_id] = _Single(mp, corners, stretch, measured_px, corner_cov, motion_px)
         self.report.found.sort()
         # >>> camera motion: the camera's own poses (from world markers) for the next frames' velocity
         seen = [(self.marker_pose[m], s.pose) for m, s in singles.items() if self.entity_of[m] == WORLD]

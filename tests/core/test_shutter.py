@@ -69,7 +69,7 @@ def test_compensated_corners_match_the_stamp_projection() -> None:
         P0 = tag_at_stamp(rng)
         omega = rng.uniform(-1.0, 1.0, 3)
         v = rng.uniform(-1.0, 1.0, 3)
-        seen, dt = rolling_projection(P0, omega, v, clock)
+        seen, _ = rolling_projection(P0, omega, v, clock)
         truth = F * P0[:, :2] / P0[:, 2:] + [CX, CY]
         motion = CameraMotion(omega, np.zeros((3, 3)), v, np.zeros((3, 3)), True, True)
         x0, _ = square_to_stamp(normalised(seen), OBJ, clock.dt_s(seen[:, 1]), motion)
@@ -144,7 +144,8 @@ def test_without_rates_the_covariance_covers_the_shear() -> None:
         omega = rng.normal(0.0, bound, 3)
         v = rng.uniform(-1.0, 1.0, 3)
         seen, _ = rolling_projection(P0, omega, v, clock)
-        motion = CameraMotion(np.zeros(3), bound**2 * np.eye(3), v + rng.normal(0, 0.1, 3), 0.01 * np.eye(3), False, True)
+        v_seen = v + rng.normal(0, 0.1, 3)
+        motion = CameraMotion(np.zeros(3), bound**2 * np.eye(3), v_seen, 0.01 * np.eye(3), False, True)
         dt = clock.dt_s(seen[:, 1])
         x0, z = square_to_stamp(normalised(seen), OBJ, dt, motion)
         truth = F * P0[:, :2] / P0[:, 2:] + [CX, CY]
