@@ -125,6 +125,7 @@ def run_node(
     for camera in cameras:  # a turn the autopilot reports moves the markers in the image: cameras predict it
         if isinstance(camera, SensorWorker):
             camera.attitude_at = transport.attitude_at
+            camera.rate_at = transport.rate_at
     node = Node(world, config, transport, cameras, notifier=Notifier.from_environ(), config_path=config_path)
     if refine is not None:
         node.enable_refinement(refine)

@@ -15,7 +15,9 @@ Pure: numpy and scipy; times are passed in.
 
 from __future__ import annotations
 
+import bisect
 import math
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -220,3 +222,48 @@ class BodyRate:
 
     omega_flu: NDArray[np.float64]
     cov: NDArray[np.float64]
+
+
+GYRO_SIGMA_RAD_S = 0.005
+"""Per-axis error of an autopilot's filtered body rate: gyro noise after its filters and the residual bias
+of a calibrated MEMS gyro (a few tenths of a degree a second)."""
+RATE_CHANGE_RAD_S2 = 6.0
+"""How fast a drone's body rate may change (rad/s^2 per axis): the rate sample's age times it is the error
+of using the nearest sample."""
+
+
+class RateHistory:
+    """The autopilot's recent body rates (FLU, rad/s), by time (wall clock, us), appended by one thread
+    and read by another (a deque's append and copy are atomic in CPython)."""
+
+    def __init__(self, capacity: int = 256, max_age_us: int = 50_000) -> None:
+        self._samples: deque[tuple[int, NDArray[np.float64]]] = deque(maxlen=capacity)
+        self.max_age_us = max_age_us
+
+    def add(self, time_us: int, omega_flu: NDArray[np.float64]) -> None:
+        """A sample; out-of-order, repeated or non-finite ones are ignored."""
+        w = np.asarray(omega_flu, dtype=float)
+        if (self._samples and time_us <= self._samples[-1][0]) or not np.all(np.isfinite(w)):
+            return
+        self._samples.append((int(time_us), w))
+
+    def rate_at(self, t_us: int) -> BodyRate | None:
+        """The rate at ``t_us``: interpolated between the samples around it, or the nearest within
+        ``max_age_us``; its covariance the gyro's and the rate change over the distance to a sample."""
+        samples = list(self._samples)
+        if not samples:
+            return None
+        times = [s[0] for s in samples]
+        k = bisect.bisect_left(times, t_us)
+        if 0 < k < len(samples) and times[k] - times[k - 1] <= 2 * self.max_age_us:
+            (t0, w0), (t1, w1) = samples[k - 1], samples[k]
+            f = (t_us - t0) / (t1 - t0)
+            age_s = min(t_us - t0, t1 - t_us) * 1e-6
+            w = (1.0 - f) * w0 + f * w1
+        else:
+            t0, w = samples[min(k, len(samples) - 1)] if k < len(samples) else samples[-1]
+            age_s = abs(t_us - t0) * 1e-6
+            if age_s * 1e6 > self.max_age_us:
+                return None
+        sigma2 = GYRO_SIGMA_RAD_S**2 + (RATE_CHANGE_RAD_S2 * age_s) ** 2
+        return BodyRate(w, sigma2 * np.eye(3))

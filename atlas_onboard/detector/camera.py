@@ -13,6 +13,8 @@ from collections import Counter
 
 from atlas_onboard.config import CameraConfig
 from atlas_onboard.core.attitude import CameraTurn
+from atlas_onboard.core.shutter import BodyRate
+from atlas_onboard.detector.motion import rate_from_attitudes
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import Frame, Source, SourceError, open_source
 from atlas_onboard.errors import AtlasError
@@ -40,6 +42,7 @@ class CameraWorker(SensorWorker):
         # ``run --record`` (mapping.onboard): each detected frame goes to it after its observations.
         self.recorder: BackgroundRecorder | None = None
         self._turn: CameraTurn | None = None  # made when the autopilot's attitude is first there
+        self._rate_wired = False  # the detector reads the autopilot's rate through _body_rate
 
     def counters(self) -> dict[str, int]:
         out = dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}
@@ -94,6 +97,9 @@ class CameraWorker(SensorWorker):
             if self._turn is None:
                 self._turn = CameraTurn(self.detector.sensor.T_entity_sensor.rotation)
             R_prev_now = self._turn.since_last(self.attitude_at(t_us))
+        if not self._rate_wired and (self.rate_at is not None or self.attitude_at is not None):
+            self.detector.rate_at = self._body_rate  # a rolling shutter's shear (detector.motion)
+            self._rate_wired = True
         try:
             found = list(self.detector.detect(frame.gray, t_us, R_prev_now))
             if found:
@@ -104,6 +110,13 @@ class CameraWorker(SensorWorker):
             return
         if self.recorder is not None:  # never blocks: a full queue drops the frame (counted)
             self.recorder.offer(frame.gray, frame.capture_time_us, found)
+
+    def _body_rate(self, t_us: int) -> BodyRate | None:
+        """The autopilot's body rate at a capture: its own, or its attitudes' difference without them."""
+        rate = self.rate_at(t_us) if self.rate_at is not None else None
+        if rate is None and self.attitude_at is not None:
+            rate = rate_from_attitudes(self.attitude_at, t_us)
+        return rate
 
     def _consume(self, source: Source, deliver: Deliver) -> None:
         """Every frame, in order (a file replayed ``every_frame``, paced by the source unless fast), or

@@ -8,10 +8,12 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import numpy as np
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
+from atlas_onboard.core.shutter import BodyRate, RateHistory
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec
@@ -62,6 +64,7 @@ class AutopilotLink:
         self.origin_known = False
         # --- the autopilot's attitude (issue 19): gravity for a single tag's ambiguity ---
         self.attitude = AttitudeHistory()
+        self.rates = RateHistory()  # ATTITUDE's body rates: a rolling shutter's shear (core.shutter)
         self._boot_clock = BootClock()
         self._attitude_asks = 0
         self._next_attitude_ask_ns = 0
@@ -79,6 +82,10 @@ class AutopilotLink:
         """The autopilot's attitude at ``t_us`` (wall clock, us) as a scipy Rotation of the body FLU in a
         level ENU frame of the autopilot's heading, or None (see :meth:`AttitudeHistory.attitude_at`)."""
         return self.attitude.attitude_at(t_us)
+
+    def rate_at(self, t_us: int) -> BodyRate | None:
+        """The autopilot's body rate (FLU) at ``t_us`` (wall clock, us), or None (see :class:`RateHistory`)."""
+        return self.rates.rate_at(t_us)
 
     def send_autopilot(self, pose: AutopilotPose) -> None:
         """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity; a non-finite pose is counted, not sent."""
@@ -131,7 +138,13 @@ class AutopilotLink:
             self.counters.inc("attitude_rejected")
             return
         arrival_wall_us = (wall_ns(self.wall) - (time.monotonic_ns() - arrival_ns)) // 1000
-        self.attitude.add(self._boot_clock.wall_us(int(msg.time_boot_ms) * 1000, arrival_wall_us), R)
+        t_us = self._boot_clock.wall_us(int(msg.time_boot_ms) * 1000, arrival_wall_us)
+        self.attitude.add(t_us, R)
+        # Body rates FRD -> FLU (both messages carry rollspeed, pitchspeed, yawspeed); all three exactly
+        # zero is a sender that does not fill them (a real gyro's never are), not a rate.
+        w = np.array([msg.rollspeed, -msg.pitchspeed, -msg.yawspeed], dtype=float)
+        if np.any(w != 0.0):
+            self.rates.add(t_us, w)
 
     def _origin_tick(self, now_ns: int) -> None:
         """The EKF origin: asked for (MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) every

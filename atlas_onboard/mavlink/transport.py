@@ -19,6 +19,7 @@ from atlas_onboard.core.attitude import AttitudeHistory
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.rejection import Rejection
+from atlas_onboard.core.shutter import BodyRate
 from atlas_onboard.counters import Counters
 from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.autopilot_link import (  # noqa: F401 (were defined here)
@@ -109,6 +110,10 @@ class MavlinkTransport:
     def attitude_at(self, t_us: int) -> Rotation | None:
         """The autopilot's attitude at ``t_us`` (see :meth:`AutopilotLink.attitude_at`)."""
         return self.autopilot_link.attitude_at(t_us)
+
+    def rate_at(self, t_us: int) -> BodyRate | None:
+        """The autopilot's body rate at ``t_us`` (see :meth:`AutopilotLink.rate_at`)."""
+        return self.autopilot_link.rate_at(t_us)
 
     def _hand_on(self, index: int) -> None:
         """The observations of one read of peer link ``index``, to the node together."""
