@@ -131,7 +131,7 @@ class CameraConfig:
     exposure_ms: float = field(default=0.0, metadata=spec(
         "exposure time of each row: a moving camera blurs over it (0: short enough to ignore)",
         unit="ms", within="[0, 1000]", noun="an exposure time"))  # fmt: skip
-    stamp_sigma_ms: float = field(default=0.0, metadata=spec(
+    stamp_sigma_ms: float = field(default=2.0, metadata=spec(
         "how far a frame's stamp may be from its middle row's mid-exposure (latency_ms's own error); a moving"
         " camera's corners get its image motion times this as noise (0: stamps exact; docs/cameras.md)",
         unit="ms", within="[0, 100]", noun="a stamp uncertainty"))  # fmt: skip

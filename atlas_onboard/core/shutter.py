@@ -190,6 +190,42 @@ def flow_jacobians(
     return A, B
 
 
+def shear_covariance(
+    x_norm: NDArray[np.float64],
+    depth_m: NDArray[np.float64],
+    dt_s: NDArray[np.float64],
+    motion: CameraMotion,
+    fx: float,
+    fy: float,
+) -> NDArray[np.float64]:
+    """(2N, 2N) covariance (pixels^2, x0 y0 x1 y1 ...) of the points after :func:`to_stamp` from the
+    rate's and velocity's error times each point's ``dt``: one error shears every point coherently (rank
+    at most 6), differently by row, which no rigid pose absorbs."""
+    A, B = flow_jacobians(x_norm, depth_m, fx, fy)
+    n = len(A)
+    dt = np.asarray(dt_s, dtype=float).reshape(-1, 1, 1)
+    Ga, Gb = (dt * A).reshape(2 * n, 3), (dt * B).reshape(2 * n, 3)
+    C = Ga @ motion.omega_error() @ Ga.T + Gb @ motion.velocity_error() @ Gb.T
+    return 0.5 * (C + C.T)
+
+
+def timing_covariance(
+    x_norm: NDArray[np.float64], depth_m: NDArray[np.float64], motion: CameraMotion, fx: float, fy: float
+) -> NDArray[np.float64]:
+    """(2N, 2N) covariance of the points from the frame's timing uncertainty: the image motion (its second
+    moment) times ``timing_sigma_s``, common to every point of the frame (the view at another instant: a
+    rigid pose change, rank at most 6)."""
+    A, B = flow_jacobians(x_norm, depth_m, fx, fy)
+    n = len(A)
+    if motion.timing_sigma_s <= 0.0:
+        return np.zeros((2 * n, 2 * n))
+    Ha, Hb = A.reshape(2 * n, 3), B.reshape(2 * n, 3)
+    C = motion.timing_sigma_s**2 * (
+        Ha @ motion.omega_second_moment() @ Ha.T + Hb @ motion.velocity_second_moment() @ Hb.T
+    )
+    return 0.5 * (C + C.T)
+
+
 def motion_covariance(
     x_norm: NDArray[np.float64],
     depth_m: NDArray[np.float64],
@@ -198,20 +234,29 @@ def motion_covariance(
     fx: float,
     fy: float,
 ) -> NDArray[np.float64]:
-    """(2N, 2N) covariance (pixels^2, x0 y0 x1 y1 ...) of the points after :func:`to_stamp` from what the
-    motion leaves uncertain, correlated across points: the rate's and velocity's error times each point's
-    ``dt`` (one error shears every point coherently: rank at most 6), and the image motion (its second
-    moment) times the frame's timing uncertainty (rank at most 6 more)."""
-    A, B = flow_jacobians(x_norm, depth_m, fx, fy)
-    n = len(A)
-    dt = np.asarray(dt_s, dtype=float).reshape(-1, 1, 1)
-    Ga, Gb = (dt * A).reshape(2 * n, 3), (dt * B).reshape(2 * n, 3)
-    C = Ga @ motion.omega_error() @ Ga.T + Gb @ motion.velocity_error() @ Gb.T
-    if motion.timing_sigma_s > 0.0:
-        Ha, Hb = A.reshape(2 * n, 3), B.reshape(2 * n, 3)
-        C = C + motion.timing_sigma_s**2 * (
-            Ha @ motion.omega_second_moment() @ Ha.T + Hb @ motion.velocity_second_moment() @ Hb.T
-        )
+    """(2N, 2N) covariance of the points after :func:`to_stamp` from what the motion leaves uncertain,
+    correlated across points: :func:`shear_covariance` plus :func:`timing_covariance` (the detector adds
+    the latter's pose equivalent, :func:`timing_pose_covariance`, to each frame's poses instead)."""
+    return shear_covariance(x_norm, depth_m, dt_s, motion, fx, fy) + timing_covariance(x_norm, depth_m, motion, fx, fy)
+
+
+def timing_pose_covariance(
+    p_sensor_marker_m: NDArray[np.float64], R_sensor_marker: NDArray[np.float64], motion: CameraMotion
+) -> NDArray[np.float64]:
+    """(6, 6) covariance, in ``[dp, dtheta]`` (:mod:`atlas_onboard.core.covariance`), of a marker's pose
+    in the camera from the frame's timing uncertainty: the pose ``timing_sigma_s`` later is
+    ``p - dt (omega x p + v)``, ``R exp(-dt R^T omega)``. The same shift for every marker of the frame, so
+    it belongs to the frame's pose, not to the markers' agreement with each other."""
+    if motion.timing_sigma_s <= 0.0:
+        return np.zeros((6, 6))
+    p = np.asarray(p_sensor_marker_m, dtype=float)
+    L = np.zeros((6, 6))  # d[dp, dtheta] / d[omega, v] per unit of time
+    L[:3, :3] = np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])  # p x omega
+    L[:3, 3:] = -np.eye(3)
+    L[3:, :3] = -np.asarray(R_sensor_marker, dtype=float).T
+    M = np.zeros((6, 6))
+    M[:3, :3], M[3:, 3:] = motion.omega_second_moment(), motion.velocity_second_moment()
+    C = motion.timing_sigma_s**2 * (L @ M @ L.T)
     return 0.5 * (C + C.T)
 
 

@@ -52,7 +52,7 @@ class _Single:
     stretch: NDArray[np.float64] | None
     measured_px: float
     corner_cov: NDArray[np.float64] | None = None  # (8, 8), px^2: refine.RefinedCorners.covariance
-    motion_px: float = 0.0  # RMS corner noise of the camera's motion (detector.motion), in corner_cov too
+    motion_px: float = 0.0  # RMS corner noise of the camera motion's shear (detector.motion), in corner_cov too
 
 
 @dataclass
@@ -180,7 +180,7 @@ class JointSolve:
         # corner, motion blur that moves each square differently) give a joint fit far worse than
         # each square's own: the joint pose is then wrong in a way no sigma describes.
         worst_single = max(singles[m].pose.reprojection_error_px for m in ids)
-        # A moving camera's corner noise (detector.motion) widens the limit alike.
+        # A moving camera's shear that its rates leave uncertain (detector.motion) widens the limit alike.
         limit = JOINT_MISFIT * max(worst_single, math.hypot(model_sigma_px, max(singles[m].motion_px for m in ids)))
         if err > limit:
             self.counters["joint_misfit"] += count

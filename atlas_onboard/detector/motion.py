@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,12 +24,14 @@ from scipy.spatial.transform import RigidTransform, Rotation
 from atlas_onboard.config import CameraConfig
 from atlas_onboard.config.settings import READOUT_BOTTOM_UP
 from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA
+from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper, upper_to_matrix
 from atlas_onboard.core.shutter import (
     BodyRate,
     CameraMotion,
     RowClock,
-    motion_covariance,
+    shear_covariance,
     square_to_stamp,
+    timing_pose_covariance,
     timing_sigma_s,
 )
 from atlas_onboard.detector.pose import MarkerPose, object_corners
@@ -41,6 +43,17 @@ ANGULAR_ACCEL_SIGMA = 6.0  # rad/s^2 per axis: how far a drone's rate changes ov
 SPEED_BOUND_MPS = 1.0  # per axis, when the camera's poses do not give a velocity
 ATTITUDE_STEP_US = 10_000  # half the span of the attitudes differenced into a rate
 ATTITUDE_RATE_SIGMA = math.radians(2.0)  # rad/s: an attitude difference's rate error (interpolation, rate change)
+
+
+@dataclass(frozen=True, slots=True)
+class CorrectedCorners:
+    """A square's corners moved to the stamp (undistorted pixels, (4, 2)), their (8, 8) covariance with
+    the motion's, and the RMS corner noise of the motion's shear alone (px): what no rigid pose absorbs,
+    so what may make squares seen together misfit (the timing's share moves them all alike)."""
+
+    corners: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    shear_px: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,7 +122,7 @@ class CameraMotionModel:
         corner_cov: NDArray[np.float64],
         K: NDArray[np.float64],
         size_m: float,
-    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    ) -> CorrectedCorners:
         """A square's undistorted corners (4, 2) moved to the stamp, and their (8, 8) covariance with the
         motion's added. ``corners_px``: where they are in the (distorted) image, whose rows set their
         instants; the translation's depths are the square's own (:func:`square_to_stamp`)."""
@@ -119,8 +132,23 @@ class CameraMotionModel:
         f = np.array([fx, fy])
         x = (np.asarray(undistorted, dtype=float) - c) / f
         x0, z = square_to_stamp(x, object_corners(size_m)[:, :2], dt, motion)
-        cov = np.asarray(corner_cov, dtype=float) + motion_covariance(x0, z, dt, motion, fx, fy)
-        return x0 * f + c, cov
+        shear = shear_covariance(x0, z, dt, motion, fx, fy)
+        cov = np.asarray(corner_cov, dtype=float) + shear
+        return CorrectedCorners(x0 * f + c, cov, float(np.sqrt(np.trace(shear) / len(cov))))
+
+    def with_timing(self, md: MarkerData, motion: CameraMotion) -> MarkerData:
+        """``md`` with the frame's timing uncertainty in its covariance and sigma (:func:`timing_pose_covariance`):
+        added to the frame's poses once checked, since it moves every marker alike."""
+        if motion.timing_sigma_s <= 0.0 or not md.covariance:
+            return md
+        w, x, y, z = md.q_sensor_marker_wxyz
+        R = Rotation.from_quat([x, y, z, w]).as_matrix()
+        C = upper_to_matrix(np.asarray(md.covariance)) + timing_pose_covariance(
+            np.asarray(md.p_sensor_marker_m), R, motion
+        )
+        # The camera's position moves by its velocity over the timing error.
+        extra = motion.timing_sigma_s**2 * float(np.linalg.eigvalsh(motion.velocity_second_moment())[-1])
+        return replace(md, covariance=matrix_to_upper(C), sigma_m=math.sqrt(md.sigma_m**2 + extra))
 
     def observe(self, t_us: int, poses: list[tuple[RigidTransform, MarkerPose]]) -> None:
         """The frame's single-marker poses of world markers (``T_world_marker``, the pose in the camera):

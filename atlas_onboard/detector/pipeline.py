@@ -271,9 +271,9 @@ class Detector:
             size_m = self.sizes[d.marker_id]
             # >>> camera motion: corners moved to the stamp, the motion's covariance added to theirs
             before = float(np.trace(corner_cov))
-            corners, corner_cov = self.motion_model.correct(motion, d.corners_px, corners, corner_cov, K, size_m)
-            motion_px = float(np.sqrt(max(np.trace(corner_cov) - before, 0.0) / 8.0))
-            measured_px = float(np.hypot(measured_px, motion_px))
+            moved = self.motion_model.correct(motion, d.corners_px, corners, corner_cov, K, size_m)
+            corners, corner_cov, motion_px = moved.corners, moved.covariance, moved.shear_px
+            measured_px = float(np.sqrt(measured_px**2 + max(np.trace(corner_cov) - before, 0.0) / 8.0))
             # <<< camera motion
             mp = pose.solve(corners, size_m, K, pose.model_sigma_px(d.family), stretch, measured_px, corner_cov)
             if mp is None:
@@ -363,6 +363,9 @@ class Detector:
                 out.append(self.joint_solve.markerdata(mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px,
                                                        mp.ambiguity, capture_time_us, alt, mp.covariance))  # fmt: skip
                 self.report.reported.append(mid)
+        # >>> camera motion: the frame's timing uncertainty moves every pose alike (detector.motion)
+        out = [self.motion_model.with_timing(md, motion) for md in out]
+        # <<< camera motion
         self.counters["detections"] += len(out)
         return out
 

@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WORLD, CameraConfig
-from atlas_onboard.core.shutter import BodyRate, RowClock
+from atlas_onboard.core.shutter import BodyRate, RowClock, timing_pose_covariance
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.joint import JointSolve, _Single
@@ -56,15 +56,18 @@ def _solve(
     """The square's pose from its corners, moved to the stamp by ``model`` (None: left as they are);
     ``v_known``: the camera's velocity known to be zero within 0.05 m/s (else the model's own)."""
     cov = NOISE_PX**2 * np.eye(8)
-    corners = img
+    corners, motion_px = img, 0.0
     if model is not None:
         motion = model.at(t_us, rate)
         if v_known:
             motion = replace(motion, velocity=np.zeros(3), velocity_cov=0.05**2 * np.eye(3), velocity_known=True)
-        corners, cov = model.correct(motion, img, img, cov, K, SIZE)
-    motion_px = float(np.sqrt(max(np.trace(cov) / 8 - NOISE_PX**2, 0.0)))
+        moved = model.correct(motion, img, img, cov, K, SIZE)
+        corners, cov, motion_px = moved.corners, moved.covariance, moved.shear_px
     mp = pose.solve(corners, SIZE, K, pose.SIGMA_PX_APRILTAG, None, float(np.sqrt(np.trace(cov) / 8)), cov)
-    assert mp is not None
+    assert mp is not None and mp.covariance is not None
+    if model is not None:  # the frame's timing, as the detector adds it to the frame's poses
+        timing = timing_pose_covariance(mp.p_m, Rotation.from_quat(mp.q_xyzw).as_matrix(), motion)
+        mp = replace(mp, covariance=mp.covariance + timing)
     return _Single(mp, corners, None, float(np.sqrt(np.trace(cov) / 8)), cov, motion_px)
 
 
@@ -115,8 +118,9 @@ def test_without_rates_the_sigma_covers_the_shear() -> None:
     for _ in range(400):
         truth = _random_view(rng)
         omega = rng.normal(0.0, bound, 3)
-        img = rolling_corners(truth, SIZE, omega, np.zeros(3)) + rng.normal(0.0, NOISE_PX, (4, 2))
-        mp = _solve(img, _model(), None).pose
+        v = rng.normal(0.0, 0.05, 3)  # the velocity known to be zero within 0.05 m/s
+        img = rolling_corners(truth, SIZE, omega, v) + rng.normal(0.0, NOISE_PX, (4, 2))
+        mp = _solve(img, _model(), None, v_known=True).pose
         sigma = np.sqrt(np.diag(mp.covariance)[:3])
         inside.append(np.abs(mp.p_m - truth.translation) <= 3.0 * sigma)
     assert np.mean(inside, axis=0).min() >= 0.99, np.mean(inside, axis=0)
