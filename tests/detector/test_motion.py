@@ -10,7 +10,7 @@ import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WORLD, CameraConfig
-from atlas_onboard.core.shutter import BodyRate, RowClock, timing_pose_covariance
+from atlas_onboard.core.shutter import BodyRate, RowClock, timing_covariance, timing_pose_covariance
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.joint import JointSolve, _Single
@@ -181,3 +181,26 @@ def test_a_turning_rolling_shutter_camera_never_makes_a_correct_marker_disagree(
     assert not joint.world_check.disagreements
     assert not joint.world_check.moved
     assert joint.counters["joint_misfit"] == 0
+
+
+def test_the_timing_pose_covariance_is_the_corners_timing_covariance_carried_through_the_solve() -> None:
+    """The frame's timing moves every corner as the view an instant later: carried through the pose's
+    generalised least squares it is the pose covariance added to the frame's poses (same convention)."""
+    rng = np.random.default_rng(9)
+    model = _model(3.0)
+    for _ in range(20):
+        truth = _random_view(rng)
+        img = rolling_corners(truth, SIZE, np.zeros(3), np.zeros(3))
+        motion = replace(
+            model.at(0, BodyRate(rng.uniform(-1, 1, 3), 1e-4 * np.eye(3))),
+            velocity=rng.uniform(-1, 1, 3), velocity_cov=0.01 * np.eye(3), velocity_known=True,
+        )  # fmt: skip
+        x = (img - K[:2, 2]) / K[0, 0]
+        z = truth.apply(pose.object_corners(SIZE))[:, 2]
+        fit = pose.CornerFit(truth.rotation.as_matrix(), truth.translation, pose.object_corners(SIZE), K)
+        noise = 1e-4 * np.eye(8)
+        C0 = pose.pose_covariance_from_corners(fit, noise)
+        C1 = pose.pose_covariance_from_corners(fit, noise + timing_covariance(x, z, motion, K[0, 0], K[1, 1]))
+        expected = timing_pose_covariance(truth.translation, truth.rotation.as_matrix(), motion)
+        assert C0 is not None and C1 is not None
+        np.testing.assert_allclose(C1 - C0, expected, atol=0.02 * np.abs(expected).max())
