@@ -78,8 +78,13 @@ def rate_from_attitudes(attitude_at: AttitudeAt, t_us: int) -> BodyRate | None:
 class CameraMotionModel:
     """One camera's time model and motion: corners moved to the stamp, the motion's covariance added."""
 
-    def __init__(self, camera: CameraConfig | None, R_body_sensor: Rotation, height_px: int) -> None:
+    def __init__(
+        self, camera: CameraConfig | None, R_body_sensor: Rotation, height_px: int, static: bool = False
+    ) -> None:
+        """``static``: a camera fixed in the world (on the world entity), which does not move at all; the
+        markers' own motion (a drone's) is not modelled."""
         cam = camera or CameraConfig()
+        self.static = static
         self.clock = RowClock(cam.readout_ms * 1e-3, height_px, cam.readout_order == READOUT_BOTTOM_UP)
         self.timing_s = timing_sigma_s(cam.stamp_sigma_ms * 1e-3, cam.exposure_ms * 1e-3)
         self.rate_bound = math.radians(cam.rate_bound_dps)
@@ -88,6 +93,8 @@ class CameraMotionModel:
 
     def at(self, t_us: int, rate: BodyRate | None) -> CameraMotion:
         """The camera's motion at the frame stamped ``t_us``, given the autopilot's rate (or None)."""
+        if self.static:
+            return CameraMotion(omega_known=True, velocity_known=True, timing_sigma_s=self.timing_s)
         recent = [s for s in self._seen if 0 < t_us - s.t_us <= WINDOW_US]
         R_sb = self.R_body_sensor.inv()
         if rate is not None:

@@ -246,7 +246,8 @@ class Detector:
         singles: dict[int, _Single] = {}
         # >>> camera motion: the frame's motion (rolling shutter, exposure; detector.motion)
         if self.motion_model is None:
-            self.motion_model = CameraMotionModel(self.sensor.camera, self.sensor.T_entity_sensor.rotation, h)
+            s = self.sensor
+            self.motion_model = CameraMotionModel(s.camera, s.T_entity_sensor.rotation, h, s.entity == WORLD)
         motion = self.motion_model.at(capture_time_us, self.rate_at(capture_time_us) if self.rate_at else None)
         # <<< camera motion
         for d in self.find(gray, R_prev_now):
