@@ -41,6 +41,9 @@ WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 
 STALE_US = 300_000  # the newest pose older than this: no velocity from the history
 ANGULAR_ACCEL_SIGMA = 6.0  # rad/s^2 per axis: how far a drone's rate changes over the history's span
 SPEED_BOUND_MPS = 1.0  # per axis, when the camera's poses do not give a velocity
+MIN_SPAN_S = 0.01  # recent poses spanning less than this are not a camera's frames (unrelated images)
+MAX_SPEED_MPS = 15.0  # a history implying more than this (or MAX_RATE_RAD_S) is a jump, not a motion
+MAX_RATE_RAD_S = 15.0
 ATTITUDE_STEP_US = 10_000  # half the span of the attitudes differenced into a rate
 ATTITUDE_RATE_SIGMA = math.radians(2.0)  # rad/s: an attitude difference's rate error (interpolation, rate change)
 
@@ -63,6 +66,40 @@ class _Seen:
     R_world_camera: Rotation
     sigma_p_m: float
     sigma_theta_rad: float
+
+
+@dataclass(frozen=True, slots=True)
+class _History:
+    """The camera's motion from its own recent poses (camera frame): rate and velocity with variances."""
+
+    omega: NDArray[np.float64]
+    omega_var: float
+    velocity: NDArray[np.float64]
+    velocity_var: float
+
+    @staticmethod
+    def of(recent: list[_Seen], t_us: int) -> _History | None:
+        """From the poses of the last ``WINDOW_US`` before ``t_us``: None when too few, too close in time
+        (frames of a camera, not unrelated images), stale, or implausible for a drone (a jump)."""
+        if len(recent) < 2 or t_us - recent[-1].t_us > STALE_US:
+            return None
+        a, b = recent[0], recent[-1]
+        span = (b.t_us - a.t_us) * 1e-6
+        if span < MIN_SPAN_S:
+            return None
+        w = (a.R_world_camera.inv() * b.R_world_camera).as_rotvec() / span
+        noise = 2.0 * max(a.sigma_theta_rad, b.sigma_theta_rad) ** 2 / span**2
+        lag = (ANGULAR_ACCEL_SIGMA * ((t_us - a.t_us) * 1e-6 - span / 2.0)) ** 2
+        t = np.array([(s.t_us - t_us) * 1e-6 for s in recent])
+        p = np.array([s.p_world_m for s in recent])
+        tc = t - t.mean()
+        v_world = tc @ (p - p.mean(axis=0)) / float(tc @ tc)
+        if np.linalg.norm(v_world) > MAX_SPEED_MPS or np.linalg.norm(w) > MAX_RATE_RAD_S:
+            return None
+        sigma_p = max(s.sigma_p_m for s in recent)
+        v_var = sigma_p**2 / float(tc @ tc) + (MANOEUVRE_ACCEL_SIGMA * float(-t.mean())) ** 2
+        R = recent[-1].R_world_camera.as_matrix()
+        return _History(w, noise + lag, R.T @ v_world, v_var)
 
 
 def rate_from_attitudes(attitude_at: AttitudeAt, t_us: int) -> BodyRate | None:
@@ -96,30 +133,22 @@ class CameraMotionModel:
         if self.static:
             return CameraMotion(omega_known=True, velocity_known=True, timing_sigma_s=self.timing_s)
         recent = [s for s in self._seen if 0 < t_us - s.t_us <= WINDOW_US]
+        history = _History.of(recent, t_us)
         R_sb = self.R_body_sensor.inv()
         if rate is not None:
             M = R_sb.as_matrix()
             w, w_cov, w_known = R_sb.apply(rate.omega_flu), M @ rate.cov @ M.T, True
-        elif len(recent) >= 2:
-            a, b = recent[0], recent[-1]
-            span = (b.t_us - a.t_us) * 1e-6
-            w = (a.R_world_camera.inv() * b.R_world_camera).as_rotvec() / span
-            noise = 2.0 * max(a.sigma_theta_rad, b.sigma_theta_rad) ** 2 / span**2
-            lag = (ANGULAR_ACCEL_SIGMA * ((t_us - a.t_us) * 1e-6 - span / 2.0)) ** 2
-            w_cov, w_known = (noise + lag) * np.eye(3), False
+        elif history is not None:
+            w, w_cov, w_known = history.omega, history.omega_var * np.eye(3), False
         else:
             w, w_cov, w_known = np.zeros(3), self.rate_bound**2 * np.eye(3), False
         v, v_cov, v_known = np.zeros(3), SPEED_BOUND_MPS**2 * np.eye(3), False
-        if len(recent) >= 2 and t_us - recent[-1].t_us <= STALE_US:
-            t = np.array([(s.t_us - t_us) * 1e-6 for s in recent])
-            p = np.array([s.p_world_m for s in recent])
-            tc = t - t.mean()
-            v_world = tc @ (p - p.mean(axis=0)) / float(tc @ tc)
-            sigma_p = max(s.sigma_p_m for s in recent)
-            var = sigma_p**2 / float(tc @ tc) + (MANOEUVRE_ACCEL_SIGMA * float(-t.mean())) ** 2
-            R = recent[-1].R_world_camera.as_matrix()
-            v, v_cov, v_known = R.T @ v_world, var * np.eye(3), True
-        return CameraMotion(w, w_cov, v, v_cov, w_known, v_known, self.timing_s)
+        if history is not None:
+            v, v_cov, v_known = history.velocity, history.velocity_var * np.eye(3), True
+        # The timing's image motion needs a motion estimate; with bounds alone (no rate, no recent poses:
+        # the first frames, or unrelated images) it is left out rather than charged at the bounds.
+        timing = self.timing_s if (rate is not None or history is not None) else 0.0
+        return CameraMotion(w, w_cov, v, v_cov, w_known, v_known, timing)
 
     def correct(
         self,
