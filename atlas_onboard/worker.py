@@ -7,19 +7,17 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable, Sequence
 
-import numpy as np
-from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.shutter import BodyRate
 
 Deliver = Callable[[Sequence[MarkerData]], None]
 """Called once per image with all of its detections (never with none)."""
 AttitudeAt = Callable[[int], Rotation | None]
 """The autopilot's attitude (body FLU in a level ENU frame) at a capture stamp (us), or None."""
-RateAt = Callable[[int], NDArray[np.float64] | None]
-"""The body's angular rate (3,) rad/s about its FLU axes at a time (us) as the autopilot's gyros reported
-it, or None (no autopilot, a stream without rates, or no sample near that time)."""
+RateAt = Callable[[int], BodyRate | None]
+"""The autopilot's body angular rate at a capture stamp (us), or None (no rate near it)."""
 
 
 class SensorWorker:
@@ -31,8 +29,8 @@ class SensorWorker:
     """Set by the node's start-up when the autopilot reports its attitude: cameras predict from it where
     a turn moves the markers (:class:`atlas_onboard.core.attitude.CameraTurn`)."""
     rate_at: RateAt | None = None
-    """Set with ``attitude_at``: the camera's motion during a frame's readout and exposure follows from it
-    (:meth:`atlas_onboard.core.attitude.AttitudeHistory.rate_at`)."""
+    """Set by the node's start-up when the autopilot streams its angular rates: cameras correct a rolling
+    shutter's shear by them (:mod:`atlas_onboard.core.shutter`)."""
 
     def __init__(self) -> None:
         self._stop = threading.Event()

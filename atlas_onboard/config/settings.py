@@ -131,6 +131,14 @@ class CameraConfig:
     exposure_ms: float = field(default=0.0, metadata=spec(
         "exposure time of each row: a moving camera blurs over it (0: short enough to ignore)",
         unit="ms", within="[0, 1000]", noun="an exposure time"))  # fmt: skip
+    stamp_sigma_ms: float = field(default=2.0, metadata=spec(
+        "how far a frame's stamp may be from its middle row's mid-exposure (latency_ms's own error); a moving"
+        " camera's corners get its image motion times this as noise (0: stamps exact; docs/cameras.md)",
+        unit="ms", within="[0, 100]", noun="a stamp uncertainty"))  # fmt: skip
+    rate_bound_dps: float = field(default=30.0, metadata=spec(
+        "the angular rate a frame may have when neither the autopilot's rates nor the node's recent poses"
+        " tell it (1 sigma per axis): the uncorrected shear's noise", unit="deg/s", within="[0, 2000]",
+        noun="an angular rate"))  # fmt: skip
     replay: str = field(default="", metadata=spec(
         "file sources: realtime (paced on the file's time, frames it cannot keep up with dropped) or"
         " every_frame (each frame in order, late if the detector is slow); empty: the kind's own (realtime"

@@ -221,21 +221,17 @@ class AttitudeHistory:
     """
 
     def __init__(self, capacity: int = HISTORY, max_gap_us: int = MAX_GAP_US) -> None:
-        self._samples: deque[tuple[int, NDArray[np.float64], NDArray[np.float64] | None]] = deque(maxlen=capacity)
+        self._samples: deque[tuple[int, NDArray[np.float64]]] = deque(maxlen=capacity)
         self.max_gap_us = max_gap_us
 
-    def add(self, time_us: int, R_level_body: Rotation, rate_body: NDArray[np.float64] | None = None) -> None:
-        """A sample at ``time_us`` (wall clock, us), with the body's angular rate (rad/s, body FLU axes)
-        when the autopilot reported one; out-of-order or repeated samples are ignored."""
+    def add(self, time_us: int, R_level_body: Rotation) -> None:
+        """A sample at ``time_us`` (wall clock, us); out-of-order or repeated samples are ignored."""
         if self._samples and time_us <= self._samples[-1][0]:
             return
         q = R_level_body.as_quat()
         if not np.all(np.isfinite(q)):
             return
-        w = None if rate_body is None else np.asarray(rate_body, dtype=float).reshape(3)
-        if w is not None and not np.all(np.isfinite(w)):
-            w = None
-        self._samples.append((int(time_us), q, w))
+        self._samples.append((int(time_us), q))
 
     def __len__(self) -> int:
         return len(self._samples)
@@ -259,7 +255,7 @@ class AttitudeHistory:
             return Rotation.from_quat(samples[0][1]) if times[0] - t_us <= half else None
         if k == len(samples):
             return Rotation.from_quat(samples[-1][1]) if t_us - times[-1] <= half else None
-        (t0, q0, _), (t1, q1, _) = samples[k - 1], samples[k]
+        (t0, q0), (t1, q1) = samples[k - 1], samples[k]
         if t1 - t0 > self.max_gap_us:
             if t_us - t0 <= half:
                 return Rotation.from_quat(q0)
@@ -267,28 +263,6 @@ class AttitudeHistory:
         f = (t_us - t0) / (t1 - t0)
         R0 = Rotation.from_quat(q0)
         return R0 * Rotation.from_rotvec(f * (R0.inv() * Rotation.from_quat(q1)).as_rotvec())
-
-    def rate_at(self, t_us: int) -> NDArray[np.float64] | None:
-        """The body's angular rate (3,) rad/s about its FLU axes at ``t_us`` (wall clock, us), as the
-        autopilot's gyros reported it: linear between the samples around it, the nearest within half
-        of ``max_gap_us`` (as :meth:`attitude_at`), or None where no sample near it carries a rate."""
-        samples = [(t, w) for t, _, w in list(self._samples) if w is not None]
-        if not samples:
-            return None
-        times = [s[0] for s in samples]
-        k = int(np.searchsorted(times, t_us))
-        half = self.max_gap_us // 2
-        if k == 0:
-            return samples[0][1].copy() if times[0] - t_us <= half else None
-        if k == len(samples):
-            return samples[-1][1].copy() if t_us - times[-1] <= half else None
-        (t0, w0), (t1, w1) = samples[k - 1], samples[k]
-        if t1 - t0 > self.max_gap_us:
-            if t_us - t0 <= half:
-                return w0.copy()
-            return w1.copy() if t1 - t_us <= half else None
-        f = (t_us - t0) / (t1 - t0)
-        return (1.0 - f) * w0 + f * w1
 
     def up_at(self, t_us: int) -> NDArray[np.float64] | None:
         """World up in the body frame at ``t_us`` (see :meth:`attitude_at`), or None."""

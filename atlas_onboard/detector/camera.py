@@ -13,6 +13,7 @@ from collections import Counter
 
 from atlas_onboard.config import CameraConfig
 from atlas_onboard.core.attitude import CameraTurn
+from atlas_onboard.detector.motion import body_rate_at
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import Frame, Source, SourceError, open_source
 from atlas_onboard.errors import AtlasError
@@ -94,8 +95,9 @@ class CameraWorker(SensorWorker):
             if self._turn is None:
                 self._turn = CameraTurn(self.detector.sensor.T_entity_sensor.rotation)
             R_prev_now = self._turn.since_last(self.attitude_at(t_us))
+        body_rate = body_rate_at(self.rate_at, self.attitude_at, t_us)  # a rolling shutter's shear
         try:
-            found = list(self.detector.detect(frame.gray, t_us, R_prev_now))
+            found = list(self.detector.detect(frame.gray, t_us, R_prev_now, body_rate))
             if found:
                 deliver(found)
         except AtlasError as exc:  # e.g. frames of another size than the calibration

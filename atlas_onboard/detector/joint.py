@@ -139,7 +139,8 @@ class JointSolve:
         # corner, motion blur that moves each square differently) give a joint fit far worse than
         # each square's own: the joint pose is then wrong in a way no sigma describes.
         worst_single = max(singles[m].pose.reprojection_error_px for m in ids)
-        limit = JOINT_MISFIT * max(worst_single, model_sigma_px)
+        # A moving camera's shear that its rates leave uncertain (detector.motion) widens the limit alike.
+        limit = JOINT_MISFIT * max(worst_single, math.hypot(model_sigma_px, max(singles[m].motion_px for m in ids)))
         if err > limit:
             self.counters["joint_misfit"] += count
             return (None, True, err / limit) if with_error else (None, True)

@@ -36,11 +36,13 @@ from atlas_onboard.config import WORLD, SensorConfig, WorldConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.consistency import PairVerdict
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.shutter import BodyRate
 from atlas_onboard.core.worldcheck import MovedMarker
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.joint import JointSolve
+from atlas_onboard.detector.motion import CameraMotionModel
 from atlas_onboard.detector.records import FrameReport, SingleSolve, marker_data
 from atlas_onboard.detector.refine import refine_corners_undistorted
 from atlas_onboard.detector.search import (
@@ -112,6 +114,7 @@ class Detector:
             self.counters,
             self.joint_solve,
         )
+        self.motion_model: CameraMotionModel | None = None  # made at the first frame (its height)
 
     @property
     def tracking(self) -> bool:
@@ -188,9 +191,14 @@ class Detector:
         return list(found.values())
 
     def detect(
-        self, gray: NDArray[np.uint8], capture_time_us: int, R_prev_now: Rotation | None = None
+        self,
+        gray: NDArray[np.uint8],
+        capture_time_us: int,
+        R_prev_now: Rotation | None = None,
+        body_rate: BodyRate | None = None,
     ) -> list[MarkerData]:
-        """MarkerData of the configured markers in ``gray`` (``R_prev_now``: see :meth:`find`).
+        """MarkerData of the configured markers in ``gray`` (``R_prev_now``: see :meth:`find`; ``body_rate``:
+        the autopilot's body rate at the capture, for a rolling shutter's shear, see :mod:`.motion`).
 
         With ``joint`` (the default), the markers of one entity seen together are solved as one
         rigid pattern (every corner at once, far better conditioned than any single square) and
@@ -203,6 +211,11 @@ class Detector:
         cal = self.calibration
         K = cal.K
         singles: dict[int, SingleSolve] = {}
+        # Camera motion: the frame's motion (rolling shutter, exposure; detector.motion)
+        if self.motion_model is None:
+            s = self.sensor
+            self.motion_model = CameraMotionModel(s.camera, s.T_entity_sensor.rotation, h, s.entity == WORLD)
+        motion = self.motion_model.at(capture_time_us, body_rate)
         for d in self.find(gray, R_prev_now):
             self.report.found.append(d.marker_id)
             if at_border(d.corners_px, w, h):
@@ -223,13 +236,21 @@ class Detector:
             corners, measured_px, corner_cov = refined.corners, refined.sigma_px, refined.covariance
             stretch = pose.undistortion_jacobian(d.corners_px, K, cal.dist, cal.fisheye)
             size_m = self.sizes[d.marker_id]
+            # Camera motion: corners moved to the stamp, the motion's covariance added to theirs
+            before = float(np.trace(corner_cov))
+            moved = self.motion_model.correct(motion, d.corners_px, corners, corner_cov, K, size_m)
+            corners, corner_cov, motion_px = moved.corners, moved.covariance, moved.shear_px
+            measured_px = float(np.sqrt(measured_px**2 + max(np.trace(corner_cov) - before, 0.0) / 8.0))
             mp = pose.solve(corners, size_m, K, pose.model_sigma_px(d.family), stretch, measured_px, corner_cov)
             if mp is None:
                 self.counters["pnp_failed"] += 1
                 self.report.dropped[d.marker_id] = "no pose"
                 continue
-            singles[d.marker_id] = SingleSolve(mp, corners, stretch, measured_px, corner_cov)
+            singles[d.marker_id] = SingleSolve(mp, corners, stretch, measured_px, corner_cov, motion_px)
         self.report.found.sort()
+        # Camera motion: the camera's own poses (from world markers) for the next frames' velocity
+        seen = [(self.marker_pose[m], s.pose) for m, s in singles.items() if self.entity_of[m] == WORLD]
+        self.motion_model.observe(capture_time_us, seen)
         out = []
         groups: dict[str, list[int]] = {}
         for mid in sorted(singles):
@@ -309,6 +330,8 @@ class Detector:
                 out.append(marker_data(self.sensor.id, mid, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px,
                                        mp.ambiguity, capture_time_us, alt, mp.covariance))  # fmt: skip
                 self.report.reported.append(mid)
+        # Camera motion: the frame's timing uncertainty moves every pose alike (detector.motion)
+        out = [self.motion_model.with_timing(md, motion) for md in out]
         self.counters["detections"] += len(out)
         return out
 

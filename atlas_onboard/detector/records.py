@@ -24,6 +24,7 @@ class SingleSolve:
     stretch: NDArray[np.float64] | None
     measured_px: float
     corner_cov: NDArray[np.float64] | None = None  # (8, 8), px^2: refine.RefinedCorners.covariance
+    motion_px: float = 0.0  # RMS corner noise of the camera motion's shear (detector.motion), in corner_cov too
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from atlas_onboard.config import WORLD, CameraConfig, ConfigError, WorldConfig, 
 from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.fsio import write_atomic
+from atlas_onboard.mapping import motion
 from atlas_onboard.mapping.build import MapOptions, MapResult, build_map, collect
 from atlas_onboard.mapping.report import MarkerReport
 
@@ -205,6 +206,9 @@ def _cmd_map(args: argparse.Namespace) -> int:
         raise AtlasError(f"--out: {out_dir} is not a directory")
     say = (lambda m: print(f"atlas-onboard map: {m}", file=sys.stderr)) if args.verbose_progress else None
     obs = collect(list(args.inputs), world, args.calibration, args.fps, args.stride, say)
+    corrected = motion.correct(obs)  # a rolling shutter's rows to their frames' stamps, where attitudes allow
+    if say and corrected:
+        say(f"{corrected} detections' rolling-shutter rows moved to their frames' stamps")
     options = MapOptions(
         anchors=tuple(args.anchor or ()), anchor_sigma_m=args.anchor_sigma_mm / 1000.0,
         anchor_sigma_deg=args.anchor_sigma_deg, gravity_anchor=args.gravity_anchor,

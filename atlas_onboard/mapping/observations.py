@@ -15,6 +15,8 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import WORLD, WorldConfig
+from atlas_onboard.config.settings import READOUT_BOTTOM_UP
+from atlas_onboard.core.shutter import RowClock
 from atlas_onboard.detector.backends import MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.calibration import load as load_calibration
@@ -64,6 +66,19 @@ class Observations:
     unknown: Counter[int] = field(default_factory=Counter)
     frames_read: int = 0
     detect_s: float = 0.0
+    clocks: list[RowClock | None] = field(default_factory=list)  # per input: its rolling shutter, or None
+
+
+def _row_clock(path: Path, world: WorldConfig) -> RowClock | None:
+    """A recording's rolling shutter, from its sensor's camera in the world file (None: not one)."""
+    if not is_recording(path):
+        return None
+    info = read_info(path)
+    sensor = world.sensors.get(info.sensor_id)
+    if sensor is None or sensor.camera is None or sensor.camera.readout_ms <= 0:
+        return None
+    cam = sensor.camera
+    return RowClock(cam.readout_ms * 1e-3, info.calibration.height, cam.readout_order == READOUT_BOTTOM_UP)
 
 
 def _input_frames(
@@ -180,6 +195,7 @@ def collect(
             raise MapError(str(exc)) from None
         if n == 0:
             raise MapError(f"{path}: no frames")
+        obs.clocks.append(_row_clock(path, world))
         if progress:
             progress(f"{path}: {n} frames read, {sum(1 for f in obs.frames if f.source == s)} with markers")
     obs.detect_s = time.perf_counter() - t0

@@ -16,12 +16,11 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
+from atlas_onboard.core.shutter import BodyRate, RateHistory
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, framing
@@ -89,6 +88,7 @@ class AutopilotLink:
         self.origin_known = False
         # --- the autopilot's attitude: gravity for a single tag's ambiguity ---
         self.attitude = AttitudeHistory()
+        self.rates = RateHistory()  # ATTITUDE's body rates: a rolling shutter's shear (core.shutter)
         self._boot_clock = BootClock()
         self._attitude_asks = 0
         self._next_attitude_ask_ns = 0
@@ -126,11 +126,9 @@ class AutopilotLink:
         level ENU frame of the autopilot's heading, or None (see :meth:`AttitudeHistory.attitude_at`)."""
         return self.attitude.attitude_at(t_us)
 
-    def rate_at(self, t_us: int) -> NDArray[np.float64] | None:
-        """The body's angular rate (3,) rad/s about its FLU axes at ``t_us`` (wall clock, us) from the
-        autopilot's gyros (ATTITUDE's rollspeed, pitchspeed, yawspeed), or None (see
-        :meth:`AttitudeHistory.rate_at`)."""
-        return self.attitude.rate_at(t_us)
+    def rate_at(self, t_us: int) -> BodyRate | None:
+        """The autopilot's body rate (FLU) at ``t_us`` (wall clock, us), or None (see :class:`RateHistory`)."""
+        return self.rates.rate_at(t_us)
 
     def send_autopilot(self, pose: AutopilotPose) -> None:
         """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity; a non-finite pose is counted, not sent."""
@@ -196,8 +194,11 @@ class AutopilotLink:
             self._boot_clock = BootClock()
         self._attitude_refused_since_ns = None
         self._attitude_taken_ns = arrival_ns
+        t_us = self._boot_clock.wall_us(boot_us, arrival_wall_us)
+        self.attitude.add(t_us, R)
         rate = autopilot.body_rates_flu(msg.rollspeed, msg.pitchspeed, msg.yawspeed)
-        self.attitude.add(self._boot_clock.wall_us(boot_us, arrival_wall_us), R, rate)
+        if rate is not None:  # a sender that fills no rates leaves them all zero
+            self.rates.add(t_us, rate)
 
     def _origin_tick(self, now_ns: int) -> None:
         """The EKF origin: asked for (MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) every

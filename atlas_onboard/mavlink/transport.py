@@ -12,8 +12,6 @@ from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import AutopilotConfig, NodeConfig, WorldConfig, defaults
@@ -21,6 +19,7 @@ from atlas_onboard.core.attitude import AttitudeHistory
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.rejection import Rejection
+from atlas_onboard.core.shutter import BodyRate
 from atlas_onboard.counters import Counters
 from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.autopilot_link import (  # noqa: F401 (were defined here)
@@ -136,8 +135,8 @@ class MavlinkTransport:
         """The autopilot's attitude at ``t_us`` (see :meth:`AutopilotLink.attitude_at`)."""
         return self.autopilot_link.attitude_at(t_us)
 
-    def rate_at(self, t_us: int) -> NDArray[np.float64] | None:
-        """The body's angular rate at ``t_us`` (see :meth:`AutopilotLink.rate_at`)."""
+    def rate_at(self, t_us: int) -> BodyRate | None:
+        """The autopilot's body rate at ``t_us`` (see :meth:`AutopilotLink.rate_at`)."""
         return self.autopilot_link.rate_at(t_us)
 
     def _hand_on(self, index: int) -> None:

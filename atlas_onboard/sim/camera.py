@@ -28,6 +28,7 @@ from atlas_onboard.config.settings import READOUT_BOTTOM_UP
 from atlas_onboard.core.attitude import CameraTurn
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.camera import CameraWorker
+from atlas_onboard.detector.motion import body_rate_at
 from atlas_onboard.detector.sources import ImageFolder, ReplayClock
 from atlas_onboard.node_refine import sampled
 from atlas_onboard.sim.scenarios import Scenario
@@ -80,6 +81,7 @@ class SimCameraWorker(SensorWorker):
             info: dict[str, object] = {"truth": truth, "epoch": epoch, "index": index}
             if self.attitude_at is not None:  # the autopilot's, as a real camera's (CameraWorker)
                 info["R_prev_now"] = self._turn.since_last(self.attitude_at(round((epoch + t) * 1e6)))
+            info["body_rate"] = body_rate_at(self.rate_at, self.attitude_at, round((epoch + t) * 1e6))
             try:
                 found = self.detect(t, sightings, info)
             except Exception:  # a detector bug must not kill the camera thread; the frame is lost
@@ -315,7 +317,12 @@ def rendered_detector(
         epoch = float(info["epoch"])  # type: ignore[arg-type]
         index = int(info["index"])  # type: ignore[call-overload]
         img = np.array(frames[index]) if frames is not None and index < len(frames) else render_now(index)
-        return detector.detect(img, round((epoch + t) * 1e6), info.get("R_prev_now"))  # type: ignore[arg-type]
+        return detector.detect(
+            img,
+            round((epoch + t) * 1e6),
+            info.get("R_prev_now"),
+            info.get("body_rate"),  # type: ignore[arg-type]
+        )
 
     detect.needs_truth = False  # type: ignore[attr-defined]  # it renders from the index alone
     detect.map_pose_changed = detector.map_pose_changed  # type: ignore[attr-defined]

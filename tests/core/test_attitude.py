@@ -197,17 +197,3 @@ def test_boot_clock_follows_a_drifting_autopilot_clock(ppm, hours):
     assert settled.min() >= floor_us - 2_000 and settled.max() <= floor_us + 2_000
     assert unavailable == 0
     assert worst_angle <= rate * (floor_us + 2_000) * 1e-6 + 1e-9  # the stamp's error times the rate
-
-
-def test_history_keeps_the_rates_with_their_samples():
-    h = AttitudeHistory(max_gap_us=100_000)
-    assert h.rate_at(0) is None
-    h.add(1_000_000, Rotation.identity())  # an autopilot that reported no rate
-    assert h.rate_at(1_000_000) is None
-    h.add(1_020_000, Rotation.identity(), np.array([0.1, 0.0, -0.2]))
-    h.add(1_060_000, Rotation.identity(), np.array([0.3, 0.4, -0.2]))
-    np.testing.assert_allclose(h.rate_at(1_030_000), [0.15, 0.1, -0.2])
-    np.testing.assert_allclose(h.rate_at(1_000_000), [0.1, 0.0, -0.2])  # the nearest, within half the gap
-    assert h.rate_at(1_060_000 + 50_001) is None
-    h.add(1_070_000, Rotation.identity(), np.array([np.nan, 0.0, 0.0]))  # not finite: no rate
-    np.testing.assert_allclose(h.rate_at(1_070_000), [0.3, 0.4, -0.2])

@@ -36,7 +36,7 @@ def _stream(rates, gyro: GyroNoise, seconds: float = 1.5):
         last = transport.attitude.latest_us()
         assert last is not None
         times = np.linspace(last - 1_000_000, last, 60).astype(int)
-        return [transport.rate_at(int(t)) for t in times]
+        return [None if (r := transport.rate_at(int(t))) is None else r.omega_flu for t in times]
     finally:
         transport.close()
         sim.stop()

@@ -1,0 +1,214 @@
+"""A camera's motion at each frame, and its corners moved to the frame's stamp (:mod:`atlas_onboard.core.shutter`).
+
+The rate: the autopilot's (ATTITUDE's body rates, or their attitudes' finite difference), which corrects
+the image; without them, the camera's recent own poses bound it (not corrected: a rate from poses a frame
+apart is too noisy to correct by, but says how large the shear may be), else ``rate_bound_dps``.
+
+The velocity: a straight-line fit through the camera's own poses of the last few frames, from the world
+markers it saw (each frame's best single-marker pose), relative to what it sees. The detector's own
+history rather than the node's filter: it is there in every mode (any ``filter``, image folders, no
+autopilot), in the camera's thread at the frame's instant, and a velocity error enters only times a
+corner's readout offset (millimetres a second over milliseconds), where its covariance is carried.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.config import CameraConfig
+from atlas_onboard.config.settings import READOUT_BOTTOM_UP
+from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA
+from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper, upper_to_matrix
+from atlas_onboard.core.shutter import (
+    BodyRate,
+    CameraMotion,
+    RowClock,
+    shear_covariance,
+    square_to_stamp,
+    timing_pose_covariance,
+    timing_sigma_s,
+)
+from atlas_onboard.detector.pose import MarkerPose, object_corners
+from atlas_onboard.worker import AttitudeAt, RateAt
+
+WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 30 Hz)
+STALE_US = 300_000  # the newest pose older than this: no velocity from the history
+ANGULAR_ACCEL_SIGMA = 6.0  # rad/s^2 per axis: how far a drone's rate changes over the history's span
+SPEED_BOUND_MPS = 1.0  # per axis, when the camera's poses do not give a velocity
+MIN_SPAN_S = 0.01  # recent poses spanning less than this are not a camera's frames (unrelated images)
+MAX_SPEED_MPS = 15.0  # a history implying more than this (or MAX_RATE_RAD_S) is a jump, not a motion
+MAX_RATE_RAD_S = 15.0
+ATTITUDE_STEP_US = 10_000  # half the span of the attitudes differenced into a rate
+ATTITUDE_RATE_SIGMA = math.radians(2.0)  # rad/s: an attitude difference's rate error (interpolation, rate change)
+
+
+@dataclass(frozen=True, slots=True)
+class CorrectedCorners:
+    """A square's corners moved to the stamp (undistorted pixels, (4, 2)), their (8, 8) covariance with
+    the motion's, and the RMS corner noise of the motion's shear alone (px): what no rigid pose absorbs,
+    so what may make squares seen together misfit (the timing's share moves them all alike)."""
+
+    corners: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    shear_px: float
+
+
+@dataclass(frozen=True, slots=True)
+class _Seen:
+    t_us: int
+    p_world_m: NDArray[np.float64]
+    R_world_camera: Rotation
+    sigma_p_m: float
+    sigma_theta_rad: float
+
+
+@dataclass(frozen=True, slots=True)
+class _History:
+    """The camera's motion from its own recent poses (camera frame): rate and velocity with variances."""
+
+    omega: NDArray[np.float64]
+    omega_var: float
+    velocity: NDArray[np.float64]
+    velocity_var: float
+
+    @staticmethod
+    def of(recent: list[_Seen], t_us: int) -> _History | None:
+        """From the poses of the last ``WINDOW_US`` before ``t_us``: None when too few, too close in time
+        (frames of a camera, not unrelated images), stale, or implausible for a drone (a jump)."""
+        if len(recent) < 2 or t_us - recent[-1].t_us > STALE_US:
+            return None
+        a, b = recent[0], recent[-1]
+        span = (b.t_us - a.t_us) * 1e-6
+        if span < MIN_SPAN_S:
+            return None
+        w = (a.R_world_camera.inv() * b.R_world_camera).as_rotvec() / span
+        noise = 2.0 * max(a.sigma_theta_rad, b.sigma_theta_rad) ** 2 / span**2
+        lag = (ANGULAR_ACCEL_SIGMA * ((t_us - a.t_us) * 1e-6 - span / 2.0)) ** 2
+        t = np.array([(s.t_us - t_us) * 1e-6 for s in recent])
+        p = np.array([s.p_world_m for s in recent])
+        tc = t - t.mean()
+        v_world = tc @ (p - p.mean(axis=0)) / float(tc @ tc)
+        if np.linalg.norm(v_world) > MAX_SPEED_MPS or np.linalg.norm(w) > MAX_RATE_RAD_S:
+            return None
+        sigma_p = max(s.sigma_p_m for s in recent)
+        v_var = sigma_p**2 / float(tc @ tc) + (MANOEUVRE_ACCEL_SIGMA * float(-t.mean())) ** 2
+        R = recent[-1].R_world_camera.as_matrix()
+        return _History(w, noise + lag, R.T @ v_world, v_var)
+
+
+def rate_from_attitudes(attitude_at: AttitudeAt, t_us: int) -> BodyRate | None:
+    """The body rate at ``t_us`` from the autopilot's attitudes just before and after it (None when
+    either is missing): when the autopilot streams attitudes but not rates."""
+    a, b = attitude_at(t_us - ATTITUDE_STEP_US), attitude_at(t_us + ATTITUDE_STEP_US)
+    if a is None or b is None:
+        return None
+    omega = (a.inv() * b).as_rotvec() / (2e-6 * ATTITUDE_STEP_US)
+    return BodyRate(omega, ATTITUDE_RATE_SIGMA**2 * np.eye(3))
+
+
+def body_rate_at(rate_at: RateAt | None, attitude_at: AttitudeAt | None, t_us: int) -> BodyRate | None:
+    """The autopilot's body rate at a capture: its gyros' (``rate_at``), or its attitudes' difference
+    when it streams no rates, or None without either."""
+    rate = rate_at(t_us) if rate_at is not None else None
+    if rate is None and attitude_at is not None:
+        rate = rate_from_attitudes(attitude_at, t_us)
+    return rate
+
+
+class CameraMotionModel:
+    """One camera's time model and motion: corners moved to the stamp, the motion's covariance added."""
+
+    def __init__(
+        self, camera: CameraConfig | None, R_body_sensor: Rotation, height_px: int, static: bool = False
+    ) -> None:
+        """``static``: a camera fixed in the world (on the world entity), which does not move at all; the
+        markers' own motion (a drone's) is not modelled."""
+        cam = camera or CameraConfig()
+        self.static = static
+        self.clock = RowClock(cam.readout_ms * 1e-3, height_px, cam.readout_order == READOUT_BOTTOM_UP)
+        self.timing_s = timing_sigma_s(cam.stamp_sigma_ms * 1e-3, cam.exposure_ms * 1e-3)
+        self.rate_bound = math.radians(cam.rate_bound_dps)
+        self.R_body_sensor = R_body_sensor
+        self._seen: deque[_Seen] = deque(maxlen=8)
+
+    def at(self, t_us: int, rate: BodyRate | None) -> CameraMotion:
+        """The camera's motion at the frame stamped ``t_us``, given the autopilot's rate (or None)."""
+        if self.static:
+            return CameraMotion(omega_known=True, velocity_known=True, timing_sigma_s=self.timing_s)
+        recent = [s for s in self._seen if 0 < t_us - s.t_us <= WINDOW_US]
+        history = _History.of(recent, t_us)
+        R_sb = self.R_body_sensor.inv()
+        if rate is not None:
+            M = R_sb.as_matrix()
+            w, w_cov, w_known = R_sb.apply(rate.omega_flu), M @ rate.cov @ M.T, True
+        elif history is not None:
+            w, w_cov, w_known = history.omega, history.omega_var * np.eye(3), False
+        else:
+            w, w_cov, w_known = np.zeros(3), self.rate_bound**2 * np.eye(3), False
+        v, v_cov, v_known = np.zeros(3), SPEED_BOUND_MPS**2 * np.eye(3), False
+        if history is not None:
+            v, v_cov, v_known = history.velocity, history.velocity_var * np.eye(3), True
+        # The timing's image motion needs a motion estimate; with bounds alone (no rate, no recent poses:
+        # the first frames, or unrelated images) it is left out rather than charged at the bounds.
+        timing = self.timing_s if (rate is not None or history is not None) else 0.0
+        return CameraMotion(w, w_cov, v, v_cov, w_known, v_known, timing)
+
+    def correct(
+        self,
+        motion: CameraMotion,
+        corners_px: NDArray[np.float64],
+        undistorted: NDArray[np.float64],
+        corner_cov: NDArray[np.float64],
+        K: NDArray[np.float64],
+        size_m: float,
+    ) -> CorrectedCorners:
+        """A square's undistorted corners (4, 2) moved to the stamp, and their (8, 8) covariance with the
+        motion's added. ``corners_px``: where they are in the (distorted) image, whose rows set their
+        instants; the translation's depths are the square's own (:func:`square_to_stamp`)."""
+        dt = self.clock.dt_s(np.asarray(corners_px, dtype=float)[:, 1])
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        c = np.array([cx, cy])
+        f = np.array([fx, fy])
+        x = (np.asarray(undistorted, dtype=float) - c) / f
+        x0, z = square_to_stamp(x, object_corners(size_m)[:, :2], dt, motion)
+        shear = shear_covariance(x0, z, dt, motion, fx, fy)
+        cov = np.asarray(corner_cov, dtype=float) + shear
+        return CorrectedCorners(x0 * f + c, cov, float(np.sqrt(np.trace(shear) / len(cov))))
+
+    def with_timing(self, md: MarkerData, motion: CameraMotion) -> MarkerData:
+        """``md`` with the frame's timing uncertainty in its covariance and sigma (:func:`timing_pose_covariance`):
+        added to the frame's poses once checked, since it moves every marker alike."""
+        if motion.timing_sigma_s <= 0.0 or not md.covariance:
+            return md
+        w, x, y, z = md.q_sensor_marker_wxyz
+        R = Rotation.from_quat([x, y, z, w]).as_matrix()
+        C = upper_to_matrix(np.asarray(md.covariance)) + timing_pose_covariance(
+            np.asarray(md.p_sensor_marker_m), R, motion
+        )
+        # The camera's position moves by its velocity over the timing error.
+        extra = motion.timing_sigma_s**2 * float(np.linalg.eigvalsh(motion.velocity_second_moment())[-1])
+        return replace(md, covariance=matrix_to_upper(C), sigma_m=math.sqrt(md.sigma_m**2 + extra))
+
+    def observe(self, t_us: int, poses: list[tuple[RigidTransform, MarkerPose]]) -> None:
+        """The frame's single-marker poses of world markers (``T_world_marker``, the pose in the camera):
+        the best one's camera pose joins the history."""
+        best = None
+        for T_wm, mp in poses:
+            if mp.covariance is None or (best is not None and mp.sigma_m >= best[1].sigma_m):
+                continue
+            best = (T_wm, mp)
+        if best is None:
+            return
+        T_wm, mp = best
+        R_cm = Rotation.from_quat(mp.q_xyzw)
+        R_wm = T_wm.rotation
+        R_wc = R_wm * R_cm.inv()
+        p_wc = T_wm.translation - R_wc.apply(mp.p_m)
+        sigma_theta = math.sqrt(max(float(np.linalg.eigvalsh(mp.covariance[3:, 3:]).max()), 0.0))
+        self._seen.append(_Seen(t_us, p_wc, R_wc, mp.sigma_m, sigma_theta))
