@@ -45,6 +45,45 @@ def distort_homogeneous(
     return _project(rays, K, k, unit_z=Kinv[2].tolist() == [0.0, 0.0, 1.0])
 
 
+def distort_uv(
+    u: NDArray[np.float64], v: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> NDArray[np.float64]:
+    """:func:`distort` of undistorted pixels given as their coordinates ``u``, ``v`` (N,): image pixels
+    (N, 2). A camera matrix without skew and the standard model (up to k3) take each point through the lens
+    in plain arithmetic on whole arrays, in place (the same value to an ulp or two of its rays, which
+    :func:`distort_homogeneous` finds by a matrix product); any other lens goes through that."""
+    k = np.asarray(dist, dtype=np.float64).ravel()
+    if fisheye or K[0, 1] != 0 or K[2].tolist() != [0.0, 0.0, 1.0] or len(k) not in (4, 5, 8) or any(k[5:]):
+        return distort_homogeneous(np.column_stack([u, v, np.ones_like(u)]), K, dist, fisheye)
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    k1, k2, p1, p2 = (float(c) for c in k[:4])
+    k3 = float(k[4]) if len(k) > 4 else 0.0
+    x = (u - cx) / fx  # in place below: each array once
+    y = (v - cy) / fy
+    r2 = x * x
+    r2 += y * y
+    radial = r2 * k3 if k3 != 0 else None
+    if radial is not None:
+        radial += k2
+        radial *= r2
+    else:
+        radial = r2 * k2
+    radial += k1
+    radial *= r2
+    radial += 1.0  # 1 + k1 r2 + k2 r4 + k3 r6
+    out = np.empty((len(u), 2))
+    xd, yd = x * radial, y * radial
+    if p1 != 0 or p2 != 0:
+        a1 = 2.0 * x * y
+        xd += p1 * a1 + p2 * (r2 + 2.0 * x * x)
+        yd += p1 * (r2 + 2.0 * y * y) + p2 * a1
+    np.multiply(xd, fx, out=out[..., 0])
+    out[..., 0] += cx
+    np.multiply(yd, fy, out=out[..., 1])
+    out[..., 1] += cy
+    return out
+
+
 def _project(
     rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64], unit_z: bool = False
 ) -> NDArray[np.float64]:

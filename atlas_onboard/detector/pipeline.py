@@ -42,7 +42,7 @@ from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.joint import JointSolve
 from atlas_onboard.detector.records import FrameReport, SingleSolve, marker_data
-from atlas_onboard.detector.refine import refine_corners_undistorted
+from atlas_onboard.detector.refine import refine_markers_undistorted
 from atlas_onboard.detector.search import (
     CELL_PX,
     MAX_REGION_DECIMATE,
@@ -203,6 +203,7 @@ class Detector:
         cal = self.calibration
         K = cal.K
         singles: dict[int, SingleSolve] = {}
+        candidates = []
         for d in self.find(gray, R_prev_now):
             self.report.found.append(d.marker_id)
             if at_border(d.corners_px, w, h):
@@ -211,8 +212,12 @@ class Detector:
                 self.counters["dropped_image_border"] += 1
                 self.report.dropped[d.marker_id] = "at the image border"
                 continue
-            corners = pose.undistort(d.corners_px, K, cal.dist, cal.fisheye)
-            refined = refine_corners_undistorted(gray, corners, K, cal.dist, cal.fisheye, cal.lens_residual_px)
+            candidates.append((d, pose.undistort(d.corners_px, K, cal.dist, cal.fisheye)))
+        # Every marker's corners refitted on its edges at once.
+        refits = refine_markers_undistorted(
+            gray, [c for _, c in candidates], K, cal.dist, cal.fisheye, cal.lens_residual_px
+        )
+        for (d, _), refined in zip(candidates, refits, strict=True):
             if refined is None:
                 # The library's corners are straight-line fits in the distorted image: where the edge fit
                 # fails (near the image's edge, under strong distortion or blur) they were off by many

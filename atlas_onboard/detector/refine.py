@@ -10,6 +10,7 @@ its corners the same way.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -18,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from atlas_onboard.detector.edge_profile import contamination_px, place_edges
-from atlas_onboard.detector.lens import distort, distort_homogeneous
+from atlas_onboard.detector.lens import distort, distort_uv
 from atlas_onboard.detector.pose import undistort
 
 # Edge points a side: one a pixel over the sampled 70 % of the shortest side (closer ones share pixels, so
@@ -151,63 +152,223 @@ def refine_corners_undistorted(
     blur and pixel noise raise s. What the scatter cannot show is added: the blur's inward pull
     (:func:`contamination_px`) and the lens residual.
     """
-    lines = []
-    ss, npts = 0.0, []
-    lag0 = lag1 = 0.0
-    spread: list[float] = []
-    edge_levels: list[NDArray[np.float64]] = []
+    return refine_markers_undistorted(gray, [corners_und], K, dist, fisheye, lens_residual_px)[0]
+
+
+@dataclass(frozen=True)
+class _Sampling:
+    """Where one marker's edges are sampled: each side's base points ``bases`` (4, S, 2), from its first
+    corner along it, its outward unit normal (4, 2), the offsets along the normal (4, width) (a side with a
+    shorter search than the longest repeats its outermost offset), their counts and the sides' depths."""
+
+    bases: NDArray[np.float64]
+    normals: NDArray[np.float64]
+    padded: NDArray[np.float64]
+    counts: list[int]
+    depths: list[float]
+
+    @property
+    def samples(self) -> int:
+        return self.bases.shape[1]
+
+
+def _sampling(corners_und: NDArray[np.float64]) -> _Sampling | None:
+    """Where the edges of the marker with undistorted corners ``corners_und`` (4, 2) are sampled; None if
+    a side is too short to fit."""
     sides = _sides(corners_und)
     if sides is None:
         return None
-    # Every side's sample points at once: one projection through the lens, one crop of the image, one
-    # sampling. A side with a shorter search than the longest repeats its outermost sample (which leaves
-    # its profile's half level and ramp as they are: see edge_profile.place_edges).
     offsets, depths = [], []
+    c = corners_und.tolist()
     for i, (a, _, n) in enumerate(sides):
         # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
         # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
-        depth = min(abs(float(n @ (corners_und[(i + 2) % 4] - a))), abs(float(n @ (corners_und[(i + 3) % 4] - a))))
+        nx, ny, ax, ay = float(n[0]), float(n[1]), float(a[0]), float(a[1])
+        (x2, y2), (x3, y3) = c[(i + 2) % 4], c[(i + 3) % 4]
+        depth = min(abs(nx * (x2 - ax) + ny * (y2 - ay)), abs(nx * (x3 - ax) + ny * (y3 - ay)))
         half = min(max(0.1 * depth, 1.0), 2 * HALF_WIDTH_PX)  # np.clip's value
         offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
         depths.append(depth)
-    # (4, S, 2): each side's base points, from its first corner along it
     vectors = np.array([d for _, d, _ in sides])
-    samples = int(np.clip(0.7 * np.sqrt((vectors**2).sum(axis=1)).min(), MIN_SAMPLES_PER_SIDE, MAX_SAMPLES_PER_SIDE))
-    ts = np.linspace(0.15, 0.85, samples)  # where along a side its edge is sampled
+    shortest = min(math.sqrt(float(x) * float(x) + float(y) * float(y)) for x, y in vectors)
+    samples = int(min(max(0.7 * shortest, MIN_SAMPLES_PER_SIDE), MAX_SAMPLES_PER_SIDE))  # np.clip's value
+    ts = _sample_places(samples)
     bases = corners_und[:, None, :] + ts[None, :, None] * vectors[:, None, :]
     counts = [len(o) for o in offsets]
     padded = np.empty((4, max(counts)))
     for i, o in enumerate(offsets):
         padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
-    width = padded.shape[1]
-    normals = np.array([n for _, _, n in sides])
-    grid = np.empty((4, samples, width, 3))  # (4, S, width): each sample point, homogeneous
-    np.add(bases[:, :, None, :], padded[:, None, :, None] * normals[:, None, None, :], out=grid[..., :2])
-    grid[..., 2] = 1.0
-    px_all = distort_homogeneous(grid.reshape(-1, 3), K, dist, fisheye)
-    img, origin = _crop(gray, px_all)
-    px_all = (px_all - origin).astype(np.float32).reshape(4 * samples, width, 2)
-    prof = cv2.remap(img, px_all[..., 0], px_all[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    rows_offsets = np.repeat(padded, samples, axis=0)
+    return _Sampling(bases, np.array([n for _, _, n in sides]), padded, counts, depths)
+
+
+@functools.lru_cache(maxsize=32)
+def _sample_places(samples: int) -> NDArray[np.float64]:
+    """Where along a side its edge is sampled (fractions of the side), read-only."""
+    ts = np.linspace(0.15, 0.85, samples)
+    ts.flags.writeable = False
+    return ts
+
+
+def refine_markers_undistorted(
+    gray: NDArray[np.uint8],
+    corners: list[NDArray[np.float64]],
+    K: NDArray[np.float64],
+    dist: NDArray[np.float64],
+    fisheye: bool = False,
+    lens_residual_px: float = 0.0,
+) -> list[RefinedCorners | None]:
+    """:func:`refine_corners_undistorted` of every marker of a frame (undistorted corners (4, 2) each), in
+    one pass: all their sample points through the lens at once, each marker's crop of the image sampled
+    once, every profile's edge placed at once, and the fits' statistics of markers with as many samples a
+    side stacked. Each marker's result is what it gives alone."""
+    out: list[RefinedCorners | None] = [None] * len(corners)
+    plans = {i: p for i, c in enumerate(corners) if (p := _sampling(c)) is not None}
+    if not plans:
+        return out
+    # Every side's sample points: one projection through the lens for all markers.
+    us, vs = [], []
+    for p in plans.values():
+        offsets = p.padded[:, None, :]
+        us.append((p.bases[:, :, None, 0] + offsets * p.normals[:, None, None, 0]).ravel())
+        vs.append((p.bases[:, :, None, 1] + offsets * p.normals[:, None, None, 1]).ravel())
+    px_all = distort_uv(np.concatenate(us), np.concatenate(vs), K, dist, fisheye)
+    width = max(p.padded.shape[1] for p in plans.values())
+    profs, offs, counts, cells, scales = [], [], [], [], {}
+    start = 0
+    for i, p in plans.items():
+        w = p.padded.shape[1]
+        px = px_all[start : start + 4 * p.samples * w]
+        start += len(px)
+        img, origin = _crop(gray, px)
+        px = (px - origin).astype(np.float32).reshape(4 * p.samples, w, 2)
+        prof = cv2.remap(img, px[..., 0], px[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        padded = p.padded
+        if w < width:  # a profile padded with its outermost sample, as a shorter side's is
+            prof = np.concatenate([prof, np.repeat(prof[:, -1:], width - w, axis=1)], axis=1)
+            padded = np.concatenate([padded, np.repeat(padded[:, -1:], width - w, axis=1)], axis=1)
+        profs.append(prof)
+        offs.append(np.repeat(padded, p.samples, axis=0))
+        counts.append(np.repeat(p.counts, p.samples))
+        cells.append(np.repeat(np.array(p.depths) / 8.0, p.samples))
+        # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
+        step_img = np.linalg.norm(px[:, 1] - px[:, 0], axis=1)
+        scales[i] = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
     found_all, _, levels_all = place_edges(
-        prof, rows_offsets, np.repeat(counts, samples), np.repeat(np.array(depths) / 8.0, samples)
+        np.concatenate(profs), np.concatenate(offs), np.concatenate(counts), np.concatenate(cells)
     )
-    keep = np.isfinite(found_all).reshape(4, samples)
-    kept = np.count_nonzero(keep, axis=1)
-    if kept.min() < samples // 2:
-        return None
-    # Every side's edge points (where no edge was placed, NaN), then each side's placed ones in order.
-    points = bases + found_all.reshape(4, samples, 1) * normals[:, None, :]
-    edges = list(points) if kept.min() == samples else [p[k] for p, k in zip(points, keep, strict=True)]
-    # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
-    step_img = np.linalg.norm(px_all[:, 1] - px_all[:, 0], axis=1)
-    scale = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
-    levels = levels_all.reshape(4, samples, 5)
+    # Each marker's edge points (where no edge was placed, NaN), grouped by samples a side for the fits.
+    start = 0
+    whole: dict[int, list[tuple[int, NDArray[np.float64], NDArray[np.float64]]]] = {}
+    stats: dict[int, _SideStatistics] = {}
+    for i, p in plans.items():
+        rows = 4 * p.samples
+        found = found_all[start : start + rows].reshape(4, p.samples)
+        levels = levels_all[start : start + rows].reshape(4, p.samples, 5)
+        start += rows
+        keep = np.isfinite(found)
+        kept = np.count_nonzero(keep, axis=1)
+        if kept.min() < p.samples // 2:
+            continue
+        points = p.bases + found[:, :, None] * p.normals[:, None, :]
+        if kept.min() == p.samples:
+            whole.setdefault(p.samples, []).append((i, points, levels))
+        else:
+            edges = [q[k] for q, k in zip(points, keep, strict=True)]
+            stats[i] = _side_statistics_each(edges, levels, keep)
+    for group in whole.values():
+        batch = _side_statistics(np.array([g[1] for g in group]), np.array([g[2] for g in group]))
+        for k, (i, _, _) in enumerate(group):
+            stats[i] = tuple(x[k] for x in batch)  # type: ignore[assignment]
+    ids = sorted(stats)
+    if ids:
+        shifts = np.array([scales[i] * lens_residual_px for i in ids])
+        got = _corners_and_noise(np.array([corners[i] for i in ids]), [stats[i] for i in ids], shifts, K, dist, fisheye)
+        for i, refined in zip(ids, got, strict=True):
+            out[i] = refined
+    return out
+
+
+def _crossings_many(
+    means: NDArray[np.float64], dirs: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """:func:`_crossings` (without the move limit) of M markers' lines, points ``means`` and directions
+    ``dirs`` (M, 4, 2): the corners (M, 4, 2) (NaN where two lines are parallel) and which are."""
+    p1, d1 = means[:, _PREVIOUS], dirs[:, _PREVIOUS]  # corner i: lines i - 1 and i
+    A = np.empty((len(means), 4, 2, 2))  # A[i] = [d1, -d2] as columns
+    A[..., 0], A[..., 1] = d1, -dirs
+    # (the cross product is np.linalg.det's value to a few ulps: only near the threshold is LAPACK's needed)
+    cross = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
+    parallel = np.abs(cross).min(axis=1) < 2e-9
+    for k in np.flatnonzero(parallel):
+        parallel[k] = bool(np.any(np.abs(np.linalg.det(A[k])) < 1e-9))
+    out = np.full(means.shape, np.nan)
+    fine = ~parallel
+    s = np.linalg.solve(A[fine], (means - p1)[fine][..., None])[..., 0, :]  # how far along d1
+    out[fine] = p1[fine] + s * d1[fine]
+    return out, parallel
+
+
+def _corners_and_noise(
+    corners_und: NDArray[np.float64],
+    stats: list[_SideStatistics],
+    shift_px: NDArray[np.float64],
+    K: NDArray[np.float64],
+    dist: NDArray[np.float64],
+    fisheye: bool,
+) -> list[RefinedCorners | None]:
+    """The refitted corners of M markers (undistorted corners (M, 4, 2) before) where their sides' lines
+    cross, and their noise, from the sides' statistics (:func:`_side_statistics_each`) and the lens
+    residual's shift (M,) (undistorted px); None where lines are parallel or the corners moved too far."""
+    means, dirs, ss, npts, spread, edge_levels, lag0, lag1 = (np.array([x[k] for x in stats]) for k in range(8))
+    out, parallel = _crossings_many(means, dirs)
+    moves = np.abs(out - corners_und).max(axis=(1, 2))
+    ok = ~parallel
+    for k in np.flatnonzero(ok & (moves > MAX_MOVE_PX)):  # (the bend, which takes a while, only when needed)
+        ok[k] = not moves[k] > MAX_MOVE_PX + BEND_ALLOWANCE * _bend_px(corners_und[k], K, dist, fisheye)
+    n_all = npts.sum(axis=1)
+    scatter2 = ss / np.maximum(n_all - 8, 1)  # two parameters a line
+    # Two lines crossing at an angle phi place their crossing 1 / sin(phi) less precisely than
+    # perpendicular ones (a marker seen obliquely has sharp corners in the image).
+    following = dirs[:, _NEXT]
+    sin_min = np.abs(dirs[..., 0] * following[..., 1] - dirs[..., 1] * following[..., 0]).min(axis=1)
+    # Neighbouring edge points share pixels, blur and aliasing, so their errors are correlated along the
+    # edge: with a lag-one correlation rho, n points carry the information of n (1 - rho) / (1 + rho)
+    # independent ones (an AR(1) sequence's effective sample size).
+    ratio = lag1 / np.where(lag0 > 0, lag0, 1.0)
+    rho = np.where(lag0 > 0, np.minimum(np.maximum(ratio, 0.0), MAX_EDGE_CORRELATION), 0.0)  # np.clip's value
+    inflate = (1.0 + rho) / (1.0 - rho)
+    n_eff = n_all / 4 / inflate
+    # The scalar corner noise: the edge fits' alone (the lens residual moves the four corners alike, which
+    # turns no pose and is in the covariance; counted per corner it would blur the tilt a gravity check needs).
+    sigma = np.sqrt(7.1 * scatter2 / n_eff) / np.maximum(sin_min, 0.2)
+    shrink = contamination_px(edge_levels)
+    cov = _corner_covariances(means, dirs, out, scatter2 * inflate, npts, spread, shrink, shift_px)
+    return [RefinedCorners(out[k], float(sigma[k]), cov[k]) if ok[k] else None for k in range(len(means))]
+
+
+# Per side: its line's point (4, 2) and direction (4, 2); over the sides: the points' summed squared
+# distances from their lines; per side: the points' counts (4,), spreads along the lines (4,), levels
+# (4, 7); over the sides: the lag-0 and lag-1 sums of the points' distances from their lines.
+_SideStatistics = tuple[
+    NDArray[np.float64], NDArray[np.float64], float, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+    float, float,
+]  # fmt: skip
+
+
+def _side_statistics_each(
+    edges: list[NDArray[np.float64]], levels: NDArray[np.float64], keep: NDArray[np.bool_]
+) -> _SideStatistics:
+    """Each side's line through its edge points ``edges`` (n_i, 2) (mean, direction), and what the corner
+    noise is made of (see ``_SideStatistics``; the levels: :func:`contamination_px`'s ``edge_levels``),
+    from the points' ``levels`` (4, S, 5) where ``keep`` (4, S)."""
+    ss, npts = 0.0, []
+    lag0 = lag1 = 0.0
+    spread: list[float] = []
+    edge_levels: list[NDArray[np.float64]] = []
     fits = _principal_axes(edges)
     across = np.array([(-vt[0][1], vt[0][0]) for _, _, vt in fits])  # each line's normal
     for i, (e, (mean, sv, vt)) in enumerate(zip(edges, fits, strict=True)):
-        lines.append((mean, vt[0]))
         ss += float(sv[1] ** 2)  # squared distances of the points from their line
         npts.append(len(e))
         centred = e - mean
@@ -222,36 +383,34 @@ def refine_corners_undistorted(
         r = centred @ across[i]  # signed distances from the line, in order along the edge
         lag0 += float(r @ r)
         lag1 += float(r[1:] @ r[:-1])
-    out = _crossings(lines, corners_und, max_move_px=np.inf)
-    if out is None:
-        return None
-    move = float(np.abs(out - corners_und).max())
-    if move > MAX_MOVE_PX and move > MAX_MOVE_PX + BEND_ALLOWANCE * _bend_px(corners_und, K, dist, fisheye):
-        return None  # (the bend, which takes a while, only when the move needs it)
-    scatter2 = ss / max(sum(npts) - 8, 1)  # two parameters a line
-    # Two lines crossing at an angle phi place their crossing 1 / sin(phi) less precisely than
-    # perpendicular ones (a marker seen obliquely has sharp corners in the image).
-    dirs = [d for _, d in lines]
-    sin_min = min(abs(float(a[0] * b[1] - a[1] * b[0])) for a, b in zip(dirs, dirs[1:] + dirs[:1], strict=True))
-    # Neighbouring edge points share pixels, blur and aliasing, so their errors are correlated along the
-    # edge: with a lag-one correlation rho, n points carry the information of n (1 - rho) / (1 + rho)
-    # independent ones (an AR(1) sequence's effective sample size).
-    rho = min(max(lag1 / lag0, 0.0), MAX_EDGE_CORRELATION) if lag0 > 0 else 0.0  # np.clip's value
-    inflate = (1.0 + rho) / (1.0 - rho)
-    n_eff = sum(npts) / len(npts) / inflate
-    shrink = contamination_px(np.array(edge_levels))
-    cov = _corner_covariance(
-        lines,
-        out,
-        scatter2 * inflate,
-        np.array(npts, float),
-        np.array(spread),
-        shrink,
-        scale * lens_residual_px,
-    )
-    # The scalar corner noise: the edge fits' alone (the lens residual moves the four corners alike, which
-    # turns no pose and is in ``cov``; counted per corner it would blur the tilt a gravity check needs).
-    return RefinedCorners(out, math.sqrt(7.1 * scatter2 / n_eff) / max(sin_min, 0.2), cov)
+    means = np.array([f[0] for f in fits])
+    dirs = np.array([f[2][0] for f in fits])
+    return means, dirs, ss, np.array(npts, float), np.array(spread), np.array(edge_levels), lag0, lag1
+
+
+def _side_statistics(points: NDArray[np.float64], levels: NDArray[np.float64]) -> _SideStatistics:
+    """:func:`_side_statistics_each` of markers whose four sides have every point placed, stacked:
+    ``points`` (M, 4, S, 2), ``levels`` (M, 4, S, 5); each element of the result has a leading axis M."""
+    m, n = points.shape[0], points.shape[2]
+    means = points.mean(axis=2)
+    centred = points - means[:, :, None, :]
+    _, svs, vts = np.linalg.svd(centred, full_matrices=False)
+    d = vts[:, :, 0, :]  # each line's direction; its normal (-d_y, d_x)
+    cx, cy = centred[..., 0], centred[..., 1]
+    u = cx * d[:, :, None, 0] + cy * d[:, :, None, 1]
+    r = cy * d[:, :, None, 0] - cx * d[:, :, None, 1]
+    per_row = np.empty((m, 4, n, 4))
+    per_row[..., :3] = levels[..., :3]
+    per_row[..., 3] = levels[..., 3] + levels[..., 4]
+    errors = 1.2533 * per_row[..., [0, 1, 3]].std(axis=2) / math.sqrt(n)
+    # The median of each column: the middle one of the sorted values, or the mean of the two middle ones.
+    ordered = np.sort(per_row, axis=2)
+    median = ordered[:, :, n // 2] if n % 2 else (ordered[:, :, n // 2 - 1] + ordered[:, :, n // 2]) / 2.0
+    edge_levels = np.concatenate([median, errors], axis=2)
+    ss = (svs[:, :, 1] ** 2).sum(axis=1)
+    lag0 = (r * r).sum(axis=(1, 2))
+    lag1 = (r[:, :, 1:] * r[:, :, :-1]).sum(axis=(1, 2))
+    return means, d, ss, np.full((m, 4), float(n)), (u * u).sum(axis=2), edge_levels, lag0, lag1  # type: ignore[return-value]
 
 
 def _principal_axes(
@@ -329,25 +488,47 @@ def _corner_covariance(
     ``shift_px``: the standard deviation of a shift of every corner alike
     (the lens model's residual over the marker), undistorted px.
     """
-    G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
-    dirs = np.array([d for _, d in lines])
-    N = np.empty((4, 2, 2))  # corner k: the normals (-d_y, d_x) of lines k - 1 and k as rows
-    N[:, 0, 0], N[:, 0, 1] = -dirs[_PREVIOUS, 1], dirs[_PREVIOUS, 0]
-    N[:, 1, 0], N[:, 1, 1] = -dirs[:, 1], dirs[:, 0]
+    means = np.array([m for m, _ in lines])[None]
+    dirs = np.array([d for _, d in lines])[None]
+    shrink = None if shrink_px is None else np.asarray(shrink_px, dtype=float)[None]
+    return _corner_covariances(
+        means, dirs, corners[None], np.array([var_px2]), npts[None], spread[None], shrink, np.array([shift_px])
+    )[0]
+
+
+def _corner_covariances(
+    means: NDArray[np.float64],
+    dirs: NDArray[np.float64],
+    corners: NDArray[np.float64],
+    var_px2: NDArray[np.float64],
+    npts: NDArray[np.float64],
+    spread: NDArray[np.float64],
+    shrink_px: NDArray[np.float64] | None,
+    shift_px: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`_corner_covariance` of M markers at once: their lines' points and directions (M, 4, 2), corners
+    (M, 4, 2), ``var_px2`` (M,), ``npts`` and ``spread`` (M, 4), ``shrink_px`` (M, 4) or None, ``shift_px``
+    (M,); (M, 8, 8)."""
+    m = len(means)
+    G = np.zeros((m, 8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
+    N = np.empty((m, 4, 2, 2))  # corner k: the normals (-d_y, d_x) of lines k - 1 and k as rows
+    N[:, :, 0, 0], N[:, :, 0, 1] = -dirs[:, _PREVIOUS, 1], dirs[:, _PREVIOUS, 0]
+    N[:, :, 1, 0], N[:, :, 1, 1] = -dirs[:, :, 1], dirs[:, :, 0]
     Ninvs = np.linalg.inv(N)
-    # Corner k's two lines: j = k - 1 (row 0 of its system) and k (row 1).
-    t = np.array([float((corners[k] - lines[j][0]) @ lines[j][1]) for k, j in zip(_CORNER, _LINE, strict=True)])
-    blocks = G.reshape(4, 2, 4, 2)  # (corner, x/y, line, offset/turn)
-    column = Ninvs[_CORNER, :, _ROW]  # (8, 2): Ninv[:, row] of each corner's each line
-    blocks[_CORNER, :, _LINE, 0] = column
-    blocks[_CORNER, :, _LINE, 1] = column * t[:, None]
-    D = np.empty(8)
-    D[0::2] = var_px2 / npts
-    D[1::2] = var_px2 / np.maximum(spread, 1e-9)
-    out = (G * D) @ G.T + shift_px**2 * _COMMON_SHIFT
+    # Corner k's two lines: j = k - 1 (row 0 of its system) and k (row 1); t: its place along line j.
+    t = ((corners[:, _CORNER] - means[:, _LINE]) * dirs[:, _LINE]).sum(axis=2)  # (M, 8)
+    blocks = G.reshape(m, 4, 2, 4, 2)  # (marker, corner, x/y, line, offset/turn)
+    # (8, M, 2): Ninv[:, row] of each corner's each line (the advanced indices' axis first)
+    column = Ninvs[:, _CORNER, :, _ROW]
+    blocks[:, _CORNER, :, _LINE, 0] = column
+    blocks[:, _CORNER, :, _LINE, 1] = column * t.T[:, :, None]
+    D = np.empty((m, 8))
+    D[:, 0::2] = var_px2[:, None] / npts
+    D[:, 1::2] = var_px2[:, None] / np.maximum(spread, 1e-9)
+    out = (G * D[:, None, :]) @ np.swapaxes(G, 1, 2) + (shift_px**2)[:, None, None] * _COMMON_SHIFT
     if shrink_px is not None:
-        s = G[:, 0::2] @ shrink_px  # the corners' displacement when every line moves in by its shrink
-        out += np.outer(s, s)
+        s = G[:, :, 0::2] @ shrink_px[:, :, None]  # the corners' displacement when every line moves in by its shrink
+        out += s @ np.swapaxes(s, 1, 2)
     return out
 
 
