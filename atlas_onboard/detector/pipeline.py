@@ -41,6 +41,7 @@ from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.joint import JointSolve
+from atlas_onboard.detector.marker_poses import solve_markers
 from atlas_onboard.detector.records import FrameReport, SingleSolve, marker_data
 from atlas_onboard.detector.refine import refine_markers_undistorted
 from atlas_onboard.detector.search import (
@@ -212,12 +213,14 @@ class Detector:
                 self.counters["dropped_image_border"] += 1
                 self.report.dropped[d.marker_id] = "at the image border"
                 continue
-            candidates.append((d, pose.undistort(d.corners_px, K, cal.dist, cal.fisheye)))
-        # Every marker's corners refitted on its edges at once.
-        refits = refine_markers_undistorted(
-            gray, [c for _, c in candidates], K, cal.dist, cal.fisheye, cal.lens_residual_px
-        )
-        for (d, _), refined in zip(candidates, refits, strict=True):
+            candidates.append(d)
+        # Every marker's corners undistorted, refitted on its edges, and their undistortion's Jacobian, at once.
+        found_px = np.array([d.corners_px for d in candidates]).reshape(-1, 2)
+        undistorted = pose.undistort(found_px, K, cal.dist, cal.fisheye).reshape(-1, 4, 2) if candidates else []
+        refits = refine_markers_undistorted(gray, list(undistorted), K, cal.dist, cal.fisheye, cal.lens_residual_px)
+        stretches = pose.undistortion_jacobian(found_px, K, cal.dist, cal.fisheye) if candidates else None
+        refined_ok = []
+        for k, (d, refined) in enumerate(zip(candidates, refits, strict=True)):
             if refined is None:
                 # The library's corners are straight-line fits in the distorted image: where the edge fit
                 # fails (near the image's edge, under strong distortion or blur) they were off by many
@@ -225,15 +228,24 @@ class Detector:
                 self.counters["refine_failed"] += 1
                 self.report.dropped[d.marker_id] = "corner refinement failed"
                 continue
-            corners, measured_px, corner_cov = refined.corners, refined.sigma_px, refined.covariance
-            stretch = pose.undistortion_jacobian(d.corners_px, K, cal.dist, cal.fisheye)
-            size_m = self.sizes[d.marker_id]
-            mp = pose.solve(corners, size_m, K, pose.model_sigma_px(d.family), stretch, measured_px, corner_cov)
+            stretch = None if stretches is None else stretches[4 * k : 4 * k + 4]
+            refined_ok.append((d, refined, stretch))
+        # Every marker's pose at once (pose.solve's, one by one).
+        poses = solve_markers(
+            [r.corners for _, r, _ in refined_ok],
+            [self.sizes[d.marker_id] for d, _, _ in refined_ok],
+            K,
+            [pose.model_sigma_px(d.family) for d, _, _ in refined_ok],
+            [s for _, _, s in refined_ok],
+            [r.sigma_px for _, r, _ in refined_ok],
+            [r.covariance for _, r, _ in refined_ok],
+        )
+        for (d, refined, stretch), mp in zip(refined_ok, poses, strict=True):
             if mp is None:
                 self.counters["pnp_failed"] += 1
                 self.report.dropped[d.marker_id] = "no pose"
                 continue
-            singles[d.marker_id] = SingleSolve(mp, corners, stretch, measured_px, corner_cov)
+            singles[d.marker_id] = SingleSolve(mp, refined.corners, stretch, refined.sigma_px, refined.covariance)
         self.report.found.sort()
         out = []
         groups: dict[str, list[int]] = {}

@@ -18,39 +18,37 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from atlas_onboard.detector.edge_profile import contamination_px, place_edges
-from atlas_onboard.detector.lens import distort, distort_uv
-from atlas_onboard.detector.pose import undistort
+from atlas_onboard.detector.corner_noise import (
+    NEXT,
+    PREVIOUS,
+    SideStatistics,
+    corner_covariances,
+    corner_noise,
+    side_statistics,
+)
+from atlas_onboard.detector.edge_profile import place_edges
+from atlas_onboard.detector.lens import bend_px, distort_uv
 
 # Edge points a side: one a pixel over the sampled 70 % of the shortest side (closer ones share pixels, so
 # their errors are not independent), between these bounds (enough for the pixel grid's pattern along an
 # edge to average out; no more than that costs).
 MIN_SAMPLES_PER_SIDE, MAX_SAMPLES_PER_SIDE = 12, 24
-LIBRARY_SAMPLES_PER_SIDE = 12  # refine_corners's (the OpenCV backend's corners in the distorted image)
 HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
 STEP_PX = 0.25
-MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
 MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
 # The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
 # in undistorted pixels; a refit may rightly move them about that far (with a margin).
 BEND_ALLOWANCE = 1.5
 
 
-_PREVIOUS = [3, 0, 1, 2]  # side (or corner) i - 1 of i, around the quadrilateral
-_NEXT = [1, 2, 3, 0]
-# Every corner moved alike: common @ common.T with common = np.tile(np.eye(2), (4, 1)), (8, 2).
-_COMMON_SHIFT = np.tile(np.eye(2), (4, 4))
-_CORNER, _LINE, _ROW = [0, 0, 1, 1, 2, 2, 3, 3], [3, 0, 0, 1, 1, 2, 2, 3], [0, 1] * 4  # corner k: lines k - 1, k
-
-
-def _sides(
+def sides(
     corners: NDArray[np.float64],
 ) -> list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] | None:
     """The four sides of ``corners`` (4, 2), side i from corner i to corner i + 1: its first corner, its
     vector and its unit normal pointing out of the marker; None if a side is shorter than 8 px (no edge
     to fit)."""
     center = corners.mean(axis=0)
-    vectors = corners[_NEXT] - corners
+    vectors = corners[NEXT] - corners
     out = []
     for i in range(4):
         a, d = corners[i], vectors[i]
@@ -64,7 +62,7 @@ def _sides(
     return out
 
 
-def _crossings(
+def crossings(
     lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
     corners: NDArray[np.float64],
     max_move_px: float = MAX_MOVE_PX,
@@ -74,7 +72,7 @@ def _crossings(
     is wrong)."""
     p = np.array([m for m, _ in lines])
     d = np.array([u for _, u in lines])
-    p1, d1 = p[_PREVIOUS], d[_PREVIOUS]  # corner i: lines i - 1 and i
+    p1, d1 = p[PREVIOUS], d[PREVIOUS]  # corner i: lines i - 1 and i
     A = np.empty((4, 2, 2))  # A[i] = [d1, -d2] as columns
     A[:, :, 0], A[:, :, 1] = d1, -d
     # (the cross product is np.linalg.det's value to a few ulps: only near the threshold is LAPACK's needed)
@@ -86,43 +84,6 @@ def _crossings(
     if np.abs(out - corners).max() > max_move_px:
         return None
     return out
-
-
-def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Corners (4, 2), pixel-centre convention, refined on ``gray``; unchanged where a fit fails."""
-    img = gray.astype(np.float32)
-    lines = []
-    offsets = np.arange(-HALF_WIDTH_PX, HALF_WIDTH_PX + 1e-9, STEP_PX)
-    sides = _sides(corners)
-    if sides is None:
-        return corners
-    for a, d, n in sides:
-        ts = np.linspace(0.15, 0.85, LIBRARY_SAMPLES_PER_SIDE)
-        base = a[None, :] + ts[:, None] * d[None, :]
-        pts = base[:, None, :] + offsets[None, :, None] * n[None, None, :]
-        xs = pts[..., 0].astype(np.float32)
-        ys = pts[..., 1].astype(np.float32)
-        prof = cv2.remap(img, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        # Dark (the black border) to bright (the quiet zone) outwards: the signed gradient, so that the
-        # edge of a white data cell inside the border (the other polarity) is never taken for it.
-        grad = np.maximum(np.diff(prof, axis=1), 0.0)  # between consecutive samples along the normal
-        k = np.argmax(grad, axis=1)
-        ok = (k > 0) & (k < grad.shape[1] - 1)
-        edge = []
-        for row in np.flatnonzero(ok):
-            g0, g1, g2 = grad[row, k[row] - 1], grad[row, k[row]], grad[row, k[row] + 1]
-            denom = g0 - 2 * g1 + g2
-            frac = 0.5 * (g0 - g2) / denom if denom < 0 else 0.0
-            off = offsets[0] + (k[row] + 0.5 + frac) * STEP_PX
-            edge.append(base[row] + off * n)
-        if len(edge) < 4:
-            return corners
-        e = np.array(edge)
-        mean = e.mean(axis=0)
-        _, _, vt = np.linalg.svd(e - mean)
-        lines.append((mean, vt[0]))
-    out = _crossings(lines, corners)
-    return corners if out is None else out  # no fit: keep OpenCV's
 
 
 def refine_corners_undistorted(
@@ -175,12 +136,12 @@ class _Sampling:
 def _sampling(corners_und: NDArray[np.float64]) -> _Sampling | None:
     """Where the edges of the marker with undistorted corners ``corners_und`` (4, 2) are sampled; None if
     a side is too short to fit."""
-    sides = _sides(corners_und)
-    if sides is None:
+    found = sides(corners_und)
+    if found is None:
         return None
     offsets, depths = [], []
     c = corners_und.tolist()
-    for i, (a, _, n) in enumerate(sides):
+    for i, (a, _, n) in enumerate(found):
         # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
         # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
@@ -190,7 +151,7 @@ def _sampling(corners_und: NDArray[np.float64]) -> _Sampling | None:
         half = min(max(0.1 * depth, 1.0), 2 * HALF_WIDTH_PX)  # np.clip's value
         offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
         depths.append(depth)
-    vectors = np.array([d for _, d, _ in sides])
+    vectors = np.array([d for _, d, _ in found])
     shortest = min(math.sqrt(float(x) * float(x) + float(y) * float(y)) for x, y in vectors)
     samples = int(min(max(0.7 * shortest, MIN_SAMPLES_PER_SIDE), MAX_SAMPLES_PER_SIDE))  # np.clip's value
     ts = _sample_places(samples)
@@ -199,7 +160,7 @@ def _sampling(corners_und: NDArray[np.float64]) -> _Sampling | None:
     padded = np.empty((4, max(counts)))
     for i, o in enumerate(offsets):
         padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
-    return _Sampling(bases, np.array([n for _, _, n in sides]), padded, counts, depths)
+    return _Sampling(bases, np.array([n for _, _, n in found]), padded, counts, depths)
 
 
 @functools.lru_cache(maxsize=32)
@@ -260,7 +221,7 @@ def refine_markers_undistorted(
     # Each marker's edge points (where no edge was placed, NaN), grouped by samples a side for the fits.
     start = 0
     whole: dict[int, list[tuple[int, NDArray[np.float64], NDArray[np.float64]]]] = {}
-    stats: dict[int, _SideStatistics] = {}
+    stats: dict[int, SideStatistics] = {}
     for i, p in plans.items():
         rows = 4 * p.samples
         found = found_all[start : start + rows].reshape(4, p.samples)
@@ -277,7 +238,7 @@ def refine_markers_undistorted(
             edges = [q[k] for q, k in zip(points, keep, strict=True)]
             stats[i] = _side_statistics_each(edges, levels, keep)
     for group in whole.values():
-        batch = _side_statistics(np.array([g[1] for g in group]), np.array([g[2] for g in group]))
+        batch = side_statistics(np.array([g[1] for g in group]), np.array([g[2] for g in group]))
         for k, (i, _, _) in enumerate(group):
             stats[i] = tuple(x[k] for x in batch)  # type: ignore[assignment]
     ids = sorted(stats)
@@ -292,9 +253,9 @@ def refine_markers_undistorted(
 def _crossings_many(
     means: NDArray[np.float64], dirs: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """:func:`_crossings` (without the move limit) of M markers' lines, points ``means`` and directions
+    """:func:`crossings` (without the move limit) of M markers' lines, points ``means`` and directions
     ``dirs`` (M, 4, 2): the corners (M, 4, 2) (NaN where two lines are parallel) and which are."""
-    p1, d1 = means[:, _PREVIOUS], dirs[:, _PREVIOUS]  # corner i: lines i - 1 and i
+    p1, d1 = means[:, PREVIOUS], dirs[:, PREVIOUS]  # corner i: lines i - 1 and i
     A = np.empty((len(means), 4, 2, 2))  # A[i] = [d1, -d2] as columns
     A[..., 0], A[..., 1] = d1, -dirs
     # (the cross product is np.linalg.det's value to a few ulps: only near the threshold is LAPACK's needed)
@@ -311,7 +272,7 @@ def _crossings_many(
 
 def _corners_and_noise(
     corners_und: NDArray[np.float64],
-    stats: list[_SideStatistics],
+    stats: list[SideStatistics],
     shift_px: NDArray[np.float64],
     K: NDArray[np.float64],
     dist: NDArray[np.float64],
@@ -325,42 +286,16 @@ def _corners_and_noise(
     moves = np.abs(out - corners_und).max(axis=(1, 2))
     ok = ~parallel
     for k in np.flatnonzero(ok & (moves > MAX_MOVE_PX)):  # (the bend, which takes a while, only when needed)
-        ok[k] = not moves[k] > MAX_MOVE_PX + BEND_ALLOWANCE * _bend_px(corners_und[k], K, dist, fisheye)
-    n_all = npts.sum(axis=1)
-    scatter2 = ss / np.maximum(n_all - 8, 1)  # two parameters a line
-    # Two lines crossing at an angle phi place their crossing 1 / sin(phi) less precisely than
-    # perpendicular ones (a marker seen obliquely has sharp corners in the image).
-    following = dirs[:, _NEXT]
-    sin_min = np.abs(dirs[..., 0] * following[..., 1] - dirs[..., 1] * following[..., 0]).min(axis=1)
-    # Neighbouring edge points share pixels, blur and aliasing, so their errors are correlated along the
-    # edge: with a lag-one correlation rho, n points carry the information of n (1 - rho) / (1 + rho)
-    # independent ones (an AR(1) sequence's effective sample size).
-    ratio = lag1 / np.where(lag0 > 0, lag0, 1.0)
-    rho = np.where(lag0 > 0, np.minimum(np.maximum(ratio, 0.0), MAX_EDGE_CORRELATION), 0.0)  # np.clip's value
-    inflate = (1.0 + rho) / (1.0 - rho)
-    n_eff = n_all / 4 / inflate
-    # The scalar corner noise: the edge fits' alone (the lens residual moves the four corners alike, which
-    # turns no pose and is in the covariance; counted per corner it would blur the tilt a gravity check needs).
-    sigma = np.sqrt(7.1 * scatter2 / n_eff) / np.maximum(sin_min, 0.2)
-    shrink = contamination_px(edge_levels)
-    cov = _corner_covariances(means, dirs, out, scatter2 * inflate, npts, spread, shrink, shift_px)
+        ok[k] = not moves[k] > MAX_MOVE_PX + BEND_ALLOWANCE * bend_px(corners_und[k], K, dist, fisheye)
+    sigma, cov = corner_noise(out, (means, dirs, ss, npts, spread, edge_levels, lag0, lag1), shift_px)
     return [RefinedCorners(out[k], float(sigma[k]), cov[k]) if ok[k] else None for k in range(len(means))]
-
-
-# Per side: its line's point (4, 2) and direction (4, 2); over the sides: the points' summed squared
-# distances from their lines; per side: the points' counts (4,), spreads along the lines (4,), levels
-# (4, 7); over the sides: the lag-0 and lag-1 sums of the points' distances from their lines.
-_SideStatistics = tuple[
-    NDArray[np.float64], NDArray[np.float64], float, NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
-    float, float,
-]  # fmt: skip
 
 
 def _side_statistics_each(
     edges: list[NDArray[np.float64]], levels: NDArray[np.float64], keep: NDArray[np.bool_]
-) -> _SideStatistics:
+) -> SideStatistics:
     """Each side's line through its edge points ``edges`` (n_i, 2) (mean, direction), and what the corner
-    noise is made of (see ``_SideStatistics``; the levels: :func:`contamination_px`'s ``edge_levels``),
+    noise is made of (see ``SideStatistics``; the levels: :func:`contamination_px`'s ``edge_levels``),
     from the points' ``levels`` (4, S, 5) where ``keep`` (4, S)."""
     ss, npts = 0.0, []
     lag0 = lag1 = 0.0
@@ -386,31 +321,6 @@ def _side_statistics_each(
     means = np.array([f[0] for f in fits])
     dirs = np.array([f[2][0] for f in fits])
     return means, dirs, ss, np.array(npts, float), np.array(spread), np.array(edge_levels), lag0, lag1
-
-
-def _side_statistics(points: NDArray[np.float64], levels: NDArray[np.float64]) -> _SideStatistics:
-    """:func:`_side_statistics_each` of markers whose four sides have every point placed, stacked:
-    ``points`` (M, 4, S, 2), ``levels`` (M, 4, S, 5); each element of the result has a leading axis M."""
-    m, n = points.shape[0], points.shape[2]
-    means = points.mean(axis=2)
-    centred = points - means[:, :, None, :]
-    _, svs, vts = np.linalg.svd(centred, full_matrices=False)
-    d = vts[:, :, 0, :]  # each line's direction; its normal (-d_y, d_x)
-    cx, cy = centred[..., 0], centred[..., 1]
-    u = cx * d[:, :, None, 0] + cy * d[:, :, None, 1]
-    r = cy * d[:, :, None, 0] - cx * d[:, :, None, 1]
-    per_row = np.empty((m, 4, n, 4))
-    per_row[..., :3] = levels[..., :3]
-    per_row[..., 3] = levels[..., 3] + levels[..., 4]
-    errors = 1.2533 * per_row[..., [0, 1, 3]].std(axis=2) / math.sqrt(n)
-    # The median of each column: the middle one of the sorted values, or the mean of the two middle ones.
-    ordered = np.sort(per_row, axis=2)
-    median = ordered[:, :, n // 2] if n % 2 else (ordered[:, :, n // 2 - 1] + ordered[:, :, n // 2]) / 2.0
-    edge_levels = np.concatenate([median, errors], axis=2)
-    ss = (svs[:, :, 1] ** 2).sum(axis=1)
-    lag0 = (r * r).sum(axis=(1, 2))
-    lag1 = (r[:, :, 1:] * r[:, :, :-1]).sum(axis=(1, 2))
-    return means, d, ss, np.full((m, 4), float(n)), (u * u).sum(axis=2), edge_levels, lag0, lag1  # type: ignore[return-value]
 
 
 def _principal_axes(
@@ -447,26 +357,6 @@ def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.
     return gray[y0:y1, x0:x1].astype(np.float32), np.array([x0, y0], dtype=float)
 
 
-def _bend_px(
-    corners_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
-) -> float:
-    """How far a side drawn straight between the corners in the distorted image strays, in undistorted
-    pixels, from the straight side between them there (the largest over the four sides): the lens's
-    bend over the marker, 0 without distortion."""
-    if not np.any(dist):
-        return 0.0
-    img = distort(corners_und, K, dist, fisheye)
-    t = np.linspace(0.0, 1.0, 9)[1:-1, None]
-    worst = 0.0
-    for i in range(4):
-        a, b = img[i], img[(i + 1) % 4]
-        straight = undistort(a + t * (b - a), K, dist, fisheye)
-        ua, ub = corners_und[i], corners_und[(i + 1) % 4]
-        d = (ub - ua) / max(float(np.linalg.norm(ub - ua)), 1e-9)
-        worst = max(worst, float(np.abs((straight - ua) @ np.array([-d[1], d[0]])).max()))
-    return worst
-
-
 def _corner_covariance(
     lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
     corners: NDArray[np.float64],
@@ -491,45 +381,9 @@ def _corner_covariance(
     means = np.array([m for m, _ in lines])[None]
     dirs = np.array([d for _, d in lines])[None]
     shrink = None if shrink_px is None else np.asarray(shrink_px, dtype=float)[None]
-    return _corner_covariances(
+    return corner_covariances(
         means, dirs, corners[None], np.array([var_px2]), npts[None], spread[None], shrink, np.array([shift_px])
     )[0]
-
-
-def _corner_covariances(
-    means: NDArray[np.float64],
-    dirs: NDArray[np.float64],
-    corners: NDArray[np.float64],
-    var_px2: NDArray[np.float64],
-    npts: NDArray[np.float64],
-    spread: NDArray[np.float64],
-    shrink_px: NDArray[np.float64] | None,
-    shift_px: NDArray[np.float64],
-) -> NDArray[np.float64]:
-    """:func:`_corner_covariance` of M markers at once: their lines' points and directions (M, 4, 2), corners
-    (M, 4, 2), ``var_px2`` (M,), ``npts`` and ``spread`` (M, 4), ``shrink_px`` (M, 4) or None, ``shift_px``
-    (M,); (M, 8, 8)."""
-    m = len(means)
-    G = np.zeros((m, 8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
-    N = np.empty((m, 4, 2, 2))  # corner k: the normals (-d_y, d_x) of lines k - 1 and k as rows
-    N[:, :, 0, 0], N[:, :, 0, 1] = -dirs[:, _PREVIOUS, 1], dirs[:, _PREVIOUS, 0]
-    N[:, :, 1, 0], N[:, :, 1, 1] = -dirs[:, :, 1], dirs[:, :, 0]
-    Ninvs = np.linalg.inv(N)
-    # Corner k's two lines: j = k - 1 (row 0 of its system) and k (row 1); t: its place along line j.
-    t = ((corners[:, _CORNER] - means[:, _LINE]) * dirs[:, _LINE]).sum(axis=2)  # (M, 8)
-    blocks = G.reshape(m, 4, 2, 4, 2)  # (marker, corner, x/y, line, offset/turn)
-    # (8, M, 2): Ninv[:, row] of each corner's each line (the advanced indices' axis first)
-    column = Ninvs[:, _CORNER, :, _ROW]
-    blocks[:, _CORNER, :, _LINE, 0] = column
-    blocks[:, _CORNER, :, _LINE, 1] = column * t.T[:, :, None]
-    D = np.empty((m, 8))
-    D[:, 0::2] = var_px2[:, None] / npts
-    D[:, 1::2] = var_px2[:, None] / np.maximum(spread, 1e-9)
-    out = (G * D[:, None, :]) @ np.swapaxes(G, 1, 2) + (shift_px**2)[:, None, None] * _COMMON_SHIFT
-    if shrink_px is not None:
-        s = G[:, :, 0::2] @ shrink_px[:, :, None]  # the corners' displacement when every line moves in by its shrink
-        out += s @ np.swapaxes(s, 1, 2)
-    return out
 
 
 @dataclass(frozen=True)
