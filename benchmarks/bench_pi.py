@@ -13,8 +13,9 @@ other load on a shared core does not count; on a Pi given a core, wall time is c
 - detector, whole (``detect``, as the node runs it: search, corner refit, pose and covariance, the
   joint check): the demo's scene, a drone 1 m over five 16 cm floor tags (the demo's 640x480 images,
   scaled to 320x240 and to 1280x720), and for hunting the floor without markers.
-  Also with only one or two of the five tags in the world file (the others are not looked for): the
-  work per marker in view.
+- detector, work per marker in view: the demo's scene with ten floor tags in view (``write_demo(n_tags=10)``,
+  640x480) with 1, 2, 5 and 10 of them in the world file (the others are not looked for): ``detect`` per
+  frame, and the least-squares slope of its mean over the mean number of markers found per frame.
 - node: ``atlas-onboard run`` itself, pinned, reading those images, every one, at 30 Hz, with a
   simulated autopilot: its CPU time per frame (everything: reading, detection, graph, MAVLink),
   the difference of the medians of repeated runs of all the frames and of half of them, over the
@@ -62,6 +63,7 @@ PI5_FACTOR = 1.75
 RESOLUTIONS = ((640, 480), (1280, 720))  # bench_detector's sequences
 SCENE_RESOLUTIONS = ((320, 240), (640, 480), (1280, 720))  # the demo scene, the node
 NODE_FPS = 30.0
+PER_MARKER_TAGS = (1, 2, 5, 10)  # of the 10-tag scene's tags in the world file
 
 
 def _stats(ms: list[float]) -> dict[str, float]:
@@ -109,8 +111,6 @@ def detector_child(frames_per_sequence: int, scene: Path) -> dict:
     doc = json.loads(scene.read_text())
     world = load_world(doc["world"])
     worlds = {"scene: whole detector (node)": world}
-    worlds |= {f"scene: whole, {n} tag{'s' if n != '1' else ''} of 5": load_world(path)
-               for n, path in doc["subsets"].items()}  # fmt: skip
     for folder in map(Path, doc["folders"]):
         w, h, state = re.match(r"frames-(\d+)x(\d+)-(\w+)$", folder.name).groups()
         cal = load_calibration(folder.parent / f"cal-{w}x{h}.yaml")
@@ -123,7 +123,23 @@ def detector_child(frames_per_sequence: int, scene: Path) -> dict:
                 t0 = time.thread_time()
                 det.detect(img, 0)
                 out.setdefault(f"{w}x{h}|{state}|{setting}", []).append((time.thread_time() - t0) * 1e3)
-    return out
+    ten = doc["ten"]
+    cal = load_calibration(Path(ten["calibration"]))
+    frames = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in sorted(Path(ten["frames"]).iterdir())]
+    found: dict[str, float] = {}
+    for n, path in ten["subsets"].items():
+        wld = load_world(path)
+        det = Detector(wld.sensors[next(iter(wld.sensors))], wld, cal, decimate=2.0)
+        for img in frames[:5]:  # warm up (imports, caches), as the node is by its first frames
+            det.detect(img, 0)
+        key, seen = f"640x480|tracking|10-tag scene: {n} of 10 tags", []
+        for k, img in enumerate(frames):
+            t0 = time.thread_time()
+            det.detect(img, 33_333 * k)
+            out.setdefault(key, []).append((time.thread_time() - t0) * 1e3)
+            seen.append(len(det.report.found))
+        found[key] = statistics.mean(seen)
+    return {"times": out, "found": found}
 
 
 # --- the node on one core -------------------------------------------------------------------------
@@ -187,13 +203,16 @@ def node_folders(tmp: Path, seconds: float) -> dict[str, tuple[dict, dict, int]]
                 for d in one:
                     d["entities"]["world"]["markers"] = d["entities"]["world"]["markers"][:1]
                 out[f"{w}x{h}|tracking, 1 tag"] = (one[0], one[1], out[f"{w}x{h}|{state}"][2])
+    ten_path = write_demo(tmp / "demo10", seconds=seconds, n_tags=10)
     subsets = {}
-    for n_tags in (1, 2):  # worlds with the first tags only: the others in view are not looked for
-        d = yaml.safe_load(world_path.read_text())
+    for n_tags in PER_MARKER_TAGS:  # worlds with the first tags only: the others in view are not looked for
+        d = yaml.safe_load(ten_path.read_text())
         d["entities"]["world"]["markers"] = d["entities"]["world"]["markers"][:n_tags]
-        subsets[n_tags] = str(world_path.with_name(f"world-{n_tags}.yaml"))
+        subsets[n_tags] = str(ten_path.with_name(f"world-{n_tags}.yaml"))
         Path(subsets[n_tags]).write_text(yaml.safe_dump(d))
-    (tmp / "scene.json").write_text(json.dumps({"world": str(world_path), "folders": folders, "subsets": subsets}))
+    ten = {"frames": str(tmp / "demo10" / "frames"), "calibration": str(tmp / "demo10" / "calibration.yaml"),
+           "subsets": subsets}  # fmt: skip
+    (tmp / "scene.json").write_text(json.dumps({"world": str(world_path), "folders": folders, "ten": ten}))
     return out
 
 
@@ -279,7 +298,8 @@ def main() -> int:
              "--frames", str(args.frames)],
             capture_output=True, text=True, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
         )  # fmt: skip
-        det = json.loads(child.stdout.strip().splitlines()[-1])
+        got = json.loads(child.stdout.strip().splitlines()[-1])
+        det, found = got["times"], got["found"]
         node = node_runs(tmp, folders, max(args.node_repeats, 2))
     print("detector, one core (taskset -c 0), thread CPU ms per frame; fps = 1000 / mean, here and scaled")
     print(f"{'frames':20} {'setting':30} {'mean':>6} {'median':>6} {'p95':>6} {'n':>4} {'vs lib':>6}"
@@ -293,6 +313,14 @@ def main() -> int:
         pi4, pi5 = fps / factors["Pi 4"], fps / factors["Pi 5"]
         print(f"{res + ' ' + state:20} {setting:30} {s['mean']:>6.2f} {s['median']:>6.2f} {s['p95']:>6.2f}"
               f" {s['n']:>4} {ratio} {fps:>8.0f} {pi4:>6.0f} {pi5:>6.0f}")  # fmt: skip
+    keys = [k for k in found]
+    xs = [found[k] for k in keys]
+    ys = [statistics.mean(det[k]) for k in keys]
+    slope = float(np.polyfit(np.array(xs), np.array(ys), 1)[0])
+    seen = ", ".join(f"{x:.2f}" for x in xs)
+    pi4, pi5 = slope * factors["Pi 4"], slope * factors["Pi 5"]
+    print(f"detector per additional marker in view, 640x480, one core (10-tag scene, {seen} markers found per frame")
+    print(f"  with 1/2/5/10 tags configured): {slope:.2f} ms here, {pi4:.1f} ms on a Pi 4, {pi5:.1f} ms on a Pi 5")
     print()
     n_frames = next(iter(node.values()))["frames"]
     repeats = max(args.node_repeats, 2)

@@ -16,9 +16,48 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from atlas_onboard.detector import refine
 from atlas_onboard.detector.families import family, library_family, library_family_type, opencv_dictionary
-from atlas_onboard.detector.refine import refine_corners
 from atlas_onboard.errors import AtlasError
+
+LIBRARY_SAMPLES_PER_SIDE = 12  # refine_corners's (the OpenCV backend's corners in the distorted image)
+
+
+def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Corners (4, 2), pixel-centre convention, refined on ``gray``; unchanged where a fit fails."""
+    img = gray.astype(np.float32)
+    lines = []
+    offsets = np.arange(-refine.HALF_WIDTH_PX, refine.HALF_WIDTH_PX + 1e-9, refine.STEP_PX)
+    sides = refine.sides(corners)
+    if sides is None:
+        return corners
+    for a, d, n in sides:
+        ts = np.linspace(0.15, 0.85, LIBRARY_SAMPLES_PER_SIDE)
+        base = a[None, :] + ts[:, None] * d[None, :]
+        pts = base[:, None, :] + offsets[None, :, None] * n[None, None, :]
+        xs = pts[..., 0].astype(np.float32)
+        ys = pts[..., 1].astype(np.float32)
+        prof = cv2.remap(img, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        # Dark (the black border) to bright (the quiet zone) outwards: the signed gradient, so that the
+        # edge of a white data cell inside the border (the other polarity) is never taken for it.
+        grad = np.maximum(np.diff(prof, axis=1), 0.0)  # between consecutive samples along the normal
+        k = np.argmax(grad, axis=1)
+        ok = (k > 0) & (k < grad.shape[1] - 1)
+        edge = []
+        for row in np.flatnonzero(ok):
+            g0, g1, g2 = grad[row, k[row] - 1], grad[row, k[row]], grad[row, k[row] + 1]
+            denom = g0 - 2 * g1 + g2
+            frac = 0.5 * (g0 - g2) / denom if denom < 0 else 0.0
+            off = offsets[0] + (k[row] + 0.5 + frac) * refine.STEP_PX
+            edge.append(base[row] + off * n)
+        if len(edge) < 4:
+            return corners
+        e = np.array(edge)
+        mean = e.mean(axis=0)
+        _, _, vt = np.linalg.svd(e - mean)
+        lines.append((mean, vt[0]))
+    out = refine.crossings(lines, corners)
+    return corners if out is None else out  # no fit: keep OpenCV's
 
 
 @dataclass(frozen=True)

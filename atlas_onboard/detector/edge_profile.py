@@ -30,13 +30,15 @@ def contamination_px(edge_levels: NDArray[np.float64]) -> NDArray[np.float64]:
     gets nothing. One cause for all four edges (the blur, the quiet zone's width): the quadrilateral
     too small, fully correlated (:func:`refine._corner_covariance`).
     """
-    levels = np.nan_to_num(np.asarray(edge_levels, dtype=float))
-    dark, light, reach, uneven, dark_se, light_se, uneven_se = levels.T
-    i_ink, i_paper = int(np.argmin(dark)), int(np.argmax(light))
-    contrast = max(float(light[i_paper] - dark[i_ink]), MIN_CONTRAST)
+    levels = np.nan_to_num(np.asarray(edge_levels, dtype=float))  # (..., 4, 7): several markers' at once
+    dark, light, reach, uneven, dark_se, light_se, uneven_se = np.moveaxis(levels, -1, 0)
+    i_ink, i_paper = np.argmin(dark, axis=-1)[..., None], np.argmax(light, axis=-1)[..., None]
+    ink, ink_se = np.take_along_axis(dark, i_ink, -1), np.take_along_axis(dark_se, i_ink, -1)
+    paper, paper_se = np.take_along_axis(light, i_paper, -1), np.take_along_axis(light_se, i_paper, -1)
+    contrast = np.maximum(paper - ink, MIN_CONTRAST)
     # A shortfall within LEVEL_SE of its standard error (the levels' own noise) is no evidence of one.
-    short = np.maximum(light[i_paper] - light - LEVEL_SE * np.hypot(light_se, light_se[i_paper]), 0.0)
-    excess = np.maximum(dark - dark[i_ink] - LEVEL_SE * np.hypot(dark_se, dark_se[i_ink]), 0.0)
+    short = np.maximum(paper - light - LEVEL_SE * np.hypot(light_se, paper_se), 0.0)
+    excess = np.maximum(dark - ink - LEVEL_SE * np.hypot(dark_se, ink_se), 0.0)
     # Levels read where the profile has not settled, unevenly at the two ends (a neighbour's edge within
     # reach: every edge alike when the cells are too small for the ramp, which comparing edges cannot show).
     unsettled = np.maximum(np.abs(uneven) - LEVEL_SE * uneven_se, 0.0)

@@ -9,7 +9,7 @@ import logging
 import math
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,6 +52,7 @@ class JointSolve:
     marker_pose: Mapping[int, RigidTransform]
     sizes: Mapping[int, float]
     counters: Counter[str]
+    _corners: dict[int, NDArray[np.float64]] = field(default_factory=dict, init=False, repr=False)
 
     def robust(self, ids: list[int], singles: dict[int, SingleSolve], capture_time_us: int) -> JointResult:
         """The entity's observation from the markers that fit together, and the ids used.
@@ -102,9 +103,18 @@ class JointSolve:
         offset = self.offset(m, others, singles)
         return LeftOut(m, offset, math.nan if offset is None else float(np.linalg.norm(offset)))
 
+    def _corners_m(self, m: int) -> NDArray[np.float64]:
+        """Marker ``m``'s corners (4, 3) in its entity's frame (m), kept (read-only)."""
+        got = self._corners.get(m)
+        if got is None:
+            got = self.marker_pose[m].apply(pose.object_corners(self.sizes[m]))
+            got.flags.writeable = False
+            self._corners[m] = got
+        return got
+
     def solution(self, ids: list[int], singles: dict[int, SingleSolve]) -> tuple | None:
         """rvec, tvec (T_camera_entity), RMS error and sigma of the joint solve of ``ids``, or None."""
-        obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
+        obj = np.vstack([self._corners_m(m) for m in ids])
         img = np.vstack([singles[m].corners for m in ids])
         # Start from the least ambiguous single solution, moved to the entity frame.
         best = min(ids, key=lambda m: singles[m].pose.ambiguity if np.isfinite(singles[m].pose.ambiguity) else 1.0)
@@ -146,7 +156,7 @@ class JointSolve:
             return (None, True, err / limit) if with_error else (None, True)
         T = RigidTransform.from_components(tvec, Rotation.from_rotvec(rvec)) * T_entity_anchor
         # The covariance of the anchor's pose: the same corners, in the anchor's frame.
-        obj = np.vstack([self.marker_pose[m].apply(pose.object_corners(self.sizes[m])) for m in ids])
+        obj = np.vstack([self._corners_m(m) for m in ids])
         fit = pose.CornerFit(
             T.rotation.as_matrix(), T.translation, T_entity_anchor.inv().apply(obj), self.calibration.K
         )
@@ -172,7 +182,9 @@ class JointSolve:
         the squares' relative places, on which the joint rotation rests, are only as good as the lens model
         between them."""
         cal = self.calibration
-        residual = joint_covariance.lens_residual_covariance
-        covs = [s.corner_cov + residual(s.corners, cal.K, cal.dist, cal.fisheye) for s in squares]
+        residuals = joint_covariance.lens_residual_covariances(
+            [s.corners for s in squares], cal.K, cal.dist, cal.fisheye
+        )
+        covs = [s.corner_cov + r for s, r in zip(squares, residuals, strict=True)]
         img = np.vstack([s.corners for s in squares])
         return joint_covariance.joint_covariance(fit, img, covs)

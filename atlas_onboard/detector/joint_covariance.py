@@ -7,7 +7,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg import block_diag
 from scipy.special import chdtri  # chi-square's inverse survival function
 
 from atlas_onboard.detector.pose import CornerFit
@@ -26,17 +25,28 @@ def lens_residual_covariance(
     ``LENS_RESIDUAL`` times how far the model moves the square's centre (undistorted minus image
     pixels). Different for squares in different parts of the image, which a joint solve's rotation
     rests on; zero without distortion."""
+    return lens_residual_covariances([corners_und], K, dist, fisheye)[0]
+
+
+def lens_residual_covariances(
+    squares: list[NDArray[np.float64]], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> list[NDArray[np.float64]]:
+    """:func:`lens_residual_covariance` of several squares (undistorted corners (4, 2) each), their centres
+    through the lens in one call."""
     if not np.any(dist):
-        return np.zeros((8, 8))
-    c = np.asarray(corners_und, dtype=float).reshape(4, 2).mean(axis=0)
-    ray = np.array([[(c[0] - K[0, 2]) / K[0, 0], (c[1] - K[1, 2]) / K[1, 1], 1.0]])
+        return [np.zeros((8, 8)) for _ in squares]
+    c = np.array([np.asarray(q, dtype=float).reshape(4, 2).mean(axis=0) for q in squares])
+    rays = np.column_stack([(c[:, 0] - K[0, 2]) / K[0, 0], (c[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(c))])
     if fisheye:
-        img = cv2.fisheye.projectPoints(ray.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
+        img = cv2.fisheye.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
     else:
-        img = cv2.projectPoints(ray, np.zeros(3), np.zeros(3), K, dist)[0]
-    moved = c - img.reshape(2)
-    v = np.tile(moved, 4)  # every corner along the radius, by the model's correction there
-    return LENS_RESIDUAL**2 * np.outer(v, v)
+        img = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, dist)[0]
+    moved = c - img.reshape(-1, 2)
+    out = []
+    for m in moved:
+        v = np.tile(m, 4)  # every corner along the radius, by the model's correction there
+        out.append(LENS_RESIDUAL**2 * np.outer(v, v))
+    return out
 
 
 SQUARE_MISFIT_LEVEL = 0.9  # a square's miss in a joint fit beyond this quantile of its chi-square grows its block
@@ -64,7 +74,7 @@ def joint_covariance(
     r = (np.asarray(img_px, dtype=float).reshape(-1, 2) - fit.projected_px()).ravel()
     covs = [np.asarray(c, dtype=float) for c in square_covs]
     M = np.eye(len(r)) - J @ Ai @ J.T
-    expected = M @ block_diag(*covs) @ M.T
+    expected = M @ _block_diagonal(covs) @ M.T
     grown = []
     for k, c in enumerate(covs):
         sl = slice(8 * k, 8 * k + 8)
@@ -76,5 +86,13 @@ def joint_covariance(
         # Grown only when the miss is unlikely under W (the form about chi-square with ``allowed`` degrees
         # of freedom): growing on every chance excess would make consistent squares cautious.
         grown.append(c * (seen / allowed) if allowed > 0 and seen > chdtri(allowed, 1.0 - SQUARE_MISFIT_LEVEL) else c)
-    C = Ai @ (J.T @ block_diag(*grown) @ J) @ Ai
+    C = Ai @ (J.T @ _block_diagonal(grown) @ J) @ Ai
     return (C + C.T) / 2.0
+
+
+def _block_diagonal(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:
+    """scipy.linalg.block_diag of square (8, 8) blocks, without its per-call cost."""
+    out = np.zeros((8 * len(blocks), 8 * len(blocks)))
+    for k, b in enumerate(blocks):
+        out[8 * k : 8 * k + 8, 8 * k : 8 * k + 8] = b
+    return out

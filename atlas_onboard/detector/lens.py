@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from atlas_onboard.detector.pose import undistort
+
 
 @functools.lru_cache(maxsize=8)
 def _inverse(K_bytes: bytes) -> NDArray[np.float64]:
@@ -45,24 +47,54 @@ def distort_homogeneous(
     return _project(rays, K, k, unit_z=Kinv[2].tolist() == [0.0, 0.0, 1.0])
 
 
+def distort_uv(
+    u: NDArray[np.float64], v: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> NDArray[np.float64]:
+    """:func:`distort` of undistorted pixels given as their coordinates ``u``, ``v`` (N,): image pixels
+    (N, 2), bit for bit :func:`distort_homogeneous`'s. A camera matrix without skew maps a pixel to its ray
+    in two operations a coordinate (the values of the matrix product, whose zero terms add nothing), so
+    the rows (u, v, 1) and their product are not built."""
+    Kinv = _inverse(np.ascontiguousarray(K, dtype=np.float64).tobytes())
+    k = np.asarray(dist, dtype=np.float64).ravel()
+    plain = Kinv[0, 1] == 0 and Kinv[1, 0] == 0 and Kinv[2].tolist() == [0.0, 0.0, 1.0]
+    if fisheye or not plain or len(k) not in (4, 5, 8, 12, 14) or (len(k) == 14 and np.any(k[12:])):
+        return distort_homogeneous(np.column_stack([u, v, np.ones_like(u)]), K, dist, fisheye)
+    x = u * Kinv[0, 0]
+    x += Kinv[0, 2]
+    y = v * Kinv[1, 1]
+    y += Kinv[1, 2]
+    return _project_xy(x, y, K, k)
+
+
 def _project(
     rays: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64], unit_z: bool = False
 ) -> NDArray[np.float64]:
     """Camera-frame points (N, 3) -> image pixels (N, 2) through OpenCV's standard lens model (radial,
     tangential, rational and thin-prism terms; 4 to 12 coefficients ``k``): cv2.projectPoints' value,
     evaluated in its order of operations (bit for bit) without the Jacobians it also computes."""
-    k = k.tolist() + [0.0] * (12 - len(k))
     x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
     if not unit_z:
         z = np.where(z != 0, 1.0 / np.where(z != 0, z, 1.0), 1.0)
         x, y = x * z, y * z
-    r2 = x * x + y * y
+    return _project_xy(x, y, K, k)
+
+
+def _project_xy(
+    x: NDArray[np.float64], y: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """:func:`_project` of normalised coordinates ``x``, ``y`` (N,) (z = 1), its operations in its order
+    (in place where that gives the same value)."""
+    k = k.tolist() + [0.0] * (12 - len(k))
+    r2 = x * x
+    r2 += y * y
     r4 = r2 * r2
     # A group of terms whose coefficients are all zero is left out: adding its zeros (or dividing by its 1)
     # changes nothing but the sign of a zero.
-    cdist = 1 + k[0] * r2 + k[1] * r4
+    cdist = k[0] * r2
+    cdist += 1  # 1 + k1 r2
+    cdist += k[1] * r4
     if k[4] != 0:
-        cdist = cdist + k[4] * (r4 * r2)
+        cdist += k[4] * (r4 * r2)
     xd, yd = x * cdist, y * cdist
     if any(k[5:8]):  # the rational terms' denominator
         r6 = r4 * r2
@@ -75,6 +107,29 @@ def _project(
     if any(k[8:12]):  # thin prism
         xd = xd + k[8] * r2 + k[9] * r4
         yd = yd + k[10] * r2 + k[11] * r4
-    out = np.empty((len(rays), 2))
-    out[:, 0], out[:, 1] = xd * K[0, 0] + K[0, 2], yd * K[1, 1] + K[1, 2]
+    out = np.empty((len(x), 2))
+    np.multiply(xd, K[0, 0], out=out[:, 0])
+    out[:, 0] += K[0, 2]
+    np.multiply(yd, K[1, 1], out=out[:, 1])
+    out[:, 1] += K[1, 2]
     return out
+
+
+def bend_px(
+    corners_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> float:
+    """How far a side drawn straight between the corners in the distorted image strays, in undistorted
+    pixels, from the straight side between them there (the largest over the four sides): the lens's
+    bend over the marker, 0 without distortion."""
+    if not np.any(dist):
+        return 0.0
+    img = distort(corners_und, K, dist, fisheye)
+    t = np.linspace(0.0, 1.0, 9)[1:-1, None]
+    worst = 0.0
+    for i in range(4):
+        a, b = img[i], img[(i + 1) % 4]
+        straight = undistort(a + t * (b - a), K, dist, fisheye)
+        ua, ub = corners_und[i], corners_und[(i + 1) % 4]
+        d = (ub - ua) / max(float(np.linalg.norm(ub - ua)), 1e-9)
+        worst = max(worst, float(np.abs((straight - ua) @ np.array([-d[1], d[0]])).max()))
+    return worst

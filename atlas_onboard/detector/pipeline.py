@@ -25,8 +25,9 @@ covariance) is used alone at that place, the place's covariance carried into its
 
 from __future__ import annotations
 
+import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,9 +43,10 @@ from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.joint import JointSolve
+from atlas_onboard.detector.marker_poses import solve_markers
 from atlas_onboard.detector.motion import CameraMotionModel
 from atlas_onboard.detector.records import FrameReport, SingleSolve, marker_data
-from atlas_onboard.detector.refine import refine_corners_undistorted
+from atlas_onboard.detector.refine import refine_markers_undistorted
 from atlas_onboard.detector.search import (
     CELL_PX,
     MAX_REGION_DECIMATE,
@@ -216,6 +218,7 @@ class Detector:
             s = self.sensor
             self.motion_model = CameraMotionModel(s.camera, s.T_entity_sensor.rotation, h, s.entity == WORLD)
         motion = self.motion_model.at(capture_time_us, body_rate)
+        candidates = []
         for d in self.find(gray, R_prev_now):
             self.report.found.append(d.marker_id)
             if at_border(d.corners_px, w, h):
@@ -224,8 +227,14 @@ class Detector:
                 self.counters["dropped_image_border"] += 1
                 self.report.dropped[d.marker_id] = "at the image border"
                 continue
-            corners = pose.undistort(d.corners_px, K, cal.dist, cal.fisheye)
-            refined = refine_corners_undistorted(gray, corners, K, cal.dist, cal.fisheye, cal.lens_residual_px)
+            candidates.append(d)
+        # Every marker's corners undistorted, refitted on its edges, and their undistortion's Jacobian, at once.
+        found_px = np.array([d.corners_px for d in candidates]).reshape(-1, 2)
+        undistorted = pose.undistort(found_px, K, cal.dist, cal.fisheye).reshape(-1, 4, 2) if candidates else []
+        refits = refine_markers_undistorted(gray, list(undistorted), K, cal.dist, cal.fisheye, cal.lens_residual_px)
+        stretches = pose.undistortion_jacobian(found_px, K, cal.dist, cal.fisheye) if candidates else None
+        refined_ok = []
+        for k, (d, refined) in enumerate(zip(candidates, refits, strict=True)):
             if refined is None:
                 # The library's corners are straight-line fits in the distorted image: where the edge fit
                 # fails (near the image's edge, under strong distortion or blur) they were off by many
@@ -233,20 +242,33 @@ class Detector:
                 self.counters["refine_failed"] += 1
                 self.report.dropped[d.marker_id] = "corner refinement failed"
                 continue
-            corners, measured_px, corner_cov = refined.corners, refined.sigma_px, refined.covariance
-            stretch = pose.undistortion_jacobian(d.corners_px, K, cal.dist, cal.fisheye)
-            size_m = self.sizes[d.marker_id]
-            # Camera motion: corners moved to the stamp, the motion's covariance added to theirs
-            before = float(np.trace(corner_cov))
-            moved = self.motion_model.correct(motion, d.corners_px, corners, corner_cov, K, size_m)
-            corners, corner_cov, motion_px = moved.corners, moved.covariance, moved.shear_px
-            measured_px = float(np.sqrt(measured_px**2 + max(np.trace(corner_cov) - before, 0.0) / 8.0))
-            mp = pose.solve(corners, size_m, K, pose.model_sigma_px(d.family), stretch, measured_px, corner_cov)
+            stretch = None if stretches is None else stretches[4 * k : 4 * k + 4]
+            # Camera motion: corners moved to the stamp, the motion's covariance added to theirs.
+            before = float(np.trace(refined.covariance))
+            moved = self.motion_model.correct(
+                motion, d.corners_px, refined.corners, refined.covariance, K, self.sizes[d.marker_id]
+            )
+            measured_px = math.sqrt(refined.sigma_px**2 + max(float(np.trace(moved.covariance)) - before, 0.0) / 8.0)
+            refined = replace(refined, corners=moved.corners, sigma_px=measured_px, covariance=moved.covariance)
+            refined_ok.append((d, refined, stretch, moved.shear_px))
+        # Every marker's pose at once (pose.solve's, one by one).
+        poses = solve_markers(
+            [r.corners for _, r, _, _ in refined_ok],
+            [self.sizes[d.marker_id] for d, _, _, _ in refined_ok],
+            K,
+            [pose.model_sigma_px(d.family) for d, _, _, _ in refined_ok],
+            [s for _, _, s, _ in refined_ok],
+            [r.sigma_px for _, r, _, _ in refined_ok],
+            [r.covariance for _, r, _, _ in refined_ok],
+        )
+        for (d, refined, stretch, motion_px), mp in zip(refined_ok, poses, strict=True):
             if mp is None:
                 self.counters["pnp_failed"] += 1
                 self.report.dropped[d.marker_id] = "no pose"
                 continue
-            singles[d.marker_id] = SingleSolve(mp, corners, stretch, measured_px, corner_cov, motion_px)
+            singles[d.marker_id] = SingleSolve(
+                mp, refined.corners, stretch, refined.sigma_px, refined.covariance, motion_px
+            )
         self.report.found.sort()
         # Camera motion: the camera's own poses (from world markers) for the next frames' velocity
         seen = [(self.marker_pose[m], s.pose) for m, s in singles.items() if self.entity_of[m] == WORLD]

@@ -35,10 +35,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.detector.families import family
+from atlas_onboard.detector.rotations import matrix_from_quat, quat_from_rotvec, rotvec_from_matrix
 
 SIGMA_PX_APRILTAG = 0.08  # corner noise at a 50 px side, scaled by sqrt(50 / side): corner_noise_px
 SIGMA_PX_ARUCO = 0.2
@@ -132,6 +132,18 @@ def camera_position_sigma(
     """First-order standard deviation of the camera's position in the object's frame (metres).
     ``stretch``: :func:`undistortion_jacobian` of the corners (None: no distortion)."""
     _, J = cv2.projectPoints(obj.reshape(-1, 1, 3), rvec, tvec, K, None)
+    return _position_sigma(J, rvec, tvec, sigma_px, err_px, stretch)
+
+
+def _position_sigma(
+    J: NDArray[np.float64],
+    rvec: NDArray[np.float64],
+    tvec: NDArray[np.float64],
+    sigma_px: float,
+    err_px: float,
+    stretch: NDArray[np.float64] | None,
+) -> float:
+    """:func:`camera_position_sigma` from ``cv2.projectPoints``' Jacobian ``J`` of the corners at the pose."""
     J = _whiten(J[:, :6], stretch)  # d(image pixels) / d(rvec, tvec)
     try:
         cov = sigma_px**2 * np.linalg.inv(J.T @ J)
@@ -141,8 +153,7 @@ def camera_position_sigma(
     R, dR = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))
     t = np.asarray(tvec, dtype=np.float64).ravel()
     Jc = np.empty((3, 6))
-    for i in range(3):
-        Jc[:, i] = -dR[i].reshape(3, 3).T @ t
+    Jc[:, :3] = -(np.swapaxes(dR.reshape(3, 3, 3), 1, 2) @ t).T  # column i: -(dR/dr_i)^T t
     Jc[:, 3:] = -R.T
     var = float(np.linalg.eigvalsh(Jc @ cov @ Jc.T).max())
     fit = math.sqrt(1.0 + (err_px / sigma_px) ** 2) if math.isfinite(err_px) else 2.0
@@ -231,12 +242,19 @@ def fitted_covariance(
     ``img_px`` (N, 2), scaled by how well it fits them: a fit worse than the corners' covariance
     explains (its chi-square over the 2N - 6 degrees of freedom the pose leaves) scales the covariance
     by that ratio, as least squares with an unknown noise scale does; a better one changes nothing."""
-    C = pose_covariance_from_corners(fit, corner_cov)
-    if C is None:
-        return None
+    J = fit.jacobian()
     r = (fit.projected_px() - np.asarray(img_px, dtype=float).reshape(-1, 2)).ravel()
+    try:  # corner_cov^-1 [J, r] at once (pose_covariance_from_corners' and the chi-square's solves)
+        S = np.linalg.solve(corner_cov, np.column_stack([J, r]))
+    except np.linalg.LinAlgError:
+        return None
+    A = J.T @ S[:, :6]
+    if fit.n_corners < 3 or not np.all(np.isfinite(A)) or np.linalg.cond(A) > 1e14:
+        return None
+    C = np.linalg.inv(A)
+    C = (C + C.T) / 2.0
     dof = max(len(r) - 6, 1)
-    chi2 = float(r @ np.linalg.solve(corner_cov, r))
+    chi2 = float(r @ S[:, 6])
     return C * max(1.0, chi2 / dof)
 
 
@@ -274,9 +292,7 @@ def solve(
     if t0[2] <= 0:
         return None
     alt = (
-        (np.asarray(tvecs[1], float).ravel(), Rotation.from_rotvec(np.ravel(rvecs[1])).as_quat())
-        if len(rvecs) > 1
-        else (None, None)
+        (np.asarray(tvecs[1], float).ravel(), quat_from_rotvec(np.ravel(rvecs[1]))) if len(rvecs) > 1 else (None, None)
     )
     ambiguity = float(e[0] / e[1]) if len(e) > 1 and e[1] > 0 else float("nan")
     # IPPE solves the homography in closed form, which is not the least-squares pose: a few
@@ -285,10 +301,13 @@ def solve(
     # tests/detector/test_pose_covariance.py).
     r0, t0 = cv2.solvePnPRefineLM(obj, img, K, None, r0.reshape(3, 1).copy(), t0.reshape(3, 1).copy())
     r0, t0 = r0.ravel(), t0.ravel()
-    proj, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), r0, t0, K, None)
+    proj, J_proj = cv2.projectPoints(obj.reshape(-1, 1, 3), r0, t0, K, None)
     residual = _whiten((proj.reshape(-1, 2) - img.reshape(-1, 2)).reshape(-1, 1), stretch)
     e[0] = float(np.sqrt(np.sum(residual**2) / 4))
-    side_px = float(np.mean(np.linalg.norm(np.diff(np.vstack([corners_px, corners_px[:1]]), axis=0), axis=1)))
+    c = img.reshape(4, 2).tolist()
+    side_px = (
+        sum(math.sqrt((c[(i + 1) % 4][0] - a) ** 2 + (c[(i + 1) % 4][1] - b) ** 2) for i, (a, b) in enumerate(c)) / 4
+    )
     if stretch is not None:  # the side in image pixels: undistorted lengths shrunk by the local scale
         side_px /= float(np.sqrt(np.mean(np.abs(np.linalg.det(stretch)))))
     # The edge fit's measured corner noise, or the model's.
@@ -296,7 +315,7 @@ def solve(
         sigma_px = measured_sigma_px
     else:
         sigma_px = corner_noise_px(sigma_px, side_px)
-    sigma = camera_position_sigma(r0, t0, obj, K, sigma_px, float(e[0]), stretch)
+    sigma = _position_sigma(J_proj, r0, t0, sigma_px, float(e[0]), stretch)  # camera_position_sigma's
     # Face-on, the first order says nothing about tilt; second order bounds it.
     z = float(np.linalg.norm(t0))
     cap = z * math.sqrt((sigma_px / side_px) ** 2 + 2.0 * sigma_px / side_px)
@@ -309,9 +328,9 @@ def solve(
     if cov is None:
         cov = pose_covariance(fitted, sigma_px, float(e[0]), stretch)
     if cov is not None and alt[0] is not None and ambiguity <= AMBIGUITY_THRESHOLD:
-        other = CornerFit(Rotation.from_quat(alt[1]).as_matrix(), alt[0], obj, K)
+        other = CornerFit(matrix_from_quat(alt[1]), alt[0], obj, K)
         cov = cov + _flip_moment(fitted, other, img, sigma_px, float(e[0]), stretch)
-    return MarkerPose(t0, Rotation.from_rotvec(r0).as_quat(), float(e[0]), alt[0], alt[1], ambiguity, sigma, cov)
+    return MarkerPose(t0, quat_from_rotvec(r0), float(e[0]), alt[0], alt[1], ambiguity, sigma, cov)
 
 
 def _flip_moment(
@@ -333,7 +352,7 @@ def _flip_moment(
     res = _whiten((other.projected_px() - img.reshape(-1, 2)).reshape(-1, 1), stretch)
     dchi2 = (float(np.sum(res**2)) - 4.0 * err_px**2) / sigma_px**2
     w = 1.0 / (1.0 + math.exp(min(max(dchi2, 0.0) / 2.0, 700.0)))
-    d = np.concatenate([other.p_sm - chosen.p_sm, Rotation.from_matrix(chosen.R_sm.T @ other.R_sm).as_rotvec()])
+    d = np.concatenate([other.p_sm - chosen.p_sm, rotvec_from_matrix(chosen.R_sm.T @ other.R_sm)])
     return w * np.outer(d, d)
 
 

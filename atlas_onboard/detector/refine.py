@@ -10,6 +10,7 @@ its corners the same way.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -17,39 +18,37 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from atlas_onboard.detector.edge_profile import contamination_px, place_edges
-from atlas_onboard.detector.lens import distort, distort_homogeneous
-from atlas_onboard.detector.pose import undistort
+from atlas_onboard.detector.corner_noise import (
+    NEXT,
+    PREVIOUS,
+    SideStatistics,
+    corner_covariances,
+    corner_noise,
+    side_statistics,
+)
+from atlas_onboard.detector.edge_profile import place_edges
+from atlas_onboard.detector.lens import bend_px, distort_uv
 
 # Edge points a side: one a pixel over the sampled 70 % of the shortest side (closer ones share pixels, so
 # their errors are not independent), between these bounds (enough for the pixel grid's pattern along an
 # edge to average out; no more than that costs).
 MIN_SAMPLES_PER_SIDE, MAX_SAMPLES_PER_SIDE = 12, 24
-LIBRARY_SAMPLES_PER_SIDE = 12  # refine_corners's (the OpenCV backend's corners in the distorted image)
 HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
 STEP_PX = 0.25
-MAX_EDGE_CORRELATION = 0.9  # of neighbouring edge points' scatter: at most a tenth of them independent
 MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
 # The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
 # in undistorted pixels; a refit may rightly move them about that far (with a margin).
 BEND_ALLOWANCE = 1.5
 
 
-_PREVIOUS = [3, 0, 1, 2]  # side (or corner) i - 1 of i, around the quadrilateral
-_NEXT = [1, 2, 3, 0]
-# Every corner moved alike: common @ common.T with common = np.tile(np.eye(2), (4, 1)), (8, 2).
-_COMMON_SHIFT = np.tile(np.eye(2), (4, 4))
-_CORNER, _LINE, _ROW = [0, 0, 1, 1, 2, 2, 3, 3], [3, 0, 0, 1, 1, 2, 2, 3], [0, 1] * 4  # corner k: lines k - 1, k
-
-
-def _sides(
+def sides(
     corners: NDArray[np.float64],
 ) -> list[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]] | None:
     """The four sides of ``corners`` (4, 2), side i from corner i to corner i + 1: its first corner, its
     vector and its unit normal pointing out of the marker; None if a side is shorter than 8 px (no edge
     to fit)."""
     center = corners.mean(axis=0)
-    vectors = corners[_NEXT] - corners
+    vectors = corners[NEXT] - corners
     out = []
     for i in range(4):
         a, d = corners[i], vectors[i]
@@ -63,7 +62,7 @@ def _sides(
     return out
 
 
-def _crossings(
+def crossings(
     lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
     corners: NDArray[np.float64],
     max_move_px: float = MAX_MOVE_PX,
@@ -73,7 +72,7 @@ def _crossings(
     is wrong)."""
     p = np.array([m for m, _ in lines])
     d = np.array([u for _, u in lines])
-    p1, d1 = p[_PREVIOUS], d[_PREVIOUS]  # corner i: lines i - 1 and i
+    p1, d1 = p[PREVIOUS], d[PREVIOUS]  # corner i: lines i - 1 and i
     A = np.empty((4, 2, 2))  # A[i] = [d1, -d2] as columns
     A[:, :, 0], A[:, :, 1] = d1, -d
     # (the cross product is np.linalg.det's value to a few ulps: only near the threshold is LAPACK's needed)
@@ -85,43 +84,6 @@ def _crossings(
     if np.abs(out - corners).max() > max_move_px:
         return None
     return out
-
-
-def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Corners (4, 2), pixel-centre convention, refined on ``gray``; unchanged where a fit fails."""
-    img = gray.astype(np.float32)
-    lines = []
-    offsets = np.arange(-HALF_WIDTH_PX, HALF_WIDTH_PX + 1e-9, STEP_PX)
-    sides = _sides(corners)
-    if sides is None:
-        return corners
-    for a, d, n in sides:
-        ts = np.linspace(0.15, 0.85, LIBRARY_SAMPLES_PER_SIDE)
-        base = a[None, :] + ts[:, None] * d[None, :]
-        pts = base[:, None, :] + offsets[None, :, None] * n[None, None, :]
-        xs = pts[..., 0].astype(np.float32)
-        ys = pts[..., 1].astype(np.float32)
-        prof = cv2.remap(img, xs, ys, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        # Dark (the black border) to bright (the quiet zone) outwards: the signed gradient, so that the
-        # edge of a white data cell inside the border (the other polarity) is never taken for it.
-        grad = np.maximum(np.diff(prof, axis=1), 0.0)  # between consecutive samples along the normal
-        k = np.argmax(grad, axis=1)
-        ok = (k > 0) & (k < grad.shape[1] - 1)
-        edge = []
-        for row in np.flatnonzero(ok):
-            g0, g1, g2 = grad[row, k[row] - 1], grad[row, k[row]], grad[row, k[row] + 1]
-            denom = g0 - 2 * g1 + g2
-            frac = 0.5 * (g0 - g2) / denom if denom < 0 else 0.0
-            off = offsets[0] + (k[row] + 0.5 + frac) * STEP_PX
-            edge.append(base[row] + off * n)
-        if len(edge) < 4:
-            return corners
-        e = np.array(edge)
-        mean = e.mean(axis=0)
-        _, _, vt = np.linalg.svd(e - mean)
-        lines.append((mean, vt[0]))
-    out = _crossings(lines, corners)
-    return corners if out is None else out  # no fit: keep OpenCV's
 
 
 def refine_corners_undistorted(
@@ -151,63 +113,197 @@ def refine_corners_undistorted(
     blur and pixel noise raise s. What the scatter cannot show is added: the blur's inward pull
     (:func:`contamination_px`) and the lens residual.
     """
-    lines = []
-    ss, npts = 0.0, []
-    lag0 = lag1 = 0.0
-    spread: list[float] = []
-    edge_levels: list[NDArray[np.float64]] = []
-    sides = _sides(corners_und)
-    if sides is None:
+    return refine_markers_undistorted(gray, [corners_und], K, dist, fisheye, lens_residual_px)[0]
+
+
+@dataclass(frozen=True)
+class _Sampling:
+    """Where one marker's edges are sampled: each side's base points ``bases`` (4, S, 2), from its first
+    corner along it, its outward unit normal (4, 2), the offsets along the normal (4, width) (a side with a
+    shorter search than the longest repeats its outermost offset), their counts and the sides' depths."""
+
+    bases: NDArray[np.float64]
+    normals: NDArray[np.float64]
+    padded: NDArray[np.float64]
+    counts: list[int]
+    depths: list[float]
+
+    @property
+    def samples(self) -> int:
+        return self.bases.shape[1]
+
+
+def _sampling(corners_und: NDArray[np.float64]) -> _Sampling | None:
+    """Where the edges of the marker with undistorted corners ``corners_und`` (4, 2) are sampled; None if
+    a side is too short to fit."""
+    found = sides(corners_und)
+    if found is None:
         return None
-    # Every side's sample points at once: one projection through the lens, one crop of the image, one
-    # sampling. A side with a shorter search than the longest repeats its outermost sample (which leaves
-    # its profile's half level and ramp as they are: see edge_profile.place_edges).
     offsets, depths = [], []
-    for i, (a, _, n) in enumerate(sides):
+    c = corners_und.tolist()
+    for i, (a, _, n) in enumerate(found):
         # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
         # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
         # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
-        depth = min(abs(float(n @ (corners_und[(i + 2) % 4] - a))), abs(float(n @ (corners_und[(i + 3) % 4] - a))))
+        nx, ny, ax, ay = float(n[0]), float(n[1]), float(a[0]), float(a[1])
+        (x2, y2), (x3, y3) = c[(i + 2) % 4], c[(i + 3) % 4]
+        depth = min(abs(nx * (x2 - ax) + ny * (y2 - ay)), abs(nx * (x3 - ax) + ny * (y3 - ay)))
         half = min(max(0.1 * depth, 1.0), 2 * HALF_WIDTH_PX)  # np.clip's value
         offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
         depths.append(depth)
-    # (4, S, 2): each side's base points, from its first corner along it
-    vectors = np.array([d for _, d, _ in sides])
-    samples = int(np.clip(0.7 * np.sqrt((vectors**2).sum(axis=1)).min(), MIN_SAMPLES_PER_SIDE, MAX_SAMPLES_PER_SIDE))
-    ts = np.linspace(0.15, 0.85, samples)  # where along a side its edge is sampled
+    vectors = np.array([d for _, d, _ in found])
+    shortest = min(math.sqrt(float(x) * float(x) + float(y) * float(y)) for x, y in vectors)
+    samples = int(min(max(0.7 * shortest, MIN_SAMPLES_PER_SIDE), MAX_SAMPLES_PER_SIDE))  # np.clip's value
+    ts = _sample_places(samples)
     bases = corners_und[:, None, :] + ts[None, :, None] * vectors[:, None, :]
     counts = [len(o) for o in offsets]
     padded = np.empty((4, max(counts)))
     for i, o in enumerate(offsets):
         padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
-    width = padded.shape[1]
-    normals = np.array([n for _, _, n in sides])
-    grid = np.empty((4, samples, width, 3))  # (4, S, width): each sample point, homogeneous
-    np.add(bases[:, :, None, :], padded[:, None, :, None] * normals[:, None, None, :], out=grid[..., :2])
-    grid[..., 2] = 1.0
-    px_all = distort_homogeneous(grid.reshape(-1, 3), K, dist, fisheye)
-    img, origin = _crop(gray, px_all)
-    px_all = (px_all - origin).astype(np.float32).reshape(4 * samples, width, 2)
-    prof = cv2.remap(img, px_all[..., 0], px_all[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    rows_offsets = np.repeat(padded, samples, axis=0)
+    return _Sampling(bases, np.array([n for _, _, n in found]), padded, counts, depths)
+
+
+@functools.lru_cache(maxsize=32)
+def _sample_places(samples: int) -> NDArray[np.float64]:
+    """Where along a side its edge is sampled (fractions of the side), read-only."""
+    ts = np.linspace(0.15, 0.85, samples)
+    ts.flags.writeable = False
+    return ts
+
+
+def refine_markers_undistorted(
+    gray: NDArray[np.uint8],
+    corners: list[NDArray[np.float64]],
+    K: NDArray[np.float64],
+    dist: NDArray[np.float64],
+    fisheye: bool = False,
+    lens_residual_px: float = 0.0,
+) -> list[RefinedCorners | None]:
+    """:func:`refine_corners_undistorted` of every marker of a frame (undistorted corners (4, 2) each), in
+    one pass: all their sample points through the lens at once, each marker's crop of the image sampled
+    once, every profile's edge placed at once, and the fits' statistics of markers with as many samples a
+    side stacked. Each marker's result is what it gives alone."""
+    out: list[RefinedCorners | None] = [None] * len(corners)
+    plans = {i: p for i, c in enumerate(corners) if (p := _sampling(c)) is not None}
+    if not plans:
+        return out
+    # Every side's sample points: one projection through the lens for all markers.
+    us, vs = [], []
+    for p in plans.values():
+        offsets = p.padded[:, None, :]
+        us.append((p.bases[:, :, None, 0] + offsets * p.normals[:, None, None, 0]).ravel())
+        vs.append((p.bases[:, :, None, 1] + offsets * p.normals[:, None, None, 1]).ravel())
+    px_all = distort_uv(np.concatenate(us), np.concatenate(vs), K, dist, fisheye)
+    width = max(p.padded.shape[1] for p in plans.values())
+    profs, offs, counts, cells, scales = [], [], [], [], {}
+    start = 0
+    for i, p in plans.items():
+        w = p.padded.shape[1]
+        px = px_all[start : start + 4 * p.samples * w]
+        start += len(px)
+        img, origin = _crop(gray, px)
+        px = (px - origin).astype(np.float32).reshape(4 * p.samples, w, 2)
+        prof = cv2.remap(img, px[..., 0], px[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        padded = p.padded
+        if w < width:  # a profile padded with its outermost sample, as a shorter side's is
+            prof = np.concatenate([prof, np.repeat(prof[:, -1:], width - w, axis=1)], axis=1)
+            padded = np.concatenate([padded, np.repeat(padded[:, -1:], width - w, axis=1)], axis=1)
+        profs.append(prof)
+        offs.append(np.repeat(padded, p.samples, axis=0))
+        counts.append(np.repeat(p.counts, p.samples))
+        cells.append(np.repeat(np.array(p.depths) / 8.0, p.samples))
+        # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
+        step_img = np.linalg.norm(px[:, 1] - px[:, 0], axis=1)
+        scales[i] = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
     found_all, _, levels_all = place_edges(
-        prof, rows_offsets, np.repeat(counts, samples), np.repeat(np.array(depths) / 8.0, samples)
+        np.concatenate(profs), np.concatenate(offs), np.concatenate(counts), np.concatenate(cells)
     )
-    keep = np.isfinite(found_all).reshape(4, samples)
-    kept = np.count_nonzero(keep, axis=1)
-    if kept.min() < samples // 2:
-        return None
-    # Every side's edge points (where no edge was placed, NaN), then each side's placed ones in order.
-    points = bases + found_all.reshape(4, samples, 1) * normals[:, None, :]
-    edges = list(points) if kept.min() == samples else [p[k] for p, k in zip(points, keep, strict=True)]
-    # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
-    step_img = np.linalg.norm(px_all[:, 1] - px_all[:, 0], axis=1)
-    scale = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
-    levels = levels_all.reshape(4, samples, 5)
+    # Each marker's edge points (where no edge was placed, NaN), grouped by samples a side for the fits.
+    start = 0
+    whole: dict[int, list[tuple[int, NDArray[np.float64], NDArray[np.float64]]]] = {}
+    stats: dict[int, SideStatistics] = {}
+    for i, p in plans.items():
+        rows = 4 * p.samples
+        found = found_all[start : start + rows].reshape(4, p.samples)
+        levels = levels_all[start : start + rows].reshape(4, p.samples, 5)
+        start += rows
+        keep = np.isfinite(found)
+        kept = np.count_nonzero(keep, axis=1)
+        if kept.min() < p.samples // 2:
+            continue
+        points = p.bases + found[:, :, None] * p.normals[:, None, :]
+        if kept.min() == p.samples:
+            whole.setdefault(p.samples, []).append((i, points, levels))
+        else:
+            edges = [q[k] for q, k in zip(points, keep, strict=True)]
+            stats[i] = _side_statistics_each(edges, levels, keep)
+    for group in whole.values():
+        batch = side_statistics(np.array([g[1] for g in group]), np.array([g[2] for g in group]))
+        for k, (i, _, _) in enumerate(group):
+            stats[i] = tuple(x[k] for x in batch)  # type: ignore[assignment]
+    ids = sorted(stats)
+    if ids:
+        shifts = np.array([scales[i] * lens_residual_px for i in ids])
+        got = _corners_and_noise(np.array([corners[i] for i in ids]), [stats[i] for i in ids], shifts, K, dist, fisheye)
+        for i, refined in zip(ids, got, strict=True):
+            out[i] = refined
+    return out
+
+
+def _crossings_many(
+    means: NDArray[np.float64], dirs: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """:func:`crossings` (without the move limit) of M markers' lines, points ``means`` and directions
+    ``dirs`` (M, 4, 2): the corners (M, 4, 2) (NaN where two lines are parallel) and which are."""
+    p1, d1 = means[:, PREVIOUS], dirs[:, PREVIOUS]  # corner i: lines i - 1 and i
+    A = np.empty((len(means), 4, 2, 2))  # A[i] = [d1, -d2] as columns
+    A[..., 0], A[..., 1] = d1, -dirs
+    # (the cross product is np.linalg.det's value to a few ulps: only near the threshold is LAPACK's needed)
+    cross = A[..., 0, 0] * A[..., 1, 1] - A[..., 0, 1] * A[..., 1, 0]
+    parallel = np.abs(cross).min(axis=1) < 2e-9
+    for k in np.flatnonzero(parallel):
+        parallel[k] = bool(np.any(np.abs(np.linalg.det(A[k])) < 1e-9))
+    out = np.full(means.shape, np.nan)
+    fine = ~parallel
+    s = np.linalg.solve(A[fine], (means - p1)[fine][..., None])[..., 0, :]  # how far along d1
+    out[fine] = p1[fine] + s * d1[fine]
+    return out, parallel
+
+
+def _corners_and_noise(
+    corners_und: NDArray[np.float64],
+    stats: list[SideStatistics],
+    shift_px: NDArray[np.float64],
+    K: NDArray[np.float64],
+    dist: NDArray[np.float64],
+    fisheye: bool,
+) -> list[RefinedCorners | None]:
+    """The refitted corners of M markers (undistorted corners (M, 4, 2) before) where their sides' lines
+    cross, and their noise, from the sides' statistics (:func:`_side_statistics_each`) and the lens
+    residual's shift (M,) (undistorted px); None where lines are parallel or the corners moved too far."""
+    means, dirs, ss, npts, spread, edge_levels, lag0, lag1 = (np.array([x[k] for x in stats]) for k in range(8))
+    out, parallel = _crossings_many(means, dirs)
+    moves = np.abs(out - corners_und).max(axis=(1, 2))
+    ok = ~parallel
+    for k in np.flatnonzero(ok & (moves > MAX_MOVE_PX)):  # (the bend, which takes a while, only when needed)
+        ok[k] = not moves[k] > MAX_MOVE_PX + BEND_ALLOWANCE * bend_px(corners_und[k], K, dist, fisheye)
+    sigma, cov = corner_noise(out, (means, dirs, ss, npts, spread, edge_levels, lag0, lag1), shift_px)
+    return [RefinedCorners(out[k], float(sigma[k]), cov[k]) if ok[k] else None for k in range(len(means))]
+
+
+def _side_statistics_each(
+    edges: list[NDArray[np.float64]], levels: NDArray[np.float64], keep: NDArray[np.bool_]
+) -> SideStatistics:
+    """Each side's line through its edge points ``edges`` (n_i, 2) (mean, direction), and what the corner
+    noise is made of (see ``SideStatistics``; the levels: :func:`contamination_px`'s ``edge_levels``),
+    from the points' ``levels`` (4, S, 5) where ``keep`` (4, S)."""
+    ss, npts = 0.0, []
+    lag0 = lag1 = 0.0
+    spread: list[float] = []
+    edge_levels: list[NDArray[np.float64]] = []
     fits = _principal_axes(edges)
     across = np.array([(-vt[0][1], vt[0][0]) for _, _, vt in fits])  # each line's normal
     for i, (e, (mean, sv, vt)) in enumerate(zip(edges, fits, strict=True)):
-        lines.append((mean, vt[0]))
         ss += float(sv[1] ** 2)  # squared distances of the points from their line
         npts.append(len(e))
         centred = e - mean
@@ -222,36 +318,9 @@ def refine_corners_undistorted(
         r = centred @ across[i]  # signed distances from the line, in order along the edge
         lag0 += float(r @ r)
         lag1 += float(r[1:] @ r[:-1])
-    out = _crossings(lines, corners_und, max_move_px=np.inf)
-    if out is None:
-        return None
-    move = float(np.abs(out - corners_und).max())
-    if move > MAX_MOVE_PX and move > MAX_MOVE_PX + BEND_ALLOWANCE * _bend_px(corners_und, K, dist, fisheye):
-        return None  # (the bend, which takes a while, only when the move needs it)
-    scatter2 = ss / max(sum(npts) - 8, 1)  # two parameters a line
-    # Two lines crossing at an angle phi place their crossing 1 / sin(phi) less precisely than
-    # perpendicular ones (a marker seen obliquely has sharp corners in the image).
-    dirs = [d for _, d in lines]
-    sin_min = min(abs(float(a[0] * b[1] - a[1] * b[0])) for a, b in zip(dirs, dirs[1:] + dirs[:1], strict=True))
-    # Neighbouring edge points share pixels, blur and aliasing, so their errors are correlated along the
-    # edge: with a lag-one correlation rho, n points carry the information of n (1 - rho) / (1 + rho)
-    # independent ones (an AR(1) sequence's effective sample size).
-    rho = min(max(lag1 / lag0, 0.0), MAX_EDGE_CORRELATION) if lag0 > 0 else 0.0  # np.clip's value
-    inflate = (1.0 + rho) / (1.0 - rho)
-    n_eff = sum(npts) / len(npts) / inflate
-    shrink = contamination_px(np.array(edge_levels))
-    cov = _corner_covariance(
-        lines,
-        out,
-        scatter2 * inflate,
-        np.array(npts, float),
-        np.array(spread),
-        shrink,
-        scale * lens_residual_px,
-    )
-    # The scalar corner noise: the edge fits' alone (the lens residual moves the four corners alike, which
-    # turns no pose and is in ``cov``; counted per corner it would blur the tilt a gravity check needs).
-    return RefinedCorners(out, math.sqrt(7.1 * scatter2 / n_eff) / max(sin_min, 0.2), cov)
+    means = np.array([f[0] for f in fits])
+    dirs = np.array([f[2][0] for f in fits])
+    return means, dirs, ss, np.array(npts, float), np.array(spread), np.array(edge_levels), lag0, lag1
 
 
 def _principal_axes(
@@ -288,26 +357,6 @@ def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.
     return gray[y0:y1, x0:x1].astype(np.float32), np.array([x0, y0], dtype=float)
 
 
-def _bend_px(
-    corners_und: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
-) -> float:
-    """How far a side drawn straight between the corners in the distorted image strays, in undistorted
-    pixels, from the straight side between them there (the largest over the four sides): the lens's
-    bend over the marker, 0 without distortion."""
-    if not np.any(dist):
-        return 0.0
-    img = distort(corners_und, K, dist, fisheye)
-    t = np.linspace(0.0, 1.0, 9)[1:-1, None]
-    worst = 0.0
-    for i in range(4):
-        a, b = img[i], img[(i + 1) % 4]
-        straight = undistort(a + t * (b - a), K, dist, fisheye)
-        ua, ub = corners_und[i], corners_und[(i + 1) % 4]
-        d = (ub - ua) / max(float(np.linalg.norm(ub - ua)), 1e-9)
-        worst = max(worst, float(np.abs((straight - ua) @ np.array([-d[1], d[0]])).max()))
-    return worst
-
-
 def _corner_covariance(
     lines: list[tuple[NDArray[np.float64], NDArray[np.float64]]],
     corners: NDArray[np.float64],
@@ -329,26 +378,12 @@ def _corner_covariance(
     ``shift_px``: the standard deviation of a shift of every corner alike
     (the lens model's residual over the marker), undistorted px.
     """
-    G = np.zeros((8, 8))  # d(corners) / d(a_0, b_0, ..., a_3, b_3)
-    dirs = np.array([d for _, d in lines])
-    N = np.empty((4, 2, 2))  # corner k: the normals (-d_y, d_x) of lines k - 1 and k as rows
-    N[:, 0, 0], N[:, 0, 1] = -dirs[_PREVIOUS, 1], dirs[_PREVIOUS, 0]
-    N[:, 1, 0], N[:, 1, 1] = -dirs[:, 1], dirs[:, 0]
-    Ninvs = np.linalg.inv(N)
-    # Corner k's two lines: j = k - 1 (row 0 of its system) and k (row 1).
-    t = np.array([float((corners[k] - lines[j][0]) @ lines[j][1]) for k, j in zip(_CORNER, _LINE, strict=True)])
-    blocks = G.reshape(4, 2, 4, 2)  # (corner, x/y, line, offset/turn)
-    column = Ninvs[_CORNER, :, _ROW]  # (8, 2): Ninv[:, row] of each corner's each line
-    blocks[_CORNER, :, _LINE, 0] = column
-    blocks[_CORNER, :, _LINE, 1] = column * t[:, None]
-    D = np.empty(8)
-    D[0::2] = var_px2 / npts
-    D[1::2] = var_px2 / np.maximum(spread, 1e-9)
-    out = (G * D) @ G.T + shift_px**2 * _COMMON_SHIFT
-    if shrink_px is not None:
-        s = G[:, 0::2] @ shrink_px  # the corners' displacement when every line moves in by its shrink
-        out += np.outer(s, s)
-    return out
+    means = np.array([m for m, _ in lines])[None]
+    dirs = np.array([d for _, d in lines])[None]
+    shrink = None if shrink_px is None else np.asarray(shrink_px, dtype=float)[None]
+    return corner_covariances(
+        means, dirs, corners[None], np.array([var_px2]), npts[None], spread[None], shrink, np.array([shift_px])
+    )[0]
 
 
 @dataclass(frozen=True)

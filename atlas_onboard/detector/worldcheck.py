@@ -29,6 +29,7 @@ from atlas_onboard.core.worldcheck import MovedMarker, MovedMarkerCheck
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.joint import JointSolve
 from atlas_onboard.detector.records import FrameReport, JointResult, SingleSolve, marker_data
+from atlas_onboard.detector.rotations import matrix_from_quat
 
 _logger = logging.getLogger(__name__)
 
@@ -61,6 +62,7 @@ class WorldCheck:
         self.marker_pose = marker_pose
         self.counters = counters
         self.joint = joint
+        self._rt: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = {}  # see _marker_rt
         self.disagreements: Counter[int] = Counter()  # marker id -> images in which it disagreed
         self.status: deque[str] = deque()  # STATUSTEXT lines to send (the detector's take_status empties it)
         self._last_status_us: int | None = None
@@ -131,7 +133,7 @@ class WorldCheck:
         for m in ids:
             mp = singles[m].pose
             if mp.covariance is not None and mp.ambiguity <= AMBIGUITY_THRESHOLD:  # not maybe the mirrored one
-                seen.append(PlacedSighting(m, mp.p_m, Rotation.from_quat(mp.q_xyzw).as_matrix(), mp.covariance))
+                seen.append(PlacedSighting(m, mp.p_m, matrix_from_quat(mp.q_xyzw), mp.covariance))
         for place in self.places.add_image(self.sensor.id, capture_time_us, seen, self._trusted(capture_time_us)):
             self.counters["places_withdrawn"] += 1
             _logger.warning(
@@ -233,15 +235,22 @@ class WorldCheck:
         mp = single.pose
         if mp.covariance is None or not mp.ambiguity <= AMBIGUITY_THRESHOLD:
             return None
-        R_cm = Rotation.from_quat(mp.q_xyzw).as_matrix()
+        R_cm = matrix_from_quat(mp.q_xyzw)
         u = R_cm.T @ mp.p_m  # minus the camera's position in the marker frame
         # c = -R^T p; with p + dp and R exp(dtheta): dc = -R^T dp - [u]x dtheta (pose_covariance's error vector)
         ux = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
         J = np.hstack([-R_cm.T, -ux])
-        T_entity_marker = self.marker_pose[m]
-        R_em = T_entity_marker.rotation.as_matrix()
+        R_em, t_em = self._marker_rt(m)
         cov = R_em @ J @ mp.covariance @ J.T @ R_em.T
-        return Sighting(capture_time_us, T_entity_marker.apply(-u), (cov + cov.T) / 2.0)
+        return Sighting(capture_time_us, R_em @ -u + t_em, (cov + cov.T) / 2.0)
+
+    def _marker_rt(self, m: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Marker ``m``'s rotation matrix and translation in its entity (``T_entity_marker``), kept."""
+        got = self._rt.get(m)
+        if got is None:
+            T = self.marker_pose[m]
+            got = self._rt[m] = (T.rotation.as_matrix(), T.translation)
+        return got
 
     def consistency_evidence(
         self, entity: str, ids: list[int], singles: dict[int, SingleSolve], capture_time_us: int

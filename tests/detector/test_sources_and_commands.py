@@ -17,6 +17,7 @@ import yaml
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import CameraConfig, SensorConfig, parse_world
+from atlas_onboard.core.shutter import BodyRate
 from atlas_onboard.detector import camera as camera_module
 from atlas_onboard.detector import sources
 from atlas_onboard.detector.backends import MarkerFinder
@@ -328,23 +329,26 @@ class _SlowDetector:
         self.counters: dict[str, int] = {}
         self.stamps: list[int] = []
         self.turns: list[Rotation | None] = []
+        self.rates: list[BodyRate | None] = []
         self.sensor = SensorConfig("c", 1, "drone", MOUNT)
 
-    def detect(self, gray, capture_time_us, R_prev_now=None):
+    def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None):
         self.stamps.append(capture_time_us)
         self.turns.append(R_prev_now)
+        self.rates.append(body_rate)
         time.sleep(self.delay_s)
         return []
 
 
 def _replay(
-    tmp_path, replay: str, n: int, fps: float, delay_s: float, attitude_at=None
+    tmp_path, replay: str, n: int, fps: float, delay_s: float, attitude_at=None, rate_at=None
 ) -> tuple[CameraWorker, _SlowDetector, int]:
     for k in range(n):
         cv2.imwrite(str(tmp_path / f"img{k:03d}.png"), np.zeros((8, 8), np.uint8))
     det = _SlowDetector(delay_s)
     worker = CameraWorker("c", CameraConfig(source=str(tmp_path), fps=fps, replay=replay), det)  # type: ignore[arg-type]
     worker.attitude_at = attitude_at
+    worker.rate_at = rate_at
     start_us = time.time_ns() // 1000
     worker.start(lambda found: None)
     worker._thread.join(timeout=30)
@@ -389,8 +393,10 @@ def test_the_camera_hands_the_detector_its_turn_since_the_previous_frame_from_th
         s = (t_us - stamps[0]) / 1e6
         return None if k == 3 else Rotation.from_euler("ZYX", [90.0 * s, 3.0 * s, 20.0 * s], degrees=True)
 
-    _, det, _ = _replay(tmp_path, "every_frame", n, fps, 0.0, attitude_at)
+    gyro = BodyRate(np.radians([20.0, 3.0, 90.0]), 1e-6 * np.eye(3))  # its body rates, streamed too
+    _, det, _ = _replay(tmp_path, "every_frame", n, fps, 0.0, attitude_at, lambda _t_us: gyro)
     assert det.stamps == stamps and len(det.turns) == n
+    assert all(r is gyro for r in det.rates)  # each frame's body rate, for a rolling shutter
     R_body_cam = MOUNT.rotation
     world_dir = np.array([0.3, -0.5, 0.8])
     for k, R in enumerate(det.turns):
