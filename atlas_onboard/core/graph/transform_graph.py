@@ -42,6 +42,7 @@ class TransformGraph:
         age_sigma_rad_per_s: float = 0.0,
         keep_candidates: bool = False,
         anchor_sensors: frozenset[int] = frozenset(),
+        max_speed_m_s: float = 0.0,
     ) -> None:
         """``path``: ``bfs`` (the paper) or ``dijkstra`` (see :meth:`evaluate`). ``inverse_variance``:
         weights from each candidate's covariance, squared. ``relative``: poses of the groups without
@@ -51,7 +52,9 @@ class TransformGraph:
         ``age_sigma_rad_per_s`` its attitude covariance grows likewise (0: the paper's method, every
         live edge counts as new). ``outlier_gate_sigma`` > 0: the consensus gate
         (:mod:`~atlas_onboard.core.graph.gate`), whose anchor is the candidates of the node's own
-        sensors (``anchor_sensors``). ``keep_candidates``: the result lists every candidate."""
+        sensors (``anchor_sensors``). ``max_speed_m_s`` > 0: the speed bound on candidates that rest on
+        peers' work (:meth:`~atlas_onboard.core.graph.gate.ConsensusGate.too_fast`). ``keep_candidates``:
+        the result lists every candidate."""
         names = list(entity_names)
         if WORLD not in names:
             names.insert(0, WORLD)
@@ -69,9 +72,9 @@ class TransformGraph:
         self.keep_candidates = keep_candidates
         self._store = EdgeStore()
         self._planner = Planner(len(names), path)
-        self._gate = ConsensusGate(outlier_gate_sigma, self.edge_timeout_ns)
+        self._gate = ConsensusGate(outlier_gate_sigma, self.edge_timeout_ns, max_speed_m_s)
         options = PoseOptions(inverse_variance, path, age_sigma_m_per_s, age_sigma_rad_per_s)
-        self._pose = PosePhase(self.names, options, self._gate)
+        self._pose = PosePhase(self.names, options, self._gate, own_known=bool(self.anchor_sensors))
         # For a targeted evaluation: which entities' edges changed (came, were refreshed or went)
         # since the last full evaluation, and whether there has been one.
         self._touched = np.zeros(len(names), dtype=bool)
@@ -114,8 +117,13 @@ class TransformGraph:
 
     @property
     def gated_total(self) -> int:
-        """Distinct edge observations the gate rejected (counted once each)."""
+        """Distinct edge observations the gate rejected as outliers (counted once each)."""
         return self._gate.rejected_total
+
+    @property
+    def too_fast_total(self) -> int:
+        """Distinct edge observations the speed bound refused (counted once each)."""
+        return self._gate.too_fast_total
 
     # --- edges --------------------------------------------------------------------------------------
 
