@@ -52,6 +52,9 @@ class PriorEstimate(NamedTuple):
         capture_time_us: capture time of its newest observation, on the swarm's clock (us).
         cov_sigma_m: standard deviation of the position from its 6x6 covariance (mean of the three
             axes), metres (the speed bound takes the larger of this and ``sigma_m``).
+        accepted_ns: the newest arrival (evaluation clock, ns) of the observations it was fused from:
+            the speed bound's clock. An edge fused again at the next evaluation does not restart it;
+            once it is older than the edge timeout, nothing was accepted for that long (a real loss).
     """
 
     p_m: NDArray[np.float64]
@@ -61,6 +64,7 @@ class PriorEstimate(NamedTuple):
     made_ns: int
     capture_time_us: int
     cov_sigma_m: float = 0.0
+    accepted_ns: int = 0
 
 
 @dataclass(slots=True)
@@ -100,7 +104,7 @@ class ConsensusGate:
         self.max_speed_m_s = max_speed_m_s  # the speed bound on peers' candidates; 0: off
         self.priors: dict[tuple[int, int], PriorEstimate] = {}  # (root, entity) -> its last estimate
         self._counted: dict[EdgeKey, int] = {}  # edge -> the arrival stamp of its last counted rejection
-        self._counted_fast: dict[EdgeKey, int] = {}
+        self._counted_before: dict[EdgeKey, int] = {}  # and the one before (a record put back)
         self.rejected_total = 0  # distinct edge observations rejected (each counted once)
         self.too_fast_total = 0  # of those, refused by the speed bound
 
@@ -111,10 +115,12 @@ class ConsensusGate:
     def count(self, keys: list[EdgeKey | None], stamps_ns: list[int], too_fast: bool = False) -> None:
         """Count the rejected observations (edge and arrival stamp) not counted before; ``too_fast``:
         those the speed bound refused (counted apart)."""
-        counted = self._counted_fast if too_fast else self._counted
+        last, before = self._counted, self._counted_before
         for key, stamp in zip(keys, stamps_ns, strict=True):
-            if key is not None and counted.get(key) != stamp:
-                counted[key] = stamp
+            if key is not None and stamp not in (last.get(key), before.get(key)):
+                if key in last:
+                    before[key] = last[key]
+                last[key] = stamp
                 if too_fast:
                     self.too_fast_total += 1
                 else:
@@ -147,9 +153,10 @@ class ConsensusGate:
         (at most ``SPEED_CANDIDATE_SIGMA_CAP_M``) combined, plus the distance the vehicle can cover in
         the time ``dt`` from the estimate's capture to the candidate's (0 for a candidate older than
         the estimate: a sender chooses its stamps, and an old stamp must not buy distance). The
-        attitude likewise, with ``MAX_RATE_RAD_S``. No bound without an estimate, or once the estimate
-        is older than the edge timeout on the evaluation clock (no candidate was accepted for that
-        long: a real loss, and the next candidate is a re-acquisition). ``k`` is the gate's
+        attitude likewise, with ``MAX_RATE_RAD_S``. No bound without an estimate, or once the newest
+        observation it rests on arrived longer than the edge timeout ago (no candidate was accepted for that
+        long: a real loss, and the next candidate is a re-acquisition: :attr:`PriorEstimate.accepted_ns`).
+        ``k`` is the gate's
         ``k_sigma``, or ``SPEED_GATE_SIGMA`` when the gate is off. All False when the bound is off."""
         fast = np.zeros(len(c.child), dtype=bool)
         if self.max_speed_m_s <= 0.0:
@@ -163,7 +170,7 @@ class ConsensusGate:
         s_att = np.minimum(np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2) / 3.0), SPEED_CANDIDATE_SIGMA_CAP_RAD)
         for j, i in enumerate(peers.tolist()):
             prior = self.priors.get((root, int(c.child[i])))
-            if prior is None or now_ns - prior.made_ns > self.edge_timeout_ns:
+            if prior is None or now_ns - prior.accepted_ns > self.edge_timeout_ns:
                 continue
             dt_s = max(int(c.capture_us[i]) - prior.capture_time_us, 0) / 1e6
             sp = max(prior.sigma_m, prior.cov_sigma_m)

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from atlas_onboard.core import covariance, fusion, geometry
-from atlas_onboard.core.graph.edges import EdgeStore
+from atlas_onboard.core.graph.edges import EdgeKey, EdgeStore
 from atlas_onboard.core.graph.gate import ConsensusGate, GateInput, PriorEstimate, Verdict
 from atlas_onboard.core.graph.paths import Plan
 from atlas_onboard.core.graph.result import Candidate, EntityPose
@@ -122,14 +122,16 @@ class StageCandidates:
 @dataclass(frozen=True, slots=True)
 class FrameEvaluation:
     """The pose phase from one root: the poses (in the root's frame), the visiting order and levels
-    (vertex indices), how many candidates the gate left out, and whether the goal (if any) is the
-    parent of some candidate (then other entities' poses rest on it)."""
+    (vertex indices), how many candidates the gate left out, whether the goal (if any) is the
+    parent of some candidate (then other entities' poses rest on it), and the edges whose
+    observations the speed bound refused."""
 
     poses: dict[str, EntityPose]
     order: list[int]
     levels: dict[int, int]
     gated: int
     goal_is_parent: bool
+    too_fast: tuple[EdgeKey, ...] = ()
 
 
 class PosePhase:
@@ -143,6 +145,7 @@ class PosePhase:
         self.options = options
         self.gate = gate
         self.own_known = own_known
+        self._too_fast: list[EdgeKey] = []  # this run's edges refused by the speed bound
 
     def run(
         self,
@@ -159,6 +162,7 @@ class PosePhase:
         vx = Vertices.at_root(len(self.names))
         edges = _edge_terms(store, plan, self.options)
         gated = 0
+        self._too_fast: list[EdgeKey] = []
         for sel, runs, from_root in zip(plan.stages, plan.runs, plan.from_root, strict=True):
             cands = _compose(vx, edges.stage(sel), from_root)
             anchored = store.anchored[cands.row] & (cands.parent == root)
@@ -175,11 +179,12 @@ class PosePhase:
                 if len(cands.child) == 0:
                     continue
                 runs = covariance.runs_by_parent(cands.child, cands.parent)
-            self._fuse(vx, cands, runs, root, now_ns)
+            self._fuse(vx, cands, runs, root, now_ns, store.stamp[cands.row])
             vx.own[runs[0].ids] = np.logical_or.reduceat(anchored, runs[0].starts)
         order, level = plan.order.tolist(), plan.level.tolist()
         levels = {v: level[v] for v in order}
-        return FrameEvaluation(self._poses(vx, plan, root, goal), order, levels, gated, plan.goal_is_parent)
+        poses = self._poses(vx, plan, root, goal)
+        return FrameEvaluation(poses, order, levels, gated, plan.goal_is_parent, tuple(self._too_fast))
 
     def _gate(
         self, store: EdgeStore, c: StageCandidates, vx: Vertices, root: int, now_ns: int, anchored: NDArray[np.bool_]
@@ -193,6 +198,7 @@ class PosePhase:
         for fast in (False, True):
             out = c.row[~verdict.keep & (verdict.too_fast == fast)].tolist()
             self.gate.count([store.keys[slot] for slot in out], [int(store.stamp[slot]) for slot in out], fast)
+        self._too_fast += [key for slot in c.row[verdict.too_fast].tolist() if (key := store.keys[slot]) is not None]
         return verdict.keep
 
     def _collect(
@@ -228,7 +234,13 @@ class PosePhase:
             vx.own[v] = False
 
     def _fuse(
-        self, vx: Vertices, c: StageCandidates, runs: tuple[fusion.Runs, fusion.Runs], root: int, now_ns: int
+        self,
+        vx: Vertices,
+        c: StageCandidates,
+        runs: tuple[fusion.Runs, fusion.Runs],
+        root: int,
+        now_ns: int,
+        arrival_ns: NDArray[np.int64],
     ) -> None:
         """eq. 4-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
         The paper weighs by the sensor's sigma; Dijkstra weighs by the whole chain's."""
@@ -244,11 +256,13 @@ class PosePhase:
         newest = np.maximum.reduceat(c.capture_us, kids.starts)
         vx.stamp_us[ids] = newest
         if self.gate.enabled:
+            accepted = np.maximum.reduceat(arrival_ns, kids.starts).tolist()
             for k, v in enumerate(ids.tolist()):
                 att = float(np.sqrt(max(np.trace(vx.cov[v][3:, 3:]) / 3.0, 0.0)))
                 pos = float(np.sqrt(max(np.trace(vx.cov[v][:3, :3]) / 3.0, 0.0)))
                 prior = PriorEstimate(
-                    vx.p[v].copy(), vx.q[v].copy(), float(vx.sigma[v]), att, now_ns, int(newest[k]), pos
+                    vx.p[v].copy(), vx.q[v].copy(), float(vx.sigma[v]), att, now_ns, int(newest[k]), pos,
+                    int(accepted[k]),
                 )
                 self.gate.remember(root, v, prior)
 

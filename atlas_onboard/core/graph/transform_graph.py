@@ -200,7 +200,7 @@ class TransformGraph:
         stale, self._stale = self._stale, None
         if stale is not None:
             for old in stale[2]:
-                self._store.remove(old)
+                self._store.remove(old, displaced=True)
 
     def clear(self) -> None:
         """Forget every edge."""
@@ -293,6 +293,11 @@ class TransformGraph:
         cands: dict[str, list[Candidate]] | None = {} if self.keep_candidates else None
         goal = self.index[target] if target is not None else None
         frame = self._evaluate_from(slots, world, now_ns, cands, goal)
+        if frame.too_fast and self._restore(frame.too_fast, now_ns):
+            # A newer observation refused as too fast had pushed out a view that may be the real one.
+            slots = self._store.live_slots()
+            cands = {} if self.keep_candidates else None
+            frame = self._evaluate_from(slots, world, now_ns, cands, goal)
         reached = set(frame.order)
         if goal is not None and goal not in reached:
             goal = None  # _evaluate_from has evaluated everything: the relative poses follow
@@ -330,6 +335,16 @@ class TransformGraph:
 
     def _root(self, root: int | None) -> int:
         return self.index[WORLD] if root is None else root
+
+    def _restore(self, refused: tuple[EdgeKey, ...], now_ns: int) -> bool:
+        """Put back what the refused observations displaced (:meth:`EdgeStore.restore`)."""
+        back = False
+        for key in refused:
+            edge = self._store.edges.get(key)
+            if edge is not None and self._store.restore(key, now_ns, self.edge_timeout_ns):
+                back = True
+                self._touched[edge.a] = self._touched[edge.b] = True
+        return back
 
     def _evaluate_from(
         self,
