@@ -263,7 +263,7 @@ class PosePhase:
                 prior = PriorEstimate(
                     vx.p[v].copy(), vx.q[v].copy(), float(vx.sigma[v]), att, now_ns, int(newest[k]), pos,
                     int(accepted[k]),
-                )
+                )  # fmt: skip
                 self.gate.remember(root, v, prior)
 
     def _poses(self, vx: Vertices, plan: Plan, root: int, goal: int | None) -> dict[str, EntityPose]:

@@ -113,8 +113,8 @@ def test_a_refused_candidate_does_not_restart_the_bounds_clock_and_a_real_loss_l
 def test_the_bound_grows_with_the_time_since_the_estimate_for_a_real_move():
     """A leader really flying at 2.5 m/s, seen every 66 ms, then unseen for 150 ms (less than the edge
     timeout): every view is taken, the one after the gap too (0.375 m away); the same jump again
-    50 ms later is refused."""
-    g = _relay()
+    50 ms later is refused (the consensus gate off: the speed bound alone)."""
+    g = _relay(k=0.0)
     x = 0.0
     for t in range(0, 400, 66):
         x = 2.5 * t / 1000
@@ -134,8 +134,9 @@ def test_the_bound_grows_with_the_time_since_the_estimate_for_a_real_move():
 
 def test_an_old_stamp_buys_no_distance():
     """A forged view stamped 0.9 s before the estimate: the time since the estimate is counted from
-    the stamps only forwards, so its claim of an old capture does not widen the bound to 4.5 m."""
-    g = _relay()
+    the stamps only forwards, so its claim of an old capture does not widen the bound to 4.5 m (the
+    consensus gate off: the speed bound alone)."""
+    g = _relay(k=0.0)
     _edge(g, (1, 0), "lead", "world", LEAD.inv(), 0.002, 1000 * MS, 1_000_000)
     g.evaluate(1000 * MS)
     _edge(g, (1, 0), "lead", "world", LEAD.inv(), 0.002, 1033 * MS, 1_033_000)
