@@ -181,7 +181,7 @@ class Listener:
         C_sm = None  # the detection covariances as matrices, when every valid record has one
         if any(md.covariance for md in valid):
             valid, C_sm = _positive_definite(valid, out)
-            valid, C_sm = inconsistent_sigma(valid, out, C_sm)
+            valid, C_sm = inconsistent_sigma(valid, out, C_sm, self.graph.anchor_sensors)
         if not valid:
             return out, notes
         T1 = np.array([self._sensor[md.sensor_id][1] for md in valid])

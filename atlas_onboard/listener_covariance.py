@@ -11,7 +11,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.core import covariance
+from atlas_onboard.core import covariance, geometry
 from atlas_onboard.core.markerdata import MarkerData, Rejection, upper_to_matrix
 
 if TYPE_CHECKING:
@@ -50,19 +50,23 @@ records differ: from 0.12 to 11.2 over the simulated scenarios' rendered detecti
 
 
 def inconsistent_sigma(
-    valid: list[MarkerData], out: list[EdgeUpdate | Rejection], C_sm: NDArray[np.float64] | None
+    valid: list[MarkerData],
+    out: list[EdgeUpdate | Rejection],
+    C_sm: NDArray[np.float64] | None,
+    own_sensors: frozenset[int] = frozenset(),
 ) -> tuple[list[MarkerData], NDArray[np.float64] | None]:
     """``valid`` without the records whose ``sigma`` contradicts their covariance (beyond
     ``SIGMA_COVARIANCE_TOLERANCE``: those become ``inconsistent_sigma`` in ``out``), and ``C_sm`` (the
     covariances as matrices when every record has one) for those kept. A record without a covariance
-    has nothing to contradict."""
-    have = [j for j, md in enumerate(valid) if md.covariance]
+    has nothing to contradict; one of the node's own sensors (``own_sensors``: its own detector, not
+    a peer's claim) is not checked, which keeps the own camera's path as short as it was."""
+    have = [j for j, md in enumerate(valid) if md.covariance and md.sensor_id not in own_sensors]
     if not have:
         return valid, C_sm
-    C = C_sm if C_sm is not None else upper_to_matrix(np.array([valid[j].covariance for j in have]))
+    C = C_sm[have] if C_sm is not None else upper_to_matrix(np.array([valid[j].covariance for j in have]))
     p = np.array([valid[j].p_sensor_marker_m for j in have])
     q = np.array([valid[j].q_sensor_marker_wxyz for j in have])[:, [1, 2, 3, 0]]
-    R = Rotation.from_quat(q).as_matrix()
+    R = geometry.quat_matrix(q / np.sqrt(np.einsum("ij,ij->i", q, q))[:, None])
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(_camera_position_cov(p, R, C))[:, -1], 0.0))
     sigma = np.array([valid[j].sigma_m for j in have])
     ok = (sigma * SIGMA_COVARIANCE_TOLERANCE >= spread) & (sigma <= spread * SIGMA_COVARIANCE_TOLERANCE)
@@ -73,7 +77,11 @@ def inconsistent_sigma(
         if id(item) in bad:
             out[i] = Rejection.INCONSISTENT_SIGMA
     kept = [md for md in valid if id(md) not in bad]
-    return kept, (C_sm[ok] if C_sm is not None else None)
+    if C_sm is None:
+        return kept, None
+    keep = np.ones(len(valid), dtype=bool)
+    keep[np.array(have)[~ok]] = False
+    return kept, C_sm[keep]
 
 
 def _camera_position_cov(

@@ -180,7 +180,8 @@ class PosePhase:
                     continue
                 runs = covariance.runs_by_parent(cands.child, cands.parent)
             self._fuse(vx, cands, runs, root, now_ns, store.stamp[cands.row])
-            vx.own[runs[0].ids] = np.logical_or.reduceat(anchored, runs[0].starts)
+            if self.own_known:
+                vx.own[runs[0].ids] = np.logical_or.reduceat(anchored, runs[0].starts)
         order, level = plan.order.tolist(), plan.level.tolist()
         levels = {v: level[v] for v in order}
         poses = self._poses(vx, plan, root, goal)
@@ -192,7 +193,8 @@ class PosePhase:
         """The gate's verdict on a stage's candidates; counts the rejected edge observations.
         ``anchored``: the own cameras' direct views of the root's markers (through another entity, a
         candidate also rests on that entity's estimate: a peer's work)."""
-        cov = gate_covariance(c, vx, weigh_sigma(self.options, c, vx), anchored, self.options.path == "dijkstra")
+        s_weigh = c.s_edge if anchored.all() else weigh_sigma(self.options, c, vx)  # (unused when all are own)
+        cov = gate_covariance(c, vx, s_weigh, anchored, self.options.path == "dijkstra")
         gate_in = GateInput(c.child, c.p, c.q, cov, c.capture_us, anchored, store.stamp[c.row])
         verdict: Verdict = self.gate.verdict(root, now_ns, gate_in)
         for fast in (False, True):
@@ -317,6 +319,8 @@ def gate_covariance(
     shrunk by their ratio: a sender cannot claim a large covariance to pass the gate and a small sigma
     to weigh. The node's own direct views (``anchored``) are taken as they are."""
     full = c.covariance(vx.cov)
+    if anchored.all():
+        return full
     part = full if dijkstra or c.Jp is None else c.edge_term
     spread = np.sqrt(np.maximum(np.trace(part[:, :3, :3], axis1=1, axis2=2) / 3.0, 1e-30))
     f = np.where(anchored, 1.0, np.minimum(s_weigh / spread, 1.0))
