@@ -32,6 +32,7 @@ from atlas_onboard.listener_covariance import (  # noqa: F401 (were defined here
     _matrices,
     _positive_definite,
     _rotation_sigma,
+    inconsistent_sigma,
 )
 
 _logger = logging.getLogger(__name__)
@@ -80,6 +81,7 @@ def make_graph(world: WorldConfig, own_entity: str | None = None) -> TransformGr
         outlier_gate_sigma=f.outlier_gate_sigma,
         keep_candidates=f.filter == "ekf",
         anchor_sensors=frozenset(s.id for s in own),
+        max_speed_m_s=f.max_speed_m_s,
     )
 
 
@@ -179,6 +181,7 @@ class Listener:
         C_sm = None  # the detection covariances as matrices, when every valid record has one
         if any(md.covariance for md in valid):
             valid, C_sm = _positive_definite(valid, out)
+            valid, C_sm = inconsistent_sigma(valid, out, C_sm, self.graph.anchor_sensors)
         if not valid:
             return out, notes
         T1 = np.array([self._sensor[md.sensor_id][1] for md in valid])

@@ -354,6 +354,8 @@ class Node:
         )
         out.update(self.listener.counters.snapshot())  # ambiguity resolved / swapped / undecided, alt ignored
         out[Rejection.OUTLIER.counter] = out.get(Rejection.OUTLIER.counter, 0) + self.graph.gated_total
+        out[Rejection.TOO_FAST.counter] = out.get(Rejection.TOO_FAST.counter, 0) + self.graph.too_fast_total
+        out[Rejection.FUTURE_STAMP.counter] = out.get(Rejection.FUTURE_STAMP.counter, 0) + self.intake.future_refused
         if self.output.ekf is not None:
             out.update({f"ekf_{k}": v for k, v in self.output.ekf.outcomes.items()})
         for name, n in self.transport.counters().items():  # a reason both refuse for (unknown_sensor): summed

@@ -11,6 +11,7 @@ from dataclasses import replace
 
 from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.peerclock import PeerClocks
 from atlas_onboard.node_output import NodeOutput
 from atlas_onboard.node_setup import WorldBlocks
 from atlas_onboard.schedule import Inbound, Inbox, Item, ParkingBuffer, Relevance, relevance
@@ -32,6 +33,12 @@ class Intake:
         self.may_read = threading.Event()  # cleared while the own pose is evaluated and published
         self.may_read.set()
         self._seq = 0
+        # Each peer's clock, measured from its observations' stamps against their arrival: a stamp
+        # further in the future than it allows is refused (``future_stamp``) before it is parked or
+        # queued. Link threads share it.
+        self.clocks = PeerClocks()
+        self._clock_lock = threading.Lock()
+        self.future_refused = 0
 
     def use(self, blocks: WorldBlocks) -> None:
         """A re-read world file's lookups; what is parked is dropped."""
@@ -66,6 +73,7 @@ class Intake:
         now: list[Item] = []
         parked: list[Inbound] = []
         pause = False
+        items = self._in_time(items)
         for item in items:
             if self.relevance(item.sensor_id, item.marker_id) is Relevance.PARK:
                 if self.parking.newest_wins or item.take() is not None:  # every one counts: decoded here
@@ -81,6 +89,20 @@ class Intake:
             self.may_read.clear()  # before the put: the loop sets it again once it has published
         if now:
             self.inbox.put_many(now)
+
+    def _in_time(self, items: Sequence[Inbound]) -> list[Inbound]:
+        """``items`` without those stamped further in the future than their origin's measured clock
+        allows (:class:`PeerClocks`), counted in ``future_refused``."""
+        wall_minus_mono_us = (self.output.wall() - self.clock()) / 1000.0  # arrival on the wall clock
+        kept = []
+        with self._clock_lock:
+            for item in items:
+                arrival_wall_us = int(item.arrival_ns / 1000.0 + wall_minus_mono_us)
+                if self.clocks.future(item.origin, item.capture_time_us, arrival_wall_us):
+                    self.future_refused += 1
+                else:
+                    kept.append(item)
+        return kept
 
     def deliver_peer(self, md: MarkerData, arrival_ns: int) -> None:
         """One observation from a peer, already decoded and checked (:meth:`deliver_peers`)."""

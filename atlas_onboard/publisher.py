@@ -5,8 +5,11 @@ The node asks it after every accepted observation and on every tick; it answers 
 
 - the own entity's pose for the autopilot, only when a newer observation contributed to it (so a
   pose is never sent twice, and never once its edges have expired), at most ``rate_hz`` (:class:`RateCap`);
-- a reset counter that increments when the pose is found again after it was lost and nothing was sent for
-  at least ``reset_gap_s`` (a re-acquisition), or jumps;
+- a reset counter that increments when a pose goes after nothing was sent for at least ``reset_gap_s``
+  and the pose was lost meanwhile (a re-acquisition after a real loss: said, or held that long by the
+  gate, whose held pose is not sent again), or when a pose resting on the node's own cameras jumps
+  (never for a jump of a pose peers alone made: peers' candidates are held to the speed bound
+  instead, and a jump must not make the autopilot snap);
 - status changes (pose lost / found) for STATUSTEXT and the log;
 - the fused poses of every entity for peers and the ground station, at ``fused_rate_hz``.
 """
@@ -178,7 +181,7 @@ class Publisher:
     _last_capture_us: int = -1
     _last_p: np.ndarray | None = None
     _last_fused_ns: int | None = None
-    _lost_since_sent: bool = field(default=False)
+    _lost_since_sent: bool = field(default=False)  # said lost, or held for reset_gap_s, since the last sent
     _last_sent_ns: int | None = None
 
     def __post_init__(self) -> None:
@@ -198,7 +201,11 @@ class Publisher:
             self.has_pose = True
             status = "pose found"
         if pose.capture_time_us <= self._last_capture_us:
-            return None, status  # nothing new contributed since the last message
+            # Nothing new contributed since the last message. Held that long (the gate keeps an
+            # estimate while it refuses every candidate), it is a loss the graph did not say.
+            if self._last_sent_ns is not None and now_ns - self._last_sent_ns >= self.reset_gap_s * NS:
+                self._lost_since_sent = True
+            return None, status
         again = pose.capture_time_us == self.cap.held_capture_us
         if not self.cap.admit(pose.capture_time_us, now_ns):
             self.suppressed_rate += not again  # each capture refused counts once, however often asked
@@ -208,9 +215,12 @@ class Publisher:
             and self._last_sent_ns is not None
             and now_ns - self._last_sent_ns >= self.reset_gap_s * NS
         )
-        if reacquired or (
-            self._last_p is not None and float(np.linalg.norm(pose.p_world_m - self._last_p)) > self.reset_jump_m
-        ):
+        jumped = (
+            pose.own_view is not False
+            and self._last_p is not None
+            and float(np.linalg.norm(pose.p_world_m - self._last_p)) > self.reset_jump_m
+        )
+        if reacquired or jumped:
             self.reset_counter = (self.reset_counter + 1) % 256
         self._lost_since_sent = False
         self._last_sent_ns = now_ns

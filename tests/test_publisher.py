@@ -215,3 +215,45 @@ def test_fused_rate():
     pub = Publisher("d", fused_rate_hz=5)
     due = [pub.fused_due(t * 50 * MS) for t in range(10)]  # every 50 ms for 0.5 s
     assert due == [True, False, False, False, True, False, False, False, True, False]
+
+
+def _own_view_graph(p, capture_us, now_ns, g=None, own=True):
+    """The own pose from the node's own camera (sensor 1) or from a peer's (sensor 9) alone."""
+    g = g or TransformGraph(["world", "d"], 250 * MS, anchor_sensors={1})
+    key = (1, 1) if own else (9, 1)
+    g.update_edge(key, "world", "d", np.asarray(p, float), np.array([0, 0, 0, 1.0]), 0.01, now_ns, capture_us)
+    return g
+
+
+def test_a_jump_of_a_pose_peers_alone_made_does_not_raise_the_reset_counter():
+    """Peers' views are held to the graph's speed bound; a jump they still make (the bound grows
+    with the time since) is not a reason for the autopilot to snap to it. The own camera's is."""
+    pub = Publisher("d", rate_hz=1000, reset_jump_m=0.5)
+    g = _own_view_graph([0, 0, 0], 0, 0, own=False)
+    assert pub.autopilot(g.evaluate(0), 0)[0].reset_counter == 0
+    _own_view_graph([0.8, 0, 0], 100_000, 100 * MS, g, own=False)
+    out, _ = pub.autopilot(g.evaluate(100 * MS), 100 * MS)
+    assert out.pose.own_view is False and out.reset_counter == 0
+    own = Publisher("d", rate_hz=1000, reset_jump_m=0.5)
+    g = _own_view_graph([0, 0, 0], 0, 0)
+    own.autopilot(g.evaluate(0), 0)
+    _own_view_graph([0.8, 0, 0], 100_000, 100 * MS, g)
+    out, _ = own.autopilot(g.evaluate(100 * MS), 100 * MS)
+    assert out.pose.own_view is True and out.reset_counter == 1
+
+
+def test_a_pose_sent_after_nothing_for_the_loss_gap_is_a_reacquisition_even_when_the_pose_was_held():
+    """A pose the gate held (present, but not new: never sent again) for longer than the loss gap,
+    then a new one: the autopilot got nothing for that long, a real loss, so the counter changes,
+    once; the next frames do not change it."""
+    pub = Publisher("d", rate_hz=30, reset_gap_s=0.25)
+    g = _own_view_graph([0, 0, 0], 0, 0, own=False)
+    assert pub.autopilot(g.evaluate(0), 0)[0].reset_counter == 0
+    held = g.evaluate(0)
+    for t in range(33, 300, 33):  # the same pose (same capture) at every evaluation: nothing goes
+        assert pub.autopilot(held, t * MS) == (None, None)
+    counters = []
+    for k, t in enumerate(range(300, 450, 33)):
+        _own_view_graph([0.01 * k, 0, 0], t * 1000, t * MS, g, own=False)
+        counters.append(pub.autopilot(g.evaluate(t * MS), t * MS)[0].reset_counter)
+    assert counters == [1] * len(counters)

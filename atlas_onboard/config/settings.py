@@ -63,6 +63,13 @@ class FusionConfig:
         "a candidate farther than this many sigma from the consensus of the others is rejected and counted,"
         " and a peer's that contradicts the node's own cameras so, whoever sent it; 0: off (the paper)",
         within="[2, 100]", off=0.0, noun="a gate", paper=0.0))  # fmt: skip
+    max_speed_m_s: float = field(default=5.0, metadata=spec(
+        "the speed bound: a candidate resting on peers' observations (anything but the own cameras' direct"
+        " views of the world's markers) that would place its entity farther from its last estimate than that"
+        " estimate's uncertainty plus this speed times the time since is refused and counted (too_fast); after"
+        " no accepted candidate for edge_timeout_s the next is taken (a re-acquisition). An indoor drone's"
+        " top speed; 0: off (the paper)",
+        unit="m/s", within="[0.1, 100]", off=0.0, noun="a speed", paper=0.0))  # fmt: skip
     filter: str = field(default="none", metadata=spec(
         "none (the paper: the fused pose of the newest observations) or ekf (an error-state EKF per entity"
         " predicts through short gaps and gates outliers by Mahalanobis distance)",

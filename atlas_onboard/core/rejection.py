@@ -23,6 +23,11 @@ class Rejection(StrEnum):
     BAD_COVARIANCE = "bad_covariance"
     """A detection covariance that is not 21 finite numbers making a positive definite 6x6 matrix
     (:meth:`MarkerData.rejection` checks the numbers and the variances, the listener the rest)."""
+    INCONSISTENT_SIGMA = "inconsistent_sigma"
+    """A ``sigma`` that contradicts the record's own covariance: the camera's position spread the
+    covariance implies and ``sigma`` differ by more than ``SIGMA_COVARIANCE_TOLERANCE`` either way
+    (:mod:`atlas_onboard.listener_covariance`). The detector computes both from the same corners; a
+    record whose weight (sigma) and gate (covariance) disagree is not trusted with either."""
 
     # The listener: the world file and the planar ambiguity
     UNKNOWN_SENSOR = "unknown_sensor"
@@ -41,6 +46,14 @@ class Rejection(StrEnum):
 
     # The graph's outlier gate (counted once per refused edge observation)
     OUTLIER = "outlier"
+    TOO_FAST = "too_fast"
+    """A candidate resting on peers' observations that would move its entity farther than its last
+    estimate allows: that estimate's uncertainty plus the vehicle's top speed times the time since
+    (:mod:`atlas_onboard.core.graph.gate`). Counted once per refused edge observation."""
+    FUTURE_STAMP = "future_stamp"
+    """A peer's capture stamp ahead of its arrival by more than that peer's measured clock offset and
+    jitter allow (:mod:`atlas_onboard.core.peerclock`): it would make a pose look newer than the own
+    camera's frames."""
 
     # The peer gate (mavlink/gate.py): origin binding before decoding, then duplicates and rates
     OWN_SENSOR = "own_sensor"

@@ -18,6 +18,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -114,10 +115,13 @@ def start_solo(
     seed: int = 0,
     node_args: tuple[str, ...] = (),
     world_node: bool = False,
+    edit: Callable[[dict[str, Any]], None] | None = None,
 ) -> SoloNode:
     """Start the node of ``entity`` (default: the scenario's first drone); the scenario's clock starts
     at :meth:`SoloNode.start_scenario`. ``signing`` is the peer link's ``signing`` section.
-    ``world_node``: the world file names a node of the world (system 250), a peer the tests can play."""
+    ``world_node``: the world file names a node of the world (system 250), a peer the tests can play.
+    ``edit`` changes the run's world file (a parsed YAML document) before the node reads it: a sensor no
+    simulated camera feeds (a peer's, played by the caller), another fusion setting."""
     scenario = scenarios.get(scenario_name)
     entity = entity or scenario.drones[0]
     system_id = scenario.drones.index(entity) + 1  # as build_run_config numbers them
@@ -133,6 +137,8 @@ def start_solo(
     doc["nodes"][entity].update(peers=[peer], state_dir=str(run_dir / "state"), status_interval_s=1)
     if world_node:
         doc["nodes"].setdefault("world", {"system_id": WORLD_NODE_SYSTEM_ID})
+    if edit is not None:
+        edit(doc)
     path.write_text(yaml.safe_dump(doc, sort_keys=False), encoding="utf-8")
     env = dict(os.environ)
     env[SIM_ENV] = json.dumps(

@@ -62,6 +62,11 @@ class EdgeStore:
         self.keys: list[EdgeKey | None] = [None] * capacity
         self.free: list[int] = list(range(capacity - 1, -1, -1))
         self.version = 0  # changes whenever an edge appears or goes: the graph's shape, not its values
+        # The last record each key held before a newer observation replaced it or a newer image of its
+        # view removed it, with whether it was anchored: put back when the newer one is refused as
+        # too fast (:meth:`restore`), so a forged newer stamp cannot push the real view out.
+        self.displaced: dict[EdgeKey, tuple[Edge, bool]] = {}
+        self._restored: dict[EdgeKey, int] = {}  # key -> arrival stamp of the record put back (once only)
 
     def put(self, edge: Edge, anchored: bool) -> None:
         """Create or refresh ``edge.key`` (its row is set here). Its inverse is computed by
@@ -70,6 +75,8 @@ class EdgeStore:
         if old is None:
             slot = self._take()
         else:
+            if self._restored.get(edge.key) != old.stamp_ns:
+                self.displaced[edge.key] = (old, bool(self.anchored[old.slot]))
             slot = old.slot
             if (old.a, old.b) != (edge.a, edge.b):  # the key now joins other entities: a new shape
                 self.version += 1
@@ -87,6 +94,8 @@ class EdgeStore:
         for e in self.edges.values():
             self._release(e.slot)
         self.edges.clear()
+        self.displaced.clear()
+        self._restored.clear()
 
     def live_slots(self) -> NDArray[np.intp]:
         """The rows of the live edges, in row order."""
@@ -134,13 +143,37 @@ class EdgeStore:
         edge = self.edges.get(key)
         return edge is not None and (edge.stamp_ns > arrival_ns or edge.capture_time_us > capture_time_us)
 
-    def remove(self, key: EdgeKey) -> bool:
-        """Remove the edge ``key`` if there is one; whether there was."""
+    def remove(self, key: EdgeKey, displaced: bool = False) -> bool:
+        """Remove the edge ``key`` if there is one; whether there was. ``displaced``: a newer image of its
+        view removed it (it may be put back: :meth:`restore`)."""
         edge = self.edges.pop(key, None)
         if edge is None:
             return False
+        if displaced and self._restored.get(key) != edge.stamp_ns:
+            self.displaced[key] = (edge, bool(self.anchored[edge.slot]))
         self._release(edge.slot)
         return True
+
+    def restore(self, refused: EdgeKey, now_ns: int, timeout_ns: int) -> bool:
+        """Put back what the refused observation of ``refused`` displaced: its own previous record and
+        the edges of its view (same sensor, same two entities) that a newer image removed, where they
+        are still live and their key holds nothing newer. Whether anything was put back."""
+        edge = self.edges.get(refused)
+        if edge is None:
+            return False
+        back = []
+        for key, (old, anchored) in self.displaced.items():
+            if key[0] != refused[0] or (old.a, old.b) != (edge.a, edge.b) or now_ns - old.stamp_ns > timeout_ns:
+                continue
+            held = self.edges.get(key)
+            if key == refused or held is None:
+                back.append((key, old, anchored))
+        for key, old, anchored in back:
+            del self.displaced[key]
+            self.put(old, anchored)
+            self.displaced.pop(key, None)  # the refused record is not worth putting back in turn
+            self._restored[key] = old.stamp_ns
+        return bool(back)
 
     def _take(self) -> int:
         if not self.free:

@@ -1,8 +1,15 @@
 """Beyond the paper: the consensus gate, which leaves out a candidate that contradicts the others.
 
-A candidate is judged against the node's own cameras' views (the anchor, which no peer outvotes),
+A candidate that rests on peers' work (anything but the node's own cameras' direct views of the
+frame's root) is first held to the speed bound: it may not place its entity farther from the entity's
+last estimate than that estimate's uncertainty and the vehicle's top speed allow (:meth:`ConsensusGate.keep`).
+Then a candidate is judged against the node's own cameras' views (the anchor, which no peer outvotes),
 then against the consensus of its entity's candidates or, with fewer than three, the entity's last
 estimate (a :class:`PriorEstimate`), allowing for what the entity may have moved meanwhile.
+
+The uncertainty a candidate is judged with is the one it is weighed with: its covariance, with the
+observation's part shrunk where the sigma it is weighed by claims more confidence (see
+:class:`GateInput`), so that a large covariance cannot widen the gate of a heavily weighed candidate.
 """
 
 from __future__ import annotations
@@ -19,6 +26,15 @@ MAX_SPEED_M_S = 3.0
 """The outlier gate's allowance for motion since the last estimate (an indoor drone's top speed)."""
 MAX_RATE_RAD_S = 3.0
 """And for rotation since the last estimate (about 170 deg/s)."""
+SPEED_GATE_SIGMA = 5.0
+"""The speed bound's allowance for the estimates' errors, in their standard deviations, when the
+consensus gate is off (otherwise the gate's own ``k_sigma``)."""
+SPEED_CANDIDATE_SIGMA_CAP_M = 0.1
+"""A candidate's own uncertainty widens the speed bound by at most this (position, 1 sigma): a view
+less precise than 10 cm would barely move a fused pose by its weight, and a sender's large covariance
+must not open the bound to anywhere (a candidate 20 m off with a covariance that covers 20 m)."""
+SPEED_CANDIDATE_SIGMA_CAP_RAD = 0.1
+"""The same for the attitude (about 6 degrees, 1 sigma)."""
 
 
 class PriorEstimate(NamedTuple):
@@ -30,8 +46,15 @@ class PriorEstimate(NamedTuple):
         q_xyzw: orientation in the frame's root, x-first, shape (4,).
         sigma_m: standard deviation of the position, metres.
         sigma_att_rad: standard deviation of the attitude (mean of its three axes), radians.
-        made_ns: when it was made, on the evaluation's clock (ns).
+        made_ns: when it was made, on the evaluation's clock (ns): when a candidate was last
+            accepted for the entity (a refused one changes nothing, so the bound it sets grows with
+            the time since, and is lifted once that exceeds the edge timeout: a real loss).
         capture_time_us: capture time of its newest observation, on the swarm's clock (us).
+        cov_sigma_m: standard deviation of the position from its 6x6 covariance (mean of the three
+            axes), metres (the speed bound takes the larger of this and ``sigma_m``).
+        accepted_ns: the newest arrival (evaluation clock, ns) of the observations it was fused from:
+            the speed bound's clock. An edge fused again at the next evaluation does not restart it;
+            once it is older than the edge timeout, nothing was accepted for that long (a real loss).
     """
 
     p_m: NDArray[np.float64]
@@ -40,6 +63,8 @@ class PriorEstimate(NamedTuple):
     sigma_att_rad: float
     made_ns: int
     capture_time_us: int
+    cov_sigma_m: float = 0.0
+    accepted_ns: int = 0
 
 
 @dataclass(slots=True)
@@ -47,7 +72,9 @@ class GateInput:
     """One stage's candidates as the gate sees them, shapes (N, ...): ``child`` (entity index),
     ``p``, ``q`` (xyzw) and ``cov`` (6x6) of each candidate in the root's frame, ``capture_us``
     (capture time of its newest part), ``anchored`` (the own cameras' direct views of the root's
-    markers), ``arrival_ns`` (when its edge arrived)."""
+    markers), ``arrival_ns`` (when its edge arrived). ``cov`` is the covariance the candidate is
+    weighed with: where the sigma its fusion weight comes from claims more confidence than the
+    covariance, the covariance is shrunk to it (:func:`atlas_onboard.core.graph.pose.gate_covariance`)."""
 
     child: NDArray[np.intp]
     p: NDArray[np.float64]
@@ -58,30 +85,103 @@ class GateInput:
     arrival_ns: NDArray[np.int64]
 
 
+@dataclass(frozen=True, slots=True)
+class Verdict:
+    """The gate's verdict on a stage's candidates, shape (N,): ``keep``, and among those left out the
+    ones the speed bound refused (``too_fast``; the others contradicted the anchor or the consensus)."""
+
+    keep: NDArray[np.bool_]
+    too_fast: NDArray[np.bool_]
+
+
 class ConsensusGate:
     """The gate of one graph, with its memory: each entity's last estimate per frame root, and
     which edge observations it has already counted as rejected."""
 
-    def __init__(self, k_sigma: float, edge_timeout_ns: int) -> None:
+    def __init__(self, k_sigma: float, edge_timeout_ns: int, max_speed_m_s: float = 0.0) -> None:
         self.k_sigma = k_sigma  # a candidate beyond this many standard deviations is out; 0: off
         self.edge_timeout_ns = edge_timeout_ns
+        self.max_speed_m_s = max_speed_m_s  # the speed bound on peers' candidates; 0: off
         self.priors: dict[tuple[int, int], PriorEstimate] = {}  # (root, entity) -> its last estimate
         self._counted: dict[EdgeKey, int] = {}  # edge -> the arrival stamp of its last counted rejection
+        self._counted_before: dict[EdgeKey, int] = {}  # and the one before (a record put back)
         self.rejected_total = 0  # distinct edge observations rejected (each counted once)
+        self.too_fast_total = 0  # of those, refused by the speed bound
 
     @property
     def enabled(self) -> bool:
-        return self.k_sigma > 0.0
+        return self.k_sigma > 0.0 or self.max_speed_m_s > 0.0
 
-    def count(self, keys: list[EdgeKey | None], stamps_ns: list[int]) -> None:
-        """Count the rejected observations (edge and arrival stamp) not counted before."""
+    def count(self, keys: list[EdgeKey | None], stamps_ns: list[int], too_fast: bool = False) -> None:
+        """Count the rejected observations (edge and arrival stamp) not counted before; ``too_fast``:
+        those the speed bound refused (counted apart)."""
+        last, before = self._counted, self._counted_before
         for key, stamp in zip(keys, stamps_ns, strict=True):
-            if key is not None and self._counted.get(key) != stamp:
-                self._counted[key] = stamp
-                self.rejected_total += 1
+            if key is not None and stamp not in (last.get(key), before.get(key)):
+                if key in last:
+                    before[key] = last[key]
+                last[key] = stamp
+                if too_fast:
+                    self.too_fast_total += 1
+                else:
+                    self.rejected_total += 1
 
     def remember(self, root: int, entity: int, prior: PriorEstimate) -> None:
         self.priors[(root, entity)] = prior
+
+    def verdict(self, root: int, now_ns: int, c: GateInput) -> Verdict:
+        """The speed bound (:meth:`too_fast`), then the consensus (:meth:`keep`) on what it kept."""
+        fast = self.too_fast(root, now_ns, c)
+        if self.k_sigma <= 0.0:
+            return Verdict(~fast, fast)
+        if not fast.any():
+            return Verdict(self.keep(root, now_ns, c), fast)
+        rest = np.flatnonzero(~fast)
+        keep = np.zeros(len(fast), dtype=bool)
+        sub = GateInput(c.child[rest], c.p[rest], c.q[rest], c.cov[rest], c.capture_us[rest], c.anchored[rest],
+                        c.arrival_ns[rest])  # fmt: skip
+        keep[rest] = self.keep(root, now_ns, sub)
+        return Verdict(keep, fast)
+
+    def too_fast(self, root: int, now_ns: int, c: GateInput) -> NDArray[np.bool_]:
+        """Which candidates resting on peers' work (not ``anchored``) would move their entity beyond
+        what its last estimate allows, each on its own (before any consensus: several forged views
+        cannot outvote the real one by their number).
+
+        The bound on the position is ``k (sigma_prior (+) sigma_candidate) + max_speed * dt``: the
+        estimate's uncertainty (the larger of its scalar and covariance sigmas) and the candidate's
+        (at most ``SPEED_CANDIDATE_SIGMA_CAP_M``) combined, plus the distance the vehicle can cover in
+        the time ``dt`` from the estimate's capture to the candidate's (0 for a candidate older than
+        the estimate: a sender chooses its stamps, and an old stamp must not buy distance). The
+        attitude likewise, with ``MAX_RATE_RAD_S``. No bound without an estimate, or once the newest
+        observation it rests on arrived longer than the edge timeout ago (no candidate was accepted for that
+        long: a real loss, and the next candidate is a re-acquisition: :attr:`PriorEstimate.accepted_ns`).
+        ``k`` is the gate's
+        ``k_sigma``, or ``SPEED_GATE_SIGMA`` when the gate is off. All False when the bound is off."""
+        fast = np.zeros(len(c.child), dtype=bool)
+        if self.max_speed_m_s <= 0.0:
+            return fast
+        k = self.k_sigma if self.k_sigma > 0.0 else SPEED_GATE_SIGMA
+        peers = np.flatnonzero(~c.anchored)
+        if peers.size == 0:
+            return fast
+        cov = c.cov[peers]
+        s_pos = np.minimum(np.sqrt(np.trace(cov[:, :3, :3], axis1=1, axis2=2) / 3.0), SPEED_CANDIDATE_SIGMA_CAP_M)
+        s_att = np.minimum(np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2) / 3.0), SPEED_CANDIDATE_SIGMA_CAP_RAD)
+        for j, i in enumerate(peers.tolist()):
+            prior = self.priors.get((root, int(c.child[i])))
+            if prior is None or now_ns - prior.accepted_ns > self.edge_timeout_ns:
+                continue
+            dt_s = max(int(c.capture_us[i]) - prior.capture_time_us, 0) / 1e6
+            sp = max(prior.sigma_m, prior.cov_sigma_m)
+            d_p = float(np.linalg.norm(c.p[i] - prior.p_m))
+            d_a = float(angles(prior.q_xyzw, c.q[i]))
+            ok = (
+                d_p <= k * np.hypot(sp, s_pos[j]) + self.max_speed_m_s * dt_s
+                and d_a <= k * np.hypot(prior.sigma_att_rad, s_att[j]) + MAX_RATE_RAD_S * dt_s
+            )
+            fast[i] = not ok
+        return fast
 
     def keep(self, root: int, now_ns: int, c: GateInput) -> NDArray[np.bool_]:
         """Which candidates agree with the consensus of their entity's candidates.

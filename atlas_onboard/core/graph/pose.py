@@ -15,8 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from atlas_onboard.core import covariance, fusion, geometry
-from atlas_onboard.core.graph.edges import EdgeStore
-from atlas_onboard.core.graph.gate import ConsensusGate, GateInput, PriorEstimate
+from atlas_onboard.core.graph.edges import EdgeKey, EdgeStore
+from atlas_onboard.core.graph.gate import ConsensusGate, GateInput, PriorEstimate, Verdict
 from atlas_onboard.core.graph.paths import Plan
 from atlas_onboard.core.graph.result import Candidate, EntityPose
 
@@ -39,7 +39,8 @@ class PoseOptions:
 class Vertices:
     """Every vertex's estimate so far, in the root's frame, indexed by vertex: position ``p`` (n, 3),
     orientation ``q`` (n, 4) xyzw, covariance ``cov`` (n, 6, 6), position ``sigma`` (n,) m, the
-    capture time of its newest observation ``stamp_us`` (n,), its number of candidates ``count``."""
+    capture time of its newest observation ``stamp_us`` (n,), its number of candidates ``count``,
+    whether one of them is a direct view of the root by the node's own cameras ``own`` (n,)."""
 
     p: NDArray[np.float64]
     q: NDArray[np.float64]
@@ -47,6 +48,7 @@ class Vertices:
     sigma: NDArray[np.float64]
     stamp_us: NDArray[np.int64]
     count: NDArray[np.intp]
+    own: NDArray[np.bool_]
 
     @classmethod
     def at_root(cls, n: int) -> Vertices:
@@ -54,7 +56,7 @@ class Vertices:
         q = np.zeros((n, 4))
         q[:, 3] = 1.0
         return cls(np.zeros((n, 3)), q, np.zeros((n, 6, 6)), np.zeros(n), np.zeros(n, dtype=np.int64),
-                   np.zeros(n, dtype=np.intp))  # fmt: skip
+                   np.zeros(n, dtype=np.intp), np.zeros(n, dtype=bool))  # fmt: skip
 
 
 @dataclass(slots=True)
@@ -120,23 +122,30 @@ class StageCandidates:
 @dataclass(frozen=True, slots=True)
 class FrameEvaluation:
     """The pose phase from one root: the poses (in the root's frame), the visiting order and levels
-    (vertex indices), how many candidates the gate left out, and whether the goal (if any) is the
-    parent of some candidate (then other entities' poses rest on it)."""
+    (vertex indices), how many candidates the gate left out, whether the goal (if any) is the
+    parent of some candidate (then other entities' poses rest on it), and the edges whose
+    observations the speed bound refused."""
 
     poses: dict[str, EntityPose]
     order: list[int]
     levels: dict[int, int]
     gated: int
     goal_is_parent: bool
+    too_fast: tuple[EdgeKey, ...] = ()
 
 
 class PosePhase:
-    """The pose phase of one graph: its vertex names, options and gate."""
+    """The pose phase of one graph: its vertex names, options and gate. ``own_known``: the graph knows
+    which sensors are the node's own (then each pose says whether it rests on their views)."""
 
-    def __init__(self, names: tuple[str, ...], options: PoseOptions, gate: ConsensusGate) -> None:
+    def __init__(
+        self, names: tuple[str, ...], options: PoseOptions, gate: ConsensusGate, own_known: bool = False
+    ) -> None:
         self.names = names
         self.options = options
         self.gate = gate
+        self.own_known = own_known
+        self._too_fast: list[EdgeKey] = []  # this run's edges refused by the speed bound
 
     def run(
         self,
@@ -153,35 +162,46 @@ class PosePhase:
         vx = Vertices.at_root(len(self.names))
         edges = _edge_terms(store, plan, self.options)
         gated = 0
+        self._too_fast: list[EdgeKey] = []
         for sel, runs, from_root in zip(plan.stages, plan.runs, plan.from_root, strict=True):
             cands = _compose(vx, edges.stage(sel), from_root)
+            anchored = store.anchored[cands.row] & (cands.parent == root)
             keep = None
             if self.gate.enabled:
-                keep = self._gate(store, cands, vx, root, now_ns)
+                keep = self._gate(store, cands, vx, root, now_ns, anchored)
                 gated += int(keep.size - keep.sum())
             if out is not None:
                 self._collect(out, store, cands, vx, root, keep)
             if keep is not None and not keep.all():
                 self._hold_rejected(vx, cands.child, keep, root)
                 cands = cands.select(keep)
+                anchored = anchored[keep]
                 if len(cands.child) == 0:
                     continue
                 runs = covariance.runs_by_parent(cands.child, cands.parent)
-            self._fuse(vx, cands, runs, root, now_ns)
+            self._fuse(vx, cands, runs, root, now_ns, store.stamp[cands.row])
+            if self.own_known:
+                vx.own[runs[0].ids] = np.logical_or.reduceat(anchored, runs[0].starts)
         order, level = plan.order.tolist(), plan.level.tolist()
         levels = {v: level[v] for v in order}
-        return FrameEvaluation(self._poses(vx, plan, root, goal), order, levels, gated, plan.goal_is_parent)
+        poses = self._poses(vx, plan, root, goal)
+        return FrameEvaluation(poses, order, levels, gated, plan.goal_is_parent, tuple(self._too_fast))
 
-    def _gate(self, store: EdgeStore, c: StageCandidates, vx: Vertices, root: int, now_ns: int) -> NDArray[np.bool_]:
-        """The gate's verdict on a stage's candidates; counts the rejected edge observations."""
-        # The anchor: the own cameras' direct views of the root's markers (through another entity,
-        # a candidate also rests on that entity's estimate: a peer's work).
-        anchored = store.anchored[c.row] & (c.parent == root)
-        gate_in = GateInput(c.child, c.p, c.q, c.covariance(vx.cov), c.capture_us, anchored, store.stamp[c.row])
-        keep = self.gate.keep(root, now_ns, gate_in)
-        out = c.row[~keep].tolist()
-        self.gate.count([store.keys[slot] for slot in out], [int(store.stamp[slot]) for slot in out])
-        return keep
+    def _gate(
+        self, store: EdgeStore, c: StageCandidates, vx: Vertices, root: int, now_ns: int, anchored: NDArray[np.bool_]
+    ) -> NDArray[np.bool_]:
+        """The gate's verdict on a stage's candidates; counts the rejected edge observations.
+        ``anchored``: the own cameras' direct views of the root's markers (through another entity, a
+        candidate also rests on that entity's estimate: a peer's work)."""
+        s_weigh = c.s_edge if anchored.all() else weigh_sigma(self.options, c, vx)  # (unused when all are own)
+        cov = gate_covariance(c, vx, s_weigh, anchored, self.options.path == "dijkstra")
+        gate_in = GateInput(c.child, c.p, c.q, cov, c.capture_us, anchored, store.stamp[c.row])
+        verdict: Verdict = self.gate.verdict(root, now_ns, gate_in)
+        for fast in (False, True):
+            out = c.row[~verdict.keep & (verdict.too_fast == fast)].tolist()
+            self.gate.count([store.keys[slot] for slot in out], [int(store.stamp[slot]) for slot in out], fast)
+        self._too_fast += [key for slot in c.row[verdict.too_fast].tolist() if (key := store.keys[slot]) is not None]
+        return verdict.keep
 
     def _collect(
         self,
@@ -213,25 +233,21 @@ class PosePhase:
             vx.p[v], vx.q[v], vx.sigma[v] = prior.p_m, prior.q_xyzw, prior.sigma_m
             vx.cov[v] = covariance.diagonal(prior.sigma_m, prior.sigma_att_rad)
             vx.stamp_us[v] = prior.capture_time_us
+            vx.own[v] = False
 
     def _fuse(
-        self, vx: Vertices, c: StageCandidates, runs: tuple[fusion.Runs, fusion.Runs], root: int, now_ns: int
+        self,
+        vx: Vertices,
+        c: StageCandidates,
+        runs: tuple[fusion.Runs, fusion.Runs],
+        root: int,
+        now_ns: int,
+        arrival_ns: NDArray[np.int64],
     ) -> None:
         """eq. 4-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
         The paper weighs by the sensor's sigma; Dijkstra weighs by the whole chain's."""
         kids, pairs = runs
-        dijkstra = self.options.path == "dijkstra"
-        s_weigh = c.s if dijkstra else c.s_edge
-        if self.options.inverse_variance:
-            # Beyond the paper: weights from each candidate's propagated position variance (its
-            # covariance's position block, the detector's own where it reported one, aged), so a
-            # fresh precise view outweighs a stale or a poorly placed one whatever their sigma says.
-            c_weigh = (
-                c.edge_term
-                if c.Jp is None or not dijkstra
-                else c.edge_term + covariance.transform(c.Jp, vx.cov[c.parent])
-            )
-            s_weigh = np.sqrt(np.maximum(np.trace(c_weigh[:, :3, :3], axis1=1, axis2=2) / 3.0, 1e-30))
+        s_weigh = weigh_sigma(self.options, c, vx)
         weights = np.repeat(np.minimum.reduceat(s_weigh, kids.starts), kids.sizes) / s_weigh
         if self.options.inverse_variance:
             weights = weights**2
@@ -242,9 +258,14 @@ class PosePhase:
         newest = np.maximum.reduceat(c.capture_us, kids.starts)
         vx.stamp_us[ids] = newest
         if self.gate.enabled:
+            accepted = np.maximum.reduceat(arrival_ns, kids.starts).tolist()
             for k, v in enumerate(ids.tolist()):
                 att = float(np.sqrt(max(np.trace(vx.cov[v][3:, 3:]) / 3.0, 0.0)))
-                prior = PriorEstimate(vx.p[v].copy(), vx.q[v].copy(), float(vx.sigma[v]), att, now_ns, int(newest[k]))
+                pos = float(np.sqrt(max(np.trace(vx.cov[v][:3, :3]) / 3.0, 0.0)))
+                prior = PriorEstimate(
+                    vx.p[v].copy(), vx.q[v].copy(), float(vx.sigma[v]), att, now_ns, int(newest[k]), pos,
+                    int(accepted[k]),
+                )  # fmt: skip
                 self.gate.remember(root, v, prior)
 
     def _poses(self, vx: Vertices, plan: Plan, root: int, goal: int | None) -> dict[str, EntityPose]:
@@ -259,9 +280,54 @@ class PosePhase:
                 continue
             name = self.names[v]
             poses[name] = EntityPose(
-                name, vx.p[v], vx.q[v], levels[v], rank_v, counts[v], sigmas[v], stamps[v], frame, vx.cov[v]
+                name,
+                vx.p[v],
+                vx.q[v],
+                levels[v],
+                rank_v,
+                counts[v],
+                sigmas[v],
+                stamps[v],
+                frame,
+                vx.cov[v],
+                own_view=bool(vx.own[v]) if self.own_known else None,
             )
         return poses
+
+
+def weigh_sigma(options: PoseOptions, c: StageCandidates, vx: Vertices) -> NDArray[np.float64]:
+    """The sigma each candidate is weighed by (eq. 6-7): the edge's (the paper), the whole chain's
+    (Dijkstra), or with inverse variance its propagated covariance's position block."""
+    dijkstra = options.path == "dijkstra"
+    if not options.inverse_variance:
+        return c.s if dijkstra else c.s_edge
+    # Beyond the paper: weights from each candidate's propagated position variance (its covariance's
+    # position block, the detector's own where it reported one, aged), so a fresh precise view
+    # outweighs a stale or a poorly placed one whatever their sigma says.
+    c_weigh = c.edge_term
+    if c.Jp is not None and dijkstra:
+        c_weigh = c.edge_term + covariance.transform(c.Jp, vx.cov[c.parent])
+    return np.sqrt(np.maximum(np.trace(c_weigh[:, :3, :3], axis1=1, axis2=2) / 3.0, 1e-30))
+
+
+def gate_covariance(
+    c: StageCandidates, vx: Vertices, s_weigh: NDArray[np.float64], anchored: NDArray[np.bool_], dijkstra: bool
+) -> NDArray[np.float64]:
+    """Each candidate's 6x6 covariance as the gate judges it: the one it is weighed with. Where the
+    sigma it is weighed by (``s_weigh``) is smaller than the position spread of the part of its
+    covariance that sigma describes (the edge's, or with Dijkstra the whole chain's), that part is
+    shrunk by their ratio: a sender cannot claim a large covariance to pass the gate and a small sigma
+    to weigh. The node's own direct views (``anchored``) are taken as they are."""
+    full = c.covariance(vx.cov)
+    if anchored.all():
+        return full
+    part = full if dijkstra or c.Jp is None else c.edge_term
+    spread = np.sqrt(np.maximum(np.trace(part[:, :3, :3], axis1=1, axis2=2) / 3.0, 1e-30))
+    f = np.where(anchored, 1.0, np.minimum(s_weigh / spread, 1.0))
+    if (f >= 1.0).all():
+        return full
+    shrink = (f**2 - 1.0)[:, None, None] * part
+    return full + shrink
 
 
 def _edge_terms(store: EdgeStore, plan: Plan, options: PoseOptions) -> StageEdges:

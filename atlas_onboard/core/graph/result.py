@@ -58,6 +58,9 @@ class EntityPose:
         angular_rate_rad_s: body angular rate about the body axes (None unless a filter estimates it).
         velocity_covariance: 6x6 covariance of (velocity, angular rate) (None unless a filter
             estimates them).
+        own_view: whether a fused candidate is a direct view of the frame's root by the node's own
+            cameras (False: the pose rests on peers' work alone; None: the graph was not told which
+            sensors are the node's own).
     """
 
     name: str
@@ -73,6 +76,7 @@ class EntityPose:
     velocity_m_s: NDArray[np.float64] | None = None
     angular_rate_rad_s: NDArray[np.float64] | None = None
     velocity_covariance: NDArray[np.float64] | None = None
+    own_view: bool | None = None
 
     @property
     def T_world_entity(self) -> RigidTransform:

@@ -42,6 +42,7 @@ class TransformGraph:
         age_sigma_rad_per_s: float = 0.0,
         keep_candidates: bool = False,
         anchor_sensors: frozenset[int] = frozenset(),
+        max_speed_m_s: float = 0.0,
     ) -> None:
         """``path``: ``bfs`` (the paper) or ``dijkstra`` (see :meth:`evaluate`). ``inverse_variance``:
         weights from each candidate's covariance, squared. ``relative``: poses of the groups without
@@ -51,7 +52,9 @@ class TransformGraph:
         ``age_sigma_rad_per_s`` its attitude covariance grows likewise (0: the paper's method, every
         live edge counts as new). ``outlier_gate_sigma`` > 0: the consensus gate
         (:mod:`~atlas_onboard.core.graph.gate`), whose anchor is the candidates of the node's own
-        sensors (``anchor_sensors``). ``keep_candidates``: the result lists every candidate."""
+        sensors (``anchor_sensors``). ``max_speed_m_s`` > 0: the speed bound on candidates that rest on
+        peers' work (:meth:`~atlas_onboard.core.graph.gate.ConsensusGate.too_fast`). ``keep_candidates``:
+        the result lists every candidate."""
         names = list(entity_names)
         if WORLD not in names:
             names.insert(0, WORLD)
@@ -69,9 +72,9 @@ class TransformGraph:
         self.keep_candidates = keep_candidates
         self._store = EdgeStore()
         self._planner = Planner(len(names), path)
-        self._gate = ConsensusGate(outlier_gate_sigma, self.edge_timeout_ns)
+        self._gate = ConsensusGate(outlier_gate_sigma, self.edge_timeout_ns, max_speed_m_s)
         options = PoseOptions(inverse_variance, path, age_sigma_m_per_s, age_sigma_rad_per_s)
-        self._pose = PosePhase(self.names, options, self._gate)
+        self._pose = PosePhase(self.names, options, self._gate, own_known=bool(self.anchor_sensors))
         # For a targeted evaluation: which entities' edges changed (came, were refreshed or went)
         # since the last full evaluation, and whether there has been one.
         self._touched = np.zeros(len(names), dtype=bool)
@@ -114,8 +117,13 @@ class TransformGraph:
 
     @property
     def gated_total(self) -> int:
-        """Distinct edge observations the gate rejected (counted once each)."""
+        """Distinct edge observations the gate rejected as outliers (counted once each)."""
         return self._gate.rejected_total
+
+    @property
+    def too_fast_total(self) -> int:
+        """Distinct edge observations the speed bound refused (counted once each)."""
+        return self._gate.too_fast_total
 
     # --- edges --------------------------------------------------------------------------------------
 
@@ -192,7 +200,7 @@ class TransformGraph:
         stale, self._stale = self._stale, None
         if stale is not None:
             for old in stale[2]:
-                self._store.remove(old)
+                self._store.remove(old, displaced=True)
 
     def clear(self) -> None:
         """Forget every edge."""
@@ -285,6 +293,11 @@ class TransformGraph:
         cands: dict[str, list[Candidate]] | None = {} if self.keep_candidates else None
         goal = self.index[target] if target is not None else None
         frame = self._evaluate_from(slots, world, now_ns, cands, goal)
+        if frame.too_fast and self._restore(frame.too_fast, now_ns):
+            # A newer observation refused as too fast had pushed out a view that may be the real one.
+            slots = self._store.live_slots()
+            cands = {} if self.keep_candidates else None
+            frame = self._evaluate_from(slots, world, now_ns, cands, goal)
         reached = set(frame.order)
         if goal is not None and goal not in reached:
             goal = None  # _evaluate_from has evaluated everything: the relative poses follow
@@ -322,6 +335,16 @@ class TransformGraph:
 
     def _root(self, root: int | None) -> int:
         return self.index[WORLD] if root is None else root
+
+    def _restore(self, refused: tuple[EdgeKey, ...], now_ns: int) -> bool:
+        """Put back what the refused observations displaced (:meth:`EdgeStore.restore`)."""
+        back = False
+        for key in refused:
+            edge = self._store.edges.get(key)
+            if edge is not None and self._store.restore(key, now_ns, self.edge_timeout_ns):
+                back = True
+                self._touched[edge.a] = self._touched[edge.b] = True
+        return back
 
     def _evaluate_from(
         self,
