@@ -80,6 +80,8 @@ def make_graph(world: WorldConfig, own_entity: str | None = None) -> TransformGr
         outlier_gate_sigma=f.outlier_gate_sigma,
         keep_candidates=f.filter == "ekf",
         anchor_sensors=frozenset(s.id for s in own),
+        align=f.align_edges,
+        max_relayed_sigma_m=f.max_relayed_sigma_m,
     )
 
 

@@ -42,6 +42,8 @@ class TransformGraph:
         age_sigma_rad_per_s: float = 0.0,
         keep_candidates: bool = False,
         anchor_sensors: frozenset[int] = frozenset(),
+        align: bool = False,
+        max_relayed_sigma_m: float = 0.0,
     ) -> None:
         """``path``: ``bfs`` (the paper) or ``dijkstra`` (see :meth:`evaluate`). ``inverse_variance``:
         weights from each candidate's covariance, squared. ``relative``: poses of the groups without
@@ -51,7 +53,11 @@ class TransformGraph:
         ``age_sigma_rad_per_s`` its attitude covariance grows likewise (0: the paper's method, every
         live edge counts as new). ``outlier_gate_sigma`` > 0: the consensus gate
         (:mod:`~atlas_onboard.core.graph.gate`), whose anchor is the candidates of the node's own
-        sensors (``anchor_sensors``). ``keep_candidates``: the result lists every candidate."""
+        sensors (``anchor_sensors``). ``keep_candidates``: the result lists every candidate.
+        ``align``: a parent that is not the root is taken at its child's capture time, interpolated
+        or extrapolated from its recent poses (:mod:`~atlas_onboard.core.graph.timing`), its
+        covariance grown by that step; ``max_relayed_sigma_m`` > 0: a candidate through such a
+        parent whose position sigma (largest axis) exceeds it is left out."""
         names = list(entity_names)
         if WORLD not in names:
             names.insert(0, WORLD)
@@ -70,7 +76,9 @@ class TransformGraph:
         self._store = EdgeStore()
         self._planner = Planner(len(names), path)
         self._gate = ConsensusGate(outlier_gate_sigma, self.edge_timeout_ns)
-        options = PoseOptions(inverse_variance, path, age_sigma_m_per_s, age_sigma_rad_per_s)
+        options = PoseOptions(
+            inverse_variance, path, age_sigma_m_per_s, age_sigma_rad_per_s, align, max_relayed_sigma_m
+        )
         self._pose = PosePhase(self.names, options, self._gate)
         # For a targeted evaluation: which entities' edges changed (came, were refreshed or went)
         # since the last full evaluation, and whether there has been one.
@@ -201,6 +209,7 @@ class TransformGraph:
         self._touched[[e.b for e in self._store.edges.values()]] = True
         self._store.clear()
         self._views.clear()
+        self._pose.motion.clear()
 
     def expire(self, now_ns: int) -> int:
         """Remove edges older than the timeout (age > timeout); returns how many were removed."""
