@@ -35,6 +35,7 @@ class PoseOptions:
     # A candidate through such a parent whose position sigma (largest axis) exceeds this is left out
     # (0: no limit): a leader with no fresh view cannot place its follower.
     max_relayed_sigma_m: float = 0.0
+    hold_us: int = 250_000  # how long a child with no usable candidate keeps its last pose (capture time)
 
     @property
     def ageing(self) -> bool:
@@ -205,10 +206,12 @@ class PosePhase:
 
     def _compose_aligned(self, vx: Vertices, e: StageEdges, root: int) -> StageCandidates | None:
         """A stage's candidates with each parent taken at the candidate's capture time (:mod:`.timing`).
-        Left out: those whose parent has no pose, those that wait for the parent's next pose (it will
-        bracket their time: an interpolation, not an extrapolation; the child keeps its last pose,
-        not re-sent) and those whose position sigma (largest axis) passes ``max_relayed_sigma_m`` (a
-        child left with none has no pose: lost). None when none is left."""
+        Left out: those whose parent has no pose; those whose parent's motion is unknown (fewer than
+        two recent poses) at another instant than its pose's; those that wait for the parent's next
+        pose (it will bracket their time: an interpolation, not an extrapolation); and those whose
+        position sigma (largest axis) passes ``max_relayed_sigma_m``. A child left with none keeps
+        its last pose (its stamp unchanged: not sent again) for at most ``hold_us`` of capture
+        time, then has none (lost). None when no candidate is left."""
         ok = ~vx.lost[e.parent]
         if not ok.all():
             vx.lost[np.setdiff1d(e.child[~ok], e.child[ok])] = True
@@ -217,7 +220,7 @@ class PosePhase:
                 return None
         parents = self.motion.parents(root, e.parent, e.capture_us, e.p, vx.p, vx.q, vx.cov, vx.stamp_us)
         c = _compose(vx, e, False, parents)
-        keep = ~parents.wait
+        keep = ~parents.wait & ~parents.unknown
         limit = self.options.max_relayed_sigma_m
         if limit > 0.0:
             keep &= np.linalg.eigvalsh(c.covariance(None)[:, :3, :3])[:, -1] <= limit**2
@@ -225,8 +228,8 @@ class PosePhase:
             return c
         for v in np.setdiff1d(c.child[~keep], c.child[keep]).tolist():
             held = self.motion.newest(root, v)
-            waiting = parents.wait[c.child == v].any()
-            if waiting and held is not None:
+            newest = int(c.capture_us[c.child == v].max())
+            if held is not None and newest - held.t_us <= self.options.hold_us:
                 vx.p[v], vx.q[v], vx.cov[v], vx.stamp_us[v] = held.p, held.q, held.cov, held.t_us
                 vx.sigma[v] = float(np.sqrt(np.trace(held.cov[:3, :3]) / 3.0))
                 vx.count[v] = 1

@@ -64,6 +64,7 @@ class Parents:
     cov: NDArray[np.float64]
     moved: NDArray[np.bool_]
     wait: NDArray[np.bool_]  # past the parent's newest pose, and its next one is due before: wait for it
+    unknown: NDArray[np.bool_]  # at another instant than the parent's pose, its motion unknown
 
 
 class MotionHistory:
@@ -137,7 +138,7 @@ class MotionHistory:
             at = self.at(root, v, t, float(lever[i]))
             if at is not None:
                 out_p[i], out_q[i], out_cov[i], moved[i] = at.p, at.q, at.cov, True
-        return Parents(out_p, out_q, out_cov, moved, wait)
+        return Parents(out_p, out_q, out_cov, moved, wait, (capture_us != stamp_us[parent]) & ~moved)
 
     def newest(self, root: int, v: int) -> Sample | None:
         """``v``'s newest fused pose, if any."""

@@ -24,6 +24,7 @@ from atlas_onboard.core.graph.paths import PATHS, Planner, bfs, dijkstra
 from atlas_onboard.core.graph.pose import FrameEvaluation, PoseOptions, PosePhase
 from atlas_onboard.core.graph.relative import relative_groups
 from atlas_onboard.core.graph.result import Candidate, EntityPose, GraphResult
+from atlas_onboard.core.graph.timing import WINDOW_US
 from atlas_onboard.errors import GeometryError
 
 
@@ -57,7 +58,8 @@ class TransformGraph:
         ``align``: a parent that is not the root is taken at its child's capture time, interpolated
         or extrapolated from its recent poses (:mod:`~atlas_onboard.core.graph.timing`), its
         covariance grown by that step; ``max_relayed_sigma_m`` > 0: a candidate through such a
-        parent whose position sigma (largest axis) exceeds it is left out."""
+        parent whose position sigma (largest axis) exceeds it is left out (a child left with none keeps
+        its last pose, not re-sent, for at most the edge timeout or 0.3 s of capture time, then none)."""
         names = list(entity_names)
         if WORLD not in names:
             names.insert(0, WORLD)
@@ -77,7 +79,13 @@ class TransformGraph:
         self._planner = Planner(len(names), path)
         self._gate = ConsensusGate(outlier_gate_sigma, self.edge_timeout_ns)
         options = PoseOptions(
-            inverse_variance, path, age_sigma_m_per_s, age_sigma_rad_per_s, align, max_relayed_sigma_m
+            inverse_variance,
+            path,
+            age_sigma_m_per_s,
+            age_sigma_rad_per_s,
+            align,
+            max_relayed_sigma_m,
+            min(self.edge_timeout_ns // 1000, WINDOW_US),
         )
         self._pose = PosePhase(self.names, options, self._gate)
         # For a targeted evaluation: which entities' edges changed (came, were refreshed or went)
