@@ -45,7 +45,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 from atlas_onboard.core.markerdata import Rejection
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.sim import report, runner, scenarios
+from atlas_onboard.sim import follow, report, runner, scenarios
 from atlas_onboard.sim.camera import frames_path
 from atlas_onboard.sim.command import score_run
 from atlas_onboard.sim.runner import WARMUP_S, SimOptions, run
@@ -204,47 +204,20 @@ def per_frame_floor(duration_s: float, directory: Path) -> Figures:
 
 
 def offline(duration_s: float, directory: Path, fusion: dict[str, Any]) -> dict[str, float]:
-    """The follower's estimator alone on the run's frames: each camera at its own rate, every
-    observation arriving ``OFFLINE_DELAY_S`` after its capture, the graph evaluated at each arrival;
-    a pose scored when its capture time is new (what the publisher sends). No autopilot attitude."""
-    import dataclasses
+    """The follower's estimator alone on the run's frames (:mod:`atlas_onboard.sim.follow`): each camera
+    at its own rate, every observation arriving ``OFFLINE_DELAY_S`` after its capture. No autopilot
+    attitude."""
 
-    scenario = scenarios.get(SCENARIO)
-    world = scenario.world()
-    if fusion:
-        world = dataclasses.replace(world, fusion=dataclasses.replace(world.fusion, **fusion))
-    sim_world = SimWorld(scenario, world)
-    events = []
-    for cam in cameras(world, sim_world, directory).values():
-        for j in range(math.floor(WARMUP_S * cam.fps) - 15, min(len(cam.frames), math.floor(duration_s * cam.fps))):
-            t = j / cam.fps
-            events.append((t + OFFLINE_DELAY_S, t, cam.detector.detect(np.asarray(cam.frames[j]), round(t * 1e6))))
-    events.sort(key=lambda e: e[0])
-    graph = make_graph(world, FOLLOWER)
-    listener = Listener(world, graph)
-    gaps = leader_gaps(sim_world, duration_s)
-    last, errs, e6s, covs, caps = -1, [], [], [], []
-    for arrival, _t, mds in events:
-        now = round(arrival * 1e9)
-        listener.accept_many([(md, now) for md in mds])
-        result = graph.evaluate(now)
-        listener.set_estimates(result.poses)
-        f = result.poses.get(FOLLOWER)
-        if f is None or f.capture_time_us <= last or f.covariance is None:
-            continue
-        last = f.capture_time_us
-        tc = f.capture_time_us / 1e6
-        if tc < WARMUP_S:
-            continue
-        T = sim_world.truth(tc, (FOLLOWER,))[FOLLOWER]
-        e = np.r_[f.p_world_m - T.translation, (T.rotation.inv() * Rotation.from_quat(f.q_world_xyzw)).as_rotvec()]
-        errs.append(float(np.linalg.norm(e[:3])) * 1e3)
-        e6s.append(e)
-        covs.append(f.covariance)
-        caps.append(tc)
-    if not errs:
+    def frames_of(sid: int) -> Any:
+        frames = np.load(frames_path(directory, sid), mmap_mode="r")
+        return lambda j: frames[j]
+
+    track = follow.run(SCENARIO, FOLLOWER, frames_of, WARMUP_S, duration_s, OFFLINE_DELAY_S, fusion)
+    if not len(track.capture_s):
         return {"messages": 0.0}
-    return Figures(np.array(errs), np.array(e6s), np.array(covs), inside(np.array(caps), gaps)).summary()
+    gaps = leader_gaps(SimWorld(scenarios.get(SCENARIO)), duration_s)
+    in_gap = inside(track.capture_s, gaps)
+    return Figures(track.error_mm, track.errors, track.covariances, in_gap).summary()
 
 
 def bar_values(f: dict[str, float], floor: dict[str, float]) -> dict[str, float]:
