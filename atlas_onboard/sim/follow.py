@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.node_output import _make_ekf
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.world import SimWorld
 
@@ -67,12 +68,16 @@ def run(
     events.sort(key=lambda e: e[0])
     graph = make_graph(world, follower)
     listener = Listener(world, graph)
+    ekf = _make_ekf(world)  # with ``filter: ekf``, the follower's pose as the node publishes it
     last, caps, errs, covs = -1, [], [], []
     for arrival, mds in events:
         now = round(arrival * 1e9)
         listener.accept_many([(md, now) for md in mds])
         result = graph.evaluate(now)
         listener.set_estimates(result.poses)
+        if ekf is not None:
+            ekf.update(result, now // 1000, only=follower)
+            result = ekf.poses(result, now // 1000, only=follower)
         f = result.poses.get(follower)
         if f is None or f.capture_time_us <= last or f.covariance is None:
             continue

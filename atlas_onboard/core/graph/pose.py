@@ -267,7 +267,7 @@ class PosePhase:
                 Candidate(
                     names[c.child[i]], store.keys[slot], int(store.stamp[slot]),
                     int(c.capture_us[i]), c.p[i], c.q[i], c_full[i],
-                    via, c.p_pc[i], c.q_pc[i], c.c_edge[i],
+                    via, c.p_pc[i], c.q_pc[i], c.c_edge[i], c.c_parent is not None,
                 )
             )  # fmt: skip
 
