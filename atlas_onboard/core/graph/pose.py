@@ -81,13 +81,8 @@ class StageEdges:
     cov: NDArray[np.float64]
     capture_us: NDArray[np.int64]
 
-    def select(self, keep: NDArray[np.bool_]) -> StageEdges:
-        return StageEdges(
-            self.row[keep], self.parent[keep], self.child[keep], self.p[keep], self.q[keep], self.sigma[keep],
-            self.cov[keep], self.capture_us[keep],
-        )  # fmt: skip
-
-    def stage(self, sel: slice) -> StageEdges:
+    def stage(self, sel: slice | NDArray[np.bool_]) -> StageEdges:
+        """The edges at ``sel``: a stage's slice (views), or a mask (copies)."""
         return StageEdges(
             self.row[sel], self.parent[sel], self.child[sel], self.p[sel], self.q[sel], self.sigma[sel],
             self.cov[sel], self.capture_us[sel],
@@ -215,7 +210,7 @@ class PosePhase:
         ok = ~vx.lost[e.parent]
         if not ok.all():
             vx.lost[np.setdiff1d(e.child[~ok], e.child[ok])] = True
-            e = e.select(ok)
+            e = e.stage(ok)
             if len(e.child) == 0:
                 return None
         parents = self.motion.parents(root, e.parent, e.capture_us, e.p, vx.p, vx.q, vx.cov, vx.stamp_us)
@@ -399,8 +394,7 @@ def _compose(vx: Vertices, e: StageEdges, from_root: bool, aligned: Parents | No
 
 
 def _newest_into(capture: NDArray[np.int64], child: NDArray[np.intp]) -> NDArray[np.int64]:
-    """For each walked edge, the newest capture time among the walked edges into its child (a child's
-    candidates are the same in a full and a partial evaluation)."""
+    """Per walked edge, the newest capture among the walked edges into its child (as in a full evaluation)."""
     newest = np.full(int(child.max()) + 1, np.iinfo(np.int64).min, dtype=np.int64)
     np.maximum.at(newest, child, capture)
     return newest[child]
