@@ -19,7 +19,7 @@ capture time: what the follower's view allows. ``--offline`` adds the estimator 
 no load: each camera's frames at its own rate, observations arriving 20 ms after capture) beside
 the live runs.
 
-    python benchmarks/bench_relay.py [--duration 30] [--runs defaults,ekf,paper] [--offline]
+    python benchmarks/bench_relay.py [--duration 30] [--runs defaults,ekf,paper] [--offline] [--no-live]
 
 Run it pinned (``taskset -c 1``) on an otherwise idle machine: the nodes must keep up with their
 cameras in real time (the frames they skipped are printed).
@@ -249,6 +249,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=30.0, help="seconds per run (default 30)")
     ap.add_argument("--runs", default=",".join(DEFAULT_RUNS), help=f"comma-separated, from {', '.join(RUNS)}")
     ap.add_argument("--offline", action="store_true", help="also the estimator alone on the same frames")
+    ap.add_argument("--no-live", action="store_true", help="no node processes: the floor and --offline only")
     args = ap.parse_args(argv)
     names = [n for n in args.runs.split(",") if n]
     unknown = [n for n in names if n not in RUNS]
@@ -259,7 +260,7 @@ def main(argv: list[str] | None = None) -> int:
     directory = runner._rendered_frames(scenarios.get(SCENARIO), 0, args.duration, lambda _m: None)
     assert directory is not None
     results = []
-    for i, name in enumerate(names, start=1):
+    for i, name in enumerate([] if args.no_live else names, start=1):
         print(f"[{i}/{len(names)}] {name} ...", file=sys.stderr, flush=True)
         results.append(run_one(name, args.duration))
     print("per-frame floor ...", file=sys.stderr, flush=True)
@@ -296,12 +297,14 @@ def main(argv: list[str] | None = None) -> int:
         if not r.error:
             print(f"follower {r.name} counters: {r.counters or 'none'}")
     print()
-    for r in results:
-        values = bar_values(r.follower, floor) if not r.error else {}
+    rows = [(r.name, {} if r.error else r.follower) for r in results]
+    rows += [(f"offline-{name}", f) for name, f in offline_rows.items()]  # the estimator alone
+    for name, follower in rows:
+        values = bar_values(follower, floor) if follower else {}
         for key, unit, limit, op in BARS:
             value = values.get(key, math.nan)
             ok = math.isfinite(value) and ((value <= limit) if op == "<=" else (value >= limit))
-            print(f"BAR {r.name}.{key} {value:.4g} {unit or '-'} {limit:g} {'pass' if ok else 'fail'}")
+            print(f"BAR {name}.{key} {value:.4g} {unit or '-'} {limit:g} {'pass' if ok else 'fail'}")
     return 0
 
 
