@@ -286,6 +286,9 @@ def main(argv: list[str] | None = None) -> int:
         print(row(f"follower {r.name}", r.follower, f"skipped frames leader/follower {r.skipped}"))
         if r.name in offline_rows:
             print(row(f"  offline {r.name}", offline_rows[r.name]))
+    for name, f in offline_rows.items():
+        if all(r.name != name or r.error for r in results):
+            print(row(f"  offline {name}", f))
     print()
     print("the leader (what its autopilot received)")
     print(head)
