@@ -82,6 +82,8 @@ def make_graph(world: WorldConfig, own_entity: str | None = None) -> TransformGr
         keep_candidates=f.filter == "ekf",
         anchor_sensors=frozenset(s.id for s in own),
         max_speed_m_s=f.max_speed_m_s,
+        align=f.align_edges,
+        max_relayed_sigma_m=f.max_relayed_sigma_m,
     )
 
 

@@ -21,6 +21,16 @@ from atlas_onboard.core.graph import MAX_RATE_RAD_S, MAX_SPEED_M_S, EntityPose
 from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection, matrix_to_upper, upper_to_matrix
 from atlas_onboard.listener_covariance import _camera_spread, _matrices, _rotation_sigma
 
+TILT_RATE_RAD_S = 0.5  # how fast a quadrotor's tilt may change between two of its estimates (manoeuvres)
+
+
+@dataclass(frozen=True, slots=True)
+class PeerTilt:
+    """Another entity's estimated attitude (``R_world_entity``) and its tilt sigma (rad)."""
+
+    R_world_entity: NDArray[np.float64]
+    sigma_rad: float
+
 
 @dataclass(slots=True)
 class Detections:
@@ -169,7 +179,12 @@ class AmbiguityResolver:
         decided: set[int] = set()
         for j, md in enumerate(valid):
             observer, observed = self._sensor_entity[md.sensor_id], self._marker_entity[md.marker_id]
-            if not ((observer == own and observed == WORLD) or (observer == WORLD and observed == own)):
+            # The own camera's view of another entity's marker: that entity's estimated attitude
+            # stands in for the world's (its heading error turns no up vector; its tilt error counts).
+            peer = self._peer_tilt(md, observer == own and observed not in (WORLD, own), observed)
+            if peer is None and not (
+                (observer == own and observed == WORLD) or (observer == WORLD and observed == own)
+            ):
                 continue
             if md.alt_state() is not AltState.VALID:
                 continue
@@ -181,14 +196,17 @@ class AmbiguityResolver:
             R_pair = np.stack([R2[j], R_alt])  # R_sensor_marker of both solutions
             M_es = self._T_entity_sensor[md.sensor_id][:3, :3]
             M_em = self._T_entity_marker[md.marker_id][:3, :3]
-            if observer == own:  # R_world_body = R_world_marker R_sensor_marker^-1 R_body_sensor^-1
+            if peer is not None:  # R_world_body = R_world_peer R_peer_marker R_sensor_marker^-1 R_body_sensor^-1
+                R_wb = peer.R_world_entity @ M_em @ R_pair.transpose(0, 2, 1) @ M_es.T
+            elif observer == own:  # R_world_body = R_world_marker R_sensor_marker^-1 R_body_sensor^-1
                 R_wb = M_em @ R_pair.transpose(0, 2, 1) @ M_es.T
             else:  # a world camera sees the own marker: R_world_body = R_world_sensor R_sensor_marker R_body_marker^-1
                 R_wb = M_es @ R_pair @ M_em.T
             rng = float(np.linalg.norm(p2[j]))
-            check = attitude.choose_by_tilt(
-                Rotation.from_matrix(R_wb[0]), Rotation.from_matrix(R_wb[1]), up, _rotation_sigma(md, rng)
+            obs_sigma = (
+                _rotation_sigma(md, rng) if peer is None else math.hypot(_rotation_sigma(md, rng), peer.sigma_rad)
             )
+            check = attitude.choose_by_tilt(Rotation.from_matrix(R_wb[0]), Rotation.from_matrix(R_wb[1]), up, obs_sigma)
             notes.append(f"attitude_{check.verdict.value}")
             if check.verdict is attitude.TiltVerdict.ALT:
                 R2[j], q2[j] = R_alt, md.q_sensor_marker_alt_xyzw()
@@ -201,7 +219,7 @@ class AmbiguityResolver:
             kept = check.verdict is attitude.TiltVerdict.PRIMARY or (
                 check.verdict is attitude.TiltVerdict.BOTH and not md.ambiguity_ratio > self.threshold
             )
-            if kept and observer == own and md.covariance:
+            if kept and observer == own and peer is None and md.covariance:
                 C = C_sm[j] if C_sm is not None else upper_to_matrix(np.array([md.covariance]))[0]
                 new = attitude.constrain_tilt(attitude.TagPose(p2[j], R2[j], C), M_es, M_em, up)
                 scale = _camera_spread(new.p_sensor_marker_m, new.R_sensor_marker, new.covariance) / max(
@@ -216,3 +234,14 @@ class AmbiguityResolver:
                     C_sm[j] = new.covariance
                 notes.append("attitude_constrained")
         return decided
+
+    def _peer_tilt(self, md: MarkerData, applies: bool, entity: str) -> PeerTilt | None:
+        """The observed entity's estimated attitude for the tilt check of an own view of it (None when
+        it does not apply or the entity has no world pose with a covariance), its tilt sigma grown by
+        what it may have tilted since (a quadrotor's tilt follows its acceleration)."""
+        est = self._estimates.get(entity) if applies else None
+        if est is None or est.frame != WORLD or est.covariance is None:
+            return None
+        age_s = abs(md.capture_time_us - est.capture_time_us) / 1e6
+        att = float(np.sqrt(max(np.linalg.eigvalsh(est.covariance[3:5, 3:5])[-1], 0.0)))
+        return PeerTilt(Rotation.from_quat(est.q_world_xyzw).as_matrix(), math.hypot(att, TILT_RATE_RAD_S * age_s))

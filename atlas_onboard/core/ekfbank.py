@@ -128,11 +128,15 @@ class EkfBank:
         pose of the parent. The graph's parent pose, fused from whatever edges are live (with the
         paper's method, stale ones counted as new), errs the same way frame after frame, and a filter
         fed it as fresh noise each frame grows sure of it: in the relay scenario the chain's drones
-        had a position NEES of 150-170 and more error than without the filter."""
+        had a position NEES of 150-170 and more error than without the filter. A candidate the graph
+        composed with the parent taken at its own capture time (``aligned``) is taken as it is: its
+        covariance carries that step, where the parent's filter holds its attitude and would swing
+        the entity by the parent's turn over the lever arm."""
         parent = self.filters.get(c.parent) if c.parent is not None else None
         t_s = c.capture_time_us / 1e6
         if (
             parent is None
+            or c.aligned  # the graph took the parent at this candidate's time: a measurement as it is
             or not parent.initialized
             or t_s - parent.t_update_s > self.max_predict_s  # the parent's filter has lapsed
             or c.p_pc is None

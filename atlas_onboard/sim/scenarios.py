@@ -224,6 +224,32 @@ def _relay() -> Scenario:
     )
 
 
+def _relay_follow() -> Scenario:
+    # A leader over floor tags, a follower behind it that sees only the tag on the leader's back: its
+    # distance (1.2-2.5 m) and bearing from the leader's back (+-45 deg) vary slowly, its nose on the
+    # leader. Both vibrate (0.3 deg of roll and pitch jitter at 3-8 Hz).
+    lead = tj.lissajous((0.0, 0.0, 1.3), (1.5, 0.75, 0.05), (1 / 24, 1 / 12, 0.07))
+    lead_yaw = tj.slow_yaw(0.0, 25.0, 17.0)
+    behind = tj.behind(lead, lead_yaw, distance_m=(1.85, 0.65, 23.0), bearing_deg=(45.0, 31.0), dz_m=-0.1)
+    trajectories = {
+        "leader": tj.Quadrotor(lead, lead_yaw, tj.Oscillation((0.01, 0.01, 0.005), 1.0, 0.3, seed=70)),
+        "follower": tj.Quadrotor(behind, tj.face_path(lead), tj.Oscillation((0.01, 0.01, 0.005), 1.3, 0.3, seed=71)),
+    }
+    return _flights(
+        trajectories,
+        name="relay-follow",
+        description="a follower 1.2-2.5 m behind a moving leader sees only the 20 cm tag on its back; the leader"
+        " sees 16 cm floor tags, with short stretches of none",
+        world_file="relay-follow.yaml",
+        duration_s=30.0,
+        optics={
+            "leader.down": Optics(hfov_deg=70.0, distortion=(-0.05, 0.01, 0.0, 0.0, 0.0), exposure_s=0.004),
+            "follower.front": Optics(hfov_deg=60.0, distortion=(-0.05, 0.01, 0.0, 0.0, 0.0), exposure_s=0.004),
+        },
+        room=Room(lo_m=(-4.5, -3.5, 0.0), hi_m=(4.0, 3.5, 3.0)),
+    )
+
+
 def _swarm() -> Scenario:
     def osc(k: int) -> tj.Oscillation:
         return tj.Oscillation((0.02, 0.02, 0.01), 0.7 + 0.15 * k, 0.5, seed=30 + k)
@@ -377,6 +403,7 @@ SCENARIOS = {
         _paper_test1(),
         _paper_test2(),
         _relay(),
+        _relay_follow(),
         _swarm(),
         _paths(),
         _gaps(),

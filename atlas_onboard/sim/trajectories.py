@@ -204,3 +204,35 @@ def face_point(target: tuple[float, float]) -> YawFn:
     """Heading that keeps the nose (and a front camera) pointed at ``target`` (x, y)."""
     tx, ty = target
     return lambda t, p: np.arctan2(ty - p[:, 1], tx - p[:, 0])
+
+
+def behind(
+    path: PathFn,
+    yaw: YawFn,
+    distance_m: tuple[float, float, float],
+    bearing_deg: tuple[float, float],
+    dz_m: float = 0.0,
+) -> PathFn:
+    """A follower behind a leader (``path`` with heading ``yaw``): at ``d0 + d1 sin(2 pi t / T)`` m for
+    ``distance_m`` (d0, d1, T), off the leader's back by ``a sin(2 pi t / T)`` deg for ``bearing_deg``
+    (a, T), ``dz_m`` lower or higher."""
+    d0, d1, d_period = distance_m
+    amp, b_period = np.radians(bearing_deg[0]), bearing_deg[1]
+
+    def follower(t: NDArray[np.float64]) -> NDArray[np.float64]:
+        d = d0 + d1 * np.sin(2 * np.pi * t / d_period)
+        p = path(t)
+        psi = yaw(t, p) + amp * np.sin(2 * np.pi * t / b_period)
+        return p + np.stack([-d * np.cos(psi), -d * np.sin(psi), np.full_like(t, dz_m)], axis=1)
+
+    return follower
+
+
+def face_path(path: PathFn) -> YawFn:
+    """Heading that keeps the nose pointed at where ``path`` is at the same time (yaw following another drone)."""
+
+    def yaw(t: NDArray[np.float64], p: NDArray[np.float64]) -> NDArray[np.float64]:
+        q = path(t)
+        return np.arctan2(q[:, 1] - p[:, 1], q[:, 0] - p[:, 0])
+
+    return yaw

@@ -19,6 +19,7 @@ from atlas_onboard.core.graph.edges import EdgeKey, EdgeStore
 from atlas_onboard.core.graph.gate import ConsensusGate, GateInput, PriorEstimate, Verdict
 from atlas_onboard.core.graph.paths import Plan
 from atlas_onboard.core.graph.result import Candidate, EntityPose
+from atlas_onboard.core.graph.timing import MotionHistory, Parents, Sample
 
 
 @dataclass(frozen=True, slots=True)
@@ -29,6 +30,12 @@ class PoseOptions:
     path: str = "bfs"
     age_sigma_m_per_s: float = 0.0
     age_sigma_rad_per_s: float = 0.0
+    # A parent that is not the root is taken at its child's capture time (:mod:`.timing`).
+    align: bool = False
+    # A candidate through such a parent whose position sigma (largest axis) exceeds this is left out
+    # (0: no limit): a leader with no fresh view cannot place its follower.
+    max_relayed_sigma_m: float = 0.0
+    hold_us: int = 250_000  # how long a child with no usable candidate keeps its last pose (capture time)
 
     @property
     def ageing(self) -> bool:
@@ -49,6 +56,7 @@ class Vertices:
     stamp_us: NDArray[np.int64]
     count: NDArray[np.intp]
     own: NDArray[np.bool_]
+    lost: NDArray[np.bool_]  # no candidate left (see PosePhase._compose_aligned): no pose
 
     @classmethod
     def at_root(cls, n: int) -> Vertices:
@@ -56,7 +64,7 @@ class Vertices:
         q = np.zeros((n, 4))
         q[:, 3] = 1.0
         return cls(np.zeros((n, 3)), q, np.zeros((n, 6, 6)), np.zeros(n), np.zeros(n, dtype=np.int64),
-                   np.zeros(n, dtype=np.intp), np.zeros(n, dtype=bool))  # fmt: skip
+                   np.zeros(n, dtype=np.intp), np.zeros(n, dtype=bool), np.zeros(n, dtype=bool))  # fmt: skip
 
 
 @dataclass(slots=True)
@@ -75,7 +83,8 @@ class StageEdges:
     cov: NDArray[np.float64]
     capture_us: NDArray[np.int64]
 
-    def stage(self, sel: slice) -> StageEdges:
+    def stage(self, sel: slice | NDArray[np.bool_]) -> StageEdges:
+        """The edges at ``sel``: a stage's slice (views), or a mask (copies)."""
         return StageEdges(
             self.row[sel], self.parent[sel], self.child[sel], self.p[sel], self.q[sel], self.sigma[sel],
             self.cov[sel], self.capture_us[sel],
@@ -103,19 +112,26 @@ class StageCandidates:
     capture_us: NDArray[np.int64]
     Jp: NDArray[np.float64] | None
     edge_term: NDArray[np.float64]
+    # Per candidate, its parent's covariance when the parent was taken at the candidate's capture
+    # time (:mod:`.timing`): then each candidate has its own parent term. None: the vertex's.
+    c_parent: NDArray[np.float64] | None = None
 
-    def covariance(self, cov_parent: NDArray[np.float64]) -> NDArray[np.float64]:
+    def covariance(self, cov_parent: NDArray[np.float64] | None) -> NDArray[np.float64]:
         """Each candidate's full 6x6 covariance, the parent's included (``cov_parent``: per vertex)."""
         if self.Jp is None:
             return self.edge_term
+        if self.c_parent is not None:
+            return covariance.transform(self.Jp, self.c_parent) + self.edge_term
+        assert cov_parent is not None
         return covariance.transform(self.Jp, cov_parent[self.parent]) + self.edge_term
 
     def select(self, keep: NDArray[np.bool_]) -> StageCandidates:
         Jp = None if self.Jp is None else self.Jp[keep]
+        c_parent = None if self.c_parent is None else self.c_parent[keep]
         return StageCandidates(
             self.row[keep], self.parent[keep], self.child[keep], self.p_pc[keep], self.q_pc[keep],
             self.s_edge[keep], self.c_edge[keep], self.p[keep], self.q[keep], self.s[keep],
-            self.capture_us[keep], Jp, self.edge_term[keep],
+            self.capture_us[keep], Jp, self.edge_term[keep], c_parent,
         )  # fmt: skip
 
 
@@ -146,6 +162,7 @@ class PosePhase:
         self.gate = gate
         self.own_known = own_known
         self._too_fast: list[EdgeKey] = []  # this run's edges refused by the speed bound
+        self.motion = MotionHistory()
 
     def run(
         self,
@@ -164,7 +181,14 @@ class PosePhase:
         gated = 0
         self._too_fast: list[EdgeKey] = []
         for sel, runs, from_root in zip(plan.stages, plan.runs, plan.from_root, strict=True):
-            cands = _compose(vx, edges.stage(sel), from_root)
+            stage = edges.stage(sel)
+            if from_root or not self.options.align:
+                cands = _compose(vx, stage, from_root)
+            else:
+                cands = self._compose_aligned(vx, stage, root)
+                if cands is None:
+                    continue
+                runs = covariance.runs_by_parent(cands.child, cands.parent)
             anchored = store.anchored[cands.row] & (cands.parent == root)
             keep = None
             if self.gate.enabled:
@@ -186,6 +210,39 @@ class PosePhase:
         levels = {v: level[v] for v in order}
         poses = self._poses(vx, plan, root, goal)
         return FrameEvaluation(poses, order, levels, gated, plan.goal_is_parent, tuple(self._too_fast))
+
+    def _compose_aligned(self, vx: Vertices, e: StageEdges, root: int) -> StageCandidates | None:
+        """A stage's candidates with each parent taken at the candidate's capture time (:mod:`.timing`).
+        Left out: those whose parent has no pose; those whose parent's motion is unknown (fewer than
+        two recent poses) at another instant than its pose's; those that wait for the parent's next
+        pose (it will bracket their time: an interpolation, not an extrapolation); and those whose
+        position sigma (largest axis) passes ``max_relayed_sigma_m``. A child left with none keeps
+        its last pose (its stamp unchanged: not sent again) for at most ``hold_us`` of capture
+        time, then has none (lost). None when no candidate is left."""
+        ok = ~vx.lost[e.parent]
+        if not ok.all():
+            vx.lost[np.setdiff1d(e.child[~ok], e.child[ok])] = True
+            e = e.stage(ok)
+            if len(e.child) == 0:
+                return None
+        parents = self.motion.parents(root, e.parent, e.capture_us, e.p, vx.p, vx.q, vx.cov, vx.stamp_us)
+        c = _compose(vx, e, False, parents)
+        keep = ~parents.wait & ~parents.unknown
+        limit = self.options.max_relayed_sigma_m
+        if limit > 0.0:
+            keep &= np.linalg.eigvalsh(c.covariance(None)[:, :3, :3])[:, -1] <= limit**2
+        if keep.all():
+            return c
+        for v in np.setdiff1d(c.child[~keep], c.child[keep]).tolist():
+            held = self.motion.newest(root, v)
+            newest = int(c.capture_us[c.child == v].max())
+            if held is not None and newest - held.t_us <= self.options.hold_us:
+                vx.p[v], vx.q[v], vx.cov[v], vx.stamp_us[v] = held.p, held.q, held.cov, held.t_us
+                vx.sigma[v] = float(np.sqrt(np.trace(held.cov[:3, :3]) / 3.0))
+                vx.count[v] = 1
+            else:
+                vx.lost[v] = True
+        return c.select(keep) if keep.any() else None
 
     def _gate(
         self, store: EdgeStore, c: StageCandidates, vx: Vertices, root: int, now_ns: int, anchored: NDArray[np.bool_]
@@ -222,7 +279,7 @@ class PosePhase:
                 Candidate(
                     names[c.child[i]], store.keys[slot], int(store.stamp[slot]),
                     int(c.capture_us[i]), c.p[i], c.q[i], c_full[i],
-                    via, c.p_pc[i], c.q_pc[i], c.c_edge[i],
+                    via, c.p_pc[i], c.q_pc[i], c.c_edge[i], c.c_parent is not None,
                 )
             )  # fmt: skip
 
@@ -253,10 +310,21 @@ class PosePhase:
             weights = weights**2
         ids = kids.ids
         vx.p[ids], vx.q[ids], vx.sigma[ids] = fusion.fuse_runs(kids, c.p, c.q, c.s, weights)
-        vx.cov[ids] = covariance.fuse_runs(kids, pairs, weights, c.Jp, vx.cov, c.edge_term)
+        if c.c_parent is None:
+            vx.cov[ids] = covariance.fuse_runs(kids, pairs, weights, c.Jp, vx.cov, c.edge_term)
+        else:
+            # Parents taken at their candidates' times: a pair's candidates share one parent error
+            # (to first order, their mean covariance; one image's views of a parent share it exactly).
+            per_pair = np.diff(np.append(pairs.starts, len(c.child)))
+            c_pairs = np.add.reduceat(c.c_parent, pairs.starts) / per_pair[:, None, None]
+            own = fusion.Runs(pairs.starts, np.arange(len(pairs.starts)), pairs.sizes)
+            vx.cov[ids] = covariance.fuse_runs(kids, own, weights, c.Jp, c_pairs, c.edge_term)
         vx.count[ids] = kids.sizes
         newest = np.maximum.reduceat(c.capture_us, kids.starts)
         vx.stamp_us[ids] = newest
+        if self.options.align:
+            for k, v in enumerate(ids.tolist()):
+                self.motion.add(root, v, Sample(int(newest[k]), vx.p[v].copy(), vx.q[v].copy(), vx.cov[v].copy()))
         if self.gate.enabled:
             accepted = np.maximum.reduceat(arrival_ns, kids.starts).tolist()
             for k, v in enumerate(ids.tolist()):
@@ -276,7 +344,7 @@ class PosePhase:
         below = int(plan.stage_of[goal]) if goal is not None and plan.level[goal] >= 0 else None
         stages = plan.stage_of.tolist()
         for rank_v, v in enumerate(plan.order.tolist()):
-            if below is not None and v != goal and stages[v] >= below:
+            if (below is not None and v != goal and stages[v] >= below) or vx.lost[v]:
                 continue
             name = self.names[v]
             poses[name] = EntityPose(
@@ -304,9 +372,7 @@ def weigh_sigma(options: PoseOptions, c: StageCandidates, vx: Vertices) -> NDArr
     # Beyond the paper: weights from each candidate's propagated position variance (its covariance's
     # position block, the detector's own where it reported one, aged), so a fresh precise view
     # outweighs a stale or a poorly placed one whatever their sigma says.
-    c_weigh = c.edge_term
-    if c.Jp is not None and dijkstra:
-        c_weigh = c.edge_term + covariance.transform(c.Jp, vx.cov[c.parent])
+    c_weigh = c.edge_term if c.Jp is None or not dijkstra else c.covariance(vx.cov)
     return np.sqrt(np.maximum(np.trace(c_weigh[:, :3, :3], axis1=1, axis2=2) / 3.0, 1e-30))
 
 
@@ -344,7 +410,12 @@ def _edge_terms(store: EdgeStore, plan: Plan, options: PoseOptions) -> StageEdge
     c_edge = store.cov[direction, row]
     if options.ageing and len(row):
         capture = store.capture[row]
-        newest = store.capture[store.used].max()  # every live edge's: a partial evaluation ages as a full one
+        if options.align:
+            # Against the newest edge into the same entity: a parent's edges older than its child's
+            # are not stale, the child takes the parent at its own time (_compose_aligned).
+            newest = _newest_into(capture, plan.child)
+        else:
+            newest = store.capture[store.used].max()  # every live edge's: a partial evaluation ages as a full one
         age_s = np.maximum(newest - capture, 0) / 1e6
         if options.age_sigma_m_per_s > 0.0:
             sigma = np.hypot(sigma_raw, age_s * options.age_sigma_m_per_s)
@@ -356,22 +427,39 @@ def _edge_terms(store: EdgeStore, plan: Plan, options: PoseOptions) -> StageEdge
     return StageEdges(row, plan.parent, plan.child, p, q, sigma, c_edge, store.capture[row])
 
 
-def _compose(vx: Vertices, e: StageEdges, from_root: bool) -> StageCandidates:
-    """eq. 2: each candidate is P_parent * T_parent_child, with its sigma and covariance."""
+def _compose(vx: Vertices, e: StageEdges, from_root: bool, aligned: Parents | None = None) -> StageCandidates:
+    """eq. 2: each candidate is P_parent * T_parent_child, with its sigma and covariance. With
+    ``aligned``, the parent's pose at the candidate's capture time (then the candidate is as new as
+    its edge), else the parent's newest (the candidate as new as its newest part)."""
     row, parent, child, p_pc, q_pc, s_edge, c_edge, capture_us = (
         e.row, e.parent, e.child, e.p, e.q, e.sigma, e.cov, e.capture_us
     )  # fmt: skip
     t_cand = np.maximum(capture_us, vx.stamp_us[parent])  # a candidate is as new as its newest part
     if from_root:  # the root's pose is the identity, exactly, with no uncertainty
         return StageCandidates(row, parent, child, p_pc, q_pc, s_edge, c_edge, p_pc, q_pc, s_edge, t_cand, None, c_edge)
-    R_wp = geometry.quat_matrix(vx.q[parent])
-    p_cand = vx.p[parent] + (R_wp @ p_pc[:, :, None])[:, :, 0]
-    q_cand = geometry.quat_multiply(vx.q[parent], q_pc)
+    if aligned is None:
+        p_par, q_par, s_par, c_parent = vx.p[parent], vx.q[parent], vx.sigma[parent], None
+    else:
+        p_par, q_par, c_parent = aligned.p, aligned.q, aligned.cov
+        s_par = np.where(
+            aligned.moved, np.sqrt(np.trace(aligned.cov[:, :3, :3], axis1=1, axis2=2) / 3.0), vx.sigma[parent]
+        )
+        t_cand = np.where(aligned.moved, capture_us, t_cand)
+    R_wp = geometry.quat_matrix(q_par)
+    p_cand = p_par + (R_wp @ p_pc[:, :, None])[:, :, 0]
+    q_cand = geometry.quat_multiply(q_par, q_pc)
     # The candidate's sigma carries its parent's: variances add along a chain.
-    s_cand = np.sqrt(s_edge**2 + vx.sigma[parent] ** 2)
+    s_cand = np.sqrt(s_edge**2 + s_par**2)
     # Beyond the paper: the full 6x6 covariance along the chain (lever arms included).
     Jp, Je = covariance.compose_jacobians(R_wp, p_pc, geometry.quat_matrix(q_pc))
     edge_term = covariance.transform(Je, c_edge)
     return StageCandidates(
-        row, parent, child, p_pc, q_pc, s_edge, c_edge, p_cand, q_cand, s_cand, t_cand, Jp, edge_term
+        row, parent, child, p_pc, q_pc, s_edge, c_edge, p_cand, q_cand, s_cand, t_cand, Jp, edge_term, c_parent
     )
+
+
+def _newest_into(capture: NDArray[np.int64], child: NDArray[np.intp]) -> NDArray[np.int64]:
+    """Per walked edge, the newest capture among the walked edges into its child (as in a full evaluation)."""
+    newest = np.full(int(child.max()) + 1, np.iinfo(np.int64).min, dtype=np.int64)
+    np.maximum.at(newest, child, capture)
+    return newest[child]

@@ -21,7 +21,7 @@ class Candidate:
     ``parent`` is None when the parent is the frame's root (world, exact); otherwise the candidate
     is the parent's fused pose times the edge ``p_pc``, ``q_pc`` (parent to entity) whose own
     covariance is ``edge_covariance``, so that a filter can compose it with its own estimate of the
-    parent instead.
+    parent instead (unless ``aligned``: the graph took the parent at the candidate's own time).
     """
 
     entity: str
@@ -35,6 +35,9 @@ class Candidate:
     p_pc: NDArray[np.float64] | None = None
     q_pc: NDArray[np.float64] | None = None
     edge_covariance: NDArray[np.float64] | None = None
+    # The parent taken at this candidate's capture time, the step's uncertainty in ``covariance``
+    # (:mod:`atlas_onboard.core.graph.timing`): the candidate stands as it is.
+    aligned: bool = False
 
 
 @dataclass(frozen=True, slots=True)

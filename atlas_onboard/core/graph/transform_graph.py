@@ -24,6 +24,7 @@ from atlas_onboard.core.graph.paths import PATHS, Planner, bfs, dijkstra
 from atlas_onboard.core.graph.pose import FrameEvaluation, PoseOptions, PosePhase
 from atlas_onboard.core.graph.relative import relative_groups
 from atlas_onboard.core.graph.result import Candidate, EntityPose, GraphResult
+from atlas_onboard.core.graph.timing import WINDOW_US
 from atlas_onboard.errors import GeometryError
 
 
@@ -43,6 +44,8 @@ class TransformGraph:
         keep_candidates: bool = False,
         anchor_sensors: frozenset[int] = frozenset(),
         max_speed_m_s: float = 0.0,
+        align: bool = False,
+        max_relayed_sigma_m: float = 0.0,
     ) -> None:
         """``path``: ``bfs`` (the paper) or ``dijkstra`` (see :meth:`evaluate`). ``inverse_variance``:
         weights from each candidate's covariance, squared. ``relative``: poses of the groups without
@@ -54,7 +57,12 @@ class TransformGraph:
         (:mod:`~atlas_onboard.core.graph.gate`), whose anchor is the candidates of the node's own
         sensors (``anchor_sensors``). ``max_speed_m_s`` > 0: the speed bound on candidates that rest on
         peers' work (:meth:`~atlas_onboard.core.graph.gate.ConsensusGate.too_fast`). ``keep_candidates``:
-        the result lists every candidate."""
+        the result lists every candidate. ``align``: a parent that is not the root is taken at its child's
+        capture time, interpolated or extrapolated from its recent poses
+        (:mod:`~atlas_onboard.core.graph.timing`), its covariance grown by that step;
+        ``max_relayed_sigma_m`` > 0: a candidate through such a parent whose position sigma (largest axis)
+        exceeds it is left out (a child left with none keeps its last pose, not re-sent, for at most the
+        edge timeout or 0.3 s of capture time, then none)."""
         names = list(entity_names)
         if WORLD not in names:
             names.insert(0, WORLD)
@@ -73,7 +81,15 @@ class TransformGraph:
         self._store = EdgeStore()
         self._planner = Planner(len(names), path)
         self._gate = ConsensusGate(outlier_gate_sigma, self.edge_timeout_ns, max_speed_m_s)
-        options = PoseOptions(inverse_variance, path, age_sigma_m_per_s, age_sigma_rad_per_s)
+        options = PoseOptions(
+            inverse_variance,
+            path,
+            age_sigma_m_per_s,
+            age_sigma_rad_per_s,
+            align,
+            max_relayed_sigma_m,
+            min(self.edge_timeout_ns // 1000, WINDOW_US),
+        )
         self._pose = PosePhase(self.names, options, self._gate, own_known=bool(self.anchor_sensors))
         # For a targeted evaluation: which entities' edges changed (came, were refreshed or went)
         # since the last full evaluation, and whether there has been one.
@@ -209,6 +225,7 @@ class TransformGraph:
         self._touched[[e.b for e in self._store.edges.values()]] = True
         self._store.clear()
         self._views.clear()
+        self._pose.motion.clear()
 
     def expire(self, now_ns: int) -> int:
         """Remove edges older than the timeout (age > timeout); returns how many were removed."""

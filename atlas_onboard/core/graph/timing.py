@@ -1,0 +1,176 @@
+"""A parent's pose at its child's capture time: every edge at the right time.
+
+A candidate through another entity (a drone seen by a drone) composes that parent's fused pose, taken
+at the instants of the parent's own observations, with an edge taken at the child's camera's instant,
+tens of milliseconds apart. :class:`MotionHistory` keeps each vertex's last fused poses (one per
+capture time) and gives the parent's pose at any instant by a least-squares line through the newest
+ones (position, and rotation vectors about the newest attitude): between two of them an interpolation,
+past the newest an extrapolation with the velocity and turn rate they show. The result is a linear
+combination of the samples, ``x(t) = sum_i w_i x_i`` with ``sum_i w_i = 1`` and ``sum_i w_i t_i = t``,
+so its covariance is exact for independent samples, ``sum_i w_i^2 C_i``, and a line misses a path
+that accelerates by ``a`` by exactly ``a / 2 sum_i w_i (t_i - t)^2``: that is the model's term, with
+the manoeuvre acceleration's spread (:data:`ACCEL_SIGMA_M_S2`, :data:`ANGULAR_ACCEL_SIGMA_RAD_S2`).
+The number of samples is chosen from these variances alone (never from the values), the one that
+leaves the child the least position variance. docs/covariance.md has the design.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+ACCEL_SIGMA_M_S2 = 1.5
+"""Spread of a quadrotor's manoeuvre acceleration per axis (the EKF's Singer process: 1.5 m/s^2)."""
+
+ANGULAR_ACCEL_SIGMA_RAD_S2 = 5.0
+"""Spread of a quadrotor's angular acceleration per axis: an airframe's vibration of 0.3 deg at
+3-8 Hz alone is 2-13 rad/s^2 (amplitude times the angular frequency squared)."""
+
+MAX_SAMPLES = 6  # a line through at most this many poses (a fifth of a second at 30 Hz)
+WINDOW_US = 300_000  # and none older than this before the newest: beyond, a line says nothing
+
+
+@dataclass(frozen=True, slots=True)
+class Sample:
+    """One fused pose of a vertex: capture time (us), position, orientation xyzw, 6x6 covariance."""
+
+    t_us: int
+    p: NDArray[np.float64]
+    q: NDArray[np.float64]
+    cov: NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class Aligned:
+    """A vertex's pose moved to another instant: position, orientation xyzw, 6x6 covariance."""
+
+    p: NDArray[np.float64]
+    q: NDArray[np.float64]
+    cov: NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class Parents:
+    """Each candidate's parent at the candidate's capture time, shapes (N, ...): position ``p``,
+    orientation ``q`` xyzw, 6x6 ``cov``; ``moved``: taken at that time (False: the parent's newest
+    pose, its motion unknown)."""
+
+    p: NDArray[np.float64]
+    q: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    moved: NDArray[np.bool_]
+    wait: NDArray[np.bool_]  # past the parent's newest pose, and its next one is due before: wait for it
+    unknown: NDArray[np.bool_]  # at another instant than the parent's pose, its motion unknown
+
+
+class MotionHistory:
+    """The newest fused poses of each vertex, per root of evaluation (see the module)."""
+
+    def __init__(self, max_samples: int = MAX_SAMPLES, window_us: int = WINDOW_US) -> None:
+        self.max_samples = max_samples
+        self.window_us = window_us
+        self._tracks: dict[tuple[int, int], deque[Sample]] = {}
+
+    def clear(self) -> None:
+        self._tracks.clear()
+
+    def add(self, root: int, v: int, sample: Sample) -> None:
+        """Remember ``v``'s fused pose (in ``root``'s frame); a capture time already held, or older
+        than the newest held, changes nothing."""
+        track = self._tracks.setdefault((root, v), deque(maxlen=self.max_samples))
+        if track and sample.t_us <= track[-1].t_us:
+            return
+        track.append(sample)
+
+    def samples(self, root: int, v: int) -> list[Sample]:
+        """``v``'s samples no older than the window before its newest, oldest first."""
+        track = self._tracks.get((root, v))
+        if not track:
+            return []
+        newest = track[-1].t_us
+        return [s for s in track if newest - s.t_us <= self.window_us]
+
+    def at(self, root: int, v: int, t_us: int, lever_m: float) -> Aligned | None:
+        """``v``'s pose at ``t_us``, or None when fewer than two samples show its motion. ``lever_m``:
+        how far the child is from ``v`` (its attitude variance counts times its square)."""
+        track = self.samples(root, v)
+        if len(track) < 2:
+            return None
+        best: tuple[float, Aligned] | None = None
+        for n in range(2, len(track) + 1):
+            out = _line(track[-n:], t_us)
+            if out is None:
+                continue
+            cost = float(np.trace(out.cov[:3, :3]) + lever_m**2 * np.trace(out.cov[3:, 3:]))
+            if best is None or cost < best[0]:
+                best = (cost, out)
+        return None if best is None else best[1]
+
+    def parents(
+        self,
+        root: int,
+        parent: NDArray[np.intp],
+        capture_us: NDArray[np.int64],
+        p_pc: NDArray[np.float64],
+        p: NDArray[np.float64],
+        q: NDArray[np.float64],
+        cov: NDArray[np.float64],
+        stamp_us: NDArray[np.int64],
+    ) -> Parents:
+        """Each candidate's ``parent`` at its ``capture_us`` where the parent's recent poses show its
+        motion; elsewhere the parent's newest pose (``p``, ``q``, ``cov``, ``stamp_us``: per vertex).
+        ``p_pc``: the child in the parent's frame (the lever arm of the parent's attitude)."""
+        out_p, out_q, out_cov = p[parent].copy(), q[parent].copy(), cov[parent].copy()
+        moved = np.zeros(len(parent), dtype=bool)
+        wait = np.zeros(len(parent), dtype=bool)
+        lever = np.linalg.norm(p_pc, axis=1)
+        for i, (v, t) in enumerate(zip(parent.tolist(), capture_us.tolist(), strict=True)):
+            if t == stamp_us[v]:
+                continue
+            track = self.samples(root, v)
+            if len(track) >= 2 and t > track[-1].t_us:
+                spacing = float(np.median(np.diff([s.t_us for s in track])))
+                wait[i] = t - track[-1].t_us < spacing
+            at = self.at(root, v, t, float(lever[i]))
+            if at is not None:
+                out_p[i], out_q[i], out_cov[i], moved[i] = at.p, at.q, at.cov, True
+        return Parents(out_p, out_q, out_cov, moved, wait, (capture_us != stamp_us[parent]) & ~moved)
+
+    def newest(self, root: int, v: int) -> Sample | None:
+        """``v``'s newest fused pose, if any."""
+        track = self._tracks.get((root, v))
+        return track[-1] if track else None
+
+
+def line_weights(t_s: NDArray[np.float64], t: float) -> NDArray[np.float64]:
+    """Weights w_i of the least-squares line through samples at ``t_s`` evaluated at ``t``:
+    ``sum w_i = 1``, ``sum w_i t_i = t`` (a line is reproduced exactly)."""
+    mean = float(t_s.mean())
+    spread = float(((t_s - mean) ** 2).sum())
+    return 1.0 / len(t_s) + (t_s - mean) * (t - mean) / spread
+
+
+def _line(track: list[Sample], t_us: int) -> Aligned | None:
+    """The least-squares line through ``track`` at ``t_us``, with its covariance (see the module)."""
+    ref = track[-1]
+    t_s = np.array([(s.t_us - ref.t_us) / 1e6 for s in track])
+    if float(np.ptp(t_s)) <= 0.0:
+        return None
+    t = (t_us - ref.t_us) / 1e6
+    w = line_weights(t_s, t)
+    p = np.einsum("i,ij->j", w, np.array([s.p for s in track]))
+    R_ref = Rotation.from_quat(ref.q)
+    # Rotation vectors about the newest attitude's axes (the covariance's convention: body axes).
+    theta = (R_ref.inv() * Rotation.from_quat(np.array([s.q for s in track]))).as_rotvec()
+    q = (R_ref * Rotation.from_rotvec(w @ theta)).as_quat()
+    cov = np.einsum("i,ijk->jk", w**2, np.array([s.cov for s in track]))
+    # A line's miss of a path accelerating by a: a / 2 * sum w_i (t_i - t)^2, per axis.
+    reach = 0.5 * abs(float(w @ (t_s - t) ** 2))
+    idx = np.arange(3)
+    cov[idx, idx] += (ACCEL_SIGMA_M_S2 * reach) ** 2
+    cov[idx + 3, idx + 3] += (ANGULAR_ACCEL_SIGMA_RAD_S2 * reach) ** 2
+    return Aligned(p, q, cov)

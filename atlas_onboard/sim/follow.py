@@ -1,0 +1,93 @@
+"""A follower's estimator alone on a scenario's rendered frames (no processes, no load, no clocks):
+each camera at its own rate, every observation arriving a fixed delay after its capture, the
+follower's listener and graph evaluated at each arrival, a pose scored when its capture time is new
+(what the publisher sends). The time alignment of its candidates shows here as it does live, without
+what a loaded machine adds (frames skipped, late links)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.node_output import _make_ekf
+from atlas_onboard.sim import scenarios
+from atlas_onboard.sim.world import SimWorld
+
+Frames = Callable[[int], NDArray[np.uint8]]  # frame index -> image (frame j at j / fps)
+
+
+@dataclass(frozen=True)
+class FollowerTrack:
+    """The follower's poses: capture times (s), errors ``[dp, dtheta]`` (N, 6, world frame and body
+    axes) against truth, their 6x6 covariances (N, 6, 6)."""
+
+    capture_s: NDArray[np.float64]
+    errors: NDArray[np.float64]
+    covariances: NDArray[np.float64]
+
+    @property
+    def error_mm(self) -> NDArray[np.float64]:
+        return np.linalg.norm(self.errors[:, :3], axis=1) * 1e3
+
+
+def run(
+    scenario_name: str,
+    follower: str,
+    frames_of: Callable[[int], Frames],
+    t0_s: float,
+    t1_s: float,
+    delay_s: float = 0.02,
+    fusion: dict[str, Any] | None = None,
+) -> FollowerTrack:
+    """``follower``'s poses from ``t0_s`` to ``t1_s`` (frames from 0.5 s before ``t0_s``, to warm up),
+    each camera's frames from ``frames_of(sensor_id)``, observations arriving ``delay_s`` after capture."""
+    from atlas_onboard.detector.pipeline import Detector
+
+    scenario = scenarios.get(scenario_name)
+    world = scenario.world()
+    if fusion:
+        world = dataclasses.replace(world, fusion=dataclasses.replace(world.fusion, **fusion))
+    sim = SimWorld(scenario, world)
+    events = []
+    for sid, (sensor, intr) in sorted(sim.cameras.items()):
+        assert sensor.camera is not None
+        fps = sensor.camera.fps if sensor.camera.fps > 0 else 30.0
+        det = Detector(sensor, world, intr.calibration(), decimate=2.0)
+        frame = frames_of(sid)
+        for j in range(max(math.floor((t0_s - 0.5) * fps), 0), math.floor(t1_s * fps)):
+            t = j / fps
+            events.append((t + delay_s, det.detect(np.asarray(frame(j)), round(t * 1e6))))
+    events.sort(key=lambda e: e[0])
+    graph = make_graph(world, follower)
+    listener = Listener(world, graph)
+    ekf = _make_ekf(world)  # with ``filter: ekf``, the follower's pose as the node publishes it
+    last, caps, errs, covs = -1, [], [], []
+    for arrival, mds in events:
+        now = round(arrival * 1e9)
+        listener.accept_many([(md, now) for md in mds])
+        result = graph.evaluate(now)
+        listener.set_estimates(result.poses)
+        if ekf is not None:
+            ekf.update(result, now // 1000, only=follower)
+            result = ekf.poses(result, now // 1000, only=follower)
+        f = result.poses.get(follower)
+        if f is None or f.capture_time_us <= last or f.covariance is None:
+            continue
+        last = f.capture_time_us
+        tc = f.capture_time_us / 1e6
+        if tc < t0_s:
+            continue
+        T = sim.truth(tc, (follower,))[follower]
+        dtheta = (T.rotation.inv() * Rotation.from_quat(f.q_world_xyzw)).as_rotvec()
+        caps.append(tc)
+        errs.append(np.r_[f.p_world_m - T.translation, dtheta])
+        covs.append(f.covariance)
+    return FollowerTrack(np.array(caps), np.array(errs).reshape(-1, 6), np.array(covs).reshape(-1, 6, 6))

@@ -1,0 +1,189 @@
+"""A parent taken at its child's capture time: a follower seen only through its moving leader."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import RigidTransform, Rotation
+
+from atlas_onboard.core.graph import TransformGraph
+from atlas_onboard.core.graph.timing import ACCEL_SIGMA_M_S2, ANGULAR_ACCEL_SIGMA_RAD_S2, line_weights
+from tests.core.graph.builders import MS
+from tests.helpers import pose
+
+NAMES = ["world", "leader", "follower"]
+T_LF = pose([-2.0, 0.15, -0.2], [2, -3, 8])  # the follower 2 m behind its leader, in the leader's frame
+FRAME_US = 33_333  # the leader's camera at 30 Hz
+
+
+def leader_at(t_s, p0, v, a, R0, w, alpha):
+    """The leader's pose at t_s: position p0 + v t + a t^2 / 2, attitude R0 Exp(w t + alpha t^2 / 2)."""
+    return RigidTransform.from_components(
+        p0 + v * t_s + 0.5 * a * t_s**2, R0 * Rotation.from_rotvec(w * t_s + 0.5 * alpha * t_s**2)
+    )
+
+
+def put(g, key, a, b, T, cov, capture_us, now_ns):
+    g.update_edge(key, a, b, T.translation, T.rotation.as_quat(), 0.01, now_ns, capture_us, cov_a_b=cov)
+
+
+def noisy(T, cov, rng):
+    """T perturbed as the covariance convention says: p + dp, R Exp(dtheta)."""
+    e = rng.multivariate_normal(np.zeros(6), cov)
+    return RigidTransform.from_components(T.translation + e[:3], T.rotation * Rotation.from_rotvec(e[3:]))
+
+
+def pose_error(est, truth):
+    """[dp, dtheta] of an estimate against the truth in the covariance convention."""
+    p = np.asarray(est.p_world_m) - truth.translation
+    dth = (truth.rotation.inv() * Rotation.from_quat(est.q_world_xyzw)).as_rotvec()
+    return np.concatenate([p, dth])
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    st.lists(st.floats(-0.3, 0.0), min_size=2, max_size=6, unique=True),
+    st.floats(-0.3, 0.1),
+)
+def test_line_weights_reproduce_a_line_exactly(times, t):
+    t_s = np.array(sorted(times))
+    if np.ptp(t_s) < 1e-3:
+        return
+    w = line_weights(t_s, t)
+    assert w.sum() == pytest.approx(1.0, abs=1e-9)
+    assert w @ t_s == pytest.approx(t, abs=1e-9)
+
+
+@pytest.mark.parametrize("offset_us", [-12_000, -25_000, 40_000])
+def test_follower_through_a_moving_leader_is_composed_at_its_own_capture_time(offset_us):
+    """The leader flies at 0.8 m/s and turns at 35 deg/s, seen at 30 Hz; the follower's image is taken
+    ``offset_us`` from the leader's newest (before it: interpolated; more than a frame after it:
+    extrapolated). Composed
+    with the leader's pose at the follower's instant the follower is exact; composed with the leader's
+    newest pose (the leader where it was) it is off by centimetres."""
+    p0, v, R0, w = (
+        np.array([1.0, 0.5, 1.2]),
+        np.array([0.7, 0.35, 0.05]),
+        Rotation.from_euler("z", 20, degrees=True),
+        np.array([0.02, -0.03, 0.6]),
+    )
+    zero = np.zeros(3)
+    cov = np.diag([1e-6] * 3 + [1e-6] * 3)
+    errors = {}
+    for align in (True, False):
+        g = TransformGraph(NAMES, 250 * MS, align=align)
+        for k in range(4):
+            t_us = k * FRAME_US
+            put(g, (1, 1), "world", "leader", leader_at(t_us / 1e6, p0, v, zero, R0, w, zero), cov, t_us, t_us * 1000)
+            g.evaluate(t_us * 1000)
+        t_b = 3 * FRAME_US + offset_us
+        truth = leader_at(t_b / 1e6, p0, v, zero, R0, w, zero) * T_LF
+        now = (3 * FRAME_US + 40_000) * 1000
+        put(g, (2, 9), "leader", "follower", T_LF, cov, t_b, now)
+        f = g.evaluate(now).poses["follower"]
+        assert f.capture_time_us == (t_b if align else max(t_b, 3 * FRAME_US))
+        errors[align] = float(np.linalg.norm(f.p_world_m - truth.translation))
+    assert errors[True] < 1e-6
+    assert errors[False] > 0.01
+
+
+def test_a_follower_image_just_after_the_leaders_newest_waits_for_the_leaders_next_one():
+    """The follower's image is 15 ms past the leader's newest, whose next is due 18 ms later: rather
+    than extrapolate, the follower waits (no pose yet at the start, its last pose kept later, not
+    re-stamped), and is exact once the leader's next pose brackets its time."""
+    p0, v, R0, w = (
+        np.array([1.0, 0.5, 1.2]),
+        np.array([0.7, 0.35, 0.05]),
+        Rotation.identity(),
+        np.array([0.0, 0.0, 0.6]),
+    )
+    zero = np.zeros(3)
+    cov = np.diag([1e-6] * 6)
+    g = TransformGraph(NAMES, 250 * MS, align=True)
+    for k in range(4):
+        t_us = k * FRAME_US
+        put(g, (1, 1), "world", "leader", leader_at(t_us / 1e6, p0, v, zero, R0, w, zero), cov, t_us, t_us * 1000)
+        g.evaluate(t_us * 1000)
+    t_b = 3 * FRAME_US + 15_000
+    put(g, (2, 9), "leader", "follower", T_LF, cov, t_b, (t_b + 10_000) * 1000)
+    assert "follower" not in g.evaluate((t_b + 10_000) * 1000).poses
+    t_us = 4 * FRAME_US
+    put(
+        g, (1, 1), "world", "leader", leader_at(t_us / 1e6, p0, v, zero, R0, w, zero), cov, t_us, (t_us + 10_000) * 1000
+    )
+    f = g.evaluate((t_us + 10_000) * 1000).poses["follower"]
+    truth = leader_at(t_b / 1e6, p0, v, zero, R0, w, zero) * T_LF
+    assert f.capture_time_us == t_b
+    assert np.linalg.norm(f.p_world_m - truth.translation) < 1e-6
+
+
+@pytest.mark.parametrize("after_us", [20_000, 3 * FRAME_US + 40_000])
+def test_composed_pose_nees_is_about_6_with_the_leaders_full_covariance_lever_arm_and_time_step(after_us):
+    """Monte Carlo: the leader's observations carry a full 6x6 covariance (its attitude error swings
+    the follower 2 m away), the follower's single view its own, the leader accelerates and turns as the
+    model's spread says, and the follower's image is 20 ms past the leader's newest. The follower's
+    published 6x6 describes its error: NEES6 about 6. The follower's image is ``after_us`` past the
+    leader's third pose: between two of its poses, or (the leader's next ones missed) past them all."""
+    rng = np.random.default_rng(7)
+    L = np.array(
+        [[1.5e-3, 0, 0, 0, 0, 0], [0.3e-3, 1.2e-3, 0, 0, 0, 0], [0.1e-3, 0.2e-3, 2.0e-3, 0, 0, 0],
+         [0, 0, 0, 2e-3, 0, 0], [0, 0, 0, 0.5e-3, 2.5e-3, 0], [0.2e-3, 0, 0, 0.3e-3, 0.4e-3, 4e-3]]
+    )  # fmt: skip
+    C_leader = L @ L.T
+    C_edge = np.diag([1.5e-3, 1.5e-3, 5e-3, 6e-3, 6e-3, 3e-3]) ** 2
+    C_edge[2, 3] = C_edge[3, 2] = 0.5 * 5e-3 * 6e-3  # depth and tilt coupled
+    p0, v, R0, w = np.array([0.0, 0.0, 1.2]), np.array([0.6, -0.2, 0.0]), Rotation.identity(), np.array([0.0, 0.0, 0.4])
+    nees = []
+    for _ in range(600):
+        a = rng.normal(0.0, ACCEL_SIGMA_M_S2, 3)
+        alpha = rng.normal(0.0, ANGULAR_ACCEL_SIGMA_RAD_S2, 3)
+        g = TransformGraph(NAMES, 250 * MS, align=True)
+        t_b = 2 * FRAME_US + after_us
+        for k in range(4 if after_us < FRAME_US else 3):
+            t_us = k * FRAME_US
+            T = noisy(leader_at(t_us / 1e6, p0, v, a, R0, w, alpha), C_leader, rng)
+            put(g, (1, 1), "world", "leader", T, C_leader, t_us, t_us * 1000)
+            g.evaluate(t_us * 1000)
+        truth = leader_at(t_b / 1e6, p0, v, a, R0, w, alpha) * T_LF
+        now = (max(t_b, 3 * FRAME_US) + 30_000) * 1000
+        put(g, (2, 9), "leader", "follower", noisy(T_LF, C_edge, rng), C_edge, t_b, now)
+        f = g.evaluate(now).poses["follower"]
+        e = pose_error(f, truth)
+        nees.append(float(e @ np.linalg.solve(f.covariance, e)))
+    assert 5.4 <= np.mean(nees) <= 6.6
+
+
+def test_a_leader_with_no_fresh_view_places_its_follower_only_while_the_covariance_allows():
+    """The leader's camera stops seeing; the follower keeps seeing the leader at 30 Hz. New poses of
+    the follower (new capture times: what goes to its autopilot) are given, from the leader's last
+    poses extrapolated, only while their position sigma stays under the limit; then the last one is
+    kept, not re-sent, for at most 0.3 s, then the pose is lost, while the leader's last edge is still
+    live. With no limit new poses go on, ever less certain."""
+    p0, v, R0, w = np.array([0.0, 0.0, 1.2]), np.array([0.6, 0.0, 0.0]), Rotation.identity(), np.array([0.0, 0.0, 0.3])
+    zero = np.zeros(3)
+    cov = np.diag([1e-6] * 3 + [1e-6] * 3)
+    limit = 0.02
+    for max_sigma in (limit, 0.0):
+        g = TransformGraph(NAMES, 1000 * MS, align=True, max_relayed_sigma_m=max_sigma)
+        for k in range(6):
+            t_us = k * FRAME_US
+            put(g, (1, 1), "world", "leader", leader_at(t_us / 1e6, p0, v, zero, R0, w, zero), cov, t_us, t_us * 1000)
+            g.evaluate(t_us * 1000)
+        stamps, sigmas, lost_at = [], [], None
+        for k in range(6, 30):  # 0.8 s without a view of the leader's own
+            t_us = k * FRAME_US
+            put(g, (2, 9), "leader", "follower", T_LF, cov, t_us, t_us * 1000)
+            f = g.evaluate(t_us * 1000).poses.get("follower")
+            if f is None:
+                lost_at = t_us if lost_at is None else lost_at
+                continue
+            assert lost_at is None  # never back
+            if not stamps or f.capture_time_us > stamps[-1]:
+                stamps.append(f.capture_time_us)
+                sigmas.append(float(np.sqrt(np.linalg.eigvalsh(f.covariance[:3, :3])[-1])))
+        assert g.evaluate(29 * FRAME_US * 1000).poses.get("leader") is not None  # its edge still live
+        if max_sigma:
+            assert len(stamps) >= 1 and max(sigmas) <= limit
+            assert lost_at is not None and lost_at - stamps[-1] <= 300_000 + FRAME_US
+        else:
+            assert lost_at is None and len(stamps) == 24 and max(sigmas) > limit
