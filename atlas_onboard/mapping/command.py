@@ -133,6 +133,12 @@ def report_text(result: MapResult) -> str:
     bad = [r for r in result.markers.values() if r.status in ("moved", "duplicated", "wrong_size")]
     for r in bad:
         out.append(f"marker {r.id} does not fit ({r.status}): {r.detail}; left out of the map")
+    unanchored = sorted(r.id for r in result.markers.values() if r.status == "unanchored")
+    if unanchored:
+        out.append(
+            f"markers {', '.join(map(str, unanchored))} not mapped: their groups have no anchor"
+            " (give one of each group as --anchor, or fly between the groups)"
+        )
     return "\n".join(out)
 
 
