@@ -220,14 +220,18 @@ def autopilot_line(elapsed_s: float, new: list[Received], heartbeats: int) -> st
     )
 
 
-def run_sim_autopilot(port: int, seconds: float | None, out: TextIO = sys.stdout) -> int:
-    """Listen on 127.0.0.1:``port`` as a flight controller would and print once a second what arrived."""
+def run_sim_autopilot(
+    port: int, seconds: float | None, out: TextIO = sys.stdout, bench: dict[str, Any] | None = None
+) -> int:
+    """Listen on 127.0.0.1:``port`` as a flight controller would and print once a second what arrived.
+
+    ``bench``: further :class:`SimAutopilot` settings (parameters, a static attitude, LOCAL_POSITION_NED)."""
     from atlas_onboard.sim.autopilot import SimAutopilot
 
     if not 1 <= port <= 65535:
         raise AtlasError(f"--port: expected a UDP port 1..65535, got {port}")
     try:
-        autopilot = SimAutopilot(system_id=SYSTEM_ID, port=port)
+        autopilot = SimAutopilot(system_id=SYSTEM_ID, port=port, **(bench or {}))
     except OSError as exc:
         raise AtlasError(f"127.0.0.1:{port}: cannot listen ({exc.strerror})") from exc
     autopilot.start()
@@ -251,7 +255,9 @@ def run_sim_autopilot(port: int, seconds: float | None, out: TextIO = sys.stdout
 
 
 def _cmd_sim_autopilot(args: argparse.Namespace) -> int:
-    return run_sim_autopilot(args.port, args.seconds)
+    from atlas_onboard.sim.bench import autopilot_settings
+
+    return run_sim_autopilot(args.port, args.seconds, bench=autopilot_settings(args))
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -278,4 +284,7 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     )
     p.add_argument("--port", type=int, default=14550, help="UDP port to listen on (default 14550)")
     p.add_argument("--seconds", type=float, default=None, help="stop after this many seconds (default: Ctrl-C)")
+    from atlas_onboard.sim.bench import add_autopilot_options
+
+    add_autopilot_options(p)
     p.set_defaults(func=_cmd_sim_autopilot)
