@@ -140,5 +140,5 @@ def diagnose(R_autopilot: Rotation, R_vision: Rotation, cands: list[Candidate]) 
 
 def yaw_difference_deg(R_autopilot: Rotation, R_vision: Rotation) -> float:
     """Vision's heading minus the autopilot's, deg in (-180, 180], the circular mean over the samples."""
-    d = np.radians(R_vision.as_euler("ZYX")[..., 0] - R_autopilot.as_euler("ZYX")[..., 0])
+    d = R_vision.as_euler("ZYX")[..., 0] - R_autopilot.as_euler("ZYX")[..., 0]
     return float(np.degrees(math.atan2(float(np.mean(np.sin(d))), float(np.mean(np.cos(d))))))
