@@ -210,7 +210,9 @@ def _cmd_map(args: argparse.Namespace) -> int:
     if not out_dir.is_dir():
         raise AtlasError(f"--out: {out_dir} is not a directory")
     say = (lambda m: print(f"atlas-onboard map: {m}", file=sys.stderr)) if args.verbose_progress else None
-    obs = collect(list(args.inputs), world, args.calibration, args.fps, args.stride, say)
+    if args.decimate not in (1.0, 2.0):
+        raise AtlasError(f"--decimate: expected 1 (full resolution) or 2 (the node's), got {args.decimate:g}")
+    obs = collect(list(args.inputs), world, args.calibration, args.fps, args.stride, say, args.decimate)
     options = MapOptions(
         anchors=tuple(args.anchor or ()), anchor_sigma_m=args.anchor_sigma_mm / 1000.0,
         anchor_sigma_deg=args.anchor_sigma_deg, gravity_anchor=args.gravity_anchor,
@@ -350,6 +352,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p.add_argument("--calibration", type=Path, help="calibration of videos and image folders")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of image folders (stamps), default 30")
     p.add_argument("--stride", type=int, default=1, help="use every n-th frame (default 1)")
+    p.add_argument(
+        "--decimate", type=float, default=2.0,
+        help="2 (default): search as the node does, tracking markers from frame to frame; 1: every frame whole"
+        " at full resolution (slower; for frames far apart in time)",
+    )  # fmt: skip
     p.add_argument("--loss-scale-px", type=float, default=1.0, help="robust loss scale, pixels (default 1)")
     p.add_argument("--min-frames", type=int, default=5, help="markers seen with another in fewer frames are left out")
     p.add_argument("--report", type=Path, help="directory for report.json, report.txt and map.png")
