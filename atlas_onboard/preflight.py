@@ -23,14 +23,13 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
 import yaml
 
 from atlas_onboard.config import NodeConfig, WorldConfig, load_node
 from atlas_onboard.config.yamlio import read_yaml
-from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mavlink.relay import Relay, Tap
+from atlas_onboard.mavlink.relay import Relay
+from atlas_onboard.mavlink.samples import Tap
 from atlas_onboard.preflight_checks import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     Check,
@@ -44,6 +43,7 @@ from atlas_onboard.preflight_checks import (
     check_tilt,
     check_timesync,
     check_yaw,
+    optical_axes_frd,
     pair_attitudes,
     yaw_from_vision,
 )
@@ -56,15 +56,6 @@ PARAMS = {
 }
 TILT_S = 2.0
 SETTLE_S = 1.0
-
-
-def optical_axes_frd(world: WorldConfig, entity: str) -> dict[str, np.ndarray]:
-    """Each of the entity's cameras' optical axis in the body, FRD."""
-    return {
-        s.name: frames.R_FLU_FRD.inv().apply(s.T_entity_sensor.rotation.apply([0.0, 0.0, 1.0]))
-        for s in world.sensors.values()
-        if s.entity == entity
-    }
 
 
 def _relayed_world(config: Path, entity: str, port: int) -> Path:

@@ -16,9 +16,9 @@ from enum import StrEnum
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import NodeConfig
-from atlas_onboard.core import mounting
-from atlas_onboard.mavlink.relay import AttitudeSample, PositionSample, Tap, VisionSample
+from atlas_onboard.config import NodeConfig, WorldConfig
+from atlas_onboard.core import frames, mounting
+from atlas_onboard.mavlink.samples import AttitudeSample, PositionSample, Tap, VisionSample
 
 MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_PX4 = 3, 12
 MIN_RATE_HZ = 10.0  # below this neither EKF holds a position on vision
@@ -42,6 +42,7 @@ class Check:
     verdict: Verdict
     detail: str
     fix: str = ""
+    short: str = ""  # the cause in a few words, for a STATUSTEXT
 
     def line(self) -> str:
         return f"{self.verdict.value}  {self.name}: {self.detail}" + (f"; fix: {self.fix}" if self.fix else "")
@@ -53,6 +54,15 @@ def _R(samples: list[VisionSample]) -> Rotation:
 
 def _R_att(samples: list[AttitudeSample]) -> Rotation:
     return Rotation.from_euler("ZYX", [(s.yaw_rad, s.pitch_rad, s.roll_rad) for s in samples])
+
+
+def optical_axes_frd(world: WorldConfig, entity: str) -> dict[str, np.ndarray]:
+    """Each of the entity's cameras' optical axis in the body, FRD."""
+    return {
+        s.name: frames.R_FLU_FRD.inv().apply(s.T_entity_sensor.rotation.apply([0.0, 0.0, 1.0]))
+        for s in world.sensors.values()
+        if s.entity == entity
+    }
 
 
 def pair_attitudes(vision: list[VisionSample], attitude: list[AttitudeSample]) -> tuple[Rotation, Rotation] | None:
@@ -99,7 +109,7 @@ def check_attitude(
     elif err <= mounting.AGREE_DEG:
         rest = [c.name for c, e in d.ranked[1:] if e <= mounting.AGREE_DEG and c.name != "correct"]
         also = f" (or: {'; '.join(rest)})" if rest else ""
-        out.append(Check("attitude", Verdict.FAIL, f"{diff}: likely {best.name}{also}", best.fix))
+        out.append(Check("attitude", Verdict.FAIL, f"{diff}: likely {best.name}{also}", best.fix, best.short))
     else:
         rotation = Rotation.align_vectors(mounting.up_vectors(R_vis), mounting.up_vectors(R_ap))[0]
         axis = rotation.as_rotvec()
@@ -152,7 +162,8 @@ def check_rate(vision: list[VisionSample], window_s: float, autopilot: int | Non
     detail = f"{rate:.1f} Hz, longest gap {gaps.max() * 1000:.0f} ms"
     if rate < MIN_RATE_HZ or in_gaps > MAX_GAP_SHARE:
         detail += f" ({in_gaps * 100:.0f}% of the time in gaps over {gap_limit * 1000:.0f} ms)"
-        return Check("pose rate", Verdict.FAIL, detail, "more markers in view, a faster camera mode, less load")
+        short = f"{rate:.0f} Hz, max gap {gaps.max() * 1000:.0f} ms"
+        return Check("pose rate", Verdict.FAIL, detail, "more markers in view, a faster camera mode, less load", short)
     return Check("pose rate", Verdict.PASS, detail)
 
 

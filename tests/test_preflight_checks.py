@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.mavlink.relay import AttitudeSample, PositionSample, Tap, VisionSample
+from atlas_onboard.mavlink.samples import AttitudeSample, PositionSample, Tap, VisionSample
 from atlas_onboard.preflight_checks import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_AUTOPILOT_PX4,

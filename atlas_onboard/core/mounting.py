@@ -37,6 +37,7 @@ class Candidate:
     fix: str
     D_body: Rotation  # R_vis = R_true D (FRD body)
     world_flip: bool  # R_vis = W R_true with W turning up into down
+    short: str = ""  # the name in a few words (a STATUSTEXT carries 50 characters)
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,6 +72,7 @@ def candidates(optical_axes_frd: dict[str, NDArray[np.float64]]) -> list[Candida
                     " mount frame's x axis), or turn the camera on the drone to match the file",
                     Rotation.from_rotvec(math.radians(-deg) * a),
                     False,
+                    f"{name} mount {deg:+.0f}deg about axis",
                 )
             )
     for name, axis in optical_axes_frd.items():
@@ -87,6 +89,7 @@ def candidates(optical_axes_frd: dict[str, NDArray[np.float64]]) -> list[Candida
                     " y left, z up; FRD: x forward, y right, z down)",
                     D,
                     False,
+                    "body FLU/FRD swapped",
                 )
             )
     out.append(
@@ -95,6 +98,7 @@ def candidates(optical_axes_frd: dict[str, NDArray[np.float64]]) -> list[Candida
             "set conventions.world to the convention the marker poses are written in (ENU: z up; NED: z down)",
             Rotation.identity(),
             True,
+            "world NED/ENU swapped",
         )
     )
     return out

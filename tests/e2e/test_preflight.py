@@ -85,3 +85,35 @@ def test_a_delay_parameter_far_over_the_latency_is_named(tmp_path: Path, frames_
     assert line.startswith("FAIL  delay: EKF2_EV_DELAY 200 ms is longer than the whole capture to autopilot"), out
     assert _line(out, "attitude").startswith("PASS")
     assert code == 1
+
+
+@pytest.mark.parametrize(("mistake", "statustext"), [("mount90", b"atlas FAIL attitude: down mount +90deg about axis"),
+                                                     (None, None)])  # fmt: skip
+def test_the_service_checks_once_at_start(tmp_path: Path, frames_dir: Path, mistake, statustext) -> None:
+    """``run`` judges its first seconds of poses against the autopilot's attitude, in its log and as
+    STATUSTEXT, without holding the poses back."""
+    from atlas_onboard.core.geometry import rotation_from_rpy_deg
+    from atlas_onboard.sim.autopilot import SimAutopilot
+    from tests.e2e.helpers import NodeProcess, wait_for
+
+    R = rotation_from_rpy_deg(BENCH_RPY_DEG)
+    autopilot = SimAutopilot(system_id=1, attitude=lambda _t: R).start()
+    node = NodeProcess(write_bench(tmp_path, frames_dir, autopilot.port, mistake), "drone")
+    try:
+        assert wait_for(lambda: "startup check:" in node.log(), timeout=60.0), node.log()
+        assert wait_for(lambda: "startup check: " in node.log() and "attitude" in node.log(), timeout=10.0)
+        poses_before = len(autopilot.snapshot())
+    finally:
+        node.stop()
+        autopilot.stop()
+    log = [ln for ln in node.log().splitlines() if "startup check:" in ln]
+    attitude = [ln for ln in log if "attitude:" in ln]
+    assert len(attitude) == 1, log
+    assert poses_before > 50  # the poses went out meanwhile
+    if mistake is None:
+        assert "PASS  attitude" in attitude[0]
+        # (the pose rate is judged too, and a loaded machine may fail it: not this test's subject)
+        assert not [t for t in autopilot.statustexts if t.startswith(b"atlas FAIL attitude")]
+    else:
+        assert "FAIL  attitude" in attitude[0] and "+90 deg about its optical axis" in attitude[0]
+        assert statustext in autopilot.statustexts, autopilot.statustexts
