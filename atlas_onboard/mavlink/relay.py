@@ -18,6 +18,7 @@ import time
 
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
+from scipy.spatial.transform import Rotation  # here, not in the relay's thread: an import there stalls it
 
 from atlas_onboard.mavlink.samples import AttitudeSample, PositionSample, Tap, VisionSample
 
@@ -27,8 +28,6 @@ _INTEGER_TYPES = (mavlink.MAV_PARAM_TYPE_INT32, mavlink.MAV_PARAM_TYPE_UINT32)
 
 
 def _q_from_euler_wxyz(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
-    from scipy.spatial.transform import Rotation
-
     x, y, z, w = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_quat()
     return float(w), float(x), float(y), float(z)
 
