@@ -353,9 +353,9 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of image folders (stamps), default 30")
     p.add_argument("--stride", type=int, default=1, help="use every n-th frame (default 1)")
     p.add_argument(
-        "--decimate", type=float, default=2.0,
-        help="2 (default): search as the node does, tracking markers from frame to frame; 1: every frame whole"
-        " at full resolution (slower; for frames far apart in time)",
+        "--decimate", type=float, default=1.0,
+        help="1 (default): every frame whole at full resolution; 2: search as the node does, tracking markers"
+        " from frame to frame (cheaper only with few markers in view; consecutive frames)",
     )  # fmt: skip
     p.add_argument("--loss-scale-px", type=float, default=1.0, help="robust loss scale, pixels (default 1)")
     p.add_argument("--min-frames", type=int, default=5, help="markers seen with another in fewer frames are left out")

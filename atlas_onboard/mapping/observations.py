@@ -1,10 +1,12 @@
 """The map's input: every frame of every input (recordings, videos, image folders) searched for the
 world file's world markers (step 1 of :mod:`atlas_onboard.mapping.build`).
 
-The search is the node's (:class:`~atlas_onboard.detector.pipeline.Detector`'s, at ``decimate`` 2):
-each frame where the previous frame's markers are predicted, the regions of black-white contrast, and
-now and then the whole image decimated; the library fits the corners at full resolution whatever the
-decimation. ``decimate`` 1 searches every frame whole at full resolution. Ids the world file does not
+``decimate`` 1 (the default) searches every frame whole at full resolution; ``decimate`` 2 searches as
+the node does (:class:`~atlas_onboard.detector.pipeline.Detector`): where the previous frame's markers
+are predicted, the regions of black-white contrast, and now and then the whole image decimated, the
+corners fitted at full resolution either way. It finds the same markers at the same corners in
+consecutive frames, but with many markers in view, as a mapping flight has them, it costs more than the
+whole-frame search (``benchmarks/bench_map.py``), so it is not the default. Ids the world file does not
 list, and an id seen twice in one frame (two places more than a marker apart), are counted either way;
 a duplicated id is dropped from that frame."""
 
@@ -36,7 +38,6 @@ class MapError(AtlasError):
     """A map that cannot be built from the input; the message says why in one line."""
 
 
-NODE_DECIMATE = 2.0  # the node's camera workers' decimation (service_run.build_cameras)
 _MAP_ENTITY = "map camera"  # no entity of a world file has a space in its name: every marker is another's
 
 
@@ -180,10 +181,10 @@ def collect(
     fps: float = 30.0,
     stride: int = 1,
     progress: Callable[[str], None] | None = None,
-    decimate: float = NODE_DECIMATE,
+    decimate: float = 1.0,
 ) -> Observations:
-    """Detect the world file's world markers in every ``stride``-th frame of every input, as the node
-    does (``decimate`` 2, tracking) or whole at full resolution (``decimate`` 1)."""
+    """Detect the world file's world markers in every ``stride``-th frame of every input, whole at full
+    resolution (``decimate`` 1) or as the node does (``decimate`` 2, tracking)."""
     t0 = time.perf_counter()
     wanted = {m.id: m.family for m in world.markers.values() if m.entity == WORLD}
     if not wanted:
