@@ -30,6 +30,10 @@ from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
 
 AUTOPILOTS = ("px4", "ardupilot")
+# ArduPilot releases whose parameter names differ: the file names what the chosen one reads.
+ARDUPILOT_VERSIONS = ("4.5", "4.6", "4.7", "4.8")
+ARDUPILOT_DEFAULT_VERSION = "4.7"
+PX4_FRESH_SYSTEM_ID = 1  # MAV_SYS_ID of a new (or reset) PX4 flight controller
 MAV_PARAM_TYPE_INT32 = 6
 MAV_PARAM_TYPE_REAL32 = 9
 PX4_EV_DELAY_DEFAULT_MS = 0.0  # EKF2_EV_DELAY's default
@@ -64,10 +68,19 @@ def parameters(
     autopilot: str,
     delay_ms: float | None = None,
     cog_m: Sequence[float] = (0.0, 0.0, 0.0),
+    ardupilot_version: str = ARDUPILOT_DEFAULT_VERSION,
 ) -> list[Param]:
-    """The parameters of ``node``'s autopilot (``px4`` or ``ardupilot``) for vision-only flight indoors."""
+    """The parameters of ``node``'s autopilot (``px4`` or ``ardupilot``) for vision-only flight indoors.
+
+    ``ardupilot_version``: the ArduPilot release the names are for (4.7 moved SYSID_THISMAV to
+    MAV_SYSID; 4.6 renamed GPS_TYPE to GPS1_TYPE).
+    """
     if autopilot not in AUTOPILOTS:
         raise AtlasError(f"--autopilot: expected one of {', '.join(AUTOPILOTS)}, got {autopilot!r}")
+    if ardupilot_version not in ARDUPILOT_VERSIONS:
+        raise AtlasError(
+            f"--ardupilot-version: expected one of {', '.join(ARDUPILOT_VERSIONS)}, got {ardupilot_version!r}"
+        )
     if delay_ms is not None and not 0.0 <= delay_ms <= (300.0 if autopilot == "px4" else 250.0):
         raise AtlasError(f"--delay-ms: expected 0-{300 if autopilot == 'px4' else 250} ms, got {delay_ms:g}")
     ekf = world.fusion.filter == "ekf"
@@ -78,7 +91,10 @@ def parameters(
     if autopilot == "px4":
         vel = ekf and odometry
         return [
-            Param("MAV_SYS_ID", node.system_id, True, "the node's system_id (nodes section of the world file)"),
+            Param(
+                "MAV_SYS_ID", node.system_id, True,
+                "the node's system_id (nodes section of the world file); PX4 reads it at boot: reboot",
+            ),
             Param(
                 "EKF2_EV_CTRL", 15 if vel else 11, True,
                 "vision horizontal position (1) + vertical position (2) + yaw (8)"
@@ -99,8 +115,14 @@ def parameters(
             Param("EKF2_EV_POS_Y", y, False, where),
             Param("EKF2_EV_POS_Z", z, False, where),
         ]  # fmt: skip
+    release = tuple(int(v) for v in ardupilot_version.split("."))
+    sysid_name = "MAV_SYSID" if release >= (4, 7) else "SYSID_THISMAV"
+    gps_name = "GPS1_TYPE" if release >= (4, 6) else "GPS_TYPE"
     return [
-        Param("SYSID_THISMAV", node.system_id, True, "the node's system_id (MAV_SYSID from 4.7)"),
+        Param(
+            sysid_name, node.system_id, True,
+            f"the node's system_id ({ardupilot_version}: {sysid_name}; SYSID_THISMAV up to 4.6, MAV_SYSID from 4.7)",
+        ),
         Param("AHRS_EKF_TYPE", 3, True, "EKF3"),
         Param("EK3_ENABLE", 1, True, "EKF3"),
         Param("VISO_TYPE", 1, True, "MAVLink visual odometry (reboot required)"),
@@ -115,7 +137,7 @@ def parameters(
         Param("COMPASS_USE", 0, True, "no compass: yaw from vision"),
         Param("COMPASS_USE2", 0, True, "no compass: yaw from vision"),
         Param("COMPASS_USE3", 0, True, "no compass: yaw from vision"),
-        Param("GPS1_TYPE", 0, True, "no GNSS indoors (GPS_TYPE in 4.5 and before)"),
+        Param(gps_name, 0, True, "no GNSS indoors (GPS_TYPE up to 4.5, GPS1_TYPE from 4.6)"),
         Param("VISO_SCALE", 1, False, "metric positions"),
         Param("VISO_QUAL_MIN", 0, True, "VISION_POSITION_ESTIMATE arrives with quality 0 (unknown)"),
         Param(
@@ -132,13 +154,40 @@ def _number(p: Param) -> str:
     return str(int(p.value)) if p.integer else f"{float(p.value):.6g}"
 
 
-def render(params: list[Param], autopilot: str, node: NodeConfig, world: WorldConfig) -> str:
-    """The file's text: QGroundControl's format for PX4, Mission Planner's for ArduPilot."""
+def render(
+    params: list[Param],
+    autopilot: str,
+    node: NodeConfig,
+    world: WorldConfig,
+    vehicle_id: int = PX4_FRESH_SYSTEM_ID,
+    ardupilot_version: str = ARDUPILOT_DEFAULT_VERSION,
+) -> str:
+    """The file's text: QGroundControl's format for PX4, Mission Planner's for ArduPilot.
+
+    ``vehicle_id``: QGroundControl's Vehicle-Id column, the system id the flight controller has *when
+    the file is loaded* (QGroundControl refuses a file written for another id): 1 on a new one. The
+    node's system id reaches it as MAV_SYS_ID, in force after the reboot.
+    """
+    if not 1 <= vehicle_id <= 255:
+        raise AtlasError(f"--vehicle-id: expected 1-255, got {vehicle_id}")
+    what = autopilot if autopilot == "px4" else f"ardupilot {ardupilot_version}"
     head = [
-        f"# atlas-onboard parameters for {autopilot}, entity {node.entity} (system {node.system_id}),"
+        f"# atlas-onboard parameters for {what}, entity {node.entity} (system {node.system_id}),"
         f" from {world.source or 'the world file'}",
         "# Check each value before loading; reboot the flight controller afterwards.",
     ]
+    if autopilot == "px4":
+        head += [
+            f"# For a flight controller now at system id {vehicle_id} (QGroundControl loads a file only onto the"
+            " vehicle whose id is in its Vehicle-Id column);",
+            f"# MAV_SYS_ID becomes {node.system_id} after the reboot. Later files for it: --vehicle-id"
+            f" {node.system_id}.",
+        ]
+    else:
+        head.append(
+            f"# Parameter names of ArduPilot {ardupilot_version} (--ardupilot-version): Mission Planner reports"
+            " a name the firmware does not know."
+        )
     cams = [s for s in world.sensors.values() if s.entity == node.entity]
     for s in cams:  # for reference: the node accounts for the cameras' offsets itself
         p = s.T_entity_sensor.translation
@@ -148,7 +197,7 @@ def render(params: list[Param], autopilot: str, node: NodeConfig, world: WorldCo
         lines += ["#", "# Vehicle-Id\tComponent-Id\tName\tValue\tType"]
         for p in params:
             kind = MAV_PARAM_TYPE_INT32 if p.integer else MAV_PARAM_TYPE_REAL32
-            lines += [f"# {p.name}: {p.comment}", f"{node.system_id}\t1\t{p.name}\t{_number(p)}\t{kind}"]
+            lines += [f"# {p.name}: {p.comment}", f"{vehicle_id}\t1\t{p.name}\t{_number(p)}\t{kind}"]
     else:
         for p in params:
             lines += [f"# {p.name}: {p.comment}", f"{p.name},{_number(p)}"]
@@ -159,8 +208,8 @@ def _cmd_params(args: argparse.Namespace) -> int:
     from atlas_onboard.service_run import choose_entity
 
     world, node = load_node(args.config, choose_entity(args.config, args.entity))
-    params = parameters(world, node, args.autopilot, args.delay_ms, args.cog_m)
-    text = render(params, args.autopilot, node, world)
+    params = parameters(world, node, args.autopilot, args.delay_ms, args.cog_m, args.ardupilot_version)
+    text = render(params, args.autopilot, node, world, args.vehicle_id, args.ardupilot_version)
     if args.out is None:
         print(text, end="")
         return 0
@@ -187,6 +236,14 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p.add_argument(
         "--cog-m", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
         help="the centre of gravity in the entity frame, world file's body axes, m (default: its origin)",
+    )  # fmt: skip
+    p.add_argument(
+        "--vehicle-id", type=int, default=PX4_FRESH_SYSTEM_ID, metavar="ID",
+        help="PX4: the flight controller's system id now, QGroundControl's Vehicle-Id column (default 1, a new one)",
+    )  # fmt: skip
+    p.add_argument(
+        "--ardupilot-version", choices=ARDUPILOT_VERSIONS, default=ARDUPILOT_DEFAULT_VERSION,
+        help=f"ArduPilot: the firmware's release, for its parameter names (default {ARDUPILOT_DEFAULT_VERSION})",
     )  # fmt: skip
     p.add_argument("--out", type=Path, help="write the file here (default: standard output)")
     p.set_defaults(func=_cmd_params)

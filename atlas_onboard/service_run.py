@@ -115,12 +115,12 @@ def run_node(
             raise AtlasError(f"--record-max-mb: expected a positive size, got {record_max_mb:g}")
         base = record or RecordConfig(dir=record_dir or Path("."))
         record = replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb)
-    from atlas_onboard.mavlink.transport import MavlinkTransport
+    from atlas_onboard.startup_check import CheckedTransport
 
     refine = config.refine
     if write_map is not None:  # like --record, beside the settings (a reload compares those)
         refine = replace(refine or RefineConfig(), write_map=write_map)
-    transport = MavlinkTransport(world, config)
+    transport = CheckedTransport(world, config)  # the node's transport, with the bench checks once at start
     cameras = build_cameras(world, config, refine)
     for camera in cameras:  # a turn the autopilot reports moves the markers in the image: cameras predict it
         if isinstance(camera, SensorWorker):

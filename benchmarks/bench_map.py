@@ -8,7 +8,9 @@ the floor and walls) into recordings, then:
    reported 1-sigma against the actual error);
 2. the same from both drones' recordings merged;
 3. times the map of 900 frames on one core, beside two anchors: the initialisation alone, and the
-   same adjustment with the finite-difference Jacobian over ``jac_sparsity``;
+   same adjustment with the finite-difference Jacobian over ``jac_sparsity``; and the marker search
+   of the node (decimate 2 with tracking) beside the whole-frame search at full resolution (the
+   default), in frames/s of one core, with the map each gives;
 4. maps one drone's recording with a second one in which marker 7 was moved by 10 cm, and checks
    that the report names marker 7 as moved; maps with a world file that gives marker 3 the wrong size
    (200 mm, printed 160 mm) and checks that it is named;
@@ -151,6 +153,33 @@ def main() -> int:
           f" adjustment, analytic Jacobian {analytic_s:.1f} s = {analytic_s / numeric_s:.2f} x the finite-difference"
           f" Jacobian over jac_sparsity ({numeric_s:.1f} s)")  # fmt: skip
     bar("map_time_900_frames_one_core", total_s, "cpu_s", 60.0, total_s <= 60.0)
+
+    # 1b. The search: the node's (decimate 2, tracking) beside the whole-frame search at full resolution
+    # (collect's default, used above), on the same recording, CPU time per frame on this core.
+    per_frame: dict[float, np.ndarray] = {}
+    results: dict[float, mb.MapResult] = {}
+    for dec in (1.0, 2.0):
+        times = []
+        obs = None
+        for _ in range(3):  # the best of three passes: the machine is shared
+            c = time.process_time()
+            obs = mb.collect([rec1], world, decimate=dec)
+            times.append(time.process_time() - c)
+        assert obs is not None
+        per_frame[dec] = np.array(times) / obs.frames_read
+        results[dec] = mb.build_map(obs, world, options)
+        sightings = len(obs.obs_frame)
+        print(f"search decimate {dec:g}: {1 / per_frame[dec].min():.1f} frames/s (CPU, one core), {sightings}"
+              f" sightings, {len(set(obs.obs_marker_id))} markers; per frame mean {per_frame[dec].mean() * 1e3:.1f} ms,"
+              f" median {np.median(per_frame[dec]) * 1e3:.1f} ms, p95 {np.percentile(per_frame[dec], 95) * 1e3:.1f} ms"
+              " (over the passes)")  # fmt: skip
+    speedup = per_frame[1.0].min() / per_frame[2.0].min()
+    print(f"search speed, node's / full resolution: {speedup:.2f} x")
+    p_full, _ = compare("the same map from the full-resolution search", results[1.0], truth)
+    bar("map_search_frames_per_s_one_core", 1 / per_frame[2.0].min(), "fps", 1 / per_frame[1.0].min(),
+        per_frame[2.0].min() < per_frame[1.0].min())  # fmt: skip
+    p_node, _ = compare("the same map from the node's search", results[2.0], truth)
+    bar("map_node_search_position_max_err", p_node, "mm", max(5.0, p_full), p_node <= max(5.0, p_full))
 
     # 2. Two drones merged.
     obs12 = mb.collect([rec1, rec2], world)

@@ -34,13 +34,14 @@ def run(tmp_path, world, *args):
     return proc.stdout
 
 
-def inproc(tmp_path, world, autopilot, **kw):
+def inproc(tmp_path, world, autopilot, vehicle_id=1, **kw):
     """The same file made in this process (the variants; the subprocess runs check the command)."""
     from atlas_onboard.config import load_node
     from atlas_onboard.params import parameters, render
 
     w, node = load_node(write_world(tmp_path, world), "d1")
-    return render(parameters(w, node, autopilot, **kw), autopilot, node, w)
+    version = kw.get("ardupilot_version", "4.7")
+    return render(parameters(w, node, autopilot, **kw), autopilot, node, w, vehicle_id, version)
 
 
 def qgc(text):
@@ -60,7 +61,8 @@ def test_px4_values_follow_the_world_file(tmp_path):
     # The centre of gravity 2 cm behind, 1 cm left of and 5 cm below the entity origin (FLU): the
     # origin is 2 cm ahead (FRD x +0.02), 1 cm right (FRD y +0.01) and 5 cm above (FRD z -0.05) of it.
     p = qgc(run(tmp_path, doc(), "--autopilot", "px4", "--delay-ms", "25", "--cog-m", "-0.02", "0.01", "-0.05"))
-    assert p["MAV_SYS_ID"] == (7, 1, 7.0, 6)
+    # Loaded onto a new flight controller (system id 1): the rows are for vehicle 1, MAV_SYS_ID the node's.
+    assert p["MAV_SYS_ID"] == (1, 1, 7.0, 6)
     offset = (p["EKF2_EV_POS_X"][2], p["EKF2_EV_POS_Y"][2], p["EKF2_EV_POS_Z"][2])
     assert offset == pytest.approx((0.02, 0.01, -0.05))
     assert p["EKF2_EV_CTRL"][2:] == (11.0, 6) and p["EKF2_HGT_REF"][2] == 3 and p["EKF2_EV_DELAY"][2:] == (25.0, 9)
@@ -72,8 +74,38 @@ def test_px4_values_follow_the_world_file(tmp_path):
 
 def test_ardupilot_values_follow_the_world_file(tmp_path):
     # In an FRD world file the same centre of gravity is written (-0.02, -0.01, 0.05).
-    a = mission_planner(inproc(tmp_path, doc(body="FRD", system_id=3), "ardupilot", cog_m=(-0.02, -0.01, 0.05)))
+    a = mission_planner(
+        inproc(tmp_path, doc(body="FRD", system_id=3), "ardupilot", cog_m=(-0.02, -0.01, 0.05), ardupilot_version="4.6")
+    )
     assert a["SYSID_THISMAV"] == 3 and a["VISO_TYPE"] == 1 and a["EK3_SRC1_POSXY"] == 6 and a["EK3_SRC1_YAW"] == 6
     assert (a["VISO_POS_X"], a["VISO_POS_Y"], a["VISO_POS_Z"]) == pytest.approx((0.02, 0.01, -0.05))
     assert a["EK3_SRC1_VELXY"] == 0 and a["VISO_DELAY_MS"] == 10  # no filter: no velocity; delay not measured
     assert mission_planner(inproc(tmp_path, doc(filt="ekf"), "ardupilot"))["EK3_SRC1_VELXY"] == 6
+
+
+def test_px4_file_loads_on_the_flight_controller_it_is_for(tmp_path):
+    # QGroundControl loads a file only onto the vehicle named in its Vehicle-Id column: every row names
+    # the flight controller's id now (1 new, or --vehicle-id), MAV_SYS_ID carries the node's id.
+    fresh = qgc(run(tmp_path, doc(system_id=7), "--autopilot", "px4"))
+    assert {row[0] for row in fresh.values()} == {1} and fresh["MAV_SYS_ID"][2] == 7.0
+    again = qgc(run(tmp_path, doc(system_id=7), "--autopilot", "px4", "--vehicle-id", "7"))
+    assert {row[0] for row in again.values()} == {7} and again["MAV_SYS_ID"][2] == 7.0
+    other = qgc(inproc(tmp_path, doc(system_id=9), "px4", vehicle_id=4))
+    assert {row[0] for row in other.values()} == {4} and other["MAV_SYS_ID"][2] == 9.0
+
+
+@pytest.mark.parametrize(
+    ("version", "sysid", "gps"),
+    [("4.5", "SYSID_THISMAV", "GPS_TYPE"), ("4.6", "SYSID_THISMAV", "GPS1_TYPE"),
+     ("4.7", "MAV_SYSID", "GPS1_TYPE"), ("4.8", "MAV_SYSID", "GPS1_TYPE")],
+)  # fmt: skip
+def test_ardupilot_names_are_the_ones_each_release_reads(tmp_path, version, sysid, gps):
+    a = mission_planner(run(tmp_path, doc(system_id=5), "--autopilot", "ardupilot", "--ardupilot-version", version))
+    assert a[sysid] == 5 and a[gps] == 0
+    stale = {"SYSID_THISMAV", "MAV_SYSID", "GPS_TYPE", "GPS1_TYPE"} - {sysid, gps}
+    assert not stale & set(a)
+
+
+def test_ardupilot_default_is_47_names(tmp_path):
+    a = mission_planner(run(tmp_path, doc(system_id=5), "--autopilot", "ardupilot"))
+    assert a["MAV_SYSID"] == 5 and "SYSID_THISMAV" not in a

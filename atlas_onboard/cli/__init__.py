@@ -122,6 +122,7 @@ def build_parser(every_command: bool = True) -> argparse.ArgumentParser:
     from atlas_onboard.install import add_commands as add_install
     from atlas_onboard.mapping.command import add_commands as add_mapping
     from atlas_onboard.params import add_commands as add_params
+    from atlas_onboard.preflight import add_commands as add_preflight
     from atlas_onboard.sim.command import add_commands as add_sim
     from atlas_onboard.sim.demo import add_commands as add_demo
 
@@ -132,6 +133,7 @@ def build_parser(every_command: bool = True) -> argparse.ArgumentParser:
     add_install(sub)
     add_params(sub)
     add_mapping(sub)
+    add_preflight(sub)
     return parser
 
 

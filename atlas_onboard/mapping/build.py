@@ -4,7 +4,8 @@
    the world file's world markers; a frame keeps the markers it shows once (an id seen twice in one
    image is dropped there and counted).
 2. Markers seen in fewer than ``min_frames`` frames with another marker are left out (too rarely);
-   the rest must form one co-visible set with the anchors, else the map cannot be built.
+   the rest fall into groups seen together: each group with an anchor is mapped (from its own
+   anchors), the others are reported as unanchored.
 3. Initialisation: from the anchors outwards (a spanning tree of co-visible markers), each frame that
    shows mapped markers gives the camera's pose (PnP on all their corners) and, through the IPPE pose
    of each unmapped marker in it, a candidate pose for that marker; the robust mean of a marker's
@@ -137,12 +138,19 @@ def build_map(obs: Observations, world: WorldConfig, options: MapOptions) -> Map
         reports[mid].status = "too_rare"
         reports[mid].detail = f"seen with another marker in {with_other[mid]} frames (need {options.min_frames})"
     seen_anchors = [a for a in anchor_ids if a in active]
+    # Each group of markers seen together is mapped from its own anchors; a group without one has no
+    # place in the world (nothing ties it to the anchors) and is reported, not mapped.
     comps = _components(pairs, active)
-    main = next(c for c in comps if seen_anchors[0] in c)
-    others = [c for c in comps if c is not main]
-    if others:
-        groups = "; ".join("{" + ", ".join(map(str, sorted(c))) + "}" for c in [main, *others])
-        raise MapError(f"disconnected markers: the groups {groups} are never seen together (fly between them)")
+    anchored = [c for c in comps if c & set(seen_anchors)]
+    for c in comps:
+        if c in anchored:
+            continue
+        group = "{" + ", ".join(map(str, sorted(c))) + "}"
+        why = f"group {group} is never seen with an anchored marker: give one of them as --anchor, or fly between"
+        for mid in c:
+            reports[mid].status, reports[mid].detail = "unanchored", why
+        active -= c
+        _logger.info("markers %s: no anchor in their group, not mapped", group)
     # Anchors' poses: the world file's (surveyed), or the identity for the gravity anchor (rotated at the end).
     anchor_pose = {a: (np.eye(4) if options.gravity_anchor is not None else cfg[a].T_entity_marker.as_matrix())
                    for a in seen_anchors}  # fmt: skip

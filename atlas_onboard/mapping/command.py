@@ -134,6 +134,12 @@ def report_text(result: MapResult) -> str:
     bad = [r for r in result.markers.values() if r.status in ("moved", "duplicated", "wrong_size")]
     for r in bad:
         out.append(f"marker {r.id} does not fit ({r.status}): {r.detail}; left out of the map")
+    unanchored = sorted(r.id for r in result.markers.values() if r.status == "unanchored")
+    if unanchored:
+        out.append(
+            f"markers {', '.join(map(str, unanchored))} not mapped: their groups have no anchor"
+            " (give one of each group as --anchor, or fly between the groups)"
+        )
     return "\n".join(out)
 
 
@@ -205,7 +211,9 @@ def _cmd_map(args: argparse.Namespace) -> int:
     if not out_dir.is_dir():
         raise AtlasError(f"--out: {out_dir} is not a directory")
     say = (lambda m: print(f"atlas-onboard map: {m}", file=sys.stderr)) if args.verbose_progress else None
-    obs = collect(list(args.inputs), world, args.calibration, args.fps, args.stride, say)
+    if args.decimate not in (1.0, 2.0):
+        raise AtlasError(f"--decimate: expected 1 (full resolution) or 2 (the node's), got {args.decimate:g}")
+    obs = collect(list(args.inputs), world, args.calibration, args.fps, args.stride, say, args.decimate)
     corrected = motion.correct(obs)  # a rolling shutter's rows to their frames' stamps, where attitudes allow
     if say and corrected:
         say(f"{corrected} detections' rolling-shutter rows moved to their frames' stamps")
@@ -348,6 +356,11 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     p.add_argument("--calibration", type=Path, help="calibration of videos and image folders")
     p.add_argument("--fps", type=float, default=30.0, help="frame rate of image folders (stamps), default 30")
     p.add_argument("--stride", type=int, default=1, help="use every n-th frame (default 1)")
+    p.add_argument(
+        "--decimate", type=float, default=1.0,
+        help="1 (default): every frame whole at full resolution; 2: search as the node does, tracking markers"
+        " from frame to frame (cheaper only with few markers in view; consecutive frames)",
+    )  # fmt: skip
     p.add_argument("--loss-scale-px", type=float, default=1.0, help="robust loss scale, pixels (default 1)")
     p.add_argument("--min-frames", type=int, default=5, help="markers seen with another in fewer frames are left out")
     p.add_argument("--report", type=Path, help="directory for report.json, report.txt and map.png")

@@ -1,5 +1,14 @@
-"""The map's input: every frame of every input (recordings, videos, image folders) searched at full
-resolution for the world file's world markers (step 1 of :mod:`atlas_onboard.mapping.build`)."""
+"""The map's input: every frame of every input (recordings, videos, image folders) searched for the
+world file's world markers (step 1 of :mod:`atlas_onboard.mapping.build`).
+
+``decimate`` 1 (the default) searches every frame whole at full resolution; ``decimate`` 2 searches as
+the node does (:class:`~atlas_onboard.detector.pipeline.Detector`): where the previous frame's markers
+are predicted, the regions of black-white contrast, and now and then the whole image decimated, the
+corners fitted at full resolution either way. It finds the same markers at the same corners in
+consecutive frames, but with many markers in view, as a mapping flight has them, it costs more than the
+whole-frame search (``benchmarks/bench_map.py``), so it is not the default. Ids the world file does not
+list, and an id seen twice in one frame (two places more than a marker apart), are counted either way;
+a duplicated id is dropped from that frame."""
 
 from __future__ import annotations
 
@@ -12,14 +21,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import WORLD, WorldConfig
+from atlas_onboard.config import WORLD, SensorConfig, WorldConfig
 from atlas_onboard.config.settings import READOUT_BOTTOM_UP
 from atlas_onboard.core.shutter import RowClock
-from atlas_onboard.detector.backends import MarkerFinder
+from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.calibration import load as load_calibration
+from atlas_onboard.detector.pipeline import Detector
+from atlas_onboard.detector.search import MAX_REGION_DECIMATE
 from atlas_onboard.detector.sources import IMAGE_SUFFIXES, SourceError
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.recording.format import RecordingError, is_recording, read_frames, read_info
@@ -27,6 +38,48 @@ from atlas_onboard.recording.format import RecordingError, is_recording, read_fr
 
 class MapError(AtlasError):
     """A map that cannot be built from the input; the message says why in one line."""
+
+
+_MAP_ENTITY = "map camera"  # no entity of a world file has a space in its name: every marker is another's
+
+
+class _SeeingFinder(MarkerFinder):
+    """The finder the tracker searches with, noting in each frame the ids the world file does not list
+    and the ids one search found at two places (``unknown``, ``twice``; cleared by the caller)."""
+
+    def __init__(self, wanted: dict[int, str], decimate: float, extra: tuple[float, ...]) -> None:
+        super().__init__(wanted, decimate, extra=extra)
+        self.unknown: set[int] = set()
+        self.twice: set[int] = set()
+
+    def find(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:
+        out = []
+        for backend in self.backends:
+            found = backend.detect(gray, decimate)
+            self.twice |= _duplicated(found)
+            for d in found:
+                if self.wanted.get(d.marker_id) == d.family:
+                    out.append(d)
+                else:
+                    self.unknown.add(d.marker_id)
+        return out
+
+
+def _map_sensor() -> SensorConfig:
+    return SensorConfig("map", 0, _MAP_ENTITY, RigidTransform.identity())
+
+
+def _duplicated(found: list[Detection]) -> set[int]:
+    """Ids one search found at two places more than a marker's side apart."""
+    centres: dict[int, list[NDArray[np.float64]]] = {}
+    out = set()
+    for d in found:
+        c = np.asarray(d.corners_px, dtype=float).reshape(4, 2)
+        side = float(np.linalg.norm(c[0] - c[1]))
+        if any(np.linalg.norm(other - c.mean(axis=0)) > side for other in centres.get(d.marker_id, [])):
+            out.add(d.marker_id)
+        centres.setdefault(d.marker_id, []).append(c.mean(axis=0))
+    return out
 
 
 @dataclass(frozen=True)
@@ -143,8 +196,10 @@ def collect(
     fps: float = 30.0,
     stride: int = 1,
     progress: Callable[[str], None] | None = None,
+    decimate: float = 1.0,
 ) -> Observations:
-    """Detect the world file's world markers in every ``stride``-th frame of every input."""
+    """Detect the world file's world markers in every ``stride``-th frame of every input, whole at full
+    resolution (``decimate`` 1) or as the node does (``decimate`` 2, tracking)."""
     t0 = time.perf_counter()
     wanted = {m.id: m.family for m in world.markers.values() if m.entity == WORLD}
     if not wanted:
@@ -159,30 +214,25 @@ def collect(
             obs.lenses.append(cal)
             obs.sources.append(str(path))
             obs.mountings.append(mount)
-            finder = MarkerFinder(wanted_all, 1.0)
+            finder = _SeeingFinder(wanted_all, max(decimate, 1.0), (MAX_REGION_DECIMATE,) if decimate > 1.0 else ())
+            tracker = None
+            if decimate > 1.0:
+                tracker = Detector(_map_sensor(), world, cal, decimate=decimate)
+                tracker.finder = tracker.search.finder = finder  # the node's search, seeing every id
             n = 0
             for k, gray, stamp, q in frames:
                 n += 1
                 if (n - 1) % stride:
                     continue
                 cal.check_size(gray.shape[1], gray.shape[0], str(path))
-                found = []
-                for backend in finder.backends:  # the finder's own filter, counting the ids it drops
-                    for d in backend.detect(gray, 1.0):
-                        if wanted_all.get(d.marker_id) == d.family:
-                            found.append(d)
-                        else:
-                            obs.unknown[d.marker_id] += 1
-                ids = Counter(d.marker_id for d in found)
-                dets = []
-                for d in found:
-                    if ids[d.marker_id] > 1:
-                        continue
-                    if d.marker_id in wanted:
-                        dets.append(d)
-                for mid, c in ids.items():
-                    if c > 1 and mid in wanted:
-                        obs.duplicates[mid] += 1
+                finder.unknown.clear()
+                finder.twice.clear()
+                found = tracker.find(gray) if tracker is not None else finder.find(gray, 1.0)
+                for mid in finder.unknown:
+                    obs.unknown[mid] += 1
+                for mid in finder.twice & set(wanted):
+                    obs.duplicates[mid] += 1
+                dets = [d for d in found if d.marker_id in wanted and d.marker_id not in finder.twice]
                 if not dets:
                     continue
                 obs.frames.append(FrameInfo(s, k, stamp, s, q))

@@ -23,7 +23,8 @@ class MarkerReport:
     id: int
     size_m: float
     frames: int
-    status: str  # mapped, anchor, too_rare, degenerate, moved, duplicated, wrong_size, not_seen; refined, kept (live)
+    # mapped, anchor, too_rare, unanchored, degenerate, moved, duplicated, wrong_size, not_seen; refined, kept (live)
+    status: str
     M_world_marker: NDArray[np.float64] | None = None
     sigma_m: tuple[float, float, float] | None = None
     sigma_deg: tuple[float, float, float] | None = None

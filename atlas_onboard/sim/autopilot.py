@@ -138,6 +138,12 @@ class SimAutopilot:
     clock_ppm: float = 0.0  # the autopilot's clock against the wall clock (time_boot_ms)
     attitude_sent: int = 0
     attitude_interval_requests: int = 0  # MAV_CMD_SET_MESSAGE_INTERVAL for ATTITUDE received
+    # Bench check (preflight): parameters answered to PARAM_REQUEST_READ (as REAL32), and LOCAL_POSITION_NED
+    # streamed at local_position_hz (0: not streamed) as the last vision position received (an EKF on vision).
+    params: dict[str, float] = field(default_factory=dict)
+    local_position_hz: float = 0.0
+    param_requests: int = 0
+    timesync_hz: float = 0.0  # TIMESYNC requests sent (PX4 sends them at 10 Hz in the Onboard stream set)
 
     def __post_init__(self) -> None:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM if self.tcp else socket.SOCK_DGRAM)
@@ -175,6 +181,8 @@ class SimAutopilot:
         self._gyro = Gyro(self.gyro, self.attitude_seed * 7919 + 17)
         # (send at, t_meas, roll, pitch, yaw, body rates FRD)
         self._att_queue: list[tuple[float, float, float, float, float, tuple[float, float, float]]] = []
+        self._next_local_s = 0.0
+        self._next_timesync_s = 0.0
 
     def start(self) -> SimAutopilot:
         self._thread.start()
@@ -243,6 +251,11 @@ class SimAutopilot:
                 )
             if self.attitude is not None:
                 self._attitude_tick()
+            if self.local_position_hz > 0:
+                self._local_position_tick(now)
+            if self.timesync_hz > 0 and now >= self._next_timesync_s:
+                self._next_timesync_s = now + 1.0 / self.timesync_hz
+                self._send(self._mav.timesync_encode(0, time.monotonic_ns()))
             try:
                 data = self._receive()
             except TimeoutError:
@@ -318,12 +331,34 @@ class SimAutopilot:
                 self.attitude_interval_requests += 1
                 if msg.param2 > 0:
                     self.attitude_hz = 1e6 / msg.param2
+            elif kind == "PARAM_REQUEST_READ":
+                self._answer_param(msg)
             elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == 49:
                 self.origin_requests += 1
                 self._send_origin()
             if kind == "STATUSTEXT":
                 text = msg.text
                 self.statustexts.append(text.encode() if isinstance(text, str) else bytes(text))
+
+    def _answer_param(self, msg: mavlink.MAVLink_message) -> None:
+        name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
+        name = name.rstrip("\0")
+        self.param_requests += 1
+        if name in self.params:  # an unknown name gets no answer, as on PX4
+            names = sorted(self.params)
+            value = self.params[name]
+            self._send(self._mav.param_value_encode(name.encode(), value, mavlink.MAV_PARAM_TYPE_REAL32,
+                                                    len(names), names.index(name)))  # fmt: skip
+
+    def _local_position_tick(self, now: float) -> None:
+        if now < self._next_local_s:
+            return
+        self._next_local_s = now + 1.0 / self.local_position_hz
+        with self._lock:
+            last = self.received[-1] if self.received else None
+        if last is not None:
+            boot_ms = int((time.time() - self._boot_s) * 1000) & 0xFFFFFFFF
+            self._send(self._mav.local_position_ned_encode(boot_ms, *last.xyz_m, 0.0, 0.0, 0.0))
 
     def _set_origin(self, lat_deg: float, lon_deg: float, alt_m: float) -> None:
         if self.autopilot_type == mavlink.MAV_AUTOPILOT_PX4:

@@ -22,6 +22,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import load_world
+from atlas_onboard.core import geometry
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import trajectories as tj
 from atlas_onboard.sim.scenarios import Optics, Scenario
@@ -220,14 +221,18 @@ def autopilot_line(elapsed_s: float, new: list[Received], heartbeats: int) -> st
     )
 
 
-def run_sim_autopilot(port: int, seconds: float | None, out: TextIO = sys.stdout) -> int:
-    """Listen on 127.0.0.1:``port`` as a flight controller would and print once a second what arrived."""
+def run_sim_autopilot(
+    port: int, seconds: float | None, out: TextIO = sys.stdout, bench: dict[str, Any] | None = None
+) -> int:
+    """Listen on 127.0.0.1:``port`` as a flight controller would and print once a second what arrived.
+
+    ``bench``: further :class:`SimAutopilot` settings (parameters, a static attitude, LOCAL_POSITION_NED)."""
     from atlas_onboard.sim.autopilot import SimAutopilot
 
     if not 1 <= port <= 65535:
         raise AtlasError(f"--port: expected a UDP port 1..65535, got {port}")
     try:
-        autopilot = SimAutopilot(system_id=SYSTEM_ID, port=port)
+        autopilot = SimAutopilot(system_id=SYSTEM_ID, port=port, **(bench or {}))
     except OSError as exc:
         raise AtlasError(f"127.0.0.1:{port}: cannot listen ({exc.strerror})") from exc
     autopilot.start()
@@ -251,7 +256,7 @@ def run_sim_autopilot(port: int, seconds: float | None, out: TextIO = sys.stdout
 
 
 def _cmd_sim_autopilot(args: argparse.Namespace) -> int:
-    return run_sim_autopilot(args.port, args.seconds)
+    return run_sim_autopilot(args.port, args.seconds, bench=autopilot_settings(args))
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
@@ -278,4 +283,47 @@ def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-
     )
     p.add_argument("--port", type=int, default=14550, help="UDP port to listen on (default 14550)")
     p.add_argument("--seconds", type=float, default=None, help="stop after this many seconds (default: Ctrl-C)")
+    add_autopilot_options(p)
     p.set_defaults(func=_cmd_sim_autopilot)
+
+
+MAV_AUTOPILOT_PX4, MAV_AUTOPILOT_ARDUPILOTMEGA = 12, 3  # MAVLink's MAV_AUTOPILOT values
+
+
+def add_autopilot_options(p: argparse.ArgumentParser) -> None:
+    """``sim-autopilot``'s bench options."""
+    p.add_argument("--autopilot", choices=("px4", "ardupilot"), default="px4", help="which one to imitate")
+    p.add_argument(
+        "--param", action="append", default=[], metavar="NAME=VALUE",
+        help="a parameter answered to PARAM_REQUEST_READ (repeatable), e.g. EKF2_EV_DELAY=200",
+    )  # fmt: skip
+    p.add_argument(
+        "--attitude-rpy-deg", type=float, nargs=3, metavar=("ROLL", "PITCH", "YAW"),
+        help="stream ATTITUDE of a drone at rest at this attitude (world ENU, body FLU, deg)",
+    )  # fmt: skip
+    p.add_argument("--timesync-hz", type=float, default=0.0, help="send TIMESYNC requests at this rate (PX4: 10 Hz)")
+    p.add_argument(
+        "--local-position-hz", type=float, default=0.0,
+        help="stream LOCAL_POSITION_NED (the last vision position received) at this rate",
+    )  # fmt: skip
+
+
+def autopilot_settings(args: argparse.Namespace) -> dict[str, Any]:
+    """:class:`SimAutopilot` keyword arguments from :func:`add_autopilot_options`'s options."""
+    params: dict[str, float] = {}
+    for item in args.param:
+        name, _, value = item.partition("=")
+        try:
+            params[name.strip()] = float(value)
+        except ValueError:
+            raise AtlasError(f"--param: expected NAME=VALUE with a number, got {item!r}") from None
+    out: dict[str, Any] = {
+        "params": params,
+        "local_position_hz": args.local_position_hz,
+        "timesync_hz": args.timesync_hz,
+        "autopilot_type": MAV_AUTOPILOT_PX4 if args.autopilot == "px4" else MAV_AUTOPILOT_ARDUPILOTMEGA,
+    }
+    if args.attitude_rpy_deg is not None:
+        R = geometry.rotation_from_rpy_deg(args.attitude_rpy_deg)
+        out["attitude"] = lambda _t: R
+    return out

@@ -185,8 +185,8 @@ def test_no_anchor_seen_exits_2(tmp_path: Path, flight, capsys: pytest.CaptureFi
     _assert_refused(*_run(args, capsys), tmp_path, "no anchor seen", "11")
 
 
-def test_disconnected_markers_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """Frames of two moments of the flight whose markers were never seen together."""
+def _two_groups() -> tuple[tuple[frozenset[int], list[int]], tuple[frozenset[int], list[int]]]:
+    """Two sets of frames of the map scenario's flight whose markers are never seen together."""
     from atlas_onboard.sim import scenarios
     from atlas_onboard.sim.world import SimWorld
 
@@ -203,11 +203,57 @@ def test_disconnected_markers_exit_2(tmp_path: Path, capsys: pytest.CaptureFixtu
         else:
             groups.append((ids, [j]))
     pairs = [(a, b) for a in groups for b in groups if len(a[1]) >= 5 and len(b[1]) >= 5 and not (a[0] & b[0])]
-    (ga, fa), (_gb, fb) = pairs[0]
+    return pairs[0]
+
+
+def test_groups_never_seen_together_are_each_mapped_from_their_own_anchor(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A flight that never shows both groups in one image (a hangar): with an anchor in each group,
+    both are mapped; with an anchor in one only, that one is mapped and the other reported."""
+    (ga, fa), (gb, fb) = _two_groups()
     images, intr = _render(fa[:5] + fb[:5])
     folder, cal = _write_folder(tmp_path, images, intr)
-    args = _map_args(tmp_path, folder, anchor=str(min(ga)), extra=("--calibration", str(cal), "--min-frames", "3"))
-    _assert_refused(*_run(args, capsys), tmp_path, "disconnected", "never seen together")
+    truth = {m.id: m.T_entity_marker.translation for m in load_world(MAP_WORLD).markers.values()}
+    # Frames 0.2 s apart from two moments of the flight: searched whole (no tracking between them).
+    sparse = ("--calibration", str(cal), "--min-frames", "3", "--decimate", "1")
+    both = _map_args(tmp_path, folder, anchor=str(min(ga)), extra=(*sparse, "--anchor", str(min(gb))))
+    code, out, err = _run(both, capsys)
+    assert code == 0, err
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    status = {r["id"]: r["status"] for r in report["markers"]}
+    assert {status[m] for m in ga | gb} <= {"anchor", "mapped", "degenerate"}, status
+    mapped = {m.id: m.T_entity_marker.translation for m in load_world(tmp_path / "out.yaml").markers.values()}
+    for m in (ga | gb) - {min(ga), min(gb)}:
+        assert np.linalg.norm(mapped[m] - truth[m]) < 0.05, (m, mapped[m], truth[m])
+
+    one = tmp_path / "one"
+    one.mkdir()
+    code, out, err = _run(_map_args(one, folder, anchor=str(min(ga)), extra=sparse), capsys)
+    assert code == 0, err
+    status = {r["id"]: r["status"] for r in json.loads((one / "report" / "report.json").read_text())["markers"]}
+    assert {status[m] for m in gb} == {"unanchored"} and {status[m] for m in ga} <= {"anchor", "mapped", "degenerate"}
+    assert ", ".join(map(str, sorted(gb))) in out and "no anchor" in out
+
+
+def test_a_group_without_an_anchor_is_reported_and_the_rest_mapped() -> None:
+    """The synthetic room with its wall never seen with the floor: anchored on the floor only, the
+    wall's markers are reported unanchored; anchored on both, each is within its sigma of the truth."""
+    obs, world, M_true = make_observations(3, n_frames=120)
+    wall = {9, 10, 11}
+    keep = [not (obs.obs_marker_id[i] in wall and any(
+        obs.obs_frame[j] == obs.obs_frame[i] and obs.obs_marker_id[j] not in wall for j in range(len(obs.obs_frame))))
+        for i in range(len(obs.obs_frame))]  # fmt: skip
+    for name in ("obs_frame", "obs_marker_id", "corners_px"):
+        setattr(obs, name, [v for v, k in zip(getattr(obs, name), keep, strict=True) if k])
+    floor_only = build_map(obs, world, MapOptions(anchors=(0,)))
+    assert {floor_only.markers[m].status for m in wall} == {"unanchored"}
+    assert not wall & set(floor_only.mapped()) and set(range(9)) <= set(floor_only.mapped())
+    both = build_map(obs, world, MapOptions(anchors=(0, 10)))
+    assert set(range(12)) <= set(both.mapped())
+    for m in (9, 11):
+        sigma = np.linalg.norm(both.markers[m].sigma_m)
+        assert np.linalg.norm(both.mapped()[m][:3, 3] - M_true[m][:3, 3]) < 4 * sigma + 0.002, m
 
 
 def test_map_needs_an_anchor_and_existing_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
