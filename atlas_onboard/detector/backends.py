@@ -38,7 +38,7 @@ def _library_detector(families: str, threads: int, decimate: float) -> object:
     pupil-apriltags 1.0.4 can crash (SIGSEGV) when a detector is destroyed after it has found tags,
     which would take the node down with it: they live as long as the process. Each holds its families'
     decoding tables (tens of MB for tag36h11), so the backends of a process share one per families and
-    threads (:func:`_shared_library`).
+    threads (:func:`shared_library`).
 
     pupil-apriltags adds every family with 2-bit error correction, whose decoding table grows with
     codes x bits^2: gigabytes for tagStandard52h13. Families whose table would pass
@@ -73,7 +73,7 @@ def _library_detector(families: str, threads: int, decimate: float) -> object:
 
 
 @dataclass(frozen=True)
-class _SharedLibrary:
+class SharedLibrary:
     """A library detector and the lock its callers hold: it is not thread-safe, and its decimation is
     set for each call."""
 
@@ -81,11 +81,11 @@ class _SharedLibrary:
     lock: threading.Lock
 
 
-_LIBRARIES: dict[tuple[str, int], _SharedLibrary] = {}
+_LIBRARIES: dict[tuple[str, int], SharedLibrary] = {}
 _LIBRARIES_LOCK = threading.Lock()
 
 
-def _shared_library(families: str, threads: int) -> _SharedLibrary:
+def shared_library(families: str, threads: int) -> SharedLibrary:
     """The process's library detector of ``families`` with ``threads`` threads, made on first use.
 
     One for every decimation and every camera of the process: a detector's decimation is a field read
@@ -94,7 +94,7 @@ def _shared_library(families: str, threads: int) -> _SharedLibrary:
     with _LIBRARIES_LOCK:
         shared = _LIBRARIES.get((families, threads))
         if shared is None:
-            shared = _SharedLibrary(_library_detector(families, threads, 1.0), threading.Lock())
+            shared = SharedLibrary(_library_detector(families, threads, 1.0), threading.Lock())
             _LIBRARIES[(families, threads)] = shared
         return shared
 
@@ -130,7 +130,7 @@ class AprilTagBackend:
         """``extra``: other decimations it will be asked for (one library detector serves them all)."""
         self.families = families
         self.decimate = float(decimate)
-        self._library = _shared_library(" ".join(families), threads)
+        self._library = shared_library(" ".join(families), threads)
 
     def detect(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:
         d = float(decimate or self.decimate)
@@ -170,6 +170,11 @@ class ArucoBackend:
         ]
 
 
+def apriltag_families(wanted: dict[int, str]) -> list[str]:
+    """The AprilTag families of ``wanted`` (marker id -> family), sorted: those of its library detector."""
+    return [f for f in sorted(set(wanted.values())) if family(f).is_apriltag]
+
+
 class MarkerFinder:
     """All backends a world file's markers need, filtered to the configured ids."""
 
@@ -177,7 +182,7 @@ class MarkerFinder:
         """``wanted`` maps each configured marker id to its family."""
         self.wanted = wanted
         fams = sorted(set(wanted.values()))
-        april = [f for f in fams if family(f).is_apriltag]
+        april = apriltag_families(wanted)
         self.backends: list[AprilTagBackend | ArucoBackend] = []
         if april:
             self.backends.append(AprilTagBackend(april, decimate, extra=extra))

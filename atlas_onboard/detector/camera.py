@@ -29,6 +29,7 @@ from atlas_onboard.worker import Deliver, SensorWorker
 _logger = logging.getLogger(__name__)
 
 BACKOFF_S = (0.5, 1.0, 2.0, 5.0)
+WORKER_READY_S = 60.0  # the most a camera waits for its worker processes' detectors before its first frame
 
 
 class CameraWorker(SensorWorker):
@@ -57,6 +58,7 @@ class CameraWorker(SensorWorker):
         self.fast = fast
         self.counts: Counter[str] = Counter()
         self._pipeline: InOrder | None = None
+        self._workers: list[ProcessWorker] = []
         self._deliver: Deliver | None = None
         self._turns: list[CameraTurn] = []  # with worker processes: each worker's turn since its last frame
         self._worker_counters: dict[int, dict[str, int]] = {}  # each worker's detector counters so far
@@ -91,6 +93,7 @@ class CameraWorker(SensorWorker):
     def start(self, deliver: Deliver) -> None:
         if self.spec is not None:
             workers = [ProcessWorker(self.spec, f"detect-{self.name}-{i}") for i in range(self.processes)]
+            self._workers = workers
             self._deliver = deliver
             self._turns = [CameraTurn(self.spec.sensor.T_entity_sensor.rotation) for _ in workers]
             self._pipeline = InOrder(workers, self._on_result, self._on_restart)
@@ -120,6 +123,8 @@ class CameraWorker(SensorWorker):
         return out
 
     def _run(self, deliver: Deliver) -> None:
+        for worker in self._workers:  # their detectors made before the first frame, as this thread's is
+            worker.wait_ready(WORKER_READY_S)
         backoff = 0
         while not self._stop.is_set():
             try:

@@ -7,13 +7,16 @@ the motion between frames k-2N and k-N, predict frame k (the same constant-veloc
 N frame periods). Processes, not threads: most of a frame's work (the per-marker refit, pose and checks)
 is Python that holds the interpreter lock; only the library's search and OpenCV's calls release it.
 
-Workers are forked from a server process that imported the detector once (``forkserver``): no worker
-inherits the node's threads or locks, and the imported modules' pages are shared between workers.
+Workers are forked from a server process that imported the detector and made the AprilTag library's
+detector once (``forkserver``, :mod:`atlas_onboard.detector.forkserver_preload`): no worker inherits the
+node's threads or locks, and the imported modules' pages and the library's decoding tables are shared
+between workers.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import os
 import signal
 import threading
 from collections import Counter
@@ -27,7 +30,9 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import RefineConfig, SensorConfig, WorldConfig
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.detector.backends import apriltag_families
 from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.forkserver_preload import FAMILIES_ENV
 from atlas_onboard.errors import AtlasError
 
 
@@ -61,6 +66,11 @@ class CameraDetectorSpec:
     calibration: Calibration
     decimate: float = 2.0
     refine: RefineConfig | None = None
+
+    def apriltag_families(self) -> str:
+        """The AprilTag families its detector's library detector has (those of the markers it looks for)."""
+        wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
+        return " ".join(apriltag_families(wanted))
 
     def build(self) -> FrameDetector:
         from atlas_onboard.detector.pipeline import Detector
@@ -104,6 +114,7 @@ def serve(conn: Connection, spec: DetectorSpec) -> None:
 
     cv2.setNumThreads(1)  # the workers are the parallelism; OpenCV's own threads would compete with them
     detector = spec.build()
+    conn.send(READY)
     while True:
         try:
             msg = conn.recv()
@@ -122,14 +133,21 @@ def serve(conn: Connection, spec: DetectorSpec) -> None:
         conn.send(Outcome(msg.seq, found, dict(detector.counters), detector.take_status(), error))
 
 
+READY = "ready"  # a worker's first message: its detector is made
 _CONTEXT_LOCK = threading.Lock()
 
 
-def _context() -> multiprocessing.context.BaseContext:
-    """The forkserver context, its server preloading the detector (once per node process)."""
+def _context(families: str) -> multiprocessing.context.BaseContext:
+    """The forkserver context, its server preloading the detector and the library detector of
+    ``families`` (AprilTag families; the first worker's, when the server starts)."""
     ctx = multiprocessing.get_context("forkserver")
     with _CONTEXT_LOCK:
-        ctx.set_forkserver_preload(["atlas_onboard.detector.workers", "atlas_onboard.detector.pipeline"])
+        if families and FAMILIES_ENV not in os.environ:
+            os.environ[FAMILIES_ENV] = families  # the server's environment: read by its preload
+        ctx.set_forkserver_preload(
+            ["atlas_onboard.detector.workers", "atlas_onboard.detector.pipeline",
+             "atlas_onboard.detector.forkserver_preload"]
+        )  # fmt: skip
     return ctx
 
 
@@ -148,7 +166,8 @@ class ProcessWorker:
         self._start()
 
     def _start(self) -> None:
-        ctx = _context()
+        families = self.spec.apriltag_families() if isinstance(self.spec, CameraDetectorSpec) else ""
+        ctx = _context(families)
         parent, child = ctx.Pipe()
         self.process = ctx.Process(target=serve, args=(child, self.spec), name=self.name, daemon=True)
         self.process.start()
@@ -167,16 +186,25 @@ class ProcessWorker:
         """The answer to the job sent, or None if not there within ``timeout_s``; raises
         :class:`WorkerDiedError` when the process ended."""
         try:
-            if self.conn.poll(timeout_s):
+            while self.conn.poll(timeout_s):
                 out = self.conn.recv()
                 if isinstance(out, Outcome):
                     return out
-                raise WorkerDiedError(f"unexpected answer {type(out).__name__}")
+                if out != READY:
+                    raise WorkerDiedError(f"unexpected answer {type(out).__name__}")
         except (EOFError, OSError) as exc:
             raise WorkerDiedError(str(exc) or "pipe closed") from None
         if not self.process.is_alive():
             raise WorkerDiedError(f"exit code {self.process.exitcode}")
         return None
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Wait until the worker has made its detector (its first message); False if it has not within
+        ``timeout_s`` or died (the camera's collector then restarts it)."""
+        try:
+            return self.conn.poll(timeout_s) and self.conn.recv() == READY
+        except (EOFError, OSError):
+            return False
 
     def restart(self) -> None:
         """Kill the process (if it still runs) and start a new one with a fresh detector."""

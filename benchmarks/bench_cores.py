@@ -1,0 +1,326 @@
+"""The node on one core and on two (``nodes.<entity>.cores``): throughput, latency, order at the autopilot,
+and the memory of a node with one 1280x720 camera and with three.
+
+Every run is ``atlas-onboard run`` itself (as bench_pi runs it) on the demo's scene with ten 16 cm
+tag36h11 tags in view (``write_demo(n_tags=10)``, 640x480), with a simulated autopilot, pinned with
+``taskset -c 0`` (``cores: 1``: each camera detects in its own thread, today's path) and ``taskset -c 0,1``
+(``cores: 2``: two worker processes; on this 2-core machine the default would be 1).
+
+- throughput: the image folder replayed ``every_frame`` at 1000 Hz, so frames come faster than one core
+  can detect them. CPU ms per frame of the node's whole process tree (the node, the forkserver, the
+  workers) = the difference of the medians of repeated runs of all the frames and of half of them, over
+  the frames between (start-up cancels; bench_pi's method). Frames per second on n cores =
+  min(n / tree CPU per frame, 1 / CPU per frame of the node's own process): the workers share the n
+  cores, the node's process (reading, ordering, graph, MAVLink) holds one interpreter. CPU time is what
+  the runs measure because the machine is shared: the wall-clock rate (frames / wall s, the same
+  difference) is printed beside it with the machine's load average, as a check, not as the figure.
+- latency: the folder replayed ``realtime`` at 30 Hz (a live camera: a busy detector drops frames, it
+  never queues them): capture stamp to the autopilot's receipt (wall ms, on a shared machine), and the
+  frames that reached a detector.
+- order: every pose message's stamp against the one before it at the autopilot (must never go back).
+- memory: VmHWM of the node process (/proc) and of its whole tree, and the tree's PSS (shared pages
+  counted once), after a run of 1280x720 frames (the demo's, scaled), with one camera and with three.
+
+Pi 4 estimate (``pi4_fps_640x480_tracking_10``): the 1-core rate here x the speedup per added core
+measured on two cores, extrapolated to the three cores a Pi 4's node uses by default (four less one; the
+fourth runs the node's process and the system), / PI4_FACTOR (bench_pi's: a Pi 4 core is 3x slower):
+fps_1 x (1 + 2 (s2 - 1)) / 3. Conservative: the node's own process there has a core of its own.
+
+    python benchmarks/bench_cores.py [--seconds S] [--repeats K]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+PI4_FACTOR = 3.0  # bench_pi's: a Pi 4 core is about 3x slower than one core of this machine
+PI4_CORES = 3  # a Pi 4's four cores less the one the setting's default leaves
+RUNS = (("1 core", "0", 1), ("2 cores", "0,1", 2))
+TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
+
+
+def _stats(xs: list[float]) -> dict[str, float]:
+    if not xs:
+        return {"mean": float("nan"), "median": float("nan"), "p95": float("nan"), "n": 0}
+    return {"mean": statistics.mean(xs), "median": statistics.median(xs), "p95": float(np.percentile(xs, 95)),
+            "n": len(xs)}  # fmt: skip
+
+
+# --- the node's process tree in /proc --------------------------------------------------------------
+
+
+def _children() -> dict[int, list[int]]:
+    out: dict[int, list[int]] = {}
+    for p in Path("/proc").iterdir():
+        if not p.name.isdigit():
+            continue
+        try:
+            ppid = int((p / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        out.setdefault(ppid, []).append(int(p.name))
+    return out
+
+
+def tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (the forkserver and its workers)."""
+    kids, out, todo = _children(), [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo += kids.get(p, [])
+    return out
+
+
+def cpu_s(pid: int) -> float:
+    """utime + stime of a process (all its threads), s; 0 if it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) * TICK_S
+
+
+def _status_kb(pid: int, key: str) -> int:
+    try:
+        m = re.search(rf"^{key}:\s+(\d+)", Path(f"/proc/{pid}/status").read_text(), re.M)
+    except OSError:
+        return 0
+    return int(m.group(1)) if m else 0
+
+
+def worker_idle_s(pid: int) -> float:
+    """How long a process has been alive, neither running nor waiting for a core: waiting for work, s."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        run_s, queued_ns, _ = Path(f"/proc/{pid}/schedstat").read_text().split()
+        up_s = float(Path("/proc/uptime").read_text().split()[0])
+    except (OSError, ValueError):
+        return 0.0
+    alive_s = up_s - int(fields[19]) * TICK_S
+    return max(alive_s - int(run_s) / 1e9 - int(queued_ns) / 1e9, 0.0)
+
+
+def pss_kb(pid: int) -> int:
+    try:
+        m = re.search(r"^Pss:\s+(\d+)", Path(f"/proc/{pid}/smaps_rollup").read_text(), re.M)
+    except OSError:
+        return 0
+    return int(m.group(1)) if m else 0
+
+
+# --- frames and world files ------------------------------------------------------------------------
+
+
+def scaled(demo: Path, out: Path, w: int, h: int, n: int | None = None) -> Path:
+    """The demo's frames (the first ``n``) as a w x h folder (scaled, cropped to h rows), and its
+    calibration beside it; returns the calibration's path."""
+    fs = cv2.FileStorage(str(demo / "calibration.yaml"), cv2.FILE_STORAGE_READ)
+    K, dist = fs.getNode("camera_matrix").mat(), fs.getNode("distortion_coefficients").mat()
+    fs.release()
+    scale, crop = w / 640, (480 * w / 640 - h) / 2
+    K = K.copy()
+    K[:2] *= scale
+    K[1, 2] -= crop
+    out.mkdir(parents=True)
+    for k, src in enumerate(sorted((demo / "frames").iterdir())[:n]):
+        img = cv2.imread(str(src), cv2.IMREAD_GRAYSCALE)
+        if scale != 1:
+            img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)[int(crop) : int(crop) + h]
+        cv2.imwrite(str(out / f"frame-{k:05d}.png"), img)
+    cal = out.with_name(out.name + "-cal.yaml")
+    fs = cv2.FileStorage(str(cal), cv2.FILE_STORAGE_WRITE)
+    fs.write("image_width", w)
+    fs.write("image_height", h)
+    fs.write("camera_matrix", K)
+    fs.write("distortion_coefficients", dist)
+    fs.release()
+    return cal
+
+
+def world_doc(base: dict, folder: Path, cal: Path, fps: float, replay: str, cores: int, cameras: int = 1) -> dict:
+    doc = yaml.safe_load(yaml.safe_dump(base))
+    sensors = doc["entities"]["drone"]["sensors"]
+    first = sensors[0]
+    first["camera"].update({"source": str(folder), "calibration": str(cal), "fps": fps, "replay": replay})
+    ids = {s["id"] for e in doc["entities"].values() for s in e.get("sensors", [])}
+    for k in range(1, cameras):  # more cameras: the same view, each a sensor of its own
+        more = yaml.safe_load(yaml.safe_dump(first))
+        more["name"], more["id"] = f"{first['name']}{k + 1}", max(ids) + k
+        sensors.append(more)
+    doc["nodes"]["drone"]["cores"] = cores
+    doc["nodes"]["drone"]["status_interval_s"] = 60
+    return doc
+
+
+# --- one run of the node ---------------------------------------------------------------------------
+
+
+def node_run(tmp: Path, doc: dict, cpus: str) -> dict:
+    """The node pinned to ``cpus`` until its camera folder's end: CPU s of its tree and of its own
+    process, wall s, memory, the poses the autopilot received and the final counters."""
+    from atlas_onboard.sim.autopilot import SimAutopilot
+
+    ap = SimAutopilot(system_id=1).start()
+    doc["nodes"]["drone"]["autopilot"]["url"] = f"udpout:127.0.0.1:{ap.port}"
+    path = tmp / "node-world.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    log_path = tmp / "node.log"
+    n_cameras = len(doc["entities"]["drone"]["sensors"])
+    with open(log_path, "wb") as log:
+        t0 = time.time()
+        node = subprocess.Popen(
+            ["taskset", "-c", cpus, sys.executable, "-m", "atlas_onboard", "run", "--config", str(path),
+             "--entity", "drone"], stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )  # fmt: skip
+        deadline = time.time() + 600
+        while time.time() < deadline and log_path.read_text(errors="replace").count(": end of ") < n_cameras:
+            time.sleep(0.02)
+        wall = time.time() - t0
+        pids = tree(node.pid)
+        tree_cpu, own_cpu = sum(cpu_s(p) for p in pids), cpu_s(node.pid)
+        kids = _children()
+        workers = [p for p in pids if p != node.pid and p not in kids.get(node.pid, [])]  # the forkserver's
+        idle = sum(worker_idle_s(p) for p in workers)
+        mem = {"node_hwm_mb": _status_kb(node.pid, "VmHWM") / 1024,
+               "tree_hwm_mb": sum(_status_kb(p, "VmHWM") for p in pids) / 1024,
+               "tree_pss_mb": sum(pss_kb(p) for p in pids) / 1024, "processes": len(pids)}  # fmt: skip
+        node.terminate()
+        node.wait(timeout=20)
+    recs = ap.snapshot()
+    ap.stop()
+    text = log_path.read_text(errors="replace")
+    final = re.search(r" final (.*)$", text, re.M)
+    counters = dict(kv.split("=") for kv in final.group(1).split()) if final else {}
+    usec = [r.usec for r in recs]
+    return {"tree_cpu_s": tree_cpu, "own_cpu_s": own_cpu, "wall_s": wall, "mem": mem, "idle_s": idle,
+            "latency_ms": [(r.arrival_s * 1e6 - r.usec) / 1e3 for r in recs], "poses": len(recs),
+            "out_of_order": sum(b < a for a, b in itertools.pairwise(usec)),
+            "repeated": sum(b == a for a, b in itertools.pairwise(usec)),
+            "counters": {k: int(v) for k, v in counters.items()}}  # fmt: skip
+
+
+def _diff(short: list[float], long: list[float], extra: int) -> tuple[float, float]:
+    """Per-frame difference of the medians and its resolution (the clock tick plus the runs' spread)."""
+    d = statistics.median(long) - statistics.median(short)
+    res = TICK_S + (max(short) - min(short)) + (max(long) - min(long))
+    return d / extra, res / extra
+
+
+def main() -> int:
+    ap_ = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap_.add_argument("--seconds", type=float, default=4.0, help="demo camera time, s (20 frames a second)")
+    ap_.add_argument("--repeats", type=int, default=3, help="throughput runs of each folder (default 3)")
+    args = ap_.parse_args()
+    if shutil.which("taskset") is None or len(os.sched_getaffinity(0)) < 2:
+        print("bench_cores: needs taskset and two cores", file=sys.stderr)
+        return 2
+    from atlas_onboard.sim.demo import write_demo
+
+    out: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory() as tmp_s:
+        tmp = Path(tmp_s)
+        world_path = write_demo(tmp / "demo", seconds=args.seconds, n_tags=10)
+        base = yaml.safe_load(world_path.read_text())
+        n = len(list((tmp / "demo" / "frames").iterdir()))
+        cal = scaled(tmp / "demo", tmp / "long", 640, 480)
+        scaled(tmp / "demo", tmp / "short", 640, 480, n // 2)
+        extra = n - n // 2
+        for name, cpus, cores in RUNS:
+            short, long = [], []
+            for _ in range(max(args.repeats, 2)):  # alternated: a change of the machine's load touches both
+                short.append(node_run(tmp, world_doc(base, tmp / "short", cal, 1000.0, "every_frame", cores), cpus))
+                long.append(node_run(tmp, world_doc(base, tmp / "long", cal, 1000.0, "every_frame", cores), cpus))
+            latency = node_run(tmp, world_doc(base, tmp / "long", cal, 30.0, "realtime", cores), cpus)
+            out[name] = {"short": short, "long": long, "latency": latency, "cores": cores, "cpus": cpus}
+        load = os.getloadavg()
+        # memory: 1280x720, one camera and three, 1 core and 2
+        mem_cal = scaled(tmp / "demo", tmp / "hd", 1280, 720, 20)
+        memory = {}
+        for cameras in (1, 3):
+            for name, cpus, cores in RUNS:
+                doc = world_doc(base, tmp / "hd", mem_cal, 30.0, "every_frame", cores, cameras)
+                memory[(cameras, name)] = node_run(tmp, doc, cpus)
+    print(f"node (atlas-onboard run) on the demo's 640x480 frames with 10 tags in view, {n} frames; {extra} frames"
+          f" between the short and the long folder; {max(args.repeats, 2)} runs of each")  # fmt: skip
+    print("throughput (every_frame at 1000 Hz), ms per frame: CPU of the tree (node + forkserver + workers) and of"
+          " the node's own process, 'res' their resolution; 'idle' the workers' time waiting for work (neither"
+          " running nor queued for a core). fps: ideal = min(n / tree, 1 / node); measured = min(n / (tree +"
+          " idle), 1 / node): the workers' waits for each other's frames (in-order delivery) counted lost")  # fmt: skip
+    print(f"{'run':8} {'cpus':4} {'tree':>6} {'res':>5} {'node':>6} {'res':>5} {'idle':>6} {'fps ideal':>9}"
+          f" {'measured':>8} {'wall':>6} {'frames':>6} {'restarts':>8}")  # fmt: skip
+    fps: dict[str, float] = {}
+    for name, r in out.items():
+        tree_s, tree_res = _diff([x["tree_cpu_s"] for x in r["short"]], [x["tree_cpu_s"] for x in r["long"]], extra)
+        own_s, own_res = _diff([x["own_cpu_s"] for x in r["short"]], [x["own_cpu_s"] for x in r["long"]], extra)
+        idle_s, _ = _diff([x["idle_s"] for x in r["short"]], [x["idle_s"] for x in r["long"]], extra)
+        wall_s, _ = _diff([x["wall_s"] for x in r["short"]], [x["wall_s"] for x in r["long"]], extra)
+        cores = r["cores"]
+        ideal = min(cores / tree_s, 1 / own_s) if cores > 1 else 1 / tree_s
+        fps[name] = min(cores / (tree_s + max(idle_s, 0.0)), 1 / own_s) if cores > 1 else 1 / tree_s
+        fps[name + " wall"] = 1 / wall_s
+        restarts = sum(x["counters"].get("camera_down_worker_restarts", 0) for x in r["short"] + r["long"])
+        frames = statistics.median(x["counters"].get("camera_down_frames", 0) for x in r["long"])
+        print(f"{name:8} {r['cpus']:4} {tree_s * 1e3:>6.1f} {tree_res * 1e3:>5.1f} {own_s * 1e3:>6.1f}"
+              f" {own_res * 1e3:>5.1f} {idle_s * 1e3:>6.1f} {ideal:>9.1f} {fps[name]:>8.1f} {fps[name + ' wall']:>6.1f}"
+              f" {frames:>6.0f} {restarts:>8}")  # fmt: skip
+    s2 = fps["2 cores"] / fps["1 core"]
+    s2_wall = fps["2 cores wall"] / fps["1 core wall"]
+    print(f"two-core speedup: {s2:.2f} (measured, CPU time and the workers' waits); {s2_wall:.2f} wall-clock"
+          f" (shared machine, load average {load[0]:.1f} {load[1]:.1f} {load[2]:.1f})")  # fmt: skip
+    print()
+    print("latency (realtime at 30 Hz): capture stamp to the autopilot, wall ms; frames detected of those offered")
+    print(f"{'run':10} {'mean':>7} {'median':>7} {'p95':>7} {'poses':>6} {'detected':>8} {'dropped':>7}")
+    lat = {}
+    for name, r in out.items():
+        x = r["latency"]
+        s = _stats(x["latency_ms"])
+        lat[name] = s
+        c = x["counters"]
+        print(f"{name:10} {s['mean']:>7.1f} {s['median']:>7.1f} {s['p95']:>7.1f} {x['poses']:>6}"
+              f" {c.get('camera_down_frames', 0):>8} {c.get('camera_down_frames_dropped', 0):>7}")  # fmt: skip
+    print()
+    runs = [x for r in out.values() for x in (*r["short"], *r["long"], r["latency"])]
+    disorder = sum(x["out_of_order"] for x in runs)
+    print(f"order at the autopilot: {sum(x['poses'] for x in runs)} poses in {len(runs)} runs, {disorder} with a stamp"
+          f" older than the one before, {sum(x['repeated'] for x in runs)} repeated")  # fmt: skip
+    print()
+    print("memory, 1280x720 frames (20), MB: VmHWM of the node process, of its tree summed, PSS of the tree")
+    print(f"{'cameras':8} {'run':10} {'node HWM':>8} {'tree HWM':>8} {'tree PSS':>8} {'processes':>9}")
+    for (cameras, name), x in memory.items():
+        m = x["mem"]
+        print(f"{cameras:<8} {name:10} {m['node_hwm_mb']:>8.0f} {m['tree_hwm_mb']:>8.0f} {m['tree_pss_mb']:>8.0f}"
+              f" {m['processes']:>9}")  # fmt: skip
+    pi4 = fps["1 core"] * (1 + (PI4_CORES - 1) * (s2 - 1)) / PI4_FACTOR
+    print()
+    print(f"Pi 4 estimate: {fps['1 core']:.1f} fps on one core here x (1 + {PI4_CORES - 1} x ({s2:.2f} - 1)) for"
+          f" {PI4_CORES} detection cores / PI4_FACTOR {PI4_FACTOR:g} = {pi4:.1f} fps")  # fmt: skip
+    rss = memory[(1, "1 core")]["mem"]["node_hwm_mb"]  # the default on a 2-core machine; tree figures above
+    print(f"BAR two_core_speedup {s2:.2f} ratio 1.8 {'pass' if s2 >= 1.8 else 'fail'}")
+    print(f"BAR pi4_fps_640x480_tracking_10 {pi4:.1f} fps 30 {'pass' if pi4 >= 30 else 'fail'}")
+    print(f"BAR rss_mb_1280x720 {rss:.0f} MB 200 {'pass' if rss <= 200 else 'fail'}")
+    print(f"BAR frames_out_of_order {disorder} frames 0 {'pass' if disorder == 0 else 'fail'}")
+    lat_ok = lat["2 cores"]["median"] <= lat["1 core"]["median"]
+    print(f"BAR latency_median_2_over_1_core {lat['2 cores']['median'] / lat['1 core']['median']:.2f} ratio 1.0"
+          f" {'pass' if lat_ok else 'fail'}")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
