@@ -246,6 +246,8 @@ class CameraWorker(SensorWorker):
         reader = threading.Thread(target=read, name=f"camera-{self.name}-read", daemon=True)
         reader.start()
         while not self._stop.is_set():
+            if self._pipeline is not None and not self._pipeline.wait_free(self._stop):
+                break  # the newest frame is taken once a worker is free for it
             self._have.wait(0.1)
             with self._lock:
                 frame, self._latest = self._latest, None

@@ -80,11 +80,9 @@ class InOrder:
     ) -> bool:
         """Send the next frame to the next worker in turn, once that worker is free; False (nothing sent)
         if ``stop`` was set or the pipeline closed meanwhile."""
+        if not self.wait_free(stop):
+            return False
         with self._cond:
-            while len(self._pending) >= len(self.workers) and not stop.is_set() and not self._closed:
-                self._cond.wait(0.1)
-            if stop.is_set() or self._closed:
-                return False
             job = Job(self._seq, gray, capture_time_us, R_prev_now)
             self._seq += 1
             index = job.seq % len(self.workers)
@@ -102,6 +100,14 @@ class InOrder:
             self._pending.append(job)
             self._cond.notify_all()
         return True
+
+    def wait_free(self, stop: threading.Event) -> bool:
+        """Wait until the next worker in turn is free (a live camera then takes its newest frame, not one
+        that waited for a worker); False if ``stop`` was set or the pipeline closed meanwhile."""
+        with self._cond:
+            while len(self._pending) >= len(self.workers) and not stop.is_set() and not self._closed:
+                self._cond.wait(0.1)
+            return not (stop.is_set() or self._closed)
 
     def map_pose_changed(self, marker_id: int) -> None:
         """Tell every worker's detector (and the workers restarted later)."""
