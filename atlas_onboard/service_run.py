@@ -20,6 +20,7 @@ from atlas_onboard.config import (
     load_node,
     read_yaml,
 )
+from atlas_onboard.cores import node_cores, processes_per_camera
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.node import Camera, Node
 from atlas_onboard.node_setup import install_signal_handlers
@@ -47,6 +48,8 @@ def choose_entity(path: Path, entity: str | None) -> str:
     return names[0]
 
 
+DECIMATE = 2.0  # the detector's search decimation (with region tracking)
+
 CameraFactory = Callable[[WorldConfig, NodeConfig, SensorConfig], Camera]
 """Makes the camera worker of a sensor whose ``camera.source`` is a registered kind."""
 
@@ -65,10 +68,18 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
     ``refine``: live map refinement is on, and the detector reports some images marker by marker, not an
     entity's markers as one joint solve (it needs each world marker's own pose; :class:`PerMarkerSampler`)."""
     cameras: list[Camera] = []
-    for sensor in world.entity(config.entity).sensors:
+    sensors = [s for s in world.entity(config.entity).sensors if s.camera is not None and s.camera.source]
+    detected = [s for s in sensors if s.camera is not None and s.camera.source not in CAMERA_KINDS]
+    cores = node_cores(config.cores)
+    processes = processes_per_camera(cores, len(detected))
+    if detected:
+        _logger.info(
+            "%d core(s) for detection: %s", cores,
+            f"{processes} worker process(es) per camera" if processes else "each camera detects in its own thread",
+        )  # fmt: skip
+    for sensor in sensors:
         cam = sensor.camera
-        if cam is None or not cam.source:
-            continue
+        assert cam is not None
         factory = CAMERA_KINDS.get(cam.source)
         if factory is not None:
             cameras.append(factory(world, config, sensor))
@@ -76,6 +87,7 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
         from atlas_onboard.detector.calibration import load as load_calibration
         from atlas_onboard.detector.camera import CameraWorker
         from atlas_onboard.detector.pipeline import Detector
+        from atlas_onboard.detector.workers import CameraDetectorSpec
         from atlas_onboard.recording.format import is_recording, read_info
 
         if cam.calibration is not None:
@@ -84,7 +96,11 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
             calibration = read_info(Path(cam.source)).calibration
         else:
             raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}")
-        detector = Detector(sensor, world, calibration, decimate=2.0)
+        if processes:  # each worker process makes its own detector
+            spec = CameraDetectorSpec(sensor, world, calibration, DECIMATE, refine)
+            cameras.append(CameraWorker(sensor.name, cam, None, spec=spec, processes=processes))
+            continue
+        detector = Detector(sensor, world, calibration, decimate=DECIMATE)
         if refine is not None:
             from atlas_onboard.node_refine import sampled
 

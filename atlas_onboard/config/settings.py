@@ -288,6 +288,11 @@ class NodeConfig:
         "where signing timestamps and the autopilot's reset counter persist across restarts"))  # fmt: skip
     status_interval_s: float = field(default=10.0, metadata=spec(
         "period of the health log line", unit="s", within="[0.5, 3600]", noun="an interval"))  # fmt: skip
+    cores: int = field(default=0, metadata=spec(
+        "processor cores the node's cameras may use for detection: 1 detects in each camera's own thread; more"
+        " spread each camera's frames over worker processes, in order; 0: the cores the node may run on (its CPU"
+        " affinity: taskset, systemd's CPUAffinity) less one for the autopilot link and the system, at least 1",
+        within="[0, 1024]"))  # fmt: skip
     record: RecordConfig | None = field(default=None, metadata=spec(
         "record the cameras as the node flies (none: not recorded)"))  # fmt: skip
     refine: RefineConfig | None = field(default=None, metadata=spec(

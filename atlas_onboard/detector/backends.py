@@ -9,6 +9,7 @@ only ids present in the world file are returned (the others are counted and drop
 from __future__ import annotations
 
 import ctypes
+import threading
 from collections import Counter
 from dataclasses import dataclass
 
@@ -74,8 +75,9 @@ def _library_detector(families: str, threads: int, decimate: float) -> object:
     """A new AprilTag library detector that is never destroyed.
 
     pupil-apriltags 1.0.4 can crash (SIGSEGV) when a detector is destroyed after it has found tags,
-    which would take the node down with it. A detector is not thread-safe either, so each backend
-    (each camera thread) gets its own; they live as long as the process (a few hundred kB each).
+    which would take the node down with it: they live as long as the process. Each holds its families'
+    decoding tables (tens of MB for tag36h11), so the backends of a process share one per families and
+    threads (:func:`shared_library`).
 
     pupil-apriltags adds every family with 2-bit error correction, whose decoding table grows with
     codes x bits^2: gigabytes for tagStandard52h13. Families whose table would pass
@@ -109,6 +111,33 @@ def _library_detector(families: str, threads: int, decimate: float) -> object:
     return det
 
 
+@dataclass(frozen=True)
+class SharedLibrary:
+    """A library detector and the lock its callers hold: it is not thread-safe, and its decimation is
+    set for each call."""
+
+    detector: object
+    lock: threading.Lock
+
+
+_LIBRARIES: dict[tuple[str, int], SharedLibrary] = {}
+_LIBRARIES_LOCK = threading.Lock()
+
+
+def shared_library(families: str, threads: int) -> SharedLibrary:
+    """The process's library detector of ``families`` with ``threads`` threads, made on first use.
+
+    One for every decimation and every camera of the process: a detector's decimation is a field read
+    by each search (the same results as a detector made with it), while its decoding tables (35 MB for
+    tag36h11 with 2-bit correction) would otherwise be built again for each."""
+    with _LIBRARIES_LOCK:
+        shared = _LIBRARIES.get((families, threads))
+        if shared is None:
+            shared = SharedLibrary(_library_detector(families, threads, 1.0), threading.Lock())
+            _LIBRARIES[(families, threads)] = shared
+        return shared
+
+
 MAX_DECODE_ENTRIES = 500_000
 """Largest decoding table (codes x error patterns) a family gets 2-bit correction with; beyond it 1
 bit, and beyond 6 times it none (about 50 bytes an entry in the C library)."""
@@ -137,20 +166,20 @@ class AprilTagBackend:
     def __init__(
         self, families: list[str], decimate: float = 1.0, threads: int = 1, extra: tuple[float, ...] = ()
     ) -> None:
-        """``extra``: other decimations to be ready for (a detector takes milliseconds to make)."""
+        """``extra``: other decimations it will be asked for (one library detector serves them all)."""
         self.families = families
-        wanted = sorted({1.0, float(decimate), *map(float, extra)})
-        self._detectors = {d: _library_detector(" ".join(families), threads, d) for d in wanted}
         self.decimate = float(decimate)
-        self._threads = threads
+        self._library = shared_library(" ".join(families), threads)
 
     def detect(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:
         d = float(decimate or self.decimate)
-        if d not in self._detectors:  # another decimation (the tracker's hunt): a detector of its own
-            self._detectors[d] = _library_detector(" ".join(self.families), self._threads, d)
-        det = self._detectors[d]
+        library = self._library
+        with library.lock:
+            det = library.detector
+            det.tag_detector_ptr.contents.quad_decimate = d  # type: ignore[attr-defined]
+            found = det.detect(np.ascontiguousarray(gray))  # type: ignore[attr-defined]
         out = []
-        for r in det.detect(np.ascontiguousarray(gray)):
+        for r in found:
             fam = r.tag_family.decode() if isinstance(r.tag_family, bytes) else str(r.tag_family)
             if r.hamming > 0 and _min_hamming(fam) < 9:
                 continue  # families of small code distance (16h5, 21h7) give false ids with bit errors
@@ -180,6 +209,11 @@ class ArucoBackend:
         ]
 
 
+def apriltag_families(wanted: dict[int, str]) -> list[str]:
+    """The AprilTag families of ``wanted`` (marker id -> family), sorted: those of its library detector."""
+    return [f for f in sorted(set(wanted.values())) if family(f).is_apriltag]
+
+
 class MarkerFinder:
     """All backends a world file's markers need, filtered to the configured ids."""
 
@@ -187,7 +221,7 @@ class MarkerFinder:
         """``wanted`` maps each configured marker id to its family."""
         self.wanted = wanted
         fams = sorted(set(wanted.values()))
-        april = [f for f in fams if family(f).is_apriltag]
+        april = apriltag_families(wanted)
         self.backends: list[AprilTagBackend | ArucoBackend] = []
         if april:
             self.backends.append(AprilTagBackend(april, decimate, extra=extra))

@@ -3,6 +3,11 @@ detects, and delivers MarkerData.
 
 A source that fails or stops delivering is reopened with backoff; the worker reports it and keeps
 running. A live camera's slow detector drops frames (counted); it never builds a queue.
+
+Given worker processes (``nodes.<entity>.cores`` above 1), the thread hands each frame to the next of
+them and their results reach the node in capture order (:mod:`atlas_onboard.detector.inorder`); with
+none, it detects each frame itself. A detector that raises is counted (``worker_restarts``) and the
+camera goes on with the next frame.
 """
 
 from __future__ import annotations
@@ -13,9 +18,11 @@ from collections import Counter
 
 from atlas_onboard.config import CameraConfig
 from atlas_onboard.core.attitude import CameraTurn
+from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.inorder import InOrder
 from atlas_onboard.detector.motion import body_rate_at
-from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import Frame, Source, SourceError, open_source
+from atlas_onboard.detector.workers import CameraDetectorSpec, FrameDetector, Job, Outcome, ProcessWorker
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.recording.format import BackgroundRecorder
 from atlas_onboard.worker import Deliver, SensorWorker
@@ -23,18 +30,42 @@ from atlas_onboard.worker import Deliver, SensorWorker
 _logger = logging.getLogger(__name__)
 
 BACKOFF_S = (0.5, 1.0, 2.0, 5.0)
+WORKER_READY_S = 60.0  # the most a camera waits for its worker processes' detectors before its first frame
 
 
 class CameraWorker(SensorWorker):
     """One camera: its own thread reads frames, detects, and delivers MarkerData (node.Camera)."""
 
-    def __init__(self, name: str, camera: CameraConfig, detector: Detector, fast: bool = False) -> None:
+    def __init__(
+        self,
+        name: str,
+        camera: CameraConfig,
+        detector: FrameDetector | None,
+        fast: bool = False,
+        *,
+        spec: CameraDetectorSpec | None = None,
+        processes: int = 0,
+    ) -> None:
+        """``detector`` detects in this thread; or, with ``processes`` >= 1, ``spec`` makes the detector of
+        each of that many worker processes (``detector`` None)."""
         super().__init__()
+        if (processes >= 1) != (spec is not None and detector is None):
+            raise ValueError("CameraWorker: a detector, or a spec with processes >= 1")
         self.name = name
         self.camera = camera
         self.detector = detector
+        self.spec = spec
+        self.processes = processes
         self.fast = fast
         self.counts: Counter[str] = Counter()
+        self._pipeline: InOrder | None = None
+        self._workers: list[ProcessWorker] = []
+        self._deliver: Deliver | None = None
+        self._turns: list[CameraTurn] = []  # with worker processes: each worker's turn since its last frame
+        self._worker_counters: dict[int, dict[str, int]] = {}  # each worker's detector counters so far
+        self._retired: Counter[str] = Counter()  # those of workers restarted
+        self._status: list[str] = []
+        self._status_lock = threading.Lock()
         self._latest: Frame | None = None
         self._lock = threading.Lock()
         self._have = threading.Event()
@@ -42,25 +73,59 @@ class CameraWorker(SensorWorker):
         self.recorder: BackgroundRecorder | None = None
         self._turn: CameraTurn | None = None  # made when the autopilot's attitude is first there
 
+    @property
+    def calibration(self) -> Calibration:
+        """The camera's calibration (its detector's)."""
+        return self.spec.calibration if self.spec is not None else self.detector.calibration  # type: ignore[union-attr]
+
     def counters(self) -> dict[str, int]:
-        out = dict(self.counts) | {f"detector_{k}": v for k, v in self.detector.counters.items()}
+        if self.detector is not None:
+            detector = dict(self.detector.counters)
+        else:
+            total = Counter(self._retired)
+            for c in list(self._worker_counters.values()):
+                total.update(c)
+            detector = dict(total)
+        out = dict(self.counts) | {f"detector_{k}": v for k, v in detector.items()}
+        if self._pipeline is not None:
+            out |= dict(self._pipeline.counts)
         return out | (self.recorder.counters() if self.recorder is not None else {})
+
+    def start(self, deliver: Deliver) -> None:
+        if self.spec is not None:
+            workers = [ProcessWorker(self.spec, f"detect-{self.name}-{i}") for i in range(self.processes)]
+            self._workers = workers
+            self._deliver = deliver
+            self._turns = [CameraTurn(self.spec.sensor.T_entity_sensor.rotation) for _ in workers]
+            self._pipeline = InOrder(workers, self._on_result, self._on_restart)
+        super().start(deliver)
 
     def stop(self) -> None:
         super().stop()
+        if self._pipeline is not None:
+            self._pipeline.close()
         if self.recorder is not None:  # what is queued is written before the node's final counters
             from atlas_onboard.recording.onboard import finish
 
             finish(self.recorder, self.name)
 
     def map_pose_changed(self, marker_id: int) -> None:
-        self.detector.map_pose_changed(marker_id)
+        if self._pipeline is not None:
+            self._pipeline.map_pose_changed(marker_id)
+        elif self.detector is not None:
+            self.detector.map_pose_changed(marker_id)
 
     def take_status(self) -> list[str]:
         """The detector's STATUSTEXT lines since the last call (thread-safe: a list swap)."""
-        return self.detector.take_status()
+        if self.detector is not None:
+            return self.detector.take_status()
+        with self._status_lock:
+            out, self._status = self._status, []
+        return out
 
     def _run(self, deliver: Deliver) -> None:
+        for worker in self._workers:  # their detectors made before the first frame, as this thread's is
+            worker.wait_ready(WORKER_READY_S)
         backoff = 0
         while not self._stop.is_set():
             try:
@@ -75,6 +140,8 @@ class CameraWorker(SensorWorker):
             self.counts["opened"] += 1
             try:
                 self._consume(source, deliver)
+                if self._pipeline is not None:  # the last frames' results out before the end is said
+                    self._pipeline.drain(self._stop)
                 if not source.live:
                     if self._stop.is_set():  # asked to stop, not out of frames
                         _logger.info("camera %s: stopped", self.name)
@@ -88,6 +155,9 @@ class CameraWorker(SensorWorker):
                 source.close()
 
     def _detect(self, frame: Frame, deliver: Deliver) -> None:
+        if self._pipeline is not None:
+            self._submit(self._pipeline, frame)
+            return
         self.counts["frames"] += 1
         t_us = frame.capture_time_us
         R_prev_now = None
@@ -104,8 +174,43 @@ class CameraWorker(SensorWorker):
             self.counts["frame_errors"] += 1
             _logger.error("camera %s: %s", self.name, exc)
             return
+        except Exception:  # a bug must not end the camera's pose stream: counted, logged, next frame
+            self.counts["worker_restarts"] += 1
+            _logger.exception("camera %s: detection failed; going on with the next frame", self.name)
+            return
         if self.recorder is not None:  # never blocks: a full queue drops the frame (counted)
             self.recorder.offer(frame.gray, frame.capture_time_us, found)
+
+    def _submit(self, pipeline: InOrder, frame: Frame) -> None:
+        """Hand the frame to the next worker in turn (waiting until it is free), with the camera's turn
+        since that worker's previous frame."""
+        t_us = frame.capture_time_us
+        R_prev_now = None
+        if self.attitude_at is not None:
+            R_prev_now = self._turns[pipeline.next_index].since_last(self.attitude_at(t_us))
+        body_rate = body_rate_at(self.rate_at, self.attitude_at, t_us)  # a rolling shutter's shear
+        if pipeline.submit(frame.gray, t_us, R_prev_now, self._stop, body_rate):
+            self.counts["frames"] += 1
+
+    def _on_result(self, job: Job, outcome: Outcome) -> None:
+        """A frame's result, in capture order (the collector's thread)."""
+        self._worker_counters[job.seq % self.processes] = outcome.counters
+        if outcome.status:
+            with self._status_lock:
+                self._status += outcome.status
+        if outcome.error:
+            self.counts["frame_errors"] += 1
+            _logger.error("camera %s: %s", self.name, outcome.error)
+            return
+        if outcome.found and self._deliver is not None:
+            self._deliver(outcome.found)
+        if self.recorder is not None:
+            self.recorder.offer(job.gray, job.capture_time_us, outcome.found)
+
+    def _on_restart(self, index: int) -> None:
+        """Worker ``index`` was restarted: its counters so far stay counted; its turn starts afresh."""
+        self._retired.update(self._worker_counters.pop(index, {}))
+        self._turns[index] = CameraTurn(self.spec.sensor.T_entity_sensor.rotation)  # type: ignore[union-attr]
 
     def _consume(self, source: Source, deliver: Deliver) -> None:
         """Every frame, in order (a file replayed ``every_frame``, paced by the source unless fast), or
@@ -144,6 +249,8 @@ class CameraWorker(SensorWorker):
         reader = threading.Thread(target=read, name=f"camera-{self.name}-read", daemon=True)
         reader.start()
         while not self._stop.is_set():
+            if self._pipeline is not None and not self._pipeline.wait_free(self._stop):
+                break  # the newest frame is taken once a worker is free for it
             self._have.wait(0.1)
             with self._lock:
                 frame, self._latest = self._latest, None

@@ -89,7 +89,7 @@ def start(
     recorders = []
     for cam in recordable:
         sensor = sensors[cam.name]  # type: ignore[attr-defined]
-        camera = cam.detector.calibration  # type: ignore[attr-defined]
+        camera = cam.calibration  # type: ignore[attr-defined]
         T = sensor.T_entity_sensor
         p, q = T.translation, T.rotation.as_quat()
         directory = record.dir / f"{stamp}-{entity}-{sensor.name}"

@@ -1,0 +1,235 @@
+"""Detection in worker processes, for a node given more than one core (``nodes.<entity>.cores``).
+
+A camera's frames go to its workers in turn (:class:`atlas_onboard.detector.inorder.InOrder`); each
+worker process holds a detector of its own, made from a picklable spec, so each detector sees every
+N-th frame of its camera and tracks from its own previous frame: the regions of frame k-N, moved on by
+the motion between frames k-2N and k-N, predict frame k (the same constant-velocity extrapolation over
+N frame periods). Processes, not threads: most of a frame's work (the per-marker refit, pose and checks)
+is Python that holds the interpreter lock; only the library's search and OpenCV's calls release it.
+
+Workers are forked from a server process that imported the detector and made the AprilTag library's
+detector once (``forkserver``, :mod:`atlas_onboard.detector.forkserver_preload`): no worker inherits the
+node's threads or locks, and the imported modules' pages and the library's decoding tables are shared
+between workers.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import threading
+from collections import Counter
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
+
+from atlas_onboard.config import RefineConfig, SensorConfig, WorldConfig
+from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.shutter import BodyRate
+from atlas_onboard.detector.backends import apriltag_families
+from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.forkserver_preload import FAMILIES_ENV
+from atlas_onboard.errors import AtlasError
+
+
+class FrameDetector(Protocol):
+    """What a camera needs of its detector (:class:`atlas_onboard.detector.pipeline.Detector`)."""
+
+    counters: Counter[str]
+
+    def detect(
+        self,
+        gray: NDArray[np.uint8],
+        capture_time_us: int,
+        R_prev_now: Rotation | None = None,
+        body_rate: BodyRate | None = None,
+    ) -> list[MarkerData]: ...
+
+    def take_status(self) -> list[str]: ...
+
+    def map_pose_changed(self, marker_id: int) -> None: ...
+
+
+class DetectorSpec(Protocol):
+    """Makes a camera's detector in a worker process (picklable)."""
+
+    def build(self) -> FrameDetector: ...
+
+
+@dataclass(frozen=True)
+class CameraDetectorSpec:
+    """The detector ``atlas-onboard run`` makes for a camera (wrapped for live map refinement when
+    ``refine`` is given)."""
+
+    sensor: SensorConfig
+    world: WorldConfig
+    calibration: Calibration
+    decimate: float = 2.0
+    refine: RefineConfig | None = None
+
+    def apriltag_families(self) -> str:
+        """The AprilTag families its detector's library detector has (those of the markers it looks for)."""
+        wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
+        return " ".join(apriltag_families(wanted))
+
+    def build(self) -> FrameDetector:
+        from atlas_onboard.detector.pipeline import Detector
+
+        detector = Detector(self.sensor, self.world, self.calibration, decimate=self.decimate)
+        if self.refine is None:
+            return detector
+        from atlas_onboard.node_refine import sampled
+
+        return sampled(detector, self.world, self.refine)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class Job:
+    """One frame for a worker: its place in the camera's sequence, its image, stamp, turn and the
+    autopilot's body rate at its capture."""
+
+    seq: int
+    gray: NDArray[np.uint8]
+    capture_time_us: int
+    R_prev_now: Rotation | None = None
+    body_rate: BodyRate | None = None
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """A worker's answer to a :class:`Job`: the detections, the worker detector's counters so far, its
+    STATUSTEXT lines since the last answer, and the one-line error of a frame it refused (AtlasError)."""
+
+    seq: int
+    found: list[MarkerData]
+    counters: dict[str, int]
+    status: list[str]
+    error: str = ""
+
+
+def serve(conn: Connection, spec: DetectorSpec) -> None:
+    """A worker process's loop: a :class:`Job` in, an :class:`Outcome` out; an int is a world marker whose
+    pose the node's map changed; None or a closed pipe ends it. Any other exception ends the process
+    (the camera restarts it, counted)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the process group: the node stops us
+    import cv2
+
+    cv2.setNumThreads(1)  # the workers are the parallelism; OpenCV's own threads would compete with them
+    detector = spec.build()
+    conn.send(READY)
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg is None:
+            return
+        if isinstance(msg, int):
+            detector.map_pose_changed(msg)
+            continue
+        error = ""
+        try:
+            found = list(detector.detect(msg.gray, msg.capture_time_us, msg.R_prev_now, msg.body_rate))
+        except AtlasError as exc:  # e.g. frames of another size than the calibration
+            found, error = [], str(exc)
+        conn.send(Outcome(msg.seq, found, dict(detector.counters), detector.take_status(), error))
+
+
+READY = "ready"  # a worker's first message: its detector is made
+_CONTEXT_LOCK = threading.Lock()
+
+
+def _context(families: str) -> multiprocessing.context.BaseContext:
+    """The forkserver context, its server preloading the detector and the library detector of
+    ``families`` (AprilTag families; the first worker's, when the server starts)."""
+    ctx = multiprocessing.get_context("forkserver")
+    with _CONTEXT_LOCK:
+        if families and FAMILIES_ENV not in os.environ:
+            os.environ[FAMILIES_ENV] = families  # the server's environment: read by its preload
+        ctx.set_forkserver_preload(
+            ["atlas_onboard.detector.workers", "atlas_onboard.detector.pipeline",
+             "atlas_onboard.detector.forkserver_preload"]
+        )  # fmt: skip
+    return ctx
+
+
+class WorkerDiedError(Exception):
+    """The worker process ended (killed, or an exception) or its pipe broke."""
+
+
+class ProcessWorker:
+    """One worker process and its pipe. Not thread-safe for receiving; sends are locked (the camera's
+    thread sends frames, the node's loop map changes)."""
+
+    def __init__(self, spec: DetectorSpec, name: str) -> None:
+        self.spec = spec
+        self.name = name
+        self._send_lock = threading.Lock()
+        self._start()
+
+    def _start(self) -> None:
+        families = self.spec.apriltag_families() if isinstance(self.spec, CameraDetectorSpec) else ""
+        ctx = _context(families)
+        parent, child = ctx.Pipe()
+        self.process = ctx.Process(target=serve, args=(child, self.spec), name=self.name, daemon=True)
+        self.process.start()
+        child.close()
+        self.conn = parent
+
+    def send(self, msg: Job | int) -> None:
+        """Raises :class:`WorkerDiedError` when the process is gone."""
+        try:
+            with self._send_lock:
+                self.conn.send(msg)
+        except (OSError, ValueError) as exc:
+            raise WorkerDiedError(str(exc)) from None
+
+    def result(self, timeout_s: float) -> Outcome | None:
+        """The answer to the job sent, or None if not there within ``timeout_s``; raises
+        :class:`WorkerDiedError` when the process ended."""
+        try:
+            while self.conn.poll(timeout_s):
+                out = self.conn.recv()
+                if isinstance(out, Outcome):
+                    return out
+                if out != READY:
+                    raise WorkerDiedError(f"unexpected answer {type(out).__name__}")
+        except (EOFError, OSError) as exc:
+            raise WorkerDiedError(str(exc) or "pipe closed") from None
+        if not self.process.is_alive():
+            raise WorkerDiedError(f"exit code {self.process.exitcode}")
+        return None
+
+    def wait_ready(self, timeout_s: float) -> bool:
+        """Wait until the worker has made its detector (its first message); False if it has not within
+        ``timeout_s`` or died (the camera's collector then restarts it)."""
+        try:
+            return self.conn.poll(timeout_s) and self.conn.recv() == READY
+        except (EOFError, OSError):
+            return False
+
+    def restart(self) -> None:
+        """Kill the process (if it still runs) and start a new one with a fresh detector."""
+        self._end(0.0)
+        self._start()
+
+    def close(self) -> None:
+        """Ask the process to end; killed if it has not within a second."""
+        try:
+            with self._send_lock:
+                self.conn.send(None)
+        except (OSError, ValueError):
+            pass
+        self._end(1.0)
+
+    def _end(self, wait_s: float) -> None:
+        self.process.join(wait_s)
+        if self.process.is_alive():
+            self.process.kill()
+            self.process.join(1.0)
+        self.conn.close()
