@@ -85,11 +85,11 @@ class FusionConfig:
         "the same for the attitude (about the entities' turn rate): an edge of age a adds (a * this)^2 to its"
         " attitude variance; no weight changes, only the published covariance",
         unit="deg/s", within="[0, 3600]", noun="a turn rate", paper=0.0))  # fmt: skip
-    align_edges: bool = field(default=True, metadata=spec(
+    align_edges: bool = field(default=False, metadata=spec(
         "a pose through another entity (a drone seen by a drone) takes that entity's pose at its own"
         " image's capture time, interpolated or extrapolated from its recent poses, the step's uncertainty"
         " in the covariance; false: its newest pose, whenever that was taken (the paper)", paper=False))  # fmt: skip
-    max_relayed_sigma_m: float = field(default=0.02, metadata=spec(
+    max_relayed_sigma_m: float = field(default=0.0, metadata=spec(
         "a pose through another entity is used only while its position sigma (largest axis) stays under"
         " this: a leader with no fresh view of its own places its follower for as long as that holds, then"
         " the follower's pose is lost; 0: no limit (the paper)",
