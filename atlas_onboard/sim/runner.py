@@ -121,7 +121,7 @@ def build_run_config(
     overrides: dict[str, Any] | None = None,
 ) -> Path:
     """The world file of the run: the scenario's, plus calibrations and a ``nodes`` section."""
-    doc = yaml.safe_load(scenario.world_path().read_text(encoding="utf-8"))
+    doc = scenario.world_doc()
     # ``nodes`` overrides are settings for every node (merged into the generated ``nodes.defaults``).
     node_defaults = dict((overrides or {}).get("nodes", {}))
     for key, value in (overrides or {}).items():

@@ -16,9 +16,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from atlas_onboard.config import WORLD, WorldConfig, load_world
+from atlas_onboard.config import WORLD, WorldConfig, parse_world
+from atlas_onboard.config.yamlio import read_yaml
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import trajectories as tj
+
+SIM_KIND = "sim"  # the camera source of the simulator's cameras (``camera.source: sim``)
 
 Trajectory = tj.Quadrotor | tj.Static
 
@@ -123,7 +126,19 @@ class Scenario:
     room: Room | None = None  # render the cameras' images inside this room (see atlas_onboard.sim.room)
 
     def world(self) -> WorldConfig:
-        return load_world(self.world_path())
+        return parse_world(self.world_doc(), self.world_path())
+
+    def world_doc(self) -> dict[str, Any]:
+        """The scenario's world file as a YAML document, its simulated cameras' stamps declared exact:
+        the simulator stamps each frame at its middle row's mid-exposure (``stamp_sigma_ms`` 0 where the
+        file does not say otherwise)."""
+        doc = read_yaml(self.world_path())
+        for ent in (doc.get("entities") or {}).values():
+            for sensor in (ent or {}).get("sensors", []) or []:
+                camera = sensor.get("camera")
+                if isinstance(camera, dict) and camera.get("source") == SIM_KIND:
+                    camera.setdefault("stamp_sigma_ms", 0.0)
+        return doc
 
     def world_path(self) -> Path:
         return Path(str(resources.files("atlas_onboard.sim") / "scenarios" / self.world_file))

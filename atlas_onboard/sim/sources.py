@@ -32,7 +32,7 @@ from atlas_onboard.worker import Deliver, SensorWorker
 _logger = logging.getLogger(__name__)
 
 SIM_ENV = "ATLAS_SIM"
-SIM_KIND = "sim"
+SIM_KIND = scenarios.SIM_KIND
 """The ``camera.source`` of a simulated camera (and of the motion-capture system's world sensor)."""
 
 
