@@ -29,6 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from gitbase import export_revision
 
 ROOT = Path(__file__).resolve().parents[1]
 TAGS = (1, 2, 5, 10)
@@ -101,10 +102,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp_s:
         tmp = Path(tmp_s)
         base = tmp / "base"
-        base.mkdir()
         try:
-            archive = subprocess.run(["git", "-C", str(ROOT), "archive", args.base], capture_output=True, check=True)
-            subprocess.run(["tar", "-x", "-C", str(base)], input=archive.stdout, check=True)
+            export_revision(args.base, base)
         except (OSError, subprocess.CalledProcessError) as exc:
             print(f"bench_per_marker: cannot export {args.base!r} with git archive: {exc}", file=sys.stderr)
             return 2
