@@ -1,4 +1,5 @@
-"""The wire's side of benchmarks/attack.py: a witness peer, and the attacks on the link layer.
+"""The wire's side of benchmarks/attack.py: a witness peer, and the attacks on the link layer; run alone
+(``python benchmarks/attack_wire.py [attack.py's options]``), attack.py's runs and BAR lines for these attacks.
 
 - :class:`Witness`: the world's node (system 250) on the attacked peer link, as a real peer would be: a
   HEARTBEAT twice a second (signed when the link is), and everything the node sends it, with the
@@ -18,6 +19,7 @@ import hmac
 import math
 import os
 import socket
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -278,3 +280,17 @@ def wire_report(attack: str, mode: str, run: dict, clean: dict, bars: list) -> N
                 f" {np.percentile(lat, 95):.1f}; clean mean {ref.mean():.1f} median {np.median(ref):.1f} p95"
                 f" {np.percentile(ref, 95):.1f}"
             )
+
+
+def main() -> int:
+    """The wire's rows alone (3-7), signing off and on: attack.py's clean and attacked runs, its report and
+    its BAR lines, for those attacks (``--attacks`` and the other options as attack.py takes them)."""
+    import attack  # the harness imports this module: loaded here, not at the top
+
+    if "--attacks" not in sys.argv:
+        sys.argv += ["--attacks", ",".join(attack.WIRE)]
+    return attack.main()
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -29,12 +29,19 @@ import time
 from pathlib import Path
 
 import numpy as np
-from gitbase import export_revision
 
 ROOT = Path(__file__).resolve().parents[1]
 TAGS = (1, 2, 5, 10)
 BAR_MS = 0.8  # CPU ms per additional marker in view after the search, 640x480, one core
 BAR_RATIO = 0.2  # of the base's
+
+
+def export_revision(revision: str, dest: Path) -> None:
+    """Write ``revision``'s files into the new directory ``dest`` (``git archive``; the work tree is not
+    touched). Raises OSError or CalledProcessError when git cannot export it."""
+    dest.mkdir()
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", revision], capture_output=True, check=True)
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive.stdout, check=True)
 
 
 def child(tree: Path, scene: Path, n_tags: int) -> None:

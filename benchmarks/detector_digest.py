@@ -25,7 +25,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from gitbase import export_revision
+from bench_per_marker import export_revision
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO_TAGS = (1, 2, 5, 10)
