@@ -121,6 +121,7 @@ class SimAutopilot:
     timesync_replies: list[tuple[int, int, int, int]] = field(default_factory=list)  # tc1, ts1, target sys, comp
     other: dict[str, int] = field(default_factory=dict)
     statustexts: list[bytes] = field(default_factory=list)
+    statustext_poses: list[int] = field(default_factory=list)  # vision poses received before each STATUSTEXT
     last: dict[str, object] = field(default_factory=dict)  # the last message of each other kind
     origin: tuple[float, float, float] | None = None  # the EKF origin (lat deg, lon deg, alt m)
     px4_origin_alt_m: float = 0.0  # PX4's origin altitude (NaN: none yet); 0 once height is set on vision
@@ -339,6 +340,8 @@ class SimAutopilot:
             if kind == "STATUSTEXT":
                 text = msg.text
                 self.statustexts.append(text.encode() if isinstance(text, str) else bytes(text))
+                with self._lock:
+                    self.statustext_poses.append(len(self.received))
 
     def _answer_param(self, msg: mavlink.MAVLink_message) -> None:
         name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")
