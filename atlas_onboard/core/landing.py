@@ -34,10 +34,6 @@ from scipy.spatial.transform import RigidTransform, Rotation
 from atlas_onboard.core import frames
 from atlas_onboard.core.covariance import skew
 
-MAV_FRAME_LOCAL_NED = 2
-MAV_FRAME_BODY_FRD = 12
-LANDING_TARGET_TYPE_VISION_FIDUCIAL = 3
-
 
 class Verdict(StrEnum):
     """Whether a LANDING_TARGET goes out, and if not, why."""
