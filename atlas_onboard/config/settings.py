@@ -286,8 +286,9 @@ class LandingConfig:
         "no LANDING_TARGET when the newest observation behind the target's pose relative to the drone is older",
         unit="s", within="(0, 2]", noun="an age"))  # fmt: skip
     max_sigma_m: float = field(default=0.05, metadata=spec(
-        "no LANDING_TARGET when the landing point's position sigma relative to the drone (largest axis, with"
-        " the target's motion since its capture when a filter knows its velocity) exceeds this",
+        "no LANDING_TARGET when the landing point's horizontal position sigma relative to the drone (largest"
+        " horizontal axis, with the target's motion since its capture when a filter knows its velocity) exceeds"
+        " this", 
         unit="m", within="(0, 1]", noun="a sigma"))  # fmt: skip
 
 

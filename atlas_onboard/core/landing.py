@@ -43,7 +43,7 @@ class Verdict(StrEnum):
     NO_OWN_POSE = "no_own_pose"  # nor of the drone
     STALE = "stale"  # the newest observation behind the relative pose is older than max_age_s
     EXTRAPOLATED = "extrapolated"  # a pose predicted past its newest observation
-    UNCERTAIN = "uncertain"  # the landing point's largest position sigma exceeds max_sigma_m
+    UNCERTAIN = "uncertain"  # the landing point's largest horizontal position sigma exceeds max_sigma_m
     NOT_BELOW = "not_below"  # ArduPilot takes only a target below the vehicle (a downward line of sight)
 
 
@@ -116,8 +116,8 @@ class ArduPilotTarget:
 @dataclass(frozen=True, slots=True)
 class Decision:
     """What to send (``px4`` and ``ardupilot`` set only with :attr:`Verdict.SEND`), and the figures behind
-    it: ``age_s`` of the older observation, ``sigma_m`` the landing point's largest position sigma
-    including the motion since (velocity times age), ``time_usec`` the message's stamp (the capture
+    it: ``age_s`` of the older observation, ``sigma_m`` the landing point's largest horizontal position
+    sigma including the motion since (velocity times age), ``time_usec`` the message's stamp (the capture
     time the relative pose is for)."""
 
     verdict: Verdict
@@ -173,7 +173,7 @@ def decide(
     if rel.extrapolated:
         return Decision(Verdict.EXTRAPOLATED)
     age_s = 0.0 if rel.observed_us is None else max(0.0, (now_us - rel.observed_us) * 1e-6)
-    sigma = math.sqrt(max(float(np.linalg.eigvalsh(rel.covariance[:3, :3]).max()), 0.0))
+    sigma = horizontal_sigma_m(rel.covariance[:3, :3], Rotation.from_quat(drone.q_world_xyzw))
     if target.velocity_m_s is not None and not target.exact:
         sigma = math.hypot(sigma, float(np.linalg.norm(target.velocity_m_s)) * age_s)
     stamp = now_us if rel.observed_us is None else rel.observed_us
@@ -186,6 +186,14 @@ def decide(
         return Decision(Verdict.NOT_BELOW, age_s, sigma, stamp)
     px4 = px4_fields(drone, rel)
     return Decision(Verdict.SEND, age_s, sigma, stamp, px4, ardupilot)
+
+
+def horizontal_sigma_m(C_drone: NDArray[np.float64], R_world_drone: Rotation) -> float:
+    """The largest standard deviation of a position covariance (drone axes, (3, 3) m^2) over the world's
+    horizontal directions: where the autopilots centre (each descends on its own height)."""
+    R = R_world_drone.as_matrix()
+    C = (R @ C_drone @ R.T)[:2, :2]
+    return math.sqrt(max(float(np.linalg.eigvalsh(C).max()), 0.0))
 
 
 def px4_fields(drone: PoseSample, rel: RelativeTarget) -> Px4Target:

@@ -30,6 +30,8 @@ from atlas_onboard.core import frames
 
 MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_BODY_FRD = 12
+NIS_GATE = 3.0  # AC_PrecLand: a measurement whose NIS reaches 3 is refused, unless 3 were refused in a row
+NIS_MAX_REJECTED = 3
 
 
 class Phase(StrEnum):
@@ -52,7 +54,7 @@ class LanderSettings:
     gain_per_s: float = 2.0  # horizontal position gain
     max_speed_m_s: float = 1.0
     tau_s: float = 0.2  # velocity response
-    velocity_gain: float = 0.3  # the target velocity estimator's correction per measurement (alpha-beta)
+    target_accel_m_s2: float = 0.5  # the moving target's acceleration noise in the target filter
 
 
 @dataclass
@@ -70,6 +72,8 @@ class Lander:
     touchdown_m: NDArray[np.float64] | None = None  # where it landed (true)
     aborts: int = 0
     refused: int = 0  # messages in a form this autopilot does not take
+    _P: NDArray[np.float64] = field(default_factory=lambda: np.eye(2))  # the target filter's covariance
+    _rejected: int = 0  # measurements refused by the filter's gate in a row
 
     @property
     def attitude(self) -> Rotation:
@@ -94,16 +98,35 @@ class Lander:
             return
         if self.target_m is None or t_s - self.last_target_s > self.settings.lost_timeout_s:
             self.target_m, self.target_v_m_s = measured, np.zeros(3)
+            self._P = np.array([[_meas_var(measured - own_position_m), 0.0], [0.0, 1.0]])
+        elif not self.settings.moving_target:
+            self.target_m = measured  # a static target: the measurement as it comes
         else:
-            dt = max(t_s - self.last_target_s, 1e-3)
-            predicted = self.target_m + self.target_v_m_s * dt
-            innovation = measured - predicted
-            self.target_m = measured
-            if self.settings.moving_target:
-                self.target_v_m_s = self.target_v_m_s + self.settings.velocity_gain * innovation / dt
+            self._kalman(measured, t_s - self.last_target_s, _meas_var(measured - own_position_m))
         self.last_target_s = t_s
         if self.phase in (Phase.WAIT, Phase.CLIMB):
             self.phase = Phase.APPROACH
+
+    def _kalman(self, measured: NDArray[np.float64], dt: float, r: float) -> None:
+        """ArduPilot's per-axis position-velocity Kalman filter of the target (one covariance for x and y)."""
+        assert self.target_m is not None
+        F = np.array([[1.0, dt], [0.0, 1.0]])
+        q = self.settings.target_accel_m_s2**2
+        Q = q * np.array([[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]])
+        P = F @ self._P @ F.T + Q
+        predicted = [F @ np.array([self.target_m[a], self.target_v_m_s[a]]) for a in range(2)]
+        nis = max((measured[a] - predicted[a][0]) ** 2 / (P[0, 0] + r) for a in range(2))
+        if nis >= NIS_GATE and self._rejected < NIS_MAX_REJECTED:  # AC_PrecLand's outlier gate
+            self._rejected += 1
+            return
+        self._rejected = 0
+        K = P[:, 0] / (P[0, 0] + r)
+        for axis in range(2):
+            x = F @ np.array([self.target_m[axis], self.target_v_m_s[axis]])
+            x = x + K * (measured[axis] - x[0])
+            self.target_m[axis], self.target_v_m_s[axis] = x
+        self.target_m[2] = measured[2]
+        self._P = P - np.outer(K, P[0, :])
 
     def step(self, t_s: float, dt_s: float, own_position_m: NDArray[np.float64], ground_z_m: float) -> None:
         """Advance the true motion by ``dt_s`` to ``t_s``; ``ground_z_m`` the height of what is below (the
@@ -138,3 +161,9 @@ class Lander:
             self.v_m_s = np.zeros(3)
             self.phase = Phase.LANDED
             self.touchdown_m = self.p_m.copy()
+
+
+def _meas_var(relative_m: NDArray[np.float64]) -> float:
+    """ArduPilot's horizontal measurement variance of a target ``relative_m`` away: (0.01 h + 0.02)^2 m^2
+    (AC_PrecLand, at rest: its gyro term left out)."""
+    return float((abs(relative_m[2]) * 0.01 + 0.02) ** 2)
