@@ -106,12 +106,14 @@ SCENARIOS = {
 @dataclass
 class LandingRun:
     """One landing: the touchdown error (m, horizontal; None if it did not land), the messages sent and
-    how many of them were stale when sent, the aborts, and the decisions taken by verdict."""
+    how many of them were stale when sent (and, for comparison, how many a sender that repeats its last
+    target at ``rate_hz`` would have sent stale), the aborts, and the decisions taken by verdict."""
 
     touchdown_error_m: float | None
     time_s: float
     sent: int
     stale_sent: int
+    held_stale: int  # what a sender repeating its last target at rate_hz would have sent stale
     aborts: int
     verdicts: Counter[str]
 
@@ -149,7 +151,9 @@ def run(name: str, seed: int = 0, form: str | None = None, gap_s: tuple[float, f
     pending: list[tuple[float, list[MarkerData]]] = []
     history: list[tuple[float, NDArray[np.float64]]] = []  # the drone's true position by time
     estimate: tuple[float, NDArray[np.float64]] | None = None  # the node's own pose: capture time, position
-    sent = stale = 0
+    sent = stale = held = 0
+    last_stamp_s: float | None = None  # the newest observation sent so far
+    next_tick = 0.0
     next_frame = 0.0
     t = 0.0
     while t < duration_s and lander.phase is not Phase.LANDED:
@@ -182,6 +186,10 @@ def run(name: str, seed: int = 0, form: str | None = None, gap_s: tuple[float, f
             for _, fields in outbox[before:]:
                 sent += 1
                 stale += _age_s(fields, t) > max_age_s
+                last_stamp_s = t - _age_s(fields, t)
+        if t >= next_tick:
+            next_tick += 1.0 / config.rate_hz
+            held += last_stamp_s is not None and t - last_stamp_s > max_age_s
         own_now = _own_position(estimate, history, lander.p_m)
         for _at, fields in [m for m in outbox if m[0] + LINK_DELAY_S <= t]:
             lander.on_target(fields, t, own_now)
@@ -194,7 +202,7 @@ def run(name: str, seed: int = 0, form: str | None = None, gap_s: tuple[float, f
     if lander.touchdown_m is not None:
         point = (sim.truth(t)[ls.target] * marker.T_entity_marker).translation
         error = float(np.linalg.norm(lander.touchdown_m[:2] - point[:2]))
-    return LandingRun(error, t, sent, stale, lander.aborts, Counter(output.counts))
+    return LandingRun(error, t, sent, stale, held, lander.aborts, Counter(output.counts))
 
 
 def _own_position(
