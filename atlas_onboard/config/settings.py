@@ -288,7 +288,7 @@ class LandingConfig:
     max_sigma_m: float = field(default=0.05, metadata=spec(
         "no LANDING_TARGET when the landing point's horizontal position sigma relative to the drone (largest"
         " horizontal axis, with the target's motion since its capture when a filter knows its velocity) exceeds"
-        " this", 
+        " this",
         unit="m", within="(0, 1]", noun="a sigma"))  # fmt: skip
 
 
