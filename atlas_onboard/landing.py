@@ -18,6 +18,7 @@ from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import WORLD, LandingConfig, NodeConfig, WorldConfig
 from atlas_onboard.core import frames
+from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.landing import Decision, Limits, PoseSample, Verdict, decide
 from atlas_onboard.errors import AtlasError
@@ -43,8 +44,9 @@ def landing_point(config: LandingConfig, world: WorldConfig) -> RigidTransform:
     return RigidTransform.from_translation(point if R is None else R.apply(point))
 
 
-def pose_sample(pose: EntityPose | None) -> PoseSample | None:
-    """The decision's view of a graph pose (a world pose; a pose relative to another entity is none)."""
+def pose_sample(pose: EntityPose | None, velocity_m_s: np.ndarray | None = None) -> PoseSample | None:
+    """The decision's view of a graph pose (a world pose; a pose relative to another entity is none),
+    with the entity's world velocity when a filter knows it."""
     if pose is None or pose.frame != WORLD:
         return None
     return PoseSample(
@@ -55,7 +57,7 @@ def pose_sample(pose: EntityPose | None) -> PoseSample | None:
         stamp_us=pose.capture_time_us,
         observed_us=pose.capture_time_us,
         exact=pose.name == WORLD,
-        velocity_m_s=pose.velocity_m_s,
+        velocity_m_s=velocity_m_s if velocity_m_s is not None else pose.velocity_m_s,
     )
 
 
@@ -89,13 +91,24 @@ class LandingOutput:
         self._last_stamp_us = -1
         self._sending = False
 
-    def update(self, result: GraphResult | None, now_ns: int, wall_us: int) -> Decision | None:
+    def update(
+        self, result: GraphResult | None, now_ns: int, wall_us: int, ekf: EkfBank | None = None
+    ) -> Decision | None:
         """After an evaluation: decide at ``wall_us`` (the clock of the poses' stamps) and send when due.
-        Returns the decision taken (None when not due: the rate)."""
-        if result is None or now_ns < self._next_ns:
+        With the node's ``ekf`` (``fusion.filter: ekf``), the target's filter is fed too and its velocity
+        widens the uncertainty by the motion since capture; positions stay the graph's. Returns the
+        decision taken (None when not due: the rate)."""
+        if result is None:
+            return None
+        if ekf is not None and self.config.target != WORLD:
+            ekf.update(result, wall_us, only=self.config.target)  # every evaluation: the filter misses none
+        if now_ns < self._next_ns:
             return None
         drone = pose_sample(result.poses.get(self.entity))
-        target = WORLD_POSE if self.config.target == WORLD else pose_sample(result.poses.get(self.config.target))
+        if self.config.target == WORLD:
+            target = WORLD_POSE
+        else:
+            target = pose_sample(result.poses.get(self.config.target), _velocity(ekf, self.config.target, wall_us))
         d = decide(drone, target, self.T_target_point, wall_us, self.limits)
         self.last = d
         self.counts[d.verdict.value] += 1
@@ -146,3 +159,11 @@ def _fields(autopilot: str, d: Decision) -> dict[str, Any] | None:
             d.time_usec, a.x_m, a.y_m, a.z_m, a.distance_m, a.angle_x_rad, a.angle_y_rad
         )
     return None
+
+
+def _velocity(ekf: EkfBank | None, name: str, wall_us: int) -> np.ndarray | None:
+    """``name``'s world velocity from the node's EKF (None without a filter or an estimate)."""
+    if ekf is None:
+        return None
+    filtered = ekf.pose(name, wall_us)
+    return None if filtered is None or filtered.frame != WORLD else filtered.velocity_m_s

@@ -175,7 +175,7 @@ class NodeOutput:
             self.changes.evaluated(now, complete=False, rest_unchanged=result.current)
         self.last_result = result
         if self.landing is not None:
-            self.landing.update(result, now, self.wall() // 1000)
+            self.landing.update(result, now, self.wall() // 1000, self.ekf)
         bfs = self.world.fusion.path == "bfs"
         self.near = near_entities(self.config.entity, result.levels if bfs else None)
         self.listener.set_estimates(result.poses)

@@ -1,8 +1,10 @@
 """The node's landing output: what goes out after each evaluation, and what never does."""
 
+import math
+
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import LandingConfig, parse_world
 from atlas_onboard.core.graph import EntityPose, GraphResult
@@ -70,3 +72,49 @@ def test_rover_point_in_px4_form():
     out2, sent2 = output(target="rover", marker=7, autopilot="px4", max_sigma_m=0.01)
     out2.update(result(pose("drone", [4, 0, 1.5], now), pose("rover", [4, 0, 0], now, sigma=0.02)), 0, now)
     assert sent2 == [] and out2.counts["uncertain"] == 1
+
+
+def test_the_filters_velocity_widens_an_old_moving_target():
+    # A rover driving at 1 m/s under a ceiling camera, with the EKF: a decision 0.1 s after the last
+    # image counts the 0.1 m the rover may have moved since (sigma sqrt(s^2 + 0.1^2) > 0.05 m); without
+    # the filter's velocity the same pose goes out.
+    from atlas_onboard.core.ekfbank import EkfBank
+    from atlas_onboard.listener import Listener, make_graph
+    from atlas_onboard.node_output import _make_ekf
+    from tests.helpers import observe
+    from tests.helpers import pose as true_pose
+
+    world = parse_world(
+        {
+            "fusion": {"filter": "ekf"},
+            "entities": {
+                "world": {
+                    "sensors": [{"name": "ceiling", "id": 10, "pose": {"pos": [0, 0, 4], "rpy_deg": [0, 90, 0]}}]
+                },
+                "drone": {"markers": [{"id": 5, "size_m": 0.2, "pose": {"pos": [0, 0, 0.05]}}]},
+                "rover": {"markers": [{"id": 7, "size_m": 0.2, "pose": {"pos": [0, 0, 0.3]}}]},
+            },
+        }
+    )
+    graph = make_graph(world, "drone")
+    listener = Listener(world, graph)
+    ekf = _make_ekf(world)
+    assert isinstance(ekf, EkfBank)
+    cfg = LandingConfig(target="rover", autopilot="px4", marker=7)
+    with_filter, plain = LandingOutput(cfg, "drone", world, [].append), LandingOutput(cfg, "drone", world, [].append)
+    t0 = 10_000_000
+    for k in range(30):
+        t_us = t0 + k * 33_333
+        truth = {"world": RigidTransform.identity(), "drone": true_pose([0.0, 0.0, 1.5], [0, 0, 0]),
+                 "rover": true_pose([k * 0.0333, 0.2, 0.0], [0, 0, 0])}  # fmt: skip
+        for marker in (5, 7):
+            listener.accept(observe(world, truth, 10, marker, sigma_m=0.003, capture_time_us=t_us), t_us * 1000)
+        result = graph.evaluate(t_us * 1000)
+        with_filter.update(result, t_us * 1000, t_us, ekf)  # as the node: after every evaluation
+        ekf.update(result, t_us, only="drone")
+    late = t_us + 100_000
+    d_filter = with_filter.update(result, late * 1000, late, ekf)
+    d_plain = plain.update(result, 0, late)
+    assert d_plain.verdict.value == "send" and d_plain.sigma_m < 0.05
+    assert d_filter.verdict.value == "uncertain"
+    assert d_filter.sigma_m == pytest.approx(math.hypot(d_plain.sigma_m, 0.1), rel=0.15)
