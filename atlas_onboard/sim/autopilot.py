@@ -189,7 +189,6 @@ class SimAutopilot:
         self._att_queue: list[tuple[float, float, float, float, float, tuple[float, float, float]]] = []
         self._next_local_s = 0.0
         self._next_timesync_s = 0.0
-        self._lander_s = 0.0
 
     def start(self) -> SimAutopilot:
         self._thread.start()
@@ -259,7 +258,7 @@ class SimAutopilot:
             if self.attitude is not None:
                 self._attitude_tick()
             if self.lander is not None:
-                self._lander_tick(time.time())
+                self.lander.tick(time.time(), self._own_position_enu())
             if self.local_position_hz > 0:
                 self._local_position_tick(now)
             if self.timesync_hz > 0 and now >= self._next_timesync_s:
@@ -360,13 +359,6 @@ class SimAutopilot:
         with self._lock:
             last = self.received[-1] if self.received else None
         return np.zeros(3) if last is None else frames.R_ENU_NED.apply(np.asarray(last.xyz_m, dtype=float))
-
-    def _lander_tick(self, now: float) -> None:
-        assert self.lander is not None
-        dt = now - self._lander_s if self._lander_s else 0.0
-        self._lander_s = now
-        if dt > 0:
-            self.lander.step(now, dt, self._own_position_enu(), 0.0)
 
     def _answer_param(self, msg: mavlink.MAVLink_message) -> None:
         name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")

@@ -74,6 +74,7 @@ class Lander:
     refused: int = 0  # messages in a form this autopilot does not take
     _P: NDArray[np.float64] = field(default_factory=lambda: np.eye(2))  # the target filter's covariance
     _rejected: int = 0  # measurements refused by the filter's gate in a row
+    _tick_s: float | None = None  # the last tick's time (:meth:`tick`)
 
     @property
     def attitude(self) -> Rotation:
@@ -127,6 +128,12 @@ class Lander:
             self.target_m[axis], self.target_v_m_s[axis] = x
         self.target_m[2] = measured[2]
         self._P = P - np.outer(K, P[0, :])
+
+    def tick(self, t_s: float, own_position_m: NDArray[np.float64], ground_z_m: float = 0.0) -> None:
+        """:meth:`step` to ``t_s`` from the previous tick (a real-time loop; the first tick only starts)."""
+        if self._tick_s is not None and t_s > self._tick_s:
+            self.step(t_s, t_s - self._tick_s, own_position_m, ground_z_m)
+        self._tick_s = t_s
 
     def step(self, t_s: float, dt_s: float, own_position_m: NDArray[np.float64], ground_z_m: float) -> None:
         """Advance the true motion by ``dt_s`` to ``t_s``; ``ground_z_m`` the height of what is below (the
