@@ -173,13 +173,14 @@ def decide(
     if rel.extrapolated:
         return Decision(Verdict.EXTRAPOLATED)
     age_s = 0.0 if rel.observed_us is None else max(0.0, (now_us - rel.observed_us) * 1e-6)
-    sigma = horizontal_sigma_m(rel.covariance[:3, :3], Rotation.from_quat(drone.q_world_xyzw))
+    finite = bool(np.all(np.isfinite(rel.covariance)) and np.all(np.isfinite(rel.p_drone_m)))
+    sigma = horizontal_sigma_m(rel.covariance[:3, :3], Rotation.from_quat(drone.q_world_xyzw)) if finite else math.nan
     if target.velocity_m_s is not None and not target.exact:
         sigma = math.hypot(sigma, float(np.linalg.norm(target.velocity_m_s)) * age_s)
     stamp = now_us if rel.observed_us is None else rel.observed_us
     if age_s > limits.max_age_s:
         return Decision(Verdict.STALE, age_s, sigma, stamp)
-    if sigma > limits.max_sigma_m:
+    if not sigma <= limits.max_sigma_m:  # NaN too: an unknown uncertainty is not small enough
         return Decision(Verdict.UNCERTAIN, age_s, sigma, stamp)
     ardupilot = ardupilot_fields(rel.p_drone_m)
     if ardupilot is None:

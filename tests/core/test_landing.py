@@ -143,6 +143,12 @@ def test_uncertainty_and_the_motion_since_capture():
     assert moving.verdict is Verdict.UNCERTAIN and moving.sigma_m == pytest.approx(math.sqrt(0.001004 + 0.045**2))
 
 
+def test_an_unknown_uncertainty_is_not_small_enough():
+    bad = np.diag([np.nan, 1e-4, 1e-4, 1e-6, 1e-6, 1e-6])
+    d = decide(sample([0, 0, 2]), sample([0, 0, 0], cov=bad), IDENTITY, 1_000_000, LIMITS)
+    assert d.verdict is Verdict.UNCERTAIN and d.px4 is None
+
+
 def test_missing_poses():
     assert decide(None, sample([0, 0, 0]), IDENTITY, 0, LIMITS).verdict is Verdict.NO_OWN_POSE
     assert decide(sample([0, 0, 0]), None, IDENTITY, 0, LIMITS).verdict is Verdict.NO_TARGET
