@@ -12,6 +12,7 @@ from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_ATTITUDE_SIG
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.landing import landing_output
 from atlas_onboard.node_ports import Transport
 from atlas_onboard.node_setup import WorldBlocks
 from atlas_onboard.publisher import PoseState, Publisher, Telemetry
@@ -93,6 +94,7 @@ class NodeOutput:
         """The world, graph and listener to evaluate (at start and on reload); a fresh EKF for the world."""
         self.world, self.graph, self.listener = blocks.world, blocks.graph, blocks.listener
         self.ekf = _make_ekf(blocks.world)
+        self.landing = landing_output(self.config, blocks.world, self.transport)
 
     def start(self) -> None:
         self._telemetry_since = (self.clock(), 0)
@@ -172,6 +174,8 @@ class NodeOutput:
         else:  # a full evaluation is not needed when it would give every other entity the pose it has
             self.changes.evaluated(now, complete=False, rest_unchanged=result.current)
         self.last_result = result
+        if self.landing is not None:
+            self.landing.update(result, now, self.wall() // 1000, self.ekf)
         bfs = self.world.fusion.path == "bfs"
         self.near = near_entities(self.config.entity, result.levels if bfs else None)
         self.listener.set_estimates(result.poses)

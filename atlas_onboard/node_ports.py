@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 from atlas_onboard.config import WorldConfig
 from atlas_onboard.core.graph import EntityPose
@@ -31,6 +31,9 @@ class Transport(Protocol):
     def send_autopilot(self, pose: AutopilotPose) -> None: ...
 
     def send_status(self, text: str, severity: int) -> None: ...
+
+    def send_landing_target(self, fields: dict[str, Any]) -> None:
+        """LANDING_TARGET to the autopilot (the fields of :mod:`atlas_onboard.mavlink.landing`)."""
 
     def set_pose_state(self, state: PoseState) -> None:
         """The own pose's state, for the HEARTBEAT's system_status."""

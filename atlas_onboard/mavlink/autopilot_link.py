@@ -150,6 +150,11 @@ class AutopilotLink:
         if speed is not None:
             self.link.send(speed)  # the EKF velocity, for ArduPilot (EK3_SRC1_VELXY=6); PX4 ignores it
 
+    def send_landing_target(self, fields: dict[str, Any]) -> None:
+        """LANDING_TARGET (#149) to the autopilot, addressed to its system."""
+        if self.link is not None:
+            self.link.send(self.link.dialect.MAVLink_landing_target_message(**fields))
+
     def _attitude_tick(self, now_ns: int) -> None:
         """Ask the autopilot for ATTITUDE (MAV_CMD_SET_MESSAGE_INTERVAL) when none came for
         ATTITUDE_WAIT_NS after its HEARTBEAT; at most ATTITUDE_ASKS times (a link without it works as before)."""

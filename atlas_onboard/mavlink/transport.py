@@ -131,6 +131,10 @@ class MavlinkTransport:
         """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity (see :meth:`AutopilotLink.send_autopilot`)."""
         self.autopilot_link.send_autopilot(pose)
 
+    def send_landing_target(self, fields: dict[str, Any]) -> None:
+        """LANDING_TARGET to the autopilot (fields of :mod:`atlas_onboard.mavlink.landing`)."""
+        self.autopilot_link.send_landing_target(fields)
+
     def attitude_at(self, t_us: int) -> Rotation | None:
         """The autopilot's attitude at ``t_us`` (see :meth:`AutopilotLink.attitude_at`)."""
         return self.autopilot_link.attitude_at(t_us)
