@@ -85,7 +85,7 @@ class FusionConfig:
         "the same for the attitude (about the entities' turn rate): an edge of age a adds (a * this)^2 to its"
         " attitude variance; no weight changes, only the published covariance",
         unit="deg/s", within="[0, 3600]", noun="a turn rate", paper=0.0))  # fmt: skip
-    align_edges: bool = field(default=False, metadata=spec(
+    align_edges: bool = field(default=True, metadata=spec(
         "a pose through another entity (a drone seen by a drone) takes that entity's pose at its own"
         " image's capture time, interpolated or extrapolated from its recent poses, the step's uncertainty"
         " in the covariance; false: its newest pose, whenever that was taken (the paper)", paper=False))  # fmt: skip
