@@ -5,16 +5,17 @@ The loop that uses them is :class:`atlas_onboard.node.Node`."""
 from __future__ import annotations
 
 import logging
+import math
 import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from atlas_onboard.config import ConfigError, NodeConfig, WorldConfig, load_node
+from atlas_onboard.config import ConfigError, NodeConfig, Weighting, WorldConfig, load_node
 from atlas_onboard.core.graph import TransformGraph
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.listener import Listener
 from atlas_onboard.node_ports import Transport
 from atlas_onboard.node_refine import LiveRefinement
 
@@ -33,6 +34,28 @@ class WorldBlocks:
     listener: Listener
     entity_of: tuple[dict[int, str], dict[int, str]]  # the entity of every sensor id, of every marker id
     supersedes: bool  # each observation simply replaces its edge (see :func:`supersedes`)
+
+
+def make_graph(world: WorldConfig, own_entity: str | None = None) -> TransformGraph:
+    """The transform graph a world file describes: its entities and fusion settings. The candidates
+    of ``own_entity``'s sensors (the node's own cameras) are the outlier gate's anchor."""
+    own = world.entity(own_entity).sensors if own_entity is not None else ()
+    f = world.fusion
+    return TransformGraph(
+        world.entity_names,
+        round(f.edge_timeout_s * 1e9),
+        inverse_variance=f.weighting is Weighting.INVERSE_VARIANCE,
+        path=f.path,
+        relative=f.relative_poses,
+        age_sigma_m_per_s=f.age_sigma_m_per_s,
+        age_sigma_rad_per_s=math.radians(f.age_sigma_deg_per_s),
+        outlier_gate_sigma=f.outlier_gate_sigma,
+        keep_candidates=f.filter == "ekf",
+        anchor_sensors=frozenset(s.id for s in own),
+        max_speed_m_s=f.max_speed_m_s,
+        align=f.align_edges,
+        max_relayed_sigma_m=f.max_relayed_sigma_m,
+    )
 
 
 def wire(world: WorldConfig, config: NodeConfig, transport: Transport) -> WorldBlocks:

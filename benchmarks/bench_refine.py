@@ -32,8 +32,9 @@ import yaml
 
 from atlas_onboard.config import RefineConfig, load_world
 from atlas_onboard.detector.pipeline import Detector
-from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.listener import Listener
 from atlas_onboard.node_refine import LiveRefinement, PerMarkerSampler
+from atlas_onboard.node_setup import make_graph
 from atlas_onboard.recording.format import read_frames, read_info
 from atlas_onboard.sim import recordings, scenarios
 from atlas_onboard.sim.world import SimWorld

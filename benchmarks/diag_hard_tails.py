@@ -58,7 +58,8 @@ from atlas_onboard.core.markerdata import Rejection
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.refine import refine_corners_undistorted
-from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.listener import Listener
+from atlas_onboard.node_setup import make_graph
 from atlas_onboard.sim import runner, scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.camera import frames_path

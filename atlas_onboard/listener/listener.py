@@ -12,7 +12,6 @@ which the node calls after every evaluation) pick the consistent one by the rule
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
@@ -20,20 +19,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import Weighting, WorldConfig
+from atlas_onboard.config import WorldConfig
 from atlas_onboard.core import ambiguity, covariance, fusion, geometry
+from atlas_onboard.core.edge_covariance import edge_covariances, inconsistent_sigma, positive_definite
 from atlas_onboard.core.graph import EdgeKey, EntityPose, TransformGraph
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.counters import Counters
-from atlas_onboard.listener_ambiguity import AmbiguityResolver, Detections
-from atlas_onboard.listener_covariance import (  # noqa: F401 (were defined here)
-    _camera_spread,
-    _covariances,
-    _matrices,
-    _positive_definite,
-    _rotation_sigma,
-    inconsistent_sigma,
-)
+from atlas_onboard.listener.ambiguity import AmbiguityResolver, Detections
 
 _logger = logging.getLogger(__name__)
 
@@ -63,28 +55,6 @@ class EdgeUpdate:
     q_a_b_xyzw: NDArray[np.float64]
     sigma_m: float
     cov_a_b: NDArray[np.float64] | None = None  # 6x6, core.covariance convention
-
-
-def make_graph(world: WorldConfig, own_entity: str | None = None) -> TransformGraph:
-    """The transform graph a world file describes: its entities and fusion settings. The candidates
-    of ``own_entity``'s sensors (the node's own cameras) are the outlier gate's anchor."""
-    own = world.entity(own_entity).sensors if own_entity is not None else ()
-    f = world.fusion
-    return TransformGraph(
-        world.entity_names,
-        round(f.edge_timeout_s * 1e9),
-        inverse_variance=f.weighting is Weighting.INVERSE_VARIANCE,
-        path=f.path,
-        relative=f.relative_poses,
-        age_sigma_m_per_s=f.age_sigma_m_per_s,
-        age_sigma_rad_per_s=math.radians(f.age_sigma_deg_per_s),
-        outlier_gate_sigma=f.outlier_gate_sigma,
-        keep_candidates=f.filter == "ekf",
-        anchor_sensors=frozenset(s.id for s in own),
-        max_speed_m_s=f.max_speed_m_s,
-        align=f.align_edges,
-        max_relayed_sigma_m=f.max_relayed_sigma_m,
-    )
 
 
 class Listener:
@@ -182,7 +152,7 @@ class Listener:
                 valid.append(md)
         C_sm = None  # the detection covariances as matrices, when every valid record has one
         if any(md.covariance for md in valid):
-            valid, C_sm = _positive_definite(valid, out)
+            valid, C_sm = positive_definite(valid, out)
             valid, C_sm = inconsistent_sigma(valid, out, C_sm, self.graph.anchor_sensors)
         if not valid:
             return out, notes
@@ -205,7 +175,7 @@ class Listener:
         q1 = np.array([self._sensor_q[md.sensor_id] for md in valid])
         q3_inv = np.array([self._marker_inv_q[md.marker_id] for md in valid])
         q_all = geometry.quat_multiply(geometry.quat_multiply(q1, q2), q3_inv)  # eq. 1's rotation
-        cov = _covariances(valid, chain, C_sm)
+        cov = edge_covariances(valid, chain, C_sm)
         if self._marker_cov:
             placed = [j for j, md in enumerate(valid) if md.marker_id in self._marker_cov]
             if placed:  # T_a_b = T_a_m T_m_b: a refined marker's own uncertainty enters through T_m_b

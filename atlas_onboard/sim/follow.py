@@ -16,8 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.listener import Listener
 from atlas_onboard.node_output import _make_ekf
+from atlas_onboard.node_setup import make_graph
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.world import SimWorld
 
