@@ -8,7 +8,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.schedule import Changes, Inbound, Inbox, ParkingBuffer, Relevance, near_entities, relevance
+from atlas_onboard.core.records import Inbound
+from atlas_onboard.schedule import Changes, Inbox, ParkingBuffer, Relevance, near_entities, relevance
 
 # --- relevance ------------------------------------------------------------------------------------
 

@@ -20,12 +20,12 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
+from atlas_onboard.core.records import AutopilotPose
 from atlas_onboard.core.shutter import BodyRate, RateHistory
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.link import Link
-from atlas_onboard.publisher import AutopilotPose
 
 _logger = logging.getLogger(__name__)
 

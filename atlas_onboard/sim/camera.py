@@ -30,7 +30,7 @@ from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.motion import body_rate_at
 from atlas_onboard.detector.sources import ImageFolder, ReplayClock
-from atlas_onboard.node_refine import sampled
+from atlas_onboard.node.refine import sampled
 from atlas_onboard.sim.scenarios import Scenario
 from atlas_onboard.sim.sources import SimContext
 from atlas_onboard.sim.world import Sighting, SimWorld

@@ -63,7 +63,7 @@ def expected_covariance(world, truth=TRUTH):
     """What the pure core makes of the test's observation, in MAVLink's 21 NED/FRD values."""
     from atlas_onboard.listener import Listener
     from atlas_onboard.mavlink import autopilot
-    from atlas_onboard.node_setup import make_graph
+    from atlas_onboard.node.setup import make_graph
 
     graph = make_graph(world)
     listener = Listener(world, graph)
@@ -240,7 +240,7 @@ def test_ground_station_sees_pose_state_and_named_values(tmp_path):
     import threading
 
     from atlas_onboard.listener import Listener
-    from atlas_onboard.node_setup import make_graph
+    from atlas_onboard.node.setup import make_graph
     from tests.e2e.helpers import start_node_with_peer
 
     def doc_for(port, ap_port):
