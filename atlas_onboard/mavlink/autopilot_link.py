@@ -279,8 +279,9 @@ class AutopilotLink:
                 if msg.tc1 == 0:
                     self.counters.inc("timesync_not_from_autopilot")
                 return
-            target = getattr(msg, "target_system", 0)
-            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, wall_ns(self.wall), requester, link.system_id, target)
+            reply = autopilot.timesync_reply(
+                msg.tc1, msg.ts1, wall_ns(self.wall), requester, link.system_id, msg.target_system
+            )
             if reply is not None:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION"):

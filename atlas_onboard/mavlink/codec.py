@@ -126,8 +126,8 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
             seq=int(msg.seq),
             p_sensor_marker_alt_m=(float(msg.x_alt), float(msg.y_alt), float(msg.z_alt)),
             q_sensor_marker_alt_wxyz=q_alt,  # type: ignore[arg-type]
-            frame_remaining=int(getattr(msg, "frame_remaining", 0) or 0),
-            covariance=_covariance(getattr(msg, "covariance", None)),
+            frame_remaining=int(msg.frame_remaining or 0),
+            covariance=_covariance(msg.covariance),
         )
     except (TypeError, ValueError, AttributeError):
         raise RejectionError(Rejection.MALFORMED) from None
@@ -158,6 +158,7 @@ class _TunnelFields:
     seq: int
     format_version: int
     frame_remaining: int = 0
+    covariance: tuple[float, ...] | None = None  # the TUNNEL form carries none
 
 
 def tunnel_payload(md: MarkerData, fingerprint: int) -> bytes:

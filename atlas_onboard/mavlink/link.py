@@ -273,7 +273,7 @@ class Link:
         """Count and drop what must not go further; True for a message to hand on."""
         kind = msg.get_type()
         if kind == "BAD_DATA":
-            reason = str(getattr(msg, "reason", ""))
+            reason = str(msg.reason)
             self.counters.inc(Rejection.BAD_SIGNATURE if "signature" in reason else Rejection.BAD_DATA)
             return False
         if type(msg).__name__ == "MAVLink_unknown" or kind.startswith("UNKNOWN"):

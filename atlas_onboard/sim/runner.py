@@ -41,9 +41,10 @@ from atlas_onboard.detector.render import LENS_RESIDUAL_PX
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot, recording
-from atlas_onboard.sim.camera import frames_path, prerender
+from atlas_onboard.sim.camera import frames_path, prerender, replay_folder
+from atlas_onboard.sim.context import SIM_ENV
 from atlas_onboard.sim.hub import Hub
-from atlas_onboard.sim.sources import SIM_ENV, SIM_KIND
+from atlas_onboard.sim.scenarios import SIM_KIND
 from atlas_onboard.sim.world import Intrinsics, SimWorld
 
 _logger = logging.getLogger(__name__)
@@ -212,11 +213,6 @@ def _drop_frame_cache() -> None:
 
 
 atexit.register(_drop_frame_cache)
-
-
-def replay_folder(frames_dir: Path, sensor_id: int) -> Path:
-    """The image folder of a camera's pre-rendered frames (one PNG a frame, in name order)."""
-    return frames_dir / f"replay-{sensor_id}"
 
 
 def write_replay_folders(frames_dir: Path, scenario: scenarios.Scenario, say: Callable[[str], None]) -> None:
