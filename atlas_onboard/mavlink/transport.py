@@ -23,15 +23,7 @@ from atlas_onboard.core.rejection import Rejection
 from atlas_onboard.core.shutter import BodyRate
 from atlas_onboard.counters import Counters
 from atlas_onboard.mavlink import autopilot, codec, framing
-from atlas_onboard.mavlink.autopilot_link import (  # noqa: F401 (were defined here)
-    ATTITUDE_ASKS,
-    ATTITUDE_INTERVAL_US,
-    ATTITUDE_WAIT_NS,
-    MAV_AUTOPILOT_INVALID,
-    MAV_AUTOPILOT_PX4,
-    MAV_COMP_ID_AUTOPILOT1,
-    ORIGIN_REQUEST_NS,
-    ORIGIN_UNANSWERED,
+from atlas_onboard.mavlink.autopilot_link import (
     AutopilotLink,
     wall_ns,
 )
