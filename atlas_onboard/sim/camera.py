@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import SensorConfig, WorldConfig, load_world
 from atlas_onboard.config.settings import READOUT_BOTTOM_UP
-from atlas_onboard.sim.scenarios import Scenario
+from atlas_onboard.sim.scenario import Scenario
 from atlas_onboard.sim.world import SimWorld
 
 SUPERSAMPLE = 3  # rendered cameras: samples per pixel along each axis

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
+from atlas_onboard.sim.scenario import Scenario
 
 SIM_ENV = "ATLAS_SIM"
 
@@ -22,7 +23,7 @@ SIM_ENV = "ATLAS_SIM"
 class SimContext:
     """The simulation a node belongs to."""
 
-    scenario: scenarios.Scenario
+    scenario: Scenario
     seed: int
     epoch_file: Path
     duration_s: float

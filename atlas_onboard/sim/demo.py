@@ -25,7 +25,7 @@ from atlas_onboard.config import load_world
 from atlas_onboard.core import geometry
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import trajectories as tj
-from atlas_onboard.sim.scenarios import Optics, Scenario
+from atlas_onboard.sim.scenario import Optics, Scenario
 
 if TYPE_CHECKING:
     from atlas_onboard.sim.autopilot import Received
