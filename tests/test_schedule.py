@@ -137,14 +137,6 @@ def test_since_is_the_first_arrival_of_a_park_period():
         ParkingBuffer(capacity=0, newest_wins=True)
 
 
-def test_an_inbound_is_decoded_once_and_a_refused_one_stays_refused():
-    calls = []
-    item = Inbound(2, 1, 0, 5, 0, 0, lambda: calls.append(1))  # the transport refused it (returns None)
-    assert item.take() is None and item.take() is None and calls == [1]
-    ready = Inbound.of(md(1, 0, 5), 7)
-    assert ready.take() == md(1, 0, 5) and ready.arrival_ns == 7 and ready.edge == (1, 0)
-
-
 # --- the inbox and the frame count (moved from tests/test_node.py) -----------------------------------
 
 
