@@ -67,7 +67,7 @@ from atlas_onboard.sim.world import SimWorld
 
 ENTITY = "drone"
 NEES3_997 = 13.93  # chi-square(3) at 0.997
-PUBLISH_NS = 20_000_000  # the node publishes the EKF's pose at least this often (node_output.PREDICT_NS)
+PUBLISH_NS = 20_000_000  # the node publishes the EKF's pose at least this often (node.output.PREDICT_NS)
 LATENCY_NS = 20_000_000  # capture to evaluation in the EKF emulation
 
 

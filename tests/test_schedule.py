@@ -137,7 +137,7 @@ def test_since_is_the_first_arrival_of_a_park_period():
         ParkingBuffer(capacity=0, newest_wins=True)
 
 
-# --- the inbox and the frame count (moved from tests/test_node.py) -----------------------------------
+# --- the inbox and the frame count ---------------------------------------------------------------------
 
 
 def test_inbox_drops_oldest_when_full():
