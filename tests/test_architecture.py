@@ -175,6 +175,18 @@ def test_no_import_cycles():
     assert not lines, "import cycles:\n" + "\n".join(lines)
 
 
+def test_every_import_of_the_package_names_one_of_its_modules():
+    """A module moved or renamed leaves no import of its old name behind (in a function, say)."""
+    files, imports = _graph()
+    bad = [
+        f"{imp.source}:{imp.line} imports {imp.module}"
+        for found in imports.values()
+        for imp in found
+        if _inside(imp.module, PACKAGE) and imp.module not in files
+    ]
+    assert not bad, "\n".join(bad)
+
+
 def test_core_imports_only_stdlib_numpy_scipy():
     """The one error hierarchy (``errors``) sits below every layer, the core included; it imports only the
     standard library, so the core stays pure through it."""
