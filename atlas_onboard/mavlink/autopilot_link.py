@@ -20,12 +20,12 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
+from atlas_onboard.core.records import AutopilotPose
 from atlas_onboard.core.shutter import BodyRate, RateHistory
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.link import Link
-from atlas_onboard.publisher import AutopilotPose
 
 _logger = logging.getLogger(__name__)
 
@@ -284,8 +284,9 @@ class AutopilotLink:
                 if msg.tc1 == 0:
                     self.counters.inc("timesync_not_from_autopilot")
                 return
-            target = getattr(msg, "target_system", 0)
-            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, wall_ns(self.wall), requester, link.system_id, target)
+            reply = autopilot.timesync_reply(
+                msg.tc1, msg.ts1, wall_ns(self.wall), requester, link.system_id, msg.target_system
+            )
             if reply is not None:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION"):

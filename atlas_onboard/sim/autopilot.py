@@ -50,7 +50,7 @@ from atlas_onboard.sim.lander import Lander
 _logger = logging.getLogger(__name__)
 
 # Linux's SO_TIMESTAMPNS (also the ancillary message type, SCM_TIMESTAMPNS); Python does not name it.
-_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
+_SO_TIMESTAMPNS = 35 if sys.platform.startswith("linux") else None
 
 
 @contextlib.contextmanager

@@ -26,7 +26,7 @@ from atlas_onboard.core import geometry
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import trajectories as tj
 from atlas_onboard.sim.lander import Lander, LanderSettings
-from atlas_onboard.sim.scenarios import Optics, Scenario
+from atlas_onboard.sim.scenario import Optics, Scenario
 
 if TYPE_CHECKING:
     from atlas_onboard.sim.autopilot import Received, SimAutopilot

@@ -31,12 +31,13 @@ from scipy.spatial.transform import RigidTransform
 from atlas_onboard.config import LandingConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.landing import LandingOutput
-from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.listener import Listener
+from atlas_onboard.node.landing import LandingOutput
+from atlas_onboard.node.setup import make_graph
 from atlas_onboard.sim import trajectories as tj
+from atlas_onboard.sim.context import SimContext
 from atlas_onboard.sim.lander import Lander, LanderSettings, Phase
-from atlas_onboard.sim.scenarios import Optics, Scenario, Trajectory
-from atlas_onboard.sim.sources import SimContext
+from atlas_onboard.sim.scenario import Optics, Scenario, Trajectory
 from atlas_onboard.sim.world import SimWorld
 
 DRONE = "drone"
@@ -121,7 +122,7 @@ class LandingRun:
 def run(name: str, seed: int = 0, form: str | None = None, gap_s: tuple[float, float] | None = None,
         duration_s: float = 20.0, max_age_s: float = 0.3, max_sigma_m: float = 0.05) -> LandingRun:  # fmt: skip
     """Fly scenario ``name`` until touchdown (or ``duration_s``): see the module's docstring."""
-    from atlas_onboard.sim.camera import geometric_detector
+    from atlas_onboard.sim.workers import geometric_detector
 
     if name not in SCENARIOS:
         raise AtlasError(f"unknown landing scenario {name!r} (choose from {', '.join(sorted(SCENARIOS))})")
@@ -140,7 +141,7 @@ def run(name: str, seed: int = 0, form: str | None = None, gap_s: tuple[float, f
     now = [0.0]
     output = LandingOutput(config, DRONE, world, lambda f: outbox.append((now[0], f)))
     context = SimContext(ls.scenario, seed, Path("/dev/null"), duration_s)
-    cams = [(sensor, geometric_detector(context, sensor, intr, seed * 1009 + sid)) for sid, (sensor, intr) in
+    cams = [(sensor, geometric_detector(context, sensor, intr, seed * 1009 + sid).detect) for sid, (sensor, intr) in
             sorted(sim.cameras.items())]  # fmt: skip
     fps = min(float(s.camera.fps) for s, _ in cams if s.camera is not None)
     moving = ls.target != "world"

@@ -25,8 +25,9 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import FusionConfig, WorldConfig
 from atlas_onboard.core.markerdata import upper_to_matrix
-from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.mavlink.autopilot import covariance_21_from_enu_flu
+from atlas_onboard.listener import Listener
+from atlas_onboard.mavlink.covariance import covariance_21_from_enu_flu
+from atlas_onboard.node.setup import make_graph
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.world import SimWorld, fresh_share
 

@@ -61,14 +61,15 @@ def feed(world, peer, n=10, truth=TRUTH, period=0.02, t0_us=None):
 
 def expected_covariance(world, truth=TRUTH):
     """What the pure core makes of the test's observation, in MAVLink's 21 NED/FRD values."""
-    from atlas_onboard.listener import Listener, make_graph
-    from atlas_onboard.mavlink import autopilot
+    from atlas_onboard.listener import Listener
+    from atlas_onboard.mavlink import covariance
+    from atlas_onboard.node.setup import make_graph
 
     graph = make_graph(world)
     listener = Listener(world, graph)
     assert listener.accept(observe(world, truth, 10, 5, sigma_m=0.02, capture_time_us=1), 0) is None
     cov = graph.evaluate(0).poses["d1"].covariance
-    return autopilot.covariance_upper_triangle(autopilot.covariance_ned_frd(cov))
+    return covariance.covariance_upper_triangle(covariance.covariance_ned_frd(cov))
 
 
 def test_vision_position_estimate_matches_truth_in_ned(rig):
@@ -241,7 +242,8 @@ def test_ground_station_sees_pose_state_and_named_values(tmp_path):
     NAMED_VALUE_FLOAT on the peer (GCS) link with the pose's sigma, detections/s, latency, peers."""
     import threading
 
-    from atlas_onboard.listener import Listener, make_graph
+    from atlas_onboard.listener import Listener
+    from atlas_onboard.node.setup import make_graph
     from tests.e2e.helpers import start_node_with_peer
 
     def doc_for(port, ap_port):

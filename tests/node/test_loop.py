@@ -11,8 +11,9 @@ from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig, parse_world
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.node import FLUSH_CHUNK, LOOP_TICK_S, Node
-from atlas_onboard.schedule import Inbound, Relevance
+from atlas_onboard.core.records import Inbound
+from atlas_onboard.node.loop import FLUSH_CHUNK, LOOP_TICK_S, Node
+from atlas_onboard.schedule import Relevance
 from tests.e2e.helpers import wait_for
 from tests.helpers import assert_pose_close, observe, pose
 
@@ -27,6 +28,8 @@ WORLD = parse_world(
 
 
 class FakeTransport:
+    attitude = None  # no autopilot attitude
+
     def __init__(self, clock):
         self.clock = clock
         self.autopilot = []

@@ -8,7 +8,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import LandingConfig, parse_world
 from atlas_onboard.core.graph import EntityPose, GraphResult
-from atlas_onboard.landing import LandingOutput
+from atlas_onboard.node.landing import LandingOutput
 
 WORLD = parse_world(
     {
@@ -79,8 +79,9 @@ def test_the_filters_velocity_widens_an_old_moving_target():
     # image counts the 0.1 m the rover may have moved since (sigma sqrt(s^2 + 0.1^2) > 0.05 m); without
     # the filter's velocity the same pose goes out.
     from atlas_onboard.core.ekfbank import EkfBank
-    from atlas_onboard.listener import Listener, make_graph
-    from atlas_onboard.node_output import _make_ekf
+    from atlas_onboard.listener import Listener
+    from atlas_onboard.node.output import make_ekf
+    from atlas_onboard.node.setup import make_graph
     from tests.helpers import observe
     from tests.helpers import pose as true_pose
 
@@ -98,7 +99,7 @@ def test_the_filters_velocity_widens_an_old_moving_target():
     )
     graph = make_graph(world, "drone")
     listener = Listener(world, graph)
-    ekf = _make_ekf(world)
+    ekf = make_ekf(world)
     assert isinstance(ekf, EkfBank)
     cfg = LandingConfig(target="rover", autopilot="px4", marker=7)
     with_filter, plain = LandingOutput(cfg, "drone", world, [].append), LandingOutput(cfg, "drone", world, [].append)

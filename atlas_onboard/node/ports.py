@@ -7,10 +7,10 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 from atlas_onboard.config import WorldConfig
+from atlas_onboard.core.attitude import AttitudeHistory
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.publisher import AutopilotPose, PoseState, Telemetry
-from atlas_onboard.schedule import Inbound
+from atlas_onboard.core.records import AutopilotPose, Inbound, PoseState, Telemetry
 
 
 class Transport(Protocol):
@@ -44,6 +44,11 @@ class Transport(Protocol):
     def tick(self, now_ns: int) -> None:
         """Periodic duties (heartbeats, TIMESYNC, origin, reconnects), called by the main loop."""
 
+    @property
+    def attitude(self) -> AttitudeHistory | None:
+        """The autopilot's attitude history (gravity for a single tag's ambiguity), or None when the
+        transport keeps none."""
+
     def counters(self) -> dict[str, int]: ...
 
     def close(self) -> None: ...
@@ -60,3 +65,9 @@ class Camera(Protocol):
     def stop(self) -> None: ...
 
     def counters(self) -> dict[str, int]: ...
+
+    def map_pose_changed(self, marker_id: int) -> None:
+        """The node's map moved world marker ``marker_id`` from the world file's pose (live refinement)."""
+
+    def take_status(self) -> list[str]:
+        """The camera's STATUSTEXT lines since the last call (a marker that disagrees), rate-limited there."""
