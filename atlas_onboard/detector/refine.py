@@ -143,12 +143,15 @@ def _sampling(corners: list[NDArray[np.float64]]) -> _Sampling | None:
         return None
     C = np.array(corners, dtype=np.float64).reshape(-1, 4, 2)
     vectors = C[:, NEXT] - C
-    vx, vy = vectors[..., 0], vectors[..., 1]
-    length = np.sqrt(vx * vx + vy * vy)  # (M, 4)
+    # Each side's length as :func:`sides` has it (np.dot's value, which may differ from the plain sum of
+    # squares in its last bit), and as the sample count has it (the plain one).
+    length = np.sqrt([d.dot(d) for d in vectors.reshape(-1, 2)]).reshape(-1, 4)
     fit = np.flatnonzero((length >= 8).all(axis=1))
     if not len(fit):
         return None
     C, vectors, length = C[fit], vectors[fit], length[fit]
+    vx, vy = vectors[..., 0], vectors[..., 1]
+    plain = np.sqrt(vx * vx + vy * vy)
     n = np.empty_like(vectors)
     n[..., 0], n[..., 1] = -vectors[..., 1] / length, vectors[..., 0] / length  # (d / length turned a quarter)
     inward = C.mean(axis=1)[:, None, :] - C
@@ -166,7 +169,7 @@ def _sampling(corners: list[NDArray[np.float64]]) -> _Sampling | None:
     k = np.minimum(np.arange(int(counts.max())), (counts - 1)[..., None])  # beyond a side's count: its last
     offsets = -half[..., None] + k * delta[..., None]  # (M, 4, width)
     # Edge points a side: one a pixel over the sampled 70 % of the shortest side.
-    samples = np.minimum(np.maximum(0.7 * length.min(axis=1), MIN_SAMPLES_PER_SIDE), MAX_SAMPLES_PER_SIDE)
+    samples = np.minimum(np.maximum(0.7 * plain.min(axis=1), MIN_SAMPLES_PER_SIDE), MAX_SAMPLES_PER_SIDE)
     samples = samples.astype(np.int64)  # int(np.clip(...))
     ts = np.concatenate([np.tile(_sample_places(int(s)), 4) for s in samples])  # (R,)
     per_side = np.repeat(samples, 4)  # rows of each (marker, side)
