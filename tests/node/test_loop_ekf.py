@@ -2,9 +2,6 @@
 short gaps against ground truth, stops after ekf_max_predict_s, estimates velocity, and one
 injected wrong observation (a flipped pose, a wrong id) cannot move the pose beyond the gate."""
 
-import threading
-import time
-
 import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
@@ -73,34 +70,45 @@ WORLD = parse_world(
 )
 
 
-def run_node(feed):
+T0_NS = 1_700_000_000_000_000_000  # the fake clock's start (wall and monotonic alike)
+TICK_NS = MS  # the loop's steps: a delivery wakes it at once
+DELAY_NS = 5 * MS  # capture to delivery
+
+
+def run_node(plan, corrupt=None, at=20):
+    """The node of d1 on a fake clock, stepped as its loop would be: ``plan`` lists (seconds, feeding);
+    while feeding, marker 0 seen at 30 Hz with the drone moving at V (the ``at``-th observation replaced
+    by ``corrupt(md)``), each delivered 5 ms after its capture; otherwise nothing. Returns the node,
+    its transport and the start time (s)."""
+    now = [T0_NS]
     cfg = NodeConfig(entity="d1", system_id=7, autopilot=AutopilotConfig(LinkConfig("udpout:127.0.0.1:9")))
-    transport = FakeTransport(time.monotonic_ns)
-    node = Node(WORLD, cfg, transport)
-    thread = threading.Thread(target=node.run)
-    thread.start()
-    transport.started.wait(5)
-    try:
-        feed(node)
-    finally:
-        node.stop()
-        thread.join(5)
-    return node, transport
-
-
-def moving_feed(node, t_start, duration_s, corrupt=None, at=20):
-    """Observations of marker 0 at 30 Hz of the drone moving at V, captured now on the wall clock;
-    the ``at``-th one replaced by ``corrupt(md)``."""
-    n = int(duration_s * 30)
-    for k in range(n):
-        now_us = time.time_ns() // 1000
-        t = now_us / 1e6 - t_start
-        truth = {"world": RigidTransform.identity(), "d1": truth_at(t)}
-        md = observe(WORLD, truth, 1, 0, sigma_m=0.005, capture_time_us=now_us)
-        if corrupt is not None and k == at:
-            md = corrupt(md)
-        node.deliver_local([md])
-        time.sleep(1 / 30)
+    transport = FakeTransport(lambda: now[0])
+    node = Node(WORLD, cfg, transport, monotonic_ns=lambda: now[0], wall_ns=lambda: now[0])
+    k = 0
+    t0 = T0_NS
+    for seconds, feeding in plan:
+        end = t0 + round(seconds * 1e9)
+        frames = range(round(seconds * 30)) if feeding else range(0)
+        captures = [t0 + round(j * 1e9 / 30) for j in frames]
+        t = t0
+        while t < end:
+            due = [c for c in captures if c + DELAY_NS <= t]
+            captures = [c for c in captures if c + DELAY_NS > t]
+            now[0] = t
+            batch = []
+            for c in due:
+                truth = {"world": RigidTransform.identity(), "d1": truth_at((c - T0_NS) / 1e9)}
+                md = observe(WORLD, truth, 1, 0, sigma_m=0.005, capture_time_us=c // 1000)
+                if corrupt is not None and k == at:
+                    md = corrupt(md)
+                k += 1
+                batch.append((md, t, True))
+            if batch:
+                node._process(batch)
+            node._step(t)
+            t += TICK_NS
+        t0 = end
+    return node, transport, T0_NS / 1e9
 
 
 def errors(transport, t_start):
@@ -112,15 +120,9 @@ def errors(transport, t_start):
 
 
 def test_node_with_ekf_predicts_through_a_gap_then_loses_the_pose():
-    t_start = time.time()
-
-    def feed(node):
-        moving_feed(node, t_start, 1.0)
-        time.sleep(0.3)  # a 0.3 s gap: the filter keeps the pose going
-        moving_feed(node, t_start, 0.3)
-        time.sleep(0.9)  # longer than ekf_max_predict_s: the pose is lost
-
-    node, tr = run_node(feed)
+    # 1 s of observations, a 0.3 s gap (the filter keeps the pose going), 0.3 s more, then 0.9 s of
+    # nothing: longer than ekf_max_predict_s, the pose is lost.
+    node, tr, t_start = run_node([(1.0, True), (0.3, False), (0.3, True), (0.9, False)])
     e = errors(tr, t_start)
     assert len(e) > 30
     steady = e[e[:, 0] > 0.3]
@@ -134,12 +136,12 @@ def test_node_with_ekf_predicts_through_a_gap_then_loses_the_pose():
     texts = [t for _, t in tr.status]
     assert texts[0] == "atlas d1: pose found" and texts[-1] == "atlas d1: pose lost"
     assert texts.count("atlas d1: pose lost") == 1  # the short gap did not lose it
+    # Lost once the horizon passed: nothing stamped later than 0.5 s after the last observation.
+    assert e[:, 0].max() <= 1.6 + 0.5 + 1e-6
     assert node.counters()["ekf_accepted"] > 30
 
 
 def test_one_flipped_observation_does_not_move_the_pose():
-    t_start = time.time()
-
     def flipped(md):
         # The planar ambiguity's other solution: the tag tilted 40 degrees and shifted 30 cm.
         T = RigidTransform.from_components(md.p_sensor_marker_m, Rotation.from_quat(md.q_sensor_marker_xyzw()))
@@ -154,7 +156,7 @@ def test_one_flipped_observation_does_not_move_the_pose():
                         md.capture_time_us)  # fmt: skip
 
     for bad in (flipped, wrong_id):
-        node, tr = run_node(lambda node, bad=bad: moving_feed(node, t_start, 1.0, corrupt=bad))
+        node, tr, t_start = run_node([(1.0, True)], corrupt=bad)
         e = errors(tr, t_start)
         assert len(e) > 15
         assert e[:, 1].max() < 0.05, (bad.__name__, e[:, 1].max())
