@@ -34,7 +34,8 @@ from atlas_onboard.core.shutter import (
     timing_pose_covariance,
     timing_sigma_s,
 )
-from atlas_onboard.detector.pose import MarkerPose, object_corners
+from atlas_onboard.detector import pose
+from atlas_onboard.detector.pose import object_corners
 from atlas_onboard.worker import AttitudeAt, RateAt
 
 WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 30 Hz)
@@ -57,6 +58,24 @@ class CorrectedCorners:
     corners: NDArray[np.float64]
     covariance: NDArray[np.float64]
     shear_px: float
+
+
+@dataclass(frozen=True, slots=True)
+class SeenSquare:
+    """A world marker as the frame found it, for the camera's own motion history: its corners in the
+    (distorted) image, whose rows set their instants, and undistorted (not moved to the stamp), with
+    their own noise (``sigma_px``, the (8, 8) ``covariance``), the undistortion's ``stretch`` and what
+    :func:`pose.solve` needs besides."""
+
+    T_world_marker: RigidTransform
+    corners_px: NDArray[np.float64]
+    undistorted_px: NDArray[np.float64]
+    sigma_px: float
+    covariance: NDArray[np.float64] | None
+    stretch: NDArray[np.float64] | None
+    size_m: float
+    model_sigma_px: float
+    K: NDArray[np.float64]
 
 
 @dataclass(frozen=True, slots=True)
@@ -195,20 +214,29 @@ class CameraMotionModel:
         extra = motion.timing_sigma_s**2 * float(np.linalg.eigvalsh(motion.velocity_second_moment())[-1])
         return replace(md, covariance=matrix_to_upper(C), sigma_m=math.sqrt(md.sigma_m**2 + extra))
 
-    def observe(self, t_us: int, poses: list[tuple[RigidTransform, MarkerPose]]) -> None:
-        """The frame's single-marker poses of world markers (``T_world_marker``, the pose in the camera):
-        the best one's camera pose joins the history."""
+    def observe(self, t_us: int, seen: list[SeenSquare]) -> None:
+        """The frame's world markers as found (corners not moved by this model): the best one's own pose
+        gives the camera's pose at the instant its centre row was read, which joins the history.
+
+        Open loop: a pose corrected by this model's velocity would carry that velocity's error into the
+        next velocity fit (and a single square's pose moves far for a little shear), a loop that grows.
+        Uncorrected, a square's pose is the camera's at its rows' mean instant, off only by the shear
+        within the square, which changes slowly with the motion and the view (a slope hardly sees it)."""
         best = None
-        for T_wm, mp in poses:
-            if mp.covariance is None or (best is not None and mp.sigma_m >= best[1].sigma_m):
+        for sq in seen:
+            mp = pose.solve(
+                sq.undistorted_px, sq.size_m, sq.K, sq.model_sigma_px, sq.stretch, sq.sigma_px, sq.covariance
+            )
+            if mp is None or mp.covariance is None or (best is not None and mp.sigma_m >= best[1].sigma_m):
                 continue
-            best = (T_wm, mp)
+            best = (sq, mp)
         if best is None:
             return
-        T_wm, mp = best
+        sq, mp = best
+        dt = float(self.clock.dt_s(np.array([float(np.mean(np.asarray(sq.corners_px, dtype=float)[:, 1]))]))[0])
         R_cm = Rotation.from_quat(mp.q_xyzw)
-        R_wm = T_wm.rotation
+        R_wm = sq.T_world_marker.rotation
         R_wc = R_wm * R_cm.inv()
-        p_wc = T_wm.translation - R_wc.apply(mp.p_m)
+        p_wc = sq.T_world_marker.translation - R_wc.apply(mp.p_m)
         sigma_theta = math.sqrt(max(float(np.linalg.eigvalsh(mp.covariance[3:, 3:]).max()), 0.0))
-        self._seen.append(_Seen(t_us, p_wc, R_wc, mp.sigma_m, sigma_theta))
+        self._seen.append(_Seen(t_us + round(dt * 1e6), p_wc, R_wc, mp.sigma_m, sigma_theta))
