@@ -39,7 +39,7 @@ from atlas_onboard.detector.pose import object_corners
 from atlas_onboard.worker import AttitudeAt, RateAt
 
 WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 30 Hz)
-STALE_US = 300_000  # the newest pose older than this: no velocity from the history
+STALE_US = 300_000  # poses older than this give no velocity (fewer than two in WINDOW_US: the newest two within it)
 ANGULAR_ACCEL_SIGMA = 6.0  # rad/s^2 per axis: how far a drone's rate changes over the history's span
 SPEED_BOUND_MPS = 1.0  # per axis, when the camera's poses do not give a velocity
 MIN_SPAN_S = 0.01  # recent poses spanning less than this are not a camera's frames (unrelated images)
@@ -160,7 +160,10 @@ class CameraMotionModel:
         """The camera's motion at the frame stamped ``t_us``, given the autopilot's rate (or None)."""
         if self.static:
             return CameraMotion(omega_known=True, velocity_known=True, timing_sigma_s=self.timing_s)
-        recent = [s for s in self._seen if 0 < t_us - s.t_us <= WINDOW_US]
+        past = [s for s in self._seen if 0 < t_us - s.t_us <= STALE_US]
+        recent = [s for s in past if t_us - s.t_us <= WINDOW_US]
+        if len(recent) < 2:  # frames missed or markers out of view: the newest two, their age in the covariance
+            recent = past[-2:]
         history = _History.of(recent, t_us)
         R_sb = self.R_body_sensor.inv()
         if rate is not None:
