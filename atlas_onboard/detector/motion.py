@@ -1,8 +1,8 @@
 """A camera's motion at each frame, and its corners moved to the frame's stamp (:mod:`atlas_onboard.core.shutter`).
 
-The rate: the autopilot's (ATTITUDE's body rates, or their attitudes' finite difference), which corrects
-the image; without them, the camera's recent own poses bound it (not corrected: a rate from poses a frame
-apart is too noisy to correct by, but says how large the shear may be), else ``rate_bound_dps``.
+The rate: the autopilot's (ATTITUDE's body rates), which corrects the image; without them, the camera's
+recent own poses bound it (not corrected: a rate from poses a frame apart is too noisy to correct by,
+but says how large the shear may be), else ``rate_bound_dps``.
 
 The velocity: a straight-line fit through the camera's own poses of the last few frames, from the world
 markers it saw (each frame's best single-marker pose), relative to what it sees. The detector's own
@@ -36,7 +36,7 @@ from atlas_onboard.core.shutter import (
 )
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.pose import object_corners
-from atlas_onboard.worker import AttitudeAt, RateAt
+from atlas_onboard.worker import RateAt
 
 WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 30 Hz)
 STALE_US = 300_000  # poses older than this give no velocity (fewer than two in WINDOW_US: the newest two within it)
@@ -45,8 +45,6 @@ SPEED_BOUND_MPS = 1.0  # per axis, when the camera's poses do not give a velocit
 MIN_SPAN_S = 0.01  # recent poses spanning less than this are not a camera's frames (unrelated images)
 MAX_SPEED_MPS = 15.0  # a history implying more than this (or MAX_RATE_RAD_S) is a jump, not a motion
 MAX_RATE_RAD_S = 15.0
-ATTITUDE_STEP_US = 10_000  # half the span of the attitudes differenced into a rate
-ATTITUDE_RATE_SIGMA = math.radians(2.0)  # rad/s: an attitude difference's rate error (interpolation, rate change)
 
 
 @dataclass(frozen=True, slots=True)
@@ -121,23 +119,12 @@ class _History:
         return _History(w, noise + lag, R.T @ v_world, v_var)
 
 
-def rate_from_attitudes(attitude_at: AttitudeAt, t_us: int) -> BodyRate | None:
-    """The body rate at ``t_us`` from the autopilot's attitudes just before and after it (None when
-    either is missing): when the autopilot streams attitudes but not rates."""
-    a, b = attitude_at(t_us - ATTITUDE_STEP_US), attitude_at(t_us + ATTITUDE_STEP_US)
-    if a is None or b is None:
-        return None
-    omega = (a.inv() * b).as_rotvec() / (2e-6 * ATTITUDE_STEP_US)
-    return BodyRate(omega, ATTITUDE_RATE_SIGMA**2 * np.eye(3))
-
-
-def body_rate_at(rate_at: RateAt | None, attitude_at: AttitudeAt | None, t_us: int) -> BodyRate | None:
-    """The autopilot's body rate at a capture: its gyros' (``rate_at``), or its attitudes' difference
-    when it streams no rates, or None without either."""
-    rate = rate_at(t_us) if rate_at is not None else None
-    if rate is None and attitude_at is not None:
-        rate = rate_from_attitudes(attitude_at, t_us)
-    return rate
+def body_rate_at(rate_at: RateAt | None, t_us: int) -> BodyRate | None:
+    """The autopilot's body rate at a capture (its gyros', ``rate_at``), or None without one. Attitudes
+    alone give none to correct by: those after the stamp have not come when the frame is solved (the
+    newest held makes a turning camera look still), and an attitude's noise differenced over a sample
+    spacing (0.5 deg over 40 ms: 0.3 rad/s) is as large as the turn; the camera's own poses bound it."""
+    return rate_at(t_us) if rate_at is not None else None
 
 
 class CameraMotionModel:
