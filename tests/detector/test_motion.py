@@ -9,7 +9,8 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import WORLD, CameraConfig
+from atlas_onboard.config import WORLD, CameraConfig, SensorConfig
+from atlas_onboard.core.attitude import AttitudeHistory
 from atlas_onboard.core.shutter import (
     GYRO_SIGMA_RAD_S,
     BodyRate,
@@ -19,10 +20,12 @@ from atlas_onboard.core.shutter import (
 )
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.joint import JointSolve
 from atlas_onboard.detector.motion import CameraMotionModel, SeenSquare
 from atlas_onboard.detector.pipeline import FrameReport
 from atlas_onboard.detector.records import SingleSolve
+from atlas_onboard.detector.sources import Frame
 from atlas_onboard.detector.worldcheck import WorldCheck
 from tests.detector.test_hard_frames import SIZE, H, K, W, moved_marker_world
 
@@ -250,3 +253,40 @@ def test_a_travelling_camera_s_velocity_does_not_feed_on_itself() -> None:
         p_inside.append(np.all(np.abs(solved.pose.p_m - truth.translation) <= 3.0 * sd))
         below.append(solved.pose.sigma_m < _solve(img, bound, rate, t_us).pose.sigma_m)  # bound: never observes
     assert np.mean(v_inside) >= 0.95 and np.mean(p_inside) >= 0.95 and all(below), (v_inside, p_inside, below)
+
+
+class _Recorder:
+    """A detector that keeps the body rate each frame was handed."""
+
+    def __init__(self) -> None:
+        self.sensor = SensorConfig(name="front", id=1, entity="drone", T_entity_sensor=RigidTransform.identity())
+        self.rates: list[BodyRate | None] = []
+
+    def detect(self, gray: np.ndarray, t_us: int, R_prev_now: object = None, body_rate: BodyRate | None = None) -> list:
+        self.rates.append(body_rate)
+        return []
+
+
+def test_a_camera_with_attitudes_but_no_gyro_rates_is_never_handed_a_wrong_rate() -> None:
+    """An autopilot that streams its attitude (25 Hz, each 15 ms late, 0.5 deg of noise on roll and pitch)
+    but no gyro rates, the body turning at 0.5 rad/s: each frame's detector gets, at the frame's stamp
+    (before the attitudes after it have come), either no rate (the image left as it is, the shear bounded)
+    or one within 3 sigma of the truth on every axis."""
+    rng = np.random.default_rng(5)
+    omega = np.array([0.3, -0.2, 0.5])
+    history = AttitudeHistory()
+    recorder = _Recorder()
+    worker = CameraWorker("front", CameraConfig(), recorder)
+    worker.attitude_at = history.attitude_at
+    truths = []
+    for k in range(100):
+        t_s = k * 0.04
+        noise = Rotation.from_rotvec(np.r_[rng.normal(0.0, np.radians(0.5), 2), 0.0])
+        history.add(round((t_s + 0.015) * 1e6), Rotation.from_rotvec(omega * t_s) * noise)
+        stamp_us = round((t_s + 0.015 + rng.uniform(0.0, 0.04)) * 1e6)
+        worker._detect(Frame(np.zeros((8, 8), np.uint8), stamp_us), lambda found: None)
+        truths.append(omega)
+    for rate, truth in zip(recorder.rates, truths, strict=True):
+        if rate is not None:
+            assert np.all(np.abs(rate.omega_flu - truth) <= 3.0 * np.sqrt(np.diag(rate.cov))), rate
+    assert len(recorder.rates) == 100
