@@ -290,3 +290,30 @@ def test_a_camera_with_attitudes_but_no_gyro_rates_is_never_handed_a_wrong_rate(
         if rate is not None:
             assert np.all(np.abs(rate.omega_flu - truth) <= 3.0 * np.sqrt(np.diag(rate.cov))), rate
     assert len(recorder.rates) == 100
+
+
+def test_a_camera_seen_again_after_a_short_gap_keeps_its_velocity_with_its_age_in_the_covariance() -> None:
+    """The camera's last two poses 170-240 ms before a frame (frames missed, the marker out of view
+    meanwhile), travelling at 0.4 m/s: the velocity is still known from them, within 3 sigma of the truth,
+    and less certain than a velocity from poses just before the frame."""
+    v = np.array([0.4, -0.1, 0.05])
+    T_wm = RigidTransform.from_translation([0.05, 0.0, 0.0])
+    down = Rotation.from_euler("x", 180, degrees=True)
+    rng = np.random.default_rng(11)
+
+    def seen_at(t: float) -> SeenSquare:
+        T_world_cam = RigidTransform.from_components([0.0, 0.0, 0.7], down) * RigidTransform.from_translation(v * t)
+        img = rolling_corners(T_world_cam.inv() * T_wm, SIZE, np.zeros(3), v) + rng.normal(0.0, NOISE_PX, (4, 2))
+        return _seen(T_wm, img)
+
+    rate = BodyRate(np.zeros(3), GYRO_SIGMA_RAD_S**2 * np.eye(3))
+    late, fresh = _model(), _model()
+    for t in (0.0, 1 / 30, 2 / 30):
+        late.observe(1_000_000 + round(t * 1e6), [seen_at(t)])
+    for t in (0.17, 0.17 + 1 / 30, 0.17 + 2 / 30):
+        fresh.observe(1_000_000 + round(t * 1e6), [seen_at(t)])
+    at_us = 1_000_000 + round(0.3 * 1e6)
+    gap, near = late.at(at_us, rate), fresh.at(at_us, rate)
+    assert gap.velocity_known and near.velocity_known
+    assert np.all(np.abs(gap.velocity - v) <= 3.0 * np.sqrt(np.diag(gap.velocity_cov)))
+    assert gap.velocity_cov[0, 0] > near.velocity_cov[0, 0]
