@@ -7,6 +7,12 @@ turns it into one line on stderr and exit status 2. Anything else is a bug and k
 from __future__ import annotations
 
 
+def read_failure(exc: OSError | UnicodeDecodeError) -> str:
+    """Why a file could not be read, in a few words: the system's reason (``No such file or directory``)
+    where there is one, else the exception's text (a file that is not UTF-8)."""
+    return str((exc.strerror if isinstance(exc, OSError) else None) or exc)
+
+
 class AtlasError(Exception):
     """Base of every error atlas-onboard raises on purpose."""
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from atlas_onboard.config import AutopilotOutput, NodeConfig, WorldConfig, load_node
+from atlas_onboard.config import WORLD, AutopilotOutput, NodeConfig, WorldConfig, load_node
 from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
 
@@ -38,6 +38,9 @@ MAV_PARAM_TYPE_INT32 = 6
 MAV_PARAM_TYPE_REAL32 = 9
 PX4_EV_DELAY_DEFAULT_MS = 0.0  # EKF2_EV_DELAY's default
 ARDUPILOT_VISO_DELAY_DEFAULT_MS = 10.0  # VISO_DELAY_MS's default
+ARDUPILOT_PLND_LAG_DEFAULT_S = 0.02  # PLND_LAG's default (AC_PrecLand: 0.02-0.25 s)
+PX4_PLD_BTOUT_S = 1.0  # the landing target's timeout the file writes (PX4's default: 5 s)
+PX4_PLD_SRCH_ALT_M = 2.0  # the search altitude above home the file writes (PX4's default 10 m: a ceiling indoors)
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,6 +91,7 @@ def parameters(
     x, y, z = (round(float(v), 4) + 0.0 for v in vision_offset_frd_m(world, cog_m))  # + 0.0: never "-0"
     where = "the entity frame's origin relative to the centre of gravity, FRD, m"
     measured = "measured (--delay-ms)" if delay_ms is not None else "NOT MEASURED: the default; measure it"
+    landing = _landing(world, node, autopilot, delay_ms, (x, y, z))
     if autopilot == "px4":
         vel = ekf and odometry
         return [
@@ -114,6 +118,7 @@ def parameters(
             Param("EKF2_EV_POS_X", x, False, where),
             Param("EKF2_EV_POS_Y", y, False, where),
             Param("EKF2_EV_POS_Z", z, False, where),
+            *landing,
         ]  # fmt: skip
     release = tuple(int(v) for v in ardupilot_version.split("."))
     sysid_name = "MAV_SYSID" if release >= (4, 7) else "SYSID_THISMAV"
@@ -147,6 +152,48 @@ def parameters(
         Param("VISO_POS_X", x, False, where),
         Param("VISO_POS_Y", y, False, where),
         Param("VISO_POS_Z", z, False, where),
+        *landing,
+    ]  # fmt: skip
+
+
+def _landing(
+    world: WorldConfig, node: NodeConfig, autopilot: str, delay_ms: float | None, offset_frd_m: tuple[float, ...]
+) -> list[Param]:
+    """Precision landing on the node's LANDING_TARGET (``nodes.<entity>.landing``; none without it)."""
+    landing = node.landing
+    if landing is None:
+        return []
+    moving = landing.target != WORLD
+    if autopilot == "px4":
+        # The node's MAV_FRAME_LOCAL_NED target goes straight to landing_target_pose (PLD_*, navigator
+        # precland); landing_target_estimator (LTEST_*) only reads the IR-lock path (angles, no position).
+        return [
+            Param("PLD_BTOUT", PX4_PLD_BTOUT_S, False,
+                  "s: the target is lost after this long without LANDING_TARGET (default 5; the node sends only"
+                  " fresh targets, at landing.rate_hz)"),
+            Param("PLD_SRCH_ALT", PX4_PLD_SRCH_ALT_M, False,
+                  "m above home to climb to when the target is lost (default 10): CHECK it is below your ceiling"),
+            Param("LTEST_MODE", 0 if moving else 1, True,
+                  f"{'moving' if moving else 'stationary'} target ({landing.target}); used only by the IR-lock path"),
+        ]  # fmt: skip
+    x, y, z = offset_frd_m
+    lag_s = ARDUPILOT_PLND_LAG_DEFAULT_S if delay_ms is None else min(max(delay_ms / 1000.0, 0.02), 0.25)
+    measured = "measured (--delay-ms)" if delay_ms is not None else "NOT MEASURED: the default; measure it"
+    where = "the entity frame's origin (where the node's vector starts) relative to the centre of gravity, FRD, m"
+    return [
+        Param("PLND_ENABLED", 1, True, "precision landing on (reboot required)"),
+        Param("PLND_TYPE", 1, True, "MAVLink: LANDING_TARGET from the companion (reboot required)"),
+        Param("PLND_EST_TYPE", 1, True, "Kalman filter (it also estimates a moving target's velocity)"),
+        Param("PLND_ORIENT", 25, True, "down (the default): the node's BODY_FRD vector is used as it is"),
+        Param("PLND_YAW_ALIGN", 0, True, "cdeg: none, the vector is in the body's own axes"),
+        Param("PLND_CAM_POS_X", x, False, where),
+        Param("PLND_CAM_POS_Y", y, False, where),
+        Param("PLND_CAM_POS_Z", z, False, where),
+        Param("PLND_LAG", round(lag_s, 3), False, f"s, capture to arrival: {measured} (0.02-0.25; reboot required)"),
+        Param("PLND_OPTIONS", 1 if moving else 0, True,
+              f"{'moving target (bit 0)' if moving else 'static target'}: {landing.target}"),
+        Param("PLND_ALT_MIN", 0, False, "m: no rangefinder needed, the node sends the distance (0: no limit)"),
+        Param("PLND_ALT_MAX", 0, False, "m: no rangefinder needed, the node sends the distance (0: no limit)"),
     ]  # fmt: skip
 
 

@@ -16,46 +16,15 @@ The node asks it after every accepted observation and on every tick; it answers 
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from atlas_onboard.core.graph import EntityPose, GraphResult
+from atlas_onboard.core.records import AutopilotPose
 from atlas_onboard.errors import AtlasError
 
 NS = 1_000_000_000
-
-
-@dataclass(frozen=True, slots=True)
-class AutopilotPose:
-    """A pose to send to the autopilot, with what the message needs beyond the pose itself."""
-
-    pose: EntityPose
-    reset_counter: int
-
-
-class PoseState(enum.IntEnum):
-    """The own pose as the ground station sees it: HEARTBEAT ``system_status`` (MAV_STATE)."""
-
-    NONE = 3  # MAV_STATE_STANDBY: no pose yet since the start
-    ACTIVE = 4  # MAV_STATE_ACTIVE: a fresh own pose goes to the autopilot
-    LOST = 5  # MAV_STATE_CRITICAL: the pose was lost, nothing goes to the autopilot
-
-
-@dataclass(frozen=True, slots=True)
-class Telemetry:
-    """What the ground station graphs (NAMED_VALUE_FLOAT, docs/wire-format.md), over the last period.
-
-    ``sigma_m``: the own pose's position sigma (NaN without a pose); ``detections_hz``: the own
-    cameras' observations per second; ``latency_ms``: mean capture-to-send time of the poses sent
-    to the autopilot, from the stamp they carry (with the EKF, the time predicted for; NaN when none
-    was sent).
-    """
-
-    sigma_m: float
-    detections_hz: float
-    latency_ms: float
 
 
 @dataclass(slots=True)

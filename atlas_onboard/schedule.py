@@ -24,10 +24,10 @@ from dataclasses import dataclass
 from enum import Enum
 
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.records import ImageKey, Inbound
 
 WORLD = "world"
 EdgeKey = tuple[int, int]  # (sensor id, marker id)
-ImageKey = tuple[int, int, int]  # a peer's image: (origin system id, sensor id, capture time in us)
 Item = tuple[MarkerData, int, bool]  # an accepted-to-be observation, its arrival (monotonic ns), whether local
 
 
@@ -58,50 +58,6 @@ def relevance(observer: str | None, observed: str | None, near: frozenset[str] |
     if near is None or observer is None or observed is None or observer in near or observed in near:
         return Relevance.NOW
     return Relevance.PARK
-
-
-@dataclass(slots=True, eq=False)
-class Inbound:
-    """A peer's observation as the transport delivers it: its sender (system id), edge, capture time
-    and place in its image read from the frame, when it arrived, and :meth:`take`, which gives the checked
-    MarkerData (decoded and checked at the first call, in the caller's thread; None if refused,
-    counted by the transport). One that is never taken is never decoded."""
-
-    origin: int
-    sensor_id: int
-    marker_id: int
-    capture_time_us: int
-    frame_remaining: int
-    arrival_ns: int
-    _admit: Callable[[], MarkerData | None] | None
-    _md: MarkerData | None = None
-
-    @classmethod
-    def of(cls, md: MarkerData, arrival_ns: int) -> Inbound:
-        """One already decoded and checked."""
-        item = cls(md.origin, md.sensor_id, md.marker_id, md.capture_time_us, md.frame_remaining, arrival_ns, _none)
-        item._admit, item._md = None, md
-        return item
-
-    @property
-    def edge(self) -> EdgeKey:
-        return (self.sensor_id, self.marker_id)
-
-    @property
-    def image(self) -> ImageKey:
-        return (self.origin, self.sensor_id, self.capture_time_us)
-
-    def take(self) -> MarkerData | None:
-        """The checked observation, or None if it is refused (decided once)."""
-        admit = self._admit
-        if admit is not None:
-            self._admit = None
-            self._md = admit()
-        return self._md
-
-
-def _none() -> None:
-    return None
 
 
 class ParkingBuffer:

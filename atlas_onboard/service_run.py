@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import signal
 import sys
 from collections.abc import Callable
 from dataclasses import replace
@@ -22,8 +23,8 @@ from atlas_onboard.config import (
 )
 from atlas_onboard.cores import node_cores, processes_per_camera
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.node import Camera, Node
-from atlas_onboard.node_setup import install_signal_handlers
+from atlas_onboard.node.loop import Node
+from atlas_onboard.node.ports import Camera
 from atlas_onboard.service import Notifier, watchdog_interval_us
 from atlas_onboard.worker import SensorWorker
 
@@ -102,7 +103,7 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
             continue
         detector = Detector(sensor, world, calibration, decimate=DECIMATE)
         if refine is not None:
-            from atlas_onboard.node_refine import sampled
+            from atlas_onboard.node.refine import sampled
 
             detector = sampled(detector, world, refine)  # type: ignore[assignment]
         cameras.append(CameraWorker(sensor.name, cam, detector))
@@ -153,7 +154,7 @@ def run_node(
     interval_us = watchdog_interval_us()  # half of systemd's WatchdogSec, when meant for this process
     if interval_us is not None:
         node.watchdog_interval_ns = interval_us * 1000
-    install_signal_handlers(node)
+    _install_signal_handlers(node)
     # Link threads decode bursts of datagrams while holding the GIL; with Python's default 5 ms switch
     # interval the main loop would wait up to that long for its turn. Latency matters more here.
     sys.setswitchinterval(0.0002)
@@ -180,3 +181,10 @@ def _attitude_wxyz(transport: object) -> Callable[[int], tuple[float, float, flo
         return (w, x, y, z)
 
     return at
+
+
+def _install_signal_handlers(node: Node) -> None:
+    """SIGTERM/SIGINT stop the loop; SIGHUP asks for a reload. Handlers only set flags."""
+    signal.signal(signal.SIGTERM, lambda *_: node.stop())
+    signal.signal(signal.SIGINT, lambda *_: node.stop())
+    signal.signal(signal.SIGHUP, lambda *_: node.request_reload())

@@ -52,5 +52,9 @@ class SensorWorker:
         """The node's map moved world marker ``marker_id`` from the world file's pose (live refinement):
         a detector that corrects sightings relative to the file stops doing so for it."""
 
+    def take_status(self) -> list[str]:
+        """The STATUSTEXT lines to send since the last call (a worker without a detector has none)."""
+        return []
+
     def _run(self, deliver: Deliver) -> None:  # pragma: no cover - abstract
         raise NotImplementedError

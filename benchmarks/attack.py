@@ -20,7 +20,12 @@ clean run (same scenario, seed and frames), per signing mode:
 - the wire's (benchmarks/attack_wire.py): ``future_stamp`` (a signed frame stamped 2^48 - 1; signing
   on only), ``sources`` (one-byte datagrams from 500 addresses), ``partial`` (a partial frame before each
   real datagram), ``impostor`` (another autopilot behind the autopilot link), ``garbage`` (datagrams of
-  bad frames). In every run a witness, the world's node (system 250), is a real peer on the link.
+  bad frames). In every run a witness, the world's node (system 250), is a real peer on the link;
+- the peers' (benchmarks/attack_peers.py, rows 1, 1b and 2, on an unsigned mesh: a forger holds no key of
+  a signed one), against two nodes of the ``relay`` scene, one with its own view of the floor and one
+  that sees only its leader: ``row1_own``, ``row1_own_reverse`` (a world camera forged with a sigma and a
+  covariance that disagree), ``row1_relay``, ``row1b_relay`` (the leader's views forged), ``row2_relay``,
+  ``row2_own`` (true views stamped 0.9 s ahead); their bars as attack_peers.py prints them.
 
 Printed per run: what was sent, the node's counters that moved, the position error at the
 autopilot (mean, median, p95, RMSE, max) and the latency from capture to the autopilot (median,
@@ -62,6 +67,7 @@ from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
+import attack_peers
 import numpy as np
 from attack_wire import AFTER_ROW3_S, WireAttack, Witness, node_cpu_s, node_rss_mb, node_threads, wire_report
 
@@ -78,7 +84,8 @@ OWN_SENSOR = 1
 MARKER = 2
 LIE_M = (1.0, 0.0, 0.0)
 WIRE = ("future_stamp", "sources", "partial", "impostor", "garbage")
-ATTACKS = ("random", "malformed", "spoof", "flood", "replay", "wrong_key", *WIRE)
+PEERS = attack_peers.ATTACKS  # rows 1, 1b and 2: what peers say, on an unsigned mesh
+ATTACKS = ("random", "malformed", "spoof", "flood", "replay", "wrong_key", *WIRE, *PEERS)
 START_S = 1.0  # the attack and the scoring start this long after the scenario
 TAIL_S = 0.5  # and end this long before its end
 
@@ -304,11 +311,11 @@ def matched(run: dict, clean: dict) -> tuple[np.ndarray, np.ndarray]:
     return np.array([a[t] for t in common]), np.array([b[t] for t in common])
 
 
-def _rms(e: np.ndarray) -> float:
+def rms(e: np.ndarray) -> float:
     return math.sqrt(float(np.mean(e**2))) if len(e) else math.nan
 
 
-def _max(e: np.ndarray) -> float:
+def worst(e: np.ndarray) -> float:
     return float(e.max()) if len(e) else math.nan
 
 
@@ -324,8 +331,9 @@ def main() -> int:
         " noise, then the same PnP, sigma model and node; two loaded cores do not keep 30 fps of 1280x720)",
     )
     args = ap.parse_args()
-    attacks = [a for a in args.attacks.split(",") if a]
-    unknown = set(attacks) - set(ATTACKS)
+    chosen = [a for a in args.attacks.split(",") if a]
+    attacks = [a for a in chosen if a not in PEERS]
+    unknown = set(chosen) - set(ATTACKS)
     if unknown:
         ap.error(f"unknown attacks: {', '.join(sorted(unknown))}")
     bars: list[tuple[str, float, str, float, bool]] = []
@@ -342,6 +350,11 @@ def main() -> int:
             print(f"\n=== signing {mode}: clean run, {SCENARIO} for {args.seconds:g} s, scored {START_S:g}"
                   f" to {args.seconds - TAIL_S:g} s")  # fmt: skip
             print(f"  clean      {summary(clean)}")
+            peers = [a for a in chosen if a in PEERS]
+            if peers and mode == "off":  # lies in frames a forger can make: on a signed mesh it holds no key
+                attack_peers.play(peers, max(args.seconds, attack_peers.SECONDS), bars)
+            elif peers:
+                print("\n  rows 1, 1b, 2: skipped (a forger holds no key: spoof and wrong_key show its frames refused)")
             for attack in attacks:
                 if attack == "future_stamp" and mode == "off":
                     print("\n  future_stamp: skipped (an unsigned link checks no timestamp)")
@@ -364,12 +377,12 @@ def main() -> int:
                 print(f"    clean      {summary(clean)}")
                 e_attack, e_clean = matched(run, clean)
                 print(
-                    f"    the {len(e_attack)} frames both runs sent, error cm: attack RMSE {_rms(e_attack) * 100:5.2f}"
-                    f" max {_max(e_attack) * 100:5.2f}; clean RMSE {_rms(e_clean) * 100:5.2f}"
-                    f" max {_max(e_clean) * 100:5.2f}"
+                    f"    the {len(e_attack)} frames both runs sent, error cm: attack RMSE {rms(e_attack) * 100:5.2f}"
+                    f" max {worst(e_attack) * 100:5.2f}; clean RMSE {rms(e_clean) * 100:5.2f}"
+                    f" max {worst(e_clean) * 100:5.2f}"
                 )
-                ratio = _rms(e_attack) / _rms(e_clean) if len(e_attack) >= 10 else math.inf
-                excess_cm = (_max(e_attack) - _max(e_clean)) * 100 if len(e_attack) >= 10 else math.inf
+                ratio = rms(e_attack) / rms(e_clean) if len(e_attack) >= 10 else math.inf
+                excess_cm = (worst(e_attack) - worst(e_clean)) * 100 if len(e_attack) >= 10 else math.inf
                 bars.append((f"rmse_ratio_{attack}_signing_{mode}", ratio, "x", 1.10, ratio <= 1.10))
                 bars.append((f"max_excess_{attack}_signing_{mode}", excess_cm, "cm", 1.0, excess_cm <= 1.0))
                 wire_report(attack, mode, run, clean, bars)

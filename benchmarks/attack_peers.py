@@ -1,5 +1,6 @@
 """Peers that lie about what they see, on an unsigned mesh, against a node with a real camera path and
-the same node left alone (the peers' side of ``benchmarks/attack.py``, whose scoring it uses).
+the same node left alone: rows 1, 1b and 2 of ``benchmarks/attack.py``, which plays them with the
+others (this script alone plays only these, with attack.py's scoring).
 
 Two nodes of the ``relay`` scenario (:mod:`atlas_onboard.sim.peerplay`), each with the simulator's
 camera path (corners from the geometry plus pixel noise, then the real PnP and node) and a simulated
@@ -37,7 +38,6 @@ import sys
 import time
 
 import numpy as np
-from attack import _max, _rms, matched, summary
 
 from atlas_onboard.config import load_world
 from atlas_onboard.sim import peerplay
@@ -46,6 +46,7 @@ from atlas_onboard.sim.peerplay import LEADER_MARKER, LEADER_SENSOR, LEADER_SYST
 from atlas_onboard.sim.runner import WORLD_NODE_SYSTEM_ID
 from atlas_onboard.sim.world import SimWorld
 
+SECONDS = 8.0  # each run: the attack from START_S to TAIL_S before its end
 START_S = 2.0
 UNEXPLAINED_GAP_S = 0.2
 TAIL_S = 0.5
@@ -128,27 +129,22 @@ def one_run(setup: str, attack: str | None, seconds: float) -> dict:
     }
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=8.0, help="length of each run (default 8)")
-    ap.add_argument("--attacks", default=",".join(ATTACKS), help=f"comma-separated, of {', '.join(ATTACKS)}")
-    args = ap.parse_args()
-    attacks = [a for a in args.attacks.split(",") if a]
-    if set(attacks) - set(ATTACKS):
-        ap.error(f"unknown attacks: {', '.join(sorted(set(attacks) - set(ATTACKS)))}")
+def play(attacks: list[str], seconds: float, bars: list[tuple[str, float, str, float, bool]]) -> None:
+    """Each attack against its setup's clean run (one per setup), printed; its bars appended to ``bars``."""
+    from attack import matched, rms, summary, worst  # the harness imports this module: loaded here
+
     max_speed = load_world(_world_path()).fusion.max_speed_m_s
-    bars: list[tuple[str, float, str, float, bool]] = []
     cleans: dict[str, dict] = {}
     for attack in attacks:
         setup = attack.rsplit("_", 1)[1] if not attack.endswith("reverse") else "own"
         if setup not in cleans:
-            cleans[setup] = one_run(setup, None, args.seconds)
-            print(f"\n=== {setup} ({peerplay.SETUPS[setup]}): clean run, {args.seconds:g} s, scored {START_S:g}"
-                  f" to {args.seconds - TAIL_S:g} s")  # fmt: skip
+            cleans[setup] = one_run(setup, None, seconds)
+            print(f"\n=== {setup} ({peerplay.SETUPS[setup]}): clean run, {seconds:g} s, scored {START_S:g}"
+                  f" to {seconds - TAIL_S:g} s")  # fmt: skip
             print(f"  clean      {summary(cleans[setup])}  {cleans[setup]['rate_hz']:.1f} msg/s"
                   f" resets {cleans[setup]['resets']}")  # fmt: skip
         clean = cleans[setup]
-        run = one_run(setup, attack, args.seconds)
+        run = one_run(setup, attack, seconds)
         c = {k: v for k, v in run["counters"].items() if INTERESTING.match(k) and v}
         print(f"\n  {attack} on {setup}: {run['what']}; sent {run['sent']:,} observations")
         print(f"    counters: {' '.join(f'{k}={v}' for k, v in sorted(c.items()))}")
@@ -156,25 +152,37 @@ def main() -> int:
               f" (after no loss: {run['unexplained_resets']})")  # fmt: skip
         print(f"    clean      {summary(clean)}  {clean['rate_hz']:.1f} msg/s resets {clean['resets']}")
         e_attack, e_clean = matched(run, clean)
-        print(f"    the {len(e_attack)} frames both runs sent, error cm: attack RMSE {_rms(e_attack) * 100:5.2f}"
-              f" max {_max(e_attack) * 100:5.2f}; clean RMSE {_rms(e_clean) * 100:5.2f}"
-              f" max {_max(e_clean) * 100:5.2f}")  # fmt: skip
+        print(f"    the {len(e_attack)} frames both runs sent, error cm: attack RMSE {rms(e_attack) * 100:5.2f}"
+              f" max {worst(e_attack) * 100:5.2f}; clean RMSE {rms(e_clean) * 100:5.2f}"
+              f" max {worst(e_clean) * 100:5.2f}")  # fmt: skip
         enough = len(e_attack) >= 10
         if attack.startswith(("row1_", "row2_")):
-            ratio = _rms(e_attack) / _rms(e_clean) if enough else math.inf
-            excess = (_max(e_attack) - _max(e_clean)) * 100 if enough else math.inf
+            ratio = rms(e_attack) / rms(e_clean) if enough else math.inf
+            excess = (worst(e_attack) - worst(e_clean)) * 100 if enough else math.inf
             bars.append((f"rmse_ratio_{attack}", ratio, "x", 1.10, ratio <= 1.10))
             bars.append((f"max_excess_{attack}", excess, "cm", 1.0, excess <= 1.0))
         if setup == "relay" and attack.startswith("row1"):
             limit = max_speed * run["duration_s"]
-            worst = float(run["err_m"].max()) if len(run["err_m"]) else math.inf
-            excess_m = worst - float(clean["err_m"].max())
+            worst_m = float(run["err_m"].max()) if len(run["err_m"]) else math.inf
+            excess_m = worst_m - float(clean["err_m"].max())
             bars.append((f"relay_worst_excess_{attack}", excess_m, "m", limit, excess_m <= limit))
         extra = run["unexplained_resets"]
         bars.append((f"reset_changes_by_peers_{attack}", extra, "count", 0, extra <= 0))
         if attack.startswith("row2_"):
             ratio = run["rate_hz"] / clean["rate_hz"] if clean["rate_hz"] > 0 else 0.0
             bars.append((f"autopilot_rate_{attack}", ratio, "x_clean", 0.95, ratio >= 0.95))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=SECONDS, help=f"length of each run (default {SECONDS:g})")
+    ap.add_argument("--attacks", default=",".join(ATTACKS), help=f"comma-separated, of {', '.join(ATTACKS)}")
+    args = ap.parse_args()
+    attacks = [a for a in args.attacks.split(",") if a]
+    if set(attacks) - set(ATTACKS):
+        ap.error(f"unknown attacks: {', '.join(sorted(set(attacks) - set(ATTACKS)))}")
+    bars: list[tuple[str, float, str, float, bool]] = []
+    play(attacks, args.seconds, bars)
     print()
     for name, value, unit, limit, ok in bars:
         print(f"BAR {name} {value:.3f} {unit} {limit:g} {'pass' if ok else 'fail'}")

@@ -70,7 +70,8 @@ from atlas_onboard.core.attitude import AttitudeHistory, up_in_body
 from atlas_onboard.core.markerdata import Rejection
 from atlas_onboard.core.shutter import PREDICTION_SAMPLES, BodyRate, RateHistory
 from atlas_onboard.detector.pipeline import Detector
-from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.listener import Listener
+from atlas_onboard.node.setup import make_graph
 from atlas_onboard.sim import report, runner, scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.camera import frames_path

@@ -42,6 +42,7 @@ from scipy.spatial.transform import RigidTransform, Rotation  # noqa: E402
 from atlas_onboard.config import load_world  # noqa: E402
 from atlas_onboard.mapping import ba  # noqa: E402
 from atlas_onboard.mapping import build as mb  # noqa: E402
+from atlas_onboard.mapping.observations import collect  # noqa: E402
 from atlas_onboard.sim.recordings import edit_marker, record, world_doc  # noqa: E402
 
 cv2.setNumThreads(1)
@@ -120,7 +121,7 @@ def main() -> int:
     # Timed in CPU seconds of this single-threaded process (the machine is shared: its wall clock is not
     # one core's time); the wall clock is printed beside.
     t, c = time.perf_counter(), time.process_time()
-    obs1 = mb.collect([rec1], world)
+    obs1 = collect([rec1], world)
     c_detect = time.process_time() - c
     res1 = mb.build_map(obs1, world, options)
     total_s, wall_s = time.process_time() - c, time.perf_counter() - t
@@ -163,7 +164,7 @@ def main() -> int:
         obs = None
         for _ in range(3):  # the best of three passes: the machine is shared
             c = time.process_time()
-            obs = mb.collect([rec1], world, decimate=dec)
+            obs = collect([rec1], world, decimate=dec)
             times.append(time.process_time() - c)
         assert obs is not None
         per_frame[dec] = np.array(times) / obs.frames_read
@@ -182,14 +183,14 @@ def main() -> int:
     bar("map_node_search_position_max_err", p_node, "mm", max(5.0, p_full), p_node <= max(5.0, p_full))
 
     # 2. Two drones merged.
-    obs12 = mb.collect([rec1, rec2], world)
+    obs12 = collect([rec1, rec2], world)
     res12 = mb.build_map(obs12, world, options)
     pmax2, amax2 = compare("two drones merged, anchored on marker 4", res12, truth)
     bar("map_two_drones_position_max_err", pmax2, "mm", 5.0, pmax2 <= 5.0)
     bar("map_two_drones_orientation_max_err", amax2, "deg", 0.5, amax2 <= 0.5)
 
     # 4. A marker moved between the recordings; a marker of the wrong size.
-    res_moved = mb.build_map(mb.collect([rec1, rec2_moved], world), world, options)
+    res_moved = mb.build_map(collect([rec1, rec2_moved], world), world, options)
     named = {
         m: (r.status, r.detail)
         for m, r in res_moved.markers.items()
@@ -211,7 +212,7 @@ def main() -> int:
     wrong_file = tmp / "wrong-size.yaml"
     wrong_file.write_text(yaml.safe_dump(wrong_doc, sort_keys=False), encoding="utf-8")
     wrong_world = load_world(wrong_file)
-    res_wrong = mb.build_map(mb.collect([rec1], wrong_world), wrong_world, options)
+    res_wrong = mb.build_map(collect([rec1], wrong_world), wrong_world, options)
     named = {
         m: (r.status, r.detail)
         for m, r in res_wrong.markers.items()

@@ -2,7 +2,7 @@
 
 The ``map`` scenario's two cameras are rendered once (a recording each, from ``--start`` for
 ``--duration``); every run then processes the same frames in capture order, in this process, with the
-real detector, listener, graph and :class:`~atlas_onboard.node_refine.LiveRefinement` (no transport, no
+real detector, listener, graph and :class:`~atlas_onboard.node.refine.LiveRefinement` (no transport, no
 clocks: load-free and repeatable). Runs:
 
 - ``truth, joint`` (the anchor): the true world file, the default detector (joint solves), no refinement;
@@ -32,8 +32,9 @@ import yaml
 
 from atlas_onboard.config import RefineConfig, load_world
 from atlas_onboard.detector.pipeline import Detector
-from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.node_refine import LiveRefinement, PerMarkerSampler
+from atlas_onboard.listener import Listener
+from atlas_onboard.node.refine import LiveRefinement, PerMarkerSampler
+from atlas_onboard.node.setup import make_graph
 from atlas_onboard.recording.format import read_frames, read_info
 from atlas_onboard.sim import recordings, scenarios
 from atlas_onboard.sim.world import SimWorld

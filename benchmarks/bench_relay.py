@@ -44,7 +44,8 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core.markerdata import Rejection
 from atlas_onboard.detector.pipeline import Detector
-from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.listener import Listener
+from atlas_onboard.node.setup import make_graph
 from atlas_onboard.sim import follow, report, runner, scenarios
 from atlas_onboard.sim.camera import frames_path
 from atlas_onboard.sim.command import score_run

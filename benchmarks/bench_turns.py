@@ -43,6 +43,7 @@ from atlas_onboard.sim import scenarios
 from atlas_onboard.sim import trajectories as tj
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.camera import FrameRenderer, camera_seed
+from atlas_onboard.sim.scenario import Scenario
 from atlas_onboard.sim.world import SimWorld
 
 FAST_DEG = 3.0  # per frame: 90 deg/s at 30 fps
@@ -73,7 +74,7 @@ def stats(ms: list[float]) -> str:
     return f"{a.mean():9.2f} {np.median(a):8.2f} {np.percentile(a, 95):8.2f} {len(a):5d}"
 
 
-def scene(name: str) -> scenarios.Scenario:
+def scene(name: str) -> Scenario:
     """``hard-near`` as flown, or (``turns``) the same flight with its yaw swings four times as fast."""
     if name != "turns":
         return scenarios.get(name)

@@ -58,7 +58,8 @@ from atlas_onboard.core.markerdata import Rejection
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.refine import refine_corners_undistorted
-from atlas_onboard.listener import Listener, make_graph
+from atlas_onboard.listener import Listener
+from atlas_onboard.node.setup import make_graph
 from atlas_onboard.sim import runner, scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.camera import frames_path
@@ -66,7 +67,7 @@ from atlas_onboard.sim.world import SimWorld
 
 ENTITY = "drone"
 NEES3_997 = 13.93  # chi-square(3) at 0.997
-PUBLISH_NS = 20_000_000  # the node publishes the EKF's pose at least this often (node_output.PREDICT_NS)
+PUBLISH_NS = 20_000_000  # the node publishes the EKF's pose at least this often (node.output.PREDICT_NS)
 LATENCY_NS = 20_000_000  # capture to evaluation in the EKF emulation
 
 
@@ -157,7 +158,7 @@ def marker_views(det: Detector, found: list, gray: np.ndarray, world, sensor, tr
 
 def offline(args: argparse.Namespace) -> tuple[list[Output], list[Output], float]:
     """The graph's outputs (one per frame with a detection) and, with ``--ekf``, the EKF's published poses."""
-    from atlas_onboard.node_output import _make_ekf
+    from atlas_onboard.node.output import make_ekf
 
     scenario = scenarios.get(args.scenario)
     world = scenario.world()
@@ -181,7 +182,7 @@ def offline(args: argparse.Namespace) -> tuple[list[Output], list[Output], float
     graph = make_graph(ekf_world if args.ekf else world, ENTITY)
     listener = Listener(world, graph)
     listener.set_attitude(ENTITY, up_node)
-    ekf = _make_ekf(ekf_world) if args.ekf else None
+    ekf = make_ekf(ekf_world) if args.ekf else None
     per_record = Listener(world, make_graph(world, ENTITY))  # stateless: each record with the node's attitude
     per_record.set_attitude(ENTITY, up_node)
     exact = Listener(world, make_graph(world, ENTITY))  # with the attitude exact at the capture time

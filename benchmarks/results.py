@@ -58,6 +58,7 @@ BENCHES = (
     Bench("pi", ("benchmarks/bench_pi.py",), "Detector and node on one core, scaled to Pi 4 / Pi 5 class cores."),
     Bench("map", ("benchmarks/bench_map.py",), "The marker map from a simulated flight."),
     Bench("refine", ("benchmarks/bench_refine.py",), "Live map refinement: one marker 10 cm off in the world file."),
+    Bench("land", ("benchmarks/bench_land.py",), "Precision landing: touchdown error, static pad and moving rover."),
     Bench("moved", ("benchmarks/bench_moved_offline.py",), "A marker moved 10 cm in the world file, scored offline."),
     Bench("startup", ("benchmarks/bench_startup.py",), "The node's start-up CPU against the interpreter's floor."),
 )

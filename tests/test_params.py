@@ -109,3 +109,32 @@ def test_ardupilot_names_are_the_ones_each_release_reads(tmp_path, version, sysi
 def test_ardupilot_default_is_47_names(tmp_path):
     a = mission_planner(run(tmp_path, doc(system_id=5), "--autopilot", "ardupilot"))
     assert a["MAV_SYSID"] == 5 and "SYSID_THISMAV" not in a
+
+
+def landing_doc(target="world", marker=1, **kw):
+    d = doc(**kw)
+    d["entities"]["world"]["markers"][0]["id"] = 1
+    d["entities"]["rover"] = {"markers": [{"id": 9, "size_m": 0.2, "pose": {"pos": [0, 0, 0.3]}}]}
+    d["nodes"]["d1"]["landing"] = {"target": target, "marker": marker, "autopilot": "ardupilot"}
+    return d
+
+
+def test_ardupilot_precision_landing(tmp_path):
+    # AC_PrecLand: PLND_TYPE 1 (MAVLink), the body vector used as sent (ORIENT 25, down), from where the
+    # node's vector starts (the entity origin: the same offset as VISO_POS_*), the lag from --delay-ms.
+    a = mission_planner(inproc(tmp_path, landing_doc(), "ardupilot", cog_m=(-0.02, 0.01, -0.05), delay_ms=35.0))
+    assert (a["PLND_ENABLED"], a["PLND_TYPE"], a["PLND_ORIENT"], a["PLND_EST_TYPE"]) == (1, 1, 25, 1)
+    assert (a["PLND_CAM_POS_X"], a["PLND_CAM_POS_Y"], a["PLND_CAM_POS_Z"]) == pytest.approx((0.02, 0.01, -0.05))
+    assert (a["PLND_CAM_POS_X"], a["PLND_CAM_POS_Z"]) == (a["VISO_POS_X"], a["VISO_POS_Z"])
+    assert a["PLND_LAG"] == pytest.approx(0.035) and a["PLND_OPTIONS"] == 0  # a pad of world markers: static
+    rover = mission_planner(inproc(tmp_path, landing_doc("rover", 9), "ardupilot"))
+    assert rover["PLND_OPTIONS"] == 1 and rover["PLND_LAG"] == pytest.approx(0.02)  # moving; lag not measured
+    assert not {n for n in mission_planner(inproc(tmp_path, doc(), "ardupilot")) if n.startswith("PLND_")}
+
+
+def test_px4_precision_landing(tmp_path):
+    p = qgc(run(tmp_path, landing_doc("rover", 9), "--autopilot", "px4"))
+    # PX4's precland: the target is lost after PLD_BTOUT; LTEST_MODE 0 (moving) for a rover.
+    assert p["PLD_BTOUT"][2:] == (1.0, 9) and p["LTEST_MODE"][2:] == (0.0, 6) and p["PLD_SRCH_ALT"][2] == 2.0
+    assert qgc(inproc(tmp_path, landing_doc(), "px4"))["LTEST_MODE"][2] == 1
+    assert not {n for n in qgc(inproc(tmp_path, doc(), "px4")) if n.startswith(("PLD_", "LTEST_"))}

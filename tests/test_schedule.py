@@ -8,7 +8,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.schedule import Changes, Inbound, Inbox, ParkingBuffer, Relevance, near_entities, relevance
+from atlas_onboard.core.records import Inbound
+from atlas_onboard.schedule import Changes, Inbox, ParkingBuffer, Relevance, near_entities, relevance
 
 # --- relevance ------------------------------------------------------------------------------------
 
@@ -136,15 +137,7 @@ def test_since_is_the_first_arrival_of_a_park_period():
         ParkingBuffer(capacity=0, newest_wins=True)
 
 
-def test_an_inbound_is_decoded_once_and_a_refused_one_stays_refused():
-    calls = []
-    item = Inbound(2, 1, 0, 5, 0, 0, lambda: calls.append(1))  # the transport refused it (returns None)
-    assert item.take() is None and item.take() is None and calls == [1]
-    ready = Inbound.of(md(1, 0, 5), 7)
-    assert ready.take() == md(1, 0, 5) and ready.arrival_ns == 7 and ready.edge == (1, 0)
-
-
-# --- the inbox and the frame count (moved from tests/test_node.py) -----------------------------------
+# --- the inbox and the frame count ---------------------------------------------------------------------
 
 
 def test_inbox_drops_oldest_when_full():

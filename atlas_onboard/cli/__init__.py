@@ -11,6 +11,7 @@ import logging
 import os
 import sys
 from collections.abc import Sequence
+from importlib import metadata
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -123,11 +124,9 @@ def build_parser(every_command: bool = True) -> argparse.ArgumentParser:
     from atlas_onboard.mapping.command import add_commands as add_mapping
     from atlas_onboard.params import add_commands as add_params
     from atlas_onboard.preflight import add_commands as add_preflight
-    from atlas_onboard.sim.command import add_commands as add_sim
-    from atlas_onboard.sim.demo import add_commands as add_demo
 
-    add_sim(sub)
-    add_demo(sub)
+    for plugin in _plugged_in():
+        plugin.load()(sub)
     add_calibrate(sub)
     add_detector(sub)
     add_install(sub)
@@ -135,6 +134,21 @@ def build_parser(every_command: bool = True) -> argparse.ArgumentParser:
     add_mapping(sub)
     add_preflight(sub)
     return parser
+
+
+COMMANDS_GROUP = "atlas_onboard.commands"
+"""Entry points of this group add subcommands (``add_commands(sub)``): the simulator's ``sim``, ``demo``
+and ``sim-autopilot``, declared in ``pyproject.toml``, so that the command line never imports the simulator."""
+
+
+def _plugged_in() -> list[metadata.EntryPoint]:
+    """The installed package's :data:`COMMANDS_GROUP` entry points, in the order declared (none when the
+    package is not installed, as when its source tree is on the path)."""
+    try:
+        points = metadata.distribution("atlas-onboard").entry_points
+    except metadata.PackageNotFoundError:
+        return []
+    return [p for p in points if p.group == COMMANDS_GROUP]
 
 
 def main(argv: Sequence[str] | None = None) -> int:

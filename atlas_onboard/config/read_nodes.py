@@ -9,11 +9,23 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-from atlas_onboard.config.fields import REQUIRED, declared, integer, join, keys, listing, mapping, read, required
+from atlas_onboard.config.fields import (
+    REQUIRED,
+    declared,
+    integer,
+    join,
+    keys,
+    listing,
+    mapping,
+    read,
+    required,
+    vector,
+)
 from atlas_onboard.config.model import MAX_ID, WORLD, WorldConfig
 from atlas_onboard.config.settings import (
     AutopilotConfig,
     GlobalOrigin,
+    LandingConfig,
     LinkConfig,
     NodeConfig,
     RecordConfig,
@@ -104,6 +116,19 @@ def read_refine(value: Any, path: str, base_dir: Path | None) -> RefineConfig | 
     return RefineConfig(anchors=anchors, write_map=written, per_marker_period_s=period)
 
 
+def read_landing(value: Any, path: str) -> LandingConfig | None:
+    """The ``landing`` section: the entity and point to land on, and when a target may be sent."""
+    if value is None:
+        return None
+    m = mapping(value, path, keys(LandingConfig), required(LandingConfig))
+    values = {name: read(LandingConfig, name, m, path) for name in declared(LandingConfig) if name != "point_m"}
+    point = None
+    if m.get("point_m") is not None:
+        x, y, z = vector(m["point_m"], join(path, "point_m"), 3)
+        point = (x, y, z)
+    return LandingConfig(point_m=point, **values)
+
+
 def _read_node(m: Mapping[str, Any], path: str, entity: str, base_dir: Path | None, partial: bool) -> NodeConfig:
     """Build a node's settings from one mapping; ``partial`` skips required fields (a defaults section)."""
     mapping(m, path, keys(NodeConfig))
@@ -117,7 +142,7 @@ def _read_node(m: Mapping[str, Any], path: str, entity: str, base_dir: Path | No
     values = {
         name: read(NodeConfig, name, m, path, 0 if name == "system_id" else REQUIRED)
         for name in declared(NodeConfig)
-        if name not in ("autopilot", "peers", "record", "refine")
+        if name not in ("autopilot", "peers", "record", "refine", "landing")
     }
     return NodeConfig(
         entity=entity,
@@ -125,6 +150,7 @@ def _read_node(m: Mapping[str, Any], path: str, entity: str, base_dir: Path | No
         peers=peers,
         record=read_record(m.get("record"), join(path, "record"), base_dir),
         refine=read_refine(m.get("refine"), join(path, "refine"), base_dir),
+        landing=read_landing(m.get("landing"), join(path, "landing")),
         **values,
     )
 
@@ -152,7 +178,20 @@ def parse_node(doc: Any, entity: str, world: WorldConfig, base_dir: Path | None 
         for i, mid in enumerate(config.refine.anchors):
             if mid not in world_ids:
                 raise ConfigError(join(path, f"refine.anchors[{i}]"), f"{mid} is not a world marker of the world file")
+    if config.landing is not None:
+        _check_landing(config.landing, world, join(path, "landing"))
     return replace(config, owners=_owners(nodes, defaults))
+
+
+def _check_landing(landing: LandingConfig, world: WorldConfig, path: str) -> None:
+    """The target is an entity of the world file, and the marker one of its markers."""
+    if landing.target not in world.entity_names:
+        names = ", ".join(world.entity_names)
+        raise ConfigError(join(path, "target"), f"unknown entity {landing.target!r} (the world file has {names})")
+    if landing.marker is not None:
+        marker = world.markers.get(landing.marker)
+        if marker is None or marker.entity != landing.target:
+            raise ConfigError(join(path, "marker"), f"{landing.marker} is not a marker of {landing.target}")
 
 
 def _owners(nodes: Mapping[str, Any], defaults: Mapping[str, Any]) -> tuple[tuple[str, int], ...]:

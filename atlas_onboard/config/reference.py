@@ -33,6 +33,7 @@ SECTIONS: tuple[tuple[str, type, tuple[str, ...]], ...] = (
     ("nodes.<entity>.peers[].signing", settings.SigningConfig, ()),
     ("nodes.<entity>.record", settings.RecordConfig, ()),
     ("nodes.<entity>.refine", settings.RefineConfig, ()),
+    ("nodes.<entity>.landing", settings.LandingConfig, ()),
 )
 
 

@@ -85,7 +85,7 @@ class FusionConfig:
         "the same for the attitude (about the entities' turn rate): an edge of age a adds (a * this)^2 to its"
         " attitude variance; no weight changes, only the published covariance",
         unit="deg/s", within="[0, 3600]", noun="a turn rate", paper=0.0))  # fmt: skip
-    align_edges: bool = field(default=False, metadata=spec(
+    align_edges: bool = field(default=True, metadata=spec(
         "a pose through another entity (a drone seen by a drone) takes that entity's pose at its own"
         " image's capture time, interpolated or extrapolated from its recent poses, the step's uncertainty"
         " in the covariance; false: its newest pose, whenever that was taken (the paper)", paper=False))  # fmt: skip
@@ -259,6 +259,39 @@ class RefineConfig:
         " pose)", unit="s", within="[0, 10]", noun="a period"))  # fmt: skip
 
 
+LANDING_AUTOPILOTS = ("px4", "ardupilot")
+
+
+@dataclass(frozen=True, slots=True)
+class LandingConfig:
+    """``nodes.<entity>.landing``: the node tells its autopilot where to land (LANDING_TARGET), on a point
+    of any entity the graph places, while that point's pose is fresh and certain enough (docs/landing.md)."""
+
+    target: str = field(metadata=spec(
+        "the entity to land on: world (a pad of world markers), a rover, another drone"))  # fmt: skip
+    autopilot: str = field(metadata=spec(
+        "the form the autopilot takes: px4 (MAV_FRAME_LOCAL_NED position and orientation, v1.16) or ardupilot"
+        " (PLND_TYPE 1: MAV_FRAME_BODY_FRD position, distance and angles)", choices=LANDING_AUTOPILOTS))  # fmt: skip
+    marker: int | None = field(default=None, metadata=spec(
+        "land on this marker of the target (its centre, or point_m in its frame)", within="[0, 65535]"))  # fmt: skip
+    point_m: tuple[float, float, float] | None = field(default=None, metadata=spec(
+        "the landing point: with marker, in the marker's frame (x right, y up, z out of its face); without,"
+        " in the target's frame, in the world file's body axes (world: its axes); none: the marker's centre,"
+        " or the target's origin", unit="m"))  # fmt: skip
+    rate_hz: float = field(default=20.0, metadata=spec(
+        "most LANDING_TARGET messages per second (ArduPilot needs one every 0.5 s while its estimator starts"
+        " and calls the target lost after 2 s without one; MAVLink suggests 10-50 Hz)",
+        unit="Hz", within="[2, 50]", noun="a rate"))  # fmt: skip
+    max_age_s: float = field(default=0.3, metadata=spec(
+        "no LANDING_TARGET when the newest observation behind the target's pose relative to the drone is older",
+        unit="s", within="(0, 2]", noun="an age"))  # fmt: skip
+    max_sigma_m: float = field(default=0.05, metadata=spec(
+        "no LANDING_TARGET when the landing point's horizontal position sigma relative to the drone (largest"
+        " horizontal axis, with the target's motion since its capture when a filter knows its velocity) exceeds"
+        " this",
+        unit="m", within="(0, 1]", noun="a sigma"))  # fmt: skip
+
+
 @dataclass(frozen=True, slots=True)
 class NodeConfig:
     """The settings of the node that runs for one entity (``nodes.defaults`` merged with ``nodes.<entity>``).
@@ -297,6 +330,8 @@ class NodeConfig:
         "record the cameras as the node flies (none: not recorded)"))  # fmt: skip
     refine: RefineConfig | None = field(default=None, metadata=spec(
         "refine the world markers' poses from the swarm's observations (none: the world file as written)"))  # fmt: skip
+    landing: LandingConfig | None = field(default=None, metadata=spec(
+        "send the autopilot a landing target (none: no LANDING_TARGET)"))  # fmt: skip
     owners: tuple[tuple[str, int], ...] = ()
 
     def owner_system_id(self, entity: str) -> int | None:

@@ -9,7 +9,7 @@ from typing import Any
 import yaml
 
 from atlas_onboard.config.fields import join
-from atlas_onboard.errors import ConfigError
+from atlas_onboard.errors import ConfigError, read_failure
 
 
 def _duplicate_key(node: yaml.Node, path: str = "", seen_nodes: set[int] | None = None) -> tuple[str, str] | None:
@@ -45,7 +45,7 @@ def read_yaml(path: Path) -> Any:
     try:
         text = Path(path).read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError("", f"cannot read file: {getattr(exc, 'strerror', None) or exc}", str(path)) from None
+        raise ConfigError("", f"cannot read file: {read_failure(exc)}", str(path)) from None
     try:
         tree = yaml.compose(text, Loader=yaml.SafeLoader)
         if tree is None:
@@ -57,7 +57,8 @@ def read_yaml(path: Path) -> Any:
     except RecursionError:
         raise ConfigError("", "invalid YAML: nested too deeply", str(path)) from None
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+        marked = isinstance(exc, yaml.MarkedYAMLError)  # the parser's errors, with where and what
+        mark = (exc.problem_mark or exc.context_mark) if marked else None
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
-        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        problem = (exc.problem if marked else None) or str(exc).splitlines()[0]
         raise ConfigError("", f"invalid YAML: {where}{problem}", str(path)) from None

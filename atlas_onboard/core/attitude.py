@@ -194,9 +194,13 @@ def _lower_envelope(points: list[tuple[int, int]]) -> tuple[float, float, float]
     if points[-1][0] - points[0][0] < BOOT_MIN_SPAN_US:
         lowest = min(points, key=lambda p: p[1])
         return float(lowest[0]), float(lowest[1]), 0.0
-    hull: list[tuple[int, int]] = []  # Andrew's monotone chain, lower half
+    hull: list[tuple[int, int]] = []  # Andrew's monotone chain, lower half, in exact integers
     for p in points:
-        while len(hull) >= 2 and _cross(hull[-2], hull[-1], p) <= 0:
+        px, py = p
+        while len(hull) >= 2:
+            (ax, ay), (bx, by) = hull[-2], hull[-1]
+            if (bx - ax) * (py - ay) - (by - ay) * (px - ax) > 0:  # a, b, p turn counter-clockwise
+                break
             hull.pop()
         hull.append(p)
     mean_boot = sum(p[0] for p in points) / len(points)
@@ -206,11 +210,6 @@ def _lower_envelope(points: list[tuple[int, int]]) -> tuple[float, float, float]
             # Clamped or not, the line through the vertex nearer the mean stays below its neighbours.
             return (float(b0), float(o0), slope) if mean_boot - b0 <= b1 - mean_boot else (float(b1), float(o1), slope)
     return float(hull[-1][0]), float(hull[-1][1]), 0.0
-
-
-def _cross(a: tuple[int, int], b: tuple[int, int], c: tuple[int, int]) -> float:
-    """z of (b - a) x (c - a): > 0 when a, b, c turn counter-clockwise (b below the chord a-c)."""
-    return float(b[0] - a[0]) * float(c[1] - a[1]) - float(b[1] - a[1]) * float(c[0] - a[0])
 
 
 class AttitudeHistory:

@@ -26,7 +26,7 @@ class Rejection(StrEnum):
     INCONSISTENT_SIGMA = "inconsistent_sigma"
     """A ``sigma`` that contradicts the record's own covariance: the camera's position spread the
     covariance implies and ``sigma`` differ by more than ``SIGMA_COVARIANCE_TOLERANCE`` either way
-    (:mod:`atlas_onboard.listener_covariance`). The detector computes both from the same corners; a
+    (:mod:`atlas_onboard.core.edge_covariance`). The detector computes both from the same corners; a
     record whose weight (sigma) and gate (covariance) disagree is not trusted with either."""
 
     # The listener: the world file and the planar ambiguity

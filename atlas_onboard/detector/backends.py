@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from atlas_onboard.detector import refine
+from atlas_onboard.detector import edge_sampling, refine
 from atlas_onboard.detector.families import family, library_family, library_family_type, opencv_dictionary
 from atlas_onboard.errors import AtlasError
 
@@ -28,7 +28,7 @@ def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDA
     """Corners (4, 2), pixel-centre convention, refined on ``gray``; unchanged where a fit fails."""
     img = gray.astype(np.float32)
     lines = []
-    offsets = np.arange(-refine.HALF_WIDTH_PX, refine.HALF_WIDTH_PX + 1e-9, refine.STEP_PX)
+    offsets = np.arange(-edge_sampling.HALF_WIDTH_PX, edge_sampling.HALF_WIDTH_PX + 1e-9, edge_sampling.STEP_PX)
     sides = refine.sides(corners)
     if sides is None:
         return corners
@@ -49,7 +49,7 @@ def refine_corners(gray: NDArray[np.uint8], corners: NDArray[np.float64]) -> NDA
             g0, g1, g2 = grad[row, k[row] - 1], grad[row, k[row]], grad[row, k[row] + 1]
             denom = g0 - 2 * g1 + g2
             frac = 0.5 * (g0 - g2) / denom if denom < 0 else 0.0
-            off = offsets[0] + (k[row] + 0.5 + frac) * refine.STEP_PX
+            off = offsets[0] + (k[row] + 0.5 + frac) * edge_sampling.STEP_PX
             edge.append(base[row] + off * n)
         if len(edge) < 4:
             return corners

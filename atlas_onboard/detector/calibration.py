@@ -12,7 +12,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from atlas_onboard.errors import AtlasError
+from atlas_onboard.errors import AtlasError, read_failure
 
 # The calibration's residual (px) assumed when its file does not state it (ROS camera_info has no field for
 # it): a careful OpenCV calibration's RMS reprojection error is 0.1-0.3 px, the board's corner noise included.
@@ -126,7 +126,7 @@ def load(path: Path | str) -> Calibration:
     try:
         text = p.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationError(f"{p}: cannot read: {getattr(exc, 'strerror', None) or exc}") from None
+        raise CalibrationError(f"{p}: cannot read: {read_failure(exc)}") from None
     if text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text:  # OpenCV writes %YAML:1.0 or 1.2
         cal = _load_opencv(p)
     else:

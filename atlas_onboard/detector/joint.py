@@ -11,6 +11,7 @@ from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
@@ -19,6 +20,7 @@ from atlas_onboard.config import SensorConfig, WorldConfig
 from atlas_onboard.detector import joint_covariance, pose
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.records import JointResult, LeftOut, SingleSolve, marker_data
+from atlas_onboard.detector.rotations import quat_from_matrix
 from atlas_onboard.detector.search import side
 
 _logger = logging.getLogger(__name__)
@@ -53,6 +55,9 @@ class JointSolve:
     sizes: Mapping[int, float]
     counters: Counter[str]
     _corners: dict[int, NDArray[np.float64]] = field(default_factory=dict, init=False, repr=False)
+    _frames: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = field(
+        default_factory=dict, init=False, repr=False
+    )
 
     def robust(self, ids: list[int], singles: dict[int, SingleSolve], capture_time_us: int) -> JointResult:
         """The entity's observation from the markers that fit together, and the ids used.
@@ -112,11 +117,21 @@ class JointSolve:
             self._corners[m] = got
         return got
 
+    def _frame_of(self, m: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Marker ``m``'s pose in its entity (``T_entity_marker``) as a rotation matrix and a translation, kept."""
+        got = self._frames.get(m)
+        if got is None:
+            T = self.marker_pose[m]
+            got = (T.rotation.as_matrix(), T.translation)
+            self._frames[m] = got
+        return got
+
     def solution(self, ids: list[int], singles: dict[int, SingleSolve]) -> tuple | None:
         """rvec, tvec (T_camera_entity), RMS error and sigma of the joint solve of ``ids``, or None."""
         obj = np.vstack([self._corners_m(m) for m in ids])
         img = np.vstack([singles[m].corners for m in ids])
-        # Start from the least ambiguous single solution, moved to the entity frame.
+        # Start from the least ambiguous single solution, moved to the entity frame:
+        # T_camera_entity = T_camera_marker T_entity_marker^-1, in plain matrices.
         best = min(ids, key=lambda m: singles[m].pose.ambiguity if np.isfinite(singles[m].pose.ambiguity) else 1.0)
         mp = singles[best].pose
         T_cam_entity = (
@@ -138,7 +153,6 @@ class JointSolve:
         failed (the squares are then reported one by one), (None, True) when they do not fit together.
         ``with_error``: the joint RMS error relative to its limit as a third element."""
         anchor = ids[0]
-        T_entity_anchor = self.marker_pose[anchor]
         model_sigma_px = pose.model_sigma_px(self.world.markers[anchor].family)
         sol = self.solution(ids, singles)
         if sol is None:
@@ -154,12 +168,13 @@ class JointSolve:
         if err > limit:
             self.counters["joint_misfit"] += count
             return (None, True, err / limit) if with_error else (None, True)
-        T = RigidTransform.from_components(tvec, Rotation.from_rotvec(rvec)) * T_entity_anchor
-        # The covariance of the anchor's pose: the same corners, in the anchor's frame.
+        # The anchor's pose T_camera_entity T_entity_anchor, and its covariance: the same corners, in the
+        # anchor's frame.
+        R_ea, p_ea = self._frame_of(anchor)
+        R_ce = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))[0]
+        R_ca, p_ca = R_ce @ R_ea, tvec + R_ce @ p_ea
         obj = np.vstack([self._corners_m(m) for m in ids])
-        fit = pose.CornerFit(
-            T.rotation.as_matrix(), T.translation, T_entity_anchor.inv().apply(obj), self.calibration.K
-        )
+        fit = pose.CornerFit(R_ca, p_ca, (obj - p_ea) @ R_ea, self.calibration.K)
         squares = [singles[m] for m in ids]
         if all(s.corner_cov is not None for s in squares):
             cov = self._covariance(fit, squares)
@@ -171,8 +186,8 @@ class JointSolve:
             stretch = None if any(x is None for x in stretches) else np.concatenate(stretches)
             cov = pose.pose_covariance(fit, sigma_px, err, stretch)
         self.counters["joint"] += count
-        q = T.rotation.as_quat()
-        md = marker_data(self.sensor.id, anchor, T.translation, q, sigma, err, 0.0, capture_time_us, None, cov)
+        q = quat_from_matrix(R_ca)
+        md = marker_data(self.sensor.id, anchor, p_ca, q, sigma, err, 0.0, capture_time_us, None, cov)
         return (md, False, err / limit) if with_error else (md, False)
 
     def _covariance(self, fit: pose.CornerFit, squares: list[SingleSolve]) -> NDArray[np.float64] | None:

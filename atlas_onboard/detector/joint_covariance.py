@@ -41,12 +41,8 @@ def lens_residual_covariances(
         img = cv2.fisheye.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)[0]
     else:
         img = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, dist)[0]
-    moved = c - img.reshape(-1, 2)
-    out = []
-    for m in moved:
-        v = np.tile(m, 4)  # every corner along the radius, by the model's correction there
-        out.append(LENS_RESIDUAL**2 * np.outer(v, v))
-    return out
+    v = np.tile(c - img.reshape(-1, 2), (1, 4))  # every corner along the radius, by the model's correction there
+    return list(LENS_RESIDUAL**2 * (v[:, :, None] * v[:, None, :]))
 
 
 SQUARE_MISFIT_LEVEL = 0.9  # a square's miss in a joint fit beyond this quantile of its chi-square grows its block
@@ -72,27 +68,25 @@ def joint_covariance(
         return None
     Ai = np.linalg.inv(A)
     r = (np.asarray(img_px, dtype=float).reshape(-1, 2) - fit.projected_px()).ravel()
-    covs = [np.asarray(c, dtype=float) for c in square_covs]
+    covs = np.array(square_covs, dtype=float)  # (M, 8, 8)
+    n = len(covs)
     M = np.eye(len(r)) - J @ Ai @ J.T
-    expected = M @ _block_diagonal(covs) @ M.T
-    grown = []
-    for k, c in enumerate(covs):
-        sl = slice(8 * k, 8 * k + 8)
-        try:
-            seen = float(r[sl] @ np.linalg.solve(c, r[sl]))
-            allowed = float(np.trace(np.linalg.solve(c, expected[sl, sl])))
-        except np.linalg.LinAlgError:
-            return None
-        # Grown only when the miss is unlikely under W (the form about chi-square with ``allowed`` degrees
-        # of freedom): growing on every chance excess would make consistent squares cautious.
-        grown.append(c * (seen / allowed) if allowed > 0 and seen > chdtri(allowed, 1.0 - SQUARE_MISFIT_LEVEL) else c)
-    C = Ai @ (J.T @ _block_diagonal(grown) @ J) @ Ai
+    # The diagonal blocks of M W M^T, W block-diagonal: M's rows of square k times each block, summed.
+    Mb = M.reshape(n, 8, n, 8)
+    MW = np.einsum("kajb,jbc->kajc", Mb, covs)
+    expected = np.einsum("kajc,kdjc->kad", MW, Mb)
+    try:  # each square's W_m^-1 [r_m, expected_mm] at once
+        X = np.linalg.solve(covs, np.concatenate([r.reshape(n, 8, 1), expected], axis=2))
+    except np.linalg.LinAlgError:
+        return None
+    seen = np.einsum("ka,ka->k", r.reshape(n, 8), X[:, :, 0])
+    allowed = np.trace(X[:, :, 1:], axis1=1, axis2=2)
+    # Grown only when the miss is unlikely under W (the form about chi-square with ``allowed`` degrees of
+    # freedom): growing on every chance excess would make consistent squares cautious.
+    positive = allowed > 0
+    limit = chdtri(np.where(positive, allowed, 1.0), 1.0 - SQUARE_MISFIT_LEVEL)
+    grow = np.where(positive & (seen > limit), seen / np.where(positive, allowed, 1.0), 1.0)
+    Jb = J.reshape(n, 8, 6)
+    inner = np.einsum("kai,kab,kbj->ij", Jb, covs * grow[:, None, None], Jb)  # J^T diag(grown) J
+    C = Ai @ inner @ Ai
     return (C + C.T) / 2.0
-
-
-def _block_diagonal(blocks: list[NDArray[np.float64]]) -> NDArray[np.float64]:
-    """scipy.linalg.block_diag of square (8, 8) blocks, without its per-call cost."""
-    out = np.zeros((8 * len(blocks), 8 * len(blocks)))
-    for k, b in enumerate(blocks):
-        out[8 * k : 8 * k + 8, 8 * k : 8 * k + 8] = b
-    return out

@@ -51,19 +51,28 @@ def distort_uv(
     u: NDArray[np.float64], v: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
 ) -> NDArray[np.float64]:
     """:func:`distort` of undistorted pixels given as their coordinates ``u``, ``v`` (N,): image pixels
-    (N, 2), bit for bit :func:`distort_homogeneous`'s. A camera matrix without skew maps a pixel to its ray
-    in two operations a coordinate (the values of the matrix product, whose zero terms add nothing), so
-    the rows (u, v, 1) and their product are not built."""
+    (N, 2), bit for bit :func:`distort_homogeneous`'s."""
+    return np.column_stack(distort_columns(u, v, K, dist, fisheye))
+
+
+def distort_columns(
+    u: NDArray[np.float64], v: NDArray[np.float64], K: NDArray[np.float64], dist: NDArray[np.float64], fisheye: bool
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`distort_uv`'s image pixels as two contiguous coordinate arrays x, y (N,) (what the corner
+    refit crops and samples by, without the strided reads of an (N, 2) array). A camera matrix without
+    skew maps a pixel to its ray in two operations a coordinate (the values of the matrix product, whose
+    zero terms add nothing), so the rows (u, v, 1) and their product are not built."""
     Kinv = _inverse(np.ascontiguousarray(K, dtype=np.float64).tobytes())
     k = np.asarray(dist, dtype=np.float64).ravel()
     plain = Kinv[0, 1] == 0 and Kinv[1, 0] == 0 and Kinv[2].tolist() == [0.0, 0.0, 1.0]
     if fisheye or not plain or len(k) not in (4, 5, 8, 12, 14) or (len(k) == 14 and np.any(k[12:])):
-        return distort_homogeneous(np.column_stack([u, v, np.ones_like(u)]), K, dist, fisheye)
+        out = distort_homogeneous(np.column_stack([u, v, np.ones_like(u)]), K, dist, fisheye)
+        return np.ascontiguousarray(out[:, 0]), np.ascontiguousarray(out[:, 1])
     x = u * Kinv[0, 0]
     x += Kinv[0, 2]
     y = v * Kinv[1, 1]
     y += Kinv[1, 2]
-    return _project_xy(x, y, K, k)
+    return _project_columns(x, y, K, k.tolist())
 
 
 def _project(
@@ -82,9 +91,16 @@ def _project(
 def _project_xy(
     x: NDArray[np.float64], y: NDArray[np.float64], K: NDArray[np.float64], k: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    """:func:`_project` of normalised coordinates ``x``, ``y`` (N,) (z = 1), its operations in its order
-    (in place where that gives the same value)."""
-    k = k.tolist() + [0.0] * (12 - len(k))
+    """:func:`_project` of normalised coordinates ``x``, ``y`` (N,) (z = 1)."""
+    return np.column_stack(_project_columns(x, y, K, k.tolist()))
+
+
+def _project_columns(
+    x: NDArray[np.float64], y: NDArray[np.float64], K: NDArray[np.float64], coefficients: list[float]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`_project_xy`'s image pixels as two arrays x, y (N,), its operations in OpenCV's order (in
+    place where that gives the same value)."""
+    k = coefficients + [0.0] * (12 - len(coefficients))
     r2 = x * x
     r2 += y * y
     r4 = r2 * r2
@@ -107,12 +123,11 @@ def _project_xy(
     if any(k[8:12]):  # thin prism
         xd = xd + k[8] * r2 + k[9] * r4
         yd = yd + k[10] * r2 + k[11] * r4
-    out = np.empty((len(x), 2))
-    np.multiply(xd, K[0, 0], out=out[:, 0])
-    out[:, 0] += K[0, 2]
-    np.multiply(yd, K[1, 1], out=out[:, 1])
-    out[:, 1] += K[1, 2]
-    return out
+    xd *= K[0, 0]
+    xd += K[0, 2]
+    yd *= K[1, 1]
+    yd += K[1, 2]
+    return xd, yd
 
 
 def bend_px(

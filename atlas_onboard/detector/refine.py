@@ -10,7 +10,6 @@ its corners the same way.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
@@ -27,14 +26,9 @@ from atlas_onboard.detector.corner_noise import (
     side_statistics,
 )
 from atlas_onboard.detector.edge_profile import place_edges
-from atlas_onboard.detector.lens import bend_px, distort_uv
+from atlas_onboard.detector.edge_sampling import STEP_PX, sampling
+from atlas_onboard.detector.lens import bend_px, distort_columns
 
-# Edge points a side: one a pixel over the sampled 70 % of the shortest side (closer ones share pixels, so
-# their errors are not independent), between these bounds (enough for the pixel grid's pattern along an
-# edge to average out; no more than that costs).
-MIN_SAMPLES_PER_SIDE, MAX_SAMPLES_PER_SIDE = 12, 24
-HALF_WIDTH_PX = 3.0  # search this far on each side of the current edge
-STEP_PX = 0.25
 MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
 # The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
 # in undistorted pixels; a refit may rightly move them about that far (with a margin).
@@ -116,61 +110,6 @@ def refine_corners_undistorted(
     return refine_markers_undistorted(gray, [corners_und], K, dist, fisheye, lens_residual_px)[0]
 
 
-@dataclass(frozen=True)
-class _Sampling:
-    """Where one marker's edges are sampled: each side's base points ``bases`` (4, S, 2), from its first
-    corner along it, its outward unit normal (4, 2), the offsets along the normal (4, width) (a side with a
-    shorter search than the longest repeats its outermost offset), their counts and the sides' depths."""
-
-    bases: NDArray[np.float64]
-    normals: NDArray[np.float64]
-    padded: NDArray[np.float64]
-    counts: list[int]
-    depths: list[float]
-
-    @property
-    def samples(self) -> int:
-        return self.bases.shape[1]
-
-
-def _sampling(corners_und: NDArray[np.float64]) -> _Sampling | None:
-    """Where the edges of the marker with undistorted corners ``corners_und`` (4, 2) are sampled; None if
-    a side is too short to fit."""
-    found = sides(corners_und)
-    if found is None:
-        return None
-    offsets, depths = [], []
-    c = corners_und.tolist()
-    for i, (a, _, n) in enumerate(found):
-        # Inside the black border (one cell deep) lie the data cells, outside it one white cell then the
-        # background: search 0.8 of a cell each way, a cell being at least an eighth of the marker's
-        # depth across this edge (8 cells across the black border for tag36h11, 6 for 4x4 ArUco).
-        nx, ny, ax, ay = float(n[0]), float(n[1]), float(a[0]), float(a[1])
-        (x2, y2), (x3, y3) = c[(i + 2) % 4], c[(i + 3) % 4]
-        depth = min(abs(nx * (x2 - ax) + ny * (y2 - ay)), abs(nx * (x3 - ax) + ny * (y3 - ay)))
-        half = min(max(0.1 * depth, 1.0), 2 * HALF_WIDTH_PX)  # np.clip's value
-        offsets.append(np.arange(-half, half + 1e-9, STEP_PX))
-        depths.append(depth)
-    vectors = np.array([d for _, d, _ in found])
-    shortest = min(math.sqrt(float(x) * float(x) + float(y) * float(y)) for x, y in vectors)
-    samples = int(min(max(0.7 * shortest, MIN_SAMPLES_PER_SIDE), MAX_SAMPLES_PER_SIDE))  # np.clip's value
-    ts = _sample_places(samples)
-    bases = corners_und[:, None, :] + ts[None, :, None] * vectors[:, None, :]
-    counts = [len(o) for o in offsets]
-    padded = np.empty((4, max(counts)))
-    for i, o in enumerate(offsets):
-        padded[i, : len(o)], padded[i, len(o) :] = o, o[-1]
-    return _Sampling(bases, np.array([n for _, _, n in found]), padded, counts, depths)
-
-
-@functools.lru_cache(maxsize=32)
-def _sample_places(samples: int) -> NDArray[np.float64]:
-    """Where along a side its edge is sampled (fractions of the side), read-only."""
-    ts = np.linspace(0.15, 0.85, samples)
-    ts.flags.writeable = False
-    return ts
-
-
 def refine_markers_undistorted(
     gray: NDArray[np.uint8],
     corners: list[NDArray[np.float64]],
@@ -180,67 +119,50 @@ def refine_markers_undistorted(
     lens_residual_px: float = 0.0,
 ) -> list[RefinedCorners | None]:
     """:func:`refine_corners_undistorted` of every marker of a frame (undistorted corners (4, 2) each), in
-    one pass: all their sample points through the lens at once, each marker's crop of the image sampled
-    once, every profile's edge placed at once, and the fits' statistics of markers with as many samples a
-    side stacked. Each marker's result is what it gives alone."""
+    one pass: all their sample points laid out and sent through the lens at once, each marker's crop of
+    the image sampled once, every profile's edge placed at once, and the fits' statistics of markers with
+    as many samples a side stacked. Each marker's result is what it gives alone."""
     out: list[RefinedCorners | None] = [None] * len(corners)
-    plans = {i: p for i, c in enumerate(corners) if (p := _sampling(c)) is not None}
-    if not plans:
+    plan = sampling(corners)
+    if plan is None:
         return out
     # Every side's sample points: one projection through the lens for all markers.
-    us, vs = [], []
-    for p in plans.values():
-        offsets = p.padded[:, None, :]
-        us.append((p.bases[:, :, None, 0] + offsets * p.normals[:, None, None, 0]).ravel())
-        vs.append((p.bases[:, :, None, 1] + offsets * p.normals[:, None, None, 1]).ravel())
-    px_all = distort_uv(np.concatenate(us), np.concatenate(vs), K, dist, fisheye)
-    width = max(p.padded.shape[1] for p in plans.values())
-    profs, offs, counts, cells, scales = [], [], [], [], {}
-    start = 0
-    for i, p in plans.items():
-        w = p.padded.shape[1]
-        px = px_all[start : start + 4 * p.samples * w]
-        start += len(px)
-        img, origin = _crop(gray, px)
-        px = (px - origin).astype(np.float32).reshape(4 * p.samples, w, 2)
-        prof = cv2.remap(img, px[..., 0], px[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        padded = p.padded
-        if w < width:  # a profile padded with its outermost sample, as a shorter side's is
-            prof = np.concatenate([prof, np.repeat(prof[:, -1:], width - w, axis=1)], axis=1)
-            padded = np.concatenate([padded, np.repeat(padded[:, -1:], width - w, axis=1)], axis=1)
-        profs.append(prof)
-        offs.append(np.repeat(padded, p.samples, axis=0))
-        counts.append(np.repeat(p.counts, p.samples))
-        cells.append(np.repeat(np.array(p.depths) / 8.0, p.samples))
+    width = plan.offsets.shape[1]
+    u = plan.bases[:, 0, None] + plan.offsets * plan.normals[:, 0, None]
+    v = plan.bases[:, 1, None] + plan.offsets * plan.normals[:, 1, None]
+    xs, ys = (c.reshape(-1, width) for c in distort_columns(u.ravel(), v.ravel(), K, dist, fisheye))
+    profs, scales = [], {}
+    for i, s, start in zip(plan.markers, plan.samples, plan.starts, strict=True):
+        x, y = xs[start : start + 4 * s], ys[start : start + 4 * s]
+        img, (x0, y0) = _crop(gray, x, y)
+        mx, my = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
+        profs.append(cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
         # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
-        step_img = np.linalg.norm(px[:, 1] - px[:, 0], axis=1)
+        dx, dy = mx[:, 1] - mx[:, 0], my[:, 1] - my[:, 0]
+        step_img = np.sqrt(dx * dx + dy * dy)  # np.linalg.norm's value
         scales[i] = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
-    found_all, _, levels_all = place_edges(
-        np.concatenate(profs), np.concatenate(offs), np.concatenate(counts), np.concatenate(cells)
-    )
+    found_all, _, levels_all = place_edges(np.concatenate(profs), plan.offsets, plan.counts, plan.cells)
     # Each marker's edge points (where no edge was placed, NaN), grouped by samples a side for the fits.
-    start = 0
-    whole: dict[int, list[tuple[int, NDArray[np.float64], NDArray[np.float64]]]] = {}
+    points_all = plan.bases + found_all[:, None] * plan.normals
+    keep_all = np.isfinite(found_all)
+    whole: dict[int, list[int]] = {}
     stats: dict[int, SideStatistics] = {}
-    for i, p in plans.items():
-        rows = 4 * p.samples
-        found = found_all[start : start + rows].reshape(4, p.samples)
-        levels = levels_all[start : start + rows].reshape(4, p.samples, 5)
-        start += rows
-        keep = np.isfinite(found)
+    for k, (i, s, start) in enumerate(zip(plan.markers, plan.samples, plan.starts, strict=True)):
+        keep = keep_all[start : start + 4 * s].reshape(4, s)
         kept = np.count_nonzero(keep, axis=1)
-        if kept.min() < p.samples // 2:
+        if kept.min() < s // 2:
             continue
-        points = p.bases + found[:, :, None] * p.normals[:, None, :]
-        if kept.min() == p.samples:
-            whole.setdefault(p.samples, []).append((i, points, levels))
+        if kept.min() == s:
+            whole.setdefault(s, []).append(k)
         else:
-            edges = [q[k] for q, k in zip(points, keep, strict=True)]
-            stats[i] = _side_statistics_each(edges, levels, keep)
-    for group in whole.values():
-        batch = side_statistics(np.array([g[1] for g in group]), np.array([g[2] for g in group]))
-        for k, (i, _, _) in enumerate(group):
-            stats[i] = tuple(x[k] for x in batch)  # type: ignore[assignment]
+            points = points_all[start : start + 4 * s].reshape(4, s, 2)
+            levels = levels_all[start : start + 4 * s].reshape(4, s, 5)
+            stats[i] = _side_statistics_each([q[m] for q, m in zip(points, keep, strict=True)], levels, keep)
+    for s, group in whole.items():
+        rows = np.concatenate([np.arange(plan.starts[k], plan.starts[k] + 4 * s) for k in group])
+        batch = side_statistics(points_all[rows].reshape(-1, 4, s, 2), levels_all[rows].reshape(-1, 4, s, 5))
+        for j, k in enumerate(group):
+            stats[plan.markers[k]] = tuple(x[j] for x in batch)  # type: ignore[assignment]
     ids = sorted(stats)
     if ids:
         shifts = np.array([scales[i] * lens_residual_px for i in ids])
@@ -342,19 +264,20 @@ def _principal_axes(
     return out
 
 
-def _crop(gray: NDArray[np.uint8], px: NDArray[np.float64]) -> tuple[NDArray[np.float32], NDArray[np.float64]]:
-    """The part of ``gray`` that bilinear sampling at ``px`` (N, 2) reads, as float32, and its top-left
-    corner (x, y): sampling it at ``px - corner`` gives what sampling the whole image gives (a sample
-    beyond the crop's edge is beyond the image's there, where both replicate the border)."""
+def _crop(
+    gray: NDArray[np.uint8], x: NDArray[np.float64], y: NDArray[np.float64]
+) -> tuple[NDArray[np.float32], tuple[float, float]]:
+    """The part of ``gray`` that bilinear sampling at the points ``x``, ``y`` reads, as float32, and its
+    top-left corner (x, y): sampling it at the points less the corner gives what sampling the whole image
+    gives (a sample beyond the crop's edge is beyond the image's there, where both replicate the border)."""
     h, w = gray.shape[:2]
-    # Per column (a reduction along axis 0 of an (N, 2) array is many times slower), in python floats: a
-    # NaN bound counts as 0, an infinite one is clipped to the image.
-    lo = [float(px[:, i].min()) for i in (0, 1)]
-    hi = [float(px[:, i].max()) for i in (0, 1)]
+    # In python floats: a NaN bound counts as 0, an infinite one is clipped to the image.
+    lo = [float(x.min()), float(y.min())]
+    hi = [float(x.max()), float(y.max())]
     lo, hi = ([0.0 if math.isnan(v) else min(max(v, -8.0), 8.0 + max(w, h)) for v in b] for b in (lo, hi))
     x0, y0 = min(max(math.floor(lo[0]) - 2, 0), w - 1), min(max(math.floor(lo[1]) - 2, 0), h - 1)
     x1, y1 = min(max(math.ceil(hi[0]) + 3, x0 + 1), w), min(max(math.ceil(hi[1]) + 3, y0 + 1), h)
-    return gray[y0:y1, x0:x1].astype(np.float32), np.array([x0, y0], dtype=float)
+    return gray[y0:y1, x0:x1].astype(np.float32), (float(x0), float(y0))
 
 
 def _corner_covariance(

@@ -83,7 +83,7 @@ class CameraDetectorSpec:
         detector = Detector(self.sensor, self.world, self.calibration, decimate=self.decimate)
         if self.refine is None:
             return detector
-        from atlas_onboard.node_refine import sampled
+        from atlas_onboard.node.refine import sampled
 
         return sampled(detector, self.world, self.refine)  # type: ignore[return-value]
 

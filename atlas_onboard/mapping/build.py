@@ -33,40 +33,21 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import WORLD, WorldConfig
 from atlas_onboard.mapping import ba
-
-# The steps live in modules of their own; their names are re-exported here.
-from atlas_onboard.mapping.checks import (  # noqa: F401
-    DUPLICATE_MIN_M,
-    MIN_CHECK_FRAMES,
-    MIN_GROUP,
-    MISFIT_PX,
-    MOVE_MIN_M,
-    MOVE_Z,
-    SIZE_GAIN,
-    SIZE_MIN_REL,
-    SIZE_Z,
-    SPLIT_GAIN,
+from atlas_onboard.mapping.checks import (
     _check_marker,
-    _MarkerFit,
 )
-from atlas_onboard.mapping.geometry import (  # noqa: F401
+from atlas_onboard.mapping.geometry import (
     _components,
     _Geometry,
     _initialise,
     _inv,
     _pose,
-    _reproj,
-    _robust_pose_mean,
 )
-from atlas_onboard.mapping.observations import (  # noqa: F401
-    FrameInfo,
+from atlas_onboard.mapping.observations import (
     MapError,
     Observations,
-    _input_frames,
-    collect,
 )
-from atlas_onboard.mapping.report import (  # noqa: F401
-    MAX_LAG_FRAMES,
+from atlas_onboard.mapping.report import (
     MapResult,
     MarkerReport,
     _correlation_inflation,

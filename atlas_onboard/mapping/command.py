@@ -26,7 +26,8 @@ from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.fsio import write_atomic
 from atlas_onboard.mapping import motion
-from atlas_onboard.mapping.build import MapOptions, MapResult, build_map, collect
+from atlas_onboard.mapping.build import MapOptions, MapResult, build_map
+from atlas_onboard.mapping.observations import collect
 from atlas_onboard.mapping.report import MarkerReport
 
 PLACEHOLDER = "__atlas_mapped_markers__"

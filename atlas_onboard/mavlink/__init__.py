@@ -18,7 +18,7 @@ The only package that imports pymavlink. Its layers, bottom up:
 - :mod:`~atlas_onboard.mavlink.link`: ``Link``, one connection with reconnects and counters, read by
   ``poll(timeout_s)`` or by its own thread (``start(handler)``).
 - :mod:`~atlas_onboard.mavlink.transport`: ``MavlinkTransport``, the node's autopilot and peer links
-  (implements ``atlas_onboard.node.Transport``): frames, checks and delivers peer observations as
-  ``schedule.Inbound`` items, decoded when the node takes them; it holds an ``AutopilotLink``
+  (implements ``atlas_onboard.node.ports.Transport``): frames, checks and delivers peer observations as
+  ``core.records.Inbound`` items, decoded when the node takes them; it holds an ``AutopilotLink``
   (:mod:`~atlas_onboard.mavlink.autopilot_link`: HEARTBEAT, TIMESYNC, EKF origin, attitude, the pose sent).
 """

@@ -32,34 +32,9 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
-
-# The covariance and quality of a pose live in a module of their own; their names are re-exported here.
-from atlas_onboard.mavlink.covariance import (  # noqa: F401
-    _COLS,
-    _DIAG,
-    _FLOORS,
-    _J_NED_FRD_ENU_FLU,
-    _M_FRD_FLU,
-    _M_NED_ENU,
-    _PERM,
-    _ROWS,
-    _SIGN,
-    _TRI_DIAG,
-    _TRI_FROM_ENU,
-    _TRI_FROM_ENU_T,
-    _TRI_SIGN,
-    COVARIANCE_DIAGONAL,
-    MIN_SIGMA_M,
-    MIN_SIGMA_RAD,
+from atlas_onboard.mavlink.covariance import (
     _covariance_21,
     _finite,
-    _signed_permutation,
-    attitude_sigma_rad,
-    covariance_21_from_enu_flu,
-    covariance_from_sigma,
-    covariance_ned_frd,
-    covariance_upper_triangle,
-    quality_from_covariance,
     quality_percent,
 )
 

@@ -20,12 +20,12 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
+from atlas_onboard.core.records import AutopilotPose
 from atlas_onboard.core.shutter import BodyRate, RateHistory
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.link import Link
-from atlas_onboard.publisher import AutopilotPose
 
 _logger = logging.getLogger(__name__)
 
@@ -149,6 +149,11 @@ class AutopilotLink:
         self.link.send(msg)
         if speed is not None:
             self.link.send(speed)  # the EKF velocity, for ArduPilot (EK3_SRC1_VELXY=6); PX4 ignores it
+
+    def send_landing_target(self, fields: dict[str, Any]) -> None:
+        """LANDING_TARGET (#149) to the autopilot, addressed to its system."""
+        if self.link is not None:
+            self.link.send(self.link.dialect.MAVLink_landing_target_message(**fields))
 
     def _attitude_tick(self, now_ns: int) -> None:
         """Ask the autopilot for ATTITUDE (MAV_CMD_SET_MESSAGE_INTERVAL) when none came for
@@ -279,8 +284,9 @@ class AutopilotLink:
                 if msg.tc1 == 0:
                     self.counters.inc("timesync_not_from_autopilot")
                 return
-            target = getattr(msg, "target_system", 0)
-            reply = autopilot.timesync_reply(msg.tc1, msg.ts1, wall_ns(self.wall), requester, link.system_id, target)
+            reply = autopilot.timesync_reply(
+                msg.tc1, msg.ts1, wall_ns(self.wall), requester, link.system_id, msg.target_system
+            )
             if reply is not None:
                 link.send(link.dialect.MAVLink_timesync_message(**reply))
         elif kind in ("ATTITUDE", "ATTITUDE_QUATERNION"):

@@ -20,6 +20,14 @@ from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.rejection import Rejection
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot
+from atlas_onboard.mavlink.covariance import (
+    MIN_SIGMA_M,
+    covariance_21_from_enu_flu,
+    covariance_from_sigma,
+    covariance_upper_triangle,
+    quality_from_covariance,
+    quality_percent,
+)
 
 FORMAT_VERSION = 1
 TUNNEL_PAYLOAD_OBSERVATION = 43100
@@ -126,8 +134,8 @@ def decode_observation(msg: Any, origin: int, fingerprint: int, check: bool = Fa
             seq=int(msg.seq),
             p_sensor_marker_alt_m=(float(msg.x_alt), float(msg.y_alt), float(msg.z_alt)),
             q_sensor_marker_alt_wxyz=q_alt,  # type: ignore[arg-type]
-            frame_remaining=int(getattr(msg, "frame_remaining", 0) or 0),
-            covariance=_covariance(getattr(msg, "covariance", None)),
+            frame_remaining=int(msg.frame_remaining or 0),
+            covariance=_covariance(msg.covariance),
         )
     except (TypeError, ValueError, AttributeError):
         raise RejectionError(Rejection.MALFORMED) from None
@@ -158,6 +166,7 @@ class _TunnelFields:
     seq: int
     format_version: int
     frame_remaining: int = 0
+    covariance: tuple[float, ...] | None = None  # the TUNNEL form carries none
 
 
 def tunnel_payload(md: MarkerData, fingerprint: int) -> bytes:
@@ -233,11 +242,9 @@ def encode_fused(dialect: ModuleType, pose: EntityPose, entity_index: int, frame
 
 
 # --- external vision for the autopilot ----------------------------------------------------------------
-# Thin wrappers over the pure field functions of :mod:`atlas_onboard.mavlink.autopilot`, for the node's
-# EntityPose (position and x-first quaternion arrays: the hot path converts with 3x3 products).
-
-attitude_sigma_rad = autopilot.attitude_sigma_rad
-quality_percent = autopilot.quality_percent
+# Thin wrappers over the pure field functions of :mod:`atlas_onboard.mavlink.autopilot` and
+# :mod:`atlas_onboard.mavlink.covariance`, for the node's EntityPose (position and x-first quaternion
+# arrays: the hot path converts with 3x3 products).
 
 
 def pose_covariance(sigma_m: float, sigma_att_rad: float | None = None) -> list[float]:
@@ -247,8 +254,8 @@ def pose_covariance(sigma_m: float, sigma_att_rad: float | None = None) -> list[
     take NaN as "unknown", and both would then ignore the honest uncertainty. A sigma of 0 is sent as
     the floor (0.1 mm); a non-finite or negative sigma raises AtlasError.
     """
-    sigma = max(sigma_m, autopilot.MIN_SIGMA_M) if math.isfinite(sigma_m) and sigma_m >= 0.0 else sigma_m
-    return autopilot.covariance_upper_triangle(autopilot.covariance_from_sigma(sigma, sigma_att_rad))
+    sigma = max(sigma_m, MIN_SIGMA_M) if math.isfinite(sigma_m) and sigma_m >= 0.0 else sigma_m
+    return covariance_upper_triangle(covariance_from_sigma(sigma, sigma_att_rad))
 
 
 def ned_pose(pose: EntityPose) -> tuple[np.ndarray, Rotation]:
@@ -259,7 +266,7 @@ def ned_pose(pose: EntityPose) -> tuple[np.ndarray, Rotation]:
 def _pose_covariance_21(pose: EntityPose) -> list[float]:
     """The propagated 6x6 covariance when the pose has one, else the diagonal from its sigma."""
     if pose.covariance is not None:
-        return autopilot.covariance_21_from_enu_flu(pose.covariance)
+        return covariance_21_from_enu_flu(pose.covariance)
     return pose_covariance(pose.sigma_m)
 
 
@@ -278,7 +285,7 @@ def odometry_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:
     p_ned, R_ned_frd = ned_pose(pose)
     cov = _pose_covariance_21(pose)
     # quality from the covariance's worst position axis when the pose has one (EKF2_EV_QMIN reads it)
-    quality = autopilot.quality_from_covariance(pose.covariance) if pose.covariance is not None else None
+    quality = quality_from_covariance(pose.covariance) if pose.covariance is not None else None
     if not quality:
         quality = quality_percent(pose.sigma_m)
     fields = autopilot.odometry_from_ned(p_ned, R_ned_frd, pose.capture_time_us, reset_counter, cov, quality)
@@ -296,7 +303,7 @@ def odometry_fields(pose: EntityPose, reset_counter: int) -> dict[str, Any]:
                 J[0:3, 0:3] = J_v
                 J[3:6, 3:6] = np.diag(_FLU_TO_FRD)
                 C = J @ pose.velocity_covariance @ J.T
-                cov = autopilot.covariance_upper_triangle(0.5 * (C + C.T))
+                cov = covariance_upper_triangle(0.5 * (C + C.T))
                 if rates is None:  # rates unknown: their variances NaN, their cross terms 0
                     cov = [
                         math.nan if i in (15, 18, 20) else (0.0 if _ROW[i] >= 3 or _COL[i] >= 3 else v)

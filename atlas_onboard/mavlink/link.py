@@ -13,7 +13,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import logging
-import socket
 import threading
 import time
 from collections import Counter as Tally
@@ -27,8 +26,9 @@ from atlas_onboard.config import LinkConfig
 from atlas_onboard.core.rejection import Rejection
 from atlas_onboard.counters import Counters
 from atlas_onboard.mavlink import dialect, framing
+from atlas_onboard.mavlink.connect import connect, size_receive_buffer
 from atlas_onboard.mavlink.signing import LinkSigning
-from atlas_onboard.mavlink.udp import RCVBUF_BYTES, UdpEndpoint, parse_datagram, udp_socket_drops
+from atlas_onboard.mavlink.udp import UdpEndpoint, parse_datagram, udp_socket_drops
 
 _logger = logging.getLogger(__name__)
 
@@ -39,11 +39,6 @@ MAX_HOLD_S = 0.02  # a reader held by the node waits no longer than this
 MAX_DATAGRAM_BYTES = 1400  # several messages in one UDP datagram, below a network's MTU
 Handler = Callable[["Link", Any, int], None]
 OriginCheck = Callable[[Any], bool]
-
-
-def is_serial(url: str) -> bool:
-    """Any absolute device path (``/dev/ttyAMA0,921600``, ``/dev/serial/by-id/...``) or ``COMn`` is serial."""
-    return url.startswith(("/", "COM"))
 
 
 class Link:
@@ -119,26 +114,12 @@ class Link:
     def open(self) -> None:
         """Open the connection now (raises what pymavlink raises: a missing device, a refused TCP connect)."""
         url = self.config.url
-        kwargs: dict[str, Any] = {"source_system": self.system_id, "source_component": self.component_id}
-        if is_serial(url):
-            device, _, baud = url.partition(",")
-            conn = mavutil.mavlink_connection(device, baud=int(baud or 57600), **kwargs)
-        elif url.startswith("tcp:"):
-            conn = mavutil.mavlink_connection(url, retries=0, **kwargs)  # one attempt: we do the backoff
-            framing.raise_on_close(conn)
-        else:
-            conn = mavutil.mavlink_connection(url, **kwargs)
-        # Our dialect (common.xml plus the atlas messages) on this connection only.
-        conn.mav = framing.parser(self.dialect, conn, self.system_id, self.component_id, self._deferred_ids)
-        # Our dialect speaks MAVLink 2 only; without this, mavutil's protocol auto-switch would replace
-        # conn.mav with its global dialect on the first MAVLink 2 byte.
-        conn.WIRE_PROTOCOL_VERSION = "2.0"
-        conn.first_byte = False
+        conn = connect(url, self.dialect, self.system_id, self.component_id, self._deferred_ids)
         if self.signing is not None:
             self.signing.setup(conn)
         udp = None
         if isinstance(conn, mavutil.mavudp):
-            self._size_receive_buffer(conn.port)
+            size_receive_buffer(conn.port, self.name, url, say=not self._opened_before)
             udp = UdpEndpoint(conn, self.counters)
         with self._send_lock:
             self._conn, self._udp = conn, udp
@@ -148,17 +129,6 @@ class Link:
             self.counters.inc("reconnects")
             _logger.info("%s: link %s open again", self.name, url)
         self._opened_before = True
-
-    def _size_receive_buffer(self, sock: socket.socket) -> None:
-        """Ask for RCVBUF_BYTES; log what the kernel gave (Linux reports twice the usable size)."""
-        try:
-            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RCVBUF_BYTES)
-            got = sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF)
-        except OSError as exc:
-            _logger.warning("%s: cannot size the receive buffer of %s: %s", self.name, self.config.url, exc.strerror)
-            return
-        if not self._opened_before:
-            _logger.info("%s: %s receive buffer %d bytes (asked %d)", self.name, self.config.url, got, RCVBUF_BYTES)
 
     def save_timestamp(self) -> None:
         """Persist the signing timestamp (see :meth:`LinkSigning.save`)."""
@@ -273,7 +243,7 @@ class Link:
         """Count and drop what must not go further; True for a message to hand on."""
         kind = msg.get_type()
         if kind == "BAD_DATA":
-            reason = str(getattr(msg, "reason", ""))
+            reason = str(msg.reason)
             self.counters.inc(Rejection.BAD_SIGNATURE if "signature" in reason else Rejection.BAD_DATA)
             return False
         if type(msg).__name__ == "MAVLink_unknown" or kind.startswith("UNKNOWN"):

@@ -134,7 +134,8 @@ class LinkSigning:
             bad_signature, self._bad_signature = self._bad_signature, False
             if not signing.require and not bad_signature:
                 return True
-            if getattr(self.dialect.mavlink_map.get(msg_id), "msgname", "") in PROTECTED:
+            kind = self.dialect.mavlink_map.get(msg_id)  # the generated class; None for an unknown id
+            if kind is not None and kind.msgname in PROTECTED:
                 self.counters.inc(Rejection.UNSIGNED_OR_BAD_SIGNATURE)
                 return False
             return True

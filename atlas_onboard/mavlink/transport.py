@@ -18,26 +18,17 @@ from atlas_onboard.config import AutopilotConfig, NodeConfig, WorldConfig, defau
 from atlas_onboard.core.attitude import AttitudeHistory
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.records import AutopilotPose, Inbound, PoseState, Telemetry
 from atlas_onboard.core.rejection import Rejection
 from atlas_onboard.core.shutter import BodyRate
 from atlas_onboard.counters import Counters
 from atlas_onboard.mavlink import autopilot, codec, framing
-from atlas_onboard.mavlink.autopilot_link import (  # noqa: F401 (were defined here)
-    ATTITUDE_ASKS,
-    ATTITUDE_INTERVAL_US,
-    ATTITUDE_WAIT_NS,
-    MAV_AUTOPILOT_INVALID,
-    MAV_AUTOPILOT_PX4,
-    MAV_COMP_ID_AUTOPILOT1,
-    ORIGIN_REQUEST_NS,
-    ORIGIN_UNANSWERED,
+from atlas_onboard.mavlink.autopilot_link import (
     AutopilotLink,
     wall_ns,
 )
 from atlas_onboard.mavlink.gate import OriginBinding, PeerGate, ReportLimiter, TokenBucket
 from atlas_onboard.mavlink.link import Link
-from atlas_onboard.publisher import AutopilotPose, PoseState, Telemetry
-from atlas_onboard.schedule import Inbound
 
 _logger = logging.getLogger(__name__)
 
@@ -51,7 +42,7 @@ REPORT_EVERY_S = 10.0  # a STATUSTEXT or a warning of one reason goes out at mos
 
 
 class MavlinkTransport:
-    """Implements :class:`atlas_onboard.node.Transport` over pymavlink links."""
+    """Implements :class:`atlas_onboard.node.ports.Transport` over pymavlink links."""
 
     def __init__(self, world: WorldConfig, config: NodeConfig, wall_clock: Callable[[], float] = time.time) -> None:
         self.world = world
@@ -130,6 +121,10 @@ class MavlinkTransport:
     def send_autopilot(self, pose: AutopilotPose) -> None:
         """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity (see :meth:`AutopilotLink.send_autopilot`)."""
         self.autopilot_link.send_autopilot(pose)
+
+    def send_landing_target(self, fields: dict[str, Any]) -> None:
+        """LANDING_TARGET to the autopilot (fields of :mod:`atlas_onboard.mavlink.landing`)."""
+        self.autopilot_link.send_landing_target(fields)
 
     def attitude_at(self, t_us: int) -> Rotation | None:
         """The autopilot's attitude at ``t_us`` (see :meth:`AutopilotLink.attitude_at`)."""

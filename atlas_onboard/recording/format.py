@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.calibration import Calibration, CalibrationError, write_opencv
 from atlas_onboard.detector.calibration import load as load_calibration
-from atlas_onboard.errors import AtlasError
+from atlas_onboard.errors import AtlasError, read_failure
 
 _logger = logging.getLogger(__name__)
 
@@ -293,9 +293,7 @@ def read_info(path: Path) -> RecordingInfo:
     try:
         meta = json.loads((path / META).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError) as exc:
-        raise RecordingError(
-            f"{path}: not a readable recording ({META}: {getattr(exc, 'strerror', None) or exc})"
-        ) from None
+        raise RecordingError(f"{path}: not a readable recording ({META}: {read_failure(exc)})") from None
     except json.JSONDecodeError:
         raise RecordingError(f"{path}: {META} is not valid JSON") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
@@ -329,7 +327,7 @@ def read_frames(path: Path, with_images: bool = True) -> Iterator[RecordedFrame]
     try:
         lines = (path / INDEX).read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as exc:
-        raise RecordingError(f"{path}: cannot read {INDEX}: {getattr(exc, 'strerror', None) or exc}") from None
+        raise RecordingError(f"{path}: cannot read {INDEX}: {read_failure(exc)}") from None
     for n, line in enumerate(lines, start=1):
         if not line.strip():
             continue

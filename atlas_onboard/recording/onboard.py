@@ -14,6 +14,7 @@ import logging
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Protocol
 
 from atlas_onboard.config import RecordConfig, WorldConfig
 from atlas_onboard.recording.format import BackgroundRecorder, RecordingError, RecordingWriter, disk_free_bytes
@@ -64,8 +65,12 @@ def _existing_parent(path: Path) -> Path:
     return Path("/")
 
 
+class _Camera(Protocol):
+    name: str  # a node's camera (one with a ``recorder`` attribute can be recorded)
+
+
 def start(
-    cameras: Sequence[object],
+    cameras: Sequence[_Camera],
     world: WorldConfig,
     entity: str,
     record: RecordConfig,
@@ -77,7 +82,7 @@ def start(
     recordable = [c for c in cameras if hasattr(c, "recorder")]
     for c in cameras:
         if not hasattr(c, "recorder"):
-            _logger.warning("camera %s: this kind of camera cannot be recorded", getattr(c, "name", "?"))
+            _logger.warning("camera %s: this kind of camera cannot be recorded", c.name)
     if not recordable:
         return []
     left, why = budget_bytes(record)

@@ -37,6 +37,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
@@ -44,11 +45,12 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core import frames
 from atlas_onboard.sim.gyro import Gyro, GyroNoise
+from atlas_onboard.sim.lander import Lander
 
 _logger = logging.getLogger(__name__)
 
 # Linux's SO_TIMESTAMPNS (also the ancillary message type, SCM_TIMESTAMPNS); Python does not name it.
-_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35 if sys.platform.startswith("linux") else None)
+_SO_TIMESTAMPNS = 35 if sys.platform.startswith("linux") else None
 
 
 @contextlib.contextmanager
@@ -121,6 +123,7 @@ class SimAutopilot:
     timesync_replies: list[tuple[int, int, int, int]] = field(default_factory=list)  # tc1, ts1, target sys, comp
     other: dict[str, int] = field(default_factory=dict)
     statustexts: list[bytes] = field(default_factory=list)
+    statustext_poses: list[int] = field(default_factory=list)  # vision poses received before each STATUSTEXT
     last: dict[str, object] = field(default_factory=dict)  # the last message of each other kind
     origin: tuple[float, float, float] | None = None  # the EKF origin (lat deg, lon deg, alt m)
     px4_origin_alt_m: float = 0.0  # PX4's origin altitude (NaN: none yet); 0 once height is set on vision
@@ -144,6 +147,10 @@ class SimAutopilot:
     local_position_hz: float = 0.0
     param_requests: int = 0
     timesync_hz: float = 0.0  # TIMESYNC requests sent (PX4 sends them at 10 Hz in the Onboard stream set)
+    # LANDING_TARGET received (arrival, fields); with a lander, the vehicle flies on them (sim/lander.py),
+    # knowing its own position from the last vision pose received.
+    landing_targets: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
+    lander: Lander | None = None
 
     def __post_init__(self) -> None:
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM if self.tcp else socket.SOCK_DGRAM)
@@ -251,6 +258,8 @@ class SimAutopilot:
                 )
             if self.attitude is not None:
                 self._attitude_tick()
+            if self.lander is not None:
+                self.lander.tick(time.time(), self._own_position_enu())
             if self.local_position_hz > 0:
                 self._local_position_tick(now)
             if self.timesync_hz > 0 and now >= self._next_timesync_s:
@@ -318,6 +327,12 @@ class SimAutopilot:
             # payload (after tc1 and ts1; MAVLink 2 trims trailing zero bytes).
             payload = bytes(msg.get_msgbuf()[10 : 10 + msg.get_msgbuf()[1]]).ljust(18, b"\0")
             self.timesync_replies.append((msg.tc1, msg.ts1, payload[16], payload[17]))
+        elif kind == "LANDING_TARGET":
+            fields = msg.to_dict()
+            with self._lock:
+                self.landing_targets.append((arrival, fields))
+            if self.lander is not None:
+                self.lander.on_target(fields, arrival, self._own_position_enu())
         elif kind in ("VISION_POSITION_ESTIMATE", "ODOMETRY"):
             rec = Received.of(msg, arrival)
             with self._lock:
@@ -339,6 +354,14 @@ class SimAutopilot:
             if kind == "STATUSTEXT":
                 text = msg.text
                 self.statustexts.append(text.encode() if isinstance(text, str) else bytes(text))
+                with self._lock:
+                    self.statustext_poses.append(len(self.received))
+
+    def _own_position_enu(self) -> np.ndarray:
+        """The vehicle's own position as its EKF has it from vision: the last pose received (NED -> ENU)."""
+        with self._lock:
+            last = self.received[-1] if self.received else None
+        return np.zeros(3) if last is None else frames.R_ENU_NED.apply(np.asarray(last.xyz_m, dtype=float))
 
     def _answer_param(self, msg: mavlink.MAVLink_message) -> None:
         name = msg.param_id if isinstance(msg.param_id, str) else msg.param_id.decode(errors="replace")

@@ -28,7 +28,7 @@ from atlas_onboard.core import frames, geometry
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import demo
 from atlas_onboard.sim import trajectories as tj
-from atlas_onboard.sim.scenarios import Scenario
+from atlas_onboard.sim.scenario import Scenario
 
 MISTAKES = ("mount90", "flu_as_frd", "ned_as_enu")
 BENCH_POSITION_M = (0.03, -0.02, 0.9)  # ENU, above the tags

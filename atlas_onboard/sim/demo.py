@@ -25,10 +25,11 @@ from atlas_onboard.config import load_world
 from atlas_onboard.core import geometry
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import trajectories as tj
-from atlas_onboard.sim.scenarios import Optics, Scenario
+from atlas_onboard.sim.lander import Lander, LanderSettings
+from atlas_onboard.sim.scenario import Optics, Scenario
 
 if TYPE_CHECKING:
-    from atlas_onboard.sim.autopilot import Received
+    from atlas_onboard.sim.autopilot import Received, SimAutopilot
 
 ENTITY = "drone"
 SENSOR = "down"
@@ -247,12 +248,24 @@ def run_sim_autopilot(
             records = autopilot.snapshot()
             heartbeats = sum(autopilot.heartbeats_from.values())
             print(autopilot_line(k, records[seen:], heartbeats - heartbeats_seen), file=out)
+            if autopilot.lander is not None:
+                print(landing_line(autopilot), file=out)
             out.flush()
             seen, heartbeats_seen = len(records), heartbeats
             k += 1
     finally:
         autopilot.stop()
     return 0
+
+
+def landing_line(autopilot: SimAutopilot) -> str:
+    """What the simulated vehicle makes of the LANDING_TARGETs received: how many, its phase, the target."""
+    lander = autopilot.lander
+    if lander is None:
+        return ""
+    where = "none" if lander.target_m is None else "ENU ({:.3f}, {:.3f}, {:.3f}) m".format(*lander.target_m)
+    return (f"  landing: {len(autopilot.landing_targets)} LANDING_TARGET ({lander.refused} in another form),"
+            f" {lander.phase.value}, target {where}, vehicle at {lander.p_m[2]:.2f} m")  # fmt: skip
 
 
 def _cmd_sim_autopilot(args: argparse.Namespace) -> int:
@@ -303,6 +316,10 @@ def add_autopilot_options(p: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     p.add_argument("--timesync-hz", type=float, default=0.0, help="send TIMESYNC requests at this rate (PX4: 10 Hz)")
     p.add_argument(
+        "--land", action="store_true",
+        help="fly on LANDING_TARGET (in --autopilot's form) as a simulated vehicle and print what it does",
+    )  # fmt: skip
+    p.add_argument(
         "--local-position-hz", type=float, default=0.0,
         help="stream LOCAL_POSITION_NED (the last vision position received) at this rate",
     )  # fmt: skip
@@ -323,6 +340,8 @@ def autopilot_settings(args: argparse.Namespace) -> dict[str, Any]:
         "timesync_hz": args.timesync_hz,
         "autopilot_type": MAV_AUTOPILOT_PX4 if args.autopilot == "px4" else MAV_AUTOPILOT_ARDUPILOTMEGA,
     }
+    if args.land:
+        out["lander"] = Lander(LanderSettings(args.autopilot), np.zeros(3))
     if args.attitude_rpy_deg is not None:
         R = geometry.rotation_from_rpy_deg(args.attitude_rpy_deg)
         out["attitude"] = lambda _t: R

@@ -16,8 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.node_output import _make_ekf
+from atlas_onboard.listener import Listener
+from atlas_onboard.node.output import make_ekf
+from atlas_onboard.node.setup import make_graph
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.world import SimWorld
 
@@ -68,7 +69,7 @@ def run(
     events.sort(key=lambda e: e[0])
     graph = make_graph(world, follower)
     listener = Listener(world, graph)
-    ekf = _make_ekf(world)  # with ``filter: ekf``, the follower's pose as the node publishes it
+    ekf = make_ekf(world)  # with ``filter: ekf``, the follower's pose as the node publishes it
     last, caps, errs, covs = -1, [], [], []
     for arrival, mds in events:
         now = round(arrival * 1e9)

@@ -17,7 +17,8 @@ from collections.abc import Sequence
 
 from atlas_onboard import cli
 from atlas_onboard.service_run import register_camera_kind
-from atlas_onboard.sim.sources import SIM_KIND, sim_camera
+from atlas_onboard.sim.scenario import SIM_KIND
+from atlas_onboard.sim.sources import sim_camera
 
 
 def die_with_parent() -> None:

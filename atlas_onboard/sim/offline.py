@@ -25,10 +25,11 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import FusionConfig, WorldConfig
 from atlas_onboard.core.markerdata import upper_to_matrix
-from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.mavlink.autopilot import covariance_21_from_enu_flu
+from atlas_onboard.listener import Listener
+from atlas_onboard.mavlink.covariance import covariance_21_from_enu_flu
+from atlas_onboard.node.setup import make_graph
 from atlas_onboard.sim import scenarios
-from atlas_onboard.sim.world import SimWorld
+from atlas_onboard.sim.world import SimWorld, fresh_share
 
 
 @dataclass
@@ -38,13 +39,23 @@ class StageErrors:
     errors: list[NDArray[np.float64]] = field(default_factory=list)
     covariances: list[NDArray[np.float64]] = field(default_factory=list)
     not_positive_definite: int = 0
+    times_s: list[float] = field(default_factory=list)  # each estimate's capture time
 
-    def add(self, e: NDArray[np.float64], C: NDArray[np.float64]) -> None:
+    def add(self, e: NDArray[np.float64], C: NDArray[np.float64], t_s: float = float("nan")) -> None:
         if np.linalg.eigvalsh(C).min() <= 0.0:
             self.not_positive_definite += 1
             return
         self.errors.append(np.asarray(e, dtype=float))
         self.covariances.append(np.asarray(C, dtype=float))
+        self.times_s.append(t_s)
+
+    def availability(self, t0_s: float, t1_s: float) -> float:
+        """The share of [t0, t1] at which the newest estimate was fresh (:func:`fresh_share`), each
+        estimate published at its capture time: what the fusion gives before any load delays it."""
+        return fresh_share(np.array(self.times_s), t0_s, t1_s)
+
+    def attitude_rmse_deg(self) -> float:
+        return float(np.degrees(np.sqrt(np.mean([e[3:] @ e[3:] for e in self.errors]))))
 
     def nees(self, dims: slice = slice(0, 6)) -> NDArray[np.float64]:
         """NEES of every estimate over the error components ``dims``."""
@@ -153,5 +164,5 @@ def run_fusions(
                 continue  # not seen in this frame: nothing new to send
             T = truth[drone]
             e = pose_error(est.p_world_m, Rotation.from_quat(est.q_world_xyzw), T.translation, T.rotation)
-            outputs[key][drone].add(_J_ENU_NED @ e, published_covariance(est.covariance))
+            outputs[key][drone].add(_J_ENU_NED @ e, published_covariance(est.covariance), t)
     return detections, outputs

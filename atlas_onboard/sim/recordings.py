@@ -12,10 +12,11 @@ from atlas_onboard.config import load_world
 from atlas_onboard.recording.format import RecordingWriter
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.camera import frames_path, prerender
+from atlas_onboard.sim.scenario import Scenario
 from atlas_onboard.sim.world import SimWorld
 
 
-def world_doc(scenario: scenarios.Scenario) -> dict:
+def world_doc(scenario: Scenario) -> dict:
     return yaml.safe_load(scenario.world_path().read_text(encoding="utf-8"))
 
 

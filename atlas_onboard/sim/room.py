@@ -28,7 +28,7 @@ from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import SensorConfig, WorldConfig
 from atlas_onboard.detector.render import Camera, MarkerView, concrete_texture, draw_marker, prepare
-from atlas_onboard.sim.scenarios import Room
+from atlas_onboard.sim.scenario import Room
 
 FLOW_STEP_PX = 8  # image motion is smooth: computed on every 8th pixel, interpolated between
 TEXTURE_BLUR_TEXELS = 1.0  # the textures' low-pass (Gaussian sigma): a pixel sees 2-4 texels of floor

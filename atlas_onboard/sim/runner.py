@@ -41,9 +41,10 @@ from atlas_onboard.detector.render import LENS_RESIDUAL_PX
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot, recording
-from atlas_onboard.sim.camera import frames_path, prerender
+from atlas_onboard.sim.camera import frames_path, prerender, replay_folder
+from atlas_onboard.sim.context import SIM_ENV
 from atlas_onboard.sim.hub import Hub
-from atlas_onboard.sim.sources import SIM_ENV, SIM_KIND
+from atlas_onboard.sim.scenario import SIM_KIND, Scenario
 from atlas_onboard.sim.world import Intrinsics, SimWorld
 
 _logger = logging.getLogger(__name__)
@@ -83,7 +84,7 @@ class SimOptions:
 class SimRun:
     """What a finished run leaves for scoring: records with times relative to the epoch."""
 
-    scenario: scenarios.Scenario
+    scenario: Scenario
     world: SimWorld
     epoch_s: float
     duration_s: float
@@ -114,7 +115,7 @@ def write_calibration(path: Path, intr: Intrinsics) -> None:
 
 
 def build_run_config(
-    scenario: scenarios.Scenario,
+    scenario: Scenario,
     run_dir: Path,
     hub_port: int,
     autopilot_ports: dict[str, int],
@@ -178,9 +179,7 @@ _FRAME_CACHE: dict[tuple[str, str, int], tuple[Path, float, int]] = {}
 FRAME_CACHE_BYTES = 1_500_000_000
 
 
-def _rendered_frames(
-    scenario: scenarios.Scenario, seed: int, duration_s: float, say: Callable[[str], None]
-) -> Path | None:
+def _rendered_frames(scenario: Scenario, seed: int, duration_s: float, say: Callable[[str], None]) -> Path | None:
     """A directory with every camera's frames for the run (:func:`prerender`), or None without cameras."""
     world_path = scenario.world_path()
     key = (scenario.name, hashlib.sha256(world_path.read_bytes()).hexdigest(), seed)
@@ -214,12 +213,7 @@ def _drop_frame_cache() -> None:
 atexit.register(_drop_frame_cache)
 
 
-def replay_folder(frames_dir: Path, sensor_id: int) -> Path:
-    """The image folder of a camera's pre-rendered frames (one PNG a frame, in name order)."""
-    return frames_dir / f"replay-{sensor_id}"
-
-
-def write_replay_folders(frames_dir: Path, scenario: scenarios.Scenario, say: Callable[[str], None]) -> None:
+def write_replay_folders(frames_dir: Path, scenario: Scenario, say: Callable[[str], None]) -> None:
     """The drones' cameras' pre-rendered frames as image folders, once (kept with the frames)."""
     import cv2
 

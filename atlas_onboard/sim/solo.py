@@ -34,9 +34,10 @@ from atlas_onboard.mavlink.signing import signing_timestamp
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.command import autopilot_track
+from atlas_onboard.sim.context import SIM_ENV
 from atlas_onboard.sim.report import EntityScore, score
 from atlas_onboard.sim.runner import NODE_MODULE, WARMUP_S, WORLD_NODE_SYSTEM_ID, _rendered_frames, build_run_config
-from atlas_onboard.sim.sources import SIM_ENV
+from atlas_onboard.sim.scenario import Scenario
 from atlas_onboard.sim.world import SimWorld
 
 
@@ -51,7 +52,7 @@ def free_udp_port() -> int:
 class SoloNode:
     """A running node (see the module's docstring); :meth:`stop` ends it and keeps its log."""
 
-    scenario: scenarios.Scenario
+    scenario: Scenario
     entity: str
     system_id: int
     peer_port: int

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WORLD, MarkerConfig, SensorConfig, WorldConfig
-from atlas_onboard.sim.scenarios import Optics, Scenario
+from atlas_onboard.sim.scenario import Optics, Scenario
 
 if TYPE_CHECKING:
     from atlas_onboard.detector.calibration import Calibration

@@ -20,6 +20,23 @@ def test_node_settings_merge_defaults_and_entity(tmp_path):
     assert n2.autopilot.output is AutopilotOutput.VISION_POSITION_ESTIMATE and n2.fused_rate_hz == 2.0
 
 
+LANDING = (
+    NODES + "    landing: {target: drone1, autopilot: ardupilot, marker: 10, point_m: [0, 0.05, 0], max_age_s: 0.2}\n"
+)
+
+
+def test_landing_section(tmp_path):
+    from atlas_onboard.config import load_node
+
+    f = tmp_path / "w.yaml"
+    f.write_text(LANDING)
+    _, n2 = load_node(f, "drone2")
+    ld = n2.landing
+    assert (ld.target, ld.autopilot, ld.marker, ld.point_m) == ("drone1", "ardupilot", 10, (0.0, 0.05, 0.0))
+    assert (ld.rate_hz, ld.max_age_s, ld.max_sigma_m) == (20.0, 0.2, 0.05)  # declared defaults, one set
+    assert load_node(f, "drone1")[1].landing is None
+
+
 BAD_NODES = [
     (
         "unknown node key",
@@ -54,6 +71,31 @@ BAD_NODES = [
         "vision_position_estimate",
     ),
     ("bad rate", NODES.replace("rate_hz: 20", "rate_hz: 0"), "nodes.defaults.autopilot.rate_hz", "rate in [1, 200] Hz"),
+    (
+        "landing on no entity",
+        LANDING.replace("target: drone1", "target: rover"),
+        "nodes.drone2.landing.target",
+        "unknown entity 'rover'",
+    ),
+    (
+        "landing on another's marker",
+        LANDING.replace("marker: 10", "marker: 0"),
+        "nodes.drone2.landing.marker",
+        "0 is not a marker of drone1",
+    ),
+    (
+        "landing for no autopilot",
+        LANDING.replace("autopilot: ardupilot", "autopilot: apm"),
+        "nodes.drone2.landing.autopilot",
+        "px4, ardupilot",
+    ),
+    (
+        "landing too slow",
+        LANDING.replace("max_age_s: 0.2", "rate_hz: 1"),
+        "nodes.drone2.landing.rate_hz",
+        "rate in [2, 50] Hz",
+    ),
+    ("landing point", LANDING.replace("[0, 0.05, 0]", "[0, 0.05]"), "nodes.drone2.landing.point_m", "3"),
     (
         "tunnel not bool",
         NODES.replace("tunnel: true", "tunnel: yes please"),

@@ -299,9 +299,9 @@ def test_a_child_falls_back_on_the_graph_when_its_parents_filter_has_lapsed():
 def node_settings() -> EkfSettings:
     """The filter settings the node runs with ``fusion.filter: ekf`` and default keys."""
     from atlas_onboard.config import parse_world
-    from atlas_onboard.node import _make_ekf
+    from atlas_onboard.node.output import make_ekf
 
-    bank = _make_ekf(parse_world({"fusion": {"filter": "ekf"}, "entities": {"world": {}}}))
+    bank = make_ekf(parse_world({"fusion": {"filter": "ekf"}, "entities": {"world": {}}}))
     assert bank is not None
     return bank.settings
 

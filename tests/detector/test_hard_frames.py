@@ -205,8 +205,8 @@ def test_the_node_sends_a_cameras_warning_as_statustext():
     import time
 
     from atlas_onboard.config import NodeConfig
-    from atlas_onboard.node import Node
-    from tests.test_node import WORLD, FakeTransport
+    from atlas_onboard.node.loop import Node
+    from tests.node.test_loop import WORLD, FakeTransport
 
     class Cam:
         name = "c"
@@ -222,6 +222,9 @@ def test_the_node_sends_a_cameras_warning_as_statustext():
 
         def counters(self):
             return {}
+
+        def map_pose_changed(self, marker_id):
+            pass
 
         def take_status(self):
             out, self.pending = self.pending, []

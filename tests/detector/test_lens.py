@@ -1,5 +1,5 @@
-"""The lens model on coordinate arrays (lens.distort_uv), which the corner refit of a frame's markers uses,
-against the homogeneous form it replaces there."""
+"""The lens model on coordinate arrays (lens.distort_uv, and lens.distort_columns, which the corner refit of a
+frame's markers uses), against the homogeneous form it replaces there."""
 
 from __future__ import annotations
 
@@ -32,3 +32,7 @@ def test_distort_uv_gives_distort_homogeneous_value(
     want = lens.distort_homogeneous(np.column_stack([pts, np.ones(len(pts))]), K, dist, fisheye)
     got = lens.distort_uv(pts[:, 0].copy(), pts[:, 1].copy(), K, dist, fisheye)
     np.testing.assert_array_equal(got, want)
+    x, y = lens.distort_columns(pts[:, 0].copy(), pts[:, 1].copy(), K, dist, fisheye)
+    assert x.flags.c_contiguous and y.flags.c_contiguous
+    np.testing.assert_array_equal(x, want[:, 0])
+    np.testing.assert_array_equal(y, want[:, 1])

@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from atlas_onboard.detector import edge_profile, lens, refine
+from atlas_onboard.detector import edge_profile, edge_sampling, lens, refine
 
 K = np.array([[457.0, 0.0, 319.5], [0.0, 459.0, 241.25], [0.0, 0.0, 1.0]])
 
@@ -58,7 +58,7 @@ def test_half_level_of_padded_sides_equals_each_side_alone(halves: list[float], 
     edge offset and ramp is what the side's own profiles alone give, NaNs where they are."""
     rng = np.random.default_rng(seed)
     rows = 12
-    offsets = [np.arange(-h, h + 1e-9, refine.STEP_PX) for h in halves]
+    offsets = [np.arange(-h, h + 1e-9, edge_sampling.STEP_PX) for h in halves]
     profiles = []
     for i, (off, edge) in enumerate(zip(offsets, edges, strict=True)):
         blur = 0.3 if i == 0 else rng.uniform(0.2, 1.5)

@@ -117,7 +117,7 @@ def make_observations(
     frame carries the camera's attitude (the body is the camera) in a level frame turned by 30 deg."""
     from atlas_onboard.config import parse_world
     from atlas_onboard.detector.calibration import Calibration
-    from atlas_onboard.mapping.build import FrameInfo, Observations
+    from atlas_onboard.mapping.observations import FrameInfo, Observations
 
     rng = np.random.default_rng(seed)
     M_wm, sizes = truth_markers(np.random.default_rng(0))

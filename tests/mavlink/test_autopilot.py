@@ -11,7 +11,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mavlink import autopilot, codec, dialect
+from atlas_onboard.mavlink import autopilot, codec, covariance, dialect
 
 DIAG = [0, 6, 11, 15, 18, 20]
 
@@ -77,13 +77,13 @@ def test_full_covariance_rotates_into_ned_frd():
 def test_upper_triangle_order_is_row_major():
     C = np.arange(36, dtype=float).reshape(6, 6)
     C = C + C.T + 100 * np.eye(6)
-    out = autopilot.covariance_upper_triangle(C)
+    out = covariance.covariance_upper_triangle(C)
     expected = [C[i, j] for i in range(6) for j in range(i, 6)]
     assert out == expected
 
 
 def test_zero_variance_is_floored_never_sent():
-    cov = autopilot.covariance_upper_triangle(np.zeros((6, 6)))
+    cov = covariance.covariance_upper_triangle(np.zeros((6, 6)))
     assert [cov[i] for i in DIAG] == pytest.approx([1e-8] * 6)
     assert all(cov[i] > 0 for i in DIAG)
     assert all(v > 0 and math.isfinite(v) for v in (codec.pose_covariance(0.0)[i] for i in DIAG))
@@ -193,7 +193,7 @@ def test_origin_fields():
 
 @pytest.mark.parametrize(("sigma", "quality"), [(0.005, 100), (0.01, 100), (0.1, 41), (0.5, 1), (math.nan, 0)])
 def test_quality(sigma, quality):
-    assert autopilot.quality_percent(sigma) == quality
+    assert covariance.quality_percent(sigma) == quality
 
 
 @given(st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1))
@@ -219,8 +219,8 @@ def test_covariance_21_from_enu_flu_is_the_two_steps(values, scale):
     positive semi-definite C (tiny variances floored alike), and refuses what they refuse."""
     A = np.array(values).reshape(6, 6) * scale
     C = A @ A.T
-    expected = autopilot.covariance_upper_triangle(autopilot.covariance_ned_frd(C))
-    np.testing.assert_allclose(autopilot.covariance_21_from_enu_flu(C), expected, rtol=1e-12, atol=0)
+    expected = covariance.covariance_upper_triangle(covariance.covariance_ned_frd(C))
+    np.testing.assert_allclose(covariance.covariance_21_from_enu_flu(C), expected, rtol=1e-12, atol=0)
 
 
 @pytest.mark.parametrize(
@@ -234,29 +234,29 @@ def test_covariance_21_from_enu_flu_is_the_two_steps(values, scale):
 )
 def test_covariance_21_from_enu_flu_refuses_bad_matrices(bad, message):
     with pytest.raises(AtlasError, match=message):
-        autopilot.covariance_upper_triangle(autopilot.covariance_ned_frd(bad) if bad.shape == (6, 6) else bad)
+        covariance.covariance_upper_triangle(covariance.covariance_ned_frd(bad) if bad.shape == (6, 6) else bad)
     with pytest.raises(AtlasError, match=message):
-        autopilot.covariance_21_from_enu_flu(bad)
+        covariance.covariance_21_from_enu_flu(bad)
 
 
 def test_quality_from_covariance_follows_the_worst_position_axis():
     iso_1cm = np.diag([1e-4] * 3 + [1e-3] * 3)
-    assert autopilot.quality_from_covariance(iso_1cm) == 100
+    assert covariance.quality_from_covariance(iso_1cm) == 100
     tall = np.diag([1e-4, 1e-4, 0.1**2] + [1e-3] * 3)  # 1 cm across, 10 cm along z
-    assert autopilot.quality_from_covariance(tall) == autopilot.quality_percent(0.1) == 41
+    assert covariance.quality_from_covariance(tall) == covariance.quality_percent(0.1) == 41
     # A correlated block: its worst direction is the largest eigenvalue's, not any diagonal entry.
     R = Rotation.from_euler("z", 45, degrees=True).as_matrix()
     rotated = np.eye(6) * 1e-3
     rotated[:3, :3] = R @ np.diag([0.2**2, 0.01**2, 0.01**2]) @ R.T
     assert max(rotated[0, 0], rotated[1, 1]) < 0.2**2 * 0.51  # each diagonal entry is about half of it
-    assert autopilot.quality_from_covariance(rotated) == autopilot.quality_percent(0.2)
-    assert autopilot.quality_from_covariance(np.full((6, 6), np.nan)) == 0  # unknown, never -1
+    assert covariance.quality_from_covariance(rotated) == covariance.quality_percent(0.2)
+    assert covariance.quality_from_covariance(np.full((6, 6), np.nan)) == 0  # unknown, never -1
 
 
 def test_odometry_quality_comes_from_the_covariance():
     cov = np.diag([1e-4, 1e-4, 0.3**2] + [1e-3] * 3)  # the pose's sigma says 1 cm; z is 30 cm
     p = EntityPose("d1", np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), 1, 1, 1, 0.01, 5, covariance=cov)
-    assert codec.odometry_fields(p, 0)["quality"] == autopilot.quality_percent(0.3) < 100
+    assert codec.odometry_fields(p, 0)["quality"] == covariance.quality_percent(0.3) < 100
 
 
 def test_heartbeat_status_follows_the_pose():

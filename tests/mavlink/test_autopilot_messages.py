@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.graph import EntityPose
-from atlas_onboard.mavlink import codec, dialect
+from atlas_onboard.mavlink import codec, covariance, dialect
 
 D = dialect.load()
 
@@ -55,4 +55,4 @@ def test_odometry_fields():
 
 @pytest.mark.parametrize(("sigma", "quality"), [(0.005, 100), (0.01, 100), (0.5, 1), (2.0, 1), (math.nan, 0)])
 def test_quality_mapping(sigma, quality):
-    assert codec.quality_percent(sigma) == quality
+    assert covariance.quality_percent(sigma) == quality

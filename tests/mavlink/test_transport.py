@@ -16,9 +16,9 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import AutopilotConfig, AutopilotOutput, GlobalOrigin, LinkConfig, NodeConfig
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import Rejection
+from atlas_onboard.core.records import AutopilotPose
 from atlas_onboard.mavlink import codec, framing
 from atlas_onboard.mavlink.transport import MavlinkTransport
-from atlas_onboard.publisher import AutopilotPose
 from atlas_onboard.schedule import ParkingBuffer
 from tests.e2e.helpers import wait_for
 from tests.helpers import world_from

@@ -146,3 +146,31 @@ def test_sim_autopilot_prints_what_it_receives_and_ends_on_ctrl_c():
             proc.wait()
     assert proc.returncode == 130
     assert err == "atlas-onboard: interrupted\n", err
+
+
+def test_sim_autopilot_lands_on_what_it_receives():
+    # With a lander (--land), the vehicle takes LANDING_TARGET in its autopilot's form (PX4: LOCAL_NED)
+    # and says where it believes the target is: NED (2, 1, -0.3) is ENU (1, 2, 0.3).
+    import io
+    import threading
+
+    import numpy as np
+
+    from atlas_onboard.mavlink.landing import px4_landing_target_fields
+    from atlas_onboard.sim.demo import run_sim_autopilot
+    from atlas_onboard.sim.lander import Lander, LanderSettings
+
+    port, out = free_udp_port(), io.StringIO()
+    lander = Lander(LanderSettings("px4"), np.zeros(3))
+    runner = threading.Thread(target=run_sim_autopilot, args=(port, 3.0, out, {"lander": lander}))
+    runner.start()
+    mav = mavlink.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=197)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        for k in range(15):  # over 1.5 s: the listener binds its port when it has started
+            time.sleep(0.1)
+            fields = px4_landing_target_fields(1_000_000 + k, 2.0, 1.0, -0.3, (1.0, 0.0, 0.0, 0.0))
+            sock.sendto(mavlink.MAVLink_landing_target_message(**fields).pack(mav), ("127.0.0.1", port))
+    runner.join(timeout=10)
+    last = [line for line in out.getvalue().splitlines() if "landing:" in line][-1]
+    assert " LANDING_TARGET (0 in another form)" in last and "target ENU (1.000, 2.000, 0.300) m" in last, last
+    assert int(last.split("landing: ")[1].split()[0]) > 0, last

@@ -7,7 +7,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.mavlink.autopilot import covariance_ned_frd, covariance_upper_triangle
+from atlas_onboard.mavlink.covariance import covariance_ned_frd, covariance_upper_triangle
 from atlas_onboard.sim import report, scenarios
 from atlas_onboard.sim.autopilot import Received
 from atlas_onboard.sim.command import autopilot_track

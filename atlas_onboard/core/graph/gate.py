@@ -74,7 +74,7 @@ class GateInput:
     (capture time of its newest part), ``anchored`` (the own cameras' direct views of the root's
     markers), ``arrival_ns`` (when its edge arrived). ``cov`` is the covariance the candidate is
     weighed with: where the sigma its fusion weight comes from claims more confidence than the
-    covariance, the covariance is shrunk to it (:func:`atlas_onboard.core.graph.pose.gate_covariance`)."""
+    covariance, the covariance is shrunk to it (:func:`atlas_onboard.core.graph.candidates.gate_covariance`)."""
 
     child: NDArray[np.intp]
     p: NDArray[np.float64]

@@ -56,15 +56,13 @@ class Aligned:
 @dataclass(frozen=True, slots=True)
 class Parents:
     """Each candidate's parent at the candidate's capture time, shapes (N, ...): position ``p``,
-    orientation ``q`` xyzw, 6x6 ``cov``; ``moved``: taken at that time (False: the parent's newest
-    pose, its motion unknown)."""
+    orientation ``q`` xyzw, 6x6 ``cov``; ``moved``: taken at that time (False: the parent's pose is
+    at that time already)."""
 
     p: NDArray[np.float64]
     q: NDArray[np.float64]
     cov: NDArray[np.float64]
     moved: NDArray[np.bool_]
-    wait: NDArray[np.bool_]  # past the parent's newest pose, and its next one is due before: wait for it
-    unknown: NDArray[np.bool_]  # at another instant than the parent's pose, its motion unknown
 
 
 class MotionHistory:
@@ -120,25 +118,29 @@ class MotionHistory:
         q: NDArray[np.float64],
         cov: NDArray[np.float64],
         stamp_us: NDArray[np.int64],
+        age_sigma: tuple[float, float] = (0.0, 0.0),
     ) -> Parents:
-        """Each candidate's ``parent`` at its ``capture_us`` where the parent's recent poses show its
-        motion; elsewhere the parent's newest pose (``p``, ``q``, ``cov``, ``stamp_us``: per vertex).
-        ``p_pc``: the child in the parent's frame (the lever arm of the parent's attitude)."""
+        """Each candidate's ``parent`` at its ``capture_us``: along the line of the parent's recent poses
+        where they show its motion; elsewhere its newest pose (``p``, ``q``, ``cov``, ``stamp_us``: per
+        vertex), aged by the time between (``age_sigma``: m/s and rad/s, each 1-sigma of an unknown
+        motion, as an edge is aged). ``p_pc``: the child in the parent's frame (the lever arm of the
+        parent's attitude)."""
         out_p, out_q, out_cov = p[parent].copy(), q[parent].copy(), cov[parent].copy()
         moved = np.zeros(len(parent), dtype=bool)
-        wait = np.zeros(len(parent), dtype=bool)
         lever = np.linalg.norm(p_pc, axis=1)
+        idx = np.arange(3)
         for i, (v, t) in enumerate(zip(parent.tolist(), capture_us.tolist(), strict=True)):
             if t == stamp_us[v]:
                 continue
-            track = self.samples(root, v)
-            if len(track) >= 2 and t > track[-1].t_us:
-                spacing = float(np.median(np.diff([s.t_us for s in track])))
-                wait[i] = t - track[-1].t_us < spacing
+            moved[i] = True
             at = self.at(root, v, t, float(lever[i]))
             if at is not None:
-                out_p[i], out_q[i], out_cov[i], moved[i] = at.p, at.q, at.cov, True
-        return Parents(out_p, out_q, out_cov, moved, wait, (capture_us != stamp_us[parent]) & ~moved)
+                out_p[i], out_q[i], out_cov[i] = at.p, at.q, at.cov
+            else:  # its motion unknown: where it was, with what it may have moved since
+                dt_s = abs(t - int(stamp_us[v])) / 1e6
+                out_cov[i, idx, idx] += (age_sigma[0] * dt_s) ** 2
+                out_cov[i, idx + 3, idx + 3] += (age_sigma[1] * dt_s) ** 2
+        return Parents(out_p, out_q, out_cov, moved)
 
     def newest(self, root: int, v: int) -> Sample | None:
         """``v``'s newest fused pose, if any."""

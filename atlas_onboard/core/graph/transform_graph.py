@@ -18,10 +18,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from atlas_onboard.core import covariance
+from atlas_onboard.core.graph.candidates import PoseOptions
 from atlas_onboard.core.graph.edges import WORLD, Edge, EdgeKey, EdgeStore
 from atlas_onboard.core.graph.gate import ConsensusGate
 from atlas_onboard.core.graph.paths import PATHS, Planner, bfs, dijkstra
-from atlas_onboard.core.graph.pose import FrameEvaluation, PoseOptions, PosePhase
+from atlas_onboard.core.graph.pose import FrameEvaluation, PosePhase
 from atlas_onboard.core.graph.relative import relative_groups
 from atlas_onboard.core.graph.result import Candidate, EntityPose, GraphResult
 from atlas_onboard.core.graph.timing import WINDOW_US

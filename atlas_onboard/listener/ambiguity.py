@@ -17,9 +17,9 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import WORLD, WorldConfig
 from atlas_onboard.core import ambiguity, attitude
 from atlas_onboard.core.ambiguity import Verdict
+from atlas_onboard.core.edge_covariance import camera_spread, pose_matrices, rotation_sigma
 from atlas_onboard.core.graph import MAX_RATE_RAD_S, MAX_SPEED_M_S, EntityPose
 from atlas_onboard.core.markerdata import AltState, MarkerData, Rejection, matrix_to_upper, upper_to_matrix
-from atlas_onboard.listener_covariance import _camera_spread, _matrices, _rotation_sigma
 
 TILT_RATE_RAD_S = 0.5  # how fast a quadrotor's tilt may change between two of its estimates (manoeuvres)
 
@@ -80,7 +80,7 @@ class AmbiguityResolver:
         self._T_entity_marker[marker_id] = np.asarray(M_entity_marker, dtype=float)
 
     def set_attitude(self, entity: str, up_at: Callable[[int], NDArray[np.float64] | None] | None) -> None:
-        """The gravity reference of ``entity`` (see :meth:`atlas_onboard.listener.Listener.set_attitude`)."""
+        """The gravity reference of ``entity`` (see :meth:`atlas_onboard.listener.listener.Listener.set_attitude`)."""
         self._up_entity, self._up_at = (entity, up_at) if up_at is not None else (None, None)
 
     def set_estimates(self, poses: Mapping[str, EntityPose]) -> None:
@@ -118,8 +118,8 @@ class AmbiguityResolver:
             return rejected, swapped
         idx = [j for j, _, _ in todo]
         # Predicted T_sensor_marker = T1^-1 * T_frame_observer^-1 * T_frame_observed * T3 (eq. 1 backwards).
-        W_a = _matrices(np.array([a.p_world_m for _, a, _ in todo]), np.array([a.q_world_xyzw for _, a, _ in todo]))
-        W_b = _matrices(np.array([b.p_world_m for _, _, b in todo]), np.array([b.q_world_xyzw for _, _, b in todo]))
+        W_a = pose_matrices(np.array([a.p_world_m for _, a, _ in todo]), np.array([a.q_world_xyzw for _, a, _ in todo]))
+        W_b = pose_matrices(np.array([b.p_world_m for _, _, b in todo]), np.array([b.q_world_xyzw for _, _, b in todo]))
         T1_inv = np.array([self._T_sensor_entity[valid[j].sensor_id] for j in idx])
         T3 = np.array([self._T_entity_marker[valid[j].marker_id] for j in idx])
         pred = T1_inv @ np.linalg.inv(W_a) @ W_b @ T3
@@ -203,9 +203,7 @@ class AmbiguityResolver:
             else:  # a world camera sees the own marker: R_world_body = R_world_sensor R_sensor_marker R_body_marker^-1
                 R_wb = M_es @ R_pair @ M_em.T
             rng = float(np.linalg.norm(p2[j]))
-            obs_sigma = (
-                _rotation_sigma(md, rng) if peer is None else math.hypot(_rotation_sigma(md, rng), peer.sigma_rad)
-            )
+            obs_sigma = rotation_sigma(md, rng) if peer is None else math.hypot(rotation_sigma(md, rng), peer.sigma_rad)
             check = attitude.choose_by_tilt(Rotation.from_matrix(R_wb[0]), Rotation.from_matrix(R_wb[1]), up, obs_sigma)
             notes.append(f"attitude_{check.verdict.value}")
             if check.verdict is attitude.TiltVerdict.ALT:
@@ -222,8 +220,8 @@ class AmbiguityResolver:
             if kept and observer == own and peer is None and md.covariance:
                 C = C_sm[j] if C_sm is not None else upper_to_matrix(np.array([md.covariance]))[0]
                 new = attitude.constrain_tilt(attitude.TagPose(p2[j], R2[j], C), M_es, M_em, up)
-                scale = _camera_spread(new.p_sensor_marker_m, new.R_sensor_marker, new.covariance) / max(
-                    _camera_spread(p2[j], R2[j], C), 1e-300
+                scale = camera_spread(new.p_sensor_marker_m, new.R_sensor_marker, new.covariance) / max(
+                    camera_spread(p2[j], R2[j], C), 1e-300
                 )
                 R2[j], p2[j] = new.R_sensor_marker, new.p_sensor_marker_m
                 q2[j] = Rotation.from_matrix(new.R_sensor_marker).as_quat()

@@ -9,9 +9,10 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core import covariance
+from atlas_onboard.core.edge_covariance import SIGMA_COVARIANCE_TOLERANCE
 from atlas_onboard.core.markerdata import MarkerData, Rejection, matrix_to_upper
-from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.listener_covariance import SIGMA_COVARIANCE_TOLERANCE
+from atlas_onboard.listener import Listener
+from atlas_onboard.node.setup import make_graph
 from tests.helpers import world_from
 
 WORLD = {

@@ -29,19 +29,18 @@ from atlas_onboard.config import (
 )
 from atlas_onboard.core.graph import GraphResult
 from atlas_onboard.core.markerdata import MarkerData, Rejection
-from atlas_onboard.node_intake import Intake
-from atlas_onboard.node_output import NS, NodeOutput, Stats, _make_ekf  # noqa: F401 (_make_ekf: was defined here)
-from atlas_onboard.node_ports import Camera, Transport  # were defined here (imported from here elsewhere)
-from atlas_onboard.node_refine import LiveRefinement
-from atlas_onboard.node_setup import (  # noqa: F401 (install_signal_handlers: was defined here)
+from atlas_onboard.core.records import Inbound, PoseState
+from atlas_onboard.node.intake import Intake
+from atlas_onboard.node.output import NS, NodeOutput, Stats
+from atlas_onboard.node.ports import Camera, Transport
+from atlas_onboard.node.refine import LiveRefinement
+from atlas_onboard.node.setup import (
     WorldBlocks,
-    install_signal_handlers,
     reread_world,
     wire,
     write_refined_map,
 )
-from atlas_onboard.publisher import PoseState
-from atlas_onboard.schedule import Changes, FrameCount, Inbound
+from atlas_onboard.schedule import Changes, FrameCount
 
 _logger = logging.getLogger(__name__)
 
@@ -314,9 +313,7 @@ class Node:
         if self.refinement is not None:
             for u in self.refinement.step(now, self.listener):  # the detectors' places are relative to the file
                 for cam in self.cameras:
-                    changed = getattr(cam, "map_pose_changed", None)  # SensorWorker's; other cameras have none
-                    if changed is not None:
-                        changed(u.marker_id)
+                    cam.map_pose_changed(u.marker_id)
             for text in self.refinement.take_status():
                 self.transport.send_status(text, 4)  # WARNING
 
@@ -326,7 +323,7 @@ class Node:
         self.output.duties(now)
         self.transport.tick(now)
         for cam in self.cameras:  # a camera's detector's warnings (a marker that disagrees), rate-limited there
-            for text in getattr(cam, "take_status", tuple)():
+            for text in cam.take_status():
                 self.transport.send_status(text, 4)  # WARNING
         if now >= self._next_watchdog_ns:
             self._notify("WATCHDOG=1")

@@ -8,7 +8,8 @@ import pytest
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core.markerdata import MarkerData, Rejection
-from atlas_onboard.listener import EdgeUpdate, Listener, make_graph
+from atlas_onboard.listener import EdgeUpdate, Listener
+from atlas_onboard.node.setup import make_graph
 from tests.helpers import assert_pose_close, observe, pose, world_from
 
 MS = 1_000_000

@@ -12,9 +12,9 @@ from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig, parse_
 from atlas_onboard.core.ekf import EkfSettings
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import TransformGraph
-from atlas_onboard.node import Node
+from atlas_onboard.node.loop import Node
 from tests.helpers import observe, pose
-from tests.test_node import FakeTransport
+from tests.node.test_loop import FakeTransport
 
 MS = 1_000_000
 V = np.array([1.0, 0.5, 0.0])  # the drone's constant velocity, m/s

@@ -13,7 +13,8 @@ from atlas_onboard.core.markerdata import AltState
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.render import Camera, MarkerView, render
-from atlas_onboard.listener import EdgeUpdate, Listener, make_graph
+from atlas_onboard.listener import EdgeUpdate, Listener
+from atlas_onboard.node.setup import make_graph
 
 K = np.array([[900.0, 0.0, 639.5], [0.0, 900.0, 359.5], [0.0, 0.0, 1.0]])
 CAM = Camera(1280, 720, K, np.zeros(5))

@@ -1,11 +1,11 @@
-"""The listener's covariance and matrix helpers (:mod:`atlas_onboard.listener`): which detection
+"""The covariance and matrix helpers of eq. 1's edges (the listener's, :mod:`atlas_onboard.listener`): which detection
 covariances are positive definite, which records' sigma contradicts their covariance, each edge's 6x6
 covariance through eq. 1, a camera position's spread, a detection's attitude sigma, and 4x4 matrices of
 poses."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -14,12 +14,11 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.core import covariance, geometry
 from atlas_onboard.core.markerdata import MarkerData, Rejection, upper_to_matrix
 
-if TYPE_CHECKING:
-    from atlas_onboard.listener import EdgeUpdate
+Item = TypeVar("Item")  # what a valid record becomes in the caller's list (the listener's EdgeUpdate)
 
 
-def _positive_definite(
-    valid: list[MarkerData], out: list[EdgeUpdate | Rejection]
+def positive_definite(
+    valid: list[MarkerData], out: list[Item | Rejection]
 ) -> tuple[list[MarkerData], NDArray[np.float64] | None]:
     """``valid`` without the records whose covariance is not positive definite (those become
     ``bad_covariance`` in ``out``), and the covariances of those kept as matrices when every one
@@ -51,7 +50,7 @@ records differ: from 0.12 to 11.2 over the simulated scenarios' rendered detecti
 
 def inconsistent_sigma(
     valid: list[MarkerData],
-    out: list[EdgeUpdate | Rejection],
+    out: list[Item | Rejection],
     C_sm: NDArray[np.float64] | None,
     own_sensors: frozenset[int] = frozenset(),
 ) -> tuple[list[MarkerData], NDArray[np.float64] | None]:
@@ -95,7 +94,7 @@ def _camera_position_cov(
     return J @ C_sm @ np.swapaxes(J, 1, 2)
 
 
-def _covariances(
+def edge_covariances(
     valid: list[MarkerData], chain: covariance.Chain, C_sm: NDArray[np.float64] | None = None
 ) -> NDArray[np.float64]:
     """Each edge's 6x6 covariance (``chain``: eq. 1's parts of each record in ``valid``): the detector's own,
@@ -114,7 +113,7 @@ def _covariances(
     return cov
 
 
-def _camera_spread(p_sm: NDArray[np.float64], R_sm: NDArray[np.float64], C_sm: NDArray[np.float64]) -> float:
+def camera_spread(p_sm: NDArray[np.float64], R_sm: NDArray[np.float64], C_sm: NDArray[np.float64]) -> float:
     """Trace (m^2) of the covariance of the camera's position in the marker frame, -R^T p, from a
     T_sensor_marker covariance (core.covariance convention): J = [-R^T, -[R^T p]x]."""
     v = R_sm.T @ p_sm
@@ -122,14 +121,14 @@ def _camera_spread(p_sm: NDArray[np.float64], R_sm: NDArray[np.float64], C_sm: N
     return float(np.trace(J @ C_sm @ J.T))
 
 
-def _rotation_sigma(md: MarkerData, range_m: float) -> float:
+def rotation_sigma(md: MarkerData, range_m: float) -> float:
     """A detection's attitude standard deviation (rad) about its own solution: its camera position
     sigma over the range (a single tag's camera position error is range x angle). Not the covariance's,
     which may hold the spread between the two solutions (the second moment of the other)."""
     return md.sigma_m / max(range_m, 1e-3)
 
 
-def _matrices(p: NDArray[np.float64], q_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
+def pose_matrices(p: NDArray[np.float64], q_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
     """4x4 matrices of N poses given as positions (N, 3) and x-first quaternions (N, 4)."""
     M = np.tile(np.eye(4), (len(p), 1, 1))
     M[:, :3, :3] = Rotation.from_quat(q_xyzw).as_matrix()

@@ -1,25 +1,21 @@
 """A node's start-up and reconfiguration: the blocks a world file gives it (graph, listener, the lookups
 of its intake), the world file re-read on SIGHUP, the refined map written at exit, the signal handlers.
-The loop that uses them is :class:`atlas_onboard.node.Node`."""
+The loop that uses them is :class:`atlas_onboard.node.loop.Node`."""
 
 from __future__ import annotations
 
 import logging
-import signal
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from atlas_onboard.config import ConfigError, NodeConfig, WorldConfig, load_node
+from atlas_onboard.config import ConfigError, NodeConfig, Weighting, WorldConfig, load_node
 from atlas_onboard.core.graph import TransformGraph
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.node_ports import Transport
-from atlas_onboard.node_refine import LiveRefinement
-
-if TYPE_CHECKING:
-    from atlas_onboard.node import Node
+from atlas_onboard.listener import Listener
+from atlas_onboard.node.ports import Transport
+from atlas_onboard.node.refine import LiveRefinement
 
 _logger = logging.getLogger(__name__)
 
@@ -35,12 +31,34 @@ class WorldBlocks:
     supersedes: bool  # each observation simply replaces its edge (see :func:`supersedes`)
 
 
+def make_graph(world: WorldConfig, own_entity: str | None = None) -> TransformGraph:
+    """The transform graph a world file describes: its entities and fusion settings. The candidates
+    of ``own_entity``'s sensors (the node's own cameras) are the outlier gate's anchor."""
+    own = world.entity(own_entity).sensors if own_entity is not None else ()
+    f = world.fusion
+    return TransformGraph(
+        world.entity_names,
+        round(f.edge_timeout_s * 1e9),
+        inverse_variance=f.weighting is Weighting.INVERSE_VARIANCE,
+        path=f.path,
+        relative=f.relative_poses,
+        age_sigma_m_per_s=f.age_sigma_m_per_s,
+        age_sigma_rad_per_s=math.radians(f.age_sigma_deg_per_s),
+        outlier_gate_sigma=f.outlier_gate_sigma,
+        keep_candidates=f.filter == "ekf",
+        anchor_sensors=frozenset(s.id for s in own),
+        max_speed_m_s=f.max_speed_m_s,
+        align=f.align_edges,
+        max_relayed_sigma_m=f.max_relayed_sigma_m,
+    )
+
+
 def wire(world: WorldConfig, config: NodeConfig, transport: Transport) -> WorldBlocks:
     """The blocks of ``world`` for the node ``config``; the autopilot's attitude, if the
     transport keeps one, resolves single tags' flips."""
     graph = make_graph(world, config.entity)
     listener = Listener(world, graph)
-    history = getattr(transport, "attitude", None)
+    history = transport.attitude
     if history is not None and config.autopilot is not None:
         listener.set_attitude(config.entity, history.up_at)
     entity_of = {s.id: s.entity for s in world.sensors.values()}, {m.id: m.entity for m in world.markers.values()}
@@ -81,10 +99,3 @@ def write_refined_map(refinement: LiveRefinement | None) -> None:
         _logger.error("%s", exc)
         return
     _logger.info("refined world file written to %s (%d marker(s) refined)", path, len(refinement.markers_refined))
-
-
-def install_signal_handlers(node: Node) -> None:
-    """SIGTERM/SIGINT stop the loop; SIGHUP asks for a reload. Handlers only set flags."""
-    signal.signal(signal.SIGTERM, lambda *_: node.stop())
-    signal.signal(signal.SIGINT, lambda *_: node.stop())
-    signal.signal(signal.SIGHUP, lambda *_: node.request_reload())

@@ -12,7 +12,6 @@ which the node calls after every evaluation) pick the consistent one by the rule
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
@@ -20,20 +19,14 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import Weighting, WorldConfig
-from atlas_onboard.core import ambiguity, covariance, fusion, geometry
+from atlas_onboard.config import WorldConfig
+from atlas_onboard.core import ambiguity, covariance, geometry
+from atlas_onboard.core.edge_covariance import edge_covariances, inconsistent_sigma, positive_definite
+from atlas_onboard.core.edge_filter import EdgeFilter, EdgeState
 from atlas_onboard.core.graph import EdgeKey, EntityPose, TransformGraph
 from atlas_onboard.core.markerdata import MarkerData, Rejection
 from atlas_onboard.counters import Counters
-from atlas_onboard.listener_ambiguity import AmbiguityResolver, Detections
-from atlas_onboard.listener_covariance import (  # noqa: F401 (were defined here)
-    _camera_spread,
-    _covariances,
-    _matrices,
-    _positive_definite,
-    _rotation_sigma,
-    inconsistent_sigma,
-)
+from atlas_onboard.listener.ambiguity import AmbiguityResolver, Detections
 
 _logger = logging.getLogger(__name__)
 
@@ -42,14 +35,6 @@ ESTIMATE_ATTITUDE_SIGMA_RAD = 0.05
 degrees), grown by the motion the entity may have made since the estimate's capture (the graph's
 MAX_RATE_RAD_S and MAX_SPEED_M_S times the age). The root of the estimates' frame (``world``) is
 exact."""
-
-
-@dataclass(slots=True)
-class _EmaState:
-    p: NDArray[np.float64]
-    q: NDArray[np.float64]  # xyzw
-    stamp_ns: int
-    sigma_m: float
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,28 +48,6 @@ class EdgeUpdate:
     q_a_b_xyzw: NDArray[np.float64]
     sigma_m: float
     cov_a_b: NDArray[np.float64] | None = None  # 6x6, core.covariance convention
-
-
-def make_graph(world: WorldConfig, own_entity: str | None = None) -> TransformGraph:
-    """The transform graph a world file describes: its entities and fusion settings. The candidates
-    of ``own_entity``'s sensors (the node's own cameras) are the outlier gate's anchor."""
-    own = world.entity(own_entity).sensors if own_entity is not None else ()
-    f = world.fusion
-    return TransformGraph(
-        world.entity_names,
-        round(f.edge_timeout_s * 1e9),
-        inverse_variance=f.weighting is Weighting.INVERSE_VARIANCE,
-        path=f.path,
-        relative=f.relative_poses,
-        age_sigma_m_per_s=f.age_sigma_m_per_s,
-        age_sigma_rad_per_s=math.radians(f.age_sigma_deg_per_s),
-        outlier_gate_sigma=f.outlier_gate_sigma,
-        keep_candidates=f.filter == "ekf",
-        anchor_sensors=frozenset(s.id for s in own),
-        max_speed_m_s=f.max_speed_m_s,
-        align=f.align_edges,
-        max_relayed_sigma_m=f.max_relayed_sigma_m,
-    )
 
 
 class Listener:
@@ -109,9 +72,7 @@ class Listener:
         parameters (:mod:`atlas_onboard.core.ambiguity`)."""
         self.world = world
         self.graph = graph
-        self.alpha = world.fusion.ema_alpha
-        self.age_sigma = world.fusion.age_sigma_m_per_s
-        self.timeout_ns = graph.edge_timeout_ns
+        self.filter = EdgeFilter(world.fusion.ema_alpha, world.fusion.age_sigma_m_per_s, graph.edge_timeout_ns)
         self.ambiguity = AmbiguityResolver(
             world,
             threshold=ambiguity_threshold,
@@ -126,7 +87,7 @@ class Listener:
         self._marker_inv_q = {m.id: m.T_entity_marker.rotation.inv().as_quat() for m in world.markers.values()}
         self._marker_fwd = {m.id: m.T_entity_marker.as_matrix() for m in world.markers.values()}
         self._marker_cov: dict[int, NDArray[np.float64]] = {}  # markers placed by refinement, not the file
-        self._ema: dict[EdgeKey, _EmaState] = {}
+        self._ema: dict[EdgeKey, EdgeState] = {}  # each edge's filtered value, where the filter keeps one
         self.rejected = Counters()  # by reason (``rejected_<reason>``)
         self.counters = Counters()
         """Beyond rejections: ``ambiguity_resolved``, ``ambiguity_swapped`` (the other solution won),
@@ -182,7 +143,7 @@ class Listener:
                 valid.append(md)
         C_sm = None  # the detection covariances as matrices, when every valid record has one
         if any(md.covariance for md in valid):
-            valid, C_sm = _positive_definite(valid, out)
+            valid, C_sm = positive_definite(valid, out)
             valid, C_sm = inconsistent_sigma(valid, out, C_sm, self.graph.anchor_sensors)
         if not valid:
             return out, notes
@@ -205,7 +166,7 @@ class Listener:
         q1 = np.array([self._sensor_q[md.sensor_id] for md in valid])
         q3_inv = np.array([self._marker_inv_q[md.marker_id] for md in valid])
         q_all = geometry.quat_multiply(geometry.quat_multiply(q1, q2), q3_inv)  # eq. 1's rotation
-        cov = _covariances(valid, chain, C_sm)
+        cov = edge_covariances(valid, chain, C_sm)
         if self._marker_cov:
             placed = [j for j, md in enumerate(valid) if md.marker_id in self._marker_cov]
             if placed:  # T_a_b = T_a_m T_m_b: a refined marker's own uncertainty enters through T_m_b
@@ -263,33 +224,12 @@ class Listener:
 
     def _insert(self, md: MarkerData, result: EdgeUpdate, now_ns: int) -> None:
         key = result.key
-        state = self._ema.get(key)
-        sigma = result.sigma_m
-        if state is None or now_ns - state.stamp_ns > self.timeout_ns:
-            # A new or expired edge starts the filter afresh: old information is not mixed in.
-            p, q = result.p_a_b, result.q_a_b_xyzw
-        elif self.age_sigma > 0.0 and not md.covariance:
-            # Beyond the paper: a per-edge Kalman filter with a random walk of age_sigma m/s. The old
-            # value's variance grows with its age; the blend weighs old and new by inverse variance,
-            # so a blurred frame (large sigma) cannot overwrite a sharp one taken a moment before.
-            age_s = (now_ns - state.stamp_ns) / 1e9
-            var_old = state.sigma_m**2 + (age_s * self.age_sigma) ** 2
-            var_new = sigma**2
-            alpha = var_old / (var_old + var_new)
-            p = fusion.ema_position(state.p, result.p_a_b, alpha)
-            q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, alpha)
-            sigma = float(np.sqrt(var_old * var_new / (var_old + var_new)))
-        elif self.alpha == 1.0 or (self.age_sigma > 0.0 and md.covariance):
-            # eq. 3 with alpha 1 (the paper's default): the measurement itself. A record with its own
-            # 6x6 covariance is not blended as above: a scalar random walk of the position says nothing
-            # of how the observer's turning swings the edge (the world origin seen from a drone moves
-            # metres per radian), and the blend would claim a covariance the errors do not follow.
-            p, q = result.p_a_b, result.q_a_b_xyzw
-        else:
-            p = fusion.ema_position(state.p, result.p_a_b, self.alpha)  # eq. 3
-            q = fusion.ema_quaternion(state.q, result.q_a_b_xyzw, self.alpha)
-        if self.alpha != 1.0 or self.age_sigma > 0.0:  # the filter's state is read only by the filter
-            self._ema[key] = _EmaState(p, q, now_ns, sigma)
+        state = self.filter.update(
+            self._ema.get(key), result.p_a_b, result.q_a_b_xyzw, result.sigma_m, bool(md.covariance), now_ns
+        )
+        if self.filter.keeps_state:  # the filter's state is read only by the filter
+            self._ema[key] = state
+        p, q, sigma = state.p, state.q, state.sigma_m
         cov = result.cov_a_b
         if cov is not None and sigma != result.sigma_m:
             cov = cov * (sigma / result.sigma_m) ** 2
@@ -300,6 +240,6 @@ class Listener:
 
     def forget_expired(self, now_ns: int) -> None:
         """Drop filter state of edges older than the timeout (bounded memory when sensors go away)."""
-        dead = [k for k, s in self._ema.items() if now_ns - s.stamp_ns > self.timeout_ns]
+        dead = [k for k, s in self._ema.items() if self.filter.expired(s, now_ns)]
         for k in dead:
             del self._ema[k]

@@ -15,7 +15,8 @@ from atlas_onboard.core.markerdata import AltState
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.render import Camera, MarkerView, render
-from atlas_onboard.listener import EdgeUpdate, Listener, make_graph
+from atlas_onboard.listener import EdgeUpdate, Listener
+from atlas_onboard.node.setup import make_graph
 
 K = np.array([[320.0, 0.0, 319.5], [0.0, 320.0, 239.5], [0.0, 0.0, 1.0]])
 CAM = Camera(640, 480, K, np.zeros(5))

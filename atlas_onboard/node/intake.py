@@ -1,7 +1,7 @@
 """The node's intake, called from the camera and link threads (never from the loop's): an own image's
 detections stamped and queued together; a peer datagram's observations queued when they can move the own
 pose (decoded in the link's thread) and parked otherwise (:func:`atlas_onboard.schedule.relevance`).
-The loop that takes them is :class:`atlas_onboard.node.Node`."""
+The loop that takes them is :class:`atlas_onboard.node.loop.Node`."""
 
 from __future__ import annotations
 
@@ -12,9 +12,10 @@ from dataclasses import replace
 from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.peerclock import PeerClocks
-from atlas_onboard.node_output import NodeOutput
-from atlas_onboard.node_setup import WorldBlocks
-from atlas_onboard.schedule import Inbound, Inbox, Item, ParkingBuffer, Relevance, relevance
+from atlas_onboard.core.records import Inbound
+from atlas_onboard.node.output import NodeOutput
+from atlas_onboard.node.setup import WorldBlocks
+from atlas_onboard.schedule import Inbox, Item, ParkingBuffer, Relevance, relevance
 
 
 class Intake:
@@ -28,7 +29,7 @@ class Intake:
         self.entity_of = blocks.entity_of  # the entity of every sensor id, of every marker id
         self.inbox = Inbox(config.queue_size)
         # Peer observations that cannot move the own pose are parked and accepted together (see
-        # :attr:`atlas_onboard.node.Node.park_ns`).
+        # :attr:`atlas_onboard.node.loop.Node.park_ns`).
         self.parking = ParkingBuffer(config.queue_size * 4, blocks.supersedes)
         self.may_read = threading.Event()  # cleared while the own pose is evaluated and published
         self.may_read.set()
@@ -64,7 +65,7 @@ class Intake:
         superseded before the park period ends, and are never decoded.
 
         The last observation of an image that can move the own pose also pauses the peer links (see
-        :meth:`atlas_onboard.node.Node._process`): the link's thread stops before its next datagram and
+        :meth:`atlas_onboard.node.loop.Node._process`): the link's thread stops before its next datagram and
         leaves the processor to the loop, which would otherwise wait its turn behind the decoding of the
         rest of a burst. Parked views do not wake the loop: it takes them when their park period ends (at
         most ``LOOP_TICK_S`` late), so that a swarm's traffic does not switch threads hundreds of times a

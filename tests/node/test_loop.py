@@ -11,8 +11,9 @@ from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig, parse_world
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.node import FLUSH_CHUNK, LOOP_TICK_S, Node
-from atlas_onboard.schedule import Inbound, Relevance
+from atlas_onboard.core.records import Inbound
+from atlas_onboard.node.loop import FLUSH_CHUNK, LOOP_TICK_S, Node
+from atlas_onboard.schedule import Relevance
 from tests.e2e.helpers import wait_for
 from tests.helpers import assert_pose_close, observe, pose
 
@@ -27,6 +28,8 @@ WORLD = parse_world(
 
 
 class FakeTransport:
+    attitude = None  # no autopilot attitude
+
     def __init__(self, clock):
         self.clock = clock
         self.autopilot = []
@@ -438,8 +441,10 @@ def test_the_own_pose_alone_is_evaluated_first_and_the_others_follow():
 
 def test_the_others_are_evaluated_again_when_they_rest_on_the_own_pose():
     """d2, seen only by d1's camera, rests on d1's pose: after an own image that changed only d1's
-    edge to the floor, the full evaluation still follows, and d2 moves with d1."""
-    node, _, set_ms = clocked_node(WORLD2)
+    edge to the floor, the full evaluation still follows, and d2 moves with d1. With the paper's
+    composition (d1's newest pose, not d1's pose at d2's capture time, where d1 had not moved yet)."""
+    paper = replace(WORLD2, fusion=replace(WORLD2.fusion, align_edges=False))
+    node, _, set_ms = clocked_node(paper)
     t_us = 1_700_000_000_000_000
     first = [observe(WORLD2, TRUTH2, 1, m, capture_time_us=t_us) for m in (0, 6)]
     node._process([(md, set_ms(0), True) for md in first])

@@ -13,8 +13,9 @@ from atlas_onboard.config import ConfigError, RefineConfig, load_node, load_worl
 from atlas_onboard.core import covariance
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.listener import Listener, make_graph
-from atlas_onboard.node_refine import LiveRefinement, PerMarkerSampler
+from atlas_onboard.listener import Listener
+from atlas_onboard.node.refine import LiveRefinement, PerMarkerSampler
+from atlas_onboard.node.setup import make_graph
 from tests.config.common import NODES
 from tests.helpers import observe, pose, world_from
 

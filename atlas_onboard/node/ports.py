@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 from atlas_onboard.config import WorldConfig
+from atlas_onboard.core.attitude import AttitudeHistory
 from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.publisher import AutopilotPose, PoseState, Telemetry
-from atlas_onboard.schedule import Inbound
+from atlas_onboard.core.records import AutopilotPose, Inbound, PoseState, Telemetry
 
 
 class Transport(Protocol):
@@ -32,6 +32,9 @@ class Transport(Protocol):
 
     def send_status(self, text: str, severity: int) -> None: ...
 
+    def send_landing_target(self, fields: dict[str, Any]) -> None:
+        """LANDING_TARGET to the autopilot (the fields of :mod:`atlas_onboard.mavlink.landing`)."""
+
     def set_pose_state(self, state: PoseState) -> None:
         """The own pose's state, for the HEARTBEAT's system_status."""
 
@@ -40,6 +43,11 @@ class Transport(Protocol):
 
     def tick(self, now_ns: int) -> None:
         """Periodic duties (heartbeats, TIMESYNC, origin, reconnects), called by the main loop."""
+
+    @property
+    def attitude(self) -> AttitudeHistory | None:
+        """The autopilot's attitude history (gravity for a single tag's ambiguity), or None when the
+        transport keeps none."""
 
     def counters(self) -> dict[str, int]: ...
 
@@ -57,3 +65,9 @@ class Camera(Protocol):
     def stop(self) -> None: ...
 
     def counters(self) -> dict[str, int]: ...
+
+    def map_pose_changed(self, marker_id: int) -> None:
+        """The node's map moved world marker ``marker_id`` from the world file's pose (live refinement)."""
+
+    def take_status(self) -> list[str]:
+        """The camera's STATUSTEXT lines since the last call (a marker that disagrees), rate-limited there."""

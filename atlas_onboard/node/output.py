@@ -12,9 +12,11 @@ from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_ATTITUDE_SIG
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.node_ports import Transport
-from atlas_onboard.node_setup import WorldBlocks
-from atlas_onboard.publisher import PoseState, Publisher, Telemetry
+from atlas_onboard.core.records import PoseState, Telemetry
+from atlas_onboard.node.landing import landing_output
+from atlas_onboard.node.ports import Transport
+from atlas_onboard.node.setup import WorldBlocks
+from atlas_onboard.publisher import Publisher
 from atlas_onboard.schedule import Changes, near_entities
 from atlas_onboard.state import ResetCounterStore
 
@@ -46,7 +48,7 @@ class Stats:
 
 
 class NodeOutput:
-    """The node's output side, a collaborator of :class:`atlas_onboard.node.Node`: it evaluates the graph
+    """The node's output side, a collaborator of :class:`atlas_onboard.node.loop.Node`: it evaluates the graph
     the node hands it (:meth:`attach`, again on reload) and sends what follows to the autopilot, the peers
     and the ground station. It owns the publisher, the EKF, the last result and its own timers."""
 
@@ -92,7 +94,8 @@ class NodeOutput:
     def attach(self, blocks: WorldBlocks) -> None:
         """The world, graph and listener to evaluate (at start and on reload); a fresh EKF for the world."""
         self.world, self.graph, self.listener = blocks.world, blocks.graph, blocks.listener
-        self.ekf = _make_ekf(blocks.world)
+        self.ekf = make_ekf(blocks.world)
+        self.landing = landing_output(self.config, blocks.world, self.transport)
 
     def start(self) -> None:
         self._telemetry_since = (self.clock(), 0)
@@ -172,6 +175,8 @@ class NodeOutput:
         else:  # a full evaluation is not needed when it would give every other entity the pose it has
             self.changes.evaluated(now, complete=False, rest_unchanged=result.current)
         self.last_result = result
+        if self.landing is not None:
+            self.landing.update(result, now, self.wall() // 1000, self.ekf)
         bfs = self.world.fusion.path == "bfs"
         self.near = near_entities(self.config.entity, result.levels if bfs else None)
         self.listener.set_estimates(result.poses)
@@ -228,7 +233,7 @@ def fused_poses(result: GraphResult) -> list[EntityPose]:
     return poses
 
 
-def _make_ekf(world: WorldConfig) -> EkfBank | None:
+def make_ekf(world: WorldConfig) -> EkfBank | None:
     f = world.fusion
     if f.filter != "ekf":
         return None
