@@ -68,6 +68,7 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.attitude import AttitudeHistory, up_in_body
 from atlas_onboard.core.markerdata import Rejection
+from atlas_onboard.core.shutter import PREDICTION_SAMPLES, BodyRate, RateHistory
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.listener import Listener
 from atlas_onboard.node.setup import make_graph
@@ -75,6 +76,7 @@ from atlas_onboard.sim import report, runner, scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.camera import frames_path
 from atlas_onboard.sim.command import score_run
+from atlas_onboard.sim.gyro import Gyro, GyroNoise
 from atlas_onboard.sim.runner import WARMUP_S, SimOptions, run
 from atlas_onboard.sim.world import FRESH_S, SimWorld
 
@@ -312,12 +314,13 @@ def drone_cameras(
 
 def per_frame_floor(scenario_name: str, duration_s: float, seed: int = 0, directory: Path | None = None) -> list[Floor]:
     """The per-frame floor of a scenario: the node's detector (same settings, frames in order, so its
-    tracking is the node's) on the run's pre-rendered frames; each detection made an edge by the
-    listener's eq. 1 with no estimate (so nothing is resolved by the node's state), once without
-    attitude (the detector's chosen solution; an ambiguity threshold of 1 so none is refused) and
-    once with the sim autopilot's noisy attitude at the capture time (bias and noise as
-    :class:`SimAutopilot`'s defaults; its 15 ms delay left out), and once with the attitude as the node
-    gets it (:func:`node_attitude`: sampled, late, the newest held). Joint solves count once per frame."""
+    tracking is the node's) on the run's pre-rendered frames, given the autopilot's gyro rates as the
+    node holds them (:func:`node_rates`: a rolling shutter's shear corrected as the node does); each
+    detection made an edge by the listener's eq. 1 with no estimate (so nothing is resolved by the
+    node's state), once without attitude (the detector's chosen solution; an ambiguity threshold of 1
+    so none is refused) and once with the sim autopilot's noisy attitude at the capture time (bias and
+    noise as :class:`SimAutopilot`'s defaults; its 15 ms delay left out), and once with the attitude as
+    the node gets it (:func:`node_attitude`: sampled, late, the newest held). Joint solves count once per frame."""
     scenario = scenarios.get(scenario_name)
     world = scenario.world()
     sim_world = SimWorld(scenario)
@@ -329,6 +332,7 @@ def per_frame_floor(scenario_name: str, duration_s: float, seed: int = 0, direct
     rng = np.random.default_rng(seed + 1)
     bias = rng.normal(0.0, bias_rad, 2)
     stream = node_attitude(sim_world, duration_s, seed)
+    rates = node_rates(sim_world, duration_s, seed)
     out = {k: Floor(k, np.empty(0), 0, 0) for k in ("detector", "detector+attitude", "detector+node_att")}
     errors: dict[str, list[float]] = {k: [] for k in out}
     for _sensor, det, frames, fps, n in drone_cameras(sim_world, world, directory, duration_s):
@@ -342,7 +346,7 @@ def per_frame_floor(scenario_name: str, duration_s: float, seed: int = 0, direct
             tilt = Rotation.from_rotvec(np.r_[bias + rng.normal(0.0, noise_rad, 2), 0.0])
             up = up_in_body(tilt * truth.rotation)
             with_att.set_attitude(ENTITY, lambda _t, up=up: up)
-            mds = det.detect(np.asarray(frames[j]), round(t * 1e6))
+            mds = det.detect(np.asarray(frames[j]), round(t * 1e6), None, rates(round(t * 1e6)))
             listeners = (("detector", plain), ("detector+attitude", with_att), ("detector+node_att", as_node))
             for name, listener in listeners:
                 used = False
@@ -398,6 +402,30 @@ def node_attitude(
         return held.up_at(t_us)
 
     return up_at
+
+
+def node_rates(
+    sim_world: SimWorld, duration_s: float, seed: int, lag_s: float = PROCESS_LAG_S
+) -> Callable[[int], BodyRate | None]:
+    """The autopilot's gyro rates at a capture time (us) as the node holds them (a rolling shutter's
+    correction): the simulated autopilot's gyro (its defaults, the run's first drone's seed) read at
+    ``attitude_hz``, stamped ``attitude_delay_s`` late, those arrived ``lag_s`` after the capture."""
+    ap = SimAutopilot.__dataclass_fields__
+    hz, delay_s = ap["attitude_hz"].default, ap["attitude_delay_s"].default
+    trajectory = sim_world.scenario.trajectories[ENTITY]
+    gyro = Gyro(GyroNoise(), (seed + 1) * 7919 + 17)
+    times = np.arange(0.0, duration_s + 1.0, 1.0 / hz)
+    stamps = [round((t + delay_s) * 1e6) for t in times]
+    samples = [gyro.read(float(t), w, hz) for t, w in zip(times, trajectory.body_rates(times), strict=True)]
+
+    def rate_at(t_us: int) -> BodyRate | None:
+        k = int(np.searchsorted(stamps, t_us + round(lag_s * 1e6), side="right"))
+        held = RateHistory()
+        for i in range(max(k - 2 * PREDICTION_SAMPLES, 0), k):
+            held.add(stamps[i], samples[i])
+        return held.rate_at(t_us)
+
+    return rate_at
 
 
 def print_floor(scenario_name: str, floors: list[Floor]) -> None:

@@ -293,22 +293,55 @@ class RateHistory:
         self._samples.append((int(time_us), w))
 
     def rate_at(self, t_us: int) -> BodyRate | None:
-        """The rate at ``t_us``: interpolated between the samples around it, or the nearest within
-        ``max_age_us``; its covariance the gyro's and the rate change over the distance to a sample."""
+        """The rate at ``t_us``: interpolated between the samples around it, or extrapolated along the
+        line through the newest two within ``max_age_us`` of the newest (the node usually asks before the
+        sample after a frame's stamp has come). Its covariance: how well such a line has predicted each
+        of the recent samples from the two before it (:func:`prediction_sigma`: the gyro's noise and the
+        rate's changing slope as they are now), grown with the distance beyond a sample spacing; with too
+        few samples for that, the gyro's and :data:`RATE_CHANGE_RAD_S2` over the distance to a sample."""
         samples = list(self._samples)
         if not samples:
             return None
         times = [s[0] for s in samples]
         k = bisect.bisect_left(times, t_us)
+        recent = samples[max(k - PREDICTION_SAMPLES - 2, 0) : k + 1]
+        spread = prediction_sigma(recent)
         if 0 < k < len(samples) and times[k] - times[k - 1] <= 2 * self.max_age_us:
             (t0, w0), (t1, w1) = samples[k - 1], samples[k]
             f = (t_us - t0) / (t1 - t0)
-            age_s = min(t_us - t0, t1 - t_us) * 1e-6
             w = (1.0 - f) * w0 + f * w1
+            if spread is not None:  # within a spacing of the samples on both sides: no worse than a prediction
+                return BodyRate(w, max(spread[0], GYRO_SIGMA_RAD_S) ** 2 * np.eye(3))
+            age_s = min(t_us - t0, t1 - t_us) * 1e-6
         else:
             t0, w = samples[min(k, len(samples) - 1)] if k < len(samples) else samples[-1]
             age_s = abs(t_us - t0) * 1e-6
             if age_s * 1e6 > self.max_age_us:
                 return None
+            if k == len(samples) and spread is not None and len(samples) >= 2:
+                (ta, wa), (tb, wb) = samples[-2], samples[-1]
+                if 0 < tb - ta <= 2 * self.max_age_us:
+                    w = wb + (wb - wa) * (t_us - tb) / (tb - ta)
+                    sigma, spacing_us = spread
+                    sigma *= max(1.0, (t_us - tb) / spacing_us) ** 2
+                    return BodyRate(w, max(sigma, GYRO_SIGMA_RAD_S) ** 2 * np.eye(3))
         sigma2 = GYRO_SIGMA_RAD_S**2 + (RATE_CHANGE_RAD_S2 * age_s) ** 2
         return BodyRate(w, sigma2 * np.eye(3))
+
+
+PREDICTION_SAMPLES = 8  # the recent samples whose prediction errors say how well the rate is predicted now
+
+
+def prediction_sigma(samples: list[tuple[int, NDArray[np.float64]]]) -> tuple[float, float] | None:
+    """How far each sample (time us, rate) is from the line through the two before it, RMS (rad/s, the
+    worst axis), and the samples' median spacing (us); None with fewer than three such predictions. The
+    error of a line a spacing ahead, measured: the gyro's noise and how fast the rate's slope changes."""
+    errors, spacings = [], []
+    for (ta, wa), (tb, wb), (tc, wc) in zip(samples, samples[1:], samples[2:], strict=False):
+        if tb <= ta or tc <= tb:
+            continue
+        errors.append(wc - (wb + (wb - wa) * (tc - tb) / (tb - ta)))
+        spacings.append(tc - tb)
+    if len(errors) < 3:
+        return None
+    return float(np.sqrt(np.mean(np.square(errors), axis=0)).max()), float(np.median(spacings))

@@ -165,7 +165,7 @@ class CameraWorker(SensorWorker):
             if self._turn is None:
                 self._turn = CameraTurn(self.detector.sensor.T_entity_sensor.rotation)
             R_prev_now = self._turn.since_last(self.attitude_at(t_us))
-        body_rate = body_rate_at(self.rate_at, self.attitude_at, t_us)  # a rolling shutter's shear
+        body_rate = body_rate_at(self.rate_at, t_us)  # a rolling shutter's shear
         try:
             found = list(self.detector.detect(frame.gray, t_us, R_prev_now, body_rate))
             if found:
@@ -188,7 +188,7 @@ class CameraWorker(SensorWorker):
         R_prev_now = None
         if self.attitude_at is not None:
             R_prev_now = self._turns[pipeline.next_index].since_last(self.attitude_at(t_us))
-        body_rate = body_rate_at(self.rate_at, self.attitude_at, t_us)  # a rolling shutter's shear
+        body_rate = body_rate_at(self.rate_at, t_us)  # a rolling shutter's shear
         if pipeline.submit(frame.gray, t_us, R_prev_now, self._stop, body_rate):
             self.counts["frames"] += 1
 

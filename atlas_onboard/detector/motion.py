@@ -1,8 +1,8 @@
 """A camera's motion at each frame, and its corners moved to the frame's stamp (:mod:`atlas_onboard.core.shutter`).
 
-The rate: the autopilot's (ATTITUDE's body rates, or their attitudes' finite difference), which corrects
-the image; without them, the camera's recent own poses bound it (not corrected: a rate from poses a frame
-apart is too noisy to correct by, but says how large the shear may be), else ``rate_bound_dps``.
+The rate: the autopilot's (ATTITUDE's body rates), which corrects the image; without them, the camera's
+recent own poses bound it (not corrected: a rate from poses a frame apart is too noisy to correct by,
+but says how large the shear may be), else ``rate_bound_dps``.
 
 The velocity: a straight-line fit through the camera's own poses of the last few frames, from the world
 markers it saw (each frame's best single-marker pose), relative to what it sees. The detector's own
@@ -34,18 +34,17 @@ from atlas_onboard.core.shutter import (
     timing_pose_covariance,
     timing_sigma_s,
 )
-from atlas_onboard.detector.pose import MarkerPose, object_corners
-from atlas_onboard.worker import AttitudeAt, RateAt
+from atlas_onboard.detector import pose
+from atlas_onboard.detector.pose import object_corners
+from atlas_onboard.worker import RateAt
 
 WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 30 Hz)
-STALE_US = 300_000  # the newest pose older than this: no velocity from the history
+STALE_US = 300_000  # poses older than this give no velocity (fewer than two in WINDOW_US: the newest two within it)
 ANGULAR_ACCEL_SIGMA = 6.0  # rad/s^2 per axis: how far a drone's rate changes over the history's span
 SPEED_BOUND_MPS = 1.0  # per axis, when the camera's poses do not give a velocity
 MIN_SPAN_S = 0.01  # recent poses spanning less than this are not a camera's frames (unrelated images)
 MAX_SPEED_MPS = 15.0  # a history implying more than this (or MAX_RATE_RAD_S) is a jump, not a motion
 MAX_RATE_RAD_S = 15.0
-ATTITUDE_STEP_US = 10_000  # half the span of the attitudes differenced into a rate
-ATTITUDE_RATE_SIGMA = math.radians(2.0)  # rad/s: an attitude difference's rate error (interpolation, rate change)
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,6 +56,24 @@ class CorrectedCorners:
     corners: NDArray[np.float64]
     covariance: NDArray[np.float64]
     shear_px: float
+
+
+@dataclass(frozen=True, slots=True)
+class SeenSquare:
+    """A world marker as the frame found it, for the camera's own motion history: its corners in the
+    (distorted) image, whose rows set their instants, and undistorted (not moved to the stamp), with
+    their own noise (``sigma_px``, the (8, 8) ``covariance``), the undistortion's ``stretch`` and what
+    :func:`pose.solve` needs besides."""
+
+    T_world_marker: RigidTransform
+    corners_px: NDArray[np.float64]
+    undistorted_px: NDArray[np.float64]
+    sigma_px: float
+    covariance: NDArray[np.float64] | None
+    stretch: NDArray[np.float64] | None
+    size_m: float
+    model_sigma_px: float
+    K: NDArray[np.float64]
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,23 +119,12 @@ class _History:
         return _History(w, noise + lag, R.T @ v_world, v_var)
 
 
-def rate_from_attitudes(attitude_at: AttitudeAt, t_us: int) -> BodyRate | None:
-    """The body rate at ``t_us`` from the autopilot's attitudes just before and after it (None when
-    either is missing): when the autopilot streams attitudes but not rates."""
-    a, b = attitude_at(t_us - ATTITUDE_STEP_US), attitude_at(t_us + ATTITUDE_STEP_US)
-    if a is None or b is None:
-        return None
-    omega = (a.inv() * b).as_rotvec() / (2e-6 * ATTITUDE_STEP_US)
-    return BodyRate(omega, ATTITUDE_RATE_SIGMA**2 * np.eye(3))
-
-
-def body_rate_at(rate_at: RateAt | None, attitude_at: AttitudeAt | None, t_us: int) -> BodyRate | None:
-    """The autopilot's body rate at a capture: its gyros' (``rate_at``), or its attitudes' difference
-    when it streams no rates, or None without either."""
-    rate = rate_at(t_us) if rate_at is not None else None
-    if rate is None and attitude_at is not None:
-        rate = rate_from_attitudes(attitude_at, t_us)
-    return rate
+def body_rate_at(rate_at: RateAt | None, t_us: int) -> BodyRate | None:
+    """The autopilot's body rate at a capture (its gyros', ``rate_at``), or None without one. Attitudes
+    alone give none to correct by: those after the stamp have not come when the frame is solved (the
+    newest held makes a turning camera look still), and an attitude's noise differenced over a sample
+    spacing (0.5 deg over 40 ms: 0.3 rad/s) is as large as the turn; the camera's own poses bound it."""
+    return rate_at(t_us) if rate_at is not None else None
 
 
 class CameraMotionModel:
@@ -141,7 +147,10 @@ class CameraMotionModel:
         """The camera's motion at the frame stamped ``t_us``, given the autopilot's rate (or None)."""
         if self.static:
             return CameraMotion(omega_known=True, velocity_known=True, timing_sigma_s=self.timing_s)
-        recent = [s for s in self._seen if 0 < t_us - s.t_us <= WINDOW_US]
+        past = [s for s in self._seen if 0 < t_us - s.t_us <= STALE_US]
+        recent = [s for s in past if t_us - s.t_us <= WINDOW_US]
+        if len(recent) < 2:  # frames missed or markers out of view: the newest two, their age in the covariance
+            recent = past[-2:]
         history = _History.of(recent, t_us)
         R_sb = self.R_body_sensor.inv()
         if rate is not None:
@@ -195,20 +204,29 @@ class CameraMotionModel:
         extra = motion.timing_sigma_s**2 * float(np.linalg.eigvalsh(motion.velocity_second_moment())[-1])
         return replace(md, covariance=matrix_to_upper(C), sigma_m=math.sqrt(md.sigma_m**2 + extra))
 
-    def observe(self, t_us: int, poses: list[tuple[RigidTransform, MarkerPose]]) -> None:
-        """The frame's single-marker poses of world markers (``T_world_marker``, the pose in the camera):
-        the best one's camera pose joins the history."""
+    def observe(self, t_us: int, seen: list[SeenSquare]) -> None:
+        """The frame's world markers as found (corners not moved by this model): the best one's own pose
+        gives the camera's pose at the instant its centre row was read, which joins the history.
+
+        Open loop: a pose corrected by this model's velocity would carry that velocity's error into the
+        next velocity fit (and a single square's pose moves far for a little shear), a loop that grows.
+        Uncorrected, a square's pose is the camera's at its rows' mean instant, off only by the shear
+        within the square, which changes slowly with the motion and the view (a slope hardly sees it)."""
         best = None
-        for T_wm, mp in poses:
-            if mp.covariance is None or (best is not None and mp.sigma_m >= best[1].sigma_m):
+        for sq in seen:
+            mp = pose.solve(
+                sq.undistorted_px, sq.size_m, sq.K, sq.model_sigma_px, sq.stretch, sq.sigma_px, sq.covariance
+            )
+            if mp is None or mp.covariance is None or (best is not None and mp.sigma_m >= best[1].sigma_m):
                 continue
-            best = (T_wm, mp)
+            best = (sq, mp)
         if best is None:
             return
-        T_wm, mp = best
+        sq, mp = best
+        dt = float(self.clock.dt_s(np.array([float(np.mean(np.asarray(sq.corners_px, dtype=float)[:, 1]))]))[0])
         R_cm = Rotation.from_quat(mp.q_xyzw)
-        R_wm = T_wm.rotation
+        R_wm = sq.T_world_marker.rotation
         R_wc = R_wm * R_cm.inv()
-        p_wc = T_wm.translation - R_wc.apply(mp.p_m)
+        p_wc = sq.T_world_marker.translation - R_wc.apply(mp.p_m)
         sigma_theta = math.sqrt(max(float(np.linalg.eigvalsh(mp.covariance[3:, 3:]).max()), 0.0))
-        self._seen.append(_Seen(t_us, p_wc, R_wc, mp.sigma_m, sigma_theta))
+        self._seen.append(_Seen(t_us + round(dt * 1e6), p_wc, R_wc, mp.sigma_m, sigma_theta))

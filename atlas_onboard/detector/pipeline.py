@@ -44,7 +44,7 @@ from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.joint import JointSolve
 from atlas_onboard.detector.marker_poses import solve_markers
-from atlas_onboard.detector.motion import CameraMotionModel
+from atlas_onboard.detector.motion import CameraMotionModel, SeenSquare
 from atlas_onboard.detector.records import FrameReport, SingleSolve, marker_data
 from atlas_onboard.detector.refine import refine_markers_undistorted
 from atlas_onboard.detector.search import (
@@ -234,6 +234,7 @@ class Detector:
         refits = refine_markers_undistorted(gray, list(undistorted), K, cal.dist, cal.fisheye, cal.lens_residual_px)
         stretches = pose.undistortion_jacobian(found_px, K, cal.dist, cal.fisheye) if candidates else None
         refined_ok = []
+        raw: dict[int, SeenSquare] = {}
         for k, (d, refined) in enumerate(zip(candidates, refits, strict=True)):
             if refined is None:
                 # The library's corners are straight-line fits in the distorted image: where the edge fit
@@ -243,6 +244,10 @@ class Detector:
                 self.report.dropped[d.marker_id] = "corner refinement failed"
                 continue
             stretch = None if stretches is None else stretches[4 * k : 4 * k + 4]
+            if self.entity_of[d.marker_id] == WORLD:  # as found, for the camera's own motion history
+                raw[d.marker_id] = SeenSquare(self.marker_pose[d.marker_id], d.corners_px, refined.corners,
+                                              refined.sigma_px, refined.covariance, stretch, self.sizes[d.marker_id],
+                                              pose.model_sigma_px(d.family), K)  # fmt: skip
             # Camera motion: corners moved to the stamp, the motion's covariance added to theirs.
             before = float(np.trace(refined.covariance))
             moved = self.motion_model.correct(
@@ -270,9 +275,9 @@ class Detector:
                 mp, refined.corners, stretch, refined.sigma_px, refined.covariance, motion_px
             )
         self.report.found.sort()
-        # Camera motion: the camera's own poses (from world markers) for the next frames' velocity
-        seen = [(self.marker_pose[m], s.pose) for m, s in singles.items() if self.entity_of[m] == WORLD]
-        self.motion_model.observe(capture_time_us, seen)
+        # Camera motion: the best world marker (its own square as found) for the next frames' velocity
+        ranked = sorted((singles[m].pose.sigma_m, m) for m in raw if m in singles)
+        self.motion_model.observe(capture_time_us, [raw[ranked[0][1]]] if ranked else [])
         out = []
         groups: dict[str, list[int]] = {}
         for mid in sorted(singles):

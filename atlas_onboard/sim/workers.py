@@ -85,7 +85,7 @@ class SimCameraWorker(SensorWorker):
             info: dict[str, object] = {"truth": truth, "epoch": epoch, "index": index}
             if self.attitude_at is not None:  # the autopilot's, as a real camera's (CameraWorker)
                 info["R_prev_now"] = self._turn.since_last(self.attitude_at(round((epoch + t) * 1e6)))
-            info["body_rate"] = body_rate_at(self.rate_at, self.attitude_at, round((epoch + t) * 1e6))
+            info["body_rate"] = body_rate_at(self.rate_at, round((epoch + t) * 1e6))
             try:
                 found = self.detect.detect(t, sightings, info)
             except Exception:  # a detector bug must not kill the camera thread; the frame is lost

@@ -9,14 +9,23 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import WORLD, CameraConfig
-from atlas_onboard.core.shutter import BodyRate, RowClock, timing_covariance, timing_pose_covariance
+from atlas_onboard.config import WORLD, CameraConfig, SensorConfig
+from atlas_onboard.core.attitude import AttitudeHistory
+from atlas_onboard.core.shutter import (
+    GYRO_SIGMA_RAD_S,
+    BodyRate,
+    RowClock,
+    timing_covariance,
+    timing_pose_covariance,
+)
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.joint import JointSolve
-from atlas_onboard.detector.motion import CameraMotionModel
+from atlas_onboard.detector.motion import CameraMotionModel, SeenSquare
 from atlas_onboard.detector.pipeline import FrameReport
 from atlas_onboard.detector.records import SingleSolve
+from atlas_onboard.detector.sources import Frame
 from atlas_onboard.detector.worldcheck import WorldCheck
 from tests.detector.test_hard_frames import SIZE, H, K, W, moved_marker_world
 
@@ -70,6 +79,13 @@ def _solve(
         timing = timing_pose_covariance(mp.p_m, Rotation.from_quat(mp.q_xyzw).as_matrix(), motion)
         mp = replace(mp, covariance=mp.covariance + timing)
     return SingleSolve(mp, corners, None, float(np.sqrt(np.trace(cov) / 8)), cov, motion_px)
+
+
+def _seen(T_world_marker: RigidTransform, img: np.ndarray) -> SeenSquare:
+    """A square as found (no distortion), for the model's own motion history."""
+    return SeenSquare(
+        T_world_marker, img, img, NOISE_PX, NOISE_PX**2 * np.eye(8), None, SIZE, pose.SIGMA_PX_APRILTAG, K
+    )
 
 
 def _nees(mp: pose.MarkerPose, truth: RigidTransform) -> float:
@@ -157,11 +173,12 @@ def _fly(correct: bool) -> tuple[JointSolve, WorldCheck]:
         rng = np.random.default_rng(k)
         t_us = 1_000_000 + round(t * 1e6)
         rate = BodyRate(omega, np.radians(1.0) ** 2 * np.eye(3))
-        singles = {}
+        singles, found = {}, {}
         for i, (x, y) in spots.items():
             T_cam_marker = T_cam_world * RigidTransform.from_translation([x, y, 0.0])
             img = rolling_corners(T_cam_marker, SIZE, omega, v) + rng.normal(0.0, NOISE_PX, (4, 2))
             singles[i] = _solve(img, model if correct else None, rate, t_us)
+            found[i] = _seen(joint.marker_pose[i], img)
         ids = sorted(singles)
         check.gather_places(ids, singles, t_us)
         check.consistency_evidence(WORLD, ids, singles, t_us)
@@ -171,7 +188,7 @@ def _fly(correct: bool) -> tuple[JointSolve, WorldCheck]:
         assert result.used == IDS and result.md is not None, (k, result.used)
         check.check(WORLD, ids, t_us)
         if correct:
-            model.observe(t_us, [(joint.marker_pose[i], singles[i].pose) for i in ids])
+            model.observe(t_us, [found[i] for i in ids])
     return joint, check
 
 
@@ -203,3 +220,100 @@ def test_the_timing_pose_covariance_is_the_corners_timing_covariance_carried_thr
         expected = timing_pose_covariance(truth.translation, truth.rotation.as_matrix(), motion)
         assert C0 is not None and C1 is not None
         np.testing.assert_allclose(C1 - C0, expected, atol=0.02 * np.abs(expected).max())
+
+
+def test_a_travelling_camera_s_velocity_does_not_feed_on_itself() -> None:
+    """A camera travelling at 0.5 m/s over one tag with a 25 ms rolling shutter, every other frame of a
+    30 Hz camera detected (a node that falls behind), its velocity from its own recent poses: a velocity
+    error shears the next corners, and a single square's pose moves far for a little shear; fed back into
+    the next velocity fit, that loop grows. The velocity stays within 3 of its sigmas of the truth, the
+    poses within 3 of theirs, and their sigma below what an unknown velocity (the speed bound) gives."""
+    v = np.array([0.5, 0.2, 0.0])  # camera frame, m/s
+    T_wm = RigidTransform.from_translation([0.1, -0.05, 0.0])  # on the floor, facing up
+    down = Rotation.from_euler("x", 180, degrees=True)
+    model, bound = _model(), _model()
+    rate = BodyRate(np.zeros(3), GYRO_SIGMA_RAD_S**2 * np.eye(3))
+    rng = np.random.default_rng(7)
+    v_inside, p_inside, below = [], [], []
+    for k in range(0, 80, 2):
+        t = k / 30.0
+        # Looking down from 0.8 m, moving along its own axes.
+        T_world_cam = RigidTransform.from_components([-0.1, 0.05, 0.8], down) * RigidTransform.from_translation(v * t)
+        truth = T_world_cam.inv() * T_wm
+        img = rolling_corners(truth, SIZE, np.zeros(3), v) + rng.normal(0.0, NOISE_PX, (4, 2))
+        t_us = 1_000_000 + round(t * 1e6)
+        motion = model.at(t_us, rate)
+        solved = _solve(img, model, rate, t_us)
+        model.observe(t_us, [_seen(T_wm, img)])
+        if k < 10:
+            continue
+        assert motion.velocity_known
+        v_inside.append(np.all(np.abs(motion.velocity - v) <= 3.0 * np.sqrt(np.diag(motion.velocity_cov))))
+        sd = np.sqrt(np.diag(solved.pose.covariance)[:3])
+        p_inside.append(np.all(np.abs(solved.pose.p_m - truth.translation) <= 3.0 * sd))
+        below.append(solved.pose.sigma_m < _solve(img, bound, rate, t_us).pose.sigma_m)  # bound: never observes
+    assert np.mean(v_inside) >= 0.95 and np.mean(p_inside) >= 0.95 and all(below), (v_inside, p_inside, below)
+
+
+class _Recorder:
+    """A detector that keeps the body rate each frame was handed."""
+
+    def __init__(self) -> None:
+        self.sensor = SensorConfig(name="front", id=1, entity="drone", T_entity_sensor=RigidTransform.identity())
+        self.rates: list[BodyRate | None] = []
+
+    def detect(self, gray: np.ndarray, t_us: int, R_prev_now: object = None, body_rate: BodyRate | None = None) -> list:
+        self.rates.append(body_rate)
+        return []
+
+
+def test_a_camera_with_attitudes_but_no_gyro_rates_is_never_handed_a_wrong_rate() -> None:
+    """An autopilot that streams its attitude (25 Hz, each 15 ms late, 0.5 deg of noise on roll and pitch)
+    but no gyro rates, the body turning at 0.5 rad/s: each frame's detector gets, at the frame's stamp
+    (before the attitudes after it have come), either no rate (the image left as it is, the shear bounded)
+    or one within 3 sigma of the truth on every axis."""
+    rng = np.random.default_rng(5)
+    omega = np.array([0.3, -0.2, 0.5])
+    history = AttitudeHistory()
+    recorder = _Recorder()
+    worker = CameraWorker("front", CameraConfig(), recorder)
+    worker.attitude_at = history.attitude_at
+    truths = []
+    for k in range(100):
+        t_s = k * 0.04
+        noise = Rotation.from_rotvec(np.r_[rng.normal(0.0, np.radians(0.5), 2), 0.0])
+        history.add(round((t_s + 0.015) * 1e6), Rotation.from_rotvec(omega * t_s) * noise)
+        stamp_us = round((t_s + 0.015 + rng.uniform(0.0, 0.04)) * 1e6)
+        worker._detect(Frame(np.zeros((8, 8), np.uint8), stamp_us), lambda found: None)
+        truths.append(omega)
+    for rate, truth in zip(recorder.rates, truths, strict=True):
+        if rate is not None:
+            assert np.all(np.abs(rate.omega_flu - truth) <= 3.0 * np.sqrt(np.diag(rate.cov))), rate
+    assert len(recorder.rates) == 100
+
+
+def test_a_camera_seen_again_after_a_short_gap_keeps_its_velocity_with_its_age_in_the_covariance() -> None:
+    """The camera's last two poses 170-240 ms before a frame (frames missed, the marker out of view
+    meanwhile), travelling at 0.4 m/s: the velocity is still known from them, within 3 sigma of the truth,
+    and less certain than a velocity from poses just before the frame."""
+    v = np.array([0.4, -0.1, 0.05])
+    T_wm = RigidTransform.from_translation([0.05, 0.0, 0.0])
+    down = Rotation.from_euler("x", 180, degrees=True)
+    rng = np.random.default_rng(11)
+
+    def seen_at(t: float) -> SeenSquare:
+        T_world_cam = RigidTransform.from_components([0.0, 0.0, 0.7], down) * RigidTransform.from_translation(v * t)
+        img = rolling_corners(T_world_cam.inv() * T_wm, SIZE, np.zeros(3), v) + rng.normal(0.0, NOISE_PX, (4, 2))
+        return _seen(T_wm, img)
+
+    rate = BodyRate(np.zeros(3), GYRO_SIGMA_RAD_S**2 * np.eye(3))
+    late, fresh = _model(), _model()
+    for t in (0.0, 1 / 30, 2 / 30):
+        late.observe(1_000_000 + round(t * 1e6), [seen_at(t)])
+    for t in (0.17, 0.17 + 1 / 30, 0.17 + 2 / 30):
+        fresh.observe(1_000_000 + round(t * 1e6), [seen_at(t)])
+    at_us = 1_000_000 + round(0.3 * 1e6)
+    gap, near = late.at(at_us, rate), fresh.at(at_us, rate)
+    assert gap.velocity_known and near.velocity_known
+    assert np.all(np.abs(gap.velocity - v) <= 3.0 * np.sqrt(np.diag(gap.velocity_cov)))
+    assert gap.velocity_cov[0, 0] > near.velocity_cov[0, 0]
