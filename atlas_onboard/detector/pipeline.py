@@ -237,9 +237,8 @@ class Detector:
         raw: dict[int, SeenSquare] = {}
         for k, (d, refined) in enumerate(zip(candidates, refits, strict=True)):
             if refined is None:
-                # The library's corners are straight-line fits in the distorted image: where the edge fit
-                # fails (near the image's edge, under strong distortion or blur) they were off by many
-                # times the corner noise, a wrong pose with a small sigma. Not used.
+                # The library's corners are straight-line fits in the distorted image: where the edge fit fails
+                # (image edge, strong distortion, blur) they are off by many times the corner noise. Not used.
                 self.counters["refine_failed"] += 1
                 self.report.dropped[d.marker_id] = "corner refinement failed"
                 continue
