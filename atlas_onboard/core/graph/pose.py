@@ -110,8 +110,9 @@ class PosePhase:
 
     def _compose_aligned(self, vx: Vertices, e: StageEdges, root: int) -> StageCandidates | None:
         """A stage's candidates with each parent taken at the candidate's capture time (:mod:`.timing`).
-        Left out: those whose parent has no pose, and those whose position sigma (largest axis)
-        passes ``max_relayed_sigma_m``. A child left with none keeps its last pose (its stamp
+        Left out: those whose parent has no pose; those that wait for the parent's next pose (it will
+        bracket their time: an interpolation, not an extrapolation); and those whose position sigma
+        (largest axis) passes ``max_relayed_sigma_m``. A child left with none keeps its last pose (its stamp
         unchanged: not sent again) for at most ``hold_us`` of capture time, then has none (lost).
         None when no candidate is left."""
         ok = ~vx.lost[e.parent]
@@ -123,10 +124,10 @@ class PosePhase:
         age = (self.options.age_sigma_m_per_s, self.options.age_sigma_rad_per_s)
         parents = self.motion.parents(root, e.parent, e.capture_us, e.p, vx.p, vx.q, vx.cov, vx.stamp_us, age)
         c = compose(vx, e, False, parents)
+        keep = ~parents.wait
         limit = self.options.max_relayed_sigma_m
-        if limit <= 0.0:
-            return c
-        keep = np.linalg.eigvalsh(c.covariance(None)[:, :3, :3])[:, -1] <= limit**2
+        if limit > 0.0:
+            keep &= np.linalg.eigvalsh(c.covariance(None)[:, :3, :3])[:, -1] <= limit**2
         if keep.all():
             return c
         for v in np.setdiff1d(c.child[~keep], c.child[keep]).tolist():

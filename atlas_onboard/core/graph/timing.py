@@ -63,6 +63,7 @@ class Parents:
     q: NDArray[np.float64]
     cov: NDArray[np.float64]
     moved: NDArray[np.bool_]
+    wait: NDArray[np.bool_]  # past the parent's newest pose, and its next one is due before: wait for it
 
 
 class MotionHistory:
@@ -127,12 +128,17 @@ class MotionHistory:
         parent's attitude)."""
         out_p, out_q, out_cov = p[parent].copy(), q[parent].copy(), cov[parent].copy()
         moved = np.zeros(len(parent), dtype=bool)
+        wait = np.zeros(len(parent), dtype=bool)
         lever = np.linalg.norm(p_pc, axis=1)
         idx = np.arange(3)
         for i, (v, t) in enumerate(zip(parent.tolist(), capture_us.tolist(), strict=True)):
             if t == stamp_us[v]:
                 continue
             moved[i] = True
+            track = self.samples(root, v)
+            if len(track) >= 2 and t > track[-1].t_us:
+                spacing = float(np.median(np.diff([s.t_us for s in track])))
+                wait[i] = t - track[-1].t_us < spacing
             at = self.at(root, v, t, float(lever[i]))
             if at is not None:
                 out_p[i], out_q[i], out_cov[i] = at.p, at.q, at.cov
@@ -140,7 +146,7 @@ class MotionHistory:
                 dt_s = abs(t - int(stamp_us[v])) / 1e6
                 out_cov[i, idx, idx] += (age_sigma[0] * dt_s) ** 2
                 out_cov[i, idx + 3, idx + 3] += (age_sigma[1] * dt_s) ** 2
-        return Parents(out_p, out_q, out_cov, moved)
+        return Parents(out_p, out_q, out_cov, moved, wait)
 
     def newest(self, root: int, v: int) -> Sample | None:
         """``v``'s newest fused pose, if any."""
