@@ -116,7 +116,7 @@ def _attitude(boot_ms: int, p: float, q: float, r: float) -> SimpleNamespace:
 
 def test_attitude_rates_reach_the_cameras_in_body_flu() -> None:
     """A roll right (FRD +p), pitch up (FRD +q) and yaw right (FRD +r) read as FLU (+p, -q, -r), at the
-    sample's mapped time, with a covariance that grows away from the samples; none when the sender left
+    sample's mapped time, with a covariance no smaller away from the samples; none when the sender left
     the rates at zero."""
     clock = Clock()
     link = AutopilotLink(NodeConfig(entity="d1", system_id=1), 191, clock, clock.mono_ns)
@@ -129,7 +129,9 @@ def test_attitude_rates_reach_the_cameras_in_body_flu() -> None:
     assert rate is not None
     np.testing.assert_allclose(rate.omega_flu, [0.3, -0.2, 0.4])
     at_sample = link.rate_at(t_last)
-    assert at_sample is not None and np.all(np.diag(rate.cov) > np.diag(at_sample.cov))
+    # Between two samples the rate is as well known as the stream predicts itself (a constant stream:
+    # the gyro's noise alone), never better than at a sample.
+    assert at_sample is not None and np.all(np.diag(rate.cov) >= np.diag(at_sample.cov))
     assert link.rate_at(t_last + 60_000) is None  # the stream stopped
     still = AutopilotLink(NodeConfig(entity="d1", system_id=1), 191, clock, clock.mono_ns)
     still._on_attitude(_attitude(1000, 0.0, 0.0, 0.0), clock.mono_ns())
