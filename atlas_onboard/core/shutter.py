@@ -129,22 +129,38 @@ def planar_depths(x_norm: NDArray[np.float64], obj_xy: NDArray[np.float64]) -> N
     """Depths (m) of the corners of a planar object (``obj_xy``: (N, 2) in its plane, N >= 4) seen at the
     normalised points ``x_norm`` (N, 2): from the homography H = [r1 r2 t] / s, each depth s * h3 . [X Y 1]
     with s fixed by |r1| = |r2| = 1. None when degenerate or behind the camera."""
-    x = np.asarray(x_norm, dtype=float).reshape(-1, 2)
-    X = np.asarray(obj_xy, dtype=float).reshape(-1, 2)
-    rows = []
-    for (u, w), (a, b) in zip(x, X, strict=True):
-        rows.append([a, b, 1.0, 0.0, 0.0, 0.0, -u * a, -u * b, -u])
-        rows.append([0.0, 0.0, 0.0, a, b, 1.0, -w * a, -w * b, -w])
+    x = np.asarray(x_norm, dtype=float).reshape(1, -1, 2)
+    z = planar_depths_many(x, np.asarray(obj_xy, dtype=float).reshape(1, -1, 2))[0]
+    return None if np.isnan(z).any() else z
+
+
+def planar_depths_many(x_norm: NDArray[np.float64], obj_xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`planar_depths` of M objects at once (``x_norm``, ``obj_xy``: (M, N, 2)): (M, N), a row of NaN
+    where that object's depths are degenerate or behind the camera."""
+    x = np.asarray(x_norm, dtype=float)
+    X = np.asarray(obj_xy, dtype=float)
+    m, n = x.shape[:2]
+    u, w, a, b = x[..., 0], x[..., 1], X[..., 0], X[..., 1]
+    rows = np.zeros((m, n, 2, 9))
+    rows[:, :, 0, 0], rows[:, :, 0, 1], rows[:, :, 0, 2] = a, b, 1.0
+    rows[:, :, 1, 3], rows[:, :, 1, 4], rows[:, :, 1, 5] = a, b, 1.0
+    rows[:, :, 0, 6], rows[:, :, 0, 7], rows[:, :, 0, 8] = -u * a, -u * b, -u
+    rows[:, :, 1, 6], rows[:, :, 1, 7], rows[:, :, 1, 8] = -w * a, -w * b, -w
+    rows = rows.reshape(m, 2 * n, 9)
+    H = np.full((m, 3, 3), np.nan)
     try:
-        H = np.linalg.svd(np.asarray(rows))[2][-1].reshape(3, 3)
-    except np.linalg.LinAlgError:
-        return None
-    scale = 2.0 / (np.linalg.norm(H[:, 0]) + np.linalg.norm(H[:, 1]))
-    z = scale * (np.hstack([X, np.ones((len(X), 1))]) @ H[2])
-    if np.all(z < 0):
-        z = -z
-    if not np.all(np.isfinite(z)) or np.any(z <= 0):
-        return None
+        H[:] = np.linalg.svd(rows)[2][:, -1].reshape(m, 3, 3)
+    except np.linalg.LinAlgError:  # one object's system: solve each alone, the failed ones NaN
+        for k in range(m):
+            try:
+                H[k] = np.linalg.svd(rows[k])[2][-1].reshape(3, 3)
+            except np.linalg.LinAlgError:
+                continue
+    scale = np.array([2.0 / (np.linalg.norm(h[:, 0]) + np.linalg.norm(h[:, 1])) for h in H])
+    z = scale[:, None] * (np.concatenate([X, np.ones((m, n, 1))], axis=2) @ H[:, 2, :, None])[..., 0]
+    z = np.where(np.all(z < 0, axis=1, keepdims=True), -z, z)
+    bad = ~np.all(np.isfinite(z), axis=1) | np.any(z <= 0, axis=1)
+    z[bad] = np.nan
     return z
 
 
@@ -155,21 +171,34 @@ def square_to_stamp(
     with the depths the translation needs from the object's own homography, recomputed from the corrected
     corners (the sheared shape's depth error then enters only squared) and carried to each corner's
     instant. Returns the corrected points and their depths at their instants (1 where no depth is found)."""
-    x = np.asarray(x_norm, dtype=float).reshape(-1, 2)
-    dt = np.asarray(dt_s, dtype=float).reshape(-1)
-    z = planar_depths(x, obj_xy)
-    if z is None:
-        z = np.ones(len(x))
+    x = np.asarray(x_norm, dtype=float).reshape(1, -1, 2)
+    x0, z = squares_to_stamp(x, np.asarray(obj_xy, dtype=float).reshape(1, -1, 2), np.reshape(dt_s, (1, -1)), motion)
+    return x0[0], z[0]
+
+
+def squares_to_stamp(
+    x_norm: NDArray[np.float64], obj_xy: NDArray[np.float64], dt_s: NDArray[np.float64], motion: CameraMotion
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`square_to_stamp` of M objects at once (``x_norm``, ``obj_xy``: (M, N, 2); ``dt_s``: (M, N)):
+    the corrected points (M, N, 2) and their depths (M, N), each object's as if corrected alone."""
+    x = np.asarray(x_norm, dtype=float)
+    X = np.asarray(obj_xy, dtype=float)
+    dt = np.asarray(dt_s, dtype=float)
+    shape = x.shape
+    z = planar_depths_many(x, X)
+    z[np.isnan(z).any(axis=1)] = 1.0
     v = motion.velocity_used()
-    if np.any(v) and np.any(dt):
-        for _ in range(2):
-            x0 = to_stamp(x, z, dt, motion)
-            z0 = planar_depths(x0, obj_xy)
-            if z0 is None:
-                break
-            P0 = np.hstack([x0, np.ones((len(x), 1))]) * z0[:, None] - dt[:, None] * v[None, :]
-            z = Rotation.from_rotvec(-dt[:, None] * motion.omega_used()[None, :]).apply(P0)[:, 2]
-    return to_stamp(x, z, dt, motion), z
+    active = np.any(dt != 0.0, axis=1) if np.any(v) else np.zeros(len(x), dtype=bool)
+    for _ in range(2):
+        if not active.any():
+            break
+        x0 = to_stamp(x.reshape(-1, 2), z.reshape(-1), dt.reshape(-1), motion).reshape(shape)
+        z0 = planar_depths_many(x0, X)
+        active &= ~np.isnan(z0).any(axis=1)  # an object without depths keeps its last ones
+        P0 = np.concatenate([x0, np.ones((*shape[:-1], 1))], axis=-1) * z0[..., None] - dt[..., None] * v
+        turn = Rotation.from_rotvec(-dt.reshape(-1, 1) * motion.omega_used()[None, :])
+        z = np.where(active[:, None], turn.apply(P0.reshape(-1, 3))[:, 2].reshape(dt.shape), z)
+    return to_stamp(x.reshape(-1, 2), z.reshape(-1), dt.reshape(-1), motion).reshape(shape), z
 
 
 def flow_jacobians(
@@ -200,13 +229,15 @@ def shear_covariance(
 ) -> NDArray[np.float64]:
     """(2N, 2N) covariance (pixels^2, x0 y0 x1 y1 ...) of the points after :func:`to_stamp` from the
     rate's and velocity's error times each point's ``dt``: one error shears every point coherently (rank
-    at most 6), differently by row, which no rigid pose absorbs."""
-    A, B = flow_jacobians(x_norm, depth_m, fx, fy)
-    n = len(A)
+    at most 6), differently by row, which no rigid pose absorbs. Points (..., N, 2) with depths and
+    ``dt_s`` (..., N): one such matrix per object, (..., 2N, 2N)."""
+    x = np.asarray(x_norm, dtype=float)
+    lead, n = x.shape[:-2], x.shape[-2]
+    A, B = flow_jacobians(x.reshape(-1, 2), np.reshape(depth_m, -1), fx, fy)
     dt = np.asarray(dt_s, dtype=float).reshape(-1, 1, 1)
-    Ga, Gb = (dt * A).reshape(2 * n, 3), (dt * B).reshape(2 * n, 3)
-    C = Ga @ motion.omega_error() @ Ga.T + Gb @ motion.velocity_error() @ Gb.T
-    return 0.5 * (C + C.T)
+    Ga, Gb = (dt * A).reshape((*lead, 2 * n, 3)), (dt * B).reshape((*lead, 2 * n, 3))
+    C = Ga @ motion.omega_error() @ np.swapaxes(Ga, -1, -2) + Gb @ motion.velocity_error() @ np.swapaxes(Gb, -1, -2)
+    return 0.5 * (C + np.swapaxes(C, -1, -2))
 
 
 def timing_covariance(

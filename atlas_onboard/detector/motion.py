@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -29,8 +30,9 @@ from atlas_onboard.core.shutter import (
     BodyRate,
     CameraMotion,
     RowClock,
+    planar_depths_many,
     shear_covariance,
-    square_to_stamp,
+    squares_to_stamp,
     timing_pose_covariance,
     timing_sigma_s,
 )
@@ -180,15 +182,42 @@ class CameraMotionModel:
         """A square's undistorted corners (4, 2) moved to the stamp, and their (8, 8) covariance with the
         motion's added. ``corners_px``: where they are in the (distorted) image, whose rows set their
         instants; the translation's depths are the square's own (:func:`square_to_stamp`)."""
-        dt = self.clock.dt_s(np.asarray(corners_px, dtype=float)[:, 1])
+        return self.correct_all(motion, [corners_px], [undistorted], [corner_cov], K, [size_m])[0]
+
+    def correct_all(
+        self,
+        motion: CameraMotion,
+        corners_px: Sequence[NDArray[np.float64]],
+        undistorted: Sequence[NDArray[np.float64]],
+        corner_cov: Sequence[NDArray[np.float64]],
+        K: NDArray[np.float64],
+        sizes_m: Sequence[float],
+    ) -> list[CorrectedCorners]:
+        """:meth:`correct` of a frame's squares at once, each as if corrected alone. A frame read at one
+        instant (a global shutter), or a camera that does not move, has nothing to correct: no motion, no
+        shear, the covariances as they are."""
+        if not len(sizes_m):
+            return []
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         c = np.array([cx, cy])
         f = np.array([fx, fy])
         x = (np.asarray(undistorted, dtype=float) - c) / f
-        x0, z = square_to_stamp(x, object_corners(size_m)[:, :2], dt, motion)
+        obj = np.array([object_corners(size)[:, :2] for size in sizes_m])
+        still = not any(np.any(m) for m in (motion.omega_used(), motion.velocity_used(),
+                                            motion.omega_error(), motion.velocity_error()))  # fmt: skip
+        if self.clock.readout_s <= 0.0 or self.clock.height_px <= 1 or still:
+            # The corners as :func:`to_stamp` returns them unmoved (x z / z, rounding included): the same bits.
+            z = planar_depths_many(x, obj)
+            z[np.isnan(z).any(axis=1)] = 1.0
+            moved = x * z[..., None] / z[..., None] * f + c
+            return [CorrectedCorners(moved[k], np.array(cov, dtype=float), 0.0) for k, cov in enumerate(corner_cov)]
+        dt = self.clock.dt_s(np.asarray(corners_px, dtype=float)[..., 1])
+        x0, z = squares_to_stamp(x, obj, dt, motion)
         shear = shear_covariance(x0, z, dt, motion, fx, fy)
         cov = np.asarray(corner_cov, dtype=float) + shear
-        return CorrectedCorners(x0 * f + c, cov, float(np.sqrt(np.trace(shear) / len(cov))))
+        moved = x0 * f + c
+        shear_px = np.sqrt(np.trace(shear, axis1=1, axis2=2) / cov.shape[1])
+        return [CorrectedCorners(moved[k], cov[k], float(shear_px[k])) for k in range(len(cov))]
 
     def with_timing(self, md: MarkerData, motion: CameraMotion) -> MarkerData:
         """``md`` with the frame's timing uncertainty in its covariance and sigma (:func:`timing_pose_covariance`):

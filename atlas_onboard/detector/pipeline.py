@@ -247,14 +247,14 @@ class Detector:
                 raw[d.marker_id] = SeenSquare(self.marker_pose[d.marker_id], d.corners_px, refined.corners,
                                               refined.sigma_px, refined.covariance, stretch, self.sizes[d.marker_id],
                                               pose.model_sigma_px(d.family), K)  # fmt: skip
-            # Camera motion: corners moved to the stamp, the motion's covariance added to theirs.
-            before = float(np.trace(refined.covariance))
-            moved = self.motion_model.correct(
-                motion, d.corners_px, refined.corners, refined.covariance, K, self.sizes[d.marker_id]
-            )
-            measured_px = math.sqrt(refined.sigma_px**2 + max(float(np.trace(moved.covariance)) - before, 0.0) / 8.0)
-            refined = replace(refined, corners=moved.corners, sigma_px=measured_px, covariance=moved.covariance)
-            refined_ok.append((d, refined, stretch, moved.shear_px))
+            refined_ok.append((d, refined, stretch, 0.0))
+        ds, rs = [t[0] for t in refined_ok], [t[1] for t in refined_ok]  # camera motion: corners to the stamp
+        moves = self.motion_model.correct_all(motion, [d.corners_px for d in ds], [r.corners for r in rs],
+            [r.covariance for r in rs], K, [self.sizes[d.marker_id] for d in ds])  # fmt: skip
+        for k, ((d, refined, stretch, _), moved) in enumerate(zip(refined_ok, moves, strict=True)):
+            grown = max(float(np.trace(moved.covariance)) - float(np.trace(refined.covariance)), 0.0) / 8.0
+            refined_ok[k] = (d, replace(refined, corners=moved.corners, sigma_px=math.sqrt(refined.sigma_px**2 + grown),
+                                        covariance=moved.covariance), stretch, moved.shear_px)  # fmt: skip
         # Every marker's pose at once (pose.solve's, one by one).
         poses = solve_markers(
             [r.corners for _, r, _, _ in refined_ok],

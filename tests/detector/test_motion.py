@@ -7,6 +7,7 @@ from collections import Counter
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WORLD, CameraConfig, SensorConfig
@@ -317,3 +318,49 @@ def test_a_camera_seen_again_after_a_short_gap_keeps_its_velocity_with_its_age_i
     assert gap.velocity_known and near.velocity_known
     assert np.all(np.abs(gap.velocity - v) <= 3.0 * np.sqrt(np.diag(gap.velocity_cov)))
     assert gap.velocity_cov[0, 0] > near.velocity_cov[0, 0]
+
+
+def test_a_frames_squares_corrected_together_are_each_corrected_alone_and_land_on_the_truth() -> None:
+    """Several squares of one rolling-shutter frame, the camera turning and moving (rate and velocity
+    known), corrected in one call: each square's corners, covariance and shear as the square corrected on
+    its own, and its corners where the camera saw them at the stamp (the truth) far within the noise."""
+    rng = np.random.default_rng(8)
+    model = _model()
+    omega, v = np.radians([25.0, -40.0, 15.0]), np.array([0.3, -0.2, 0.1])
+    motion = replace(
+        model.at(0, None), omega=omega, omega_cov=np.zeros((3, 3)), omega_known=True,
+        velocity=v, velocity_cov=0.01**2 * np.eye(3), velocity_known=True,
+    )  # fmt: skip
+    views = [_random_view(rng) for _ in range(6)]
+    seen = [rolling_corners(T, SIZE, omega, v) for T in views]
+    truth = [(K @ T.apply(pose.object_corners(SIZE)).T).T for T in views]
+    covs = [NOISE_PX**2 * (1.0 + k) * np.eye(8) for k in range(len(views))]
+    together = model.correct_all(motion, seen, seen, covs, K, [SIZE] * len(views))
+    assert len(together) == len(views)
+    for img, cov, P, moved in zip(seen, covs, truth, together, strict=True):
+        alone = model.correct(motion, img, img, cov, K, SIZE)
+        assert np.allclose(moved.corners, alone.corners, rtol=0.0, atol=1e-9)
+        assert np.allclose(moved.covariance, alone.covariance, rtol=1e-12, atol=0.0)
+        assert moved.shear_px == pytest.approx(alone.shear_px, rel=1e-12)
+        assert moved.shear_px > 0.0
+        assert np.abs(moved.corners - P[:, :2] / P[:, 2:]).max() < 0.2 * NOISE_PX
+        assert np.abs(img - P[:, :2] / P[:, 2:]).max() > 10 * NOISE_PX  # the shutter moved them far
+
+
+def test_a_global_shutter_frames_squares_are_left_as_they_are() -> None:
+    """A frame read at one instant: every square's corners where they were found (to rounding), its
+    covariance unchanged, no shear, whatever the camera's motion."""
+    rng = np.random.default_rng(9)
+    model = CameraMotionModel(CameraConfig(readout_ms=0.0), Rotation.identity(), H)
+    motion = replace(
+        model.at(0, None), omega=np.radians([30.0, 10.0, -20.0]), omega_cov=0.1 * np.eye(3), omega_known=True,
+        velocity=np.array([0.5, 0.0, 0.2]), velocity_cov=0.1 * np.eye(3), velocity_known=True,
+    )  # fmt: skip
+    views = [_random_view(rng) for _ in range(4)]
+    imgs = [(K @ T.apply(pose.object_corners(SIZE)).T).T for T in views]
+    imgs = [P[:, :2] / P[:, 2:] for P in imgs]
+    covs = [NOISE_PX**2 * (1.0 + k) * np.eye(8) for k in range(len(views))]
+    for img, cov, moved in zip(imgs, covs, model.correct_all(motion, imgs, imgs, covs, K, [SIZE] * 4), strict=True):
+        assert np.allclose(moved.corners, img, rtol=0.0, atol=1e-9)
+        assert np.array_equal(moved.covariance, cov)
+        assert moved.shear_px == 0.0
