@@ -132,7 +132,8 @@ def start_solo(
     frames_dir = None if geometric else _rendered_frames(scenario, seed, duration_s, lambda _msg: None)
     # The autopilot streams the drone's attitude (noisy, biased, its own heading) as a real one does,
     # from the scenario's start: a node's gravity reference for single tags, its own and its peers'.
-    sim_world, clock = SimWorld(scenario), []
+    sim_world = SimWorld(scenario)
+    clock: list[float] = []  # the scenario's epoch (wall s), set by SoloNode.start_scenario
 
     def attitude(t_wall: float) -> Rotation | None:
         return sim_world.truth(t_wall - clock[0], (entity,))[entity].rotation if clock else None
