@@ -19,12 +19,12 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
-from scipy.spatial.transform import RigidTransform
+from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WorldConfig
 from atlas_onboard.core.markerdata import MarkerData
@@ -62,6 +62,7 @@ class SoloNode:
     world_file: Path
     epoch_s: float = 0.0
     log: str = ""
+    clock: list[float] = field(default_factory=list)  # the scenario's epoch once started: the autopilot's attitude
 
     def start_scenario(self, timeout_s: float = 60.0) -> float:
         """Wait until the node says HEARTBEAT to its autopilot, then start the scenario's clock."""
@@ -72,6 +73,7 @@ class SoloNode:
                 raise AtlasError(f"node {self.entity} did not come up: {self.log[-2000:]}")
             time.sleep(0.05)
         self.epoch_s = time.time() + 0.3
+        self.clock[:] = [self.epoch_s]
         tmp = self.run_dir / "epoch.tmp"
         tmp.write_text(f"{self.epoch_s:.6f}\n", encoding="utf-8")
         tmp.replace(self.run_dir / "epoch")
@@ -128,7 +130,15 @@ def start_solo(
     system_id = scenario.drones.index(entity) + 1  # as build_run_config numbers them
     run_dir = Path(tempfile.mkdtemp(prefix=f"atlas-solo-{scenario.name}-"))
     frames_dir = None if geometric else _rendered_frames(scenario, seed, duration_s, lambda _msg: None)
-    autopilot = SimAutopilot(system_id=system_id).start()
+    # The autopilot streams the drone's attitude (noisy, biased, its own heading) as a real one does,
+    # from the scenario's start: a node's gravity reference for single tags, its own and its peers'.
+    sim_world = SimWorld(scenario)
+    clock: list[float] = []  # the scenario's epoch (wall s), set by SoloNode.start_scenario
+
+    def attitude(t_wall: float) -> Rotation | None:
+        return sim_world.truth(t_wall - clock[0], (entity,))[entity].rotation if clock else None
+
+    autopilot = SimAutopilot(system_id=system_id, attitude=attitude, attitude_seed=seed + system_id).start()
     port = free_udp_port()
     path = build_run_config(scenario, run_dir, free_udp_port(), {d: autopilot.port for d in scenario.drones})
     doc = yaml.safe_load(path.read_text(encoding="utf-8"))
@@ -157,7 +167,7 @@ def start_solo(
             [sys.executable, "-m", NODE_MODULE, *node_args, "run", "--config", str(path), "--entity", entity],
             stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env,
         )  # fmt: skip
-    return SoloNode(scenario, entity, system_id, port, autopilot, proc, run_dir, path)
+    return SoloNode(scenario, entity, system_id, port, autopilot, proc, run_dir, path, clock=clock)
 
 
 def forged_view(
