@@ -108,19 +108,7 @@ def run(
         mds = det.detect(img, round(t * 1e6), None, rate)
         if i < WARMUP:
             continue
-        true_cam = (sim.truth(t)[sensor.entity] * sensor.T_entity_sensor).translation
-        for md in mds:
-            if not md.covariance or md.ambiguity_ratio > 0.5:
-                continue
-            T_wm = world.markers[md.marker_id].T_entity_marker
-            w, x, y, z = md.q_sensor_marker_wxyz
-            R = Rotation.from_quat([x, y, z, w]).as_matrix()
-            p = np.array(md.p_sensor_marker_m)
-            p_world_cam = T_wm.apply(-R.T @ p)
-            Ji = covariance.inverse_jacobian(p, R)
-            R_wm = T_wm.rotation.as_matrix()
-            C = R_wm @ covariance.transform(Ji, upper_to_matrix(np.array(md.covariance)))[:3, :3] @ R_wm.T
-            out.append((p_world_cam - true_cam, C))
+        out.extend(score(world, sim, sensor, t, mds))
     return out
 
 
