@@ -122,9 +122,12 @@ def score_run(sim: SimRun) -> tuple[report.RunReport, dict[str, report.Track]]:
         score = report.score(name, source, track, sim.world, t0, t1, expected[f].get(name, 0.0), f)
         score.detections_per_s = observations[name] / (t1 - t0)
         rep.entities.append(score)
+    rep.landing = sim.landing
+    scores = [*rep.entities, *([sim.landing] if sim.landing is not None else [])]
     for key, limit in sc.bars.items():
         name, metric = key.split(".")
-        got = next((getattr(e, metric) for e in rep.entities if e.entity == name), float("nan"))
+        got = next((getattr(e, metric) for e in scores if e.entity == name and hasattr(e, metric)), float("nan"))
+        got = float("inf") if got is None else got  # a landing that did not touch down
         ok = bool(got >= limit) if metric == "availability" else bool(got <= limit)
         rep.bars.append({"name": f"{sc.name}.{key}", "value": got, "limit": limit, "pass": ok})
     return rep, tracks

@@ -1,6 +1,6 @@
 """The simulation a node process belongs to: the scenario, seed and start time the runner hands it in the
 ``ATLAS_SIM`` environment variable (JSON: scenario, seed, epoch_file, duration_s, frames_dir, geometric,
-replay), and the run's clock on which its simulated sensors tick."""
+replay, flights_dir), and the run's clock on which its simulated sensors tick."""
 
 from __future__ import annotations
 
@@ -40,8 +40,11 @@ class SimContext:
             )
         try:
             doc = json.loads(raw)
+            scenario = scenarios.get(doc["scenario"])
+            if doc.get("flights_dir"):  # the flown entities' truth, written by the runner as the run goes
+                scenario = scenario.with_flights(Path(doc["flights_dir"]))
             return cls(
-                scenarios.get(doc["scenario"]),
+                scenario,
                 int(doc.get("seed", 0)),
                 Path(doc["epoch_file"]),
                 float(doc["duration_s"]),

@@ -32,6 +32,7 @@ MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_BODY_FRD = 12
 NIS_GATE = 3.0  # AC_PrecLand: a measurement whose NIS reaches 3 is refused, unless 3 were refused in a row
 NIS_MAX_REJECTED = 3
+FOOTPRINT_M = 0.25  # half a rover's deck: a vehicle over it touches the deck, not the floor
 
 
 class Phase(StrEnum):
@@ -168,6 +169,13 @@ class Lander:
             self.v_m_s = np.zeros(3)
             self.phase = Phase.LANDED
             self.touchdown_m = self.p_m.copy()
+
+
+def ground_below(p_m: NDArray[np.float64], deck_m: NDArray[np.float64]) -> float:
+    """The height of what is below a vehicle at ``p_m``: the deck whose landing point is ``deck_m`` (a pad
+    or a rover's top) within ``FOOTPRINT_M`` of it on both axes, else the floor (0)."""
+    over = bool(np.all(np.abs(p_m[:2] - deck_m[:2]) < FOOTPRINT_M))
+    return float(deck_m[2]) if over else 0.0
 
 
 def _meas_var(relative_m: NDArray[np.float64]) -> float:

@@ -7,7 +7,7 @@ node's :class:`~atlas_onboard.landing.LandingOutput` decides and builds LANDING_
 reaches the simulated autopilot's :class:`~atlas_onboard.sim.lander.Lander` a few milliseconds later,
 which flies the drone; its true pose is what the cameras see next.
 
-Scenarios:
+Scenarios (:mod:`atlas_onboard.sim.scenarios`, where `atlas-onboard sim` flies them in real time):
 
 - ``land-pad``: a static pad of world tags seen by the drone's own downward camera (target: world,
   the pad's centre tag);
@@ -34,10 +34,10 @@ from atlas_onboard.errors import AtlasError
 from atlas_onboard.listener import Listener
 from atlas_onboard.node.landing import LandingOutput
 from atlas_onboard.node.setup import make_graph
+from atlas_onboard.sim import scenarios
 from atlas_onboard.sim import trajectories as tj
 from atlas_onboard.sim.context import SimContext
-from atlas_onboard.sim.lander import Lander, LanderSettings, Phase
-from atlas_onboard.sim.scenario import Optics, Scenario, Trajectory
+from atlas_onboard.sim.lander import Lander, LanderSettings, Phase, ground_below
 from atlas_onboard.sim.world import SimWorld
 
 DRONE = "drone"
@@ -45,63 +45,6 @@ STEP_S = 1.0 / 120.0  # the vehicle's dynamics; the cameras run at their fps
 OWN_DELAY_S = 0.03  # own camera: capture to the graph (detection)
 PEER_DELAY_S = 0.06  # a ceiling camera's or a peer's: detection and the network
 LINK_DELAY_S = 0.005  # the node to the autopilot
-FOOTPRINT_M = 0.25  # half the rover's deck: the drone touches it, not the floor, within this
-
-
-def driving(start_m: tuple[float, float, float], velocity_m_s: tuple[float, float, float]) -> tj.Quadrotor:
-    """A ground vehicle driving straight at constant speed, heading along its motion (no acceleration:
-    the trajectory model keeps it level)."""
-    p0, v = np.asarray(start_m, dtype=float), np.asarray(velocity_m_s, dtype=float)
-    return tj.Quadrotor(lambda t: p0 + np.asarray(t, dtype=float)[:, None] * v,
-                        tj.constant_yaw(float(np.degrees(np.arctan2(v[1], v[0])))))  # fmt: skip
-
-
-@dataclass(frozen=True)
-class LandingScenario:
-    scenario: Scenario
-    target: str
-    marker: int
-    start_m: tuple[float, float, float]  # the landing drone's start, ENU
-    start_yaw_deg: float
-    form: str  # the autopilot's form: px4 or ardupilot
-
-
-def _scenario(name: str, description: str, world_file: str, trajectories: dict[str, Trajectory],
-              optics: dict[str, Optics]) -> Scenario:  # fmt: skip
-    return Scenario(name=name, description=description, world_file=world_file, duration_s=20.0,
-                    trajectories=trajectories, drones=(DRONE,), scored=(DRONE,), optics=optics)  # fmt: skip
-
-
-SCENARIOS = {
-    "land-pad": LandingScenario(
-        _scenario(
-            "land-pad",
-            "land on a static pad of world tags seen by the drone's own camera",
-            "land-pad.yaml",
-            {},
-            {"drone.down": Optics(hfov_deg=70.0)},
-        ),
-        target="world",
-        marker=0,
-        start_m=(0.5, -0.4, 1.2),
-        start_yaw_deg=25.0,
-        form="px4",
-    ),
-    "land-rover": LandingScenario(
-        _scenario(
-            "land-rover",
-            "land on a rover driving at 0.3 m/s seen only by a ceiling camera and a peer drone",
-            "land-rover.yaml",
-            {"rover": driving((-0.3, 0.0, 0.0), (0.3, 0.0, 0.0)), "peer": tj.Static((-1.6, 0.0, 1.1))},
-            {"world.ceiling": Optics(hfov_deg=90.0), "peer.front": Optics(hfov_deg=60.0)},
-        ),
-        target="rover",
-        marker=20,
-        start_m=(0.6, 0.5, 1.6),
-        start_yaw_deg=-30.0,
-        form="ardupilot",
-    ),
-}
 
 
 @dataclass
@@ -124,12 +67,17 @@ def run(name: str, seed: int = 0, form: str | None = None, gap_s: tuple[float, f
     """Fly scenario ``name`` until touchdown (or ``duration_s``): see the module's docstring."""
     from atlas_onboard.sim.workers import geometric_detector
 
-    if name not in SCENARIOS:
-        raise AtlasError(f"unknown landing scenario {name!r} (choose from {', '.join(sorted(SCENARIOS))})")
-    ls = SCENARIOS[name]
+    landings = sorted(n for n, sc in scenarios.SCENARIOS.items() if sc.landing is not None)
+    if name not in landings:
+        raise AtlasError(f"unknown landing scenario {name!r} (choose from {', '.join(landings)})")
+    scenario = scenarios.get(name)
+    ls = scenario.landing
+    assert ls is not None and ls.entity == DRONE
+    start = scenario.trajectories[DRONE]
+    assert isinstance(start, tj.Flown)
     form = form or ls.form
-    world = ls.scenario.world()
-    sim = SimWorld(ls.scenario, world)
+    world = scenario.world()
+    sim = SimWorld(scenario, world)
     graph = make_graph(world, DRONE)
     listener = Listener(world, graph)
     # The autopilot's attitude (ATTITUDE, as the node gets it): the simulated vehicle flies level, so
@@ -140,14 +88,14 @@ def run(name: str, seed: int = 0, form: str | None = None, gap_s: tuple[float, f
     outbox: list[tuple[float, dict[str, object]]] = []
     now = [0.0]
     output = LandingOutput(config, DRONE, world, lambda f: outbox.append((now[0], f)))
-    context = SimContext(ls.scenario, seed, Path("/dev/null"), duration_s)
+    context = SimContext(scenario, seed, Path("/dev/null"), duration_s)
     cams = [(sensor, geometric_detector(context, sensor, intr, seed * 1009 + sid).detect) for sid, (sensor, intr) in
             sorted(sim.cameras.items())]  # fmt: skip
     fps = min(float(s.camera.fps) for s, _ in cams if s.camera is not None)
     moving = ls.target != "world"
     settings = LanderSettings(form, moving_target=moving and form == "ardupilot",
                               lost_timeout_s=1.0 if form == "px4" else 2.0)  # fmt: skip
-    lander = Lander(settings, np.array(ls.start_m, dtype=float), np.radians(ls.start_yaw_deg))
+    lander = Lander(settings, np.array(start.start_m, dtype=float), np.radians(start.start_yaw_deg))
     marker = world.markers[ls.marker]
     pending: list[tuple[float, list[MarkerData]]] = []
     history: list[tuple[float, NDArray[np.float64]]] = []  # the drone's true position by time
@@ -196,8 +144,7 @@ def run(name: str, seed: int = 0, form: str | None = None, gap_s: tuple[float, f
             lander.on_target(fields, t, own_now)
         outbox[:] = [m for m in outbox if m[0] + LINK_DELAY_S > t]
         point = (truth[ls.target] * marker.T_entity_marker).translation
-        over = np.all(np.abs(lander.p_m[:2] - point[:2]) < FOOTPRINT_M)
-        lander.step(t, STEP_S, own_now, float(point[2]) if over else 0.0)
+        lander.step(t, STEP_S, own_now, ground_below(lander.p_m, point))
         t += STEP_S
     error = None
     if lander.touchdown_m is not None:

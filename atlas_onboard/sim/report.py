@@ -14,6 +14,7 @@ from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core import frames
 from atlas_onboard.errors import AtlasError
+from atlas_onboard.sim.flight import LandingScore
 from atlas_onboard.sim.world import FRESH_S, FRESH_STEP_S, SimWorld, fresh_share
 
 _ROWS, _COLS = np.triu_indices(6)  # MAVLink's row-major upper triangle: (0,0) (0,1) ... (0,5) (1,1) ... (5,5)
@@ -74,6 +75,7 @@ class RunReport:
     entities: list[EntityScore] = field(default_factory=list)
     counters: dict[str, dict[str, int]] = field(default_factory=dict)
     bars: list[dict[str, object]] = field(default_factory=list)
+    landing: LandingScore | None = None
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), indent=2, default=float)
@@ -91,6 +93,14 @@ class RunReport:
                 f" {e.expected_availability:>6.1%} {e.detections_per_s:>6.1f} {e.latency_median_ms:>7.1f}"
                 f" {e.latency_p95_ms:>7.1f} {e.position_nees:>7.2f} {e.pose_nees:>7.2f}"
             )
+        if (ls := self.landing) is not None:
+            where = (
+                "did not land"
+                if ls.touchdown_m is None
+                else (f"touched down {ls.touchdown_m * 100:.2f} cm from the landing point at {ls.touchdown_s:.1f} s")
+            )
+            rows.append(f"landing: {ls.entity} {where}; LANDING_TARGET received {ls.targets}, stale"
+                        f" {ls.stale_targets}, refused {ls.refused}; aborts {ls.aborts}")  # fmt: skip
         return "\n".join(rows)
 
 

@@ -43,6 +43,7 @@ from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot, recording
 from atlas_onboard.sim.camera import frames_path, prerender, replay_folder
 from atlas_onboard.sim.context import SIM_ENV
+from atlas_onboard.sim.flight import Flight, LandingScore, autopilot_type
 from atlas_onboard.sim.hub import Hub
 from atlas_onboard.sim.scenario import SIM_KIND, Scenario
 from atlas_onboard.sim.world import Intrinsics, SimWorld
@@ -53,6 +54,7 @@ _logger = logging.getLogger(__name__)
 WORLD_NODE_SYSTEM_ID = 250
 NODE_MODULE = "atlas_onboard.sim.launch"  # each node: `atlas-onboard run` with the simulator plugged in
 WARMUP_S = 1.0  # scored from this long after the start: the first frames fill the pipelines
+LANDED_S = 1.0  # a landing's run ends this long after touchdown
 
 
 @dataclass
@@ -96,6 +98,7 @@ class SimRun:
     ports: list[int] = field(default_factory=list)  # every UDP port the runner opened (all closed now)
     pids: list[int] = field(default_factory=list)  # every node process it started (all ended now)
     faults_s: list[tuple[float, str, str]] = field(default_factory=list)  # when each fault was injected
+    landing: LandingScore | None = None  # a landing scenario's touchdown
 
 
 def write_calibration(path: Path, intr: Intrinsics) -> None:
@@ -145,6 +148,9 @@ def build_run_config(
     nodes: dict[str, Any] = {"defaults": defaults}
     for k, name in enumerate(scenario.drones, start=1):
         nodes[name] = {"system_id": k, "autopilot": {"url": f"udpout:127.0.0.1:{autopilot_ports[name]}"}}
+        if scenario.landing is not None and scenario.landing.entity == name:
+            ls = scenario.landing
+            nodes[name]["landing"] = {"target": ls.target, "marker": ls.marker, "autopilot": ls.form}
     if scenario.needs_world_node:
         nodes[WORLD] = {"system_id": WORLD_NODE_SYSTEM_ID}
     doc["nodes"] = nodes
@@ -240,11 +246,12 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
     if not 2.0 <= duration <= 3600.0:
         raise AtlasError(f"--duration: expected 2 to 3600 seconds, got {duration:g}")
     run_dir = Path(tempfile.mkdtemp(prefix=f"atlas-sim-{scenario.name}-"))
+    scenario = scenario.with_flights(run_dir)  # flown entities: their truth is written as the run goes
     frames_dir = None
     geometric = bool(os.environ.get("ATLAS_SIM_GEOMETRIC"))  # no images: corners from the geometry plus noise
-    if options.replay and geometric:
-        raise AtlasError("a replay needs rendered images (unset ATLAS_SIM_GEOMETRIC)")
-    if not geometric:
+    if options.replay and (geometric or scenario.flown):
+        raise AtlasError("a replay needs images rendered before the run (unset ATLAS_SIM_GEOMETRIC; no landing)")
+    if not geometric and not scenario.flown:  # a flown vehicle's cameras render as they go
         try:
             frames_dir = _rendered_frames(scenario, options.seed, duration, say)
             if options.replay:
@@ -267,11 +274,12 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
         return lambda t_wall: trajectory.body_rates(np.array([t_wall - epoch_at[0]]))[0] if epoch_at else None
 
     autopilots = {
-        name: SimAutopilot(
-            system_id=k, attitude=attitude_of(name), attitude_seed=options.seed + k, rates=rates_of(name)
-        ).start()
+        name: SimAutopilot(system_id=k, attitude=attitude_of(name), attitude_seed=options.seed + k,
+                           rates=rates_of(name), autopilot_type=autopilot_type(scenario, name)).start()
         for k, name in enumerate(scenario.drones, start=1)
-    }
+    }  # fmt: skip
+    flight = None if scenario.landing is None else Flight(scenario, autopilots[scenario.landing.entity], max(
+        duration, options.max_duration_s))  # fmt: skip
     logs: dict[str, str] = {}
     exit_codes: dict[str, int | None] = {}
     pids: list[int] = []
@@ -292,6 +300,7 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
                 "frames_dir": str(frames_dir) if frames_dir is not None else None,
                 "geometric": geometric,
                 "replay": options.replay,
+                "flights_dir": str(run_dir),
             }
         )
         entities = list(scenario.drones) + ([WORLD] if scenario.needs_world_node else [])
@@ -321,6 +330,8 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
                 time.sleep(0.05)
             epoch = time.time() + 0.3
             epoch_at.append(epoch)
+            if flight is not None:
+                flight.start(epoch)
             tmp = epoch_file.with_suffix(".tmp")
             tmp.write_text(f"{epoch:.6f}\n", encoding="utf-8")
             tmp.replace(epoch_file)
@@ -330,6 +341,8 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
 
             def going_on() -> bool:
                 now = time.time()
+                if flight is not None and flight.landed_for(now - epoch) > LANDED_S:
+                    return False
                 if now < epoch + duration:
                     return True
                 waiting = options.until is not None and not options.until(autopilots, epoch)
@@ -351,11 +364,13 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
                 if dead:
                     raise AtlasError(f"node {dead[0]} died during the run: {_tail(run_dir / f'{dead[0]}.log')}")
                 time.sleep(0.02)
-            if options.until is not None:  # the run's length: longer when it waited for ``until``
-                duration = max(duration, time.time() - epoch)
+            if options.until is not None or flight is not None:  # the run's length: as long as it went
+                duration = time.time() - epoch if flight is not None else max(duration, time.time() - epoch)
         exit_codes = {n: p.returncode for n, p in procs.items()}
         logs = {n: (run_dir / f"{n}.log").read_text(encoding="utf-8", errors="replace") for n in entities}
     finally:
+        if flight is not None:
+            flight.stop()
         hub.stop()
         for a in autopilots.values():
             a.stop()
@@ -363,7 +378,9 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
             shutil.rmtree(run_dir, ignore_errors=True)
     ports = [hub.port, *(a.port for a in autopilots.values())]
     world = SimWorld(scenario)
-    return SimRun(scenario, world, epoch, duration, run_dir, autopilots, taps, exit_codes, logs, ports, pids, faults_s)
+    landing = flight.score() if flight is not None else None
+    return SimRun(scenario, world, epoch, duration, run_dir, autopilots, taps, exit_codes, logs, ports, pids, faults_s,
+                  landing)  # fmt: skip
 
 
 def _tail(path: Path, lines: int = 3) -> str:

@@ -6,7 +6,7 @@ capture and the occlusions. The built-in ones are :mod:`atlas_onboard.sim.scenar
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -20,7 +20,7 @@ from atlas_onboard.sim import trajectories as tj
 
 SIM_KIND = "sim"  # the camera source of the simulator's cameras (``camera.source: sim``)
 
-Trajectory = tj.Quadrotor | tj.Static
+Trajectory = tj.Quadrotor | tj.Static | tj.Flown
 
 
 @dataclass(frozen=True)
@@ -108,6 +108,18 @@ def _occlusion_table(occ: Occlusions) -> NDArray[np.float64]:
 
 
 @dataclass(frozen=True)
+class Landing:
+    """A precision landing: ``entity`` (flown by its autopilot, :class:`~atlas_onboard.sim.trajectories.Flown`)
+    lands on marker ``marker`` of entity ``target`` (``world``: a pad of world markers), its node sending
+    LANDING_TARGET in the form of autopilot ``form`` (px4 or ardupilot)."""
+
+    entity: str
+    target: str
+    marker: int
+    form: str
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     description: str
@@ -121,6 +133,18 @@ class Scenario:
     bars: dict[str, float] = field(default_factory=dict)  # e.g. {"drone_c.rmse_m": 0.10}
     occlusions: tuple[Occlusions, ...] = ()
     room: Room | None = None  # render the cameras' images inside this room (see atlas_onboard.sim.room)
+    landing: Landing | None = None
+
+    @property
+    def flown(self) -> tuple[str, ...]:
+        """The entities flown closed loop (their truth exists only as the run goes: nothing pre-rendered)."""
+        return tuple(n for n, t in self.trajectories.items() if isinstance(t, tj.Flown))
+
+    def with_flights(self, directory: Path) -> Scenario:
+        """This scenario in a run whose flight files are in ``directory`` (one per flown entity)."""
+        bound = {n: t.bound(flight_path(directory, n)) if isinstance(t, tj.Flown) else t
+                 for n, t in self.trajectories.items()}  # fmt: skip
+        return replace(self, trajectories=bound)
 
     def world(self) -> WorldConfig:
         return parse_world(self.world_doc(), self.world_path())
@@ -152,3 +176,8 @@ class Scenario:
         """A world node runs the world-fixed cameras (and the mocap), like a ground computer would."""
         world = self.world()
         return self.mocap is not None or any(s.camera is not None for s in world.entity(WORLD).sensors)
+
+
+def flight_path(directory: Path, entity: str) -> Path:
+    """The flight file of a flown entity in a run's directory."""
+    return directory / f"flight-{entity}.f64"

@@ -12,7 +12,7 @@ from typing import Any
 
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.sim import trajectories as tj
-from atlas_onboard.sim.scenario import Mocap, Occlusions, Optics, Room, Scenario
+from atlas_onboard.sim.scenario import Landing, Mocap, Occlusions, Optics, Room, Scenario
 
 
 def _flights(drones: dict[str, tj.Quadrotor], **scenario: Any) -> Scenario:
@@ -270,6 +270,41 @@ def _map() -> Scenario:
     )
 
 
+def _landings() -> tuple[Scenario, Scenario]:
+    """Precision landings, flown closed loop on the node's LANDING_TARGET (:mod:`atlas_onboard.sim.flight`);
+    the touchdown bars are the landing's (3 cm on a static pad, 8 cm on a moving rover)."""
+    pad = Scenario(
+        name="land-pad",
+        description="a drone lands (PX4's form) on a static pad of world tags that only its own downward camera sees",
+        world_file="land-pad.yaml",
+        duration_s=20.0,
+        trajectories={"drone": tj.Flown((0.5, -0.4, 1.2), 25.0)},
+        drones=("drone",),
+        scored=("drone",),
+        optics={"drone.down": Optics(hfov_deg=70.0)},
+        bars={"drone.touchdown_m": 0.03},
+        landing=Landing(entity="drone", target="world", marker=0, form="px4"),
+    )
+    rover = Scenario(
+        name="land-rover",
+        description="a drone lands (ArduPilot's form) on a rover driving at 0.3 m/s that only a ceiling camera and"
+        " a peer drone see",
+        world_file="land-rover.yaml",
+        duration_s=20.0,
+        trajectories={
+            "drone": tj.Flown((0.6, 0.5, 1.6), -30.0),
+            "rover": tj.driving((-0.3, 0.0, 0.0), (0.3, 0.0, 0.0)),
+            "peer": tj.Static((-1.6, 0.0, 1.1)),
+        },
+        drones=("drone", "peer"),
+        scored=("drone",),
+        optics={"world.ceiling": Optics(hfov_deg=90.0), "peer.front": Optics(hfov_deg=60.0)},
+        bars={"drone.touchdown_m": 0.08},
+        landing=Landing(entity="drone", target="rover", marker=20, form="ardupilot"),
+    )
+    return pad, rover
+
+
 SCENARIOS = {
     s.name: s
     for s in (
@@ -285,6 +320,7 @@ SCENARIOS = {
         _rolling("rolling", "rolling.yaml", "a rolling shutter read top to bottom in 25 ms"),
         _rolling("rolling-global", "rolling-global.yaml", "a global shutter (rolling's twin)"),
         _map(),
+        *_landings(),
     )
 }
 DEFAULT = "swarm"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -147,6 +148,74 @@ class Quadrotor:
         return (Rotation.from_quat(q0).inv() * Rotation.from_quat(q1)).as_rotvec() / (2 * RATE_STEP_S)
 
 
+# A flight file: row 0 holds the number of rows written; each row after it is one state of the vehicle.
+FLIGHT_COLUMNS = ("t_s", "x_m", "y_m", "z_m", "yaw_rad", "vx_m_s", "vy_m_s", "vz_m_s", "yaw_rate_rad_s")
+
+
+def flight_table(path: Path, rows: int | None = None) -> np.memmap:
+    """The flight file at ``path`` mapped into memory: created with room for ``rows`` states when given
+    (its writer's), else opened read-only (every other process of the run)."""
+    shape = None if rows is None else (rows + 1, len(FLIGHT_COLUMNS))
+    if rows is not None:
+        return np.memmap(path, dtype=np.float64, mode="w+", shape=shape)
+    raw = np.memmap(path, dtype=np.float64, mode="r")
+    return raw.reshape(-1, len(FLIGHT_COLUMNS))
+
+
+@dataclass(frozen=True)
+class Flown:
+    """A vehicle flown closed loop by its simulated autopilot in a real-time run (a landing on what the
+    node tells it, :mod:`atlas_onboard.sim.flight`): its states are read from the run's flight file,
+    which the runner writes a little ahead of the wall clock, so every process sees the same truth at a
+    frame's time. Level, at its heading; before the first state, at ``start_m``; past the last, carried
+    on at its last velocity. ``path`` is None outside a run (:meth:`bound` gives the run's)."""
+
+    start_m: tuple[float, float, float]
+    start_yaw_deg: float = 0.0
+    path: Path | None = None
+
+    def bound(self, path: Path) -> Flown:
+        return Flown(self.start_m, self.start_yaw_deg, path)
+
+    def states(self) -> NDArray[np.float64]:
+        """The states written so far, (N, 9) as :data:`FLIGHT_COLUMNS` (none outside a run)."""
+        table = None if self.path is None else _flight_tables.get(self.path)
+        if table is None:  # mapped once per process: it stays readable after the run removes its directory
+            if self.path is None or not self.path.exists():
+                return np.zeros((0, len(FLIGHT_COLUMNS)))
+            table = _flight_tables[self.path] = flight_table(self.path)
+        n = int(table[0, 0])
+        return np.array(table[1 : n + 1])
+
+    def _at(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        s = self.states()
+        if not len(s):
+            start = [0.0, *self.start_m, np.radians(self.start_yaw_deg), 0.0, 0.0, 0.0, 0.0]
+            return np.tile(start, (len(t), 1))
+        out = np.column_stack([t] + [np.interp(t, s[:, 0], s[:, k]) for k in range(1, s.shape[1])])
+        past = t > s[-1, 0]
+        if past.any():
+            dt = (t[past] - s[-1, 0])[:, None]
+            out[past, 1:4] = s[-1, 1:4] + s[-1, 5:8] * dt
+            out[past, 4] = s[-1, 4] + s[-1, 8] * dt[:, 0]
+        return out
+
+    def pose(self, t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        s = self._at(t)
+        return s[:, 1:4], Rotation.from_euler("z", s[:, 4:5]).as_quat()
+
+    def velocity(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        return self._at(t)[:, 5:8]
+
+    def body_rates(self, t: NDArray[np.float64]) -> NDArray[np.float64]:
+        s = self._at(t)
+        return np.column_stack([np.zeros(len(s)), np.zeros(len(s)), s[:, 8]])
+
+
+_flight_tables: dict[Path, np.memmap] = {}
+
+
 def lissajous(
     center: tuple[float, float, float],
     amp: tuple[float, float, float],
@@ -236,3 +305,11 @@ def face_path(path: PathFn) -> YawFn:
         return np.arctan2(q[:, 1] - p[:, 1], q[:, 0] - p[:, 0])
 
     return yaw
+
+
+def driving(start_m: tuple[float, float, float], velocity_m_s: tuple[float, float, float]) -> Quadrotor:
+    """A ground vehicle driving straight at constant speed, heading along its motion (no acceleration:
+    the trajectory model keeps it level)."""
+    p0, v = np.asarray(start_m, dtype=float), np.asarray(velocity_m_s, dtype=float)
+    return Quadrotor(lambda t: p0 + np.asarray(t, dtype=float)[:, None] * v,
+                     constant_yaw(float(np.degrees(np.arctan2(v[1], v[0])))))  # fmt: skip
