@@ -67,7 +67,7 @@ def register_camera_kind(kind: str, factory: CameraFactory) -> None:
 def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig | None = None) -> list[Camera]:
     """The camera workers of this node's entity: a registered kind's, or a device or file read by the detector.
     ``refine``: live map refinement is on, and the detector reports some images marker by marker, not an
-    entity's markers as one joint solve (it needs each world marker's own pose; :class:`PerMarkerSampler`)."""
+    entity's markers as one joint solve (it needs each world marker's own pose; core/refine/sampling.py)."""
     cameras: list[Camera] = []
     sensors = [s for s in world.entity(config.entity).sensors if s.camera is not None and s.camera.source]
     detected = [s for s in sensors if s.camera is not None and s.camera.source not in CAMERA_KINDS]
@@ -87,7 +87,6 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
             continue
         from atlas_onboard.detector.calibration import load as load_calibration
         from atlas_onboard.detector.camera import CameraWorker
-        from atlas_onboard.detector.pipeline import Detector
         from atlas_onboard.detector.workers import CameraDetectorSpec
         from atlas_onboard.recording.format import is_recording, read_info
 
@@ -97,16 +96,11 @@ def build_cameras(world: WorldConfig, config: NodeConfig, refine: RefineConfig |
             calibration = read_info(Path(cam.source)).calibration
         else:
             raise AtlasError(f"sensor {config.entity}.{sensor.name}: camera.calibration is required for {cam.source!r}")
+        spec = CameraDetectorSpec(sensor, world, calibration, DECIMATE, refine)
         if processes:  # each worker process makes its own detector
-            spec = CameraDetectorSpec(sensor, world, calibration, DECIMATE, refine)
             cameras.append(CameraWorker(sensor.name, cam, None, spec=spec, processes=processes))
             continue
-        detector = Detector(sensor, world, calibration, decimate=DECIMATE)
-        if refine is not None:
-            from atlas_onboard.node.refine import sampled
-
-            detector = sampled(detector, world, refine)  # type: ignore[assignment]
-        cameras.append(CameraWorker(sensor.name, cam, detector))
+        cameras.append(CameraWorker(sensor.name, cam, spec.build()))
     return cameras
 
 

@@ -31,9 +31,9 @@ import numpy as np
 import yaml
 
 from atlas_onboard.config import RefineConfig, load_world
-from atlas_onboard.detector.pipeline import Detector
+from atlas_onboard.detector.workers import CameraDetectorSpec
 from atlas_onboard.listener import Listener
-from atlas_onboard.node.refine import LiveRefinement, PerMarkerSampler
+from atlas_onboard.node.refine import LiveRefinement
 from atlas_onboard.node.setup import make_graph
 from atlas_onboard.recording.format import read_frames, read_info
 from atlas_onboard.sim import recordings, scenarios
@@ -59,13 +59,12 @@ def run(world_file: Path, recs: dict[int, Path], refine: bool, marker: int, trut
     world = load_world(world_file)
     graph = make_graph(world)
     listener = Listener(world, graph)
+    # As the node's cameras run (with live refinement's per-marker images when refining).
     detectors = {
-        sid: Detector(world.sensors[sid], world, read_info(p).calibration, decimate=2.0) for sid, p in recs.items()
-    }
-    if refine:  # as the node's cameras run when refining
-        world_ids = frozenset(m.id for m in world.entity("world").markers)
-        period_us = round(RefineConfig().per_marker_period_s * 1e6)
-        detectors = {sid: PerMarkerSampler(d, world_ids, period_us) for sid, d in detectors.items()}
+        sid: CameraDetectorSpec(world.sensors[sid], world, read_info(p).calibration, 2.0,
+                                RefineConfig() if refine else None).build()
+        for sid, p in recs.items()
+    }  # fmt: skip
     refinement = LiveRefinement(world, RefineConfig()) if refine else None
     sim = SimWorld(scenarios.get(SCENARIO), truth_world)
     true_marker = truth_world.markers[marker].T_entity_marker.translation

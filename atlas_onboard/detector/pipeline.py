@@ -37,6 +37,7 @@ from atlas_onboard.config import WORLD, SensorConfig, WorldConfig
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.consistency import PairVerdict
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.refine.sampling import PerMarkerSchedule
 from atlas_onboard.core.shutter import BodyRate
 from atlas_onboard.core.worldcheck import MovedMarker
 from atlas_onboard.detector import pose
@@ -82,10 +83,9 @@ class Detector:
     track: bool = True
     max_ambiguity: float = MAX_AMBIGUITY
     joint: bool = True
-    # Live map refinement's per-marker images: an entity's markers seen three or more together are each
-    # reported on their own, moved, suspect or not (the graph's consensus gate weighs them against each
-    # other); fewer are solved and checked as always (two that disagree cannot be told apart downstream).
-    per_marker: bool = False
+    # Live map refinement's per-marker images, when due: an entity's markers seen three or more together are
+    # each reported alone, moved or suspect too (the graph's gate weighs them); fewer are solved as always.
+    per_marker: PerMarkerSchedule | None = None
     counters: Counter[str] = field(default_factory=Counter)
 
     def __post_init__(self) -> None:
@@ -109,13 +109,7 @@ class Detector:
         )
         # The live world-file check: moved and suspect markers, measured places, what is said.
         world_markers = {m: T for m, T in self.marker_pose.items() if self.entity_of[m] == WORLD}
-        self.world_check = WorldCheck(
-            self.sensor,
-            self.marker_pose,
-            world_markers,
-            self.counters,
-            self.joint_solve,
-        )
+        self.world_check = WorldCheck(self.sensor, self.marker_pose, world_markers, self.counters, self.joint_solve)
         self.motion_model: CameraMotionModel | None = None  # made at the first frame (its height)
 
     @property
@@ -218,6 +212,7 @@ class Detector:
             s = self.sensor
             self.motion_model = CameraMotionModel(s.camera, s.T_entity_sensor.rotation, h, s.entity == WORLD)
         motion = self.motion_model.at(capture_time_us, body_rate)
+        per_marker = self.per_marker is not None and self.per_marker.due(capture_time_us)
         candidates = []
         for d in self.find(gray, R_prev_now):
             self.report.found.append(d.marker_id)
@@ -287,7 +282,7 @@ class Detector:
             # Evidence for the consistency of the markers over time (the camera cannot jump) and in pairs.
             verdicts = self.world_check.consistency_evidence(entity, ids, singles, capture_time_us)
             fed = False
-            each = self.per_marker and len(ids) >= 3
+            each = per_marker and len(ids) >= 3
             if self.joint and len(ids) > 1 and not each:
                 self.world_check.offsets = {}
                 doubtful = self.world_check.doubtful(entity, ids, capture_time_us)
@@ -359,6 +354,8 @@ class Detector:
         # Camera motion: the frame's timing uncertainty moves every pose alike (detector.motion)
         out = [self.motion_model.with_timing(md, motion) for md in out]
         self.counters["detections"] += len(out)
+        if self.per_marker is not None:
+            self.per_marker.saw(capture_time_us, per_marker, self.report.found)
         return out
 
     def _doubtful_alone(self, entity: str, mid: int, verdicts: list[PairVerdict], capture_time_us: int) -> bool:

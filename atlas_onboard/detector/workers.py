@@ -28,8 +28,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.config import RefineConfig, SensorConfig, WorldConfig
+from atlas_onboard.config import WORLD, RefineConfig, SensorConfig, WorldConfig
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.refine.sampling import PerMarkerSchedule
 from atlas_onboard.core.shutter import BodyRate
 from atlas_onboard.detector.backends import apriltag_families
 from atlas_onboard.detector.calibration import Calibration
@@ -63,8 +64,8 @@ class DetectorSpec(Protocol):
 
 @dataclass(frozen=True)
 class CameraDetectorSpec:
-    """The detector ``atlas-onboard run`` makes for a camera (wrapped for live map refinement when
-    ``refine`` is given)."""
+    """The detector ``atlas-onboard run`` makes for a camera (with live map refinement's per-marker images
+    when ``refine`` is given)."""
 
     sensor: SensorConfig
     world: WorldConfig
@@ -80,12 +81,11 @@ class CameraDetectorSpec:
     def build(self) -> FrameDetector:
         from atlas_onboard.detector.pipeline import Detector
 
-        detector = Detector(self.sensor, self.world, self.calibration, decimate=self.decimate)
-        if self.refine is None:
-            return detector
-        from atlas_onboard.node.refine import sampled
-
-        return sampled(detector, self.world, self.refine)  # type: ignore[return-value]
+        per_marker = None
+        if self.refine is not None:
+            world_ids = frozenset(m.id for m in self.world.entity(WORLD).markers)
+            per_marker = PerMarkerSchedule(world_ids, round(self.refine.per_marker_period_s * 1e6))
+        return Detector(self.sensor, self.world, self.calibration, decimate=self.decimate, per_marker=per_marker)
 
 
 @dataclass(frozen=True)

@@ -112,8 +112,9 @@ class Deferred:
     """A frame that passed every check of a decode (a MAVLink 2 frame of a known id, its length,
     checksum and signing right), decoded only when needed: :meth:`decoded` gives pymavlink's message
     (the same object the parser would have returned), a scalar field read as an attribute
-    (``frame.sensor_id``) is read from the payload alone, any other attribute decodes. A receiver
-    that keeps only the newest of many messages, or needs only their sender, then decodes few."""
+    (``frame.sensor_id``) is read from the payload alone, any other field decodes. A receiver that
+    keeps only the newest of many messages, or needs only their sender, then decodes few. Besides the
+    fields it answers pymavlink's header getters, ``get_msgbuf`` and ``to_dict``."""
 
     __slots__ = ("_build", "_msg", "_msgbuf", "_msgtype", "_sig_ok", "_trailer")
 
@@ -149,8 +150,11 @@ class Deferred:
             self._msg = self._build(self._msgbuf, self._msgtype, self._trailer, self._sig_ok)
         return self._msg
 
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.decoded(), name)
+    def get_msgbuf(self) -> bytearray:
+        return self._msgbuf
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.decoded().to_dict())
 
     def __repr__(self) -> str:
         return f"Deferred({self.get_type()} from {self.get_srcSystem()}/{self.get_srcComponent()})"
@@ -169,9 +173,16 @@ def _deferred_class(msgtype: Any) -> type[Deferred]:
     (a field asked for again reads it again: cheaper than keeping what was read)."""
     cls = _deferred.get(msgtype)
     if cls is None:
-        props = {name: property(_field(read)) for name, read in _scalar_readers(msgtype).items()}
+        readers = _scalar_readers(msgtype)
+        # The other fields (arrays, strings, characters) from pymavlink's message, decoded once.
+        props = {name: property(_field(readers[name]) if name in readers else _decoded_field(name))
+                 for name in msgtype.fieldnames}  # fmt: skip
         cls = _deferred[msgtype] = type(f"Deferred_{msgtype.msgname}", (Deferred,), {"__slots__": (), **props})
     return cls
+
+
+def _decoded_field(name: str) -> Any:
+    return lambda self: getattr(self.decoded(), name)
 
 
 def _field(read: Any) -> Any:

@@ -37,55 +37,6 @@ STATUS_NS = 60 * NS  # at most one STATUSTEXT a minute
 LOG_NS = 60 * NS  # a marker's update is logged the first time, then at most once a minute
 
 
-class PerMarkerSampler:
-    """A detector that reports one image every ``period_us`` (capture time; 0: every one) marker by
-    marker and the others as it always does (an entity's markers seen together as one joint solve).
-
-    Refinement needs each world marker's own pose in an image that shows three or more of them, and
-    counts an image as a new view only when it is at least
-    :attr:`~atlas_onboard.core.refine.RefineOptions.view_gap_s` after the last one of its camera: the
-    images between would add no views, and the joint solve gives far better poses than the fusion of
-    single squares. An image is taken marker by marker when the period has passed and three or more
-    world markers were found in the previous image (the next one most likely does too). Everything else
-    is the wrapped detector's."""
-
-    def __init__(self, detector: object, world_ids: frozenset[int], period_us: int) -> None:
-        self._detector = detector
-        self._world_ids = world_ids
-        self.period_us = period_us
-        self._last_us: int | None = None
-        self._world_seen = 0  # world markers found in the previous image
-
-    def detect(self, gray: object, capture_time_us: int, *args: object, **kwargs: object) -> list[MarkerData]:
-        det = self._detector
-        due = self._last_us is None or not 0 <= capture_time_us - self._last_us < self.period_us
-        each = due and self._world_seen >= 3
-        # In an image taken marker by marker every marker seen with two or more others is reported, the
-        # moved or suspect one too: it is the one that most needs refining.
-        det.per_marker = each  # type: ignore[attr-defined]
-        try:
-            out = det.detect(gray, capture_time_us, *args, **kwargs)  # type: ignore[attr-defined]
-        finally:
-            det.per_marker = False  # type: ignore[attr-defined]
-        if each:
-            self._last_us = capture_time_us
-        # Found, not reported: a joint solve leaves out a marker that does not fit (the one to refine).
-        self._world_seen = len(self._world_ids.intersection(det.report.found))  # type: ignore[attr-defined]
-        return out
-
-    def __getattr__(self, name: str) -> object:
-        return getattr(self._detector, name)
-
-
-def sampled(detector: object, world: WorldConfig, refine: RefineConfig | None) -> object:
-    """``detector`` as a camera of a refining node uses it: wrapped by a :class:`PerMarkerSampler` when
-    ``refine`` is on (None: off, the detector itself)."""
-    if refine is None:
-        return detector
-    world_ids = frozenset(m.id for m in world.entity(WORLD).markers)
-    return PerMarkerSampler(detector, world_ids, round(refine.per_marker_period_s * 1e6))
-
-
 class LiveRefinement:
     """The node's side of the refinement: images in, the listener's marker poses out (see the module)."""
 

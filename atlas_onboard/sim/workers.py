@@ -25,7 +25,7 @@ from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.motion import body_rate_at
 from atlas_onboard.detector.sources import ImageFolder, ReplayClock
-from atlas_onboard.node.refine import sampled
+from atlas_onboard.detector.workers import CameraDetectorSpec
 from atlas_onboard.sim.camera import FrameRenderer, frames_path
 from atlas_onboard.sim.context import SimContext
 from atlas_onboard.sim.world import Sighting, SimWorld
@@ -106,12 +106,11 @@ class SimReplayWorker(CameraWorker):
         self, context: SimContext, world: WorldConfig, sensor: SensorConfig, folder: Path, refine: RefineConfig | None
     ) -> None:
         from atlas_onboard.detector.calibration import load as load_calibration
-        from atlas_onboard.detector.pipeline import Detector
 
         assert sensor.camera is not None and sensor.camera.calibration is not None
         camera = replace(sensor.camera, source=str(folder), replay=context.replay)
-        detector = sampled(Detector(sensor, world, load_calibration(camera.calibration), decimate=2.0), world, refine)
-        super().__init__(sensor.name, camera, detector)
+        spec = CameraDetectorSpec(sensor, world, load_calibration(camera.calibration), 2.0, refine)
+        super().__init__(sensor.name, camera, spec.build())
         self.context = context
 
     def _run(self, deliver: Deliver) -> None:
@@ -178,12 +177,9 @@ def rendered_detector(
     instant when there is one (:func:`prerender`), otherwise rendered now. ``refine``: the node refines
     the map (the detector reports some images marker by marker, as a real camera's does)."""
     from atlas_onboard.detector.calibration import load as load_calibration
-    from atlas_onboard.detector.pipeline import Detector
 
     assert sensor.camera is not None and sensor.camera.calibration is not None
-    detector = sampled(
-        Detector(sensor, world, load_calibration(sensor.camera.calibration), decimate=2.0), world, refine
-    )
+    detector = CameraDetectorSpec(sensor, world, load_calibration(sensor.camera.calibration), 2.0, refine).build()
     frames: NDArray[np.uint8] | None = None
     if context.frames_dir is not None and frames_path(context.frames_dir, sensor.id).exists():
         frames = np.load(frames_path(context.frames_dir, sensor.id), mmap_mode="r")

@@ -11,6 +11,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core import covariance
+from atlas_onboard.core.refine.sampling import PerMarkerSchedule
 from atlas_onboard.core.worldcheck import MIN_VIEWS
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
@@ -171,8 +172,9 @@ def test_per_marker_images_report_a_moved_marker_only_beside_two_others():
     det = Detector(world.sensors[1], world, Calibration(W, H, K, DIST), decimate=1.0, track=False)
     _fly(det, range(MIN_VIEWS + 5))
     assert ("world", 5) in det.moved
-    det.per_marker = True
-    ids = sorted(md.marker_id for md in det.detect(_image(0), 9_000_000))
+    det.per_marker = PerMarkerSchedule(frozenset(m.id for m in world.entity("world").markers), period_us=0)
+    assert 5 not in {md.marker_id for md in det.detect(_image(0), 8_900_000)}  # joint: the moved one left out
+    ids = sorted(md.marker_id for md in det.detect(_image(0), 9_000_000))  # the next image, marker by marker
     assert 5 in ids and len(ids) >= 3, ids
     (md,) = det.detect(_image(0, alone=True), 9_100_000)
     assert md.marker_id == 5 and det.counters["placed_used"] == 1

@@ -14,7 +14,7 @@ from atlas_onboard.core import covariance
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.listener import Listener
-from atlas_onboard.node.refine import LiveRefinement, PerMarkerSampler
+from atlas_onboard.node.refine import LiveRefinement
 from atlas_onboard.node.setup import make_graph
 from tests.config.common import NODES
 from tests.helpers import observe, pose, world_from
@@ -158,38 +158,6 @@ def test_refine_settings_are_read_and_checked(tmp_path):
         load_node(f, "drone1")
     f.write_text(NODES)
     assert load_node(f, "drone1")[1].refine is None  # off by default
-
-
-class _FakeDetector:
-    """Reports the markers it is told to see; remembers whether each image was solved jointly."""
-
-    def __init__(self) -> None:
-        self.per_marker = False
-        self.calls: list[bool] = []
-        self.report = type("Report", (), {"found": []})()
-        self.counters = {"detections": 0}
-        self.seen = [0, 1, 2]
-
-    def detect(self, gray, capture_time_us):
-        joint = not self.per_marker
-        self.calls.append(joint)
-        self.report.found = list(self.seen)
-        return [None] * (1 if joint else len(self.seen))
-
-
-def test_one_image_per_half_second_is_reported_marker_by_marker():
-    det = _FakeDetector()
-    sampler = PerMarkerSampler(det, frozenset({0, 1, 2}), period_us=500_000)
-    for k in range(30):  # 15 fps, 2 s
-        sampler.detect(None, k * 66_667)
-    assert det.per_marker is False and sampler.counters == {"detections": 0}  # the rest is the detector's
-    each = [k for k, joint in enumerate(det.calls) if not joint]
-    assert each == [1, 9, 17, 25]  # after an image with three world markers, then every 0.5 s or more
-    det.seen = [0, 1]  # two world markers: nothing to refine from, every image joint
-    det.calls.clear()
-    for k in range(30, 60):
-        sampler.detect(None, k * 66_667)
-    assert all(det.calls)
 
 
 def test_only_the_given_sensors_observations_are_evidence():
