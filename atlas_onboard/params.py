@@ -252,7 +252,7 @@ def render(
 
 
 def _cmd_params(args: argparse.Namespace) -> int:
-    from atlas_onboard.service_run import choose_entity
+    from atlas_onboard.service.run import choose_entity
 
     world, node = load_node(args.config, choose_entity(args.config, args.entity))
     params = parameters(world, node, args.autopilot, args.delay_ms, args.cog_m, args.ardupilot_version)

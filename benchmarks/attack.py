@@ -72,8 +72,8 @@ import numpy as np
 from attack_wire import AFTER_ROW3_S, WireAttack, Witness, node_cpu_s, node_rss_mb, node_threads, wire_report
 
 from atlas_onboard.config import load_world
-from atlas_onboard.install import write_key
 from atlas_onboard.mavlink.signing import SIGNING_TICKS_PER_S, signing_timestamp
+from atlas_onboard.service.install import write_key
 from atlas_onboard.sim.command import autopilot_track
 from atlas_onboard.sim.solo import Radio, SoloNode, forged_view, start_solo
 from atlas_onboard.sim.world import SimWorld

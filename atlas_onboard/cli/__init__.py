@@ -84,7 +84,7 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from atlas_onboard.service_run import run_node
+    from atlas_onboard.service.run import run_node
 
     return run_node(args.config, args.entity, args.record, args.record_max_mb, args.write_map)
 
@@ -120,10 +120,10 @@ def build_parser(every_command: bool = True) -> argparse.ArgumentParser:
 
     from atlas_onboard.cli.calibrate import add_commands as add_calibrate
     from atlas_onboard.detector.commands import add_commands as add_detector
-    from atlas_onboard.install import add_commands as add_install
     from atlas_onboard.mapping.command import add_commands as add_mapping
     from atlas_onboard.params import add_commands as add_params
-    from atlas_onboard.preflight import add_commands as add_preflight
+    from atlas_onboard.preflight.command import add_commands as add_preflight
+    from atlas_onboard.service.install import add_commands as add_install
 
     for plugin in _plugged_in():
         plugin.load()(sub)

@@ -151,7 +151,7 @@ def vision_position_estimate_fields(
     Args:
         T_enu_flu: the body's pose in the world (ENU world, FLU body).
         capture_time_us: capture time of the newest observation that contributed (UNIX epoch, us).
-        reset_counter: the current reset counter (:class:`atlas_onboard.publisher.Publisher` keeps it); sent modulo 256.
+        reset_counter: the current reset counter (core.publisher.Publisher keeps it); sent modulo 256.
         sigma_m: position standard deviation (m); the attitude's follows from it.
         covariance_enu_flu: or a full 6x6 covariance (m^2, rad^2) of x y z in ENU and small
             rotations about the FLU body axes; it wins over ``sigma_m``.

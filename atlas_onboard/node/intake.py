@@ -1,6 +1,6 @@
 """The node's intake, called from the camera and link threads (never from the loop's): an own image's
 detections stamped and queued together; a peer datagram's observations queued when they can move the own
-pose (decoded in the link's thread) and parked otherwise (:func:`atlas_onboard.schedule.relevance`).
+pose (decoded in the link's thread) and parked otherwise (:func:`atlas_onboard.node.schedule.relevance`).
 The loop that takes them is :class:`atlas_onboard.node.loop.Node`."""
 
 from __future__ import annotations
@@ -14,8 +14,8 @@ from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.peerclock import PeerClocks
 from atlas_onboard.core.records import Inbound
 from atlas_onboard.node.output import NodeOutput
+from atlas_onboard.node.schedule import Inbox, Item, ParkingBuffer, Relevance, relevance
 from atlas_onboard.node.setup import WorldBlocks
-from atlas_onboard.schedule import Inbox, Item, ParkingBuffer, Relevance, relevance
 
 
 class Intake:

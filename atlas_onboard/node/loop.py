@@ -34,13 +34,13 @@ from atlas_onboard.node.intake import Intake
 from atlas_onboard.node.output import NS, NodeOutput, Stats
 from atlas_onboard.node.ports import Camera, Transport
 from atlas_onboard.node.refine import LiveRefinement
+from atlas_onboard.node.schedule import Changes, FrameCount
 from atlas_onboard.node.setup import (
     WorldBlocks,
     reread_world,
     wire,
     write_refined_map,
 )
-from atlas_onboard.schedule import Changes, FrameCount
 
 _logger = logging.getLogger(__name__)
 

@@ -12,13 +12,13 @@ from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_ATTITUDE_SIG
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
 from atlas_onboard.core.markerdata import MarkerData
+from atlas_onboard.core.publisher import Publisher
 from atlas_onboard.core.records import PoseState, Telemetry
 from atlas_onboard.node.landing import landing_output
 from atlas_onboard.node.ports import Transport
+from atlas_onboard.node.schedule import Changes, near_entities
 from atlas_onboard.node.setup import WorldBlocks
-from atlas_onboard.publisher import Publisher
-from atlas_onboard.schedule import Changes, near_entities
-from atlas_onboard.state import ResetCounterStore
+from atlas_onboard.service.state import ResetCounterStore
 
 _logger = logging.getLogger(__name__)
 

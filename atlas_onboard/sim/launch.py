@@ -16,7 +16,7 @@ import sys
 from collections.abc import Sequence
 
 from atlas_onboard import cli
-from atlas_onboard.service_run import register_camera_kind
+from atlas_onboard.service.run import register_camera_kind
 from atlas_onboard.sim.scenario import SIM_KIND
 from atlas_onboard.sim.sources import sim_camera
 

@@ -20,7 +20,7 @@ from atlas_onboard.detector.inorder import InOrder
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import open_source
 from atlas_onboard.detector.workers import ProcessWorker
-from atlas_onboard.service_run import build_cameras
+from atlas_onboard.service.run import build_cameras
 
 IMAGE = np.zeros((8, 8), np.uint8)
 

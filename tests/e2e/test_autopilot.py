@@ -116,7 +116,7 @@ def test_odometry_matches_truth_in_local_frd(rig):
 
 def test_output_stops_when_the_peer_goes_silent_and_resumes(rig):
     """Told in order, whatever the machine's load (how soon the edges expire is the publisher's, tested
-    in tests/test_publisher.py): the pose is found, then lost once the peer is silent, nothing is sent
+    in tests/core/test_publisher.py): the pose is found, then lost once the peer is silent, nothing is sent
     after it is said lost, and it is sent again, with a new reset_counter, when the peer resumes."""
     world, ap, node, peer = rig
     feed(world, peer, n=10)

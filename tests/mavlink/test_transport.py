@@ -19,7 +19,7 @@ from atlas_onboard.core.markerdata import Rejection
 from atlas_onboard.core.records import AutopilotPose
 from atlas_onboard.mavlink import codec, framing
 from atlas_onboard.mavlink.transport import MavlinkTransport
-from atlas_onboard.schedule import ParkingBuffer
+from atlas_onboard.node.schedule import ParkingBuffer
 from tests.e2e.helpers import wait_for
 from tests.helpers import world_from
 from tests.mavlink.loopback import MD, D, RawSender, free_port

@@ -13,7 +13,7 @@ from atlas_onboard.config import AutopilotConfig, LinkConfig, NodeConfig, parse_
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.records import Inbound
 from atlas_onboard.node.loop import FLUSH_CHUNK, LOOP_TICK_S, Node
-from atlas_onboard.schedule import Relevance
+from atlas_onboard.node.schedule import Relevance
 from tests.e2e.helpers import wait_for
 from tests.helpers import assert_pose_close, observe, pose
 
@@ -344,7 +344,7 @@ def test_the_own_pose_is_published_before_other_observations_are_accepted():
 
 
 def test_frame_count_follows_each_image_whatever_the_order():
-    from atlas_onboard.schedule import FrameCount
+    from atlas_onboard.node.schedule import FrameCount
 
     def incomplete(*arrivals):
         frames = FrameCount()

@@ -21,11 +21,11 @@ from atlas_onboard.config import (
     load_node,
     read_yaml,
 )
-from atlas_onboard.cores import node_cores, processes_per_camera
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.node.loop import Node
 from atlas_onboard.node.ports import Camera
-from atlas_onboard.service import Notifier, watchdog_interval_us
+from atlas_onboard.service.cores import node_cores, processes_per_camera
+from atlas_onboard.service.notify import Notifier, watchdog_interval_us
 from atlas_onboard.worker import SensorWorker
 
 _logger = logging.getLogger(__name__)
@@ -126,7 +126,7 @@ def run_node(
             raise AtlasError(f"--record-max-mb: expected a positive size, got {record_max_mb:g}")
         base = record or RecordConfig(dir=record_dir or Path("."))
         record = replace(base, dir=record_dir or base.dir, max_mb=record_max_mb or base.max_mb)
-    from atlas_onboard.startup_check import CheckedTransport
+    from atlas_onboard.service.startup_check import CheckedTransport
 
     refine = config.refine
     if write_map is not None:  # like --record, beside the settings (a reload compares those)

@@ -21,7 +21,7 @@ from atlas_onboard.core import frames
 from atlas_onboard.core.records import AutopilotPose
 from atlas_onboard.mavlink.samples import AttitudeSample, VisionSample
 from atlas_onboard.mavlink.transport import MavlinkTransport
-from atlas_onboard.preflight_checks import Check, Verdict, check_attitude, check_rate, optical_axes_frd
+from atlas_onboard.preflight.checks import Check, Verdict, check_attitude, check_rate, optical_axes_frd
 
 _logger = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.mavlink.samples import AttitudeSample, PositionSample, Tap, VisionSample
-from atlas_onboard.preflight_checks import (
+from atlas_onboard.preflight.checks import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_AUTOPILOT_PX4,
     Verdict,

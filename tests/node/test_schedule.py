@@ -1,4 +1,4 @@
-"""The node's scheduling pieces (atlas_onboard/schedule.py): relevance, the parking buffer, the inbox,
+"""The node's scheduling pieces (atlas_onboard/node/schedule.py): relevance, the parking buffer, the inbox,
 the frame count. Pure: no node, no clock."""
 
 import threading
@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.records import Inbound
-from atlas_onboard.schedule import Changes, Inbox, ParkingBuffer, Relevance, near_entities, relevance
+from atlas_onboard.node.schedule import Changes, Inbox, ParkingBuffer, Relevance, near_entities, relevance
 
 # --- relevance ------------------------------------------------------------------------------------
 
@@ -203,7 +203,7 @@ def test_clearing_the_buffer_keeps_its_counts_and_may_switch_its_mode():
 
 def test_parked_observations_of_an_image_count_as_seen():
     """An image of four observations, two parked (one of them its last): the two queued complete it."""
-    from atlas_onboard.schedule import FrameCount
+    from atlas_onboard.node.schedule import FrameCount
 
     obs = [md(10, m, 500) for m in (5, 7, 6, 8)]
     obs = [MarkerData(o.sensor_id, o.marker_id, o.sigma_m, o.p_sensor_marker_m, o.q_sensor_marker_wxyz,

@@ -6,7 +6,7 @@ points at a relay on 127.0.0.1), and relays the node's link to the autopilot unc
 own pipeline. The node's service must be stopped (the relay takes the autopilot's port). For
 ``--seconds`` after the first pose it collects the poses, the autopilot's ATTITUDE and
 LOCAL_POSITION_NED, TIMESYNC, and asks the autopilot for its delay and source parameters and its EKF
-origin; then prints one line per check (:mod:`atlas_onboard.preflight_checks`) and exits 0 only when
+origin; then prints one line per check (:mod:`atlas_onboard.preflight.checks`) and exits 0 only when
 none failed (1 otherwise). ``--interactive`` then asks for two tilts and checks their signs.
 """
 
@@ -30,7 +30,7 @@ from atlas_onboard.config.yamlio import read_yaml
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink.relay import Relay
 from atlas_onboard.mavlink.samples import Tap
-from atlas_onboard.preflight_checks import (
+from atlas_onboard.preflight.checks import (
     MAV_AUTOPILOT_ARDUPILOTMEGA,
     Check,
     Verdict,
@@ -176,7 +176,7 @@ def run_preflight(
 
 
 def _cmd_preflight(args: argparse.Namespace) -> int:
-    from atlas_onboard.service_run import choose_entity
+    from atlas_onboard.service.run import choose_entity
 
     return run_preflight(args.config, choose_entity(args.config, args.entity), args.seconds, args.interactive)
 

@@ -12,11 +12,11 @@ from pathlib import Path
 import pytest
 import yaml
 
-from atlas_onboard import install
 from atlas_onboard.errors import AtlasError
-from atlas_onboard.install import UNITS, install_service, next_steps, shipped
+from atlas_onboard.service import install
+from atlas_onboard.service.install import UNITS, install_service, next_steps, shipped
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 UNIT_FILES = {"etc/systemd/system/atlas-onboard.service", "etc/systemd/system/atlas-onboard@.service"}
 # The example world file has network links (udpin:0.0.0.0 peers): both units get the drop-in.
 DROP_INS = {

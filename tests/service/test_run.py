@@ -3,9 +3,9 @@ by kind (the simulator's ``sim``); start-up itself knows none of them."""
 
 import pytest
 
-from atlas_onboard import service_run
 from atlas_onboard.config import NodeConfig, parse_world
 from atlas_onboard.errors import AtlasError
+from atlas_onboard.service import run as service_run
 
 WORLD = {
     "entities": {

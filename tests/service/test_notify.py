@@ -11,9 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from atlas_onboard.service import Notifier, ServiceError, socket_address, watchdog_interval_us
+from atlas_onboard.service.notify import Notifier, ServiceError, socket_address, watchdog_interval_us
 
-REPO = Path(__file__).resolve().parents[1]
 DEADLINE_S = 20.0  # generous: only a hang reaches it; nothing here measures time
 
 
@@ -103,7 +102,7 @@ def test_without_notify_socket_every_call_is_a_noop(environ, caplog):
 
 
 def test_an_unusable_address_disables_notifications_with_a_warning(caplog):
-    with caplog.at_level(logging.WARNING, logger="atlas_onboard.service"):
+    with caplog.at_level(logging.WARNING, logger="atlas_onboard.service.notify"):
         notifier = Notifier("relative/notify.sock")
     assert not notifier.enabled
     assert notifier.ready() is False
@@ -115,7 +114,7 @@ def test_a_failed_send_is_logged_once_and_never_raised(tmp_path, caplog):
     missing = str(tmp_path / "gone.sock")
     notifier = Notifier(missing)
     assert notifier.enabled
-    with caplog.at_level(logging.DEBUG, logger="atlas_onboard.service"):
+    with caplog.at_level(logging.DEBUG, logger="atlas_onboard.service.notify"):
         assert notifier.ready() is False
         assert notifier.watchdog() is False
     levels = [r.levelno for r in caplog.records]

@@ -1,4 +1,4 @@
-"""What the node keeps across restarts (state.py) and the atomic write under it (fsio.py)."""
+"""What the node keeps across restarts (service/state.py) and the atomic write under it (fsio.py)."""
 
 import os
 import stat
@@ -6,7 +6,7 @@ import stat
 import pytest
 
 from atlas_onboard.fsio import write_atomic
-from atlas_onboard.state import ResetCounterStore
+from atlas_onboard.service.state import ResetCounterStore
 
 
 def test_each_start_signals_a_reset_to_the_autopilot(tmp_path):

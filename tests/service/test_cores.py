@@ -4,8 +4,8 @@ each camera."""
 import pytest
 
 from atlas_onboard.config import load_node
-from atlas_onboard.cores import RESERVED_CORES, node_cores, processes_per_camera
 from atlas_onboard.errors import ConfigError
+from atlas_onboard.service.cores import RESERVED_CORES, node_cores, processes_per_camera
 from tests.config.common import NODES
 
 

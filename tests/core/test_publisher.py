@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from atlas_onboard.core.graph import TransformGraph
-from atlas_onboard.publisher import Publisher, RateCap
+from atlas_onboard.core.publisher import Publisher, RateCap
 
 MS = 1_000_000
 
