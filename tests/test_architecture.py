@@ -271,6 +271,24 @@ def test_no_getattr_with_a_literal_name():
     assert not bad, "\n".join(bad)
 
 
+def test_argument_parsing_and_printing_only_in_the_command_line():
+    """argparse and print() belong to ``cli/`` (and the simulator's own commands, which reach the command line
+    through entry points): the library's functions return what they found and raise what went wrong."""
+    allowed = {f"{PACKAGE}.sim.command", f"{PACKAGE}.sim.demo"}
+    bad = []
+    for name, path in _files().items():
+        if _inside(name, f"{PACKAGE}.cli") or name in allowed:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import | ast.ImportFrom):
+                modules = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+                if "argparse" in modules:
+                    bad.append(f"{path.relative_to(ROOT)}:{node.lineno} imports argparse")
+            elif isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id in ("print", "input"):
+                bad.append(f"{path.relative_to(ROOT)}:{node.lineno} calls {node.func.id}()")
+    assert not bad, "\n".join(bad)
+
+
 def test_no_attribute_forwarding():
     """``__getattr__`` hands on whatever is asked: composition says what an object offers."""
     bad = [

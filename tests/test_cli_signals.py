@@ -55,7 +55,7 @@ def test_the_service_starts_without_the_other_commands_modules():
     assert done.returncode == 0, done.stderr
     loaded = set(done.stdout.split())
     assert "atlas_onboard.cli" in loaded
-    heavy = ("cv2", "scipy.optimize", "atlas_onboard.sim", "atlas_onboard.mapping", "atlas_onboard.detector.commands")
+    heavy = ("cv2", "scipy.optimize", "atlas_onboard.sim", "atlas_onboard.mapping", "atlas_onboard.cli.detect")
     assert loaded.isdisjoint(heavy), sorted(loaded.intersection(heavy))
     helped = subprocess.run(
         [sys.executable, "-m", "atlas_onboard", "--help"], capture_output=True, text=True, timeout=60, check=False

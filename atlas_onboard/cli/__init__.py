@@ -119,11 +119,11 @@ def build_parser(every_command: bool = True) -> argparse.ArgumentParser:
         return parser
 
     from atlas_onboard.cli.calibrate import add_commands as add_calibrate
-    from atlas_onboard.detector.commands import add_commands as add_detector
-    from atlas_onboard.mapping.command import add_commands as add_mapping
-    from atlas_onboard.params import add_commands as add_params
-    from atlas_onboard.preflight.command import add_commands as add_preflight
-    from atlas_onboard.service.install import add_commands as add_install
+    from atlas_onboard.cli.detect import add_commands as add_detector
+    from atlas_onboard.cli.install import add_commands as add_install
+    from atlas_onboard.cli.map import add_commands as add_mapping
+    from atlas_onboard.cli.params import add_commands as add_params
+    from atlas_onboard.cli.preflight import add_commands as add_preflight
 
     for plugin in _plugged_in():
         plugin.load()(sub)

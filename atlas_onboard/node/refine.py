@@ -139,7 +139,7 @@ class LiveRefinement:
     def write(self, path: Path) -> None:
         """The world file with every refined marker's pose and 1-sigma (the others as they were), written
         atomically in the format ``map`` writes; AtlasError (one line) when it cannot be written."""
-        from atlas_onboard.mapping.command import refined_world_text
+        from atlas_onboard.mapping.output import refined_world_text
         from atlas_onboard.mapping.report import MarkerReport
 
         if self.world.source is None:

@@ -10,8 +10,8 @@ from scipy.spatial.transform import RigidTransform, Rotation
 from atlas_onboard.config import MARKER_FAMILIES
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import MarkerFinder, correction_bits
-from atlas_onboard.detector.commands import marker_svg
 from atlas_onboard.detector.families import APRILTAG3_LAYOUT, family, library_family
+from atlas_onboard.detector.images import marker_svg
 from atlas_onboard.detector.render import MarkerView, render
 from tests.detector.test_conventions import CAM, K, true_corners
 

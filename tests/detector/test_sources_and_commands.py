@@ -23,8 +23,8 @@ from atlas_onboard.detector import sources
 from atlas_onboard.detector.backends import MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.camera import CameraWorker
-from atlas_onboard.detector.commands import marker_svg
 from atlas_onboard.detector.families import family
+from atlas_onboard.detector.images import marker_svg
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import Frame, ImageFolder, Source, SourceError
 from tests.helpers import write_ubiquity_calibration

@@ -266,7 +266,7 @@ def test_the_written_world_file_loads_back_to_the_mapped_poses(tmp_path: Path, c
     from scipy.spatial.transform import Rotation
 
     from atlas_onboard.mapping.build import MapResult, MarkerReport
-    from atlas_onboard.mapping.command import world_text
+    from atlas_onboard.mapping.output import world_text
 
     src = tmp_path / "world.yaml"
     src.write_text(

@@ -2,7 +2,6 @@
 contract line by line, what install-service writes under a root (and nothing else), what it keeps,
 the steps it prints, and systemd-analyze's verdict on the installed result (verify, security)."""
 
-import argparse
 import re
 import shutil
 import subprocess
@@ -266,47 +265,6 @@ def test_a_script_under_home_cannot_be_the_service(tmp_path):
         " the service cannot run /home/pi/venv/bin/atlas-onboard (ProtectHome=yes)"
     )
     assert steps[2] == "ln -s /opt/atlas-onboard/bin/atlas-onboard /usr/local/bin/atlas-onboard"
-
-
-def test_install_service_command(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(install, "console_script", lambda: SCRIPT)
-    parser = argparse.ArgumentParser(prog="atlas-onboard")
-    install.add_commands(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(["install-service", "--root", str(tmp_path), "--entity", "drone1"])
-    assert args.func(args) == 0
-    steps = next_steps(tmp_path, "drone1", SCRIPT)
-    assert capsys.readouterr().out.splitlines() == [
-        f"wrote     {tmp_path}/etc/systemd/system/atlas-onboard.service",
-        f"wrote     {tmp_path}/etc/systemd/system/atlas-onboard@.service",
-        f"wrote     {tmp_path}/{WORLD}",
-        f"wrote     {tmp_path}/{ENV}",
-        f"wrote     {tmp_path}/{KEY} (a new signing key: copy it to every drone of the swarm)",
-        *(f"wrote     {tmp_path}/{d} (the world file has a network link)" for d in sorted(DROP_INS)),
-        "",
-        "Next, as root:",
-        *(f"  {i}. {step}" for i, step in enumerate(steps, start=1)),
-    ]
-    assert len(steps) == 7
-
-
-def test_keygen_writes_a_private_key_and_never_replaces_one_unasked(tmp_path, capsys):
-    parser = argparse.ArgumentParser(prog="atlas-onboard")
-    install.add_commands(parser.add_subparsers(dest="command", required=True))
-    path = tmp_path / "keys" / "swarm.key"
-    args = parser.parse_args(["keygen", str(path)])
-    assert args.func(args) == 0
-    first = path.read_bytes()
-    assert len(first) == 32 and path.stat().st_mode & 0o777 == 0o600
-    from atlas_onboard.mavlink.signing import read_key
-
-    assert read_key(path) == first  # what a node accepts
-    with pytest.raises(AtlasError, match="exists; give --force"):
-        args.func(args)
-    assert path.read_bytes() == first
-    args = parser.parse_args(["keygen", "--force", str(path)])
-    assert args.func(args) == 0
-    assert path.read_bytes() != first and path.stat().st_mode & 0o777 == 0o600
-    assert files_under(tmp_path) == {"keys/swarm.key"}  # no staging file left
 
 
 def test_the_cli_installs_a_world_file_that_validates_and_reports_errors_in_one_line(tmp_path):

@@ -12,7 +12,6 @@ none failed (1 otherwise). ``--interactive`` then asks for two tilts and checks 
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import os
 import signal
@@ -121,9 +120,14 @@ def _interactive(relay: Relay, ask: Callable[[str], str]) -> list[Check]:
 
 
 def run_preflight(
-    config: Path, entity: str, seconds: float, interactive: bool = False, out: Callable[[str], None] = print
+    config: Path,
+    entity: str,
+    seconds: float,
+    out: Callable[[str], None],
+    ask: Callable[[str], str] | None = None,
 ) -> int:
-    """Run the node behind the relay for ``seconds`` after its first pose; print the checks; 0 when none failed."""
+    """Run the node behind the relay for ``seconds`` after its first pose; each check's line to ``out``; with
+    ``ask`` (it shows a request and waits for the user's answer), then the interactive tilts; 0 when none failed."""
     if not 1.0 <= seconds <= 600.0:
         raise AtlasError(f"--seconds: expected 1-600, got {seconds:g}")
     world, node = load_node(config, entity)
@@ -152,8 +156,8 @@ def run_preflight(
         time.sleep(max(start + seconds - time.monotonic(), 0.0))
         window_s = time.monotonic() - start
         tap = _snapshot(relay.tap, start_wall)
-        if interactive and tap.vision:
-            extra = _interactive(relay, input)
+        if ask is not None and tap.vision:
+            extra = _interactive(relay, ask)
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGTERM)
@@ -173,25 +177,3 @@ def run_preflight(
     failed = sum(c.verdict is Verdict.FAIL for c in checks)
     out(f"preflight: {failed} failed, node log {log.name}" if failed else f"preflight: nothing failed ({kind})")
     return EXIT_FAILED if failed else 0
-
-
-def _cmd_preflight(args: argparse.Namespace) -> int:
-    from atlas_onboard.service.run import choose_entity
-
-    return run_preflight(args.config, choose_entity(args.config, args.entity), args.seconds, args.interactive)
-
-
-def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
-    """Register ``preflight``."""
-    p = sub.add_parser(
-        "preflight",
-        help="bench check before the first flight: attitude, frames, delay, rate, TIMESYNC, origin, signing",
-        description="Run the node (its service stopped) with the drone still on the bench, propellers off, relay"
-        " its autopilot link, and check what the autopilot gets: one line per check, PASS, FAIL (with the fix)"
-        " or SKIP. Exit status 0 only when nothing failed.",
-    )
-    p.add_argument("--config", required=True, type=Path, help="world file with a nodes section")
-    p.add_argument("--entity", help="the drone's entity (default: the only one with node settings)")
-    p.add_argument("--seconds", type=float, default=10.0, help="how long to watch after the first pose (default 10)")
-    p.add_argument("--interactive", action="store_true", help="then ask for a tilt nose down and right, check signs")
-    p.set_defaults(func=_cmd_preflight)

@@ -1,4 +1,5 @@
-"""``atlas-onboard detect`` and ``atlas-onboard markers``."""
+"""``atlas-onboard detect`` and ``atlas-onboard markers``: the detector on an image, a video or a device, and the
+configured markers as SVG files to print."""
 
 from __future__ import annotations
 
@@ -10,14 +11,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
-import numpy as np
-from scipy.spatial.transform import Rotation
-
 from atlas_onboard.config import CameraConfig, load_world
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.calibration import load as load_calibration
-from atlas_onboard.detector.families import family
+from atlas_onboard.detector.images import marker_svg, read_gray, write_annotated
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import SourceError, open_source
 from atlas_onboard.errors import AtlasError
@@ -37,7 +34,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         sensor, world, load_calibration(cal_path), decimate=1.0 if args.image else 2.0, track=not args.image
     )
     if args.image:
-        img = cv2.imread(str(args.image), cv2.IMREAD_GRAYSCALE) if Path(args.image).is_file() else None
+        img = read_gray(Path(args.image))
         if img is None:
             raise AtlasError(f"--image: cannot read {args.image}")
         frames = [(img, int(time.time() * 1e6))]
@@ -55,7 +52,7 @@ def _cmd_detect(args: argparse.Namespace) -> int:
         if not found or report.dropped:  # say why nothing, or not everything, was printed (JSON: on stderr)
             print(f"frame {k}: {report.explain()}", file=sys.stderr if args.json else sys.stdout, flush=True)
         if args.annotate and k == 0:
-            _annotate(Path(args.annotate), gray, found, detector)
+            write_annotated(Path(args.annotate), gray, found, detector)
         if args.frames and k + 1 >= args.frames:
             break
     return 0
@@ -80,22 +77,6 @@ def _as_line(md: MarkerData, frame: int) -> str:
     )
 
 
-def _annotate(path: Path, gray: np.ndarray, found: list[MarkerData], detector: Detector) -> None:
-    img = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
-    K, dist = detector.calibration.K, detector.calibration.dist
-    for md in found:
-        w, x, y, z = md.q_sensor_marker_wxyz
-        rvec = Rotation.from_quat([x, y, z, w]).as_rotvec()
-        size = detector.sizes[md.marker_id]
-        cv2.drawFrameAxes(img, K, dist, rvec, np.array(md.p_sensor_marker_m), size * 0.75, 2)
-        px, _ = cv2.projectPoints(np.zeros((1, 3)), rvec, np.array(md.p_sensor_marker_m), K, dist)
-        cv2.putText(
-            img, str(md.marker_id), tuple(int(v) for v in px.ravel()), cv2.FONT_HERSHEY_SIMPLEX, 0.8, (0, 255, 255), 2
-        )
-    if not cv2.imwrite(str(path), img):
-        raise AtlasError(f"--annotate: cannot write {path}")
-
-
 def _cmd_markers(args: argparse.Namespace) -> int:
     world = load_world(args.config)
     out = Path(args.out)
@@ -108,32 +89,6 @@ def _cmd_markers(args: argparse.Namespace) -> int:
         path.write_text(marker_svg(m.family, m.id, m.size_m), encoding="utf-8")
         print(f"{path}: {m.family} id {m.id}, black square {m.size_m * 1000:g} mm ({m.entity})")
     return 0
-
-
-def marker_svg(family_name: str, marker_id: int, size_m: float) -> str:
-    """One marker at its exact physical size (print at 100 %): the black square is ``size_m`` wide,
-    inside a white quiet zone of one cell, with the id and family printed below. (For the AprilTag 3
-    families whose data bits lie outside that square, the printed pattern is larger than it.)"""
-    fam = family(family_name)
-    bmp = fam.bitmap(marker_id, cell_px=1, quiet_zone_cells=0)  # one pixel a cell, black border included
-    cells = bmp.shape[0]
-    cell_mm = size_m * 1000 / fam.cells
-    quiet = cell_mm
-    side = cells * cell_mm + 2 * quiet
-    height = side + 12
-    cell = f'width="{cell_mm:.4f}" height="{cell_mm:.4f}"'
-    rects = [
-        f'<rect x="{quiet + c * cell_mm:.4f}" y="{quiet + r * cell_mm:.4f}" {cell}/>'
-        for r in range(cells) for c in range(cells) if bmp[r, c] < 128
-    ]  # fmt: skip
-    return (
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{side:.4f}mm" height="{height:.4f}mm"'
-        f' viewBox="0 0 {side:.4f} {height:.4f}">\n'
-        f'<rect width="{side:.4f}" height="{height:.4f}" fill="white"/>\n'
-        f'<g fill="black" shape-rendering="crispEdges">\n' + "\n".join(rects) + "\n</g>\n"
-        f'<text x="{quiet:.2f}" y="{side + 8:.2f}" font-family="sans-serif" font-size="5">'
-        f"{family_name} id {marker_id} - {size_m * 1000:g} mm - print at 100 %</text>\n</svg>\n"
-    )
 
 
 def add_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
