@@ -91,6 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0)
     ap.add_argument("--set", action="append", default=[], help="fusion KEY=VALUE")
+    ap.add_argument("--leader-delay-ms", type=float, default=0.0, help="the leader's poses arrive this much later")
     ap.add_argument("--frames", type=Path, help="keep the rendered frames here and reuse them")
     args = ap.parse_args(argv)
     scenario = scenarios.get(SCENARIO)
@@ -112,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
         frames = np.load(frames_path(directory, sid), mmap_mode="r")
         for j in range(max(math.floor((WARMUP_S - 0.5) * fps), 0), math.floor(args.duration * fps)):
             t = j / fps
-            events.append((t + DELAY_S, sensor.entity, det.detect(np.asarray(frames[j]), round(t * 1e6))))
+            late = args.leader_delay_ms / 1e3 if sensor.entity == LEADER else 0.0
+            events.append((t + DELAY_S + late, sensor.entity, det.detect(np.asarray(frames[j]), round(t * 1e6))))
     events.sort(key=lambda e: e[0])
     graph = make_graph(world, FOLLOWER)
     graph.keep_candidates = True
@@ -199,6 +201,9 @@ def main(argv: list[str] | None = None) -> int:
             break
     r = np.array(rows)
     print(f"{SCENARIO}, offline, {args.duration:g} s, scored from {WARMUP_S:g} s; mm unless said; {over or 'defaults'}")
+    n_frames = sum(1 for _a, who, mds in events if who == FOLLOWER and mds and _a - DELAY_S >= WARMUP_S)
+    print(f"leader's poses {args.leader_delay_ms:g} ms later than the follower's; follower frames with a detection")
+    print(f"{n_frames}, poses published {len(r)}")
     print(stats("published (fused)", r[:, 0]))
     print(stats("its candidate via the leader", r[:, 7]))
     print(stats("floor: edge x true leader", r[:, 1]))
