@@ -4,7 +4,8 @@ A candidate through another entity (a drone seen by a drone) composes that paren
 at the instants of the parent's own observations, with an edge taken at the child's camera's instant,
 tens of milliseconds apart. :class:`MotionHistory` keeps each vertex's last fused poses (one per
 capture time) and gives the parent's pose at any instant by a least-squares line through the newest
-ones (position, and rotation vectors about the newest attitude): between two of them an interpolation,
+ones (position, and rotation vectors about the newest attitude), each weighed by the inverse of the
+variance it would give the child: between two of them an interpolation,
 past the newest an extrapolation with the velocity and turn rate they show. The result is a linear
 combination of the samples, ``x(t) = sum_i w_i x_i`` with ``sum_i w_i = 1`` and ``sum_i w_i t_i = t``,
 so its covariance is exact for independent samples, ``sum_i w_i^2 C_i``, and a line misses a path
@@ -101,7 +102,7 @@ class MotionHistory:
             return None
         best: tuple[float, Aligned] | None = None
         for n in range(2, len(track) + 1):
-            out = _line(track[-n:], t_us)
+            out = _line(track[-n:], t_us, lever_m)
             if out is None:
                 continue
             cost = float(np.trace(out.cov[:3, :3]) + lever_m**2 * np.trace(out.cov[3:, 3:]))
@@ -154,22 +155,27 @@ class MotionHistory:
         return track[-1] if track else None
 
 
-def line_weights(t_s: NDArray[np.float64], t: float) -> NDArray[np.float64]:
-    """Weights w_i of the least-squares line through samples at ``t_s`` evaluated at ``t``:
-    ``sum w_i = 1``, ``sum w_i t_i = t`` (a line is reproduced exactly)."""
-    mean = float(t_s.mean())
-    spread = float(((t_s - mean) ** 2).sum())
-    return 1.0 / len(t_s) + (t_s - mean) * (t - mean) / spread
+def line_weights(t_s: NDArray[np.float64], t: float, omega: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """Weights w_i of the least-squares line through samples at ``t_s`` evaluated at ``t``, each sample
+    weighed by ``omega`` (None: all alike): ``sum w_i = 1``, ``sum w_i t_i = t`` (a line is reproduced
+    exactly)."""
+    o = np.full(len(t_s), 1.0 / len(t_s)) if omega is None else omega / omega.sum()
+    mean = float(o @ t_s)
+    spread = float(o @ (t_s - mean) ** 2)
+    return o + o * (t_s - mean) * (t - mean) / spread
 
 
-def _line(track: list[Sample], t_us: int) -> Aligned | None:
+def _line(track: list[Sample], t_us: int, lever_m: float) -> Aligned | None:
     """The least-squares line through ``track`` at ``t_us``, with its covariance (see the module)."""
     ref = track[-1]
     t_s = np.array([(s.t_us - ref.t_us) / 1e6 for s in track])
     if float(np.ptp(t_s)) <= 0.0:
         return None
     t = (t_us - ref.t_us) / 1e6
-    w = line_weights(t_s, t)
+    # Each sample weighed by the inverse of the variance it would give the child (its position's
+    # and its attitude's over the lever arm): a frame its own covariance says is poor counts less.
+    var = np.array([np.trace(s.cov[:3, :3]) + lever_m**2 * np.trace(s.cov[3:, 3:]) for s in track])
+    w = line_weights(t_s, t, 1.0 / var if bool(np.all(var > 0.0)) else None)
     p = np.einsum("i,ij->j", w, np.array([s.p for s in track]))
     R_ref = Rotation.from_quat(ref.q)
     # Rotation vectors about the newest attitude's axes (the covariance's convention: body axes).

@@ -54,6 +54,20 @@ def test_line_weights_reproduce_a_line_exactly(times, t):
     assert w @ t_s == pytest.approx(t, abs=1e-9)
 
 
+@settings(max_examples=50, deadline=None)
+@given(
+    st.lists(st.tuples(st.floats(-0.3, 0.0), st.floats(0.01, 100.0)), min_size=2, max_size=6, unique_by=lambda x: x[0]),
+    st.floats(-0.3, 0.1),
+)
+def test_weighed_line_weights_reproduce_a_line_exactly(samples, t):
+    t_s, omega = (np.array(x) for x in zip(*sorted(samples), strict=True))
+    if np.ptp(t_s) < 1e-3:
+        return
+    w = line_weights(t_s, t, omega)
+    assert w.sum() == pytest.approx(1.0, abs=1e-9)
+    assert w @ t_s == pytest.approx(t, abs=1e-9)
+
+
 @pytest.mark.parametrize("offset_us", [-12_000, -25_000, 40_000])
 def test_follower_through_a_moving_leader_is_composed_at_its_own_capture_time(offset_us):
     """The leader flies at 0.8 m/s and turns at 35 deg/s, seen at 30 Hz; the follower's image is taken
@@ -85,6 +99,67 @@ def test_follower_through_a_moving_leader_is_composed_at_its_own_capture_time(of
         errors[align] = float(np.linalg.norm(f.p_world_m - truth.translation))
     assert errors[True] < 1e-6
     assert errors[False] > 0.01
+
+
+def test_a_leader_pose_its_own_covariance_calls_poor_counts_less_in_the_follower():
+    """The leader flies a straight line seen at 30 Hz, its poses exact with a 1 mm, 1 mrad covariance,
+    but its newest one is off by 20 mm and 2 mrad, as its own covariance (20 mm, 2 mrad) allows. The
+    follower's image lies between the leader's last two poses: the leader's line there rests on the
+    well measured poses, the poor one counts by its variance, and the follower stays within 2 mm of
+    the truth (an equally weighed line through the poses carries 45 % of the newest's error: 9 mm)."""
+    p0, v, R0, w = (
+        np.array([0.3, -0.4, 1.3]),
+        np.array([0.5, 0.2, 0.0]),
+        Rotation.from_euler("z", -30, degrees=True),
+        np.array([0.0, 0.0, 0.3]),
+    )
+    zero = np.zeros(3)
+    good = np.diag([1e-6] * 3 + [1e-6] * 3)
+    poor = np.diag([4e-4] * 3 + [4e-6] * 3)
+    miss = RigidTransform.from_components([0.02, 0.0, 0.0], Rotation.from_rotvec([0.0, 0.002, 0.0]))
+    g = TransformGraph(NAMES, 250 * MS, align=True)
+    for k in range(6):
+        t_us = k * FRAME_US
+        T = leader_at(t_us / 1e6, p0, v, zero, R0, w, zero)
+        T, cov = (T * miss, poor) if k == 5 else (T, good)
+        put(g, (1, 1), "world", "leader", T, cov, t_us, t_us * 1000)
+        g.evaluate(t_us * 1000)
+    t_b = 4 * FRAME_US + FRAME_US // 2
+    truth = leader_at(t_b / 1e6, p0, v, zero, R0, w, zero) * T_LF
+    now = (5 * FRAME_US + 30_000) * 1000
+    put(g, (2, 9), "leader", "follower", T_LF, good, t_b, now)
+    f = g.evaluate(now).poses["follower"]
+    assert f.capture_time_us == t_b
+    assert float(np.linalg.norm(f.p_world_m - truth.translation)) < 0.002
+
+
+def test_composed_pose_nees_is_about_6_with_leader_poses_of_unlike_covariances():
+    """Monte Carlo: as below, but every other leader pose has nine times the variance (a frame with
+    fewer tags); each pose's error drawn from its own covariance. The follower's 6x6 still describes its
+    error (NEES6 about 6), whatever weight each pose gets."""
+    rng = np.random.default_rng(11)
+    C_good = np.diag([1.5e-3, 1.2e-3, 2.0e-3, 2e-3, 2.5e-3, 4e-3]) ** 2
+    C_edge = np.diag([1.5e-3, 1.5e-3, 5e-3, 6e-3, 6e-3, 3e-3]) ** 2
+    p0, v, R0, w = np.array([0.0, 0.0, 1.2]), np.array([0.6, -0.2, 0.0]), Rotation.identity(), np.array([0.0, 0.0, 0.4])
+    nees = []
+    for _ in range(600):
+        a = rng.normal(0.0, ACCEL_SIGMA_M_S2, 3)
+        alpha = rng.normal(0.0, ANGULAR_ACCEL_SIGMA_RAD_S2, 3)
+        g = TransformGraph(NAMES, 250 * MS, align=True)
+        for k in range(5):
+            t_us = k * FRAME_US
+            C = C_good * (9.0 if k % 2 else 1.0)
+            T = noisy(leader_at(t_us / 1e6, p0, v, a, R0, w, alpha), C, rng)
+            put(g, (1, 1), "world", "leader", T, C, t_us, t_us * 1000)
+            g.evaluate(t_us * 1000)
+        t_b = 3 * FRAME_US + 12_000
+        truth = leader_at(t_b / 1e6, p0, v, a, R0, w, alpha) * T_LF
+        now = (4 * FRAME_US + 30_000) * 1000
+        put(g, (2, 9), "leader", "follower", noisy(T_LF, C_edge, rng), C_edge, t_b, now)
+        f = g.evaluate(now).poses["follower"]
+        e = pose_error(f, truth)
+        nees.append(float(e @ np.linalg.solve(f.covariance, e)))
+    assert 5.4 <= np.mean(nees) <= 6.6
 
 
 def test_a_follower_image_just_after_the_leaders_newest_waits_for_the_leaders_next_one():
