@@ -231,6 +231,8 @@ def main(argv: list[str] | None = None) -> int:
     print(stats("  published, not flipped", r[~flip, 0]))
     print(stats("  floor, flipped edge", r[flip, 1]))
     print(stats("  floor, not flipped", r[~flip, 1]))
+    ratio = float(np.median(r[:, 0]) / np.median(r[:, 1]))
+    print(f"BAR follower_median_vs_floor {ratio:.3g} x 1.5 {'pass' if ratio <= 1.5 else 'fail'}")
     return 0
 
 
