@@ -170,7 +170,6 @@ def test_no_import_cycles():
         cycle = _shortest_cycle(edges, comp)
         rest = sorted(comp - set(cycle))
         lines.append(" -> ".join(cycle) + (f"  (and through {', '.join(rest)})" if rest else ""))
-        print("cycle:", lines[-1])
     assert not lines, "import cycles:\n" + "\n".join(lines)
 
 

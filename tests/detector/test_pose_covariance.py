@@ -71,5 +71,5 @@ def test_rendered_detections_have_honest_covariances():
         e = error((mp.p_m, Rotation.from_quat(mp.q_xyzw).as_matrix()), T.translation, T.rotation.as_matrix())
         nees.append(e @ np.linalg.solve(mp.covariance, e))
     assert len(nees) >= 24
-    print(f"mean NEES6 {np.mean(nees):.2f}, median {np.median(nees):.2f} over {len(nees)} detections")
-    assert 2.0 <= np.mean(nees) <= 15.0
+    summary = f"mean NEES6 {np.mean(nees):.2f}, median {np.median(nees):.2f} over {len(nees)} detections"
+    assert 2.0 <= np.mean(nees) <= 15.0, summary

@@ -64,8 +64,7 @@ def test_recall_at_least_the_library_and_no_false_ids(kind):
         lib_found += len(lib & expected)
         false_ids += [(path.name, i) for i in ours - expected]
     assert expected_total > 0
-    print(f"{kind}: ours {ours_found}/{expected_total}, library {lib_found}/{expected_total}")
-    assert ours_found >= lib_found
+    assert ours_found >= lib_found, f"{kind}: ours {ours_found}/{expected_total}, library {lib_found}/{expected_total}"
     assert false_ids == []
 
 
@@ -97,6 +96,5 @@ def test_ubiquity_403_pose_matches_its_source():
     )  # rpy (1.5751, -0.014, -1.546) as the source gives it
     err_m = float(np.linalg.norm(T_base_marker.translation - expected.translation))
     err_deg = float(np.degrees((T_base_marker.rotation.inv() * expected.rotation).magnitude()))
-    print(f"403.jpg: {err_m * 1000:.1f} mm, {err_deg:.2f} deg from the source's pose")
-    assert err_m <= 0.01
-    assert err_deg <= 1.0
+    assert err_m <= 0.01, err_m
+    assert err_deg <= 1.0, err_deg

@@ -51,13 +51,11 @@ def grid_cell(distance, angle):
 def test_sigma_is_calibrated_over_distance(distance):
     r = np.concatenate([grid_cell(distance, a) for a in ANGLES])
     assert len(r) >= 20
-    print(f"{distance} m: median error/sigma {np.median(r):.2f}")
-    assert 0.5 <= np.median(r) <= 2.0
+    assert 0.5 <= np.median(r) <= 2.0, f"{distance} m: median error/sigma {np.median(r):.2f}"
 
 
 @pytest.mark.parametrize("angle", ANGLES)
 def test_sigma_is_calibrated_over_viewing_angle(angle):
     r = np.concatenate([grid_cell(d, angle) for d in DISTANCES])
     assert len(r) >= 20
-    print(f"{angle} deg: median error/sigma {np.median(r):.2f}")
-    assert 0.5 <= np.median(r) <= 2.0
+    assert 0.5 <= np.median(r) <= 2.0, f"{angle} deg: median error/sigma {np.median(r):.2f}"

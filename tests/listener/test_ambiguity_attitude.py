@@ -74,8 +74,8 @@ def test_flipped_single_tags_are_corrected_by_the_autopilots_tilt_never_publishe
             R_edge_true = R_es * R_sm * R_wm.inv()  # T_cam_world
             assert angle_deg(Rotation.from_quat(edge.q_a_b_xyzw), R_edge_true) < FLIP_DEG, f"frame {k}: wrong pick"
             corrected += flipped and "attitude_alt" in notes
-    print(f"{flips} flipped detections, {corrected} corrected, {decided} of 40 decided by gravity")
-    assert flips >= 5 and corrected >= 0.6 * flips and decided >= 25
+    summary = f"{flips} flipped detections, {corrected} corrected, {decided} of 40 decided by gravity"
+    assert flips >= 5 and corrected >= 0.6 * flips and decided >= 25, summary
 
 
 def test_without_attitude_nothing_changes():

@@ -77,17 +77,12 @@ def test_demo_world_runs_and_the_autopilot_gets_the_rendered_hover(tmp_path):
     rmse_m, k0, err_m = best
     # The hover moves far more than the tolerance: a pose that did not follow it could not pass.
     assert np.ptp(p_truth[k0 + k_rel], axis=0)[:2].max() > 0.06
-    print(
-        f"demo e2e: {len(records)} poses of {n_frames} images, first image {k0}, position RMSE {rmse_m * 1000:.1f} mm,"
-        f" max {err_m.max() * 1000:.1f} mm"
-    )
     assert rmse_m < 0.01, (rmse_m, k0)
     assert err_m.max() < 0.03, err_m.max()
     angle_deg = np.degrees(
         (Rotation.from_quat(track.q_xyzw).inv() * Rotation.from_quat(q_truth[k0 + k_rel])).magnitude()
     )
-    print(f"demo e2e: attitude error median {np.median(angle_deg):.2f} deg, max {angle_deg.max():.2f} deg")
-    assert np.median(angle_deg) < 1.0 and angle_deg.max() < 3.0, angle_deg.max()
+    assert np.median(angle_deg) < 1.0 and angle_deg.max() < 3.0, (np.median(angle_deg), angle_deg.max())
 
 
 def test_demo_refuses_a_non_empty_directory_in_one_line(tmp_path, capsys):

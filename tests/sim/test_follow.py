@@ -19,9 +19,11 @@ def test_a_follower_through_its_moving_leader_is_placed_within_millimetres_with_
     nees6 = np.array([e @ np.linalg.solve(C, e) for e, C in zip(track.errors, track.covariances, strict=True)])
     sd = np.sqrt(np.diagonal(track.covariances[:, :3, :3], axis1=1, axis2=2))
     within = np.all(np.abs(track.errors[:, :3]) <= 3.0 * sd, axis=1)
-    print(f"{len(err)} poses, median {np.median(err):.2f} mm, RMSE {np.sqrt(np.mean(err**2)):.2f}, max {err.max():.1f},"
-          f" NEES6 {nees6.mean():.2f}, within 3 sigma {within.mean():.1%}")  # fmt: skip
-    assert len(err) >= 45  # of 90 follower frames: most placed (some wait, the leader's gap holds)
-    assert np.median(err) <= 6.0 and np.sqrt(np.mean(err**2)) <= 9.0 and err.max() <= 30.0
-    assert 3.0 <= nees6.mean() <= 9.0
-    assert within.mean() >= 0.95
+    summary = (
+        f"{len(err)} poses, median {np.median(err):.2f} mm, RMSE {np.sqrt(np.mean(err**2)):.2f},"
+        f" max {err.max():.1f}, NEES6 {nees6.mean():.2f}, within 3 sigma {within.mean():.1%}"
+    )
+    assert len(err) >= 45, summary  # of 90 follower frames: most placed (some wait, the leader's gap holds)
+    assert np.median(err) <= 6.0 and np.sqrt(np.mean(err**2)) <= 9.0 and err.max() <= 30.0, summary
+    assert 3.0 <= nees6.mean() <= 9.0, summary
+    assert within.mean() >= 0.95, summary

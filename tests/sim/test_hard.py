@@ -104,9 +104,8 @@ def test_a_short_run_of_the_hard_scenario_against_ground_truth():
     bars are the benchmark's, benchmarks/bench_hard.py)."""
     sim = run(SimOptions(scenario="hard", duration_s=4))
     rep, _ = score_run(sim)
-    print(rep.table())
     (d,) = rep.entities
-    assert d.messages >= 40
+    assert d.messages >= 40, rep.table()
     assert d.median_error_m <= 0.01, d.median_error_m
     assert d.rmse_m <= 0.06, d.rmse_m
     assert d.attitude_rmse_deg <= 5.0, d.attitude_rmse_deg

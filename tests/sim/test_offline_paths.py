@@ -25,7 +25,6 @@ def test_paths_dijkstra_beats_bfs_for_the_drone_with_a_noisy_short_path():
     assert fusions["bfs"].path == "bfs" and fusions["dijkstra"].path == "dijkstra"
     _, outputs = offline.run_fusions("paths", FRAMES, fusions)
     bfs, dij = outputs["bfs"], outputs["dijkstra"]
-    print({k: {d: (len(s.errors), round(s.rmse_m(), 4)) for d, s in v.items()} for k, v in outputs.items()})
     lead_b, lead_d = bfs["lead"], dij["lead"]
     assert len(lead_b.errors) >= 50 and len(lead_d.errors) >= 50
     # The chain's first link is precise in both runs (the wing is localized by the ceiling alone).

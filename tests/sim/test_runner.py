@@ -44,7 +44,6 @@ def test_paper_test2_entity_localization(tmp_path):
     sim = run(SimOptions(scenario="paper-test2", duration_s=PAPER_TEST2_S))
     rep, tracks = score_run(sim)
     e = {x.entity: x for x in rep.entities}
-    print(rep.table())
     write_outputs(tmp_path, rep, tracks, sim)
     # TUM files: one line per estimate (t x y z qx qy qz qw), and ground truth at 100 Hz.
     est = np.loadtxt(tmp_path / "tag-estimate.tum")
@@ -54,7 +53,7 @@ def test_paper_test2_entity_localization(tmp_path):
     assert (tmp_path / "tag.png").stat().st_size > 10_000 and (tmp_path / "drone1.png").exists()
     assert json.loads((tmp_path / "report.json").read_text())["scenario"] == "paper-test2"
     tag = e["tag"]
-    assert tag.source == "fused" and tag.messages >= 20
+    assert tag.source == "fused" and tag.messages >= 20, rep.table()
     assert tag.rmse_m <= 0.05, f"tag RMSE {tag.rmse_m:.4f} m"
 
 
@@ -91,7 +90,6 @@ def test_gaps_the_ekf_keeps_the_pose_through_gaps_the_papers_method_cannot_bridg
     method tracks it: test_offline_scenarios.py); the EKF predicts through the first 0.2 s of a gap, so its autopilot
     holds a fresh pose for clearly more of the time, and the predictions stay accurate."""
     e, rep = run_and_score("gaps", 8, world_overrides={"fusion": {**PAPER_FUSION, "filter": "ekf"}})
-    print(rep.table())
     d = e["drone"]
-    assert d.availability >= d.expected_availability + 0.05, (d.availability, d.expected_availability)
+    assert d.availability >= d.expected_availability + 0.05, rep.table()
     assert d.rmse_m <= 0.10, d.rmse_m
