@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 from atlas_onboard.detector import pipeline
-from atlas_onboard.detector.search import MAX_REGION_DECIMATE
-from tests.detector.test_finder import corner_errors_px, frame, tracker, view_at
+from atlas_onboard.detector.search import MAX_REGION_DECIMATE, side
+from tests.detector.test_finder import corner_errors_px, frame, tracker, truth_corners, view_at
 
 
 def test_a_tracked_marker_is_searched_decimated_and_kept_to_its_corners(monkeypatch):
     """A marker about 70 px wide drifting across the image, the tracker alone (no contrast candidates,
     no whole-image searches while tracking): every frame's region about it is searched at the largest
     decimation that keeps the marker ``TRACKED_SIDE_PX`` wide, and it is found in it every frame with
-    its corners within a pixel of the truth. The marker is wide enough for the hunt's whole-image search
-    at ``MAX_REGION_DECIMATE``, so its region is searched at that decimation too, not at full resolution."""
+    its corners within a pixel of the truth. The hunt's whole-image search at ``MAX_REGION_DECIMATE`` finds
+    it (about 23 px wide there), so its region is searched decimated too (never at full resolution), the
+    marker at least as wide in it as in the hunt."""
     monkeypatch.setattr(pipeline, "CANDIDATE_AREA", 0.0)
     monkeypatch.setattr(pipeline, "SCAN_EVERY", 10**6)
     det = tracker()
@@ -25,7 +26,7 @@ def test_a_tracked_marker_is_searched_decimated_and_kept_to_its_corners(monkeypa
         return out
 
     det.finder.find = spy  # type: ignore[method-assign]
-    decimations = []
+    decimations, widths = [], []
     for k in range(10):
         views = [view_at(25, 220 + 20 * k, 240 - 6 * k, 1.05)]
         searched.clear()
@@ -38,4 +39,7 @@ def test_a_tracked_marker_is_searched_decimated_and_kept_to_its_corners(monkeypa
         else:  # then only the tracked region is searched
             assert len(searched) == 1 and searched[0][0] != (480, 640)
             decimations.append(searched[0][1])
-    assert decimations == [MAX_REGION_DECIMATE] * 9
+            widths.append(side(found[0].corners_px))
+    assert min(decimations) >= 2.0
+    hunt_width = side(truth_corners(view_at(25, 220, 240, 1.05))) / MAX_REGION_DECIMATE
+    assert min(w / d for w, d in zip(widths, decimations, strict=True)) >= hunt_width
