@@ -128,7 +128,7 @@ class Detector:
 
         Every frame: the regions where the markers of the previous frame are predicted to be (moved on
         by their last motion in the image) are searched at a decimation that keeps each marker at least
-        ``SMALL_SIDE_PX`` wide (the library fits the edges at full resolution whatever the decimation);
+        ``TRACKED_SIDE_PX`` wide (the library fits the edges at full resolution whatever the decimation);
         then the regions of strong black-white contrast outside the markers found
         (:func:`contrast_regions`: black ink on white paper, and the library spends most of its time on
         the texture elsewhere), at most ``CANDIDATE_AREA`` of the image's

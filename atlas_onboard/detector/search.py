@@ -17,6 +17,7 @@ from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
+TRACKED_SIDE_PX = 30.0  # a tracked marker's region is decimated while the marker stays this wide in it (the hunt's)
 ROI_MARGIN = 0.4  # a region is the marker's predicted box grown by this fraction of its size on each side
 MAX_REGION_DECIMATE = 3.0  # the hunt's decimation and the largest of a tracked marker's region
 TILES = (3, 3)  # the grid of full-resolution tiles searched one a frame (columns, rows)
@@ -130,11 +131,12 @@ def side(c: NDArray[np.float64]) -> float:
 
 def box(c: NDArray[np.float64]) -> NDArray[np.float64]:
     """The region (x0, y0, x1, y1, decimate) to search for a marker with corners ``c`` in the next
-    frame: its box grown by ``ROI_MARGIN``, decimated while the marker stays ``SMALL_SIDE_PX`` wide
-    (at most ``MAX_REGION_DECIMATE``)."""
+    frame: its box grown by ``ROI_MARGIN``, decimated while the marker stays ``TRACKED_SIDE_PX`` wide
+    (at most ``MAX_REGION_DECIMATE``, at which the hunt finds it). The library fits the quad's edges
+    at full resolution whatever the decimation, and the corner refit places them again on the image."""
     lo, hi = c.min(axis=0), c.max(axis=0)
     grow = (hi - lo) * ROI_MARGIN + 8
-    decimate = float(min(max(math.floor(side(c) / SMALL_SIDE_PX), 1), MAX_REGION_DECIMATE))
+    decimate = float(min(max(math.floor(side(c) / TRACKED_SIDE_PX), 1), MAX_REGION_DECIMATE))
     return np.concatenate([lo - grow, hi + grow, [decimate]])
 
 
