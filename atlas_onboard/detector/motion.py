@@ -37,7 +37,9 @@ from atlas_onboard.core.shutter import (
     timing_sigma_s,
 )
 from atlas_onboard.detector import pose
+from atlas_onboard.detector.joint_motion import MovingPose
 from atlas_onboard.detector.pose import object_corners
+from atlas_onboard.detector.records import TimedCorners
 from atlas_onboard.worker import RateAt
 
 WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 30 Hz)
@@ -121,6 +123,31 @@ class _History:
         return _History(w, noise + lag, R.T @ v_world, v_var)
 
 
+@dataclass(frozen=True, slots=True)
+class _Solved:
+    """The camera's motion as a joint solve of a moving rolling shutter found it (its posterior:
+    :func:`atlas_onboard.detector.joint_motion.solve_moving`), at the frame stamped ``t_us``: the camera's
+    world attitude, its rate (camera frame) and its world velocity with that velocity's covariance."""
+
+    t_us: int
+    R_world_camera: Rotation
+    omega: NDArray[np.float64]
+    v_world: NDArray[np.float64]
+    v_cov_world: NDArray[np.float64]
+
+    def velocity_at(self, t_us: int) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        """The camera-frame velocity at ``t_us`` and its covariance: the solved one, turned with the camera
+        by its rate, its variance grown by how far a manoeuvre may change it meanwhile
+        (``MANOEUVRE_ACCEL_SIGMA`` times the time, the acceleration correlated over a frame's spacing).
+        None when older than ``STALE_US`` or not after it."""
+        age_s = (t_us - self.t_us) * 1e-6
+        if not 0.0 < age_s <= STALE_US * 1e-6:
+            return None
+        R = (self.R_world_camera * Rotation.from_rotvec(self.omega * age_s)).as_matrix()
+        cov = R.T @ self.v_cov_world @ R + (MANOEUVRE_ACCEL_SIGMA * age_s) ** 2 * np.eye(3)
+        return R.T @ self.v_world, cov
+
+
 def body_rate_at(rate_at: RateAt | None, t_us: int) -> BodyRate | None:
     """The autopilot's body rate at a capture (its gyros', ``rate_at``), or None without one. Attitudes
     alone give none to correct by: those after the stamp have not come when the frame is solved (the
@@ -144,6 +171,7 @@ class CameraMotionModel:
         self.rate_bound = math.radians(cam.rate_bound_dps)
         self.R_body_sensor = R_body_sensor
         self._seen: deque[_Seen] = deque(maxlen=8)
+        self._solved: _Solved | None = None
 
     def at(self, t_us: int, rate: BodyRate | None) -> CameraMotion:
         """The camera's motion at the frame stamped ``t_us``, given the autopilot's rate (or None)."""
@@ -165,10 +193,23 @@ class CameraMotionModel:
         v, v_cov, v_known = np.zeros(3), SPEED_BOUND_MPS**2 * np.eye(3), False
         if history is not None:
             v, v_cov, v_known = history.velocity, history.velocity_var * np.eye(3), True
+        chained = None if self._solved is None else self._solved.velocity_at(t_us)
+        if chained is not None and np.trace(chained[1]) < np.trace(v_cov):
+            # The last joint solve's velocity, which the image measured with the motion's prior: a filter's
+            # step (that prior was the solve before's, grown), better than the poses' line while fresh.
+            v, v_cov, v_known = chained[0], chained[1], True
         # The timing's image motion needs a motion estimate; with bounds alone (no rate, no recent poses:
         # the first frames, or unrelated images) it is left out rather than charged at the bounds.
         timing = self.timing_s if (rate is not None or history is not None) else 0.0
         return CameraMotion(w, w_cov, v, v_cov, w_known, v_known, timing)
+
+    def moving(self, motion: CameraMotion) -> bool:
+        """Whether ``motion`` moves a frame's corners: a rolling shutter on a camera in motion (else
+        :meth:`correct_all` leaves them as they are)."""
+        if self.clock.readout_s <= 0.0 or self.clock.height_px <= 1:
+            return False
+        parts = (motion.omega_used(), motion.velocity_used(), motion.omega_error(), motion.velocity_error())
+        return any(np.any(m) for m in parts)
 
     def correct(
         self,
@@ -203,9 +244,7 @@ class CameraMotionModel:
         f = np.array([fx, fy])
         x = (np.asarray(undistorted, dtype=float) - c) / f
         obj = np.array([object_corners(size)[:, :2] for size in sizes_m])
-        still = not any(np.any(m) for m in (motion.omega_used(), motion.velocity_used(),
-                                            motion.omega_error(), motion.velocity_error()))  # fmt: skip
-        if self.clock.readout_s <= 0.0 or self.clock.height_px <= 1 or still:
+        if not self.moving(motion):
             # The corners as :func:`to_stamp` returns them unmoved (x z / z, rounding included): the same bits.
             z = planar_depths_many(x, obj)
             z[np.isnan(z).any(axis=1)] = 1.0
@@ -218,6 +257,32 @@ class CameraMotionModel:
         moved = x0 * f + c
         shear_px = np.sqrt(np.trace(shear, axis1=1, axis2=2) / cov.shape[1])
         return [CorrectedCorners(moved[k], cov[k], float(shear_px[k])) for k in range(len(cov))]
+
+    def timed(
+        self,
+        motion: CameraMotion,
+        corners_px: Sequence[NDArray[np.float64]],
+        undistorted: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    ) -> list[TimedCorners | None]:
+        """Each square's corners as seen (undistorted, with the edge fit's (8, 8) covariance: ``undistorted``),
+        timed by their rows in the image (``corners_px``), when ``motion`` moves the frame's corners (else
+        None each: nothing for a joint solve to fit the motion with)."""
+        if not len(corners_px) or not self.moving(motion):
+            return [None] * len(corners_px)
+        dts = self.clock.dt_s(np.asarray(corners_px, dtype=float)[..., 1])
+        return [
+            TimedCorners(np.asarray(c, dtype=float), np.asarray(cov, dtype=float), dt)
+            for (c, cov), dt in zip(undistorted, dts, strict=True)
+        ]
+
+    def solved(self, t_us: int, T_world_anchor: RigidTransform, moving: MovingPose) -> None:
+        """A joint solve of the world's markers in the frame stamped ``t_us`` found the pose of the marker
+        whose world pose is ``T_world_anchor`` and the camera's motion (``moving``, camera frame): the next
+        frames' velocity prior."""
+        R_world_camera = T_world_anchor.rotation * Rotation.from_matrix(moving.R).inv()
+        R = R_world_camera.as_matrix()
+        C = np.asarray(moving.covariance, dtype=float)[9:, 9:]
+        self._solved = _Solved(t_us, R_world_camera, np.asarray(moving.omega, float), R @ moving.velocity, R @ C @ R.T)
 
     def with_timing(self, md: MarkerData, motion: CameraMotion) -> MarkerData:
         """``md`` with the frame's timing uncertainty in its covariance and sigma (:func:`timing_pose_covariance`):
