@@ -8,7 +8,9 @@ The velocity: a straight-line fit through the camera's own poses of the last few
 markers it saw (each frame's best single-marker pose), relative to what it sees. The detector's own
 history rather than the node's filter: it is there in every mode (any ``filter``, image folders, no
 autopilot), in the camera's thread at the frame's instant, and a velocity error enters only times a
-corner's readout offset (millimetres a second over milliseconds), where its covariance is carried.
+corner's readout offset (millimetres a second over milliseconds), where its covariance is carried. Where a
+joint solve of the world's markers measured the velocity with the pose (:mod:`.joint_motion`), that one, aged,
+is the prior while it is the tighter.
 """
 
 from __future__ import annotations
