@@ -58,8 +58,6 @@ class JointSolve:
     counters: Counter[str]
     motion: CameraMotion | None = field(default=None, init=False)
     """The frame's camera motion (:meth:`CameraMotionModel.at`), set by the detector before each frame's solves."""
-    moving: dict[tuple[int, ...], MovingPose] = field(default_factory=dict, init=False, repr=False)
-    """The frame's solves of a moving rolling shutter (:func:`joint_motion.solve_moving`) by the ids they used."""
     _corners: dict[int, NDArray[np.float64]] = field(default_factory=dict, init=False, repr=False)
     _frames: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = field(
         default_factory=dict, init=False, repr=False
@@ -187,7 +185,6 @@ class JointSolve:
         fit = pose.CornerFit(R_ca, p_ca, (obj - p_ea) @ R_ea, self.calibration.K)
         if moving is not None:
             cov = moving.pose_covariance()
-            self.moving[tuple(ids)] = moving
         elif all(s.corner_cov is not None for s in squares):
             cov = self._covariance(fit, squares)
         else:

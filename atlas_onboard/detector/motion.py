@@ -8,9 +8,8 @@ The velocity: a straight-line fit through the camera's own poses of the last few
 markers it saw (each frame's best single-marker pose), relative to what it sees. The detector's own
 history rather than the node's filter: it is there in every mode (any ``filter``, image folders, no
 autopilot), in the camera's thread at the frame's instant, and a velocity error enters only times a
-corner's readout offset (millimetres a second over milliseconds), where its covariance is carried. Where a
-joint solve of the world's markers measured the velocity with the pose (:mod:`.joint_motion`), that one, aged,
-is the prior while it is the tighter.
+corner's readout offset (millimetres a second over milliseconds), where its covariance is carried. A joint
+solve of several world markers measures the motion with the pose (:mod:`.joint_motion`), from these priors.
 """
 
 from __future__ import annotations
@@ -39,7 +38,6 @@ from atlas_onboard.core.shutter import (
     timing_sigma_s,
 )
 from atlas_onboard.detector import pose
-from atlas_onboard.detector.joint_motion import MovingPose
 from atlas_onboard.detector.pose import object_corners
 from atlas_onboard.detector.records import TimedCorners
 from atlas_onboard.worker import RateAt
@@ -125,31 +123,6 @@ class _History:
         return _History(w, noise + lag, R.T @ v_world, v_var)
 
 
-@dataclass(frozen=True, slots=True)
-class _Solved:
-    """The camera's motion as a joint solve of a moving rolling shutter found it (its posterior:
-    :func:`atlas_onboard.detector.joint_motion.solve_moving`), at the frame stamped ``t_us``: the camera's
-    world attitude, its rate (camera frame) and its world velocity with that velocity's covariance."""
-
-    t_us: int
-    R_world_camera: Rotation
-    omega: NDArray[np.float64]
-    v_world: NDArray[np.float64]
-    v_cov_world: NDArray[np.float64]
-
-    def velocity_at(self, t_us: int) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
-        """The camera-frame velocity at ``t_us`` and its covariance: the solved one, turned with the camera
-        by its rate, its variance grown by how far a manoeuvre may change it meanwhile
-        (``MANOEUVRE_ACCEL_SIGMA`` times the time, the acceleration correlated over a frame's spacing).
-        None when older than ``STALE_US`` or not after it."""
-        age_s = (t_us - self.t_us) * 1e-6
-        if not 0.0 < age_s <= STALE_US * 1e-6:
-            return None
-        R = (self.R_world_camera * Rotation.from_rotvec(self.omega * age_s)).as_matrix()
-        cov = R.T @ self.v_cov_world @ R + (MANOEUVRE_ACCEL_SIGMA * age_s) ** 2 * np.eye(3)
-        return R.T @ self.v_world, cov
-
-
 def body_rate_at(rate_at: RateAt | None, t_us: int) -> BodyRate | None:
     """The autopilot's body rate at a capture (its gyros', ``rate_at``), or None without one. Attitudes
     alone give none to correct by: those after the stamp have not come when the frame is solved (the
@@ -173,7 +146,6 @@ class CameraMotionModel:
         self.rate_bound = math.radians(cam.rate_bound_dps)
         self.R_body_sensor = R_body_sensor
         self._seen: deque[_Seen] = deque(maxlen=8)
-        self._solved: _Solved | None = None
 
     def at(self, t_us: int, rate: BodyRate | None) -> CameraMotion:
         """The camera's motion at the frame stamped ``t_us``, given the autopilot's rate (or None)."""
@@ -195,11 +167,6 @@ class CameraMotionModel:
         v, v_cov, v_known = np.zeros(3), SPEED_BOUND_MPS**2 * np.eye(3), False
         if history is not None:
             v, v_cov, v_known = history.velocity, history.velocity_var * np.eye(3), True
-        chained = None if self._solved is None else self._solved.velocity_at(t_us)
-        if chained is not None and np.trace(chained[1]) < np.trace(v_cov):
-            # The last joint solve's velocity, which the image measured with the motion's prior: a filter's
-            # step (that prior was the solve before's, grown), better than the poses' line while fresh.
-            v, v_cov, v_known = chained[0], chained[1], True
         # The timing's image motion needs a motion estimate; with bounds alone (no rate, no recent poses:
         # the first frames, or unrelated images) it is left out rather than charged at the bounds.
         timing = self.timing_s if (rate is not None or history is not None) else 0.0
@@ -276,15 +243,6 @@ class CameraMotionModel:
             TimedCorners(np.asarray(c, dtype=float), np.asarray(cov, dtype=float), dt)
             for (c, cov), dt in zip(undistorted, dts, strict=True)
         ]
-
-    def solved(self, t_us: int, T_world_anchor: RigidTransform, moving: MovingPose) -> None:
-        """A joint solve of the world's markers in the frame stamped ``t_us`` found the pose of the marker
-        whose world pose is ``T_world_anchor`` and the camera's motion (``moving``, camera frame): the next
-        frames' velocity prior."""
-        R_world_camera = T_world_anchor.rotation * Rotation.from_matrix(moving.R).inv()
-        R = R_world_camera.as_matrix()
-        C = np.asarray(moving.covariance, dtype=float)[9:, 9:]
-        self._solved = _Solved(t_us, R_world_camera, np.asarray(moving.omega, float), R @ moving.velocity, R @ C @ R.T)
 
     def with_timing(self, md: MarkerData, motion: CameraMotion) -> MarkerData:
         """``md`` with the frame's timing uncertainty in its covariance and sigma (:func:`timing_pose_covariance`):

@@ -253,7 +253,7 @@ class Detector:
             [r.covariance for r in rs], K, [self.sizes[d.marker_id] for d in ds])  # fmt: skip
         # A moving rolling shutter's corners as seen, at their rows' instants: the joint solve fits the motion too.
         timed = self.motion_model.timed(motion, [d.corners_px for d in ds], [(r.corners, r.covariance) for r in rs])
-        self.joint_solve.motion, self.joint_solve.moving = motion, {}
+        self.joint_solve.motion = motion
         for k, ((d, refined, stretch, _), moved) in enumerate(zip(refined_ok, moves, strict=True)):
             grown = max(float(np.trace(moved.covariance)) - float(np.trace(refined.covariance)), 0.0) / 8.0
             refined_ok[k] = (d, replace(refined, corners=moved.corners, sigma_px=math.sqrt(refined.sigma_px**2 + grown),
@@ -317,9 +317,6 @@ class Detector:
                     if md is None:
                         ids = used
                 if md is not None:
-                    moving = self.joint_solve.moving.get(tuple(used)) if entity == WORLD else None
-                    if moving is not None:  # the camera's motion the image measured: the next frames' prior
-                        self.motion_model.solved(capture_time_us, self.marker_pose[used[0]], moving)
                     out.append(md)
                     self.report.reported += used
                     continue
