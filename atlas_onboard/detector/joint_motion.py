@@ -24,7 +24,7 @@ from atlas_onboard.core.shutter import CameraMotion
 from atlas_onboard.detector.joint_covariance import SQUARE_MISFIT_LEVEL
 
 ITERATIONS = 6
-STEP_TOL = 1e-10  # a Gauss-Newton step whose largest component is below this ends the iterations
+STEP_TOL = 1e-9  # a Gauss-Newton step whose largest component (m, rad, rad/s, m/s) is below this ends them
 MIN_PRIOR_VAR = 1e-12  # a prior variance no smaller than this (an exact prior is a very tight one)
 
 
