@@ -16,9 +16,11 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import SensorConfig, WorldConfig
-from atlas_onboard.detector import joint_covariance, pose
+from atlas_onboard.config import WORLD, SensorConfig, WorldConfig
+from atlas_onboard.core.shutter import CameraMotion
+from atlas_onboard.detector import joint_covariance, joint_motion, pose
 from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.joint_motion import MovingPose
 from atlas_onboard.detector.records import JointResult, LeftOut, SingleSolve, marker_data
 from atlas_onboard.detector.rotations import quat_from_matrix
 from atlas_onboard.detector.search import side
@@ -54,6 +56,8 @@ class JointSolve:
     marker_pose: Mapping[int, RigidTransform]
     sizes: Mapping[int, float]
     counters: Counter[str]
+    motion: CameraMotion | None = field(default=None, init=False)
+    """The frame's camera motion (:meth:`CameraMotionModel.at`), set by the detector before each frame's solves."""
     _corners: dict[int, NDArray[np.float64]] = field(default_factory=dict, init=False, repr=False)
     _frames: dict[int, tuple[NDArray[np.float64], NDArray[np.float64]]] = field(
         default_factory=dict, init=False, repr=False
@@ -159,6 +163,14 @@ class JointSolve:
             self.counters["joint_failed"] += count
             return (None, False, math.inf) if with_error else (None, False)
         rvec, tvec, err, sigma = sol
+        R_ea, p_ea = self._frame_of(anchor)
+        R_ce = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))[0]
+        R_ca, p_ca = R_ce @ R_ea, tvec + R_ce @ p_ea
+        obj = np.vstack([self._corners_m(m) for m in ids])
+        squares = [singles[m] for m in ids]
+        moving = self._solve_moving(ids, squares, (obj - p_ea) @ R_ea, R_ca, p_ca)
+        if moving is not None:  # the shear explained by the motion, not left in the residual
+            R_ca, p_ca, err = moving.R, moving.p, moving.rms_px
         # Markers that do not fit together as the world file places them (a misplaced marker, a bad
         # corner, motion blur that moves each square differently) give a joint fit far worse than
         # each square's own: the joint pose is then wrong in a way no sigma describes.
@@ -170,13 +182,10 @@ class JointSolve:
             return (None, True, err / limit) if with_error else (None, True)
         # The anchor's pose T_camera_entity T_entity_anchor, and its covariance: the same corners, in the
         # anchor's frame.
-        R_ea, p_ea = self._frame_of(anchor)
-        R_ce = cv2.Rodrigues(np.asarray(rvec, dtype=np.float64).reshape(3, 1))[0]
-        R_ca, p_ca = R_ce @ R_ea, tvec + R_ce @ p_ea
-        obj = np.vstack([self._corners_m(m) for m in ids])
         fit = pose.CornerFit(R_ca, p_ca, (obj - p_ea) @ R_ea, self.calibration.K)
-        squares = [singles[m] for m in ids]
-        if all(s.corner_cov is not None for s in squares):
+        if moving is not None:
+            cov = moving.pose_covariance()
+        elif all(s.corner_cov is not None for s in squares):
             cov = self._covariance(fit, squares)
         else:
             model_px = pose.corner_noise_px(model_sigma_px, float(np.median([side(s.corners) for s in squares])))
@@ -189,6 +198,28 @@ class JointSolve:
         q = quat_from_matrix(R_ca)
         md = marker_data(self.sensor.id, anchor, p_ca, q, sigma, err, 0.0, capture_time_us, None, cov)
         return (md, False, err / limit) if with_error else (md, False)
+
+    def _solve_moving(
+        self,
+        ids: list[int],
+        squares: list[SingleSolve],
+        obj_anchor: NDArray[np.float64],
+        R_ca: NDArray[np.float64],
+        p_ca: NDArray[np.float64],
+    ) -> MovingPose | None:
+        """The anchor's pose with the camera's rate and velocity (:func:`joint_motion.solve_moving`) when a
+        rolling shutter saw the world's markers while moving (their corners timed by their rows), from the
+        joint solution of the corrected corners (``R_ca``, ``p_ca``); else None. Only the world's: another
+        entity's markers move with it, which the camera's own motion prior does not describe."""
+        timed = [s.timed for s in squares]
+        if self.motion is None or any(t is None for t in timed) or self.world.markers[ids[0]].entity != WORLD:
+            return None
+        cal = self.calibration
+        img = [t.corners for t in timed if t is not None]
+        residuals = joint_covariance.lens_residual_covariances(img, cal.K, cal.dist, cal.fisheye)
+        covs = [t.covariance + r for t, r in zip(timed, residuals, strict=True) if t is not None]
+        dt = np.concatenate([t.dt_s for t in timed if t is not None])
+        return joint_motion.solve_moving(obj_anchor, np.vstack(img), dt, covs, cal.K, self.motion, R_ca, p_ca)
 
     def _covariance(self, fit: pose.CornerFit, squares: list[SingleSolve]) -> NDArray[np.float64] | None:
         """The joint pose's 6x6 (``fit``: the anchor's pose and the squares' corners in its frame) from the

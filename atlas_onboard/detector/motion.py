@@ -8,7 +8,8 @@ The velocity: a straight-line fit through the camera's own poses of the last few
 markers it saw (each frame's best single-marker pose), relative to what it sees. The detector's own
 history rather than the node's filter: it is there in every mode (any ``filter``, image folders, no
 autopilot), in the camera's thread at the frame's instant, and a velocity error enters only times a
-corner's readout offset (millimetres a second over milliseconds), where its covariance is carried.
+corner's readout offset (millimetres a second over milliseconds), where its covariance is carried. A joint
+solve of several world markers measures the motion with the pose (:mod:`.joint_motion`), from these priors.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ from atlas_onboard.core.shutter import (
 )
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.pose import object_corners
+from atlas_onboard.detector.records import TimedCorners
 from atlas_onboard.worker import RateAt
 
 WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 30 Hz)
@@ -170,6 +172,14 @@ class CameraMotionModel:
         timing = self.timing_s if (rate is not None or history is not None) else 0.0
         return CameraMotion(w, w_cov, v, v_cov, w_known, v_known, timing)
 
+    def moving(self, motion: CameraMotion) -> bool:
+        """Whether ``motion`` moves a frame's corners: a rolling shutter on a camera in motion (else
+        :meth:`correct_all` leaves them as they are)."""
+        if self.clock.readout_s <= 0.0 or self.clock.height_px <= 1:
+            return False
+        parts = (motion.omega_used(), motion.velocity_used(), motion.omega_error(), motion.velocity_error())
+        return any(np.any(m) for m in parts)
+
     def correct(
         self,
         motion: CameraMotion,
@@ -203,9 +213,7 @@ class CameraMotionModel:
         f = np.array([fx, fy])
         x = (np.asarray(undistorted, dtype=float) - c) / f
         obj = np.array([object_corners(size)[:, :2] for size in sizes_m])
-        still = not any(np.any(m) for m in (motion.omega_used(), motion.velocity_used(),
-                                            motion.omega_error(), motion.velocity_error()))  # fmt: skip
-        if self.clock.readout_s <= 0.0 or self.clock.height_px <= 1 or still:
+        if not self.moving(motion):
             # The corners as :func:`to_stamp` returns them unmoved (x z / z, rounding included): the same bits.
             z = planar_depths_many(x, obj)
             z[np.isnan(z).any(axis=1)] = 1.0
@@ -218,6 +226,23 @@ class CameraMotionModel:
         moved = x0 * f + c
         shear_px = np.sqrt(np.trace(shear, axis1=1, axis2=2) / cov.shape[1])
         return [CorrectedCorners(moved[k], cov[k], float(shear_px[k])) for k in range(len(cov))]
+
+    def timed(
+        self,
+        motion: CameraMotion,
+        corners_px: Sequence[NDArray[np.float64]],
+        undistorted: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]],
+    ) -> list[TimedCorners | None]:
+        """Each square's corners as seen (undistorted, with the edge fit's (8, 8) covariance: ``undistorted``),
+        timed by their rows in the image (``corners_px``), when ``motion`` moves the frame's corners (else
+        None each: nothing for a joint solve to fit the motion with)."""
+        if not len(corners_px) or not self.moving(motion):
+            return [None] * len(corners_px)
+        dts = self.clock.dt_s(np.asarray(corners_px, dtype=float)[..., 1])
+        return [
+            TimedCorners(np.asarray(c, dtype=float), np.asarray(cov, dtype=float), dt)
+            for (c, cov), dt in zip(undistorted, dts, strict=True)
+        ]
 
     def with_timing(self, md: MarkerData, motion: CameraMotion) -> MarkerData:
         """``md`` with the frame's timing uncertainty in its covariance and sigma (:func:`timing_pose_covariance`):

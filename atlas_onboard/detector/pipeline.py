@@ -246,6 +246,9 @@ class Detector:
         ds, rs = [t[0] for t in refined_ok], [t[1] for t in refined_ok]  # camera motion: corners to the stamp
         moves = self.motion_model.correct_all(motion, [d.corners_px for d in ds], [r.corners for r in rs],
             [r.covariance for r in rs], K, [self.sizes[d.marker_id] for d in ds])  # fmt: skip
+        # A moving rolling shutter's corners as seen, at their rows' instants: the joint solve fits the motion too.
+        timed = self.motion_model.timed(motion, [d.corners_px for d in ds], [(r.corners, r.covariance) for r in rs])
+        self.joint_solve.motion = motion
         for k, ((d, refined, stretch, _), moved) in enumerate(zip(refined_ok, moves, strict=True)):
             grown = max(float(np.trace(moved.covariance)) - float(np.trace(refined.covariance)), 0.0) / 8.0
             refined_ok[k] = (d, replace(refined, corners=moved.corners, sigma_px=math.sqrt(refined.sigma_px**2 + grown),
@@ -260,13 +263,13 @@ class Detector:
             [r.sigma_px for _, r, _, _ in refined_ok],
             [r.covariance for _, r, _, _ in refined_ok],
         )
-        for (d, refined, stretch, motion_px), mp in zip(refined_ok, poses, strict=True):
+        for (d, refined, stretch, motion_px), mp, seen in zip(refined_ok, poses, timed, strict=True):
             if mp is None:
                 self.counters["pnp_failed"] += 1
                 self.report.dropped[d.marker_id] = "no pose"
                 continue
             singles[d.marker_id] = SingleSolve(
-                mp, refined.corners, stretch, refined.sigma_px, refined.covariance, motion_px
+                mp, refined.corners, stretch, refined.sigma_px, refined.covariance, motion_px, seen
             )
         self.report.found.sort()
         # Camera motion: the best world marker (its own square as found) for the next frames' velocity

@@ -15,6 +15,17 @@ from atlas_onboard.detector import pose
 
 
 @dataclass(frozen=True)
+class TimedCorners:
+    """A square's corners as the image has them (undistorted px (4, 2), not moved to the frame's stamp), their
+    (8, 8) covariance from the edge fit alone (no motion in it), and each corner's instant after the stamp
+    (s, (4,): its row's, :class:`atlas_onboard.core.shutter.RowClock`)."""
+
+    corners: NDArray[np.float64]
+    covariance: NDArray[np.float64]
+    dt_s: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
 class SingleSolve:
     """One marker's own solve: its pose, undistorted corners (4, 2), their undistortion Jacobian
     (:func:`pose.undistortion_jacobian`, None without distortion) and measured corner noise (px)."""
@@ -25,6 +36,7 @@ class SingleSolve:
     measured_px: float
     corner_cov: NDArray[np.float64] | None = None  # (8, 8), px^2: refine.RefinedCorners.covariance
     motion_px: float = 0.0  # RMS corner noise of the camera motion's shear (detector.motion), in corner_cov too
+    timed: TimedCorners | None = None  # a rolling shutter's corners at their rows' instants (a moving camera)
 
 
 @dataclass(frozen=True)
