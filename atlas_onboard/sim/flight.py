@@ -125,18 +125,21 @@ class Flight:
         new = self.autopilot.landing_targets[self._seen :]
         self._seen += len(new)
         for arrival, fields in new:
-            t = arrival - self._epoch_s
-            self.lander.on_target(fields, t, self._own_position(t))
+            # A body-frame target is added to where the vehicle was when it was measured (AC_PrecLand's
+            # inertial history, PLND_LAG set to the latency).
+            measured = int(fields["time_usec"]) * 1e-6 - self._epoch_s
+            self.lander.on_target(fields, arrival - self._epoch_s, self._own_position(measured))
 
     def _own_position(self, t_s: float) -> NDArray[np.float64]:
-        """The autopilot's estimate of its position at run time ``t_s``: the last vision pose received,
-        carried on by the true motion since its arrival (its IMU); the truth before any."""
+        """The autopilot's estimate of its position at run time ``t_s``: the last vision pose received, fused
+        at its capture time (``usec``: its EKF's delay parameter set to the link's latency) and carried on by
+        the true motion since (its IMU); the truth before any."""
         received = self.autopilot.received
         truth_now = self.flown.pose(np.array([t_s]))[0][0]
         if not received:
             return truth_now
         last = received[-1]
-        then = self.flown.pose(np.array([last.arrival_s - self._epoch_s]))[0][0]
+        then = self.flown.pose(np.array([last.usec * 1e-6 - self._epoch_s]))[0][0]
         return frames.R_ENU_NED.apply(np.asarray(last.xyz_m, dtype=float)) + truth_now - then
 
     def _write(self, t_s: float) -> None:
