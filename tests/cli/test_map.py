@@ -1,5 +1,6 @@
-"""Building a map: markers that do not fit are named, bad input is one line and exit 2 with nothing
-written, and a rendered flight goes through record -> map -> a world file close to the truth."""
+"""The map command on rendered frames of the simulator's map scenario: record then map round trip, and
+one-line refusals for empty, unreadable or frameless recordings, no anchor seen and missing inputs; groups
+never seen together mapped each from its own anchor."""
 
 from __future__ import annotations
 
@@ -12,65 +13,8 @@ import pytest
 
 from atlas_onboard.cli import main
 from atlas_onboard.config import load_world
-from atlas_onboard.mapping.build import MapError, MapOptions, build_map
-from tests.mapping.synthetic import make_observations
 
 MAP_WORLD = Path(__file__).resolve().parents[2] / "atlas_onboard" / "sim" / "scenarios" / "map.yaml"
-
-
-def test_a_marker_moved_during_the_recording_is_named_and_left_out() -> None:
-    obs, world, M_true = make_observations(1, n_frames=80, moved=(5, 0.10))
-    res = build_map(obs, world, MapOptions(anchors=(0,)))
-    assert res.markers[5].status == "moved"
-    assert "moved by" in res.markers[5].detail
-    assert 5 not in res.mapped()
-    bad = [m for m, r in res.markers.items() if r.status in ("moved", "wrong_size", "duplicated")]
-    assert bad == [5]
-    # The others are mapped as if it had not been there: each within what its sigma says.
-    for m, M in res.mapped().items():
-        sigma = np.linalg.norm(res.markers[m].sigma_m)
-        assert np.linalg.norm(M[:3, 3] - M_true[m][:3, 3]) < 4 * sigma + 0.001, m
-
-
-def test_a_marker_printed_at_the_wrong_size_is_named_with_its_size() -> None:
-    obs, world, _ = make_observations(1, n_frames=80, true_size=(7, 0.19))  # the world file says 160 mm
-    res = build_map(obs, world, MapOptions(anchors=(0,)))
-    assert res.markers[7].status == "wrong_size"
-    fitted_mm = float(res.markers[7].detail.split("fit a marker of ")[1].split(" mm")[0])
-    assert abs(fitted_mm - 190.0) < 3.0
-    assert [m for m, r in res.markers.items() if r.status in ("moved", "wrong_size", "duplicated")] == [7]
-
-
-def test_gravity_anchor_makes_its_marker_the_origin_and_up_the_vertical() -> None:
-    """Marker 2 lies on the floor, turned about the vertical: the map's world has its origin and
-    heading, and is level by the attitudes (not by the anchor's own tilt, which its few corners give
-    to a fraction of a degree only)."""
-    obs, world, M_true = make_observations(4, n_frames=60, attitude=True)
-    res = build_map(obs, world, MapOptions(gravity_anchor=2))
-    M_anchor_world = np.linalg.inv(M_true[2])
-    assert np.allclose(res.markers[2].M_world_marker[:3, 3], 0.0, atol=1e-12)
-    tilts = []
-    for m, M in res.mapped().items():
-        expected = M_anchor_world @ M_true[m]
-        sigma = np.linalg.norm(res.markers[m].sigma_m)
-        assert np.linalg.norm(M[:3, 3] - expected[:3, 3]) < 4 * sigma + 0.002, m
-        if m < 9:  # the floor markers: their faces look straight up
-            tilts.append(np.degrees(np.arccos(np.clip(M[2, 2], -1, 1))))
-    assert np.median(tilts) < 0.4, tilts
-    # The same data anchored on marker 2 alone (its own tilt taken as level) tilts the whole floor.
-    fixed = build_map(obs, world, MapOptions(anchors=(2,)))
-    tilts_fixed = [np.degrees(np.arccos(np.clip((M_anchor_world @ M)[2, 2], -1, 1)))
-                   for m, M in fixed.mapped().items() if m < 9 and m != 2]  # fmt: skip
-    assert np.median(tilts_fixed) > np.median(tilts), (tilts_fixed, tilts)
-
-
-def test_no_anchor_seen_is_refused() -> None:
-    obs, world, _ = make_observations(2, n_frames=40, hidden={0})
-    with pytest.raises(MapError, match="no anchor seen"):
-        build_map(obs, world, MapOptions(anchors=(0,)))
-
-
-# --- the command line, on rendered frames of the simulator's map scenario ---------------------------
 
 
 def _render(frames: list[int], sensor_id: int = 1) -> tuple[list[np.ndarray], object]:
@@ -185,6 +129,10 @@ def test_no_anchor_seen_exits_2(tmp_path: Path, flight, capsys: pytest.CaptureFi
     _assert_refused(*_run(args, capsys), tmp_path, "no anchor seen", "11")
 
 
+def test_map_needs_an_anchor_and_existing_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _assert_refused(*_run(_map_args(tmp_path, tmp_path / "nothing"), capsys), tmp_path, "no such file")
+
+
 def _two_groups() -> tuple[tuple[frozenset[int], list[int]], tuple[frozenset[int], list[int]]]:
     """Two sets of frames of the map scenario's flight whose markers are never seen together."""
     from atlas_onboard.sim import scenarios
@@ -234,61 +182,3 @@ def test_groups_never_seen_together_are_each_mapped_from_their_own_anchor(
     status = {r["id"]: r["status"] for r in json.loads((one / "report" / "report.json").read_text())["markers"]}
     assert {status[m] for m in gb} == {"unanchored"} and {status[m] for m in ga} <= {"anchor", "mapped", "degenerate"}
     assert ", ".join(map(str, sorted(gb))) in out and "no anchor" in out
-
-
-def test_a_group_without_an_anchor_is_reported_and_the_rest_mapped() -> None:
-    """The synthetic room with its wall never seen with the floor: anchored on the floor only, the
-    wall's markers are reported unanchored; anchored on both, each is within its sigma of the truth."""
-    obs, world, M_true = make_observations(3, n_frames=120)
-    wall = {9, 10, 11}
-    keep = [not (obs.obs_marker_id[i] in wall and any(
-        obs.obs_frame[j] == obs.obs_frame[i] and obs.obs_marker_id[j] not in wall for j in range(len(obs.obs_frame))))
-        for i in range(len(obs.obs_frame))]  # fmt: skip
-    for name in ("obs_frame", "obs_marker_id", "corners_px"):
-        setattr(obs, name, [v for v, k in zip(getattr(obs, name), keep, strict=True) if k])
-    floor_only = build_map(obs, world, MapOptions(anchors=(0,)))
-    assert {floor_only.markers[m].status for m in wall} == {"unanchored"}
-    assert not wall & set(floor_only.mapped()) and set(range(9)) <= set(floor_only.mapped())
-    both = build_map(obs, world, MapOptions(anchors=(0, 10)))
-    assert set(range(12)) <= set(both.mapped())
-    for m in (9, 11):
-        sigma = np.linalg.norm(both.markers[m].sigma_m)
-        assert np.linalg.norm(both.mapped()[m][:3, 3] - M_true[m][:3, 3]) < 4 * sigma + 0.002, m
-
-
-def test_map_needs_an_anchor_and_existing_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    _assert_refused(*_run(_map_args(tmp_path, tmp_path / "nothing"), capsys), tmp_path, "no such file")
-
-
-@pytest.mark.parametrize("convention", ["ENU", "NED"])
-def test_the_written_world_file_loads_back_to_the_mapped_poses(tmp_path: Path, convention: str) -> None:
-    """The map's poses (internal ENU) are written in the file's own convention, and read back equal."""
-    from scipy.spatial.transform import Rotation
-
-    from atlas_onboard.mapping.build import MapResult, MarkerReport
-    from atlas_onboard.mapping.output import world_text
-
-    src = tmp_path / "world.yaml"
-    src.write_text(
-        f"conventions: {{world: {convention}, body: FLU}}\n"
-        "entities:\n  world:\n    markers:\n"
-        "      - {id: 1, size_m: 0.2, pose: {pos: [0, 0, 0]}}\n"
-        "      - {id: 2, size_m: 0.2, family: DICT_4X4_50, pose: {pos: [1, 2, 3]}}\n"
-        "  drone:\n    markers:\n      - {id: 9, size_m: 0.1, pose: {pos: [0, 0, 0.1]}}\n"
-    )
-    world = load_world(src)
-    M = np.eye(4)
-    M[:3, :3] = Rotation.from_euler("xyz", [10, -20, 75], degrees=True).as_matrix()
-    M[:3, 3] = [1.2345, -0.5, 2.0]
-    markers = {
-        1: MarkerReport(1, 0.2, 50, "mapped", M, (0.001, 0.001, 0.002), (0.1, 0.1, 0.1), 0.2, 30.0),
-        2: MarkerReport(2, 0.2, 0, "not_seen"),
-    }
-    result = MapResult(markers, np.zeros(0), [], None, 0.1, {}, {}, 10, 0, 0)
-    out = tmp_path / "out.yaml"
-    out.write_text(world_text(world, result, "test"))
-    back = load_world(out)
-    assert np.allclose(back.markers[1].T_entity_marker.as_matrix(), M, atol=1e-6)
-    assert np.allclose(back.markers[2].T_entity_marker.as_matrix(), world.markers[2].T_entity_marker.as_matrix())
-    assert back.markers[2].family == "DICT_4X4_50" and back.markers[9].entity == "drone"
-    assert "1-sigma position [1.00, 1.00, 2.00] mm" in out.read_text()
