@@ -7,44 +7,20 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
 from atlas_onboard.cli import main
 from atlas_onboard.config import load_world
-
-MAP_WORLD = Path(__file__).resolve().parents[2] / "atlas_onboard" / "sim" / "scenarios" / "map.yaml"
-
-
-def _render(frames: list[int], sensor_id: int = 1) -> tuple[list[np.ndarray], object]:
-    from atlas_onboard.sim import scenarios
-    from atlas_onboard.sim.camera import FrameRenderer
-
-    scenario = scenarios.get("map")
-    world = scenario.world()
-    renderer = FrameRenderer(scenario, world, world.sensors[sensor_id], seed=7)
-    return [renderer(j) for j in frames], renderer.intr
-
-
-def _write_folder(tmp: Path, images: list[np.ndarray], intr: object) -> tuple[Path, Path]:
-    from atlas_onboard.sim.runner import write_calibration
-
-    folder = tmp / "frames"
-    folder.mkdir()
-    for k, img in enumerate(images):
-        cv2.imwrite(str(folder / f"frame{k:04d}.png"), img)
-    cal = tmp / "calibration.yaml"
-    write_calibration(cal, intr)  # type: ignore[arg-type]
-    return folder, cal
+from tests.mapping.rendered import MAP_WORLD, render_frames, write_folder
 
 
 @pytest.fixture(scope="module")
 def flight(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, list[np.ndarray]]:
     """Four seconds of the mapper's camera, every other frame (7.5 fps) as an image folder, and its calibration."""
     tmp = tmp_path_factory.mktemp("flight")
-    images, intr = _render(list(range(600, 660, 2)))
-    folder, cal = _write_folder(tmp, images, intr)
+    images, intr = render_frames(list(range(600, 660, 2)))
+    folder, cal = write_folder(tmp, images, intr)
     return folder, cal, images
 
 
@@ -160,8 +136,8 @@ def test_groups_never_seen_together_are_each_mapped_from_their_own_anchor(
     """A flight that never shows both groups in one image (a hangar): with an anchor in each group,
     both are mapped; with an anchor in one only, that one is mapped and the other reported."""
     (ga, fa), (gb, fb) = _two_groups()
-    images, intr = _render(fa[:5] + fb[:5])
-    folder, cal = _write_folder(tmp_path, images, intr)
+    images, intr = render_frames(fa[:5] + fb[:5])
+    folder, cal = write_folder(tmp_path, images, intr)
     truth = {m.id: m.T_entity_marker.translation for m in load_world(MAP_WORLD).markers.values()}
     # Frames 0.2 s apart from two moments of the flight: searched whole (no tracking between them).
     sparse = ("--calibration", str(cal), "--min-frames", "3", "--decimate", "1")
