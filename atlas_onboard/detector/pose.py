@@ -298,7 +298,7 @@ def solve(
     # IPPE solves the homography in closed form, which is not the least-squares pose: a few
     # Levenberg-Marquardt steps from it reach the minimum of the reprojection error, whose spread
     # the first-order covariance describes (IPPE alone has more tilt variance:
-    # tests/detector/test_pose_covariance.py).
+    # tests/detector/test_pose.py).
     r0, t0 = cv2.solvePnPRefineLM(obj, img, K, None, r0.reshape(3, 1).copy(), t0.reshape(3, 1).copy())
     r0, t0 = r0.ravel(), t0.ravel()
     proj, J_proj = cv2.projectPoints(obj.reshape(-1, 1, 3), r0, t0, K, None)

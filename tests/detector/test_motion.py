@@ -28,7 +28,7 @@ from atlas_onboard.detector.pipeline import FrameReport
 from atlas_onboard.detector.records import SingleSolve
 from atlas_onboard.detector.sources import Frame
 from atlas_onboard.detector.worldcheck import WorldCheck
-from tests.detector.test_hard_frames import SIZE, H, K, W, moved_marker_world
+from tests.detector.scenes import SIZE, H, K, W, moved_marker_world
 
 READOUT_MS = 25.0
 NOISE_PX = 0.05

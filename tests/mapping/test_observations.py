@@ -9,7 +9,7 @@ import yaml
 
 from atlas_onboard.config import load_world
 from atlas_onboard.mapping.observations import collect
-from tests.mapping.test_map import MAP_WORLD, _render, _write_folder
+from tests.mapping.rendered import MAP_WORLD, render_frames, write_folder
 
 LEFT_OUT = 4  # a marker in view that the world file used here does not list
 
@@ -17,8 +17,8 @@ LEFT_OUT = 4  # a marker in view that the world file used here does not list
 @pytest.fixture(scope="module")
 def searched(tmp_path_factory: pytest.TempPathFactory):
     tmp = tmp_path_factory.mktemp("search")
-    images, intr = _render(list(range(600, 640)))  # 40 consecutive frames of the mapper's flight
-    folder, cal = _write_folder(tmp, images, intr)
+    images, intr = render_frames(list(range(600, 640)))  # 40 consecutive frames of the mapper's flight
+    folder, cal = write_folder(tmp, images, intr)
     doc = yaml.safe_load(MAP_WORLD.read_text())
     doc["entities"]["world"]["markers"] = [m for m in doc["entities"]["world"]["markers"] if m["id"] != LEFT_OUT]
     path = tmp / "world.yaml"

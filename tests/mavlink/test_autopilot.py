@@ -74,21 +74,6 @@ def test_full_covariance_rotates_into_ned_frd():
     assert cov[5] == pytest.approx(0.0)  # (0, 5): north-yaw
 
 
-def test_upper_triangle_order_is_row_major():
-    C = np.arange(36, dtype=float).reshape(6, 6)
-    C = C + C.T + 100 * np.eye(6)
-    out = covariance.covariance_upper_triangle(C)
-    expected = [C[i, j] for i in range(6) for j in range(i, 6)]
-    assert out == expected
-
-
-def test_zero_variance_is_floored_never_sent():
-    cov = covariance.covariance_upper_triangle(np.zeros((6, 6)))
-    assert [cov[i] for i in DIAG] == pytest.approx([1e-8] * 6)
-    assert all(cov[i] > 0 for i in DIAG)
-    assert all(v > 0 and math.isfinite(v) for v in (codec.pose_covariance(0.0)[i] for i in DIAG))
-
-
 @pytest.mark.parametrize(
     "bad",
     [
@@ -191,11 +176,6 @@ def test_origin_fields():
         autopilot.set_gps_global_origin_fields(1, 0.0, math.nan, 0.0)
 
 
-@pytest.mark.parametrize(("sigma", "quality"), [(0.005, 100), (0.01, 100), (0.1, 41), (0.5, 1), (math.nan, 0)])
-def test_quality(sigma, quality):
-    assert covariance.quality_percent(sigma) == quality
-
-
 @given(st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1))
 @example(q=[1.0, 1e-8, 1.0, 0.0])  # 1e-8 from the lock: n - 2 (x^2 + y^2) turned roll by 1.0000000236e-8
 def test_euler_zyx_is_scipys(q):
@@ -211,46 +191,6 @@ def test_euler_zyx_is_scipys(q):
     if abs(got[1]) < np.radians(89.0):
         wrapped = np.angle(np.exp(1j * (got - r.as_euler("ZYX"))))  # +pi and -pi are one angle
         np.testing.assert_allclose(wrapped, 0.0, atol=1e-9)
-
-
-@given(st.lists(st.floats(-1, 1), min_size=36, max_size=36), st.floats(1e-8, 1.0))
-def test_covariance_21_from_enu_flu_is_the_two_steps(values, scale):
-    """The one-gather triangle equals covariance_upper_triangle(covariance_ned_frd(C)) for symmetric
-    positive semi-definite C (tiny variances floored alike), and refuses what they refuse."""
-    A = np.array(values).reshape(6, 6) * scale
-    C = A @ A.T
-    expected = covariance.covariance_upper_triangle(covariance.covariance_ned_frd(C))
-    np.testing.assert_allclose(covariance.covariance_21_from_enu_flu(C), expected, rtol=1e-12, atol=0)
-
-
-@pytest.mark.parametrize(
-    ("bad", "message"),
-    [
-        (np.ones((5, 5)), "shape"),
-        (np.full((6, 6), np.nan), "finite"),
-        (np.diag([1, 1, 1, 1, 1, -1.0]), "non-negative"),
-        (np.triu(np.ones((6, 6))), "symmetric"),
-    ],
-)
-def test_covariance_21_from_enu_flu_refuses_bad_matrices(bad, message):
-    with pytest.raises(AtlasError, match=message):
-        covariance.covariance_upper_triangle(covariance.covariance_ned_frd(bad) if bad.shape == (6, 6) else bad)
-    with pytest.raises(AtlasError, match=message):
-        covariance.covariance_21_from_enu_flu(bad)
-
-
-def test_quality_from_covariance_follows_the_worst_position_axis():
-    iso_1cm = np.diag([1e-4] * 3 + [1e-3] * 3)
-    assert covariance.quality_from_covariance(iso_1cm) == 100
-    tall = np.diag([1e-4, 1e-4, 0.1**2] + [1e-3] * 3)  # 1 cm across, 10 cm along z
-    assert covariance.quality_from_covariance(tall) == covariance.quality_percent(0.1) == 41
-    # A correlated block: its worst direction is the largest eigenvalue's, not any diagonal entry.
-    R = Rotation.from_euler("z", 45, degrees=True).as_matrix()
-    rotated = np.eye(6) * 1e-3
-    rotated[:3, :3] = R @ np.diag([0.2**2, 0.01**2, 0.01**2]) @ R.T
-    assert max(rotated[0, 0], rotated[1, 1]) < 0.2**2 * 0.51  # each diagonal entry is about half of it
-    assert covariance.quality_from_covariance(rotated) == covariance.quality_percent(0.2)
-    assert covariance.quality_from_covariance(np.full((6, 6), np.nan)) == 0  # unknown, never -1
 
 
 def test_odometry_quality_comes_from_the_covariance():

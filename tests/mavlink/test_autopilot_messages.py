@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.graph import EntityPose
-from atlas_onboard.mavlink import codec, covariance, dialect
+from atlas_onboard.mavlink import codec, dialect
 
 D = dialect.load()
 
@@ -51,8 +51,3 @@ def test_odometry_fields():
     # ENU yaw 0 (nose east) is NED yaw 90.
     assert Rotation.from_quat([x, y, z, w]).as_euler("ZYX", degrees=True) == pytest.approx([90, 0, 0], abs=1e-4)
     assert msg.quality == 100 and math.isnan(msg.vx) and math.isnan(msg.velocity_covariance[0])
-
-
-@pytest.mark.parametrize(("sigma", "quality"), [(0.005, 100), (0.01, 100), (0.5, 1), (2.0, 1), (math.nan, 0)])
-def test_quality_mapping(sigma, quality):
-    assert covariance.quality_percent(sigma) == quality

@@ -608,3 +608,51 @@ def test_observations_of_the_own_pose_that_arrive_during_a_flush_go_before_the_r
     node._step(t)
     assert node.listener.accepted == 2 + n_parked and node.last_result.complete
     np.testing.assert_allclose(node.last_result.poses["d2"].p_world_m, [1, 1, 1], atol=1e-9)
+
+
+def test_the_node_sends_a_cameras_warning_as_statustext():
+    """The node's small hook: what a camera's detector has to say (a disagreeing marker) goes out as a
+    STATUSTEXT with WARNING severity, once."""
+
+    class Cam:
+        name = "c"
+
+        def __init__(self):
+            self.pending = ["atlas world: marker 5 disagrees by 10.1 cm"]
+
+        def start(self, deliver):
+            pass
+
+        def stop(self):
+            pass
+
+        def counters(self):
+            return {}
+
+        def map_pose_changed(self, marker_id):
+            pass
+
+        def take_status(self):
+            out, self.pending = self.pending, []
+            return out
+
+    sent = []
+
+    class Transport(FakeTransport):
+        def send_status(self, text, severity):
+            sent.append((text, severity))
+
+    transport = Transport(time.monotonic_ns)
+    node = Node(WORLD, NodeConfig(entity="d1", system_id=7), transport, cameras=[Cam()])
+    thread = threading.Thread(target=node.run)
+    thread.start()
+    try:
+        transport.started.wait(5)
+        deadline = time.monotonic() + 5
+        while not sent and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.1)
+    finally:
+        node.stop()
+        thread.join(5)
+    assert sent == [("atlas world: marker 5 disagrees by 10.1 cm", 4)]

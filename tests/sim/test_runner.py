@@ -1,6 +1,6 @@
 """The simulator end to end: real node processes, rendered cameras, simulated autopilots, loopback
 MAVLink; accuracy against ground truth, a node killed and restarted, and nothing left behind afterwards.
-The scenarios' fusion alone, without the machine's load, is scored in test_offline_scenarios.py."""
+The scenarios' fusion alone, without the machine's load, is scored in test_offline.py."""
 
 import itertools
 import json
@@ -87,7 +87,7 @@ def test_when_a_relay_drone_dies_its_follower_stops_then_resumes():
 
 def test_gaps_the_ekf_keeps_the_pose_through_gaps_the_papers_method_cannot_bridge():
     """The expected availability is what a node publishing every frame in view can reach (the paper's
-    method tracks it: test_offline_scenarios.py); the EKF predicts through the first 0.2 s of a gap, so its autopilot
+    method tracks it: test_offline.py); the EKF predicts through the first 0.2 s of a gap, so its autopilot
     holds a fresh pose for clearly more of the time, and the predictions stay accurate."""
     e, rep = run_and_score("gaps", 8, world_overrides={"fusion": {**PAPER_FUSION, "filter": "ekf"}})
     d = e["drone"]

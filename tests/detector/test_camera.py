@@ -1,11 +1,7 @@
-"""Camera sources and the camera worker (a source that dies and comes back), and the detect and
-markers commands."""
+"""The camera worker: a source that dies, hangs up or ends and comes back, stopped while reading, real-time
+and every-frame replays, and the turn since the previous frame handed to the detector."""
 
-import json
 import math
-import re
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -13,21 +9,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import yaml
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import CameraConfig, SensorConfig, parse_world
 from atlas_onboard.core.shutter import BodyRate
 from atlas_onboard.detector import camera as camera_module
-from atlas_onboard.detector import sources
-from atlas_onboard.detector.backends import MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.camera import CameraWorker
-from atlas_onboard.detector.families import family
-from atlas_onboard.detector.images import marker_svg
 from atlas_onboard.detector.pipeline import Detector
-from atlas_onboard.detector.sources import Frame, ImageFolder, Source, SourceError
-from tests.helpers import write_ubiquity_calibration
+from atlas_onboard.detector.sources import Frame, Source, SourceError
 
 # A camera looking forward and 30 degrees down, off the body's centre (its optical frame in the body FLU frame).
 MOUNT = RigidTransform.from_components(
@@ -36,20 +26,6 @@ MOUNT = RigidTransform.from_components(
 )
 
 DATA = Path(__file__).resolve().parents[1] / "data"
-REPO = Path(__file__).resolve().parents[2]
-
-
-def test_image_folder_stamps_from_names_and_order(tmp_path):
-    """A name's stamp is the image's file time (relative to the first named image), mapped onto the
-    replay's start like every file time; unnamed images count by position."""
-    for name in ("b_1700000000123.png", "a_1700000000100.png", "c_noise.png"):
-        cv2.imwrite(str(tmp_path / name), np.zeros((8, 8), np.uint8))
-    frames = list(
-        sources.open_source(CameraConfig(source=str(tmp_path), fps=10), fast=True, start_us=5_000_000).frames()
-    )
-    assert [f.capture_time_us for f in frames] == [5_000_000, 5_000_000 + 23_000, 5_000_000 + 200_000]
-    assert ImageFolder.stamp_from_name("x_1700000000.jpg") == 1_700_000_000_000_000
-    assert ImageFolder.stamp_from_name("1700000000123456.png") == 1_700_000_000_123_456
 
 
 def photo_detector() -> Detector:
@@ -112,80 +88,6 @@ def test_camera_worker_survives_a_source_that_dies_and_comes_back(monkeypatch):
     assert c["frames"] + c.get("frames_dropped", 0) == 6 and alive
     # One delivery per image, holding all of its detections: the expected ids of IMG_1368.
     assert got and all(sorted(md.marker_id for md in image) == [13, 19] for image in got)
-
-
-def test_markers_svg_is_exact_and_decodes(tmp_path):
-    svg = marker_svg("tag36h11", 42, 0.18)
-    w_mm = float(re.search(r'width="([\d.]+)mm"', svg).group(1))
-    assert w_mm == 180.0 + 2 * 180.0 / 8  # the black square plus a one-cell quiet zone on each side
-    # Paint the rectangles at 10 px/mm and detect the result with the AprilTag library.
-    scale = 4.0
-    h_mm = float(re.search(r'height="([\d.]+)mm"', svg).group(1))
-    img = np.full((int(h_mm * scale) + 40, int(w_mm * scale) + 40), 255, np.uint8)
-    for x, y, w, h in re.findall(r'<rect x="([\d.]+)" y="([\d.]+)" width="([\d.]+)" height="([\d.]+)"/>', svg):
-        x0, y0 = round(float(x) * scale) + 20, round(float(y) * scale) + 20
-        img[y0 : y0 + round(float(h) * scale), x0 : x0 + round(float(w) * scale)] = 0
-    found = MarkerFinder({42: "tag36h11"}).find(img, 1.0)
-    assert [d.marker_id for d in found] == [42]
-    side_px = np.linalg.norm(found[0].corners_px[1] - found[0].corners_px[0])
-    assert abs(side_px - 180.0 * scale) < 1.5
-    assert family("tag36h11").cells == 8
-
-
-def run_cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "atlas_onboard", *args], capture_output=True, text=True, timeout=60, check=False
-    )
-
-
-def test_detect_command_on_a_real_photo(tmp_path):
-    cal = write_ubiquity_calibration(tmp_path / "cal.yaml")
-    world = tmp_path / "w.yaml"
-    world.write_text(
-        yaml.safe_dump(
-            {
-                "marker_family": "DICT_5X5_1000",
-                "entities": {
-                    "world": {"markers": [{"id": 403, "size_m": 0.145, "pose": {}}]},
-                    "robot": {"sensors": [{"name": "cam", "id": 1, "pose": {}, "camera": {"calibration": str(cal)}}]},
-                },
-            }
-        )
-    )
-    proc = run_cli("detect", "--config", str(world), "--sensor", "cam", "--image", str(DATA / "ubiquity" / "403.jpg"),
-                   "--json", "--annotate", str(tmp_path / "a.png"))  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
-    rows = [json.loads(line) for line in proc.stdout.splitlines()]
-    assert [r["marker_id"] for r in rows] == [403]
-    # The source's own expectation (fiducial_slam's auto_init_403 test): marker 403 in base_link at
-    # (0.7611, 0.2505, 0.4028) m, with the camera at base_link (x y z yaw pitch roll) below.
-    cam = Rotation.from_euler("ZYX", [-1.479119, -0.041544, -1.204205])
-    p_base = cam.apply(rows[0]["p_sensor_marker_m"]) + np.array([0.035, 0.145, 0.14])
-    np.testing.assert_allclose(p_base, [0.7611, 0.2505, 0.4028], atol=0.002)
-    assert (tmp_path / "a.png").stat().st_size > 1000
-    bad = run_cli("detect", "--config", str(world), "--sensor", "cam", "--image", str(tmp_path / "missing.png"))
-    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "cannot read" in bad.stderr
-
-
-def test_markers_command_writes_one_svg_per_marker_at_its_size(tmp_path, capsys):
-    from atlas_onboard.cli import main
-    from atlas_onboard.config import load_world
-
-    config = REPO / "config" / "paper-test1.yaml"
-    world = load_world(config)
-    assert main(["markers", "--config", str(config), "--out", str(tmp_path / "print")]) == 0
-    out = capsys.readouterr().out.strip().splitlines()
-    assert len(out) == len(world.markers)
-    for m in world.markers.values():
-        svg = (tmp_path / "print" / f"{m.family}-{m.id}.svg").read_text()
-        width_mm = float(re.search(r'width="([\d.]+)mm"', svg).group(1))
-        cells = family(m.family).cells
-        assert width_mm == pytest.approx(m.size_m * 1000 * (1 + 2 / cells), abs=1e-3)
-        assert f"id {m.id}" in svg
-    (tmp_path / "file").write_text("")
-    assert main(["markers", "--config", str(config), "--out", str(tmp_path / "file" / "x")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--out: cannot create" in err[0], err
 
 
 class _MjpegServer:
@@ -279,46 +181,6 @@ def test_a_file_source_says_end_only_when_it_ran_out(monkeypatch, caplog, stoppe
     said = [r.getMessage() for r in caplog.records]
     assert ("camera c: stopped" in said) == stopped
     assert ("camera c: end of /data/frames" in said) == (not stopped)
-
-
-def _slow_listing(monkeypatch, delay_s: float) -> None:
-    """Listing a folder takes ``delay_s`` (a large folder on an SD card)."""
-    listing = Path.iterdir
-
-    def slow(self):
-        time.sleep(delay_s)
-        return listing(self)
-
-    monkeypatch.setattr(Path, "iterdir", slow)
-
-
-@pytest.mark.parametrize("replay", ["every_frame", "realtime"])
-def test_file_source_stamps_from_when_the_first_frame_is_read(tmp_path, monkeypatch, replay):
-    """A slow listing (or a slow video open) must not age the stamps: the first frame is stamped no
-    earlier than the moment the source was ready, and later ones follow the file's time from it."""
-    for k in range(3):
-        cv2.imwrite(str(tmp_path / f"f{k}.png"), np.zeros((8, 8), np.uint8))
-    _slow_listing(monkeypatch, 0.3)
-    source = sources.open_source(CameraConfig(source=str(tmp_path), fps=20, replay=replay))
-    ready_us = time.time_ns() // 1000
-    frames = list(source.frames())
-    done_us = time.time_ns() // 1000
-    assert len(frames) + source.skipped == 3
-    assert ready_us <= frames[0].capture_time_us <= done_us
-    assert all(f.capture_time_us - frames[0].capture_time_us in (50_000, 100_000) for f in frames[1:])
-
-
-def test_video_file_stamps_from_when_the_first_frame_is_read(tmp_path):
-    path = tmp_path / "clip.avi"
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (32, 24))
-    for k in range(4):
-        writer.write(np.full((24, 32, 3), 40 * k, np.uint8))
-    writer.release()
-    source = sources.open_source(CameraConfig(source=str(path), replay="every_frame"))
-    ready_us = time.time_ns() // 1000
-    frames = list(source.frames())
-    assert len(frames) == 4 and ready_us <= frames[0].capture_time_us
-    assert [f.capture_time_us - frames[0].capture_time_us for f in frames] == [0, 40_000, 80_000, 120_000]
 
 
 class _SlowDetector:

@@ -15,7 +15,7 @@ from atlas_onboard.core.refine.sampling import PerMarkerSchedule
 from atlas_onboard.core.worldcheck import MIN_VIEWS
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
-from tests.detector.test_hard_frames import DIST, H, K, W, moved_marker_image, moved_marker_world
+from tests.detector.scenes import DIST, H, K, W, moved_marker_image, moved_marker_world
 
 FRAME_US = 100_000
 
