@@ -20,7 +20,7 @@ from atlas_onboard.detector.joint import JointSolve
 from atlas_onboard.detector.joint_motion import solve_moving
 from atlas_onboard.detector.motion import CameraMotionModel
 from atlas_onboard.detector.records import SingleSolve, TimedCorners
-from tests.detector.test_hard_frames import SIZE, H, K, W, moved_marker_world
+from tests.detector.scenes import SIZE, H, K, W, moved_marker_world
 from tests.detector.test_motion import READOUT_MS, rolling_corners
 
 NOISE_PX = 0.05
