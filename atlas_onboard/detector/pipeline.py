@@ -168,8 +168,8 @@ class Detector:
         # Texture searched lately is not searched again unless its contrast rose (a marker came in).
         quiet = (self._quiet_until > k) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
         taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
-        taken += self.search.foreign_boxes(k, R_prev_now)  # tags not ours, searched lately
-        for region in contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet):
+        foreign = self.search.foreign_boxes(k, R_prev_now)  # tags not ours, searched lately
+        for region in contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet, foreign):
             before = len(found)
             self.search.find_in(gray, [region], found, only_new=True)
             self.counters["candidate_regions"] += 1

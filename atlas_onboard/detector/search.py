@@ -58,9 +58,10 @@ class RegionSearch:
         self._foreign_now += [d.corners_px + np.array(offset, dtype=float) for d in found]
 
     def foreign_boxes(self, frame: int, R_prev_now: Rotation | None) -> list[NDArray[np.float64]]:
-        """The boxes (x0, y0, x1, y1, decimate) about the tags not ours that are not to be searched in
-        ``frame``: each moved by the camera's turn ``R_prev_now`` (if given) and grown as a tracked
-        marker's region is; those due a check again are forgotten (their place is a candidate again)."""
+        """The boxes (x0, y0, x1, y1) about the tags not ours whose contrast is not searched in ``frame``
+        (:func:`contrast_regions`' ``explained``): each moved by the camera's turn ``R_prev_now`` (if
+        given) and grown as a tracked marker's region is; those due a check again are forgotten (their
+        place is a candidate again)."""
         kept = []
         for t in self.foreign:
             if t.until <= frame:
@@ -68,7 +69,8 @@ class RegionSearch:
             c = t.corners_px if R_prev_now is None else self.rotated(t.corners_px, R_prev_now)
             kept.append(ForeignTag(c, t.until))
         self.foreign = kept
-        return [box(t.corners_px) for t in kept]
+        # Grown by the cells a contrast region reaches beyond the tag's outline.
+        return [box(t.corners_px)[:4] + np.array([-2, -2, 2, 2]) * CELL_PX for t in kept]
 
     def remember_foreign(self, frame: int) -> None:
         """Remember the tags not ours decoded in ``frame`` until ``FOREIGN_FRAMES`` later (each replaces
@@ -200,10 +202,12 @@ def contrast_regions(
     taken: list[NDArray[np.float64]],
     budget_px: float,
     quiet: NDArray[np.bool_] | None = None,
+    explained: list[NDArray[np.float64]] | None = None,
 ) -> list[NDArray[np.float64]]:
     """Regions (x0, y0, x1, y1, decimate) of the strongest black-white contrast outside the boxes
     ``taken`` (x0, y0, x1, y1: the markers found already) and the ``quiet`` cells, the strongest first,
-    at most ``budget_px`` pixels (divided by the decimation squared) in all.
+    at most ``budget_px`` pixels (divided by the decimation squared) in all; a region that lies wholly
+    within one of the boxes ``explained`` (x0, y0, x1, y1: tags not ours found there lately) is left out.
 
     ``contrast`` and ``top``: :func:`cell_contrast`. Black ink reflects a tenth or less of what white
     paper does, whatever the light: a printed marker's outline crosses cells whose darkest pixel is at
@@ -228,6 +232,8 @@ def contrast_regions(
     m = BORDER_MARGIN_PX
     for _, i in sorted(peaks):
         x, y, bw, bh = (int(v) * CELL_PX for v in stats[i, :4])
+        if any(e[0] <= x and e[1] <= y and x + bw <= e[2] and y + bh <= e[3] for e in explained or ()):
+            continue  # a tag not ours, whatever its contrast: a marker of ours beside it reaches further
         # A wide region holds large markers (or clutter): searched decimated, as a tracked one would be.
         side = min(bw, bh) - 2 * CELL_PX  # the largest marker it can hold
         decimate = float(min(max(side // SMALL_SIDE_PX, 1), MAX_REGION_DECIMATE))
