@@ -69,8 +69,7 @@ class RegionSearch:
             c = t.corners_px if R_prev_now is None else self.rotated(t.corners_px, R_prev_now)
             kept.append(ForeignTag(c, t.until))
         self.foreign = kept
-        # Grown by the cells a contrast region reaches beyond the tag's outline.
-        return [box(t.corners_px)[:4] + np.array([-2, -2, 2, 2]) * CELL_PX for t in kept]
+        return [box(t.corners_px)[:4] for t in kept]
 
     def remember_foreign(self, frame: int) -> None:
         """Remember the tags not ours decoded in ``frame`` until ``FOREIGN_FRAMES`` later (each replaces
@@ -206,8 +205,8 @@ def contrast_regions(
 ) -> list[NDArray[np.float64]]:
     """Regions (x0, y0, x1, y1, decimate) of the strongest black-white contrast outside the boxes
     ``taken`` (x0, y0, x1, y1: the markers found already) and the ``quiet`` cells, the strongest first,
-    at most ``budget_px`` pixels (divided by the decimation squared) in all; a region that lies wholly
-    within one of the boxes ``explained`` (x0, y0, x1, y1: tags not ours found there lately) is left out.
+    at most ``budget_px`` pixels (divided by the decimation squared) in all; a region whose contrast
+    lies wholly within the boxes ``explained`` (x0, y0, x1, y1: tags not ours found there lately) is left out.
 
     ``contrast`` and ``top``: :func:`cell_contrast`. Black ink reflects a tenth or less of what white
     paper does, whatever the light: a printed marker's outline crosses cells whose darkest pixel is at
@@ -220,20 +219,24 @@ def contrast_regions(
         contrast[y0 : -(-int(y1) // CELL_PX), x0 : -(-int(x1) // CELL_PX)] = 0
     if quiet is not None:  # searched lately and found to be texture
         contrast[quiet] = 0
-    mask = (contrast >= MIN_CONTRAST).astype(np.uint8)
-    mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
+    strong = contrast >= MIN_CONTRAST
+    foreign = np.zeros(contrast.shape, bool)  # the cells of the boxes ``explained``
+    for x0, y0, x1, y1 in explained or ():
+        x0, y0 = max(int(x0), 0) // CELL_PX, max(int(y0), 0) // CELL_PX
+        foreign[y0 : -(-int(y1) // CELL_PX), x0 : -(-int(x1) // CELL_PX)] = True
+    mask = cv2.dilate(strong.astype(np.uint8), np.ones((3, 3), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     peaks = []
     for i in range(1, n):
         x, y, bw, bh = stats[i, :4]
         inside = labels[y : y + bh, x : x + bw] == i
+        if explained and foreign[y : y + bh, x : x + bw][inside & strong[y : y + bh, x : x + bw]].all():
+            continue  # tags not ours, whatever their contrast: a marker of ours beside them has cells of its own
         peaks.append((-int(contrast[y : y + bh, x : x + bw][inside].max()), i))
     out = []
     m = BORDER_MARGIN_PX
     for _, i in sorted(peaks):
         x, y, bw, bh = (int(v) * CELL_PX for v in stats[i, :4])
-        if any(e[0] <= x and e[1] <= y and x + bw <= e[2] and y + bh <= e[3] for e in explained or ()):
-            continue  # a tag not ours, whatever its contrast: a marker of ours beside it reaches further
         # A wide region holds large markers (or clutter): searched decimated, as a tracked one would be.
         side = min(bw, bh) - 2 * CELL_PX  # the largest marker it can hold
         decimate = float(min(max(side // SMALL_SIDE_PX, 1), MAX_REGION_DECIMATE))
