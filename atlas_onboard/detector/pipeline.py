@@ -4,10 +4,10 @@ Speed beyond the library: on a textured floor the library spends most of its tim
 frame searches the regions where the markers of the previous frame are predicted to be (at a decimation
 that keeps each marker wide enough), then the regions of strong black-white contrast elsewhere at full
 resolution (cells whose darkest pixel is a small share of their brightest, as black ink beside white
-paper is in any light; texture searched in vain is left alone for a few frames unless its contrast rises),
-within a budget of pixels; for markers of weak contrast, a whole-image search at decimate 3 and one tile
-of a full-resolution grid, every (other) frame while hunting and now and then while tracking: the recall
-of decimate 1 at a fraction of its cost.
+paper is in any light; texture searched in vain is left alone for a few frames unless its contrast rises,
+tags that are not ours for longer, followed with the camera's turn), within a budget of pixels; for markers
+of weak contrast, a whole-image search at decimate 3 and one tile of a full-resolution grid, every (other)
+frame while hunting and now and then while tracking: the recall of decimate 1 at a fraction of its cost.
 
 Trust: a marker whose corners touch the image border (or the border of the region it was found in) is
 dropped (counted by reason), since its edges cannot be fitted; the corners of the others are refitted
