@@ -129,3 +129,17 @@ def test_a_tag_not_ours_replaced_by_one_of_ours_is_found_within_a_check_period()
             assert errs[40] < 1.0
             first = k if first is None else first
     assert first is not None and first - 4 <= FOREIGN_FRAMES
+
+
+def test_a_marker_of_ours_that_comes_in_beside_a_tag_not_ours_is_found_at_once():
+    """A foreign tag in view for a few frames (remembered), then one of ours comes in right beside it:
+    ours is found in the frame it appears, its corners within a pixel."""
+    det = tracker()
+    foreign = view_at(7, 420, 150, 3.5)
+    for k in range(4):
+        assert det.find(frame([foreign], seed=k)) == []
+    assert det.search.foreign, "the foreign tag is remembered"
+    views = [foreign, view_at(40, 462, 160, 3.5)]
+    errs = corner_errors_px(det.find(frame(views, seed=4)), views)
+    assert set(errs) == {40}
+    assert errs[40] < 1.0
