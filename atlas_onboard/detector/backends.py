@@ -227,13 +227,17 @@ class MarkerFinder:
             self.backends.append(AprilTagBackend(april, decimate, extra=extra))
         self.backends += [ArucoBackend(f) for f in fams if not family(f).is_apriltag]
         self.dropped: Counter[str] = Counter()
+        self.foreign: list[Detection] = []  # the last search's tags that are not configured
 
     def find(self, gray: NDArray[np.uint8], decimate: float | None = None) -> list[Detection]:
+        """The configured markers in ``gray``; the other tags decoded are in :attr:`foreign` until the next call."""
         out = []
+        self.foreign = []
         for backend in self.backends:
             for d in backend.detect(gray, decimate):
                 if self.wanted.get(d.marker_id) == d.family:
                     out.append(d)
                 else:
                     self.dropped["unknown_id"] += 1
+                    self.foreign.append(d)
         return out

@@ -4,10 +4,10 @@ Speed beyond the library: on a textured floor the library spends most of its tim
 frame searches the regions where the markers of the previous frame are predicted to be (at a decimation
 that keeps each marker wide enough), then the regions of strong black-white contrast elsewhere at full
 resolution (cells whose darkest pixel is a small share of their brightest, as black ink beside white
-paper is in any light; texture searched in vain is left alone for a few frames unless its contrast rises),
-within a budget of pixels; for markers of weak contrast, a whole-image search at decimate 3 and one tile
-of a full-resolution grid, every (other) frame while hunting and now and then while tracking: the recall
-of decimate 1 at a fraction of its cost.
+paper is in any light; texture searched in vain is left alone for a few frames unless its contrast rises,
+tags that are not ours for longer, followed with the camera's turn), within a budget of pixels; for markers
+of weak contrast, a whole-image search at decimate 3 and one tile of a full-resolution grid, every (other)
+frame while hunting and now and then while tracking: the recall of decimate 1 at a fraction of its cost.
 
 Trust: a marker whose corners touch the image border (or the border of the region it was found in) is
 dropped (counted by reason), since its edges cannot be fitted; the corners of the others are refitted
@@ -157,6 +157,7 @@ class Detector:
                 if d.marker_id not in found:
                     found[d.marker_id] = d
                     new.append(box(d.corners_px))  # found again at the region's own decimation
+            self.search.saw_foreign(self.finder.foreign)
             self.search.find_in(gray, new, found)
             self.counters["scans"] += 1
         cells = (-(-h // CELL_PX), -(-w // CELL_PX))
@@ -167,7 +168,8 @@ class Detector:
         # Texture searched lately is not searched again unless its contrast rose (a marker came in).
         quiet = (self._quiet_until > k) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
         taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
-        for region in contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet):
+        foreign = self.search.foreign_boxes(k, R_prev_now)  # tags not ours, searched lately
+        for region in contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet, foreign):
             before = len(found)
             self.search.find_in(gray, [region], found, only_new=True)
             self.counters["candidate_regions"] += 1
@@ -177,6 +179,7 @@ class Detector:
                 self._quiet_level[y0 : y1 + 1, x0 : x1 + 1] = contrast[y0 : y1 + 1, x0 : x1 + 1]
         if k % SCAN_EVERY == SCAN_EVERY // 2 or (hunting and k % 2 == 1):
             self.search.find_in(gray, [self.search.next_tile(w, h)], found, only_new=True)
+        self.search.remember_foreign(k)
         self.counters["hunts" if hunting else "tracked_frames"] += 1
         self._frame += 1
         # Where each marker will be: moved on by its last motion in the image (constant velocity).

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -26,6 +27,16 @@ MIN_RATIO = 0.6  # a candidate cell's contrast is at least this share of its bri
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
 BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
 MIN_CONTRAST = 20  # grey levels: a cell with less is not a marker's black and white (edge_profile.MIN_CONTRAST)
+FOREIGN_FRAMES = 15  # a tag that is not ours is not searched again for this many frames (then checked again)
+
+
+@dataclass(frozen=True)
+class ForeignTag:
+    """Where a tag that is not configured was decoded (its corners (4, 2), predicted to the current
+    frame) and the frame from which its place is searched again."""
+
+    corners_px: NDArray[np.float64]
+    until: int
 
 
 class RegionSearch:
@@ -39,6 +50,36 @@ class RegionSearch:
         self.counters = counters
         self.regions: list[NDArray[np.float64]] = []  # regions (x0, y0, x1, y1, decimate) to search next
         self._tile = tile  # the next tile of the grid (in a phase of its own for each sensor)
+        self.foreign: list[ForeignTag] = []  # tags not ours found lately: their places are not candidates
+        self._foreign_now: list[NDArray[np.float64]] = []  # corners of those decoded in this frame
+
+    def saw_foreign(self, found: list[Detection], offset: tuple[int, int] = (0, 0)) -> None:
+        """Note the tags not ours of a search (``found``: corners in a region whose top-left is ``offset``)."""
+        self._foreign_now += [d.corners_px + np.array(offset, dtype=float) for d in found]
+
+    def foreign_boxes(self, frame: int, R_prev_now: Rotation | None) -> list[NDArray[np.float64]]:
+        """The boxes (x0, y0, x1, y1) about the tags not ours whose contrast is not searched in ``frame``
+        (:func:`contrast_regions`' ``explained``): each moved by the camera's turn ``R_prev_now`` (if
+        given) and grown as a tracked marker's region is; those due a check again are forgotten (their
+        place is a candidate again)."""
+        kept = []
+        for t in self.foreign:
+            if t.until <= frame:
+                continue
+            c = t.corners_px if R_prev_now is None else self.rotated(t.corners_px, R_prev_now)
+            kept.append(ForeignTag(c, t.until))
+        self.foreign = kept
+        return [box(t.corners_px)[:4] for t in kept]
+
+    def remember_foreign(self, frame: int) -> None:
+        """Remember the tags not ours decoded in ``frame`` until ``FOREIGN_FRAMES`` later (each replaces
+        what was remembered where it is)."""
+        for c in self._foreign_now:
+            lo, hi = c.min(axis=0), c.max(axis=0)
+            self.foreign = [t for t in self.foreign if not np.all((t.corners_px.mean(axis=0) >= lo)
+                                                                  & (t.corners_px.mean(axis=0) <= hi))]  # fmt: skip
+            self.foreign.append(ForeignTag(c, frame + FOREIGN_FRAMES))
+        self._foreign_now = []
 
     def rotated(self, corners_px: NDArray[np.float64], R_prev_now: Rotation) -> NDArray[np.float64]:
         """Where corners (N, 2) of the previous image are seen now after the camera turned by
@@ -108,7 +149,9 @@ class RegionSearch:
         h, w = gray.shape[:2]
         for x0, y0, x1, y1, decimate in _merge(boxes, w, h):
             shifted = []
-            for d in self.finder.find(np.ascontiguousarray(gray[y0:y1, x0:x1]), decimate):
+            ours = self.finder.find(np.ascontiguousarray(gray[y0:y1, x0:x1]), decimate)
+            self.saw_foreign(self.finder.foreign, (x0, y0))
+            for d in ours:
                 if only_new and d.marker_id in found:
                     continue
                 c = d.corners_px + np.array([x0, y0], dtype=float)
@@ -158,10 +201,12 @@ def contrast_regions(
     taken: list[NDArray[np.float64]],
     budget_px: float,
     quiet: NDArray[np.bool_] | None = None,
+    explained: list[NDArray[np.float64]] | None = None,
 ) -> list[NDArray[np.float64]]:
     """Regions (x0, y0, x1, y1, decimate) of the strongest black-white contrast outside the boxes
     ``taken`` (x0, y0, x1, y1: the markers found already) and the ``quiet`` cells, the strongest first,
-    at most ``budget_px`` pixels (divided by the decimation squared) in all.
+    at most ``budget_px`` pixels (divided by the decimation squared) in all; a region whose contrast
+    lies wholly within the boxes ``explained`` (x0, y0, x1, y1: tags not ours found there lately) is left out.
 
     ``contrast`` and ``top``: :func:`cell_contrast`. Black ink reflects a tenth or less of what white
     paper does, whatever the light: a printed marker's outline crosses cells whose darkest pixel is at
@@ -174,13 +219,19 @@ def contrast_regions(
         contrast[y0 : -(-int(y1) // CELL_PX), x0 : -(-int(x1) // CELL_PX)] = 0
     if quiet is not None:  # searched lately and found to be texture
         contrast[quiet] = 0
-    mask = (contrast >= MIN_CONTRAST).astype(np.uint8)
-    mask = cv2.dilate(mask, np.ones((3, 3), np.uint8))
+    strong = contrast >= MIN_CONTRAST
+    foreign = np.zeros(contrast.shape, bool)  # the cells of the boxes ``explained``
+    for x0, y0, x1, y1 in explained or ():
+        x0, y0 = max(int(x0), 0) // CELL_PX, max(int(y0), 0) // CELL_PX
+        foreign[y0 : -(-int(y1) // CELL_PX), x0 : -(-int(x1) // CELL_PX)] = True
+    mask = cv2.dilate(strong.astype(np.uint8), np.ones((3, 3), np.uint8))
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     peaks = []
     for i in range(1, n):
         x, y, bw, bh = stats[i, :4]
         inside = labels[y : y + bh, x : x + bw] == i
+        if explained and foreign[y : y + bh, x : x + bw][inside & strong[y : y + bh, x : x + bw]].all():
+            continue  # tags not ours, whatever their contrast: a marker of ours beside them has cells of its own
         peaks.append((-int(contrast[y : y + bh, x : x + bw][inside].max()), i))
     out = []
     m = BORDER_MARGIN_PX

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 from atlas_onboard.detector import pipeline
 from atlas_onboard.detector.search import MAX_REGION_DECIMATE, side
 from tests.detector.test_finder import corner_errors_px, frame, tracker, truth_corners, view_at
@@ -43,3 +45,101 @@ def test_a_tracked_marker_is_searched_decimated_and_kept_to_its_corners(monkeypa
     assert min(decimations) >= 2.0
     hunt_width = side(truth_corners(view_at(25, 220, 240, 1.05))) / MAX_REGION_DECIMATE
     assert min(w / d for w, d in zip(widths, decimations, strict=True)) >= hunt_width
+
+
+def _yawing(k: int, views: list) -> tuple[list, object]:
+    """The views seen after the camera yawed ``k`` half degrees (markers fixed in the world), and that turn."""
+    from scipy.spatial.transform import RigidTransform, Rotation
+
+    from atlas_onboard.detector.render import MarkerView
+
+    R = Rotation.from_euler("y", 0.5 * k, degrees=True)
+    turn = RigidTransform.from_rotation(R.inv())
+    return [MarkerView(v.family, v.marker_id, v.size_m, turn * v.T_camera_marker) for v in views], R
+
+
+def _candidate_searches(det, monkeypatch):  # type: ignore[no-untyped-def]
+    """A list that each frame's contrast-candidate searches (boxes x0, y0, x1, y1) are appended to (not
+    the tiles of the grid, searched in turn whatever they hold)."""
+    boxes: list[tuple[float, ...]] = []
+    tiles: list[tuple[float, ...]] = []
+    find_in, next_tile = det.search.find_in, det.search.next_tile
+
+    def tile(w, h):  # type: ignore[no-untyped-def]
+        t = next_tile(w, h)
+        tiles.append(tuple(float(v) for v in t[:4]))
+        return t
+
+    def spy(gray, regions, found, only_new=False):  # type: ignore[no-untyped-def]
+        if only_new:
+            boxes.extend(b for b in (tuple(float(v) for v in r[:4]) for r in regions) if b not in tiles)
+        return find_in(gray, regions, found, only_new)
+
+    monkeypatch.setattr(det.search, "find_in", spy)
+    monkeypatch.setattr(det.search, "next_tile", tile)
+    return boxes
+
+
+def test_a_tag_not_ours_is_searched_once_a_check_period_while_ours_are_found_every_frame(monkeypatch):
+    """Two of our markers and one tag of the same family that is not in the world file, the camera
+    yawing half a degree a frame (the turn given): the foreign tag's place is searched as a contrast
+    candidate (a region holding its centre) at most once every ``FOREIGN_FRAMES`` frames, while both our markers
+    are found within a pixel of the truth in every frame."""
+    from atlas_onboard.detector.search import FOREIGN_FRAMES
+
+    det = tracker()
+    boxes = _candidate_searches(det, monkeypatch)
+    world_views = [view_at(11, 260, 200, 3.0), view_at(25, 330, 330, 3.0), view_at(7, 420, 150, 3.5)]
+    n = 2 * FOREIGN_FRAMES + 2
+    searched = []
+    previous = None
+    for k in range(n):
+        views, R = _yawing(k, world_views)
+        boxes.clear()
+        found = det.find(frame(views, seed=k), None if previous is None else previous.inv() * R)
+        previous = R
+        errs = corner_errors_px(found, views[:2])
+        assert set(errs) == {11, 25}, f"frame {k}: {sorted(errs)}"
+        assert max(errs.values()) < 1.0
+        u, v = truth_corners(views[2]).mean(axis=0)
+        assert 40 < u < 600, "the foreign tag stays in view"
+        if any(x0 <= u <= x1 and y0 <= v <= y1 for x0, y0, x1, y1 in boxes):
+            searched.append(k)
+    assert searched, "the foreign tag is a candidate at all"
+    gaps = [b - a for a, b in itertools.pairwise(searched)]
+    assert min(gaps, default=FOREIGN_FRAMES) >= FOREIGN_FRAMES, searched
+    assert len(searched) <= 1 + (n - 1) // FOREIGN_FRAMES
+
+
+def test_a_tag_not_ours_replaced_by_one_of_ours_is_found_within_a_check_period():
+    """A foreign tag in view for a few frames, then one of ours (same size, same place): ours is found
+    no later than ``FOREIGN_FRAMES`` frames after it appears, its corners within a pixel."""
+    from atlas_onboard.detector.search import FOREIGN_FRAMES
+
+    det = tracker()
+    ours = view_at(11, 260, 200, 3.0)
+    for k in range(4):
+        assert [d.marker_id for d in det.find(frame([ours, view_at(7, 420, 150, 3.5)], seed=k))] == [11]
+    first = None
+    for k in range(4, 4 + FOREIGN_FRAMES + 1):
+        views = [ours, view_at(40, 420, 150, 3.5)]
+        found = det.find(frame(views, seed=k))
+        errs = corner_errors_px(found, views)
+        if 40 in errs:
+            assert errs[40] < 1.0
+            first = k if first is None else first
+    assert first is not None and first - 4 <= FOREIGN_FRAMES
+
+
+def test_a_marker_of_ours_that_comes_in_beside_a_tag_not_ours_is_found_at_once():
+    """A foreign tag in view for a few frames (remembered), then one of ours comes in right beside it:
+    ours is found in the frame it appears, its corners within a pixel."""
+    det = tracker()
+    foreign = view_at(7, 420, 150, 3.5)
+    for k in range(4):
+        assert det.find(frame([foreign], seed=k)) == []
+    assert det.search.foreign, "the foreign tag is remembered"
+    views = [foreign, view_at(40, 462, 160, 3.5)]
+    errs = corner_errors_px(det.find(frame(views, seed=4)), views)
+    assert set(errs) == {40}
+    assert errs[40] < 1.0
