@@ -62,11 +62,10 @@ from atlas_onboard.detector.search import (
 from atlas_onboard.detector.worldcheck import WorldCheck
 
 MAX_AMBIGUITY = 1.0
-"""Detections whose IPPE ratio (chosen over other solution's reprojection error) exceeds this are
-dropped (counted ``ambiguous_dropped``). Above ``AMBIGUITY_THRESHOLD`` (0.5) the two planar solutions
-fit almost equally well and the chosen one may be the mirror image (a "flip", tens of degrees off):
-such detections are kept with both solutions (counted ``ambiguous``) for the listener to resolve with
-the current estimates (:mod:`atlas_onboard.core.ambiguity`). 1.0 keeps them all."""
+"""Detections whose IPPE ratio (chosen over other solution's reprojection error) exceeds this are dropped
+(counted ``ambiguous_dropped``). Above ``AMBIGUITY_THRESHOLD`` (0.5) the two planar solutions fit almost
+equally well and the chosen one may be the mirror image (a "flip", tens of degrees off): such detections
+are kept with both solutions (counted ``ambiguous``) for the listener to resolve (core/ambiguity.py)."""
 SCAN_EVERY = 4  # frames between whole-image searches while tracking
 CANDIDATE_AREA = 0.06  # the most of the image searched each frame at full resolution around strong contrast
 QUIET_FRAMES = 4  # a candidate region in which nothing was found is not searched again for this many frames
@@ -83,8 +82,7 @@ class Detector:
     track: bool = True
     max_ambiguity: float = MAX_AMBIGUITY
     joint: bool = True
-    # Live map refinement's per-marker images, when due: an entity's markers seen three or more together are
-    # each reported alone, moved or suspect too (the graph's gate weighs them); fewer are solved as always.
+    # Live map refinement's per-marker images (when due, an entity's 3+ markers each reported alone).
     per_marker: PerMarkerSchedule | None = None
     counters: Counter[str] = field(default_factory=Counter)
 
@@ -153,11 +151,10 @@ class Detector:
             self.search.find_in(gray, self.search.regions, found)
         if hunting or k % SCAN_EVERY == 0:
             new = []
-            for d in self.finder.find(gray, MAX_REGION_DECIMATE):
+            for d in self.search.scan(gray, MAX_REGION_DECIMATE):
                 if d.marker_id not in found:
                     found[d.marker_id] = d
                     new.append(box(d.corners_px))  # found again at the region's own decimation
-            self.search.saw_foreign(self.finder.foreign)
             self.search.find_in(gray, new, found)
             self.counters["scans"] += 1
         cells = (-(-h // CELL_PX), -(-w // CELL_PX))

@@ -53,6 +53,12 @@ class RegionSearch:
         self.foreign: list[ForeignTag] = []  # tags not ours found lately: their places are not candidates
         self._foreign_now: list[NDArray[np.float64]] = []  # corners of those decoded in this frame
 
+    def scan(self, gray: NDArray[np.uint8], decimate: float) -> list[Detection]:
+        """The whole image searched at ``decimate``: our markers (the tags not ours noted)."""
+        ours = self.finder.find(gray, decimate)
+        self.saw_foreign(self.finder.foreign)
+        return ours
+
     def saw_foreign(self, found: list[Detection], offset: tuple[int, int] = (0, 0)) -> None:
         """Note the tags not ours of a search (``found``: corners in a region whose top-left is ``offset``)."""
         self._foreign_now += [d.corners_px + np.array(offset, dtype=float) for d in found]
