@@ -7,7 +7,13 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core.graph import TransformGraph
-from atlas_onboard.core.graph.timing import ACCEL_SIGMA_M_S2, ANGULAR_ACCEL_SIGMA_RAD_S2, line_weights
+from atlas_onboard.core.graph.timing import (
+    ACCEL_SIGMA_M_S2,
+    ANGULAR_ACCEL_SIGMA_RAD_S2,
+    Waiting,
+    WaitingViews,
+    line_weights,
+)
 from tests.core.graph.builders import MS
 from tests.helpers import pose
 
@@ -330,3 +336,33 @@ def test_a_follower_whose_leader_poses_arrive_late_gets_its_images_placed_in_cap
     assert len(published) >= len(images) - 1
     assert 3.0 <= np.mean(nees) <= 9.0
     assert max(pos_nees) <= 16.0  # 4 sigma in 3 dof
+
+
+def _waiting(row, capture_us, parent=1, child=2):
+    return Waiting(row, (2, row), parent, child, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), 0.01,
+                   np.eye(6) * 1e-6, capture_us)  # fmt: skip
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(st.integers(0, 400_000), min_size=1, max_size=10),
+    st.integers(0, 400_000),
+    st.integers(0, 500_000),
+)
+def test_waiting_views_give_the_newest_bracketed_view_newer_than_the_childs_last(captures, after_us, parent_us):
+    """Views queued in capture order; ready() gives the views of the newest image that the parent's newest
+    pose brackets and that is newer than the child's last pose (and within the queue's count and age
+    bounds), and forgets it and every older view: a second call never gives an older image."""
+    views = WaitingViews(max_views=4, window_us=100_000)
+    captures = sorted(captures)
+    for row, t in enumerate(captures):
+        views.add(0, _waiting(row, t))
+    held = captures[-4:]
+    expected = [t for t in held if after_us < t <= parent_us and held[-1] - t <= 100_000]
+    got = views.ready(0, 2, after_us, {1: parent_us})
+    if not expected:
+        assert got == []
+    else:
+        assert got and {w.capture_us for w in got} == {max(expected)}
+        again = views.ready(0, 2, after_us, {1: 10**9})
+        assert all(w.capture_us > max(expected) for w in again)
