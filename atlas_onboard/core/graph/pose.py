@@ -125,14 +125,20 @@ class PosePhase:
                 return None
         parents = self.motion.parents(root, e.parent, e.capture_us, e.p, vx.p, vx.q, vx.cov, vx.stamp_us, self._age)
         c = compose(vx, e, False, parents)
-        within = self._within_limit(c)
-        keep = ~parents.wait & within
+        keep = ~parents.wait & self._within_limit(c)
         # A view the parent's poses cannot place yet (its next pose is due, or the extrapolation passes
-        # the limit) waits for the parent's next pose, if that is not too far off.
-        for i in np.flatnonzero(~keep).tolist():
+        # the limit) waits for the parent's next pose, if that is not too far off; so does one that would
+        # be extrapolated while an older view of its child waits (placing it would drop that one).
+        for i in range(len(e.child)):
             newest, key = self.motion.newest(root, int(e.parent[i])), store.keys[int(e.row[i])]
             ahead = int(e.capture_us[i]) - (newest.t_us if newest is not None else int(e.capture_us[i]))
-            if key is not None and 0 < ahead <= WAIT_US:
+            if key is None or not 0 < ahead <= WAIT_US:
+                continue
+            if keep[i]:
+                last = self.motion.newest(root, int(e.child[i]))
+                after = np.iinfo(np.int64).min if last is None else last.t_us
+                keep[i] = not self.waiting.pending(root, int(e.child[i]), after, int(e.capture_us[i]))
+            if not keep[i]:
                 view = Waiting(int(e.row[i]), key, int(e.parent[i]), int(e.child[i]), e.p[i].copy(), e.q[i].copy(),
                                float(e.sigma[i]), e.cov[i].copy(), int(e.capture_us[i]))  # fmt: skip
                 self.waiting.add(root, view)

@@ -110,6 +110,12 @@ class WaitingViews:
             return
         queue.append(view)
 
+    def pending(self, root: int, child: int, after_us: int, now_us: int) -> bool:
+        """Whether ``child`` has a view waiting taken after ``after_us`` (its last pose), before ``now_us``
+        (its current image) and no more than the window before it."""
+        queue = self._views.get((root, child))
+        return bool(queue) and any(after_us < w.capture_us < now_us <= w.capture_us + self.window_us for w in queue)
+
     def ready(self, root: int, child: int, after_us: int, bracketed: dict[int, int]) -> list[Waiting]:
         """``child``'s views of its newest image taken after ``after_us`` whose parent's newest pose
         (``bracketed``: capture time per parent) is at or after them; these and every older view are
