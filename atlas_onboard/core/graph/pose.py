@@ -113,10 +113,11 @@ class PosePhase:
         """A stage's candidates with each parent taken at the candidate's capture time (:mod:`.timing`).
         Left out: those whose parent has no pose; those that wait for the parent's next pose (it will
         bracket their time: an interpolation, not an extrapolation); and those whose position sigma
-        (largest axis) passes ``max_relayed_sigma_m``. A child left with none is placed from its newest
-        waiting view that the parent's poses now bracket (:class:`.timing.WaitingViews`), if newer than
-        its last pose (capture order); else it keeps its last pose (its stamp unchanged: not sent again)
-        for at most ``hold_us`` of capture time, then has none (lost). None when no candidate is left."""
+        (largest axis) passes ``max_relayed_sigma_m``. A child left with none is placed from its oldest
+        waiting view newer than its last pose that the parent's poses now bracket
+        (:class:`.timing.WaitingViews`: one per evaluation, in capture order); else it keeps its last
+        pose (its stamp unchanged: not sent again) for at most ``hold_us`` of capture time, then has none
+        (lost). None when no candidate is left."""
         ok = ~vx.lost[e.parent]
         if not ok.all():
             vx.lost[np.setdiff1d(e.child[~ok], e.child[ok])] = True
@@ -178,8 +179,8 @@ class PosePhase:
     def _place_waiting(
         self, vx: Vertices, root: int, store: EdgeStore, children: list[int], parents: NDArray[np.intp]
     ) -> StageCandidates | None:
-        """The candidates of ``children``'s newest waiting views that their parent's poses now bracket
-        (interpolated), newer than each child's last pose and within the relayed limit; None if none."""
+        """The candidates of ``children``'s oldest waiting views newer than each child's last pose that
+        their parent's poses now bracket (interpolated), within the relayed limit; None if none."""
         bracketed = {}
         for v in set(parents.tolist()):
             newest = self.motion.newest(root, v)

@@ -92,8 +92,8 @@ class Waiting:
 class WaitingViews:
     """Each child's views taken just past its parent's newest pose, kept (at most ``max_views`` per
     child, none older than ``window_us`` before the child's newest) until a parent pose after them
-    brackets them: the newest bracketed one is then placed by interpolation, even when the child's
-    next image has replaced its edge meanwhile."""
+    brackets them: they are then placed by interpolation one per evaluation, oldest first, even when
+    the child's next image has replaced its edge meanwhile."""
 
     def __init__(self, max_views: int = MAX_WAITING, window_us: int = WAIT_US) -> None:
         self.max_views = max_views
@@ -117,22 +117,19 @@ class WaitingViews:
         return bool(queue) and any(after_us < w.capture_us < now_us <= w.capture_us + self.window_us for w in queue)
 
     def ready(self, root: int, child: int, after_us: int, bracketed: dict[int, int]) -> list[Waiting]:
-        """``child``'s views of its newest image taken after ``after_us`` whose parent's newest pose
-        (``bracketed``: capture time per parent) is at or after them; these and every older view are
-        forgotten. Views older than the window before the newest held are dropped first."""
+        """``child``'s views of its oldest image taken after ``after_us`` (its last pose) whose parent's
+        newest pose (``bracketed``: capture time per parent) is at or after them: the next to place in
+        capture order. These and every older view are forgotten, the newer ones wait for the next call.
+        Views older than the window before the newest held are dropped first."""
         queue = self._views.get((root, child))
         if not queue:
             return []
         newest = max(w.capture_us for w in queue)
         kept = [w for w in queue if after_us < w.capture_us and newest - w.capture_us <= self.window_us]
         ok = [w for w in kept if w.parent in bracketed and bracketed[w.parent] >= w.capture_us]
-        if not ok:
-            queue.clear()
-            queue.extend(kept)
-            return []
-        t = max(w.capture_us for w in ok)
+        t = min((w.capture_us for w in ok), default=None)
         queue.clear()
-        queue.extend(w for w in kept if w.capture_us > t)
+        queue.extend(w for w in kept if t is None or w.capture_us > t)
         return [w for w in ok if w.capture_us == t]
 
 

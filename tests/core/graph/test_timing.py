@@ -349,20 +349,19 @@ def _waiting(row, capture_us, parent=1, child=2):
     st.integers(0, 400_000),
     st.integers(0, 500_000),
 )
-def test_waiting_views_give_the_newest_bracketed_view_newer_than_the_childs_last(captures, after_us, parent_us):
-    """Views queued in capture order; ready() gives the views of the newest image that the parent's newest
-    pose brackets and that is newer than the child's last pose (and within the queue's count and age
-    bounds), and forgets it and every older view: a second call never gives an older image."""
+def test_waiting_views_give_the_oldest_bracketed_view_newer_than_the_childs_last(captures, after_us, parent_us):
+    """Views queued in capture order; ready() gives the views of the oldest image that the parent's
+    newest pose brackets and that is newer than the child's last pose (within the queue's count and age
+    bounds), and forgets it and every older view: the next call gives the next newer one, never an
+    older one."""
     views = WaitingViews(max_views=4, window_us=100_000)
     captures = sorted(captures)
     for row, t in enumerate(captures):
         views.add(0, _waiting(row, t))
     held = captures[-4:]
-    expected = [t for t in held if after_us < t <= parent_us and held[-1] - t <= 100_000]
-    got = views.ready(0, 2, after_us, {1: parent_us})
-    if not expected:
-        assert got == []
-    else:
-        assert got and {w.capture_us for w in got} == {max(expected)}
-        again = views.ready(0, 2, after_us, {1: 10**9})
-        assert all(w.capture_us > max(expected) for w in again)
+    expected = sorted({t for t in held if after_us < t <= parent_us and held[-1] - t <= 100_000})
+    given_out = []
+    while got := views.ready(0, 2, after_us, {1: parent_us}):
+        assert len({w.capture_us for w in got}) == 1
+        given_out.append(got[0].capture_us)
+    assert given_out == expected
