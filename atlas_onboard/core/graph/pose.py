@@ -128,12 +128,12 @@ class PosePhase:
         c = compose(vx, e, False, parents)
         keep = ~parents.wait & self._within_limit(c)
         # A view the parent's poses cannot place yet (its next pose is due, or the extrapolation passes
-        # the limit) waits for the parent's next pose, if that is not too far off; so does one that could
-        # be placed while an older view of its child waits (placing it would drop that one).
+        # the limit) waits for the parent's next pose, if that is not too far off; so does one that would
+        # be extrapolated while an older view of its child waits (placing it would drop that one).
         for i in range(len(e.child)):
             newest, key = self.motion.newest(root, int(e.parent[i])), store.keys[int(e.row[i])]
             ahead = int(e.capture_us[i]) - (newest.t_us if newest is not None else int(e.capture_us[i]))
-            if key is None or ahead > WAIT_US or (ahead <= 0 and not keep[i]):
+            if key is None or not 0 < ahead <= WAIT_US:
                 continue
             if keep[i]:
                 last = self.motion.newest(root, int(e.child[i]))
