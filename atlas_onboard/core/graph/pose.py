@@ -29,7 +29,7 @@ from atlas_onboard.core.graph.edges import EdgeKey, EdgeStore
 from atlas_onboard.core.graph.gate import ConsensusGate, GateInput, PriorEstimate, Verdict
 from atlas_onboard.core.graph.paths import Plan
 from atlas_onboard.core.graph.result import Candidate, EntityPose
-from atlas_onboard.core.graph.timing import MotionHistory, Sample
+from atlas_onboard.core.graph.timing import WAIT_US, MotionHistory, Sample, Waiting, WaitingViews
 
 
 @dataclass(frozen=True, slots=True)
@@ -60,6 +60,7 @@ class PosePhase:
         self.own_known = own_known
         self._too_fast: list[EdgeKey] = []  # this run's edges refused by the speed bound
         self.motion = MotionHistory()
+        self.waiting = WaitingViews()
 
     def run(
         self,
@@ -82,7 +83,7 @@ class PosePhase:
             if from_root or not self.options.align:
                 cands = compose(vx, stage, from_root)
             else:
-                cands = self._compose_aligned(vx, stage, root)
+                cands = self._compose_aligned(vx, stage, root, store)
                 if cands is None:
                     continue
                 runs = covariance.runs_by_parent(cands.child, cands.parent)
@@ -108,29 +109,48 @@ class PosePhase:
         poses = self._poses(vx, plan, root, goal)
         return FrameEvaluation(poses, order, levels, gated, plan.goal_is_parent, tuple(self._too_fast))
 
-    def _compose_aligned(self, vx: Vertices, e: StageEdges, root: int) -> StageCandidates | None:
+    def _compose_aligned(self, vx: Vertices, e: StageEdges, root: int, store: EdgeStore) -> StageCandidates | None:
         """A stage's candidates with each parent taken at the candidate's capture time (:mod:`.timing`).
         Left out: those whose parent has no pose; those that wait for the parent's next pose (it will
         bracket their time: an interpolation, not an extrapolation); and those whose position sigma
-        (largest axis) passes ``max_relayed_sigma_m``. A child left with none keeps its last pose (its stamp
-        unchanged: not sent again) for at most ``hold_us`` of capture time, then has none (lost).
-        None when no candidate is left."""
+        (largest axis) passes ``max_relayed_sigma_m``. A child left with none is placed from its oldest
+        waiting view newer than its last pose that the parent's poses now bracket
+        (:class:`.timing.WaitingViews`: one per evaluation, in capture order); else it keeps its last
+        pose (its stamp unchanged: not sent again) for at most ``hold_us`` of capture time, then has none
+        (lost). None when no candidate is left."""
         ok = ~vx.lost[e.parent]
         if not ok.all():
             vx.lost[np.setdiff1d(e.child[~ok], e.child[ok])] = True
             e = e.stage(ok)
             if len(e.child) == 0:
                 return None
-        age = (self.options.age_sigma_m_per_s, self.options.age_sigma_rad_per_s)
-        parents = self.motion.parents(root, e.parent, e.capture_us, e.p, vx.p, vx.q, vx.cov, vx.stamp_us, age)
+        parents = self.motion.parents(root, e.parent, e.capture_us, e.p, vx.p, vx.q, vx.cov, vx.stamp_us, self._age)
         c = compose(vx, e, False, parents)
-        keep = ~parents.wait
-        limit = self.options.max_relayed_sigma_m
-        if limit > 0.0:
-            keep &= np.linalg.eigvalsh(c.covariance(None)[:, :3, :3])[:, -1] <= limit**2
+        keep = ~parents.wait & self._within_limit(c)
+        # A view the parent's poses cannot place yet (its next pose is due, or the extrapolation passes
+        # the limit) waits for the parent's next pose, if that is not too far off; so does one that would
+        # be extrapolated while an older view of its child waits (placing it would drop that one).
+        for i in range(len(e.child)):
+            newest, key = self.motion.newest(root, int(e.parent[i])), store.keys[int(e.row[i])]
+            ahead = int(e.capture_us[i]) - (newest.t_us if newest is not None else int(e.capture_us[i]))
+            if key is None or not 0 < ahead <= WAIT_US:
+                continue
+            if keep[i]:
+                last = self.motion.newest(root, int(e.child[i]))
+                after = np.iinfo(np.int64).min if last is None else last.t_us
+                keep[i] = not self.waiting.pending(root, int(e.child[i]), after, int(e.capture_us[i]))
+            if not keep[i]:
+                view = Waiting(int(e.row[i]), key, int(e.parent[i]), int(e.child[i]), e.p[i].copy(), e.q[i].copy(),
+                               float(e.sigma[i]), e.cov[i].copy(), int(e.capture_us[i]))  # fmt: skip
+                self.waiting.add(root, view)
         if keep.all():
             return c
-        for v in np.setdiff1d(c.child[~keep], c.child[keep]).tolist():
+        left = np.setdiff1d(c.child[~keep], c.child[keep]).tolist()
+        late = self._place_waiting(vx, root, store, left, e.parent)
+        placed = set() if late is None else set(late.child.tolist())
+        for v in left:
+            if v in placed:
+                continue
             held = self.motion.newest(root, v)
             newest = int(c.capture_us[c.child == v].max())
             if held is not None and newest - held.t_us <= self.options.hold_us:
@@ -139,6 +159,50 @@ class PosePhase:
                 vx.count[v] = 1
             else:
                 vx.lost[v] = True
+        now = c.select(keep) if keep.any() else None
+        if late is None or now is None:
+            return late if now is None else now
+        both = _concat(now, late)
+        return both.select(np.lexsort((both.parent, both.child)))
+
+    @property
+    def _age(self) -> tuple[float, float]:
+        return (self.options.age_sigma_m_per_s, self.options.age_sigma_rad_per_s)
+
+    def _within_limit(self, c: StageCandidates) -> NDArray[np.bool_]:
+        """Whether each candidate's position sigma (largest axis) is within ``max_relayed_sigma_m``."""
+        limit = self.options.max_relayed_sigma_m
+        if limit <= 0.0:
+            return np.ones(len(c.child), dtype=bool)
+        return np.linalg.eigvalsh(c.covariance(None)[:, :3, :3])[:, -1] <= limit**2
+
+    def _place_waiting(
+        self, vx: Vertices, root: int, store: EdgeStore, children: list[int], parents: NDArray[np.intp]
+    ) -> StageCandidates | None:
+        """The candidates of ``children``'s oldest waiting views newer than each child's last pose that
+        their parent's poses now bracket (interpolated), within the relayed limit; None if none."""
+        bracketed = {}
+        for v in set(parents.tolist()):
+            newest = self.motion.newest(root, v)
+            if newest is not None and not vx.lost[v]:
+                bracketed[v] = newest.t_us
+        views: list[Waiting] = []
+        for v in children:
+            held = self.motion.newest(root, v)
+            after = np.iinfo(np.int64).min if held is None else held.t_us
+            ready = self.waiting.ready(root, v, after, bracketed)
+            views += [w for w in ready if store.keys[w.row] == w.key]
+        if not views:
+            return None
+        e = StageEdges(
+            np.array([w.row for w in views], dtype=np.intp), np.array([w.parent for w in views], dtype=np.intp),
+            np.array([w.child for w in views], dtype=np.intp), np.array([w.p for w in views]),
+            np.array([w.q for w in views]), np.array([w.sigma for w in views]), np.array([w.cov for w in views]),
+            np.array([w.capture_us for w in views], dtype=np.int64),
+        )  # fmt: skip
+        at = self.motion.parents(root, e.parent, e.capture_us, e.p, vx.p, vx.q, vx.cov, vx.stamp_us, self._age)
+        c = compose(vx, e, False, at)
+        keep = ~at.wait & self._within_limit(c)
         return c.select(keep) if keep.any() else None
 
     def _gate(
@@ -258,3 +322,17 @@ class PosePhase:
                 own_view=bool(vx.own[v]) if self.own_known else None,
             )
         return poses
+
+
+def _concat(a: StageCandidates, b: StageCandidates) -> StageCandidates:
+    """Two stages' candidates, a's then b's (both through parents taken at their times)."""
+    assert a.Jp is not None and b.Jp is not None and a.c_parent is not None and b.c_parent is not None
+    return StageCandidates(
+        *(np.concatenate((x, y)) for x, y in zip(
+            (a.row, a.parent, a.child, a.p_pc, a.q_pc, a.s_edge, a.c_edge, a.p, a.q, a.s, a.capture_us, a.Jp,
+             a.edge_term, a.c_parent),
+            (b.row, b.parent, b.child, b.p_pc, b.q_pc, b.s_edge, b.c_edge, b.p, b.q, b.s, b.capture_us, b.Jp,
+             b.edge_term, b.c_parent),
+            strict=True,
+        ))
+    )  # fmt: skip

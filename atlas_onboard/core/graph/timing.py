@@ -33,6 +33,11 @@ ANGULAR_ACCEL_SIGMA_RAD_S2 = 5.0
 
 MAX_SAMPLES = 6  # a line through at most this many poses (a fifth of a second at 30 Hz)
 WINDOW_US = 300_000  # and none older than this before the newest: beyond, a line says nothing
+WAIT_US = 100_000
+"""How far past its parent's newest pose a child's view that cannot be placed yet (the parent's next pose
+is due, or the extrapolation passes the relayed limit) waits for the parent's next one: a network's
+10-50 ms and a frame at 15 Hz. Farther, the parent is in a gap."""
+MAX_WAITING = 4  # views of a child kept waiting at once (the oldest goes first)
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,6 +70,67 @@ class Parents:
     cov: NDArray[np.float64]
     moved: NDArray[np.bool_]
     wait: NDArray[np.bool_]  # past the parent's newest pose, and its next one is due before: wait for it
+
+
+@dataclass(frozen=True, slots=True)
+class Waiting:
+    """A child's view that waits for its parent's next pose: the edge parent -> child as walked (its
+    row, the key that held it, ``p``, ``q`` xyzw, aged ``sigma`` and 6x6 ``cov``) and its image's
+    ``capture_us``."""
+
+    row: int
+    key: tuple[int, int]
+    parent: int
+    child: int
+    p: NDArray[np.float64]
+    q: NDArray[np.float64]
+    sigma: float
+    cov: NDArray[np.float64]
+    capture_us: int
+
+
+class WaitingViews:
+    """Each child's views taken just past its parent's newest pose, kept (at most ``max_views`` per
+    child, none older than ``window_us`` before the child's newest) until a parent pose after them
+    brackets them: they are then placed by interpolation one per evaluation, oldest first, even when
+    the child's next image has replaced its edge meanwhile."""
+
+    def __init__(self, max_views: int = MAX_WAITING, window_us: int = WAIT_US) -> None:
+        self.max_views = max_views
+        self.window_us = window_us
+        self._views: dict[tuple[int, int], deque[Waiting]] = {}
+
+    def clear(self) -> None:
+        self._views.clear()
+
+    def add(self, root: int, view: Waiting) -> None:
+        """Keep ``view`` (one already held for the same row and image changes nothing)."""
+        queue = self._views.setdefault((root, view.child), deque(maxlen=self.max_views))
+        if any(w.row == view.row and w.capture_us == view.capture_us for w in queue):
+            return
+        queue.append(view)
+
+    def pending(self, root: int, child: int, after_us: int, now_us: int) -> bool:
+        """Whether ``child`` has a view waiting taken after ``after_us`` (its last pose), before ``now_us``
+        (its current image) and no more than the window before it."""
+        queue = self._views.get((root, child))
+        return bool(queue) and any(after_us < w.capture_us < now_us <= w.capture_us + self.window_us for w in queue)
+
+    def ready(self, root: int, child: int, after_us: int, bracketed: dict[int, int]) -> list[Waiting]:
+        """``child``'s views of its oldest image taken after ``after_us`` (its last pose) whose parent's
+        newest pose (``bracketed``: capture time per parent) is at or after them: the next to place in
+        capture order. These and every older view are forgotten, the newer ones wait for the next call.
+        Views older than the window before the newest held are dropped first."""
+        queue = self._views.get((root, child))
+        if not queue:
+            return []
+        newest = max(w.capture_us for w in queue)
+        kept = [w for w in queue if after_us < w.capture_us and newest - w.capture_us <= self.window_us]
+        ok = [w for w in kept if w.parent in bracketed and bracketed[w.parent] >= w.capture_us]
+        t = min((w.capture_us for w in ok), default=None)
+        queue.clear()
+        queue.extend(w for w in kept if t is None or w.capture_us > t)
+        return [w for w in ok if w.capture_us == t]
 
 
 class MotionHistory:

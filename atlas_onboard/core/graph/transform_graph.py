@@ -227,6 +227,7 @@ class TransformGraph:
         self._store.clear()
         self._views.clear()
         self._pose.motion.clear()
+        self._pose.waiting.clear()
 
     def expire(self, now_ns: int) -> int:
         """Remove edges older than the timeout (age > timeout); returns how many were removed."""

@@ -7,7 +7,13 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core.graph import TransformGraph
-from atlas_onboard.core.graph.timing import ACCEL_SIGMA_M_S2, ANGULAR_ACCEL_SIGMA_RAD_S2, line_weights
+from atlas_onboard.core.graph.timing import (
+    ACCEL_SIGMA_M_S2,
+    ANGULAR_ACCEL_SIGMA_RAD_S2,
+    Waiting,
+    WaitingViews,
+    line_weights,
+)
 from tests.core.graph.builders import MS
 from tests.helpers import pose
 
@@ -283,3 +289,79 @@ def test_a_leader_with_no_fresh_view_places_its_follower_only_while_the_covarian
             assert lost_at is not None and lost_at - stamps[-1] <= 300_000 + FRAME_US
         else:
             assert lost_at is None and len(stamps) == 24 and max(sigmas) > limit
+
+
+@pytest.mark.parametrize("late_ms", [20, 30, 45])
+def test_a_follower_whose_leader_poses_arrive_late_gets_its_images_placed_in_capture_order(late_ms):
+    """The leader and the follower's camera both at 15 Hz, 11 ms apart; the leader accelerates and turns,
+    its poses (errors drawn from their covariance) reach the follower's graph ``late_ms`` after its
+    images, the follower's own views 5 ms after theirs, as over a network. Each follower image is then
+    too far past the leader's newest pose to extrapolate within the relayed limit, and its next image
+    replaces the edge before the leader's bracketing pose comes: still every image is placed once that
+    pose arrives (interpolated), its covariance describing its error (NEES6 about 6), and the poses come
+    out in capture order (never an older image after a newer one)."""
+    rng = np.random.default_rng(3)
+    p0, v, a, R0, w, alpha = (
+        np.array([1.0, 0.5, 1.2]),
+        np.array([0.6, 0.3, 0.0]),
+        np.array([0.9, -0.6, 0.2]),
+        Rotation.from_euler("z", 15, degrees=True),
+        np.array([0.05, -0.02, 0.5]),
+        np.array([0.8, -0.5, 2.5]),
+    )
+    c_leader = np.diag([1.5e-3] * 3 + [3e-3] * 3) ** 2
+    c_edge = np.diag([1e-3] * 3 + [2e-3] * 3) ** 2
+    g = TransformGraph(NAMES, 250 * MS, align=True, max_relayed_sigma_m=0.02)
+    period = 2 * FRAME_US
+    events = [(k * period + late_ms * 1000, "leader", k * period) for k in range(24)]  # (arrival, whose, capture)
+    images = [k * period + 11_000 for k in range(3, 21)]
+    events += [(t + 5_000, "follower", t) for t in images]
+    published: list[int] = []
+    nees, pos_nees = [], []
+    for arrival, whose, t_us in sorted(events):
+        if whose == "leader":
+            T = noisy(leader_at(t_us / 1e6, p0, v, a, R0, w, alpha), c_leader, rng)
+            put(g, (1, 1), "world", "leader", T, c_leader, t_us, arrival * 1000)
+        else:
+            put(g, (2, 9), "leader", "follower", noisy(T_LF, c_edge, rng), c_edge, t_us, arrival * 1000)
+        f = g.evaluate(arrival * 1000).poses.get("follower")
+        if f is None or (published and f.capture_time_us == published[-1]):
+            continue
+        published.append(f.capture_time_us)
+        e = pose_error(f, leader_at(f.capture_time_us / 1e6, p0, v, a, R0, w, alpha) * T_LF)
+        nees.append(float(e @ np.linalg.solve(f.covariance, e)))
+        pos_nees.append(float(e[:3] @ np.linalg.solve(f.covariance[:3, :3], e[:3])))
+    assert published == sorted(set(published))  # capture order, each image once
+    assert set(published) <= set(images)
+    assert len(published) >= len(images) - 1
+    assert 3.0 <= np.mean(nees) <= 9.0
+    assert max(pos_nees) <= 16.0  # 4 sigma in 3 dof
+
+
+def _waiting(row, capture_us, parent=1, child=2):
+    return Waiting(row, (2, row), parent, child, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), 0.01,
+                   np.eye(6) * 1e-6, capture_us)  # fmt: skip
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(st.integers(0, 400_000), min_size=1, max_size=10),
+    st.integers(0, 400_000),
+    st.integers(0, 500_000),
+)
+def test_waiting_views_give_the_oldest_bracketed_view_newer_than_the_childs_last(captures, after_us, parent_us):
+    """Views queued in capture order; ready() gives the views of the oldest image that the parent's
+    newest pose brackets and that is newer than the child's last pose (within the queue's count and age
+    bounds), and forgets it and every older view: the next call gives the next newer one, never an
+    older one."""
+    views = WaitingViews(max_views=4, window_us=100_000)
+    captures = sorted(captures)
+    for row, t in enumerate(captures):
+        views.add(0, _waiting(row, t))
+    held = captures[-4:]
+    expected = sorted({t for t in held if after_us < t <= parent_us and held[-1] - t <= 100_000})
+    given_out = []
+    while got := views.ready(0, 2, after_us, {1: parent_us}):
+        assert len({w.capture_us for w in got}) == 1
+        given_out.append(got[0].capture_us)
+    assert given_out == expected
