@@ -130,7 +130,6 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
     from atlas_onboard.detector.pose import CornerFit, pose_covariance
     from atlas_onboard.sim.world import marker_corners
 
-    rng = np.random.default_rng(seed)
     K = intrinsics.camera_matrix  # type: ignore[attr-defined]
     dist = np.asarray(intrinsics.distortion, dtype=float)  # type: ignore[attr-defined]
 
@@ -139,6 +138,8 @@ def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: ob
         out = []
         for s in sightings:
             obj = marker_corners(s.marker.size_m)
+            # Noise drawn per frame and marker: a frame skipped in one run leaves every other frame's the same.
+            rng = np.random.default_rng([seed, round(t * 1e6), s.marker.id])
             img = s.corners_px + rng.normal(0.0, NOISE_PX, (4, 2))
             ok, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
             if not ok or not len(rvecs):
