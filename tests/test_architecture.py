@@ -288,6 +288,29 @@ def test_argument_parsing_and_printing_only_in_the_command_line():
     assert not bad, "\n".join(bad)
 
 
+def test_the_apriltag_library_detector_is_made_only_by_the_backend():
+    """pupil-apriltags can corrupt the heap when one of its detectors is destroyed after finding tags: the
+    process aborts later, anywhere. Only ``detector.backends`` makes them (kept for the process's life), in
+    the package, its tests and its benchmarks alike."""
+    owner = ROOT / PACKAGE / "detector" / "backends.py"
+    bad = []
+    for path in sorted(
+        [*(ROOT / PACKAGE).rglob("*.py"), *(ROOT / "tests").rglob("*.py"), *(ROOT / "benchmarks").rglob("*.py")]
+    ):
+        if path == owner:
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            named = (
+                [a.name for a in node.names]
+                if isinstance(node, ast.ImportFrom) and node.module == "pupil_apriltags"
+                else []
+            )
+            called = isinstance(node, ast.Attribute) and node.attr == "Detector" and isinstance(node.value, ast.Name)
+            if "Detector" in named or (called and node.value.id == "pupil_apriltags"):
+                bad.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not bad, "\n".join(bad)
+
+
 def test_no_attribute_forwarding():
     """``__getattr__`` hands on whatever is asked: composition says what an object offers."""
     bad = [

@@ -91,7 +91,7 @@ def test_camera_position_sigma_jacobian_equals_finite_differences():
 def test_concrete_background_has_the_edges_of_a_real_floor_and_keeps_the_tags_readable():
     """The concrete texture carries far more edge energy than the smooth one (joints, scuffs, speckle),
     is reproducible per seed, and a tag rendered over it is still found with its id."""
-    from pupil_apriltags import Detector
+    from atlas_onboard.detector.backends import AprilTagBackend
 
     smooth = render.background(CAM, 3)
     concrete = render.background(CAM, 3, style="concrete")
@@ -108,7 +108,7 @@ def test_concrete_background_has_the_edges_of_a_real_floor_and_keeps_the_tags_re
         "tag36h11", 7, 0.18, RigidTransform.from_components([0.1, 0.0, 2.0], Rotation.from_euler("x", 180, True))
     )
     img = render.render(CAM, [view], noise_sigma=2.0, background_style="concrete", background_seed=3)
-    ids = [d.tag_id for d in Detector(families="tag36h11").detect(img)]
+    ids = [d.marker_id for d in AprilTagBackend(["tag36h11"]).detect(img)]
     assert ids == [7]
     with pytest.raises(ValueError, match="background style"):
         render.background(CAM, 3, style="marble")
