@@ -286,6 +286,25 @@ def _tangent_basis(u: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.stack([e1, np.cross(u, e1)])
 
 
+def _tilt_update(
+    C: NDArray[np.float64], H_rot: NDArray[np.float64], z: NDArray[np.float64], sigma_rad: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The Kalman update of a 6-state ``[dp, dtheta]`` (covariance ``C``) with a two-component tilt
+    measurement ``z = H_rot dtheta + noise`` (per-axis ``sigma_rad``): the correction and the new
+    covariance (Joseph form, symmetrised)."""
+    H = np.zeros((2, 6))
+    H[:, 3:] = H_rot
+    S = H @ C @ H.T + sigma_rad**2 * np.eye(2)
+    K = np.linalg.solve(S, H @ C).T  # C H^T S^-1 (S and C symmetric)
+    I_KH = np.eye(6) - K @ H
+    C_new = I_KH @ C @ I_KH.T + sigma_rad**2 * (K @ K.T)
+    return K @ z, 0.5 * (C_new + C_new.T)
+
+
+def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
 def constrain_tilt(
     tag: TagPose,
     R_body_sensor: NDArray[np.float64],
@@ -303,22 +322,45 @@ def constrain_tilt(
     covariance's coupling of tilt and position (a single tag's camera position is range x tilt), and the
     covariance shrinks as the update says (Joseph form).
     """
-    C = np.asarray(tag.covariance, dtype=float)
     R_sm = np.asarray(tag.R_sensor_marker, dtype=float)
     m = np.asarray(R_world_marker, dtype=float).T @ UP
     u0 = np.asarray(R_body_sensor, dtype=float) @ R_sm @ m
     B = _tangent_basis(u0 / np.linalg.norm(u0))
-    skew_m = np.array([[0.0, -m[2], m[1]], [m[2], 0.0, -m[0]], [-m[1], m[0], 0.0]])
-    H = np.zeros((2, 6))
-    H[:, 3:] = -B @ R_body_sensor @ R_sm @ skew_m
-    z = B @ (np.asarray(up_body, dtype=float) - u0)
-    S = H @ C @ H.T + sigma_rad**2 * np.eye(2)
-    K = np.linalg.solve(S, H @ C).T  # C H^T S^-1 (S and C symmetric)
-    x = K @ z
-    I_KH = np.eye(6) - K @ H
-    C_new = I_KH @ C @ I_KH.T + sigma_rad**2 * (K @ K.T)
+    x, C_new = _tilt_update(
+        np.asarray(tag.covariance, dtype=float),
+        -B @ R_body_sensor @ R_sm @ _skew(m),
+        B @ (np.asarray(up_body, dtype=float) - u0),
+        sigma_rad,
+    )
     R_new = R_sm @ Rotation.from_rotvec(x[3:]).as_matrix()
-    return TagPose(np.asarray(tag.p_sensor_marker_m, dtype=float) + x[:3], R_new, 0.5 * (C_new + C_new.T))
+    return TagPose(np.asarray(tag.p_sensor_marker_m, dtype=float) + x[:3], R_new, C_new)
+
+
+@dataclass(frozen=True, slots=True)
+class BodyPose:
+    """An entity's world pose with its covariance: what :func:`constrain_body_tilt` updates."""
+
+    p_world_m: NDArray[np.float64]  # (3,)
+    R_world_body: NDArray[np.float64]  # (3, 3)
+    covariance: NDArray[np.float64]  # (6, 6), core.covariance convention ([dp in world, dtheta about body axes])
+
+
+def constrain_body_tilt(
+    pose: BodyPose, up_body: NDArray[np.float64], sigma_rad: float = AUTOPILOT_TILT_SIGMA_RAD
+) -> BodyPose:
+    """A fused world pose updated with the autopilot's up vector ``up_body`` (unit, body frame; per-axis
+    ``sigma_rad``), as :func:`constrain_tilt` updates a single tag: for a pose that rests on no own view
+    of the world (a follower placed through its leader's marker), whose tilt swings its position by the
+    lever arm to that marker; the position follows through the covariance's coupling.
+
+    The implied up is ``u = R_world_body^T z``; to first order ``u(dtheta) = u0 + [u0]x dtheta``."""
+    R = np.asarray(pose.R_world_body, dtype=float)
+    u0 = R.T @ UP
+    B = _tangent_basis(u0)
+    x, C_new = _tilt_update(
+        np.asarray(pose.covariance, dtype=float), B @ _skew(u0), B @ (np.asarray(up_body, dtype=float) - u0), sigma_rad
+    )
+    return BodyPose(np.asarray(pose.p_world_m, dtype=float) + x[:3], R @ Rotation.from_rotvec(x[3:]).as_matrix(), C_new)
 
 
 class CameraTurn:

@@ -4,10 +4,16 @@ to peers, telemetry and the lateness report (the loop and the intake are in :mod
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import AutopilotConfig, NodeConfig, WorldConfig, defaults
+from atlas_onboard.core.attitude import BodyPose, constrain_body_tilt
 from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA, MANOEUVRE_ATTITUDE_SIGMA_RAD, MANOEUVRE_TIME_S, EkfSettings
 from atlas_onboard.core.ekfbank import EkfBank
 from atlas_onboard.core.graph import EntityPose, GraphResult
@@ -89,6 +95,8 @@ class NodeOutput:
         self._next_late_report_ns = 0
         self._min_age_us: int | None = None  # the smallest age of an own observation seen (see LATE_S)
         self._late_streak = 0  # own images in a row with a late observation
+        history = transport.attitude if config.autopilot is not None else None
+        self._up_at = history.up_at if history is not None else None
         self.attach(blocks)
 
     def attach(self, blocks: WorldBlocks) -> None:
@@ -170,6 +178,7 @@ class NodeOutput:
         partial = own_only and self.near is not None and self.ekf is None
         self.listener.forget_expired(now)
         result = self.graph.evaluate(now, target=self.config.entity if partial else None, previous=self.last_result)
+        result = level_own(result, self.config.entity, self._up_at)
         if result.complete:
             self.changes.evaluated(now, complete=True)
         else:  # a full evaluation is not needed when it would give every other entity the pose it has
@@ -191,7 +200,9 @@ class NodeOutput:
         result = self.last_result
         if self.ekf is not None:
             # The autopilot gets the filter's pose predicted to now (stamped now), at its rate.
-            result = self.ekf.poses(result, self.wall() // 1000, only=self.config.entity)
+            result = level_own(
+                self.ekf.poses(result, self.wall() // 1000, only=self.config.entity), self.config.entity, self._up_at
+            )
         out, status = self.publisher.autopilot(result, now)
         if status is not None:
             lost = status == "pose lost"
@@ -222,6 +233,33 @@ class NodeOutput:
                 latency_ms=latency,
             )
         )
+
+
+def level_own(
+    result: GraphResult, entity: str, up_at: Callable[[int], NDArray[np.float64] | None] | None
+) -> GraphResult:
+    """``result`` with ``entity``'s pose updated with its autopilot's up vector at its capture time
+    (:func:`atlas_onboard.core.attitude.constrain_body_tilt`) when that pose rests on no own view of the
+    world: a follower placed through its leader's marker, whose tilt (poorly seen in a face-on tag) swings
+    its position over the range to that marker. A pose built on an own view already carries gravity
+    (the listener's tilt constraint of each such tag) and is left as it is, as is one without an attitude."""
+    pose = result.poses.get(entity)
+    if up_at is None or pose is None or pose.own_view is not False or pose.covariance is None:
+        return result
+    up = up_at(pose.capture_time_us)
+    if up is None:
+        return result
+    R = Rotation.from_quat(pose.q_world_xyzw).as_matrix()
+    new = constrain_body_tilt(BodyPose(pose.p_world_m, R, pose.covariance), up)
+    shrink = np.trace(new.covariance[:3, :3]) / max(float(np.trace(pose.covariance[:3, :3])), 1e-300)
+    leveled = replace(
+        pose,
+        p_world_m=new.p_world_m,
+        q_world_xyzw=Rotation.from_matrix(new.R_world_body).as_quat(),
+        covariance=new.covariance,
+        sigma_m=pose.sigma_m * math.sqrt(min(shrink, 1.0)),
+    )
+    return replace(result, poses={**result.poses, entity: leveled})
 
 
 def fused_poses(result: GraphResult) -> list[EntityPose]:

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.listener import Listener
-from atlas_onboard.node.output import make_ekf
+from atlas_onboard.node.output import level_own, make_ekf
 from atlas_onboard.node.setup import make_graph
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.world import SimWorld
@@ -47,9 +47,14 @@ def run(
     t1_s: float,
     delay_s: float = 0.02,
     fusion: dict[str, Any] | None = None,
+    up_at: Callable[[int], NDArray[np.float64] | None] | None = None,
+    peer_delay_s: float = 0.0,
 ) -> FollowerTrack:
     """``follower``'s poses from ``t0_s`` to ``t1_s`` (frames from 0.5 s before ``t0_s``, to warm up),
-    each camera's frames from ``frames_of(sensor_id)``, observations arriving ``delay_s`` after capture."""
+    each camera's frames from ``frames_of(sensor_id)``, observations arriving ``delay_s`` after capture.
+    ``up_at``: the follower's autopilot's up vector (body frame) at a capture time, as the node uses it
+    (the listener's tilt checks, :func:`atlas_onboard.node.output.level_own`); None: no attitude.
+    ``peer_delay_s``: what the other drones' observations take on top (their node and the link)."""
     from atlas_onboard.detector.pipeline import Detector
 
     scenario = scenarios.get(scenario_name)
@@ -65,20 +70,23 @@ def run(
         frame = frames_of(sid)
         for j in range(max(math.floor((t0_s - 0.5) * fps), 0), math.floor(t1_s * fps)):
             t = j / fps
-            events.append((t + delay_s, det.detect(np.asarray(frame(j)), round(t * 1e6))))
+            late = delay_s + (peer_delay_s if sensor.entity != follower else 0.0)
+            events.append((t + late, det.detect(np.asarray(frame(j)), round(t * 1e6))))
     events.sort(key=lambda e: e[0])
     graph = make_graph(world, follower)
     listener = Listener(world, graph)
+    if up_at is not None:
+        listener.set_attitude(follower, up_at)
     ekf = make_ekf(world)  # with ``filter: ekf``, the follower's pose as the node publishes it
     last, caps, errs, covs = -1, [], [], []
     for arrival, mds in events:
         now = round(arrival * 1e9)
         listener.accept_many([(md, now) for md in mds])
-        result = graph.evaluate(now)
+        result = level_own(graph.evaluate(now), follower, up_at)
         listener.set_estimates(result.poses)
         if ekf is not None:
             ekf.update(result, now // 1000, only=follower)
-            result = ekf.poses(result, now // 1000, only=follower)
+            result = level_own(ekf.poses(result, now // 1000, only=follower), follower, up_at)
         f = result.poses.get(follower)
         if f is None or f.capture_time_us <= last or f.covariance is None:
             continue

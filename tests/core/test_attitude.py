@@ -197,3 +197,56 @@ def test_boot_clock_follows_a_drifting_autopilot_clock(ppm, hours):
     assert settled.min() >= floor_us - 2_000 and settled.max() <= floor_us + 2_000
     assert unavailable == 0
     assert worst_angle <= rate * (floor_us + 2_000) * 1e-6 + 1e-9  # the stamp's error times the rate
+
+
+def _follower_through_a_tilted_leader(seed):
+    """A follower placed through its leader's marker 1.2-2.5 m ahead, composed with a leader attitude off
+    by a tilt: (true follower position, attitude, the composed pose and its covariance from the
+    composition's Jacobians)."""
+    from atlas_onboard.core.covariance import compose_jacobians
+
+    rng = np.random.default_rng(seed)
+    p_wl = rng.uniform(-2, 2, 3)
+    R_wl = Rotation.from_euler("ZYX", [rng.uniform(-180, 180), *rng.uniform(-8, 8, 2)], degrees=True)
+    p_lf = np.array([-rng.uniform(1.2, 2.5), rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3)])  # behind it
+    R_lf = Rotation.from_euler("ZYX", [rng.uniform(-30, 30), *rng.uniform(-8, 8, 2)], degrees=True)
+    d = np.r_[rng.uniform(-3, 3, 2), 0.0] * DEG  # the leader's tilt error (its estimate at the wrong time)
+    R_wl_est = R_wl * Rotation.from_rotvec(d)
+    C_leader = np.diag([1e-6] * 3 + [(3 * DEG) ** 2, (3 * DEG) ** 2, (0.2 * DEG) ** 2])
+    C_edge = np.diag([1e-6] * 3 + [(0.1 * DEG) ** 2] * 3)
+    Jp, Je = compose_jacobians(R_wl_est.as_matrix(), p_lf, R_lf.as_matrix())
+    C = Jp @ C_leader @ Jp.T + Je @ C_edge @ Je.T
+    return p_wl + R_wl.apply(p_lf), R_wl * R_lf, p_wl + R_wl_est.apply(p_lf), R_wl_est * R_lf, C
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_constrain_body_tilt_levels_a_follower_and_its_lever_arm(seed):
+    """Gravity from the follower's own autopilot undoes a leader's tilt error in its attitude and, through
+    the composition's coupling, in its position (range x tilt)."""
+    from atlas_onboard.core.attitude import BodyPose, constrain_body_tilt
+
+    p_true, R_true, p, R, C = _follower_through_a_tilted_leader(seed)
+    new = constrain_body_tilt(BodyPose(p, R.as_matrix(), C), up_in_body(R_true), math.radians(0.2))
+    err_before = np.linalg.norm(p - p_true)
+    err_after = np.linalg.norm(new.p_world_m - p_true)
+    tilt_after = tilt_error_rad(Rotation.from_matrix(new.R_world_body), up_in_body(R_true))[0]
+    assert err_before > 0.01
+    assert err_after < 0.2 * err_before
+    assert tilt_after < 0.2 * tilt_error_rad(R, up_in_body(R_true))[0]
+    assert np.all(np.linalg.eigvalsh(C - new.covariance) > -1e-15)  # never less certain than before
+    assert np.all(np.linalg.eigvalsh(new.covariance) > 0)
+
+
+@given(rotations, st.floats(1e-4, 0.1), st.floats(0.1 * DEG, 5 * DEG))
+def test_constrain_body_tilt_with_the_implied_up_moves_nothing_and_keeps_the_heading_variance(R, sigma_p, sigma_a):
+    from atlas_onboard.core.attitude import BodyPose, constrain_body_tilt
+
+    C = np.diag([sigma_p**2] * 3 + [sigma_a**2] * 3)
+    p = np.array([1.0, -2.0, 1.5])
+    new = constrain_body_tilt(BodyPose(p, R.as_matrix(), C), up_in_body(R))
+    np.testing.assert_allclose(new.p_world_m, p, atol=1e-12)
+    np.testing.assert_allclose(new.R_world_body, R.as_matrix(), atol=1e-12)
+    # The heading (rotation about world up, seen in the body frame) is as uncertain as it was; tilt shrinks.
+    u = up_in_body(R)
+    assert u @ new.covariance[3:, 3:] @ u == pytest.approx(sigma_a**2, rel=1e-9)
+    assert np.trace(new.covariance[3:, 3:]) < np.trace(C[3:, 3:])
