@@ -47,14 +47,11 @@ class PriorEstimate(NamedTuple):
         sigma_m: standard deviation of the position, metres.
         sigma_att_rad: standard deviation of the attitude (mean of its three axes), radians.
         made_ns: when it was made, on the evaluation's clock (ns): when a candidate was last
-            accepted for the entity (a refused one changes nothing, so the bound it sets grows with
-            the time since, and is lifted once that exceeds the edge timeout: a real loss).
+            accepted for the entity (a refused one changes nothing, so the bounds it sets grow with
+            the time since).
         capture_time_us: capture time of its newest observation, on the swarm's clock (us).
         cov_sigma_m: standard deviation of the position from its 6x6 covariance (mean of the three
             axes), metres (the speed bound takes the larger of this and ``sigma_m``).
-        accepted_ns: the newest arrival (evaluation clock, ns) of the observations it was fused from:
-            the speed bound's clock. An edge fused again at the next evaluation does not restart it;
-            once it is older than the edge timeout, nothing was accepted for that long (a real loss).
     """
 
     p_m: NDArray[np.float64]
@@ -64,7 +61,6 @@ class PriorEstimate(NamedTuple):
     made_ns: int
     capture_time_us: int
     cov_sigma_m: float = 0.0
-    accepted_ns: int = 0
 
 
 @dataclass(slots=True)
@@ -153,11 +149,12 @@ class ConsensusGate:
         (at most ``SPEED_CANDIDATE_SIGMA_CAP_M``) combined, plus the distance the vehicle can cover in
         the time ``dt`` from the estimate's capture to the candidate's (0 for a candidate older than
         the estimate: a sender chooses its stamps, and an old stamp must not buy distance). The
-        attitude likewise, with ``MAX_RATE_RAD_S``. No bound without an estimate, or once the newest
-        observation it rests on arrived longer than the edge timeout ago (no candidate was accepted for that
-        long: a real loss, and the next candidate is a re-acquisition: :attr:`PriorEstimate.accepted_ns`).
-        ``k`` is the gate's
-        ``k_sigma``, or ``SPEED_GATE_SIGMA`` when the gate is off. All False when the bound is off."""
+        attitude likewise, with ``MAX_RATE_RAD_S``. No bound without an estimate. A loss (nothing accepted
+        for the edge timeout) does not lift it: the vehicle can still have moved only so far, and a bound
+        lifted whenever the real views are late (a loaded computer, a lossy link) would hand the
+        re-acquisition to whatever forged views outnumber them. It widens with the time since instead,
+        so a real re-acquisition after a long loss is taken. ``k`` is the gate's ``k_sigma``, or
+        ``SPEED_GATE_SIGMA`` when the gate is off. All False when the bound is off."""
         fast = np.zeros(len(c.child), dtype=bool)
         if self.max_speed_m_s <= 0.0:
             return fast
@@ -170,7 +167,7 @@ class ConsensusGate:
         s_att = np.minimum(np.sqrt(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2) / 3.0), SPEED_CANDIDATE_SIGMA_CAP_RAD)
         for j, i in enumerate(peers.tolist()):
             prior = self.priors.get((root, int(c.child[i])))
-            if prior is None or now_ns - prior.accepted_ns > self.edge_timeout_ns:
+            if prior is None:
                 continue
             dt_s = max(int(c.capture_us[i]) - prior.capture_time_us, 0) / 1e6
             sp = max(prior.sigma_m, prior.cov_sigma_m)

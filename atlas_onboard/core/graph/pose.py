@@ -101,7 +101,7 @@ class PosePhase:
                 if len(cands.child) == 0:
                     continue
                 runs = covariance.runs_by_parent(cands.child, cands.parent)
-            self._fuse(vx, cands, runs, root, now_ns, store.stamp[cands.row])
+            self._fuse(vx, cands, runs, root, now_ns)
             if self.own_known:
                 vx.own[runs[0].ids] = np.logical_or.reduceat(anchored, runs[0].starts)
         order, level = plan.order.tolist(), plan.level.tolist()
@@ -260,7 +260,6 @@ class PosePhase:
         runs: tuple[fusion.Runs, fusion.Runs],
         root: int,
         now_ns: int,
-        arrival_ns: NDArray[np.int64],
     ) -> None:
         """eq. 4-7 per child, vectorised: w_i = sigma_min / sigma_i (squared for inverse variance).
         The paper weighs by the sensor's sigma; Dijkstra weighs by the whole chain's."""
@@ -287,13 +286,11 @@ class PosePhase:
             for k, v in enumerate(ids.tolist()):
                 self.motion.add(root, v, Sample(int(newest[k]), vx.p[v].copy(), vx.q[v].copy(), vx.cov[v].copy()))
         if self.gate.enabled:
-            accepted = np.maximum.reduceat(arrival_ns, kids.starts).tolist()
             for k, v in enumerate(ids.tolist()):
                 att = float(np.sqrt(max(np.trace(vx.cov[v][3:, 3:]) / 3.0, 0.0)))
                 pos = float(np.sqrt(max(np.trace(vx.cov[v][:3, :3]) / 3.0, 0.0)))
                 prior = PriorEstimate(
-                    vx.p[v].copy(), vx.q[v].copy(), float(vx.sigma[v]), att, now_ns, int(newest[k]), pos,
-                    int(accepted[k]),
+                    vx.p[v].copy(), vx.q[v].copy(), float(vx.sigma[v]), att, now_ns, int(newest[k]), pos
                 )  # fmt: skip
                 self.gate.remember(root, v, prior)
 
