@@ -206,14 +206,15 @@ def per_frame_floor(duration_s: float, directory: Path) -> Figures:
 
 def offline(duration_s: float, directory: Path, fusion: dict[str, Any]) -> dict[str, float]:
     """The follower's estimator alone on the run's frames (:mod:`atlas_onboard.sim.follow`): each camera
-    at its own rate, every observation arriving ``OFFLINE_DELAY_S`` after its capture. No autopilot
-    attitude."""
+    at its own rate, every observation arriving ``OFFLINE_DELAY_S`` after its capture, the follower's
+    autopilot attitude as the simulated autopilot measures it (the live node's gravity)."""
 
     def frames_of(sid: int) -> Any:
         frames = np.load(frames_path(directory, sid), mmap_mode="r")
         return lambda j: frames[j]
 
-    track = follow.run(SCENARIO, FOLLOWER, frames_of, WARMUP_S, duration_s, OFFLINE_DELAY_S, fusion)
+    up_at = follow.autopilot_up(SimWorld(scenarios.get(SCENARIO)), FOLLOWER)
+    track = follow.run(SCENARIO, FOLLOWER, frames_of, WARMUP_S, duration_s, OFFLINE_DELAY_S, fusion, up_at=up_at)
     if not len(track.capture_s):
         return {"messages": 0.0}
     gaps = leader_gaps(SimWorld(scenarios.get(SCENARIO)), duration_s)

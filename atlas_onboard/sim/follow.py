@@ -39,6 +39,25 @@ class FollowerTrack:
         return np.linalg.norm(self.errors[:, :3], axis=1) * 1e3
 
 
+def autopilot_up(sim: SimWorld, entity: str, seed: int = 0) -> Callable[[int], NDArray[np.float64]]:
+    """``entity``'s autopilot's up vector (body frame) at a capture time (us), as the simulated autopilot
+    measures its roll and pitch (:class:`atlas_onboard.sim.autopilot.SimAutopilot`'s defaults: a bias per
+    run and a noise per sample, each per axis), for the offline estimator."""
+    from atlas_onboard.core.attitude import up_in_body
+    from atlas_onboard.sim.autopilot import SimAutopilot
+
+    defaults = {f.name: f.default for f in dataclasses.fields(SimAutopilot)}
+    bias = np.radians(np.random.default_rng(seed).normal(0.0, defaults["attitude_bias_deg"], 2))
+    sigma = math.radians(defaults["attitude_noise_deg"])
+
+    def up_at(t_us: int) -> NDArray[np.float64]:
+        noise = np.random.default_rng((seed, t_us)).normal(0.0, sigma, 2) + bias
+        R = sim.truth(t_us / 1e6, (entity,))[entity].rotation
+        return up_in_body(R * Rotation.from_rotvec([noise[0], noise[1], 0.0]))
+
+    return up_at
+
+
 def run(
     scenario_name: str,
     follower: str,
