@@ -29,7 +29,7 @@ from atlas_onboard.core.graph.edges import EdgeKey, EdgeStore
 from atlas_onboard.core.graph.gate import ConsensusGate, GateInput, PriorEstimate, Verdict
 from atlas_onboard.core.graph.paths import Plan
 from atlas_onboard.core.graph.result import Candidate, EntityPose
-from atlas_onboard.core.graph.timing import WAIT_US, MotionHistory, Sample, Waiting, WaitingViews
+from atlas_onboard.core.graph.timing import MAX_WAIT_US, WAIT_US, MotionHistory, Sample, Waiting, WaitingViews
 
 
 @dataclass(frozen=True, slots=True)
@@ -133,7 +133,8 @@ class PosePhase:
         for i in range(len(e.child)):
             newest, key = self.motion.newest(root, int(e.parent[i])), store.keys[int(e.row[i])]
             ahead = int(e.capture_us[i]) - (newest.t_us if newest is not None else int(e.capture_us[i]))
-            if key is None or not 0 < ahead <= WAIT_US:
+            wait_us = WAIT_US + self.motion.lag_us(root, int(e.parent[i]), int(e.capture_us[i]))
+            if key is None or not 0 < ahead <= min(wait_us, MAX_WAIT_US):
                 continue
             if keep[i]:
                 last = self.motion.newest(root, int(e.child[i]))

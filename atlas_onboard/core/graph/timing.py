@@ -35,8 +35,14 @@ MAX_SAMPLES = 6  # a line through at most this many poses (a fifth of a second a
 WINDOW_US = 300_000  # and none older than this before the newest: beyond, a line says nothing
 WAIT_US = 100_000
 """How far past its parent's newest pose a child's view that cannot be placed yet (the parent's next pose
-is due, or the extrapolation passes the relayed limit) waits for the parent's next one: a network's
-10-50 ms and a frame at 15 Hz. Farther, the parent is in a gap."""
+is due, or the extrapolation passes the relayed limit) waits for the parent's next one, at least: a
+network's 10-50 ms and a frame at 15 Hz. A parent whose poses come late (its node or its link slower
+than the child's camera path) is waited for by its measured lateness more, up to ``MAX_WAIT_US``."""
+MAX_WAIT_US = 250_000
+"""The longest a view waits for a late parent (the autopilots take vision up to 250-300 ms old)."""
+LAG_WINDOW_US = 1_000_000
+"""A parent's lateness is the least of its children's views' leads over its newest pose in this long
+(a second: a gap in the parent's own views makes them lead by more, not less)."""
 MAX_WAITING = 4  # views of a child kept waiting at once (the oldest goes first)
 
 
@@ -95,7 +101,7 @@ class WaitingViews:
     brackets them: they are then placed by interpolation one per evaluation, oldest first, even when
     the child's next image has replaced its edge meanwhile."""
 
-    def __init__(self, max_views: int = MAX_WAITING, window_us: int = WAIT_US) -> None:
+    def __init__(self, max_views: int = MAX_WAITING, window_us: int = MAX_WAIT_US) -> None:
         self.max_views = max_views
         self.window_us = window_us
         self._views: dict[tuple[int, int], deque[Waiting]] = {}
@@ -140,9 +146,33 @@ class MotionHistory:
         self.max_samples = max_samples
         self.window_us = window_us
         self._tracks: dict[tuple[int, int], deque[Sample]] = {}
+        # Per parent: (capture time, lead over the parent's newest pose) of each new child view, as first seen.
+        self._leads: dict[tuple[int, int], deque[tuple[int, int]]] = {}
+        self._seen: dict[tuple[int, int], int] = {}  # the newest child view's capture time, per parent
 
     def clear(self) -> None:
         self._tracks.clear()
+        self._leads.clear()
+        self._seen.clear()
+
+    def lag_us(self, root: int, v: int, t_us: int) -> int:
+        """How late ``v``'s poses come against its children's views: the least lead of a view taken before
+        ``t_us`` over ``v``'s newest pose, as each view was first composed, in the ``LAG_WINDOW_US``
+        before (0 when a view found its parent's pose already there, or none was seen)."""
+        leads = self._leads.get((root, v))
+        if not leads:
+            return 0
+        return max(min((d for t, d in leads if 0 < t_us - t <= LAG_WINDOW_US), default=0), 0)
+
+    def _lead(self, root: int, v: int, t_us: int, track: list[Sample]) -> None:
+        """A child view's lead over ``v``'s newest pose, when first seen (composed again after ``v``'s
+        next poses came, it leads by less: not the lateness); none while ``v``'s track is starting."""
+        key = (root, v)
+        if t_us <= self._seen.get(key, -1):
+            return
+        self._seen[key] = t_us
+        if len(track) >= 2:
+            self._leads.setdefault(key, deque(maxlen=64)).append((t_us, t_us - track[-1].t_us))
 
     def add(self, root: int, v: int, sample: Sample) -> None:
         """Remember ``v``'s fused pose (in ``root``'s frame); a capture time already held, or older
@@ -199,13 +229,17 @@ class MotionHistory:
         lever = np.linalg.norm(p_pc, axis=1)
         idx = np.arange(3)
         for i, (v, t) in enumerate(zip(parent.tolist(), capture_us.tolist(), strict=True)):
+            track = self.samples(root, v)
+            lag = self.lag_us(root, v, t)  # from the views before this one
+            self._lead(root, v, t, track)
             if t == stamp_us[v]:
                 continue
             moved[i] = True
-            track = self.samples(root, v)
             if len(track) >= 2 and t > track[-1].t_us:
+                # The parent's next pose is due before this view's time: its spacing, and its lateness.
                 spacing = float(np.median(np.diff([s.t_us for s in track])))
-                wait[i] = t - track[-1].t_us < spacing
+                ahead = t - track[-1].t_us
+                wait[i] = ahead < spacing + lag and ahead <= MAX_WAIT_US
             at = self.at(root, v, t, float(lever[i]))
             if at is not None:
                 out_p[i], out_q[i], out_cov[i] = at.p, at.q, at.cov
