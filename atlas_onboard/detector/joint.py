@@ -41,6 +41,16 @@ class Disagreement:
     capture_time_us: int
 
 
+def entity_in_camera(
+    p_cm: NDArray[np.float64], q_cm_xyzw: NDArray[np.float64], R_em: NDArray[np.float64], p_em: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """T_camera_entity = T_camera_marker T_entity_marker^-1 as a rotation vector and a translation, from a
+    marker's pose in the camera (``p_cm``, quaternion ``q_cm_xyzw``) and in its entity (``R_em``, ``p_em``),
+    in plain matrices (a scipy transform built for one pose costs more than the joint solve it starts)."""
+    R_ce = matrix_from_quat(q_cm_xyzw) @ R_em.T
+    return rotvec_from_matrix(R_ce), p_cm - R_ce @ p_em
+
+
 @dataclass
 class JointSolve:
     """The joint solve of one sensor's detector, held by :class:`~atlas_onboard.detector.pipeline.Detector`:
@@ -138,9 +148,7 @@ class JointSolve:
         # T_camera_entity = T_camera_marker T_entity_marker^-1, in plain matrices.
         best = min(ids, key=lambda m: singles[m].pose.ambiguity if np.isfinite(singles[m].pose.ambiguity) else 1.0)
         mp = singles[best].pose
-        R_em, p_em = self._frame_of(best)
-        R_ce = matrix_from_quat(mp.q_xyzw) @ R_em.T
-        guess = (rotvec_from_matrix(R_ce), mp.p_m - R_ce @ p_em)
+        guess = entity_in_camera(mp.p_m, mp.q_xyzw, *self._frame_of(best))
         fam = self.world.markers[ids[0]].family
         return pose.solve_joint(obj, img, self.calibration.K, pose.model_sigma_px(fam), guess)
 
