@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import RigidTransform, Rotation
+from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import WORLD, SensorConfig, WorldConfig
 from atlas_onboard.core.shutter import CameraMotion
@@ -22,7 +22,7 @@ from atlas_onboard.detector import joint_covariance, joint_motion, pose
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.joint_motion import MovingPose
 from atlas_onboard.detector.records import JointResult, LeftOut, SingleSolve, marker_data
-from atlas_onboard.detector.rotations import quat_from_matrix
+from atlas_onboard.detector.rotations import matrix_from_quat, quat_from_matrix, rotvec_from_matrix
 from atlas_onboard.detector.search import side
 
 _logger = logging.getLogger(__name__)
@@ -39,6 +39,16 @@ class Disagreement:
     marker_id: int
     offset_m: float
     capture_time_us: int
+
+
+def entity_in_camera(
+    p_cm: NDArray[np.float64], q_cm_xyzw: NDArray[np.float64], R_em: NDArray[np.float64], p_em: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """T_camera_entity = T_camera_marker T_entity_marker^-1 as a rotation vector and a translation, from a
+    marker's pose in the camera (``p_cm``, quaternion ``q_cm_xyzw``) and in its entity (``R_em``, ``p_em``),
+    in plain matrices (a scipy transform built for one pose costs more than the joint solve it starts)."""
+    R_ce = matrix_from_quat(q_cm_xyzw) @ R_em.T
+    return rotvec_from_matrix(R_ce), p_cm - R_ce @ p_em
 
 
 @dataclass
@@ -103,9 +113,9 @@ class JointSolve:
         sol = self.solution(others, singles)
         if sol is None:
             return None
-        T_cam_entity = RigidTransform.from_components(sol[1], Rotation.from_rotvec(sol[0]))
-        predicted = (T_cam_entity * self.marker_pose[m]).translation
-        return T_cam_entity.rotation.inv().apply(singles[m].pose.p_m - predicted)
+        R_ce = cv2.Rodrigues(np.asarray(sol[0], dtype=np.float64).reshape(3, 1))[0]
+        predicted = sol[1] + R_ce @ self._frame_of(m)[1]
+        return R_ce.T @ (singles[m].pose.p_m - predicted)
 
     def _left_out(self, m: int, others: list[int], singles: dict[int, SingleSolve]) -> LeftOut:
         """Marker ``m`` left out: how far its own square is from where the joint pose of ``others`` puts it."""
@@ -138,10 +148,7 @@ class JointSolve:
         # T_camera_entity = T_camera_marker T_entity_marker^-1, in plain matrices.
         best = min(ids, key=lambda m: singles[m].pose.ambiguity if np.isfinite(singles[m].pose.ambiguity) else 1.0)
         mp = singles[best].pose
-        T_cam_entity = (
-            RigidTransform.from_components(mp.p_m, Rotation.from_quat(mp.q_xyzw)) * self.marker_pose[best].inv()
-        )
-        guess = (T_cam_entity.rotation.as_rotvec(), T_cam_entity.translation)
+        guess = entity_in_camera(mp.p_m, mp.q_xyzw, *self._frame_of(best))
         fam = self.world.markers[ids[0]].family
         return pose.solve_joint(obj, img, self.calibration.K, pose.model_sigma_px(fam), guess)
 

@@ -7,12 +7,14 @@ from __future__ import annotations
 from collections import Counter
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WORLD
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
-from atlas_onboard.detector.joint import JointSolve
+from atlas_onboard.detector.joint import JointSolve, entity_in_camera
 from atlas_onboard.detector.records import FrameReport, SingleSolve
 from atlas_onboard.detector.worldcheck import WorldCheck
 from tests.detector.scenes import SIZE, H, K, W, moved_marker_world
@@ -71,3 +73,17 @@ def test_the_leave_one_out_drops_the_misplaced_marker_and_tells_the_world_check(
     np.testing.assert_allclose(check.offsets[5], [-0.10, 0.0, 0.0], atol=0.005)
     assert check.disagreements == Counter({5: 1}) and "marker 5 disagrees" in report.dropped[5]
     assert joint.counters["joint_misfit"] == 1 and joint.counters["joint_without_disagreeing"] == 1
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_the_entity_in_the_camera_is_the_marker_pose_composed_with_the_inverse_of_its_place(seed: int):
+    rng = np.random.default_rng(seed)
+    R_cm, R_em = Rotation.random(2, rng=rng)
+    p_cm, p_em = rng.normal(0.0, 2.0, (2, 3))
+    rotvec, tvec = entity_in_camera(p_cm, R_cm.as_quat(), R_em.as_matrix(), p_em)
+    expected = RigidTransform.from_components(p_cm, R_cm) * RigidTransform.from_components(p_em, R_em).inv()
+    np.testing.assert_allclose(tvec, expected.translation, atol=1e-12)
+    assert (Rotation.from_rotvec(rotvec).inv() * expected.rotation).magnitude() < 1e-12
+    # The entity's origin and axes seen from the camera put the marker back where the camera saw it.
+    np.testing.assert_allclose(Rotation.from_rotvec(rotvec).apply(p_em) + tvec, p_cm, atol=1e-12)
