@@ -35,7 +35,7 @@ def test_the_offline_autopilot_up_is_the_truths_within_the_simulated_autopilots_
     plays no part."""
     import math
 
-    from atlas_onboard.core.attitude import tilt_error_rad, up_in_body
+    from atlas_onboard.core.attitude import tilt_error_rad
     from atlas_onboard.sim import scenarios
     from atlas_onboard.sim.world import SimWorld
 
