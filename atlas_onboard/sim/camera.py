@@ -204,6 +204,10 @@ def prerender(
     methods = mp.get_all_start_methods()
     if threading.active_count() == 1 and "fork" in methods:
         context = mp.get_context("fork")
+        if scenario.room is not None:  # the room's textures made once here, for every forked worker
+            from atlas_onboard.sim.room import atlas
+
+            atlas(scenario.room)
     elif "forkserver" in methods:
         context = mp.get_context("forkserver")
         context.set_forkserver_preload([__name__])

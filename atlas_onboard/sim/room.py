@@ -77,6 +77,20 @@ class RowPoses:
     close: NDArray[np.float64]
 
 
+_atlases: dict[Room, _Atlas] = {}
+ATLAS_CACHE = 2  # atlases kept per process (tens of MB each)
+
+
+def atlas(room: Room) -> _Atlas:
+    """The room's textures (made once per process and room: every camera in the room reads the same,
+    and no renderer writes to them)."""
+    if room not in _atlases:
+        while len(_atlases) >= ATLAS_CACHE:
+            del _atlases[next(iter(_atlases))]
+        _atlases[room] = _Atlas(room)
+    return _atlases[room]
+
+
 def _px(a_m: float, b_m: float, px_per_m: float) -> tuple[int, int]:
     return max(math.ceil(a_m * px_per_m), 8), max(math.ceil(b_m * px_per_m), 8)
 
@@ -95,7 +109,7 @@ class RoomRenderer:
         self.noise_sigma = noise_sigma
         w, h = intr.width_px, intr.height_px  # type: ignore[attr-defined]
         self.cam = Camera(w, h, intr.camera_matrix, np.array(intr.distortion))  # type: ignore[attr-defined]
-        self.atlas = _Atlas(room)
+        self.atlas = atlas(room)
         self.lo = np.asarray(room.lo_m, dtype=np.float64)
         self.hi = np.asarray(room.hi_m, dtype=np.float64)
         self.rays = _rays(self.cam, np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))  # (h, w, 3)

@@ -50,3 +50,17 @@ def test_a_rolling_frame_differs_from_its_global_twin_only_by_the_motion():
     hover = rolling(0)  # the same scene: the frames differ by the readout's motion only
     assert np.abs(hover.astype(int) - still(0).astype(int)).mean() > 0.5
     assert np.array_equal(_renderer("rolling", readout_ms=0.0)(0), still(0))
+
+
+def test_cameras_in_one_room_share_its_textures_and_render_what_fresh_ones_do():
+    from atlas_onboard.sim import room
+
+    sc = scenarios.get("relay-follow")
+    world = sc.world()
+    a, b = (FrameRenderer(sc, world, world.sensors[sid], seed=7) for sid in SimWorld(sc, world).cameras)
+    assert a.room is not None and b.room is not None and a.room.atlas is b.room.atlas
+    shared = a(40)
+    room._atlases.clear()  # a camera made with newly made textures draws the same frame, bit for bit
+    fresh = FrameRenderer(sc, world, a.sensor, seed=7)
+    assert fresh.room is not None and fresh.room.atlas is not a.room.atlas
+    assert np.array_equal(fresh(40), shared)
