@@ -182,7 +182,7 @@ class RoomRenderer:
             R = M_world_sensor[:, :3, :3].astype(rays.dtype)
             o = M_world_sensor[:, None, :3, 3]  # (rows, 1, 3)
             d = np.einsum("rcj,rij->rci", rays, R)
-        lam = np.full(d.shape[:-1], np.inf, dtype=rays.dtype)
+        lam = np.full(d.shape[:-1], np.inf)  # float64: the pose's origin is
         face = np.zeros(d.shape[:-1], dtype=np.int8)
         # face index by (axis, towards hi): x: west/east, y: south/north, z: floor/ceiling
         codes = {(0, True): 1, (0, False): 2, (1, True): 3, (1, False): 4, (2, True): 5, (2, False): 0}
@@ -190,11 +190,11 @@ class RoomRenderer:
             for a in range(3):
                 da = d[..., a]
                 up = da > 0
-                la = np.where(up, (self.hi[a] - o[..., a]) / da, (self.lo[a] - o[..., a]) / da)
-                la = np.where(da == 0, np.inf, la)
+                la = np.where(up, self.hi[a] - o[..., a], self.lo[a] - o[..., a]) / da  # one division a ray
+                la[da == 0] = np.inf
                 closer = la < lam
-                lam = np.where(closer, la, lam)
-                face = np.where(closer, np.where(up, codes[(a, True)], codes[(a, False)]), face).astype(np.int8)
+                np.copyto(lam, la, where=closer)
+                np.copyto(face, np.where(up, np.int8(codes[(a, True)]), np.int8(codes[(a, False)])), where=closer)
         hit = o.astype(rays.dtype) + lam[..., None] * d
         return hit, face
 
