@@ -207,17 +207,18 @@ class RoomRenderer:
         u = np.empty(face.shape, np.float32)
         v = np.empty(face.shape, np.float32)
         table = (
-            (x - lo[0], hi[1] - y),  # floor: x right, north up in the texture
-            (y - lo[1], hi[2] - z),  # east wall
-            (hi[1] - y, hi[2] - z),  # west wall
-            (hi[0] - x, hi[2] - z),  # north wall
-            (x - lo[0], hi[2] - z),  # south wall
-            (x - lo[0], y - lo[1]),  # ceiling
+            lambda x, y, z: (x - lo[0], hi[1] - y),  # floor: x right, north up in the texture
+            lambda x, y, z: (y - lo[1], hi[2] - z),  # east wall
+            lambda x, y, z: (hi[1] - y, hi[2] - z),  # west wall
+            lambda x, y, z: (hi[0] - x, hi[2] - z),  # north wall
+            lambda x, y, z: (x - lo[0], hi[2] - z),  # south wall
+            lambda x, y, z: (x - lo[0], y - lo[1]),  # ceiling
         )
-        for k, (a, b) in enumerate(table):
+        for k, coordinates in enumerate(table):
             sel = face == k
-            u[sel] = a[sel] * at.px_per_m[k] - 0.5
-            v[sel] = b[sel] * at.px_per_m[k] - 0.5 + at.rows[k]
+            a, b = coordinates(x[sel], y[sel], z[sel])  # only the pixels that see this face
+            u[sel] = a * at.px_per_m[k] - 0.5
+            v[sel] = b * at.px_per_m[k] - 0.5 + at.rows[k]
         return cv2.remap(at.image, u, v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
     def _blur(
