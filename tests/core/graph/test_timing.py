@@ -291,6 +291,17 @@ def test_a_leader_with_no_fresh_view_places_its_follower_only_while_the_covarian
             assert lost_at is None and len(stamps) == 24 and max(sigmas) > limit
 
 
+# A leader accelerating and turning: p0, v, a, R0, w, alpha of leader_at.
+ACCELERATING_LEADER = (
+    np.array([1.0, 0.5, 1.2]),
+    np.array([0.6, 0.3, 0.0]),
+    np.array([0.9, -0.6, 0.2]),
+    Rotation.from_euler("z", 15, degrees=True),
+    np.array([0.05, -0.02, 0.5]),
+    np.array([0.8, -0.5, 2.5]),
+)
+
+
 @pytest.mark.parametrize("late_ms", [20, 30, 45])
 def test_a_follower_whose_leader_poses_arrive_late_gets_its_images_placed_in_capture_order(late_ms):
     """The leader and the follower's camera both at 15 Hz, 11 ms apart; the leader accelerates and turns,
@@ -301,14 +312,7 @@ def test_a_follower_whose_leader_poses_arrive_late_gets_its_images_placed_in_cap
     pose arrives (interpolated), its covariance describing its error (NEES6 about 6), and the poses come
     out in capture order (never an older image after a newer one)."""
     rng = np.random.default_rng(3)
-    p0, v, a, R0, w, alpha = (
-        np.array([1.0, 0.5, 1.2]),
-        np.array([0.6, 0.3, 0.0]),
-        np.array([0.9, -0.6, 0.2]),
-        Rotation.from_euler("z", 15, degrees=True),
-        np.array([0.05, -0.02, 0.5]),
-        np.array([0.8, -0.5, 2.5]),
-    )
+    p0, v, a, R0, w, alpha = ACCELERATING_LEADER
     c_leader = np.diag([1.5e-3] * 3 + [3e-3] * 3) ** 2
     c_edge = np.diag([1e-3] * 3 + [2e-3] * 3) ** 2
     g = TransformGraph(NAMES, 250 * MS, align=True, max_relayed_sigma_m=0.02)
@@ -375,14 +379,7 @@ def test_a_leader_whose_poses_come_later_than_a_frame_is_waited_for_by_its_measu
     follower image waits for the leader pose at or after its time, so every pose published from then
     on is an interpolation, never the leader's newest extrapolated over ``late_ms`` and a frame; in
     capture order, each image once."""
-    p0, v, a, R0, w, alpha = (
-        np.array([1.0, 0.5, 1.2]),
-        np.array([0.6, 0.3, 0.0]),
-        np.array([0.9, -0.6, 0.2]),
-        Rotation.from_euler("z", 15, degrees=True),
-        np.array([0.05, -0.02, 0.5]),
-        np.array([0.8, -0.5, 2.5]),
-    )
+    p0, v, a, R0, w, alpha = ACCELERATING_LEADER
     cov = np.diag([1e-3] * 3 + [2e-3] * 3) ** 2
     g = TransformGraph(NAMES, 250 * MS, align=True)
     period = 2 * FRAME_US
