@@ -58,7 +58,8 @@ def rolling_corners(
 
 
 def _model(stamp_sigma_ms: float = 0.0) -> CameraMotionModel:
-    return CameraMotionModel(CameraConfig(readout_ms=READOUT_MS, stamp_sigma_ms=stamp_sigma_ms), Rotation.identity(), H)
+    camera = CameraConfig(readout_ms=READOUT_MS, stamp_sigma_ms=stamp_sigma_ms)
+    return CameraMotionModel(camera, RigidTransform.identity(), H)
 
 
 def _solve(
@@ -263,7 +264,8 @@ class _Recorder:
         self.sensor = SensorConfig(name="front", id=1, entity="drone", T_entity_sensor=RigidTransform.identity())
         self.rates: list[BodyRate | None] = []
 
-    def detect(self, gray: np.ndarray, t_us: int, R_prev_now: object = None, body_rate: BodyRate | None = None) -> list:
+    def detect(self, gray: np.ndarray, t_us: int, R_prev_now: object = None, body_rate: BodyRate | None = None,
+               body_velocity: object = None) -> list:  # fmt: skip
         self.rates.append(body_rate)
         return []
 
@@ -351,7 +353,7 @@ def test_a_global_shutter_frames_squares_are_left_as_they_are() -> None:
     """A frame read at one instant: every square's corners where they were found (to rounding), its
     covariance unchanged, no shear, whatever the camera's motion."""
     rng = np.random.default_rng(9)
-    model = CameraMotionModel(CameraConfig(readout_ms=0.0), Rotation.identity(), H)
+    model = CameraMotionModel(CameraConfig(readout_ms=0.0), RigidTransform.identity(), H)
     motion = replace(
         model.at(0, None), omega=np.radians([30.0, 10.0, -20.0]), omega_cov=0.1 * np.eye(3), omega_known=True,
         velocity=np.array([0.5, 0.0, 0.2]), velocity_cov=0.1 * np.eye(3), velocity_known=True,
