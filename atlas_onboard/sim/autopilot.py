@@ -21,7 +21,8 @@ in flight) and a heading offset (a compass's): the node must use neither the noi
 With ``rates`` (the body's true angular rates, FLU, at a wall time) ATTITUDE carries the gyros'
 rollspeed, pitchspeed and yawspeed of the same instant (:class:`~atlas_onboard.sim.gyro.Gyro`: white
 noise and a wandering bias); without, zeros, as an autopilot that does not fill them. ``clock_ppm``: the
-autopilot's clock runs that many parts per million fast (negative: slow) against the wall clock.
+autopilot's clock runs that many parts per million fast (negative: slow) against the wall clock. With ``velocity``
+(true, world ENU) LOCAL_POSITION_NED carries its EKF's velocity (:mod:`~atlas_onboard.sim.ekf_velocity`).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core import frames
+from atlas_onboard.sim.ekf_velocity import EkfVelocity, EkfVelocityNoise
 from atlas_onboard.sim.gyro import Gyro, GyroNoise
 from atlas_onboard.sim.lander import Lander
 
@@ -138,6 +140,8 @@ class SimAutopilot:
     attitude_seed: int = 0
     rates: Callable[[float], np.ndarray | None] | None = None  # true body rates (FLU, rad/s) at a wall time (s)
     gyro: GyroNoise = field(default_factory=GyroNoise)
+    velocity: Callable[[float], np.ndarray | None] | None = None  # true velocity (world ENU, m/s) at a wall time (s)
+    ekf_velocity: EkfVelocityNoise = field(default_factory=EkfVelocityNoise)
     clock_ppm: float = 0.0  # the autopilot's clock against the wall clock (time_boot_ms)
     attitude_sent: int = 0
     attitude_interval_requests: int = 0  # MAV_CMD_SET_MESSAGE_INTERVAL for ATTITUDE received
@@ -186,6 +190,7 @@ class SimAutopilot:
         self._att_bias_rad = np.radians(rng.normal(0.0, self.attitude_bias_deg, 2))
         self._next_attitude_s = 0.0
         self._gyro = Gyro(self.gyro, self.attitude_seed * 7919 + 17)
+        self._ekf_velocity = EkfVelocity(self.ekf_velocity, self.attitude_seed * 7919 + 29)
         # (send at, t_meas, roll, pitch, yaw, body rates FRD)
         self._att_queue: list[tuple[float, float, float, float, float, tuple[float, float, float]]] = []
         self._next_local_s = 0.0
@@ -346,6 +351,8 @@ class SimAutopilot:
                 self.attitude_interval_requests += 1
                 if msg.param2 > 0:
                     self.attitude_hz = 1e6 / msg.param2
+            elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and msg.param1 == 32:
+                self.local_position_hz = 1e6 / msg.param2 if msg.param2 > 0 else self.local_position_hz
             elif kind == "PARAM_REQUEST_READ":
                 self._answer_param(msg)
             elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == 49:
@@ -379,9 +386,16 @@ class SimAutopilot:
         self._next_local_s = now + 1.0 / self.local_position_hz
         with self._lock:
             last = self.received[-1] if self.received else None
-        if last is not None:
-            boot_ms = int((time.time() - self._boot_s) * 1000) & 0xFFFFFFFF
-            self._send(self._mav.local_position_ned_encode(boot_ms, *last.xyz_m, 0.0, 0.0, 0.0))
+        t_meas = time.time() - (self.attitude_delay_s if self.velocity is not None else 0.0)  # sent as ATTITUDE is
+        true = self.velocity(t_meas - self.ekf_velocity.lag_s) if self.velocity is not None else None
+        v_ned = (0.0, 0.0, 0.0)
+        if true is not None:  # in the local frame of ATTITUDE's heading
+            age = None if last is None else t_meas - last.arrival_s
+            v_ned = self._ekf_velocity.read_ned(t_meas, true, age, self.attitude_yaw_offset_deg)
+        if last is not None or true is not None:
+            boot_ms = int((t_meas - self._boot_s) * (1.0 + self.clock_ppm * 1e-6) * 1000) & 0xFFFFFFFF
+            xyz = last.xyz_m if last is not None else (0.0, 0.0, 0.0)
+            self._send(self._mav.local_position_ned_encode(boot_ms, *xyz, *v_ned))
 
     def _set_origin(self, lat_deg: float, lon_deg: float, alt_m: float) -> None:
         if self.autopilot_type == mavlink.MAV_AUTOPILOT_PX4:

@@ -19,6 +19,7 @@ from atlas_onboard.core.shutter import (
     timing_covariance,
     timing_pose_covariance,
 )
+from atlas_onboard.core.velocity import BodyVelocity
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.camera import CameraWorker
@@ -366,3 +367,49 @@ def test_a_global_shutter_frames_squares_are_left_as_they_are() -> None:
         assert np.allclose(moved.corners, img, rtol=0.0, atol=1e-9)
         assert np.array_equal(moved.covariance, cov)
         assert moved.shear_px == 0.0
+
+
+MOUNT = RigidTransform.from_components([0.10, 0.0, -0.03], Rotation.from_euler("xyz", [-90.0, 0.0, -90.0], degrees=True)
+                                       * Rotation.from_euler("x", 65.0, degrees=True))  # fmt: skip
+
+
+def _camera_velocity_truth(v_body: np.ndarray, w_body: np.ndarray, dt: float = 1e-6) -> np.ndarray:
+    """The camera's velocity in its own axes, differentiated from the body's rigid motion (body at the origin
+    with identity attitude at t = 0, moving at ``v_body`` and turning at ``w_body`` in its own axes)."""
+
+    def p_world_camera(t: float) -> np.ndarray:
+        return v_body * t + Rotation.from_rotvec(w_body * t).apply(MOUNT.translation)
+
+    v_world = (p_world_camera(dt) - p_world_camera(-dt)) / (2 * dt)
+    return MOUNT.rotation.inv().apply(v_world)
+
+
+def test_the_autopilots_velocity_is_a_rolling_cameras_velocity_prior() -> None:
+    """With no poses of its own yet (the first frame after a gap), a rolling-shutter camera takes the
+    autopilot's velocity: the body's, swung over the mount's lever arm by the rate, in the camera's axes,
+    its covariance turned likewise."""
+    model = CameraMotionModel(CameraConfig(readout_ms=READOUT_MS), MOUNT, H)
+    v_body, w_body = np.array([0.5, -0.2, 0.1]), np.array([0.2, -0.1, 0.8])
+    rate = BodyRate(w_body, 0.01**2 * np.eye(3))
+    velocity = BodyVelocity(v_body, np.diag([0.05, 0.04, 0.03]) ** 2)
+    motion = model.at(1_000_000, rate, velocity)
+    assert motion.velocity_known
+    np.testing.assert_allclose(motion.velocity, _camera_velocity_truth(v_body, w_body), atol=1e-6)
+    M = MOUNT.rotation.inv().as_matrix()
+    added = motion.velocity_cov - M @ velocity.cov @ M.T  # the rate's error swung over the lever arm
+    assert np.linalg.eigvalsh(added).min() > -1e-15
+    assert np.trace(added) == pytest.approx(2.0 * 0.01**2 * float(MOUNT.translation @ MOUNT.translation))
+    without = model.at(1_000_000, rate)
+    assert not without.velocity_known  # nothing else to correct by: bounds only
+
+
+def test_a_global_shutter_leaves_the_autopilots_velocity_unused() -> None:
+    """A frame read at one instant needs no velocity to move its corners: its motion is the same with or
+    without the autopilot's (the history's or the bounds, as before)."""
+    model = CameraMotionModel(CameraConfig(readout_ms=0.0, exposure_ms=8.0), MOUNT, H)
+    rate = BodyRate(np.array([0.1, 0.0, 0.3]), 0.01**2 * np.eye(3))
+    with_v = model.at(1_000_000, rate, BodyVelocity(np.array([0.5, 0.0, 0.0]), 0.05**2 * np.eye(3)))
+    without = model.at(1_000_000, rate)
+    for name in ("omega", "omega_cov", "velocity", "velocity_cov"):
+        assert np.array_equal(getattr(with_v, name), getattr(without, name))
+    assert (with_v.velocity_known, with_v.timing_sigma_s) == (without.velocity_known, without.timing_sigma_s)
