@@ -10,8 +10,7 @@ from collections.abc import Callable, Sequence
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.core.shutter import BodyRate
-from atlas_onboard.core.velocity import BodyVelocity
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 
 Deliver = Callable[[Sequence[MarkerData]], None]
 """Called once per image with all of its detections (never with none)."""

@@ -68,8 +68,8 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.attitude import AttitudeHistory, up_in_body
 from atlas_onboard.core.markerdata import Rejection
-from atlas_onboard.core.shutter import PREDICTION_SAMPLES, BodyRate, RateHistory
-from atlas_onboard.core.velocity import BodyVelocity, VelocityHistory
+from atlas_onboard.core.shutter import PREDICTION_SAMPLES, BodyRate, BodyVelocity, RateHistory
+from atlas_onboard.core.velocity import VelocityHistory
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.listener import Listener
 from atlas_onboard.node.setup import make_graph

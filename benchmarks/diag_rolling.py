@@ -28,8 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from atlas_onboard.core import covariance
 from atlas_onboard.core.markerdata import upper_to_matrix
-from atlas_onboard.core.shutter import GYRO_SIGMA_RAD_S, BodyRate, CameraMotion, RateHistory
-from atlas_onboard.core.velocity import BodyVelocity
+from atlas_onboard.core.shutter import GYRO_SIGMA_RAD_S, BodyRate, BodyVelocity, CameraMotion, RateHistory
 from atlas_onboard.detector.motion import CameraMotionModel
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot

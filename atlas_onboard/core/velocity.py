@@ -14,28 +14,19 @@ from __future__ import annotations
 
 import bisect
 from collections import deque
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA
+from atlas_onboard.core.shutter import BodyVelocity
 
 AUTOPILOT_VELOCITY_SIGMA_M_S = 0.05
 """Per-axis error of an autopilot's velocity estimate: a vision-aided EKF's velocity (a few cm/s), and what
 its accelerometers' bias (a few cm/s^2) adds while it dead-reckons through a second without vision."""
 MAX_GAP_US = 100_000
 """Samples further apart than this are not interpolated between; a sample older than this gives nothing."""
-
-
-@dataclass(frozen=True, slots=True)
-class BodyVelocity:
-    """The body's velocity at a capture time, in its own FLU axes (m/s, (3,)), relative to the autopilot's
-    local frame (the world's markers), and its covariance (3, 3), m^2/s^2."""
-
-    velocity_flu: NDArray[np.float64]
-    cov: NDArray[np.float64]
 
 
 def level_enu_of_ned(vx: float, vy: float, vz: float) -> NDArray[np.float64] | None:

@@ -22,8 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.core.shutter import BodyRate
-from atlas_onboard.core.velocity import BodyVelocity
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 from atlas_onboard.detector.workers import Job, Outcome, WorkerDiedError
 
 _logger = logging.getLogger(__name__)

@@ -26,12 +26,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import CameraConfig
+from atlas_onboard.config import WORLD, CameraConfig, SensorConfig
 from atlas_onboard.config.settings import READOUT_BOTTOM_UP
 from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper, upper_to_matrix
 from atlas_onboard.core.shutter import (
     BodyRate,
+    BodyVelocity,
     CameraMotion,
     RowClock,
     planar_depths_many,
@@ -40,7 +41,6 @@ from atlas_onboard.core.shutter import (
     timing_pose_covariance,
     timing_sigma_s,
 )
-from atlas_onboard.core.velocity import BodyVelocity
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.pose import object_corners
 from atlas_onboard.detector.records import TimedCorners
@@ -156,6 +156,11 @@ class CameraMotionModel:
         self.R_body_sensor = T_body_sensor.rotation
         self.p_body_sensor_m = np.asarray(T_body_sensor.translation, dtype=float)
         self._seen: deque[_Seen] = deque(maxlen=8)
+
+    @staticmethod
+    def of(sensor: SensorConfig, height_px: int) -> CameraMotionModel:
+        """The model of ``sensor``'s camera on its mount; fixed when the sensor is the world's."""
+        return CameraMotionModel(sensor.camera, sensor.T_entity_sensor, height_px, sensor.entity == WORLD)
 
     def at(self, t_us: int, rate: BodyRate | None, velocity: BodyVelocity | None = None) -> CameraMotion:
         """The camera's motion at the frame stamped ``t_us``, given the autopilot's rate and velocity (or None)."""

@@ -38,8 +38,7 @@ from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.consistency import PairVerdict
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.refine.sampling import PerMarkerSchedule
-from atlas_onboard.core.shutter import BodyRate
-from atlas_onboard.core.velocity import BodyVelocity
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 from atlas_onboard.core.worldcheck import MovedMarker
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
@@ -211,8 +210,7 @@ class Detector:
         singles: dict[int, SingleSolve] = {}
         # Camera motion: the frame's motion (rolling shutter, exposure; detector.motion)
         if self.motion_model is None:
-            s = self.sensor
-            self.motion_model = CameraMotionModel(s.camera, s.T_entity_sensor, h, s.entity == WORLD)
+            self.motion_model = CameraMotionModel.of(self.sensor, h)
         motion = self.motion_model.at(capture_time_us, body_rate, body_velocity)
         per_marker = self.per_marker is not None and self.per_marker.due(capture_time_us)
         candidates = []

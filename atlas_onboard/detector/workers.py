@@ -31,8 +31,7 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import WORLD, RefineConfig, SensorConfig, WorldConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.refine.sampling import PerMarkerSchedule
-from atlas_onboard.core.shutter import BodyRate
-from atlas_onboard.core.velocity import BodyVelocity
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 from atlas_onboard.detector.backends import apriltag_families
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.forkserver_preload import FAMILIES_ENV

@@ -22,8 +22,8 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
 from atlas_onboard.core.records import AutopilotPose
-from atlas_onboard.core.shutter import BodyRate, RateHistory
-from atlas_onboard.core.velocity import BodyVelocity, VelocityHistory, level_enu_of_ned
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity, RateHistory
+from atlas_onboard.core.velocity import VelocityHistory, level_enu_of_ned
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, framing

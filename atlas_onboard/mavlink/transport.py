@@ -20,8 +20,7 @@ from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.records import AutopilotPose, Inbound, PoseState, Telemetry
 from atlas_onboard.core.rejection import Rejection
-from atlas_onboard.core.shutter import BodyRate
-from atlas_onboard.core.velocity import BodyVelocity
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 from atlas_onboard.counters import Counters
 from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.autopilot_link import (

@@ -190,7 +190,8 @@ class SimAutopilot:
         self._att_bias_rad = np.radians(rng.normal(0.0, self.attitude_bias_deg, 2))
         self._next_attitude_s = 0.0
         self._gyro = Gyro(self.gyro, self.attitude_seed * 7919 + 17)
-        self._ekf_velocity = EkfVelocity(self.ekf_velocity, self.attitude_seed * 7919 + 29)
+        self._ekf_velocity = EkfVelocity(self.ekf_velocity, self.attitude_seed * 7919 + 29, self.attitude_delay_s,
+                                         self.attitude_yaw_offset_deg)  # fmt: skip
         # (send at, t_meas, roll, pitch, yaw, body rates FRD)
         self._att_queue: list[tuple[float, float, float, float, float, tuple[float, float, float]]] = []
         self._next_local_s = 0.0
@@ -299,7 +300,7 @@ class SimAutopilot:
                 yaw, pitch, roll = R_ned_frd.as_euler("ZYX")
                 noise = self._att_rng.normal(0.0, math.radians(self.attitude_noise_deg), 2) + self._att_bias_rad
                 yaw += math.radians(self.attitude_yaw_offset_deg)
-                w = self._gyro_frd(now)
+                w = self._gyro.read_frd(now, self.rates(now) if self.rates is not None else None, self.attitude_hz)
                 self._att_queue.append((now + self.attitude_delay_s, now, roll + noise[0], pitch + noise[1], yaw, w))
         while self._att_queue and self._att_queue[0][0] <= now:
             _, t_meas, roll, pitch, yaw, w = self._att_queue.pop(0)
@@ -307,14 +308,6 @@ class SimAutopilot:
             yaw = math.atan2(math.sin(yaw), math.cos(yaw))
             self._send(self._mav.attitude_encode(boot_ms, roll, pitch, yaw, *w))
             self.attitude_sent += 1
-
-    def _gyro_frd(self, t_s: float) -> tuple[float, float, float]:
-        """The gyros' reading at wall time ``t_s`` in the body FRD frame (ATTITUDE's), zeros without ``rates``."""
-        true = self.rates(t_s) if self.rates is not None else None
-        if true is None:
-            return (0.0, 0.0, 0.0)
-        x, y, z = self._gyro.read(t_s, np.asarray(true, dtype=float), self.attitude_hz)
-        return (float(x), float(-y), float(-z))  # FLU -> FRD
 
     def _handle(self, msg: mavlink.MAVLink_message) -> None:
         kind = msg.get_type()
@@ -351,8 +344,6 @@ class SimAutopilot:
                 self.attitude_interval_requests += 1
                 if msg.param2 > 0:
                     self.attitude_hz = 1e6 / msg.param2
-            elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL and msg.param1 == 32:
-                self.local_position_hz = 1e6 / msg.param2 if msg.param2 > 0 else self.local_position_hz
             elif kind == "PARAM_REQUEST_READ":
                 self._answer_param(msg)
             elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_REQUEST_MESSAGE and msg.param1 == 49:
@@ -386,16 +377,11 @@ class SimAutopilot:
         self._next_local_s = now + 1.0 / self.local_position_hz
         with self._lock:
             last = self.received[-1] if self.received else None
-        t_meas = time.time() - (self.attitude_delay_s if self.velocity is not None else 0.0)  # sent as ATTITUDE is
-        true = self.velocity(t_meas - self.ekf_velocity.lag_s) if self.velocity is not None else None
-        v_ned = (0.0, 0.0, 0.0)
-        if true is not None:  # in the local frame of ATTITUDE's heading
-            age = None if last is None else t_meas - last.arrival_s
-            v_ned = self._ekf_velocity.read_ned(t_meas, true, age, self.attitude_yaw_offset_deg)
-        if last is not None or true is not None:
-            boot_ms = int((t_meas - self._boot_s) * (1.0 + self.clock_ppm * 1e-6) * 1000) & 0xFFFFFFFF
-            xyz = last.xyz_m if last is not None else (0.0, 0.0, 0.0)
-            self._send(self._mav.local_position_ned_encode(boot_ms, *xyz, *v_ned))
+        vision = None if last is None else (last.arrival_s, last.xyz_m)
+        sample = self._ekf_velocity.local_position(time.time(), vision, self.velocity)
+        if sample is not None:
+            boot_ms = int((sample.t_s - self._boot_s) * (1.0 + self.clock_ppm * 1e-6) * 1000) & 0xFFFFFFFF
+            self._send(self._mav.local_position_ned_encode(boot_ms, *sample.xyz_m, *sample.v_ned_m_s))
 
     def _set_origin(self, lat_deg: float, lon_deg: float, alt_m: float) -> None:
         if self.autopilot_type == mavlink.MAV_AUTOPILOT_PX4:

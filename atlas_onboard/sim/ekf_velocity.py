@@ -11,6 +11,7 @@ returns. The local frame is the autopilot's own: its heading offset turns it abo
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,11 +32,23 @@ class EkfVelocityNoise:
     recover_tau_s: float = 0.5
 
 
-class EkfVelocity:
-    """Readings of one EKF's velocity in time order (``read``), from its own seeded random stream."""
+@dataclass(frozen=True, slots=True)
+class LocalPosition:
+    """One LOCAL_POSITION_NED: measured at ``t_s`` (wall clock), the position (NED, m) and velocity (NED, m/s)."""
 
-    def __init__(self, noise: EkfVelocityNoise, seed: int) -> None:
+    t_s: float
+    xyz_m: tuple[float, float, float]
+    v_ned_m_s: tuple[float, float, float]
+
+
+class EkfVelocity:
+    """Readings of one EKF's velocity in time order (``read``), from its own seeded random stream; measured
+    ``delay_s`` before they are sent, in a local frame whose heading is the world's plus ``yaw_offset_deg``."""
+
+    def __init__(self, noise: EkfVelocityNoise, seed: int, delay_s: float = 0.0, yaw_offset_deg: float = 0.0) -> None:
         self.noise = noise
+        self.delay_s = delay_s
+        self.yaw_offset_deg = yaw_offset_deg
         self._rng = np.random.default_rng(seed)
         self._wander = self._rng.normal(0.0, noise.sigma_m_s, 3)
         self._accel_bias = self._rng.normal(0.0, noise.accel_bias_sigma, 3)
@@ -65,3 +78,23 @@ class EkfVelocity:
         v = np.asarray(true_world_enu, dtype=float)
         v = self.read(t_s, np.array([c * v[0] + s * v[1], -s * v[0] + c * v[1], v[2]]), vision_age_s)
         return (float(v[1]), float(v[0]), float(-v[2]))  # level ENU -> NED
+
+    def local_position(
+        self,
+        now_s: float,
+        last_vision: tuple[float, tuple[float, float, float]] | None,
+        velocity: Callable[[float], NDArray[np.float64] | None] | None,
+    ) -> LocalPosition | None:
+        """The LOCAL_POSITION_NED to send at wall time ``now_s``: the last vision position received
+        (``last_vision``: its arrival and NED position; an EKF on vision) and, with ``velocity`` (the true
+        world ENU velocity at a wall time), the EKF's velocity measured ``delay_s`` earlier (else zeros, as
+        an autopilot that does not fill it). None with neither."""
+        t_s = now_s - (self.delay_s if velocity is not None else 0.0)
+        true = velocity(t_s - self.noise.lag_s) if velocity is not None else None
+        if last_vision is None and true is None:
+            return None
+        xyz = last_vision[1] if last_vision is not None else (0.0, 0.0, 0.0)
+        if true is None:
+            return LocalPosition(t_s, xyz, (0.0, 0.0, 0.0))
+        age = None if last_vision is None else t_s - last_vision[0]
+        return LocalPosition(t_s, xyz, self.read_ned(t_s, true, age, self.yaw_offset_deg))

@@ -275,8 +275,7 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
         return lambda t_wall: trajectory.body_rates(np.array([t_wall - epoch_at[0]]))[0] if epoch_at else None
 
     def velocity_of(name: str) -> Callable[[float], Any]:
-        trajectory = scenario.trajectories[name]
-        return lambda t_wall: trajectory.velocity(np.array([t_wall - epoch_at[0]]))[0] if epoch_at else None
+        return lambda t: scenario.trajectories[name].velocity(np.array([t - epoch_at[0]]))[0] if epoch_at else None
 
     autopilots = {
         name: SimAutopilot(system_id=k, attitude=attitude_of(name), attitude_seed=options.seed + k,

@@ -15,11 +15,11 @@ from atlas_onboard.core.attitude import AttitudeHistory
 from atlas_onboard.core.shutter import (
     GYRO_SIGMA_RAD_S,
     BodyRate,
+    BodyVelocity,
     RowClock,
     timing_covariance,
     timing_pose_covariance,
 )
-from atlas_onboard.core.velocity import BodyVelocity
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.camera import CameraWorker
