@@ -181,7 +181,7 @@ class CameraMotionModel:
             w, w_cov, w_known = np.zeros(3), self.rate_bound**2 * np.eye(3), False
         v, v_cov, v_known = np.zeros(3), SPEED_BOUND_MPS**2 * np.eye(3), False
         if velocity is not None and self.clock.readout_s > 0.0:
-            v, v_cov = self._camera_velocity(velocity, rate)
+            v, v_cov = self._camera_velocity(velocity, w, w_cov, w_known)
             v_known = True
         elif history is not None:
             v, v_cov, v_known = history.velocity, history.velocity_var * np.eye(3), True
@@ -191,18 +191,18 @@ class CameraMotionModel:
         return CameraMotion(w, w_cov, v, v_cov, w_known, v_known, timing)
 
     def _camera_velocity(
-        self, velocity: BodyVelocity, rate: BodyRate | None
+        self, velocity: BodyVelocity, w: NDArray[np.float64], w_cov: NDArray[np.float64], w_known: bool
     ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The camera's velocity (camera axes, m/s) and its covariance from the body's: the body's plus its
-        turn swinging the mount's lever arm, ``omega x p_body_sensor`` (with the rate when it is known)."""
-        v_body, cov = np.asarray(velocity.velocity_flu, dtype=float), np.asarray(velocity.cov, dtype=float)
-        if rate is not None:
-            p = self.p_body_sensor_m
-            P = np.array([[0.0, p[2], -p[1]], [-p[2], 0.0, p[0]], [p[1], -p[0], 0.0]])  # omega x p = P omega
-            v_body = v_body + P @ rate.omega_flu
-            cov = cov + P @ rate.cov @ P.T
+        turn ``w`` (camera axes) swinging the mount's lever arm, ``w x p``; a rate not known (a bound) adds
+        its second moment's swing to the covariance instead."""
         M = self.R_body_sensor.inv().as_matrix()
-        return M @ v_body, M @ cov @ M.T
+        p = M @ self.p_body_sensor_m  # the lever arm in the camera's axes
+        P = np.array([[0.0, p[2], -p[1]], [-p[2], 0.0, p[0]], [p[1], -p[0], 0.0]])  # w x p = P w
+        v, cov = M @ np.asarray(velocity.velocity_flu, dtype=float), M @ np.asarray(velocity.cov, dtype=float) @ M.T
+        if w_known:
+            return v + P @ w, cov + P @ w_cov @ P.T
+        return v, cov + P @ (np.outer(w, w) + w_cov) @ P.T
 
     def moving(self, motion: CameraMotion) -> bool:
         """Whether ``motion`` moves a frame's corners: a rolling shutter on a camera in motion (else

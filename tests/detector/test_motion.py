@@ -401,6 +401,13 @@ def test_the_autopilots_velocity_is_a_rolling_cameras_velocity_prior() -> None:
     assert np.trace(added) == pytest.approx(2.0 * 0.01**2 * float(MOUNT.translation @ MOUNT.translation))
     without = model.at(1_000_000, rate)
     assert not without.velocity_known  # nothing else to correct by: bounds only
+    no_rate = model.at(1_000_000, None, velocity)  # the turn unknown: its bound's swing is an error
+    np.testing.assert_allclose(no_rate.velocity, M @ v_body, atol=1e-12)
+    bound = no_rate.omega_second_moment()
+    swing = np.trace(bound) * float(MOUNT.translation @ MOUNT.translation) - float(
+        MOUNT.rotation.inv().apply(MOUNT.translation) @ bound @ MOUNT.rotation.inv().apply(MOUNT.translation)
+    )  # trace of [p]x S [p]x^T
+    assert np.trace(no_rate.velocity_cov - M @ velocity.cov @ M.T) == pytest.approx(swing)
 
 
 def test_a_global_shutter_leaves_the_autopilots_velocity_unused() -> None:
