@@ -53,6 +53,10 @@ SPEED_BOUND_MPS = 1.0  # per axis, when the camera's poses do not give a velocit
 MIN_SPAN_S = 0.01  # recent poses spanning less than this are not a camera's frames (unrelated images)
 MAX_SPEED_MPS = 15.0  # a history implying more than this (or MAX_RATE_RAD_S) is a jump, not a motion
 MAX_RATE_RAD_S = 15.0
+DEAD_RECKONING_ACCEL_M_S2 = 0.05
+"""Per axis: how fast an autopilot's velocity drifts while its EKF has no vision (its accelerometers' residual
+bias and its tilt error times gravity): counted from the camera's newest world marker, after VISION_GRACE_US."""
+VISION_GRACE_US = 200_000  # an EKF fuses vision this late without dead-reckoning between
 
 
 @dataclass(frozen=True, slots=True)
@@ -183,6 +187,9 @@ class CameraMotionModel:
         if velocity is not None and self.clock.readout_s > 0.0:
             v, v_cov = self._camera_velocity(velocity, w, w_cov, w_known)
             v_known = True
+            if self._seen:  # the autopilot has had no vision from this camera since its newest world marker
+                blind_s = max(t_us - self._seen[-1].t_us - VISION_GRACE_US, 0) * 1e-6
+                v_cov = v_cov + (DEAD_RECKONING_ACCEL_M_S2 * blind_s) ** 2 * np.eye(3)
         elif history is not None:
             v, v_cov, v_known = history.velocity, history.velocity_var * np.eye(3), True
         # The timing's image motion needs a motion estimate; with bounds alone (no rate, no recent poses:

@@ -24,7 +24,7 @@ from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.joint import JointSolve
-from atlas_onboard.detector.motion import CameraMotionModel, SeenSquare
+from atlas_onboard.detector.motion import DEAD_RECKONING_ACCEL_M_S2, VISION_GRACE_US, CameraMotionModel, SeenSquare
 from atlas_onboard.detector.pipeline import FrameReport
 from atlas_onboard.detector.records import SingleSolve
 from atlas_onboard.detector.sources import Frame
@@ -408,6 +408,22 @@ def test_the_autopilots_velocity_is_a_rolling_cameras_velocity_prior() -> None:
         MOUNT.rotation.inv().apply(MOUNT.translation) @ bound @ MOUNT.rotation.inv().apply(MOUNT.translation)
     )  # trace of [p]x S [p]x^T
     assert np.trace(no_rate.velocity_cov - M @ velocity.cov @ M.T) == pytest.approx(swing)
+
+
+def test_the_autopilots_velocity_is_less_certain_after_a_gap_in_the_markers() -> None:
+    """The autopilot dead-reckons while the camera sees no world marker: its velocity, taken 1.2 s after the
+    camera's last marker, is less certain than the same velocity a frame after it, by the drift's rate over
+    the gap beyond what an EKF bridges."""
+    T_wm = RigidTransform.from_translation([0.05, 0.0, 0.0])
+    T_world_cam = RigidTransform.from_components([0.0, 0.0, 0.7], Rotation.from_euler("x", 180, degrees=True))
+    img = rolling_corners(T_world_cam.inv() * T_wm, SIZE, np.zeros(3), np.zeros(3))
+    velocity = BodyVelocity(np.array([0.3, 0.0, 0.0]), 0.05**2 * np.eye(3))
+    model = _model()
+    model.observe(1_000_000, [_seen(T_wm, img)])
+    after_frame = model.at(1_033_000, None, velocity)
+    after_gap = model.at(2_200_000, None, velocity)
+    grown = (DEAD_RECKONING_ACCEL_M_S2 * (1.2 - VISION_GRACE_US * 1e-6)) ** 2
+    np.testing.assert_allclose(after_gap.velocity_cov - after_frame.velocity_cov, grown * np.eye(3), atol=1e-15)
 
 
 def test_a_global_shutter_leaves_the_autopilots_velocity_unused() -> None:
