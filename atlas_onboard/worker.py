@@ -10,7 +10,7 @@ from collections.abc import Callable, Sequence
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.markerdata import MarkerData
-from atlas_onboard.core.shutter import BodyRate
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 
 Deliver = Callable[[Sequence[MarkerData]], None]
 """Called once per image with all of its detections (never with none)."""
@@ -18,6 +18,8 @@ AttitudeAt = Callable[[int], Rotation | None]
 """The autopilot's attitude (body FLU in a level ENU frame) at a capture stamp (us), or None."""
 RateAt = Callable[[int], BodyRate | None]
 """The autopilot's body angular rate at a capture stamp (us), or None (no rate near it)."""
+VelocityAt = Callable[[int], BodyVelocity | None]
+"""The autopilot's velocity in the body's axes at a capture stamp (us), or None (none near it)."""
 
 
 class SensorWorker:
@@ -31,6 +33,9 @@ class SensorWorker:
     rate_at: RateAt | None = None
     """Set by the node's start-up when the autopilot streams its angular rates: cameras correct a rolling
     shutter's shear by them (:mod:`atlas_onboard.core.shutter`)."""
+    velocity_at: VelocityAt | None = None
+    """Set by the node's start-up when the autopilot streams its velocity: cameras correct a rolling
+    shutter's shear by it (:mod:`atlas_onboard.core.velocity`)."""
 
     def __init__(self) -> None:
         self._stop = threading.Event()

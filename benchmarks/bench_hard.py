@@ -68,7 +68,8 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.attitude import AttitudeHistory, up_in_body
 from atlas_onboard.core.markerdata import Rejection
-from atlas_onboard.core.shutter import PREDICTION_SAMPLES, BodyRate, RateHistory
+from atlas_onboard.core.shutter import PREDICTION_SAMPLES, BodyRate, BodyVelocity, RateHistory
+from atlas_onboard.core.velocity import VelocityHistory
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.listener import Listener
 from atlas_onboard.node.setup import make_graph
@@ -76,6 +77,7 @@ from atlas_onboard.sim import report, runner, scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.camera import frames_path
 from atlas_onboard.sim.command import score_run
+from atlas_onboard.sim.ekf_velocity import EkfVelocity, EkfVelocityNoise
 from atlas_onboard.sim.gyro import Gyro, GyroNoise
 from atlas_onboard.sim.runner import WARMUP_S, SimOptions, run
 from atlas_onboard.sim.world import FRESH_S, SimWorld
@@ -315,7 +317,8 @@ def drone_cameras(
 def per_frame_floor(scenario_name: str, duration_s: float, seed: int = 0, directory: Path | None = None) -> list[Floor]:
     """The per-frame floor of a scenario: the node's detector (same settings, frames in order, so its
     tracking is the node's) on the run's pre-rendered frames, given the autopilot's gyro rates as the
-    node holds them (:func:`node_rates`: a rolling shutter's shear corrected as the node does); each
+    node holds them (:func:`node_rates`: a rolling shutter's shear corrected as the node does) and its
+    velocity likewise (:func:`node_velocities`); each
     detection made an edge by the listener's eq. 1 with no estimate (so nothing is resolved by the
     node's state), once without attitude (the detector's chosen solution; an ambiguity threshold of 1
     so none is refused) and once with the sim autopilot's noisy attitude at the capture time (bias and
@@ -333,6 +336,7 @@ def per_frame_floor(scenario_name: str, duration_s: float, seed: int = 0, direct
     bias = rng.normal(0.0, bias_rad, 2)
     stream = node_attitude(sim_world, duration_s, seed)
     rates = node_rates(sim_world, duration_s, seed)
+    velocities = node_velocities(sim_world, duration_s, seed)
     out = {k: Floor(k, np.empty(0), 0, 0) for k in ("detector", "detector+attitude", "detector+node_att")}
     errors: dict[str, list[float]] = {k: [] for k in out}
     for _sensor, det, frames, fps, n in drone_cameras(sim_world, world, directory, duration_s):
@@ -346,7 +350,8 @@ def per_frame_floor(scenario_name: str, duration_s: float, seed: int = 0, direct
             tilt = Rotation.from_rotvec(np.r_[bias + rng.normal(0.0, noise_rad, 2), 0.0])
             up = up_in_body(tilt * truth.rotation)
             with_att.set_attitude(ENTITY, lambda _t, up=up: up)
-            mds = det.detect(np.asarray(frames[j]), round(t * 1e6), None, rates(round(t * 1e6)))
+            t_us = round(t * 1e6)
+            mds = det.detect(np.asarray(frames[j]), t_us, None, rates(t_us), velocities(t_us))
             listeners = (("detector", plain), ("detector+attitude", with_att), ("detector+node_att", as_node))
             for name, listener in listeners:
                 used = False
@@ -426,6 +431,34 @@ def node_rates(
         return held.rate_at(t_us)
 
     return rate_at
+
+
+def node_velocities(
+    sim_world: SimWorld, duration_s: float, seed: int, lag_s: float = PROCESS_LAG_S
+) -> Callable[[int], BodyVelocity | None]:
+    """The autopilot's velocity at a capture time (us) in the body's axes as the node holds it (a rolling
+    shutter's velocity prior): the simulated autopilot's EKF velocity (its defaults, the run's first drone's
+    seed, vision as fresh as a tag in view makes it) read at ``local_position_hz``, stamped
+    ``attitude_delay_s`` late, those arrived ``lag_s`` after the capture, turned by the true attitude."""
+    ap = SimAutopilot.__dataclass_fields__
+    hz, delay_s = SimOptions.local_position_hz, ap["attitude_delay_s"].default
+    trajectory = sim_world.scenario.trajectories[ENTITY]
+    ekf = EkfVelocity(EkfVelocityNoise(), (seed + 1) * 7919 + 29)
+    seen = sim_world.visible_frames(ENTITY, duration_s + 1.0)
+    times = np.arange(0.0, duration_s + 1.0, 1.0 / hz)
+    stamps = [round((t + delay_s) * 1e6) for t in times]
+    lagged = trajectory.velocity(times - EkfVelocityNoise.lag_s)
+    ages = [t - seen[k - 1] if (k := int(np.searchsorted(seen, t, side="right"))) else None for t in times]
+    samples = [ekf.read(float(t), v, age) for t, v, age in zip(times, lagged, ages, strict=True)]
+
+    def velocity_at(t_us: int) -> BodyVelocity | None:
+        k = int(np.searchsorted(stamps, t_us + round(lag_s * 1e6), side="right"))
+        held = VelocityHistory()
+        for i in range(max(k - 4, 0), k):
+            held.add(stamps[i], samples[i])
+        return held.velocity_at(t_us, sim_world.truth(t_us * 1e-6, (ENTITY,))[ENTITY].rotation)
+
+    return velocity_at
 
 
 def print_floor(scenario_name: str, floors: list[Floor]) -> None:

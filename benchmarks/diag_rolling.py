@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from atlas_onboard.core import covariance
 from atlas_onboard.core.markerdata import upper_to_matrix
-from atlas_onboard.core.shutter import GYRO_SIGMA_RAD_S, BodyRate, CameraMotion, RateHistory
+from atlas_onboard.core.shutter import GYRO_SIGMA_RAD_S, BodyRate, BodyVelocity, CameraMotion, RateHistory
 from atlas_onboard.detector.motion import CameraMotionModel
 from atlas_onboard.sim import scenarios
 from atlas_onboard.sim.autopilot import SimAutopilot
@@ -77,8 +77,8 @@ class _Oracle(CameraMotionModel):
 
     v_cam: NDArray[np.float64] = np.zeros(3)
 
-    def at(self, t_us: int, rate: BodyRate | None) -> CameraMotion:
-        m = super().at(t_us, rate)
+    def at(self, t_us: int, rate: BodyRate | None, velocity: BodyVelocity | None = None) -> CameraMotion:
+        m = super().at(t_us, rate, velocity)
         return dataclasses.replace(m, velocity=self.v_cam, velocity_cov=1e-6 * np.eye(3), velocity_known=True)
 
 
@@ -94,7 +94,7 @@ def run(
     (sid, (sensor, intr)), *_ = sorted(sim.cameras.items())
     renderer = FrameRenderer(sc, world, sensor, camera_seed(0, sid))
     det = Detector(sensor, world, intr.calibration(), decimate=2.0, joint=joint)
-    model = _Oracle(sensor.camera, sensor.T_entity_sensor.rotation, intr.height_px)
+    model = _Oracle(sensor.camera, sensor.T_entity_sensor, intr.height_px)
     if oracle:
         det.motion_model = model
     out = []
@@ -136,7 +136,7 @@ def scene(frames: int, start_s: float, stride: int) -> None:
         for rates in ("none", "node", "true", "oracle"):
             for joint in (False, True):
                 det = Detector(sensor, world, intr.calibration(), decimate=2.0, joint=joint)
-                model = _Oracle(sensor.camera, sensor.T_entity_sensor.rotation, intr.height_px)
+                model = _Oracle(sensor.camera, sensor.T_entity_sensor, intr.height_px)
                 if rates == "oracle":
                     det.motion_model = model
                 rows = []

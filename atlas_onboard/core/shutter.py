@@ -300,6 +300,15 @@ class BodyRate:
     cov: NDArray[np.float64]
 
 
+@dataclass(frozen=True, slots=True)
+class BodyVelocity:
+    """The autopilot's velocity of the body at a capture time, in its own FLU axes (m/s, (3,)), relative to
+    its local frame (the world's markers), with its covariance (3, 3), m^2/s^2 (:mod:`.velocity`)."""
+
+    velocity_flu: NDArray[np.float64]
+    cov: NDArray[np.float64]
+
+
 GYRO_SIGMA_RAD_S = 0.005
 """Per-axis error of an autopilot's filtered body rate: gyro noise after its filters and the residual bias
 of a calibrated MEMS gyro (a few tenths of a degree a second)."""

@@ -20,7 +20,7 @@ from atlas_onboard.config import CameraConfig
 from atlas_onboard.core.attitude import CameraTurn
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.inorder import InOrder
-from atlas_onboard.detector.motion import body_rate_at
+from atlas_onboard.detector.motion import body_rate_at, body_velocity_at
 from atlas_onboard.detector.sources import Frame, Source, SourceError, open_source
 from atlas_onboard.detector.workers import CameraDetectorSpec, FrameDetector, Job, Outcome, ProcessWorker
 from atlas_onboard.errors import AtlasError
@@ -166,8 +166,9 @@ class CameraWorker(SensorWorker):
                 self._turn = CameraTurn(self.detector.sensor.T_entity_sensor.rotation)
             R_prev_now = self._turn.since_last(self.attitude_at(t_us))
         body_rate = body_rate_at(self.rate_at, t_us)  # a rolling shutter's shear
+        body_velocity = body_velocity_at(self.velocity_at, t_us)
         try:
-            found = list(self.detector.detect(frame.gray, t_us, R_prev_now, body_rate))
+            found = list(self.detector.detect(frame.gray, t_us, R_prev_now, body_rate, body_velocity))
             if found:
                 deliver(found)
         except AtlasError as exc:  # e.g. frames of another size than the calibration
@@ -189,7 +190,8 @@ class CameraWorker(SensorWorker):
         if self.attitude_at is not None:
             R_prev_now = self._turns[pipeline.next_index].since_last(self.attitude_at(t_us))
         body_rate = body_rate_at(self.rate_at, t_us)  # a rolling shutter's shear
-        if pipeline.submit(frame.gray, t_us, R_prev_now, self._stop, body_rate):
+        body_velocity = body_velocity_at(self.velocity_at, t_us)
+        if pipeline.submit(frame.gray, t_us, R_prev_now, self._stop, body_rate, body_velocity):
             self.counts["frames"] += 1
 
     def _on_result(self, job: Job, outcome: Outcome) -> None:

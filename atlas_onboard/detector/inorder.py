@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from atlas_onboard.core.shutter import BodyRate
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 from atlas_onboard.detector.workers import Job, Outcome, WorkerDiedError
 
 _logger = logging.getLogger(__name__)
@@ -83,13 +83,14 @@ class InOrder:
         R_prev_now: Rotation | None,
         stop: threading.Event,
         body_rate: BodyRate | None = None,
+        body_velocity: BodyVelocity | None = None,
     ) -> bool:
         """Send the next frame to the next worker in turn, once that worker is free; False (nothing sent)
         if ``stop`` was set or the pipeline closed meanwhile."""
         if not self.wait_free(stop):
             return False
         with self._cond:
-            job = Job(self._seq, gray, capture_time_us, R_prev_now, body_rate)
+            job = Job(self._seq, gray, capture_time_us, R_prev_now, body_rate, body_velocity)
             self._seq += 1
             index = job.seq % len(self.workers)
             # Sent under the lock: the collector does not restart this worker while its frame goes out

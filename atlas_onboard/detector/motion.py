@@ -4,12 +4,15 @@ The rate: the autopilot's (ATTITUDE's body rates), which corrects the image; wit
 recent own poses bound it (not corrected: a rate from poses a frame apart is too noisy to correct by,
 but says how large the shear may be), else ``rate_bound_dps``.
 
-The velocity: a straight-line fit through the camera's own poses of the last few frames, from the world
-markers it saw (each frame's best single-marker pose), relative to what it sees. The detector's own
-history rather than the node's filter: it is there in every mode (any ``filter``, image folders, no
-autopilot), in the camera's thread at the frame's instant, and a velocity error enters only times a
-corner's readout offset (millimetres a second over milliseconds), where its covariance is carried. A joint
-solve of several world markers measures the motion with the pose (:mod:`.joint_motion`), from these priors.
+The velocity: the autopilot's (LOCAL_POSITION_NED's, turned into the body's axes by its attitude:
+:mod:`atlas_onboard.core.velocity`), which its IMU keeps through a gap in the markers, for a rolling shutter;
+without it (or for a global shutter, whose only use of a velocity is the size of its timing term) a
+straight-line fit through the camera's own poses of the last few frames, from the world markers it saw
+(each frame's best single-marker pose), relative to what it sees: there in every mode (any ``filter``,
+image folders, no autopilot), in the camera's thread at the frame's instant. A velocity error enters only
+times a corner's readout offset (millimetres a second over milliseconds), where its covariance is carried.
+A joint solve of several world markers measures the motion with the pose (:mod:`.joint_motion`), from these
+priors.
 """
 
 from __future__ import annotations
@@ -23,12 +26,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
-from atlas_onboard.config import CameraConfig
+from atlas_onboard.config import WORLD, CameraConfig, SensorConfig
 from atlas_onboard.config.settings import READOUT_BOTTOM_UP
 from atlas_onboard.core.ekf import MANOEUVRE_ACCEL_SIGMA
 from atlas_onboard.core.markerdata import MarkerData, matrix_to_upper, upper_to_matrix
 from atlas_onboard.core.shutter import (
     BodyRate,
+    BodyVelocity,
     CameraMotion,
     RowClock,
     planar_depths_many,
@@ -40,7 +44,7 @@ from atlas_onboard.core.shutter import (
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.pose import object_corners
 from atlas_onboard.detector.records import TimedCorners
-from atlas_onboard.worker import RateAt
+from atlas_onboard.worker import RateAt, VelocityAt
 
 WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 30 Hz)
 STALE_US = 300_000  # poses older than this give no velocity (fewer than two in WINDOW_US: the newest two within it)
@@ -49,6 +53,10 @@ SPEED_BOUND_MPS = 1.0  # per axis, when the camera's poses do not give a velocit
 MIN_SPAN_S = 0.01  # recent poses spanning less than this are not a camera's frames (unrelated images)
 MAX_SPEED_MPS = 15.0  # a history implying more than this (or MAX_RATE_RAD_S) is a jump, not a motion
 MAX_RATE_RAD_S = 15.0
+DEAD_RECKONING_ACCEL_M_S2 = 0.05
+"""Per axis: how fast an autopilot's velocity drifts while its EKF has no vision (its accelerometers' residual
+bias and its tilt error times gravity): counted from the camera's newest world marker, after VISION_GRACE_US."""
+VISION_GRACE_US = 200_000  # an EKF fuses vision this late without dead-reckoning between
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,24 +139,35 @@ def body_rate_at(rate_at: RateAt | None, t_us: int) -> BodyRate | None:
     return rate_at(t_us) if rate_at is not None else None
 
 
+def body_velocity_at(velocity_at: VelocityAt | None, t_us: int) -> BodyVelocity | None:
+    """The autopilot's velocity at a capture in the body's axes (``velocity_at``), or None without one."""
+    return velocity_at(t_us) if velocity_at is not None else None
+
+
 class CameraMotionModel:
     """One camera's time model and motion: corners moved to the stamp, the motion's covariance added."""
 
     def __init__(
-        self, camera: CameraConfig | None, R_body_sensor: Rotation, height_px: int, static: bool = False
+        self, camera: CameraConfig | None, T_body_sensor: RigidTransform, height_px: int, static: bool = False
     ) -> None:
-        """``static``: a camera fixed in the world (on the world entity), which does not move at all; the
-        markers' own motion (a drone's) is not modelled."""
+        """``T_body_sensor``: the camera's mount on its body; ``static``: a camera fixed in the world (on the
+        world entity), which does not move at all; the markers' own motion (a drone's) is not modelled."""
         cam = camera or CameraConfig()
         self.static = static
         self.clock = RowClock(cam.readout_ms * 1e-3, height_px, cam.readout_order == READOUT_BOTTOM_UP)
         self.timing_s = timing_sigma_s(cam.stamp_sigma_ms * 1e-3, cam.exposure_ms * 1e-3)
         self.rate_bound = math.radians(cam.rate_bound_dps)
-        self.R_body_sensor = R_body_sensor
+        self.R_body_sensor = T_body_sensor.rotation
+        self.p_body_sensor_m = np.asarray(T_body_sensor.translation, dtype=float)
         self._seen: deque[_Seen] = deque(maxlen=8)
 
-    def at(self, t_us: int, rate: BodyRate | None) -> CameraMotion:
-        """The camera's motion at the frame stamped ``t_us``, given the autopilot's rate (or None)."""
+    @staticmethod
+    def of(sensor: SensorConfig, height_px: int) -> CameraMotionModel:
+        """The model of ``sensor``'s camera on its mount; fixed when the sensor is the world's."""
+        return CameraMotionModel(sensor.camera, sensor.T_entity_sensor, height_px, sensor.entity == WORLD)
+
+    def at(self, t_us: int, rate: BodyRate | None, velocity: BodyVelocity | None = None) -> CameraMotion:
+        """The camera's motion at the frame stamped ``t_us``, given the autopilot's rate and velocity (or None)."""
         if self.static:
             return CameraMotion(omega_known=True, velocity_known=True, timing_sigma_s=self.timing_s)
         past = [s for s in self._seen if 0 < t_us - s.t_us <= STALE_US]
@@ -165,12 +184,32 @@ class CameraMotionModel:
         else:
             w, w_cov, w_known = np.zeros(3), self.rate_bound**2 * np.eye(3), False
         v, v_cov, v_known = np.zeros(3), SPEED_BOUND_MPS**2 * np.eye(3), False
-        if history is not None:
+        if velocity is not None and self.clock.readout_s > 0.0:
+            v, v_cov = self._camera_velocity(velocity, w, w_cov, w_known)
+            v_known = True
+            if self._seen:  # the autopilot has had no vision from this camera since its newest world marker
+                blind_s = max(t_us - self._seen[-1].t_us - VISION_GRACE_US, 0) * 1e-6
+                v_cov = v_cov + (DEAD_RECKONING_ACCEL_M_S2 * blind_s) ** 2 * np.eye(3)
+        elif history is not None:
             v, v_cov, v_known = history.velocity, history.velocity_var * np.eye(3), True
         # The timing's image motion needs a motion estimate; with bounds alone (no rate, no recent poses:
         # the first frames, or unrelated images) it is left out rather than charged at the bounds.
-        timing = self.timing_s if (rate is not None or history is not None) else 0.0
+        timing = self.timing_s if (rate is not None or v_known) else 0.0
         return CameraMotion(w, w_cov, v, v_cov, w_known, v_known, timing)
+
+    def _camera_velocity(
+        self, velocity: BodyVelocity, w: NDArray[np.float64], w_cov: NDArray[np.float64], w_known: bool
+    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The camera's velocity (camera axes, m/s) and its covariance from the body's: the body's plus its
+        turn ``w`` (camera axes) swinging the mount's lever arm, ``w x p``; a rate not known (a bound) adds
+        its second moment's swing to the covariance instead."""
+        M = self.R_body_sensor.inv().as_matrix()
+        p = M @ self.p_body_sensor_m  # the lever arm in the camera's axes
+        P = np.array([[0.0, p[2], -p[1]], [-p[2], 0.0, p[0]], [p[1], -p[0], 0.0]])  # w x p = P w
+        v, cov = M @ np.asarray(velocity.velocity_flu, dtype=float), M @ np.asarray(velocity.cov, dtype=float) @ M.T
+        if w_known:
+            return v + P @ w, cov + P @ w_cov @ P.T
+        return v, cov + P @ (np.outer(w, w) + w_cov) @ P.T
 
     def moving(self, motion: CameraMotion) -> bool:
         """Whether ``motion`` moves a frame's corners: a rolling shutter on a camera in motion (else

@@ -38,7 +38,7 @@ from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.consistency import PairVerdict
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.refine.sampling import PerMarkerSchedule
-from atlas_onboard.core.shutter import BodyRate
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 from atlas_onboard.core.worldcheck import MovedMarker
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
@@ -192,9 +192,10 @@ class Detector:
         capture_time_us: int,
         R_prev_now: Rotation | None = None,
         body_rate: BodyRate | None = None,
+        body_velocity: BodyVelocity | None = None,
     ) -> list[MarkerData]:
-        """MarkerData of the configured markers in ``gray`` (``R_prev_now``: see :meth:`find`; ``body_rate``:
-        the autopilot's body rate at the capture, for a rolling shutter's shear, see :mod:`.motion`).
+        """MarkerData of the configured markers in ``gray`` (``R_prev_now``: see :meth:`find`; ``body_rate``,
+        ``body_velocity``: the autopilot's at the capture, for a rolling shutter's shear, see :mod:`.motion`).
 
         With ``joint`` (the default), the markers of one entity seen together are solved as one
         rigid pattern (every corner at once, far better conditioned than any single square) and
@@ -209,9 +210,8 @@ class Detector:
         singles: dict[int, SingleSolve] = {}
         # Camera motion: the frame's motion (rolling shutter, exposure; detector.motion)
         if self.motion_model is None:
-            s = self.sensor
-            self.motion_model = CameraMotionModel(s.camera, s.T_entity_sensor.rotation, h, s.entity == WORLD)
-        motion = self.motion_model.at(capture_time_us, body_rate)
+            self.motion_model = CameraMotionModel.of(self.sensor, h)
+        motion = self.motion_model.at(capture_time_us, body_rate, body_velocity)
         per_marker = self.per_marker is not None and self.per_marker.due(capture_time_us)
         candidates = []
         for d in self.find(gray, R_prev_now):

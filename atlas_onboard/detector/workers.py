@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import WORLD, RefineConfig, SensorConfig, WorldConfig
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.refine.sampling import PerMarkerSchedule
-from atlas_onboard.core.shutter import BodyRate
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 from atlas_onboard.detector.backends import apriltag_families
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.forkserver_preload import FAMILIES_ENV
@@ -49,6 +49,7 @@ class FrameDetector(Protocol):
         capture_time_us: int,
         R_prev_now: Rotation | None = None,
         body_rate: BodyRate | None = None,
+        body_velocity: BodyVelocity | None = None,
     ) -> list[MarkerData]: ...
 
     def take_status(self) -> list[str]: ...
@@ -98,6 +99,7 @@ class Job:
     capture_time_us: int
     R_prev_now: Rotation | None = None
     body_rate: BodyRate | None = None
+    body_velocity: BodyVelocity | None = None
 
 
 @dataclass(frozen=True)
@@ -134,7 +136,9 @@ def serve(conn: Connection, spec: DetectorSpec) -> None:
             continue
         error = ""
         try:
-            found = list(detector.detect(msg.gray, msg.capture_time_us, msg.R_prev_now, msg.body_rate))
+            found = list(
+                detector.detect(msg.gray, msg.capture_time_us, msg.R_prev_now, msg.body_rate, msg.body_velocity)
+            )
         except AtlasError as exc:  # e.g. frames of another size than the calibration
             found, error = [], str(exc)
         conn.send(Outcome(msg.seq, found, dict(detector.counters), detector.take_status(), error))

@@ -1,11 +1,11 @@
 """The link to the own autopilot, held by :class:`~atlas_onboard.mavlink.transport.MavlinkTransport`: the
-autopilot's HEARTBEAT, TIMESYNC answers, the EKF origin, its attitude and the pose sent to it.
+autopilot's HEARTBEAT, TIMESYNC answers, the EKF origin, its attitude and velocity, and the pose sent to it.
 
 The autopilot is one (system, component), pinned for the link's life: the first autopilot-typed
 HEARTBEAT from component 1 of the configured system id (``system_id``, the autopilot's), or, when none
 came for AUTOPILOT_WAIT_NS, from another system (a misconfigured id: warned). No other HEARTBEAT
 replaces it (behind a router, other vehicles' flight controllers and ground stations talk too), and
-ATTITUDE, TIMESYNC, GPS_GLOBAL_ORIGIN and the autopilot type count only from it. On a link with
+ATTITUDE, LOCAL_POSITION_NED, TIMESYNC, GPS_GLOBAL_ORIGIN and the autopilot type count only from it. On a link with
 ``signing`` and ``require`` (an autopilot that signs: docs/mavlink-router.md), only from its signed
 frames."""
 
@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 from scipy.spatial.transform import Rotation
@@ -21,7 +22,8 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.config import NodeConfig
 from atlas_onboard.core.attitude import AttitudeHistory, BootClock
 from atlas_onboard.core.records import AutopilotPose
-from atlas_onboard.core.shutter import BodyRate, RateHistory
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity, RateHistory
+from atlas_onboard.core.velocity import VelocityHistory, level_enu_of_ned
 from atlas_onboard.counters import Counters
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.mavlink import autopilot, codec, framing
@@ -45,6 +47,19 @@ since the last one taken) is refused (``attitude_ahead``): a real one never maps
 but for the clocks' drift, and one stamped ahead would hold back every real sample after it."""
 ATTITUDE_DRIFT = 1e-3
 ATTITUDE_REMAP_NS = 2 * NS  # every sample refused as ahead for this long: the wall clock stepped back, remap
+LOCAL_POSITION_INTERVAL_US = 33_333  # LOCAL_POSITION_NED asked for at 30 Hz (its velocity: a rolling shutter's)
+
+
+@dataclass
+class _Stream:
+    """One timed stream of the autopilot's (ATTITUDE, LOCAL_POSITION_NED): its boot clock mapping, the
+    requests sent for it, and the samples refused as mapping after their arrival."""
+
+    clock: BootClock = field(default_factory=BootClock)
+    asks: int = 0
+    next_ask_ns: int = 0
+    taken_ns: int | None = None
+    refused_since_ns: int | None = None
 
 
 def wall_ns(wall_clock: Callable[[], float]) -> int:
@@ -89,11 +104,11 @@ class AutopilotLink:
         # --- the autopilot's attitude: gravity for a single tag's ambiguity ---
         self.attitude = AttitudeHistory()
         self.rates = RateHistory()  # ATTITUDE's body rates: a rolling shutter's shear (core.shutter)
-        self._boot_clock = BootClock()
-        self._attitude_asks = 0
-        self._next_attitude_ask_ns = 0
-        self._attitude_taken_ns: int | None = None
-        self._attitude_refused_since_ns: int | None = None
+        self._attitude_stream = _Stream()
+        # --- LOCAL_POSITION_NED's velocity: a rolling shutter's motion over the readout (core.velocity);
+        # its own clock mapping, so that the attitude's is the same with or without it ---
+        self.velocities = VelocityHistory()
+        self._velocity_stream = _Stream()
 
     def may_be_autopilot(self, msg: Any) -> bool:
         """Whether ``msg`` may prove a UDP source address the autopilot's: from the pinned autopilot's
@@ -117,9 +132,12 @@ class AutopilotLink:
             self.link.start(self._on_message)
 
     def tick(self, now_ns: int) -> None:
-        """The EKF origin and the ATTITUDE stream, asked for (or set) when due."""
+        """The EKF origin and the ATTITUDE and LOCAL_POSITION_NED streams, asked for (or set) when due."""
         self._origin_tick(now_ns)
-        self._attitude_tick(now_ns)
+        self._ask_tick(now_ns, self._attitude_stream, self.attitude.latest_us(), autopilot.MSG_ATTITUDE,
+                       ATTITUDE_INTERVAL_US, "attitude_requested")  # fmt: skip
+        self._ask_tick(now_ns, self._velocity_stream, self.velocities.latest_us(), autopilot.MSG_LOCAL_POSITION_NED,
+                       LOCAL_POSITION_INTERVAL_US, "local_position_requested")  # fmt: skip
 
     def attitude_at(self, t_us: int) -> Rotation | None:
         """The autopilot's attitude at ``t_us`` (wall clock, us) as a scipy Rotation of the body FLU in a
@@ -129,6 +147,11 @@ class AutopilotLink:
     def rate_at(self, t_us: int) -> BodyRate | None:
         """The autopilot's body rate (FLU) at ``t_us`` (wall clock, us), or None (see :class:`RateHistory`)."""
         return self.rates.rate_at(t_us)
+
+    def velocity_at(self, t_us: int) -> BodyVelocity | None:
+        """The autopilot's velocity at ``t_us`` (wall clock, us) in the body's FLU axes, turned by its own
+        attitude then, or None (see :class:`VelocityHistory`)."""
+        return self.velocities.velocity_at(t_us, self.attitude.attitude_at(t_us))
 
     def send_autopilot(self, pose: AutopilotPose) -> None:
         """VISION_POSITION_ESTIMATE (or ODOMETRY) of the own entity; a non-finite pose is counted, not sent."""
@@ -155,25 +178,44 @@ class AutopilotLink:
         if self.link is not None:
             self.link.send(self.link.dialect.MAVLink_landing_target_message(**fields))
 
-    def _attitude_tick(self, now_ns: int) -> None:
-        """Ask the autopilot for ATTITUDE (MAV_CMD_SET_MESSAGE_INTERVAL) when none came for
+    def _ask_tick(self, now_ns: int, stream: _Stream, last_us: int | None, msg_id: int, interval_us: int,
+                  counter: str) -> None:  # fmt: skip
+        """Ask the autopilot for a stream (MAV_CMD_SET_MESSAGE_INTERVAL) when none of it came for
         ATTITUDE_WAIT_NS after its HEARTBEAT; at most ATTITUDE_ASKS times (a link without it works as before)."""
-        if self.link is None or self.autopilot_system is None or self._attitude_asks >= ATTITUDE_ASKS:
+        if self.link is None or self.autopilot_system is None or stream.asks >= ATTITUDE_ASKS:
             return
-        last = self.attitude.latest_us()
-        if last is not None and wall_ns(self.wall) // 1000 - last < ATTITUDE_WAIT_NS // 1000:
+        if last_us is not None and wall_ns(self.wall) // 1000 - last_us < ATTITUDE_WAIT_NS // 1000:
             return
-        if self._next_attitude_ask_ns == 0:
-            self._next_attitude_ask_ns = now_ns + ATTITUDE_WAIT_NS  # give the autopilot's own streams a chance
-        if now_ns < self._next_attitude_ask_ns:
+        if stream.next_ask_ns == 0:
+            stream.next_ask_ns = now_ns + ATTITUDE_WAIT_NS  # give the autopilot's own streams a chance
+        if now_ns < stream.next_ask_ns:
             return
-        self._next_attitude_ask_ns = now_ns + ATTITUDE_WAIT_NS
-        self._attitude_asks += 1
+        stream.next_ask_ns = now_ns + ATTITUDE_WAIT_NS
+        stream.asks += 1
         fields = autopilot.set_message_interval_fields(
-            self.autopilot_system, self.autopilot_component or 0, autopilot.MSG_ATTITUDE, ATTITUDE_INTERVAL_US
+            self.autopilot_system, self.autopilot_component or 0, msg_id, interval_us
         )
         self.link.send(self.link.dialect.MAVLink_command_long_message(**fields))
-        self.counters.inc("attitude_requested")
+        self.counters.inc(counter)
+
+    def _stamp(self, stream: _Stream, msg: Any, arrival_ns: int, name: str) -> int | None:
+        """The wall time (us) of a sample stamped ``time_boot_ms`` (see BootClock), or None when refused as
+        mapping after its arrival (counted ``<name>_ahead``)."""
+        arrival_wall_us = (wall_ns(self.wall) - (self.monotonic_ns() - arrival_ns)) // 1000
+        boot_us = int(msg.time_boot_ms) * 1000
+        since_us = (arrival_ns - stream.taken_ns) // 1000 if stream.taken_ns is not None else 0
+        if stream.clock.lead_us(boot_us, arrival_wall_us) > ATTITUDE_LEAD_US + ATTITUDE_DRIFT * since_us:
+            self.counters.inc(f"{name}_ahead")
+            if stream.refused_since_ns is None:
+                stream.refused_since_ns = arrival_ns
+            if arrival_ns - stream.refused_since_ns < ATTITUDE_REMAP_NS:
+                return None
+            _logger.warning("every %s for %.0f s maps after its arrival: the clock stepped; mapped anew",
+                            msg.get_type(), ATTITUDE_REMAP_NS / NS)  # fmt: skip
+            stream.clock = BootClock()
+        stream.refused_since_ns = None
+        stream.taken_ns = arrival_ns
+        return stream.clock.wall_us(boot_us, arrival_wall_us)
 
     def _on_attitude(self, msg: Any, arrival_ns: int) -> None:
         """ATTITUDE or ATTITUDE_QUATERNION into the history, stamped on the wall clock (see BootClock)."""
@@ -185,25 +227,22 @@ class AutopilotLink:
         except AtlasError:
             self.counters.inc("attitude_rejected")
             return
-        arrival_wall_us = (wall_ns(self.wall) - (self.monotonic_ns() - arrival_ns)) // 1000
-        boot_us = int(msg.time_boot_ms) * 1000
-        since_us = (arrival_ns - self._attitude_taken_ns) // 1000 if self._attitude_taken_ns is not None else 0
-        if self._boot_clock.lead_us(boot_us, arrival_wall_us) > ATTITUDE_LEAD_US + ATTITUDE_DRIFT * since_us:
-            self.counters.inc("attitude_ahead")
-            if self._attitude_refused_since_ns is None:
-                self._attitude_refused_since_ns = arrival_ns
-            if arrival_ns - self._attitude_refused_since_ns < ATTITUDE_REMAP_NS:
-                return
-            _logger.warning("every ATTITUDE for %.0f s maps after its arrival: the clock stepped; mapped anew",
-                            ATTITUDE_REMAP_NS / NS)  # fmt: skip
-            self._boot_clock = BootClock()
-        self._attitude_refused_since_ns = None
-        self._attitude_taken_ns = arrival_ns
-        t_us = self._boot_clock.wall_us(boot_us, arrival_wall_us)
+        t_us = self._stamp(self._attitude_stream, msg, arrival_ns, "attitude")
+        if t_us is None:
+            return
         self.attitude.add(t_us, R)
         rate = autopilot.body_rates_flu(msg.rollspeed, msg.pitchspeed, msg.yawspeed)
         if rate is not None:  # a sender that fills no rates leaves them all zero
             self.rates.add(t_us, rate)
+
+    def _on_local_position(self, msg: Any, arrival_ns: int) -> None:
+        """LOCAL_POSITION_NED's velocity into the history (level ENU), stamped as ATTITUDE is."""
+        v = level_enu_of_ned(msg.vx, msg.vy, msg.vz)
+        if v is None:  # a sender that fills no velocity leaves it all zero
+            return
+        t_us = self._stamp(self._velocity_stream, msg, arrival_ns, "local_position")
+        if t_us is not None:
+            self.velocities.add(t_us, v)
 
     def _origin_tick(self, now_ns: int) -> None:
         """The EKF origin: asked for (MAV_CMD_REQUEST_MESSAGE GPS_GLOBAL_ORIGIN) every
@@ -294,6 +333,11 @@ class AutopilotLink:
                 self._on_attitude(msg, arrival_ns)
             else:
                 self.counters.inc("attitude_not_from_autopilot")
+        elif kind == "LOCAL_POSITION_NED":
+            if self.is_autopilot(msg):
+                self._on_local_position(msg, arrival_ns)
+            else:
+                self.counters.inc("local_position_not_from_autopilot")
         elif kind == "GPS_GLOBAL_ORIGIN":
             if not self.is_autopilot(msg):
                 self.counters.inc("origin_not_from_autopilot")

@@ -20,7 +20,7 @@ from atlas_onboard.core.graph import EntityPose
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.core.records import AutopilotPose, Inbound, PoseState, Telemetry
 from atlas_onboard.core.rejection import Rejection
-from atlas_onboard.core.shutter import BodyRate
+from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 from atlas_onboard.counters import Counters
 from atlas_onboard.mavlink import autopilot, codec, framing
 from atlas_onboard.mavlink.autopilot_link import (
@@ -133,6 +133,10 @@ class MavlinkTransport:
     def rate_at(self, t_us: int) -> BodyRate | None:
         """The autopilot's body rate at ``t_us`` (see :meth:`AutopilotLink.rate_at`)."""
         return self.autopilot_link.rate_at(t_us)
+
+    def velocity_at(self, t_us: int) -> BodyVelocity | None:
+        """The autopilot's velocity at ``t_us`` (see :meth:`AutopilotLink.velocity_at`)."""
+        return self.autopilot_link.velocity_at(t_us)
 
     def _hand_on(self, index: int) -> None:
         """The observations of one read of peer link ``index``, to the node together."""

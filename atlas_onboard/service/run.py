@@ -137,6 +137,7 @@ def run_node(
         if isinstance(camera, SensorWorker):
             camera.attitude_at = transport.attitude_at
             camera.rate_at = transport.rate_at
+            camera.velocity_at = transport.velocity_at
     node = Node(world, config, transport, cameras, notifier=Notifier.from_environ(), config_path=config_path)
     if refine is not None:
         node.enable_refinement(refine)

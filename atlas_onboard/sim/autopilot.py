@@ -21,7 +21,8 @@ in flight) and a heading offset (a compass's): the node must use neither the noi
 With ``rates`` (the body's true angular rates, FLU, at a wall time) ATTITUDE carries the gyros'
 rollspeed, pitchspeed and yawspeed of the same instant (:class:`~atlas_onboard.sim.gyro.Gyro`: white
 noise and a wandering bias); without, zeros, as an autopilot that does not fill them. ``clock_ppm``: the
-autopilot's clock runs that many parts per million fast (negative: slow) against the wall clock.
+autopilot's clock runs that many parts per million fast (negative: slow) against the wall clock. With ``velocity``
+(true, world ENU) LOCAL_POSITION_NED carries its EKF's velocity (:mod:`~atlas_onboard.sim.ekf_velocity`).
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core import frames
+from atlas_onboard.sim.ekf_velocity import EkfVelocity, EkfVelocityNoise
 from atlas_onboard.sim.gyro import Gyro, GyroNoise
 from atlas_onboard.sim.lander import Lander
 
@@ -138,6 +140,8 @@ class SimAutopilot:
     attitude_seed: int = 0
     rates: Callable[[float], np.ndarray | None] | None = None  # true body rates (FLU, rad/s) at a wall time (s)
     gyro: GyroNoise = field(default_factory=GyroNoise)
+    velocity: Callable[[float], np.ndarray | None] | None = None  # true velocity (world ENU, m/s) at a wall time (s)
+    ekf_velocity: EkfVelocityNoise = field(default_factory=EkfVelocityNoise)
     clock_ppm: float = 0.0  # the autopilot's clock against the wall clock (time_boot_ms)
     attitude_sent: int = 0
     attitude_interval_requests: int = 0  # MAV_CMD_SET_MESSAGE_INTERVAL for ATTITUDE received
@@ -186,6 +190,8 @@ class SimAutopilot:
         self._att_bias_rad = np.radians(rng.normal(0.0, self.attitude_bias_deg, 2))
         self._next_attitude_s = 0.0
         self._gyro = Gyro(self.gyro, self.attitude_seed * 7919 + 17)
+        self._ekf_velocity = EkfVelocity(self.ekf_velocity, self.attitude_seed * 7919 + 29, self.attitude_delay_s,
+                                         self.attitude_yaw_offset_deg)  # fmt: skip
         # (send at, t_meas, roll, pitch, yaw, body rates FRD)
         self._att_queue: list[tuple[float, float, float, float, float, tuple[float, float, float]]] = []
         self._next_local_s = 0.0
@@ -294,7 +300,7 @@ class SimAutopilot:
                 yaw, pitch, roll = R_ned_frd.as_euler("ZYX")
                 noise = self._att_rng.normal(0.0, math.radians(self.attitude_noise_deg), 2) + self._att_bias_rad
                 yaw += math.radians(self.attitude_yaw_offset_deg)
-                w = self._gyro_frd(now)
+                w = self._gyro.read_frd(now, self.rates(now) if self.rates is not None else None, self.attitude_hz)
                 self._att_queue.append((now + self.attitude_delay_s, now, roll + noise[0], pitch + noise[1], yaw, w))
         while self._att_queue and self._att_queue[0][0] <= now:
             _, t_meas, roll, pitch, yaw, w = self._att_queue.pop(0)
@@ -302,14 +308,6 @@ class SimAutopilot:
             yaw = math.atan2(math.sin(yaw), math.cos(yaw))
             self._send(self._mav.attitude_encode(boot_ms, roll, pitch, yaw, *w))
             self.attitude_sent += 1
-
-    def _gyro_frd(self, t_s: float) -> tuple[float, float, float]:
-        """The gyros' reading at wall time ``t_s`` in the body FRD frame (ATTITUDE's), zeros without ``rates``."""
-        true = self.rates(t_s) if self.rates is not None else None
-        if true is None:
-            return (0.0, 0.0, 0.0)
-        x, y, z = self._gyro.read(t_s, np.asarray(true, dtype=float), self.attitude_hz)
-        return (float(x), float(-y), float(-z))  # FLU -> FRD
 
     def _handle(self, msg: mavlink.MAVLink_message) -> None:
         kind = msg.get_type()
@@ -379,9 +377,11 @@ class SimAutopilot:
         self._next_local_s = now + 1.0 / self.local_position_hz
         with self._lock:
             last = self.received[-1] if self.received else None
-        if last is not None:
-            boot_ms = int((time.time() - self._boot_s) * 1000) & 0xFFFFFFFF
-            self._send(self._mav.local_position_ned_encode(boot_ms, *last.xyz_m, 0.0, 0.0, 0.0))
+        vision = None if last is None else (last.arrival_s, last.xyz_m)
+        sample = self._ekf_velocity.local_position(time.time(), vision, self.velocity)
+        if sample is not None:
+            boot_ms = int((sample.t_s - self._boot_s) * (1.0 + self.clock_ppm * 1e-6) * 1000) & 0xFFFFFFFF
+            self._send(self._mav.local_position_ned_encode(boot_ms, *sample.xyz_m, *sample.v_ned_m_s))
 
     def _set_origin(self, lat_deg: float, lon_deg: float, alt_m: float) -> None:
         if self.autopilot_type == mavlink.MAV_AUTOPILOT_PX4:

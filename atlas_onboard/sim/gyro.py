@@ -46,3 +46,12 @@ class Gyro:
         self._last_s = t_s
         white = n.density * math.sqrt(max(rate_hz, 0.0)) * self._rng.normal(0.0, 1.0, 3)
         return np.asarray(true_rate, dtype=float) + self.bias + white
+
+    def read_frd(
+        self, t_s: float, true_rate_flu: NDArray[np.float64] | None, rate_hz: float
+    ) -> tuple[float, float, float]:
+        """:meth:`read` of a body rate about FLU (None: none known, zeros) in the body FRD axes, ATTITUDE's."""
+        if true_rate_flu is None:
+            return (0.0, 0.0, 0.0)
+        x, y, z = self.read(t_s, np.asarray(true_rate_flu, dtype=float), rate_hz)
+        return (float(x), float(-y), float(-z))  # FLU -> FRD

@@ -78,8 +78,9 @@ class SimOptions:
     # folder (the ``camera.source: <folder>`` path, detector.sources), started at the run's epoch.
     replay: str = ""
     # The simulated autopilots' ATTITUDE carries the gyros' angular rates (False: zeros, as an autopilot
-    # that does not fill them).
+    # that does not fill them); their LOCAL_POSITION_NED at this rate carries their EKF's velocity (0: none).
     autopilot_rates: bool = True
+    local_position_hz: float = 30.0
 
 
 @dataclass
@@ -273,9 +274,13 @@ def run(options: SimOptions, progress: Callable[[str], None] | None = None) -> S
         trajectory = scenario.trajectories[name]
         return lambda t_wall: trajectory.body_rates(np.array([t_wall - epoch_at[0]]))[0] if epoch_at else None
 
+    def velocity_of(name: str) -> Callable[[float], Any]:
+        return lambda t: scenario.trajectories[name].velocity(np.array([t - epoch_at[0]]))[0] if epoch_at else None
+
     autopilots = {
         name: SimAutopilot(system_id=k, attitude=attitude_of(name), attitude_seed=options.seed + k,
-                           rates=rates_of(name), autopilot_type=autopilot_type(scenario, name)).start()
+                           rates=rates_of(name), autopilot_type=autopilot_type(scenario, name),
+                           velocity=velocity_of(name), local_position_hz=options.local_position_hz).start()
         for k, name in enumerate(scenario.drones, start=1)
     }  # fmt: skip
     flight = None if scenario.landing is None else Flight(scenario, autopilots[scenario.landing.entity], max(

@@ -23,7 +23,7 @@ from atlas_onboard.config import RefineConfig, SensorConfig, WorldConfig
 from atlas_onboard.core.attitude import CameraTurn
 from atlas_onboard.core.markerdata import MarkerData
 from atlas_onboard.detector.camera import CameraWorker
-from atlas_onboard.detector.motion import body_rate_at
+from atlas_onboard.detector.motion import body_rate_at, body_velocity_at
 from atlas_onboard.detector.sources import ImageFolder, ReplayClock
 from atlas_onboard.detector.workers import CameraDetectorSpec
 from atlas_onboard.sim.camera import FrameRenderer, frames_path
@@ -86,6 +86,7 @@ class SimCameraWorker(SensorWorker):
             if self.attitude_at is not None:  # the autopilot's, as a real camera's (CameraWorker)
                 info["R_prev_now"] = self._turn.since_last(self.attitude_at(round((epoch + t) * 1e6)))
             info["body_rate"] = body_rate_at(self.rate_at, round((epoch + t) * 1e6))
+            info["body_velocity"] = body_velocity_at(self.velocity_at, round((epoch + t) * 1e6))
             try:
                 found = self.detect.detect(t, sightings, info)
             except Exception:  # a detector bug must not kill the camera thread; the frame is lost
@@ -202,6 +203,7 @@ def rendered_detector(
             round((epoch + t) * 1e6),
             info.get("R_prev_now"),
             info.get("body_rate"),  # type: ignore[arg-type]
+            info.get("body_velocity"),  # type: ignore[arg-type]
         )
 
     return FrameHandler(detect, needs_truth=False, map_pose_changed=detector.map_pose_changed)

@@ -194,7 +194,7 @@ class _SlowDetector:
         self.rates: list[BodyRate | None] = []
         self.sensor = SensorConfig("c", 1, "drone", MOUNT)
 
-    def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None):
+    def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None, body_velocity=None):
         self.stamps.append(capture_time_us)
         self.turns.append(R_prev_now)
         self.rates.append(body_rate)

@@ -136,7 +136,7 @@ def test_the_joint_solve_of_a_moving_rolling_shutter_measures_the_velocity_its_p
     T_cam_world = T_world_cam.inv()
     sensor = world.sensors[1]
     markers = {m.id: m for m in world.markers.values() if m.entity != sensor.entity}
-    model = CameraMotionModel(CameraConfig(readout_ms=READOUT_MS), Rotation.identity(), H)
+    model = CameraMotionModel(CameraConfig(readout_ms=READOUT_MS), RigidTransform.identity(), H)
     rng = np.random.default_rng(12)
     ids = sorted(spots)
     errors: dict[bool, list] = {True: [], False: []}

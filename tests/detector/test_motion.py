@@ -15,6 +15,7 @@ from atlas_onboard.core.attitude import AttitudeHistory
 from atlas_onboard.core.shutter import (
     GYRO_SIGMA_RAD_S,
     BodyRate,
+    BodyVelocity,
     RowClock,
     timing_covariance,
     timing_pose_covariance,
@@ -23,7 +24,7 @@ from atlas_onboard.detector import pose
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.joint import JointSolve
-from atlas_onboard.detector.motion import CameraMotionModel, SeenSquare
+from atlas_onboard.detector.motion import DEAD_RECKONING_ACCEL_M_S2, VISION_GRACE_US, CameraMotionModel, SeenSquare
 from atlas_onboard.detector.pipeline import FrameReport
 from atlas_onboard.detector.records import SingleSolve
 from atlas_onboard.detector.sources import Frame
@@ -58,7 +59,8 @@ def rolling_corners(
 
 
 def _model(stamp_sigma_ms: float = 0.0) -> CameraMotionModel:
-    return CameraMotionModel(CameraConfig(readout_ms=READOUT_MS, stamp_sigma_ms=stamp_sigma_ms), Rotation.identity(), H)
+    camera = CameraConfig(readout_ms=READOUT_MS, stamp_sigma_ms=stamp_sigma_ms)
+    return CameraMotionModel(camera, RigidTransform.identity(), H)
 
 
 def _solve(
@@ -263,7 +265,8 @@ class _Recorder:
         self.sensor = SensorConfig(name="front", id=1, entity="drone", T_entity_sensor=RigidTransform.identity())
         self.rates: list[BodyRate | None] = []
 
-    def detect(self, gray: np.ndarray, t_us: int, R_prev_now: object = None, body_rate: BodyRate | None = None) -> list:
+    def detect(self, gray: np.ndarray, t_us: int, R_prev_now: object = None, body_rate: BodyRate | None = None,
+               body_velocity: object = None) -> list:  # fmt: skip
         self.rates.append(body_rate)
         return []
 
@@ -351,7 +354,7 @@ def test_a_global_shutter_frames_squares_are_left_as_they_are() -> None:
     """A frame read at one instant: every square's corners where they were found (to rounding), its
     covariance unchanged, no shear, whatever the camera's motion."""
     rng = np.random.default_rng(9)
-    model = CameraMotionModel(CameraConfig(readout_ms=0.0), Rotation.identity(), H)
+    model = CameraMotionModel(CameraConfig(readout_ms=0.0), RigidTransform.identity(), H)
     motion = replace(
         model.at(0, None), omega=np.radians([30.0, 10.0, -20.0]), omega_cov=0.1 * np.eye(3), omega_known=True,
         velocity=np.array([0.5, 0.0, 0.2]), velocity_cov=0.1 * np.eye(3), velocity_known=True,
@@ -364,3 +367,72 @@ def test_a_global_shutter_frames_squares_are_left_as_they_are() -> None:
         assert np.allclose(moved.corners, img, rtol=0.0, atol=1e-9)
         assert np.array_equal(moved.covariance, cov)
         assert moved.shear_px == 0.0
+
+
+MOUNT = RigidTransform.from_components([0.10, 0.0, -0.03], Rotation.from_euler("xyz", [-90.0, 0.0, -90.0], degrees=True)
+                                       * Rotation.from_euler("x", 65.0, degrees=True))  # fmt: skip
+
+
+def _camera_velocity_truth(v_body: np.ndarray, w_body: np.ndarray, dt: float = 1e-6) -> np.ndarray:
+    """The camera's velocity in its own axes, differentiated from the body's rigid motion (body at the origin
+    with identity attitude at t = 0, moving at ``v_body`` and turning at ``w_body`` in its own axes)."""
+
+    def p_world_camera(t: float) -> np.ndarray:
+        return v_body * t + Rotation.from_rotvec(w_body * t).apply(MOUNT.translation)
+
+    v_world = (p_world_camera(dt) - p_world_camera(-dt)) / (2 * dt)
+    return MOUNT.rotation.inv().apply(v_world)
+
+
+def test_the_autopilots_velocity_is_a_rolling_cameras_velocity_prior() -> None:
+    """With no poses of its own yet (the first frame after a gap), a rolling-shutter camera takes the
+    autopilot's velocity: the body's, swung over the mount's lever arm by the rate, in the camera's axes,
+    its covariance turned likewise."""
+    model = CameraMotionModel(CameraConfig(readout_ms=READOUT_MS), MOUNT, H)
+    v_body, w_body = np.array([0.5, -0.2, 0.1]), np.array([0.2, -0.1, 0.8])
+    rate = BodyRate(w_body, 0.01**2 * np.eye(3))
+    velocity = BodyVelocity(v_body, np.diag([0.05, 0.04, 0.03]) ** 2)
+    motion = model.at(1_000_000, rate, velocity)
+    assert motion.velocity_known
+    np.testing.assert_allclose(motion.velocity, _camera_velocity_truth(v_body, w_body), atol=1e-6)
+    M = MOUNT.rotation.inv().as_matrix()
+    added = motion.velocity_cov - M @ velocity.cov @ M.T  # the rate's error swung over the lever arm
+    assert np.linalg.eigvalsh(added).min() > -1e-15
+    assert np.trace(added) == pytest.approx(2.0 * 0.01**2 * float(MOUNT.translation @ MOUNT.translation))
+    without = model.at(1_000_000, rate)
+    assert not without.velocity_known  # nothing else to correct by: bounds only
+    no_rate = model.at(1_000_000, None, velocity)  # the turn unknown: its bound's swing is an error
+    np.testing.assert_allclose(no_rate.velocity, M @ v_body, atol=1e-12)
+    bound = no_rate.omega_second_moment()
+    swing = np.trace(bound) * float(MOUNT.translation @ MOUNT.translation) - float(
+        MOUNT.rotation.inv().apply(MOUNT.translation) @ bound @ MOUNT.rotation.inv().apply(MOUNT.translation)
+    )  # trace of [p]x S [p]x^T
+    assert np.trace(no_rate.velocity_cov - M @ velocity.cov @ M.T) == pytest.approx(swing)
+
+
+def test_the_autopilots_velocity_is_less_certain_after_a_gap_in_the_markers() -> None:
+    """The autopilot dead-reckons while the camera sees no world marker: its velocity, taken 1.2 s after the
+    camera's last marker, is less certain than the same velocity a frame after it, by the drift's rate over
+    the gap beyond what an EKF bridges."""
+    T_wm = RigidTransform.from_translation([0.05, 0.0, 0.0])
+    T_world_cam = RigidTransform.from_components([0.0, 0.0, 0.7], Rotation.from_euler("x", 180, degrees=True))
+    img = rolling_corners(T_world_cam.inv() * T_wm, SIZE, np.zeros(3), np.zeros(3))
+    velocity = BodyVelocity(np.array([0.3, 0.0, 0.0]), 0.05**2 * np.eye(3))
+    model = _model()
+    model.observe(1_000_000, [_seen(T_wm, img)])
+    after_frame = model.at(1_033_000, None, velocity)
+    after_gap = model.at(2_200_000, None, velocity)
+    grown = (DEAD_RECKONING_ACCEL_M_S2 * (1.2 - VISION_GRACE_US * 1e-6)) ** 2
+    np.testing.assert_allclose(after_gap.velocity_cov - after_frame.velocity_cov, grown * np.eye(3), atol=1e-15)
+
+
+def test_a_global_shutter_leaves_the_autopilots_velocity_unused() -> None:
+    """A frame read at one instant needs no velocity to move its corners: its motion is the same with or
+    without the autopilot's (the history's or the bounds, as before)."""
+    model = CameraMotionModel(CameraConfig(readout_ms=0.0, exposure_ms=8.0), MOUNT, H)
+    rate = BodyRate(np.array([0.1, 0.0, 0.3]), 0.01**2 * np.eye(3))
+    with_v = model.at(1_000_000, rate, BodyVelocity(np.array([0.5, 0.0, 0.0]), 0.05**2 * np.eye(3)))
+    without = model.at(1_000_000, rate)
+    for name in ("omega", "omega_cov", "velocity", "velocity_cov"):
+        assert np.array_equal(getattr(with_v, name), getattr(without, name))
+    assert (with_v.velocity_known, with_v.timing_sigma_s) == (without.velocity_known, without.timing_sigma_s)

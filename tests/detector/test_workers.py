@@ -33,7 +33,7 @@ class _Stand:
         self.counters: Counter[str] = Counter()
         self.crash_at = crash_at
 
-    def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None):
+    def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None, body_velocity=None):
         if capture_time_us == self.crash_at:
             raise RuntimeError("a bug")
         time.sleep(random.Random(capture_time_us).uniform(0.0, 0.03))
@@ -184,7 +184,7 @@ def test_one_core_a_detector_that_raises_is_counted_and_the_camera_goes_on(tmp_p
         cv2.imwrite(str(tmp_path / f"img{k:03d}.png"), np.full((8, 8), k, np.uint8))
 
     class Flaky(_Stand):
-        def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None):
+        def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None, body_velocity=None):
             if int(gray[0, 0]) == 2:
                 raise RuntimeError("a bug")
             self.counters["frames"] += 1

@@ -137,3 +137,30 @@ def test_attitude_rates_reach_the_cameras_in_body_flu() -> None:
     still._on_attitude(_attitude(1000, 0.0, 0.0, 0.0), clock.mono_ns())
     assert still.attitude.latest_us() is not None and still.rate_at(still.attitude.latest_us()) is None
     assert math.isfinite(float(np.trace(rate.cov)))
+
+
+def test_local_position_velocity_reaches_the_cameras_in_body_flu() -> None:
+    """LOCAL_POSITION_NED's velocity (NED) turned into the body's FLU axes by ATTITUDE at the same time: a
+    vehicle heading east (yaw 90 deg) flying east at 0.6 m/s and climbing at 0.1 m/s moves along its forward
+    and up axes; none from another system (counted), none when the sender left the velocity at zero."""
+    clock = Clock()
+    ap = _link(clock)
+    ap._on_message(None, _heartbeat(1), 0)
+    for k in range(6):
+        clock.s += 0.02
+        boot = 1000 + 20 * k
+        ap._on_message(None, _from(D.MAVLink_attitude_message(boot, 0, 0, math.pi / 2, 0, 0, 0), 1, 1), clock.mono_ns())
+        lp = D.MAVLink_local_position_ned_message(boot, 1.0, 2.0, -1.0, 0.0, 0.6, -0.1)
+        ap._on_message(None, _from(lp, 1, 1), clock.mono_ns())
+    t = ap.velocities.latest_us()
+    assert t is not None
+    v = ap.velocity_at(t - 10_000)
+    assert v is not None
+    np.testing.assert_allclose(v.velocity_flu, [0.6, 0.0, 0.1], atol=1e-6)
+    assert np.all(np.linalg.eigvalsh(v.cov) > 0)
+    other = D.MAVLink_local_position_ned_message(2000, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0)
+    ap._on_message(None, _from(other, 2, 1), clock.mono_ns())
+    assert ap.counters["local_position_not_from_autopilot"] == 1 and ap.velocities.latest_us() == t
+    still = D.MAVLink_local_position_ned_message(2000, 1.0, 2.0, -1.0, 0.0, 0.0, 0.0)  # position only
+    ap._on_message(None, _from(still, 1, 1), clock.mono_ns())
+    assert ap.velocities.latest_us() == t

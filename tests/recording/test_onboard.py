@@ -42,7 +42,7 @@ class _SlowDetector:
         self.counters: dict[str, int] = {}
         self.seen: list[tuple[int, int]] = []  # (stamp us, grey level = 20 * recorded frame number)
 
-    def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None):
+    def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None, body_velocity=None):
         self.seen.append((capture_time_us, int(gray[0, 0])))
         time.sleep(self.delay_s)
         return []
