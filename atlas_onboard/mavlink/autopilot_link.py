@@ -32,14 +32,12 @@ from atlas_onboard.mavlink.link import Link
 _logger = logging.getLogger(__name__)
 
 NS = 1_000_000_000
-MAV_AUTOPILOT_PX4 = autopilot.MAV_AUTOPILOT_PX4
 MAV_COMP_ID_AUTOPILOT1 = 1
 ORIGIN_REQUEST_NS = NS // 2  # GPS_GLOBAL_ORIGIN asked for this often until the autopilot reports one
 ORIGIN_UNANSWERED = 2  # requests unanswered before SET_GPS_GLOBAL_ORIGIN (then twice as many each time)
 ATTITUDE_INTERVAL_US = 20_000  # ATTITUDE asked for at 50 Hz (MAV_CMD_SET_MESSAGE_INTERVAL) when it does not come
 ATTITUDE_WAIT_NS = 2 * NS  # silence after which ATTITUDE is asked for again (at most ATTITUDE_ASKS times)
 ATTITUDE_ASKS = 5
-MAV_AUTOPILOT_INVALID = autopilot.MAV_AUTOPILOT_INVALID
 AUTOPILOT_WAIT_NS = 3 * NS  # an autopilot of another system id is taken only after this without the configured one
 ATTITUDE_LEAD_US = 20_000
 """An ATTITUDE stamped so that it maps this far after its own arrival (plus ATTITUDE_DRIFT of the time
@@ -258,7 +256,7 @@ class AutopilotLink:
             return
         if self.autopilot_type is None or now_ns < self._next_origin_ns:
             return  # the autopilot's HEARTBEAT first: what to send depends on which autopilot it is
-        px4 = self.autopilot_type == MAV_AUTOPILOT_PX4
+        px4 = self.autopilot_type == autopilot.MAV_AUTOPILOT_PX4
         if px4 and not ap.origin.send_to_px4:
             if not self._origin_skipped:
                 self._origin_skipped = True
@@ -285,7 +283,7 @@ class AutopilotLink:
 
     def _on_heartbeat(self, msg: Any, arrival_ns: int) -> None:
         """Pin the autopilot (see the module); an autopilot-typed HEARTBEAT from anyone else is counted."""
-        if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.get_srcComponent() != MAV_COMP_ID_AUTOPILOT1:
+        if msg.autopilot == autopilot.MAV_AUTOPILOT_INVALID or msg.get_srcComponent() != MAV_COMP_ID_AUTOPILOT1:
             return  # a GCS, a companion, another component of the vehicle: never the autopilot
         if self._signed_only and not framing.is_signed(msg):
             self.counters.inc("heartbeat_not_from_autopilot")

@@ -18,9 +18,9 @@ from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import NodeConfig, WorldConfig
 from atlas_onboard.core import frames, mounting
+from atlas_onboard.mavlink.autopilot import MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_PX4
 from atlas_onboard.mavlink.samples import AttitudeSample, PositionSample, Tap, VisionSample
 
-MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_PX4 = 3, 12
 MIN_RATE_HZ = 10.0  # below this neither EKF holds a position on vision
 GAP_S = {MAV_AUTOPILOT_PX4: 0.2, MAV_AUTOPILOT_ARDUPILOTMEGA: 0.3}
 MAX_GAP_SHARE = 0.05  # of the window spent in gaps longer than GAP_S

@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from atlas_onboard.mavlink.autopilot import MAV_AUTOPILOT_ARDUPILOTMEGA, MAV_AUTOPILOT_PX4
 from atlas_onboard.mavlink.samples import AttitudeSample, PositionSample, Tap, VisionSample
 from atlas_onboard.preflight.checks import (
-    MAV_AUTOPILOT_ARDUPILOTMEGA,
-    MAV_AUTOPILOT_PX4,
     Verdict,
     check_delay,
     check_local_position,
