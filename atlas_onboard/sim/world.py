@@ -248,17 +248,15 @@ class SimWorld:
             entity = [_matrix(truth[ent])]
             if rolling_t_s is not None:
                 entity += list(self._world_poses(ent, np.array(times[1:]), truth))
-            lo = hi = None
+            pxs = []
             for k, (M_sw, M_we) in enumerate(zip(sensors, entity, strict=True)):
                 M = (M_sw @ M_we) @ M_em  # (k, 4, 4)
                 corners = corners_m @ np.swapaxes(M[:, :3, :3], 1, 2) + M[:, None, :3, 3]  # (k, 4, 3)
                 z = corners[..., 2]
                 if k == 0:
                     ok = np.all(z >= 0.05 - 1e-9, axis=1)
-                px = intr.project(np.where(z[..., None] > 0.01, corners, 1.0).reshape(-1, 3)).reshape(-1, 4, 2)
-                lo = px if lo is None else np.minimum(lo, px)
-                hi = px if hi is None else np.maximum(hi, px)
-            assert lo is not None and hi is not None
+                pxs.append(intr.project(np.where(z[..., None] > 0.01, corners, 1.0).reshape(-1, 3)).reshape(-1, 4, 2))
+            lo, hi = np.min(pxs, axis=0), np.max(pxs, axis=0)
             ok &= np.all((hi[..., 0] >= m_) & (lo[..., 0] <= intr.width_px - 1 - m_), axis=1)
             ok &= np.all((hi[..., 1] >= m_) & (lo[..., 1] <= intr.height_px - 1 - m_), axis=1)
             keep += [i for i, good in zip(index, ok, strict=True) if good]
@@ -278,16 +276,9 @@ class SimWorld:
         M[:, :3, 3] = p
         return M
 
-    def _imaged(
-        self,
-        sensor_id: int,
-        marker: MarkerConfig,
-        M_entity_marker: NDArray[np.float64],
-        corners_m: NDArray[np.float64],
-        truth: Mapping[str, RigidTransform | NDArray[np.float64]],
-        t_s: float,
-        px: NDArray[np.float64],
-    ) -> NDArray[np.float64] | None:
+    def _imaged(self, sensor_id: int, marker: MarkerConfig, M_entity_marker: NDArray[np.float64],
+                corners_m: NDArray[np.float64], truth: Mapping[str, RigidTransform | NDArray[np.float64]],
+                t_s: float, px: NDArray[np.float64]) -> NDArray[np.float64] | None:  # fmt: skip
         """Where a rolling-shutter camera images a marker's corners ``corners_m`` (marker frame) in its frame
         stamped ``t_s``, each with the camera's and the marker's poses at the instant of the row it falls
         on; ``px``: where the stamp's poses image them. The row and its instant are found by turns, each
