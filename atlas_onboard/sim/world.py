@@ -2,9 +2,8 @@
 each camera can see (for rendering order and for the expected availability of each entity).
 
 A marker is in view when the detector can use it: every corner, where the camera images it (a rolling
-shutter's at its own row's instant), lies at least the detector's ``BORDER_MARGIN_PX`` inside the image.
-Nearer the border the corner refit's edge samples (and the search across each edge) would reach past the
-image, and the detector refuses the marker: the simulator's idea of "in view" is the same rule."""
+shutter's at its own row's instant), at least the detector's ``BORDER_MARGIN_PX`` inside the image (nearer,
+the corner refit's search across each edge would reach past the image, and the detector refuses it)."""
 
 from __future__ import annotations
 
@@ -231,9 +230,7 @@ class SimWorld:
         :meth:`sightings` would keep. A rolling shutter's frame at ``rolling_t_s``: each corner anywhere
         between where the first row's and the last row's instants image it (over one readout the image
         moves along a line to well under the pixel of margin)."""
-        intr = self.cameras[sensor_id][1]
-        sensors = [M_sensor_world]
-        times = [0.0]
+        intr, sensors, times = self.cameras[sensor_id][1], [M_sensor_world], [0.0]
         if rolling_t_s is not None:
             half = self._row_clocks[sensor_id].readout_s / 2.0
             times = [rolling_t_s, rolling_t_s - half, rolling_t_s + half]
