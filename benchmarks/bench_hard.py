@@ -12,7 +12,12 @@ what the autopilot received, at each message's capture time:
 - position and pose NEES (about 3 and 6 when the covariance is honest);
 - availability against the time a tag is fully in view (``cover``: the share of the time an ideal
   node that publishes every frame in which a tag is fully in view holds a pose at most 200 ms old, in
-  which the autopilot held one too), and the sim's ``avail`` / ``expect``;
+  which the autopilot held one too), and the sim's ``avail`` / ``expect``. Fully in view is the
+  detector's own rule (``SimWorld.sightings``): every corner, where the camera images it (a rolling
+  shutter's at the instant of its own row), at least the detector's ``BORDER_MARGIN_PX`` inside the
+  image. A corner nearer the border is refused because the corner refit fits each edge to samples
+  searched up to that far across it: nearer, they would read past the image, and the corner would be
+  an extrapolation (docs/cameras.md). No node can publish from such a frame, so the ideal does not;
 - camera frames the node skipped because it fell behind real time (a loaded machine), of all frames;
 - reset_counter changes, those at a real re-acquisition (after at least ``edge_timeout`` with no tag
   fully in view), and the number of re-acquisitions.

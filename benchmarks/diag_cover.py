@@ -2,8 +2,10 @@
 
 The scene's frames in capture order through the node's detector (the autopilot's rate and velocity as the
 node holds them: bench_hard's ``node_rates`` and ``node_velocities``); every frame the benchmark's ideal node
-counts (a tag fully in view, ``SimWorld.visible_frames``) from which the detector gives the drone no
-observation, with the detector's reason, and every stretch of frames in view. Then the cover an ideal node
+counts (a tag fully in view, ``SimWorld.visible_frames``: every corner where the camera images it, a
+rolling shutter's at its own row's instant, at least the detector's ``BORDER_MARGIN_PX`` inside the image;
+see bench_hard) from which the detector gives the drone no observation, with the detector's reason, and
+every stretch of frames in view. Then the cover an ideal node
 would have if it published every such frame, and the detector's frames only, each ``latency`` after its
 capture: what the frames dropped and the capture-to-arrival delay at each re-acquisition cost, before any
 live run's own misses (frames skipped behind real time). Its bar: the cover the detector's frames allow at

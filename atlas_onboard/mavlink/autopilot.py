@@ -38,9 +38,11 @@ from atlas_onboard.mavlink.covariance import (
     quality_percent,
 )
 
+MAV_FRAME_LOCAL_NED = 1
 MAV_FRAME_BODY_FRD = 12
 MAV_FRAME_LOCAL_FRD = 20
 MAV_ESTIMATOR_TYPE_VISION = 2
+MAV_ESTIMATOR_TYPE_VIO = 3
 MAV_TYPE_ONBOARD_CONTROLLER = 18
 MAV_AUTOPILOT_INVALID = 8
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
@@ -298,6 +300,33 @@ def attitude_quaternion_level_flu(q_wxyz: Sequence[float]) -> Rotation:
     if not all(math.isfinite(v) for v in (w, x, y, z)) or w * w + x * x + y * y + z * z < 1e-12:
         raise AtlasError(f"expected a finite non-zero quaternion, got {tuple(q_wxyz)!r}")
     return frames.R_ENU_NED * Rotation.from_quat([x, y, z, w]) * frames.R_FLU_FRD.inv()
+
+
+def odometry_velocity_ned(
+    frame_id: int, child_frame_id: int, q_wxyz: Sequence[float], v: Sequence[float], estimator_type: int
+) -> NDArray[np.float64] | None:
+    """The velocity (m/s) of an autopilot's ODOMETRY in its local frame's axes (x north or the frame's own
+    forward, y east or right, z down: the frame of ATTITUDE's heading), from ``v`` (vx vy vz) in
+    ``child_frame_id``'s axes: LOCAL_NED or LOCAL_FRD as it is, BODY_FRD turned by ``q`` (w, x, y, z; body FRD
+    in ``frame_id``). PX4 streams ODOMETRY from its estimator in LOCAL_NED (LOCAL_FRD without a heading) with
+    its velocity in LOCAL_NED, LOCAL_FRD or BODY_FRD. None when the velocity is not all finite or all exactly
+    zero (not filled). Raises AtlasError for another frame, or for an external vision's estimate looped back
+    (estimator VISION or VIO: our own poses, not the autopilot's)."""
+    if estimator_type in (MAV_ESTIMATOR_TYPE_VISION, MAV_ESTIMATOR_TYPE_VIO):
+        raise AtlasError(f"ODOMETRY of estimator type {estimator_type} is an external vision's, not the autopilot's")
+    if frame_id not in (MAV_FRAME_LOCAL_NED, MAV_FRAME_LOCAL_FRD):
+        raise AtlasError(f"expected ODOMETRY in frame LOCAL_NED or LOCAL_FRD, got frame_id {frame_id}")
+    vel = np.array([float(a) for a in v])
+    if not np.all(np.isfinite(vel)) or not np.any(vel):
+        return None
+    if child_frame_id in (MAV_FRAME_LOCAL_NED, MAV_FRAME_LOCAL_FRD):
+        return vel
+    if child_frame_id != MAV_FRAME_BODY_FRD:
+        raise AtlasError(f"expected ODOMETRY's velocity in LOCAL_NED, LOCAL_FRD or BODY_FRD, got {child_frame_id}")
+    w, x, y, z = (float(a) for a in q_wxyz)
+    if not all(math.isfinite(a) for a in (w, x, y, z)) or w * w + x * x + y * y + z * z < 1e-12:
+        raise AtlasError(f"expected a finite non-zero quaternion, got {tuple(q_wxyz)!r}")
+    return Rotation.from_quat([x, y, z, w]).apply(vel)
 
 
 def set_message_interval_fields(

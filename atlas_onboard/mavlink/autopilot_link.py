@@ -5,9 +5,9 @@ The autopilot is one (system, component), pinned for the link's life: the first 
 HEARTBEAT from component 1 of the configured system id (``system_id``, the autopilot's), or, when none
 came for AUTOPILOT_WAIT_NS, from another system (a misconfigured id: warned). No other HEARTBEAT
 replaces it (behind a router, other vehicles' flight controllers and ground stations talk too), and
-ATTITUDE, LOCAL_POSITION_NED, TIMESYNC, GPS_GLOBAL_ORIGIN and the autopilot type count only from it. On a link with
-``signing`` and ``require`` (an autopilot that signs: docs/mavlink-router.md), only from its signed
-frames."""
+ATTITUDE, LOCAL_POSITION_NED (or ODOMETRY), TIMESYNC, GPS_GLOBAL_ORIGIN and the autopilot type count only
+from it. On a link with ``signing`` and ``require`` (an autopilot that signs: docs/mavlink-router.md), only
+from its signed frames."""
 
 from __future__ import annotations
 
@@ -107,6 +107,7 @@ class AutopilotLink:
         # its own clock mapping, so that the attitude's is the same with or without it ---
         self.velocities = VelocityHistory()
         self._velocity_stream = _Stream()
+        self._odometry_stream = _Stream()  # ODOMETRY's velocity, where LOCAL_POSITION_NED's does not come
 
     def may_be_autopilot(self, msg: Any) -> bool:
         """Whether ``msg`` may prove a UDP source address the autopilot's: from the pinned autopilot's
@@ -197,10 +198,10 @@ class AutopilotLink:
         self.counters.inc(counter)
 
     def _stamp(self, stream: _Stream, msg: Any, arrival_ns: int, name: str) -> int | None:
-        """The wall time (us) of a sample stamped ``time_boot_ms`` (see BootClock), or None when refused as
-        mapping after its arrival (counted ``<name>_ahead``)."""
+        """The wall time (us) of a sample stamped ``time_boot_ms`` (ODOMETRY: ``time_usec``; see BootClock),
+        or None when refused as mapping after its arrival (counted ``<name>_ahead``)."""
         arrival_wall_us = (wall_ns(self.wall) - (self.monotonic_ns() - arrival_ns)) // 1000
-        boot_us = int(msg.time_boot_ms) * 1000
+        boot_us = int(msg.time_usec) if msg.get_type() == "ODOMETRY" else int(msg.time_boot_ms) * 1000
         since_us = (arrival_ns - stream.taken_ns) // 1000 if stream.taken_ns is not None else 0
         if stream.clock.lead_us(boot_us, arrival_wall_us) > ATTITUDE_LEAD_US + ATTITUDE_DRIFT * since_us:
             self.counters.inc(f"{name}_ahead")
@@ -239,6 +240,27 @@ class AutopilotLink:
         if v is None:  # a sender that fills no velocity leaves it all zero
             return
         t_us = self._stamp(self._velocity_stream, msg, arrival_ns, "local_position")
+        if t_us is not None:
+            self.velocities.add(t_us, v)
+
+    def _on_odometry(self, msg: Any, arrival_ns: int) -> None:
+        """ODOMETRY's velocity into the history (level ENU), for an autopilot that streams it and no
+        LOCAL_POSITION_NED velocity (a PX4 set up so); on its own clock mapping, and none while a
+        LOCAL_POSITION_NED velocity came within ATTITUDE_WAIT_NS (one stream in the history, not two)."""
+        taken_ns = self._velocity_stream.taken_ns
+        if taken_ns is not None and arrival_ns - taken_ns < ATTITUDE_WAIT_NS:
+            return
+        try:
+            v_ned = autopilot.odometry_velocity_ned(
+                msg.frame_id, msg.child_frame_id, msg.q, (msg.vx, msg.vy, msg.vz), msg.estimator_type
+            )
+        except AtlasError:
+            self.counters.inc("odometry_velocity_rejected")
+            return
+        v = None if v_ned is None else level_enu_of_ned(*v_ned)
+        if v is None:  # a sender that fills no velocity
+            return
+        t_us = self._stamp(self._odometry_stream, msg, arrival_ns, "odometry")
         if t_us is not None:
             self.velocities.add(t_us, v)
 
@@ -336,6 +358,11 @@ class AutopilotLink:
                 self._on_local_position(msg, arrival_ns)
             else:
                 self.counters.inc("local_position_not_from_autopilot")
+        elif kind == "ODOMETRY":
+            if self.is_autopilot(msg):
+                self._on_odometry(msg, arrival_ns)
+            else:
+                self.counters.inc("odometry_not_from_autopilot")
         elif kind == "GPS_GLOBAL_ORIGIN":
             if not self.is_autopilot(msg):
                 self.counters.inc("origin_not_from_autopilot")

@@ -1,5 +1,9 @@
 """The simulated world at time t: ground truth of every entity, camera intrinsics, and which marker
-each camera can see (for rendering order and for the expected availability of each entity)."""
+each camera can see (for rendering order and for the expected availability of each entity).
+
+A marker is in view when the detector can use it: every corner, where the camera images it (a rolling
+shutter's at its own row's instant), at least the detector's ``BORDER_MARGIN_PX`` inside the image (nearer,
+the corner refit's search across each edge would reach past the image, and the detector refuses it)."""
 
 from __future__ import annotations
 
@@ -13,6 +17,9 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WORLD, MarkerConfig, SensorConfig, WorldConfig
+from atlas_onboard.config.settings import READOUT_BOTTOM_UP
+from atlas_onboard.core.shutter import RowClock
+from atlas_onboard.detector.search import BORDER_MARGIN_PX
 from atlas_onboard.sim.scenario import Optics, Scenario
 
 if TYPE_CHECKING:
@@ -24,7 +31,7 @@ FRESH_STEP_S = 0.005
 
 MIN_SIDE_PX = 16.0  # a tag36h11 needs about 2 px per cell (8 cells across) to decode
 MAX_VIEW_ANGLE_DEG = 70.0
-EDGE_MARGIN_PX = 3.0
+ROW_PASSES = 3  # turns to find a rolling-shutter corner's row and that row's instant (SimWorld._imaged)
 
 
 @dataclass(frozen=True)
@@ -81,8 +88,8 @@ class Sighting:
 
     sensor: SensorConfig
     marker: MarkerConfig
-    M_sensor_marker: NDArray[np.float64]  # (4, 4) rigid
-    corners_px: NDArray[np.float64]  # (4, 2)
+    M_sensor_marker: NDArray[np.float64]  # (4, 4) rigid, at the frame's stamp
+    corners_px: NDArray[np.float64]  # (4, 2) where the camera images them (rolling shutter: each at its row's instant)
     distance_m: float
 
     @property
@@ -106,6 +113,12 @@ class SimWorld:
                         s.camera.width_px, s.camera.height_px, scenario.optics_of(ent.name, s.name)
                     )
                     self.cameras[s.id] = (s, intr)
+        # When each row is exposed, relative to the frame's stamp (the renderer's row times).
+        self._row_clocks = {
+            sid: RowClock(s.camera.readout_ms / 1000.0, intr.height_px, s.camera.readout_order == READOUT_BOTTOM_UP)
+            for sid, (s, intr) in self.cameras.items()
+            if s.camera is not None
+        }
         # 4x4 matrices of the fixed mountings: sightings are computed with plain matrix products
         # (scipy's RigidTransform costs a few hundred microseconds an operation).
         self._T_entity_sensor = {sid: s.T_entity_sensor.as_matrix() for sid, (s, _) in self.cameras.items()}
@@ -148,9 +161,11 @@ class SimWorld:
     def sightings(
         self, sensor_id: int, truth: Mapping[str, RigidTransform | NDArray[np.float64]], t_s: float | None = None
     ) -> list[Sighting]:
-        """Markers the camera sees: in the image, facing it, big enough, not hidden by a nearer marker,
-        and none while the scenario's occlusions block the camera's view at ``t_s`` (when given).
-        ``truth``: each entity's ``T_world_entity``, as a transform or a 4x4 matrix.
+        """Markers the camera sees: every corner at least ``BORDER_MARGIN_PX`` inside the image (with a
+        rolling shutter and ``t_s`` given, each corner where its own row's instant images it), facing the
+        camera, big enough, not hidden by a nearer marker, and none while the scenario's occlusions block
+        the camera's view at ``t_s`` (when given). ``truth``: each entity's ``T_world_entity`` (at ``t_s``),
+        as a transform or a 4x4 matrix.
 
         Sorted far to near, the order in which a renderer paints them.
         """
@@ -161,7 +176,8 @@ class SimWorld:
         M_sensor_world = _rigid_inverse(M_world_sensor)
         M_sensor_entity: dict[str, NDArray[np.float64]] = {}
         candidates = []
-        for k in self._maybe_in_view(sensor_id, sensor.entity, M_sensor_world, truth):
+        rolling = t_s is not None and self._row_clocks[sensor_id].readout_s > 0
+        for k in self._maybe_in_view(sensor_id, sensor.entity, M_sensor_world, truth, t_s if rolling else None):
             m, M_entity_marker, corners_m = self._markers[k]
             if m.entity not in M_sensor_entity:
                 M_sensor_entity[m.entity] = M_sensor_world @ _matrix(truth[m.entity])
@@ -176,7 +192,13 @@ class SimWorld:
             if np.degrees(np.arccos(np.clip(normal @ to_camera, -1, 1))) > MAX_VIEW_ANGLE_DEG:
                 continue
             px = intr.project(corners)
-            m_ = EDGE_MARGIN_PX
+            if rolling:
+                assert t_s is not None
+                imaged = self._imaged(sensor_id, m, M_entity_marker, corners_m, truth, t_s, px)
+                if imaged is None:
+                    continue
+                px = imaged
+            m_ = BORDER_MARGIN_PX
             if np.any(px[:, 0] < m_) or np.any(px[:, 0] > intr.width_px - 1 - m_):
                 continue
             if np.any(px[:, 1] < m_) or np.any(px[:, 1] > intr.height_px - 1 - m_):
@@ -199,27 +221,77 @@ class SimWorld:
         own: str,
         M_sensor_world: NDArray[np.float64],
         truth: Mapping[str, RigidTransform | NDArray[np.float64]],
+        rolling_t_s: float | None = None,
     ) -> list[int]:
         """Indices (into ``_markers``, in order) of the markers of other entities whose corners all
         lie in front of the camera and inside its image, up to a pixel: every marker at once, so that
         :meth:`sightings` tests one by one only the few that may be seen. The margin covers the
         rounding of products taken in another order there: this test never drops a marker that
-        :meth:`sightings` would keep."""
-        intr = self.cameras[sensor_id][1]
+        :meth:`sightings` would keep. A rolling shutter's frame at ``rolling_t_s``: each corner anywhere
+        between where the first row's and the last row's instants image it (over one readout the image
+        moves along a line to well under the pixel of margin)."""
+        intr, sensors, times = self.cameras[sensor_id][1], [M_sensor_world], [0.0]
+        if rolling_t_s is not None:
+            half = self._row_clocks[sensor_id].readout_s / 2.0
+            times = [rolling_t_s, rolling_t_s - half, rolling_t_s + half]
+            sensor = self.cameras[sensor_id][0]
+            M_ws = self._world_poses(sensor.entity, np.array(times[1:]), truth) @ self._T_entity_sensor[sensor_id]
+            sensors += [_rigid_inverse(M) for M in M_ws]
         keep: list[int] = []
+        m_ = BORDER_MARGIN_PX - 1.0
         for ent, (index, M_em, corners_m) in self._marker_stacks.items():
             if ent == own:
                 continue
-            M = (M_sensor_world @ _matrix(truth[ent])) @ M_em  # (k, 4, 4)
-            corners = corners_m @ np.swapaxes(M[:, :3, :3], 1, 2) + M[:, None, :3, 3]  # (k, 4, 3)
-            z = corners[..., 2]
-            ok = np.all(z >= 0.05 - 1e-9, axis=1)
-            px = intr.project(np.where(z[..., None] > 0.01, corners, 1.0).reshape(-1, 3)).reshape(-1, 4, 2)
-            m_ = EDGE_MARGIN_PX - 1.0
-            ok &= np.all((px[..., 0] >= m_) & (px[..., 0] <= intr.width_px - 1 - m_), axis=1)
-            ok &= np.all((px[..., 1] >= m_) & (px[..., 1] <= intr.height_px - 1 - m_), axis=1)
+            entity = [_matrix(truth[ent])]
+            if rolling_t_s is not None:
+                entity += list(self._world_poses(ent, np.array(times[1:]), truth))
+            pxs = []
+            for k, (M_sw, M_we) in enumerate(zip(sensors, entity, strict=True)):
+                M = (M_sw @ M_we) @ M_em  # (k, 4, 4)
+                corners = corners_m @ np.swapaxes(M[:, :3, :3], 1, 2) + M[:, None, :3, 3]  # (k, 4, 3)
+                z = corners[..., 2]
+                if k == 0:
+                    ok = np.all(z >= 0.05 - 1e-9, axis=1)
+                pxs.append(intr.project(np.where(z[..., None] > 0.01, corners, 1.0).reshape(-1, 3)).reshape(-1, 4, 2))
+            lo, hi = np.min(pxs, axis=0), np.max(pxs, axis=0)
+            ok &= np.all((hi[..., 0] >= m_) & (lo[..., 0] <= intr.width_px - 1 - m_), axis=1)
+            ok &= np.all((hi[..., 1] >= m_) & (lo[..., 1] <= intr.height_px - 1 - m_), axis=1)
             keep += [i for i, good in zip(index, ok, strict=True) if good]
         return sorted(keep)
+
+    def _world_poses(
+        self, name: str, times: NDArray[np.float64], truth: Mapping[str, RigidTransform | NDArray[np.float64]]
+    ) -> NDArray[np.float64]:
+        """``T_world_entity`` (len(times), 4, 4) of ``name`` at ``times`` (s): its trajectory's, or its pose in
+        ``truth`` (an entity without a trajectory stays where it is)."""
+        traj = self.scenario.trajectories.get(name)
+        if traj is None:
+            return np.tile(_matrix(truth[name]), (len(times), 1, 1))
+        p, q = traj.pose(times)
+        M = np.tile(np.eye(4), (len(times), 1, 1))
+        M[:, :3, :3] = Rotation.from_quat(q).as_matrix()
+        M[:, :3, 3] = p
+        return M
+
+    def _imaged(self, sensor_id: int, marker: MarkerConfig, M_entity_marker: NDArray[np.float64],
+                corners_m: NDArray[np.float64], truth: Mapping[str, RigidTransform | NDArray[np.float64]],
+                t_s: float, px: NDArray[np.float64]) -> NDArray[np.float64] | None:  # fmt: skip
+        """Where a rolling-shutter camera images a marker's corners ``corners_m`` (marker frame) in its frame
+        stamped ``t_s``, each with the camera's and the marker's poses at the instant of the row it falls
+        on; ``px``: where the stamp's poses image them. The row and its instant are found by turns, each
+        shrinking the row's error by the image's vertical speed times the readout per row (hundredths).
+        None when a corner is then behind the camera."""
+        sensor, intr = self.cameras[sensor_id]
+        clock = self._row_clocks[sensor_id]
+        for _ in range(ROW_PASSES):
+            times = t_s + clock.dt_s(np.clip(px[:, 1], 0.0, intr.height_px - 1.0))
+            M_ws = self._world_poses(sensor.entity, times, truth) @ self._T_entity_sensor[sensor_id]
+            M_sm = np.linalg.inv(M_ws) @ self._world_poses(marker.entity, times, truth) @ M_entity_marker
+            corners = np.einsum("kij,kj->ki", M_sm[:, :3, :3], corners_m) + M_sm[:, :3, 3]
+            if np.any(corners[:, 2] < 0.05):
+                return None
+            px = intr.project(corners)
+        return px
 
     def observed_edges(
         self, t: float, truth: Mapping[str, RigidTransform | NDArray[np.float64]] | None = None

@@ -202,3 +202,42 @@ def test_odometry_quality_comes_from_the_covariance():
 def test_heartbeat_status_follows_the_pose():
     assert [autopilot.heartbeat_fields(s)["system_status"] for s in (3, 4, 5)] == [3, 4, 5]
     assert all(len(name) <= 10 for name in autopilot.TELEMETRY_NAMES)
+
+
+_unit = st.floats(-1.0, 1.0, allow_nan=False)
+
+
+@given(
+    st.tuples(_unit, _unit, _unit, _unit).filter(lambda q: sum(a * a for a in q) > 0.01),
+    st.tuples(*(st.floats(-5.0, 5.0, allow_nan=False) for _ in range(3))).filter(lambda v: max(map(abs, v)) > 1e-3),
+)
+@settings(max_examples=200, deadline=None)
+def test_odometry_velocity_in_the_body_is_turned_into_the_local_frame_by_its_attitude(q_wxyz, v_ned):
+    """An autopilot's ODOMETRY with its velocity in BODY_FRD (its attitude ``q``, body FRD in local NED) gives
+    back the velocity in local NED; the same velocity sent in LOCAL_NED or LOCAL_FRD is taken as it is."""
+    w, x, y, z = q_wxyz
+    R = Rotation.from_quat([x, y, z, w])
+    v_body = R.inv().apply(v_ned)
+    got = autopilot.odometry_velocity_ned(
+        autopilot.MAV_FRAME_LOCAL_NED, autopilot.MAV_FRAME_BODY_FRD, q_wxyz, v_body, 8
+    )
+    np.testing.assert_allclose(got, v_ned, atol=1e-9)
+    for child in (autopilot.MAV_FRAME_LOCAL_NED, autopilot.MAV_FRAME_LOCAL_FRD):
+        same = autopilot.odometry_velocity_ned(autopilot.MAV_FRAME_LOCAL_FRD, child, q_wxyz, v_ned, 8)
+        np.testing.assert_allclose(same, v_ned, atol=0)
+
+
+def test_odometry_velocity_refuses_other_frames_and_our_own_vision_looped_back():
+    ned, frd, body = autopilot.MAV_FRAME_LOCAL_NED, autopilot.MAV_FRAME_LOCAL_FRD, autopilot.MAV_FRAME_BODY_FRD
+    q = (1.0, 0.0, 0.0, 0.0)
+    assert autopilot.odometry_velocity_ned(ned, body, q, (0.0, 0.0, 0.0), 8) is None  # not filled
+    assert autopilot.odometry_velocity_ned(ned, body, q, (math.nan, 0.1, 0.0), 8) is None
+    for frame, child, estimator, qq in (
+        (4, body, 8, q),  # LOCAL_ENU: not an autopilot's
+        (ned, 8, 8, q),  # BODY_NED
+        (frd, body, autopilot.MAV_ESTIMATOR_TYPE_VISION, q),  # PX4's loopback of the vision it was sent
+        (ned, body, autopilot.MAV_ESTIMATOR_TYPE_VIO, q),
+        (ned, body, 8, (0.0, 0.0, 0.0, 0.0)),
+    ):
+        with pytest.raises(AtlasError):
+            autopilot.odometry_velocity_ned(frame, child, qq, (0.3, 0.0, 0.0), estimator)

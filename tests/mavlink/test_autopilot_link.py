@@ -164,3 +164,57 @@ def test_local_position_velocity_reaches_the_cameras_in_body_flu() -> None:
     still = D.MAVLink_local_position_ned_message(2000, 1.0, 2.0, -1.0, 0.0, 0.0, 0.0)  # position only
     ap._on_message(None, _from(still, 1, 1), clock.mono_ns())
     assert ap.velocities.latest_us() == t
+
+
+def _odometry(time_usec, child, v, yaw=math.pi / 2, estimator=8):
+    """PX4's ODOMETRY (its estimator's, in LOCAL_NED) with its attitude a heading of ``yaw``."""
+    q = (math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2))
+    nan21 = [math.nan] * 21
+    return D.MAVLink_odometry_message(time_usec, 1, child, 1.0, 2.0, -1.0, q, *v, 0.0, 0.0, 0.0, nan21, nan21, 0,
+                                      estimator)  # fmt: skip
+
+
+def test_odometry_velocity_reaches_the_cameras_when_the_autopilot_streams_no_local_position() -> None:
+    """A PX4 that streams ODOMETRY and no LOCAL_POSITION_NED: its velocity in BODY_FRD (or LOCAL_NED) turned
+    into the body's FLU axes by ATTITUDE, as LOCAL_POSITION_NED's is; PX4's loopback of our own vision
+    refused (counted); none from another system (counted); while LOCAL_POSITION_NED's velocity comes, it
+    alone is used."""
+    for child, v in ((12, (0.6, 0.0, -0.1)), (1, (0.0, 0.6, -0.1))):  # heading east, flying east, climbing
+        clock = Clock()
+        ap = _link(clock)
+        ap._on_message(None, _heartbeat(1), 0)
+        for k in range(6):
+            clock.s += 0.02
+            boot = 1000 + 20 * k
+            att = D.MAVLink_attitude_message(boot, 0, 0, math.pi / 2, 0, 0, 0)
+            ap._on_message(None, _from(att, 1, 1), clock.mono_ns())
+            ap._on_message(None, _from(_odometry(boot * 1000, child, v), 1, 1), clock.mono_ns())
+        t = ap.velocities.latest_us()
+        assert t is not None
+        got = ap.velocity_at(t - 10_000)
+        assert got is not None
+        np.testing.assert_allclose(got.velocity_flu, [0.6, 0.0, 0.1], atol=1e-6)
+    clock.s += 0.02
+    ap._on_message(None, _from(_odometry(1200_000, 12, (0.0, 0.5, 0.0), estimator=2), 1, 1), clock.mono_ns())
+    assert ap.counters["odometry_velocity_rejected"] == 1 and ap.velocities.latest_us() == t
+    ap._on_message(None, _from(_odometry(1200_000, 12, (0.0, 0.5, 0.0)), 2, 1), clock.mono_ns())
+    assert ap.counters["odometry_not_from_autopilot"] == 1 and ap.velocities.latest_us() == t
+
+    clock = Clock()
+    both = _link(clock)
+    both._on_message(None, _heartbeat(1), 0)
+    for k in range(6):
+        clock.s += 0.02
+        boot = 1000 + 20 * k
+        both._on_message(None, _from(D.MAVLink_attitude_message(boot, 0, 0, math.pi / 2, 0, 0, 0), 1, 1),
+                         clock.mono_ns())  # fmt: skip
+        lp = D.MAVLink_local_position_ned_message(boot, 1.0, 2.0, -1.0, 0.0, 0.6, -0.1)
+        both._on_message(None, _from(lp, 1, 1), clock.mono_ns())
+        odometry = _odometry(boot * 1000 + 10_000, 1, (0.0, 0.3, 0.0))  # another estimate, between them
+        both._on_message(None, _from(odometry, 1, 1), clock.mono_ns())
+    t = both.velocities.latest_us()
+    assert t is not None
+    for dt in (0, 10_000, 30_000):
+        got = both.velocity_at(t - dt)
+        assert got is not None
+        np.testing.assert_allclose(got.velocity_flu, [0.6, 0.0, 0.1], atol=1e-6)

@@ -54,9 +54,9 @@ def test_the_first_test_of_all_markers_at_once_keeps_every_marker_seen():
         sim, sim_all = SimWorld(scenarios.get(name)), SimWorld(scenarios.get(name))
         first = sim._maybe_in_view
 
-        def counted(sid, own, M, truth, first=first, sim=sim):
+        def counted(sid, own, M, truth, *rest, first=first, sim=sim):
             nonlocal kept, others
-            k = first(sid, own, M, truth)
+            k = first(sid, own, M, truth, *rest)
             kept += len(k)
             others += sum(m.entity != own for m, _, _ in sim._markers)
             return k
