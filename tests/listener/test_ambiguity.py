@@ -1,6 +1,8 @@
 """A follower's single view of its leader's tag, face on at 2-2.5 m where IPPE's two solutions fit
 almost equally: the follower's autopilot attitude and the leader's estimated attitude pick the right
-one, and what they cannot tell apart is refused. Rendered images, the real detector."""
+one, and what they cannot tell apart is refused (rendered images, the real detector) unless its two
+solutions lie within the detection's covariance: then it is used as their mixture, its covariance
+holding the truth and both (the detector's solve of projected corners)."""
 
 import math
 from dataclasses import replace
