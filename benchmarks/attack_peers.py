@@ -53,7 +53,9 @@ TAIL_S = 0.5
 HUGE = np.diag([400.0, 400.0, 400.0, 1.0, 1.0, 1.0])
 TINY = np.diag([1e-6] * 6)
 ATTACKS = ("row1_own", "row1_own_reverse", "row1_relay", "row1b_relay", "row2_relay", "row2_own")
-INTERESTING = re.compile(r"^(rejected_|refused_from_|peer_observations|accepted$|reset_counter$|autopilot_sent)")
+INTERESTING = re.compile(
+    r"^(rejected_|refused_from_|peer_observations|accepted$|reset_counter$|autopilot_sent|ambiguity_)"
+)
 
 
 def _attacker(name: str, node: peerplay.SoloNode) -> tuple[peerplay.Sender, str]:

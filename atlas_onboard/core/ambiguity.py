@@ -27,7 +27,16 @@ freedom. The nearer solution is chosen when both hold:
 
 Rotation distance is what separates IPPE flips; position rarely does, but it keeps a prediction that
 puts the marker in the wrong place from deciding anything (rule 1). Without a prediction nothing is
-decided (NO_PREDICTION). Pure: numpy and scipy only.
+decided (NO_PREDICTION).
+
+Cover. A pair no prediction decides (TOO_CLOSE, NO_PREDICTION) whose two solutions lie within the
+detection's covariance C of each other, ``d^T C^-1 d <= cover_r2`` with d the other solution's offset
+``[dp, dtheta]`` (default 22.46, chi-square(6) at 0.999), is one measurement the corners cannot split:
+seen face on, the two are mirror tilts of one noisy view, the truth often between them. It is used as
+the two solutions' equal mixture, moment-matched: the pose halfway (``d / 2`` along the chosen one's
+error vector) with covariance ``C + d d^T / 4`` (each solution one sigma from it along d). A pair
+farther apart (a tilted tag's flip: the truth at one of them, the mixture's mean on neither) is still
+refused. Pure: numpy and scipy only.
 """
 
 from __future__ import annotations
@@ -49,6 +58,8 @@ GATE_R2 = 22.46
 """chi-square(6) at 0.999: the nearer solution must lie within this normalised squared distance."""
 MIN_LIKELIHOOD_RATIO = 1000.0
 """The nearer solution must be at least this many times as likely as the other."""
+COVER_R2 = 22.46
+"""chi-square(6) at 0.999: an undecided pair this close in the detection's covariance is covered, not refused."""
 
 
 class Verdict(StrEnum):
@@ -186,3 +197,39 @@ def resolve(
         one(T_primary), one(T_alt), one(T_pred), sigma_rad, sigma_m, gate_r2, min_likelihood_ratio
     )
     return Resolution(verdicts[0], float(r2_a[0]), float(r2_b[0]))
+
+
+@dataclass(frozen=True, slots=True)
+class Cover:
+    """N undecided pairs as their equal mixture (see the module's Cover): which are close enough
+    (``close``, (N,) bool, and ``r2``, each pair's ``d^T C^-1 d``) and, for every pair, the halfway pose
+    ``pose`` in the sensor frame and its covariance ``covariance`` (N, 6, 6), meaningful where close."""
+
+    close: NDArray[np.bool_]
+    r2: NDArray[np.float64]
+    pose: Poses
+    covariance: NDArray[np.float64]
+
+
+def cover(primary: Poses, alt: Poses, C: NDArray[np.float64], cover_r2: float = COVER_R2) -> Cover:
+    """The module's Cover of N pairs of T_sensor_marker solutions, ``C`` (N, 6, 6) the detection's
+    covariance of ``primary`` (core.covariance convention: dp in the sensor frame, dtheta about the
+    marker's axes), taken for both solutions (the two fit the same corners). A covariance that is not
+    positive definite closes nothing."""
+    R_a = Rotation.from_quat(primary.q_xyzw)
+    d = np.concatenate(
+        [np.asarray(alt.p_m, dtype=float) - primary.p_m, (R_a.inv() * Rotation.from_quat(alt.q_xyzw)).as_rotvec()],
+        axis=-1,
+    ).reshape(-1, 6)
+    C = np.asarray(C, dtype=float).reshape(-1, 6, 6)
+    r2 = np.full(len(d), np.inf)
+    for k in range(len(d)):  # a singular one alone keeps inf
+        try:
+            r2[k] = float(d[k] @ np.linalg.solve(C[k], d[k]))
+        except np.linalg.LinAlgError:
+            pass
+    close = (r2 >= 0.0) & (r2 <= cover_r2)  # NaN and a negative form (indefinite C) close nothing
+    half = d / 2.0
+    mid_q = (R_a * Rotation.from_rotvec(half[:, 3:])).as_quat()
+    pose = Poses(np.asarray(primary.p_m, dtype=float).reshape(-1, 3) + half[:, :3], mid_q.reshape(-1, 4))
+    return Cover(close, r2, pose, C + half[:, :, None] * half[:, None, :])

@@ -46,11 +46,13 @@ class Detections:
 
 
 class AmbiguityResolver:
-    """Decides which of an ambiguous observation's two solutions an edge is made of, or that it is refused.
+    """Decides which of an ambiguous observation's two solutions an edge is made of, that it is their
+    mixture (two solutions too close to tell apart), or that it is refused.
 
     ``threshold``: IPPE ratio above which an observation must be resolved (or is rejected);
-    ``attitude_sigma_rad``, ``gate_r2``, ``min_likelihood_ratio``: the resolution rule's parameters
-    (:mod:`atlas_onboard.core.ambiguity`).
+    ``attitude_sigma_rad``, ``gate_r2``, ``min_likelihood_ratio``: the resolution rule's parameters;
+    ``cover_r2``: how close (in the detection's covariance) an undecided pair must be to be used as
+    the two solutions' mixture instead of refused (:mod:`atlas_onboard.core.ambiguity`).
     """
 
     def __init__(
@@ -61,8 +63,10 @@ class AmbiguityResolver:
         attitude_sigma_rad: float,
         gate_r2: float,
         min_likelihood_ratio: float,
+        cover_r2: float = ambiguity.COVER_R2,
     ) -> None:
         self.threshold = threshold
+        self.cover_r2 = cover_r2
         self.attitude_sigma_rad = attitude_sigma_rad
         self.gate_r2 = gate_r2
         self.min_likelihood_ratio = min_likelihood_ratio
@@ -97,6 +101,7 @@ class AmbiguityResolver:
         rejected: dict[int, Rejection] = {}
         swapped: set[int] = set()
         todo: list[tuple[int, EntityPose, EntityPose]] = []
+        undecided: list[int] = []  # no prediction, or too close for it: covered when close, else refused
         by_tilt = self._by_tilt(det, notes, rejected, swapped) if self._up_at else set()
         for j, md in enumerate(valid):
             state = md.alt_state()
@@ -110,11 +115,12 @@ class AmbiguityResolver:
             est_a = self._estimates.get(self._sensor_entity[md.sensor_id])
             est_b = self._estimates.get(self._marker_entity[md.marker_id])
             if est_a is None or est_b is None or est_a.frame != est_b.frame:
-                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+                undecided.append(j)
                 notes.append(f"ambiguity_{Verdict.NO_PREDICTION.value}")
                 continue
             todo.append((j, est_a, est_b))
         if not todo:
+            self._cover(det, undecided, notes, rejected)
             return rejected, swapped
         idx = [j for j, _, _ in todo]
         # Predicted T_sensor_marker = T1^-1 * T_frame_observer^-1 * T_frame_observed * T3 (eq. 1 backwards).
@@ -159,9 +165,46 @@ class AmbiguityResolver:
             if verdict.decided:
                 notes.append("ambiguity_resolved")
             else:
-                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
                 notes.append(f"ambiguity_{verdict.value}")
+                if verdict is Verdict.TOO_CLOSE:
+                    undecided.append(j)
+                else:  # both far: the prediction contradicts the view
+                    rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+        self._cover(det, undecided, notes, rejected)
         return rejected, swapped
+
+    def _cover(self, det: Detections, undecided: list[int], notes: list[str], rejected: dict[int, Rejection]) -> None:
+        """The undecided observations whose two solutions lie within their detection's covariance become
+        the pair's mixture (:func:`atlas_onboard.core.ambiguity.cover`), in place: pose, covariance, and a
+        sigma grown as its camera-position spread grew (``ambiguity_covered``). The others, and those
+        without a covariance, are rejected."""
+        valid, C_sm = det.records, det.C_sm
+        idx = [j for j in undecided if C_sm is not None or valid[j].covariance]
+        for j in set(undecided) - set(idx):
+            rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+        if not idx:
+            return
+        C = C_sm[idx] if C_sm is not None else upper_to_matrix(np.array([valid[j].covariance for j in idx]))
+        primary = ambiguity.Poses(det.p_sm[idx], det.q_sm_xyzw[idx])
+        alt = ambiguity.Poses(
+            np.array([valid[j].p_sensor_marker_alt_m for j in idx]),
+            np.array([valid[j].q_sensor_marker_alt_xyzw() for j in idx]),
+        )
+        mixed = ambiguity.cover(primary, alt, C, self.cover_r2)
+        for k, j in enumerate(idx):
+            if not mixed.close[k]:
+                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+                continue
+            md, R_old, p_old = valid[j], det.R_sm[j].copy(), det.p_sm[j].copy()
+            det.q_sm_xyzw[j] = mixed.pose.q_xyzw[k]
+            det.R_sm[j] = Rotation.from_quat(mixed.pose.q_xyzw[k]).as_matrix()
+            det.p_sm[j] = mixed.pose.p_m[k]
+            C_new = mixed.covariance[k]
+            scale = camera_spread(det.p_sm[j], det.R_sm[j], C_new) / max(camera_spread(p_old, R_old, C[k]), 1e-300)
+            valid[j] = replace(md, covariance=matrix_to_upper(C_new), sigma_m=md.sigma_m * math.sqrt(max(scale, 1.0)))
+            if C_sm is not None:
+                C_sm[j] = C_new
+            notes.append("ambiguity_covered")
 
     def _by_tilt(
         self, det: Detections, notes: list[str], rejected: dict[int, Rejection], swapped: set[int]

@@ -6,7 +6,9 @@ by reason, and a rejected observation changes nothing (no edge, no filter state)
 Planar ambiguity: an observation whose IPPE ratio exceeds ``ambiguity_threshold`` may carry the flipped
 pose. If it carries the other solution too, the current estimates (:meth:`Listener.set_estimates`,
 which the node calls after every evaluation) pick the consistent one by the rule of
-:mod:`atlas_onboard.core.ambiguity`; if they cannot, or if it carries none, it is rejected and counted.
+:mod:`atlas_onboard.core.ambiguity`; if they cannot, a pair within the detection's covariance is used as
+the two solutions' mixture (its covariance grown to cover both); any other, or one that carries no
+other solution, is rejected and counted.
 """
 
 from __future__ import annotations
@@ -91,8 +93,9 @@ class Listener:
         self.rejected = Counters()  # by reason (``rejected_<reason>``)
         self.counters = Counters()
         """Beyond rejections: ``ambiguity_resolved``, ``ambiguity_swapped`` (the other solution won),
-        ``ambiguity_<verdict>`` for each unresolved one, and ``alt_ignored`` (an unusable other
-        solution, see :class:`MarkerData`)."""
+        ``ambiguity_<verdict>`` for each one the estimates leave unresolved, ``ambiguity_covered`` for
+        those of them used as the pair's mixture, and ``alt_ignored`` (an unusable other solution, see
+        :class:`MarkerData`)."""
         self.accepted = 0
 
     def set_attitude(self, entity: str, up_at: Callable[[int], NDArray[np.float64] | None] | None) -> None:

@@ -205,3 +205,63 @@ def test_the_verdict_is_symmetric_and_never_picks_the_farther(a_rv, b_rv, pred_r
         assert ab.r2_primary <= ab.r2_alt
     if ab.verdict is Verdict.ALT:
         assert ab.r2_alt < ab.r2_primary
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    p=positions,
+    rv=rotvecs,
+    d_rv=st.tuples(*[st.floats(-0.5, 0.5)] * 3),
+    d_p=st.tuples(*[st.floats(-0.05, 0.05)] * 3),
+    scale=st.floats(-3.0, 1.0),
+    seed=st.integers(0, 2**16),
+)
+def test_a_cover_is_close_exactly_within_the_gate_and_holds_both_solutions_within_one_sigma(
+    p, rv, d_rv, d_p, scale, seed
+):
+    """``close`` is d^T C^-1 d <= COVER_R2, and each solution lies within one sigma of the mixture
+    (its offset in the mixture's convention, against the grown covariance)."""
+    A = np.random.default_rng(seed).normal(size=(6, 6))
+    C = (A @ A.T + 0.1 * np.eye(6)) * 10.0**scale * np.diag([1e-4] * 3 + [1e-2] * 3)
+    R_a = Rotation.from_rotvec(rv)
+    R_b = R_a * Rotation.from_rotvec(d_rv)
+    p_b = np.array(p) + np.array(d_p)
+    prim = ambiguity.Poses(np.array([p]), R_a.as_quat()[None])
+    alt = ambiguity.Poses(p_b[None], R_b.as_quat()[None])
+    got = ambiguity.cover(prim, alt, C[None])
+    d = np.r_[d_p, d_rv]
+    assert bool(got.close[0]) == (d @ np.linalg.solve(C, d) <= ambiguity.COVER_R2)
+    R_m = Rotation.from_quat(got.pose.q_xyzw[0])
+    for q, R in ((p, R_a), (p_b, R_b)):
+        e = np.r_[np.asarray(q) - got.pose.p_m[0], (R_m.inv() * R).as_rotvec()]
+        assert e @ np.linalg.solve(got.covariance[0], e) <= 1.0 + 1e-9
+
+
+def test_a_cover_of_face_on_ippe_pairs_holds_the_truth():
+    """Real face-on pairs (the detector's solve of noisy corners of a tag 1.5 m away, 0.3 px) that
+    lie within their covariance: the mixture's NEES6 against the truth is chi-square(6)'s or less."""
+    nees = []
+    for seed in range(300):
+        rng = np.random.default_rng(seed)
+        tilt = Rotation.from_rotvec(np.r_[rng.normal(0, 0.03, 2), 0.0])
+        T = RigidTransform.from_components([0.05, -0.05, 1.5], tilt * Rotation.from_euler("x", 180, degrees=True))
+        obj = pose.object_corners(SIZE_M)
+        img, _ = cv2.projectPoints(obj, T.rotation.as_rotvec(), T.translation, K, None)
+        mp = pose.solve(img.reshape(-1, 2) + rng.normal(0, 0.3, (4, 2)), SIZE_M, K, 0.0, measured_sigma_px=0.3)
+        if (
+            mp is None
+            or mp.q_alt_xyzw is None
+            or mp.covariance is None
+            or not mp.ambiguity > ambiguity.AMBIGUITY_THRESHOLD
+        ):
+            continue
+        got = ambiguity.cover(
+            ambiguity.Poses(mp.p_m[None], mp.q_xyzw[None]), ambiguity.Poses(mp.p_alt_m[None], mp.q_alt_xyzw[None]),
+            mp.covariance[None],
+        )  # fmt: skip
+        if got.close[0]:
+            R_m = Rotation.from_quat(got.pose.q_xyzw[0])
+            e = np.r_[T.translation - got.pose.p_m[0], (R_m.inv() * T.rotation).as_rotvec()]
+            nees.append(float(e @ np.linalg.solve(got.covariance[0], e)))
+    assert len(nees) >= 40
+    assert np.mean(nees) <= 6.0 * 1.25 and np.mean(np.array(nees) <= 16.81) >= 0.95  # chi2(6): mean 6, 0.99 at 16.81
