@@ -32,10 +32,12 @@ def test_residuals_are_the_offsets_the_poses_were_built_with(seed, n):
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 2**31), n=st.integers(3, 12))
 def test_equally_weighted_poses_have_their_arithmetic_mean_and_all_are_inliers(seed, n):
+    # Offsets bounded within half a sigma of the centre: every pose lies inside the gate by construction
+    # (Gaussian draws would put one outside it now and then, and rightly have it gated).
     rng = np.random.default_rng(seed)
     p0, R0 = rng.normal(size=3), Rotation.random(rng=rng)
-    P = p0 + rng.normal(0.0, 0.01, (n, 3))
-    Rs = (R0 * Rotation.from_rotvec(rng.normal(0.0, 0.01, (n, 3)))).as_matrix()
+    P = p0 + rng.uniform(-0.005, 0.005, (n, 3))
+    Rs = (R0 * Rotation.from_rotvec(rng.uniform(-0.005, 0.005, (n, 3)))).as_matrix()
     W = np.broadcast_to(np.diag([1e4] * 3 + [1e4] * 3), (n, 6, 6)).copy()
     out = robust_mean(P, Rs, W, 1e-3)
     assert out is not None
