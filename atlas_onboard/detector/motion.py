@@ -75,7 +75,8 @@ class SeenSquare:
     """A world marker as the frame found it, for the camera's own motion history: its corners in the
     (distorted) image, whose rows set their instants, and undistorted (not moved to the stamp), with
     their own noise (``sigma_px``, the (8, 8) ``covariance``), the undistortion's ``stretch`` and what
-    :func:`pose.solve` needs besides."""
+    :func:`pose.solve` needs besides. ``solved``: the detector's pose of the square from its corners as
+    :meth:`CameraMotionModel.correct_all` gave them, which are these when the frame's motion moved nothing."""
 
     T_world_marker: RigidTransform
     corners_px: NDArray[np.float64]
@@ -86,6 +87,7 @@ class SeenSquare:
     size_m: float
     model_sigma_px: float
     K: NDArray[np.float64]
+    solved: pose.MarkerPose | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -297,19 +299,23 @@ class CameraMotionModel:
         extra = motion.timing_sigma_s**2 * float(np.linalg.eigvalsh(motion.velocity_second_moment())[-1])
         return replace(md, covariance=matrix_to_upper(C), sigma_m=math.sqrt(md.sigma_m**2 + extra))
 
-    def observe(self, t_us: int, seen: list[SeenSquare]) -> None:
+    def observe(self, t_us: int, seen: list[SeenSquare], motion: CameraMotion | None = None) -> None:
         """The frame's world markers as found (corners not moved by this model): the best one's own pose
-        gives the camera's pose at the instant its centre row was read, which joins the history.
+        gives the camera's pose at the instant its centre row was read, which joins the history. Where the
+        frame's ``motion`` moved no corner, a square's ``solved`` pose is that pose, taken as it is.
 
         Open loop: a pose corrected by this model's velocity would carry that velocity's error into the
         next velocity fit (and a single square's pose moves far for a little shear), a loop that grows.
         Uncorrected, a square's pose is the camera's at its rows' mean instant, off only by the shear
         within the square, which changes slowly with the motion and the view (a slope hardly sees it)."""
         best = None
+        unmoved = motion is not None and not self.moving(motion)
         for sq in seen:
-            mp = pose.solve(
-                sq.undistorted_px, sq.size_m, sq.K, sq.model_sigma_px, sq.stretch, sq.sigma_px, sq.covariance
-            )
+            mp = sq.solved if unmoved and sq.solved is not None else None
+            if mp is None:
+                mp = pose.solve(
+                    sq.undistorted_px, sq.size_m, sq.K, sq.model_sigma_px, sq.stretch, sq.sigma_px, sq.covariance
+                )
             if mp is None or mp.covariance is None or (best is not None and mp.sigma_m >= best[1].sigma_m):
                 continue
             best = (sq, mp)
