@@ -12,8 +12,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
+from atlas_onboard.core.refine.placement import rotvecs_from_matrices
 from atlas_onboard.detector.pose import (
     MIN_SIGMA_M,
     CornerFit,
@@ -22,7 +24,7 @@ from atlas_onboard.detector.pose import (
     object_corners,
     pose_covariance,
 )
-from atlas_onboard.detector.rotations import matrix_from_quat, quat_from_rotvec, rotvec_from_matrix
+from atlas_onboard.detector.rotations import quat_from_rotvec
 
 _UNSTRETCHED = np.tile(np.eye(2), (4, 1, 1))  # no distortion: each corner's undistortion Jacobian
 
@@ -257,12 +259,13 @@ def _add_flip_moments(
     if not sel:
         return
     t1 = np.array([fits[k].alt[0] for k in sel])  # type: ignore[index]
-    R1 = np.array([matrix_from_quat(fits[k].alt[1]) for k in sel])  # type: ignore[index]
+    R1 = Rotation.from_quat(np.array([fits[k].alt[1] for k in sel])).as_matrix()  # type: ignore[index]
     P = obj[sel] @ np.swapaxes(R1, 1, 2) + t1[:, None, :]
     projected = (P @ K.T)[..., :2] / P[..., 2:]
     res = _whiten(S[sel], (projected - img[sel]).reshape(len(sel), 8, 1))
     dchi2 = (np.sum(res**2, axis=(1, 2)) - 4.0 * err[sel] ** 2) / noise[sel] ** 2
+    w = 1.0 / (1.0 + np.exp(np.minimum(np.maximum(dchi2, 0.0) / 2.0, 700.0)))
+    d = np.concatenate([t1 - t0[sel], rotvecs_from_matrices(np.swapaxes(R0[sel], 1, 2) @ R1)], axis=1)
+    moments = w[:, None, None] * (d[:, :, None] * d[:, None, :])
     for j, k in enumerate(sel):
-        w = 1.0 / (1.0 + math.exp(min(max(float(dchi2[j]), 0.0) / 2.0, 700.0)))
-        d = np.concatenate([t1[j] - t0[k], rotvec_from_matrix(R0[k].T @ R1[j])])
-        covs[k] = covs[k] + w * np.outer(d, d)  # type: ignore[operator]
+        covs[k] = covs[k] + moments[j]  # type: ignore[operator]

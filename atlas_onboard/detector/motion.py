@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import RigidTransform, Rotation
+from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import WORLD, CameraConfig, SensorConfig
 from atlas_onboard.config.settings import READOUT_BOTTOM_UP
@@ -44,6 +44,7 @@ from atlas_onboard.core.shutter import (
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.pose import object_corners
 from atlas_onboard.detector.records import TimedCorners
+from atlas_onboard.detector.rotations import matrix_from_quat, rotvec_from_matrix
 from atlas_onboard.worker import RateAt, VelocityAt
 
 WINDOW_US = 150_000  # poses this recent fit the velocity (about five frames at 30 Hz)
@@ -75,7 +76,8 @@ class SeenSquare:
     """A world marker as the frame found it, for the camera's own motion history: its corners in the
     (distorted) image, whose rows set their instants, and undistorted (not moved to the stamp), with
     their own noise (``sigma_px``, the (8, 8) ``covariance``), the undistortion's ``stretch`` and what
-    :func:`pose.solve` needs besides."""
+    :func:`pose.solve` needs besides. ``solved``: the detector's pose of the square from its corners as
+    :meth:`CameraMotionModel.correct_all` gave them, which are these when the frame's motion moved nothing."""
 
     T_world_marker: RigidTransform
     corners_px: NDArray[np.float64]
@@ -86,13 +88,14 @@ class SeenSquare:
     size_m: float
     model_sigma_px: float
     K: NDArray[np.float64]
+    solved: pose.MarkerPose | None = None
 
 
 @dataclass(frozen=True, slots=True)
 class _Seen:
     t_us: int
     p_world_m: NDArray[np.float64]
-    R_world_camera: Rotation
+    R_world_camera: NDArray[np.float64]  # (3, 3)
     sigma_p_m: float
     sigma_theta_rad: float
 
@@ -116,7 +119,7 @@ class _History:
         span = (b.t_us - a.t_us) * 1e-6
         if span < MIN_SPAN_S:
             return None
-        w = (a.R_world_camera.inv() * b.R_world_camera).as_rotvec() / span
+        w = rotvec_from_matrix(a.R_world_camera.T @ b.R_world_camera) / span
         noise = 2.0 * max(a.sigma_theta_rad, b.sigma_theta_rad) ** 2 / span**2
         lag = (ANGULAR_ACCEL_SIGMA * ((t_us - a.t_us) * 1e-6 - span / 2.0)) ** 2
         t = np.array([(s.t_us - t_us) * 1e-6 for s in recent])
@@ -127,7 +130,7 @@ class _History:
             return None
         sigma_p = max(s.sigma_p_m for s in recent)
         v_var = sigma_p**2 / float(tc @ tc) + (MANOEUVRE_ACCEL_SIGMA * float(-t.mean())) ** 2
-        R = recent[-1].R_world_camera.as_matrix()
+        R = recent[-1].R_world_camera
         return _History(w, noise + lag, R.T @ v_world, v_var)
 
 
@@ -158,6 +161,7 @@ class CameraMotionModel:
         self.timing_s = timing_sigma_s(cam.stamp_sigma_ms * 1e-3, cam.exposure_ms * 1e-3)
         self.rate_bound = math.radians(cam.rate_bound_dps)
         self.R_body_sensor = T_body_sensor.rotation
+        self._M_sensor_body = self.R_body_sensor.inv().as_matrix()  # body axes into the camera's, made once
         self.p_body_sensor_m = np.asarray(T_body_sensor.translation, dtype=float)
         self._seen: deque[_Seen] = deque(maxlen=8)
 
@@ -175,10 +179,9 @@ class CameraMotionModel:
         if len(recent) < 2:  # frames missed or markers out of view: the newest two, their age in the covariance
             recent = past[-2:]
         history = _History.of(recent, t_us)
-        R_sb = self.R_body_sensor.inv()
         if rate is not None:
-            M = R_sb.as_matrix()
-            w, w_cov, w_known = R_sb.apply(rate.omega_flu), M @ rate.cov @ M.T, True
+            M = self._M_sensor_body
+            w, w_cov, w_known = M @ np.asarray(rate.omega_flu, dtype=float), M @ rate.cov @ M.T, True
         elif history is not None:
             w, w_cov, w_known = history.omega, history.omega_var * np.eye(3), False
         else:
@@ -203,7 +206,7 @@ class CameraMotionModel:
         """The camera's velocity (camera axes, m/s) and its covariance from the body's: the body's plus its
         turn ``w`` (camera axes) swinging the mount's lever arm, ``w x p``; a rate not known (a bound) adds
         its second moment's swing to the covariance instead."""
-        M = self.R_body_sensor.inv().as_matrix()
+        M = self._M_sensor_body
         p = M @ self.p_body_sensor_m  # the lever arm in the camera's axes
         P = np.array([[0.0, p[2], -p[1]], [-p[2], 0.0, p[0]], [p[1], -p[0], 0.0]])  # w x p = P w
         v, cov = M @ np.asarray(velocity.velocity_flu, dtype=float), M @ np.asarray(velocity.cov, dtype=float) @ M.T
@@ -289,7 +292,7 @@ class CameraMotionModel:
         if motion.timing_sigma_s <= 0.0 or not md.covariance:
             return md
         w, x, y, z = md.q_sensor_marker_wxyz
-        R = Rotation.from_quat([x, y, z, w]).as_matrix()
+        R = matrix_from_quat(np.array([x, y, z, w]))
         C = upper_to_matrix(np.asarray(md.covariance)) + timing_pose_covariance(
             np.asarray(md.p_sensor_marker_m), R, motion
         )
@@ -297,19 +300,23 @@ class CameraMotionModel:
         extra = motion.timing_sigma_s**2 * float(np.linalg.eigvalsh(motion.velocity_second_moment())[-1])
         return replace(md, covariance=matrix_to_upper(C), sigma_m=math.sqrt(md.sigma_m**2 + extra))
 
-    def observe(self, t_us: int, seen: list[SeenSquare]) -> None:
+    def observe(self, t_us: int, seen: list[SeenSquare], motion: CameraMotion | None = None) -> None:
         """The frame's world markers as found (corners not moved by this model): the best one's own pose
-        gives the camera's pose at the instant its centre row was read, which joins the history.
+        gives the camera's pose at the instant its centre row was read, which joins the history. Where the
+        frame's ``motion`` moved no corner, a square's ``solved`` pose is that pose, taken as it is.
 
         Open loop: a pose corrected by this model's velocity would carry that velocity's error into the
         next velocity fit (and a single square's pose moves far for a little shear), a loop that grows.
         Uncorrected, a square's pose is the camera's at its rows' mean instant, off only by the shear
         within the square, which changes slowly with the motion and the view (a slope hardly sees it)."""
         best = None
+        unmoved = motion is not None and not self.moving(motion)
         for sq in seen:
-            mp = pose.solve(
-                sq.undistorted_px, sq.size_m, sq.K, sq.model_sigma_px, sq.stretch, sq.sigma_px, sq.covariance
-            )
+            mp = sq.solved if unmoved and sq.solved is not None else None
+            if mp is None:
+                mp = pose.solve(
+                    sq.undistorted_px, sq.size_m, sq.K, sq.model_sigma_px, sq.stretch, sq.sigma_px, sq.covariance
+                )
             if mp is None or mp.covariance is None or (best is not None and mp.sigma_m >= best[1].sigma_m):
                 continue
             best = (sq, mp)
@@ -317,9 +324,8 @@ class CameraMotionModel:
             return
         sq, mp = best
         dt = float(self.clock.dt_s(np.array([float(np.mean(np.asarray(sq.corners_px, dtype=float)[:, 1]))]))[0])
-        R_cm = Rotation.from_quat(mp.q_xyzw)
-        R_wm = sq.T_world_marker.rotation
-        R_wc = R_wm * R_cm.inv()
-        p_wc = sq.T_world_marker.translation - R_wc.apply(mp.p_m)
+        T_wm = sq.T_world_marker.as_matrix()
+        R_wc = T_wm[:3, :3] @ matrix_from_quat(mp.q_xyzw).T
+        p_wc = T_wm[:3, 3] - R_wc @ mp.p_m
         sigma_theta = math.sqrt(max(float(np.linalg.eigvalsh(mp.covariance[3:, 3:]).max()), 0.0))
         self._seen.append(_Seen(t_us + round(dt * 1e6), p_wc, R_wc, mp.sigma_m, sigma_theta))

@@ -273,8 +273,8 @@ class Detector:
             )
         self.report.found.sort()
         # Camera motion: the best world marker (its own square as found) for the next frames' velocity
-        ranked = sorted((singles[m].pose.sigma_m, m) for m in raw if m in singles)
-        self.motion_model.observe(capture_time_us, [raw[ranked[0][1]]] if ranked else [])
+        best = sorted((singles[m].pose.sigma_m, m) for m in raw if m in singles)[:1]
+        self.motion_model.observe(capture_time_us, [replace(raw[m], solved=singles[m].pose) for _, m in best], motion)
         out = []
         groups: dict[str, list[int]] = {}
         for mid in sorted(singles):

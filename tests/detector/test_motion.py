@@ -436,3 +436,38 @@ def test_a_global_shutter_leaves_the_autopilots_velocity_unused() -> None:
     for name in ("omega", "omega_cov", "velocity", "velocity_cov"):
         assert np.array_equal(getattr(with_v, name), getattr(without, name))
     assert (with_v.velocity_known, with_v.timing_sigma_s) == (without.velocity_known, without.timing_sigma_s)
+
+
+def test_a_frame_s_own_pose_of_a_square_whose_corners_stayed_is_the_history_s() -> None:
+    """A camera travelling at 0.4 m/s over one tag, its squares' corners with noise, each handed with the
+    detector's pose of its corners (here the exact pose, solved from the noise-free corners): a global
+    shutter moved no corner, so that pose is the camera's history and its velocity is the truth (to the
+    solver's convergence); a moving rolling shutter's corners were moved, so the history solves the corners as found
+    (open loop): its velocity within 3 sigma of the truth, not exact."""
+    v = np.array([0.4, -0.1, 0.05])
+    T_wm = RigidTransform.from_translation([0.05, 0.0, 0.0])
+    down = Rotation.from_euler("x", 180, degrees=True)
+    rate = BodyRate(np.zeros(3), GYRO_SIGMA_RAD_S**2 * np.eye(3))
+    rng = np.random.default_rng(12)
+    global_shutter = CameraMotionModel(CameraConfig(readout_ms=0.0), RigidTransform.identity(), H)
+    rolling = _model()
+    for model, readout_s, given_rate in ((global_shutter, 0.0, None), (rolling, READOUT_MS * 1e-3, rate)):
+        for k in range(5):
+            t = k / 30.0
+            T_world_cam = RigidTransform.from_components([0.0, 0.0, 0.7], down) * RigidTransform.from_translation(v * t)
+            truth = T_world_cam.inv() * T_wm
+            exact = rolling_corners(truth, SIZE, np.zeros(3), v) if readout_s else None
+            if exact is None:
+                P = truth.apply(pose.object_corners(SIZE)) @ K.T
+                exact = P[:, :2] / P[:, 2:]
+            solved = pose.solve(exact, SIZE, K, pose.SIGMA_PX_APRILTAG, None, NOISE_PX, NOISE_PX**2 * np.eye(8))
+            t_us = 1_000_000 + round(t * 1e6)
+            seen = replace(_seen(T_wm, exact + rng.normal(0.0, NOISE_PX, (4, 2))), solved=solved)
+            model.observe(t_us, [seen], model.at(t_us, given_rate))
+        motion = model.at(1_000_000 + round(5 / 30.0 * 1e6), given_rate)
+        assert motion.velocity_known
+        error = np.abs(motion.velocity - v)
+        if model is global_shutter:
+            assert np.all(error < 1e-5), error  # the solver's convergence; the noise moves it by 1e-3
+        else:
+            assert np.all(error <= 3.0 * np.sqrt(np.diag(motion.velocity_cov))) and np.any(error > 1e-4), error

@@ -15,12 +15,15 @@ def leave_one_out(P: NDArray, Rs: NDArray, C: NDArray) -> tuple[NDArray, NDArray
     """For each of n candidate poses (p (n, 3), R (n, 3, 3), C (n, 6, 6)), the information-weighted
     mean of the others: p (n, 3), R (n, 3, 3), its covariance (n, 6, 6), and the chi-square of those
     others about it (6 (n - 2) degrees of freedom when they agree). Gauss-Newton, twice, each mean
-    about its own reference (the first of its others to start)."""
+    about its own reference (the first of its others to start); of two poses, each other's as it is."""
     n = len(P)
     try:
         W = np.linalg.inv(C)
     except np.linalg.LinAlgError:
         return None
+    if n == 2:  # each one's others are the other alone: their mean is that pose, its covariance that one's
+        swap = [1, 0]
+        return P[swap], Rs[swap], 0.5 * (C[swap] + np.swapaxes(C[swap], -1, -2)), np.zeros(2)
     others = ~np.eye(n, dtype=bool)
     Wo = W[None] * others[:, :, None, None]  # (i, k, 6, 6): candidate k's weight in i's mean
     info = Wo.sum(axis=1)
