@@ -139,23 +139,32 @@ def test_attitude_rates_reach_the_cameras_in_body_flu() -> None:
     assert math.isfinite(float(np.trace(rate.cov)))
 
 
-def test_local_position_velocity_reaches_the_cameras_in_body_flu() -> None:
-    """LOCAL_POSITION_NED's velocity (NED) turned into the body's FLU axes by ATTITUDE at the same time: a
-    vehicle heading east (yaw 90 deg) flying east at 0.6 m/s and climbing at 0.1 m/s moves along its forward
-    and up axes; none from another system (counted), none when the sender left the velocity at zero."""
-    clock = Clock()
+def _heading_east(clock, velocity_message):
+    """An autopilot link fed 6 ATTITUDEs of a vehicle heading east (yaw 90 deg), each with the velocity
+    message ``velocity_message(time_boot_ms)`` from the autopilot: (the link, the newest velocity's stamp,
+    the velocity 10 ms before it)."""
     ap = _link(clock)
     ap._on_message(None, _heartbeat(1), 0)
     for k in range(6):
         clock.s += 0.02
         boot = 1000 + 20 * k
         ap._on_message(None, _from(D.MAVLink_attitude_message(boot, 0, 0, math.pi / 2, 0, 0, 0), 1, 1), clock.mono_ns())
-        lp = D.MAVLink_local_position_ned_message(boot, 1.0, 2.0, -1.0, 0.0, 0.6, -0.1)
-        ap._on_message(None, _from(lp, 1, 1), clock.mono_ns())
+        ap._on_message(None, _from(velocity_message(boot), 1, 1), clock.mono_ns())
     t = ap.velocities.latest_us()
     assert t is not None
     v = ap.velocity_at(t - 10_000)
     assert v is not None
+    return ap, t, v
+
+
+def test_local_position_velocity_reaches_the_cameras_in_body_flu() -> None:
+    """LOCAL_POSITION_NED's velocity (NED) turned into the body's FLU axes by ATTITUDE at the same time: a
+    vehicle heading east (yaw 90 deg) flying east at 0.6 m/s and climbing at 0.1 m/s moves along its forward
+    and up axes; none from another system (counted), none when the sender left the velocity at zero."""
+    clock = Clock()
+    ap, t, v = _heading_east(
+        clock, lambda boot: D.MAVLink_local_position_ned_message(boot, 1.0, 2.0, -1.0, 0.0, 0.6, -0.1)
+    )
     np.testing.assert_allclose(v.velocity_flu, [0.6, 0.0, 0.1], atol=1e-6)
     assert np.all(np.linalg.eigvalsh(v.cov) > 0)
     other = D.MAVLink_local_position_ned_message(2000, 0.0, 0.0, 0.0, 0.5, 0.0, 0.0)
@@ -181,18 +190,7 @@ def test_odometry_velocity_reaches_the_cameras_when_the_autopilot_streams_no_loc
     alone is used."""
     for child, v in ((12, (0.6, 0.0, -0.1)), (1, (0.0, 0.6, -0.1))):  # heading east, flying east, climbing
         clock = Clock()
-        ap = _link(clock)
-        ap._on_message(None, _heartbeat(1), 0)
-        for k in range(6):
-            clock.s += 0.02
-            boot = 1000 + 20 * k
-            att = D.MAVLink_attitude_message(boot, 0, 0, math.pi / 2, 0, 0, 0)
-            ap._on_message(None, _from(att, 1, 1), clock.mono_ns())
-            ap._on_message(None, _from(_odometry(boot * 1000, child, v), 1, 1), clock.mono_ns())
-        t = ap.velocities.latest_us()
-        assert t is not None
-        got = ap.velocity_at(t - 10_000)
-        assert got is not None
+        ap, t, got = _heading_east(clock, lambda boot, child=child, v=v: _odometry(boot * 1000, child, v))
         np.testing.assert_allclose(got.velocity_flu, [0.6, 0.0, 0.1], atol=1e-6)
     clock.s += 0.02
     ap._on_message(None, _from(_odometry(1200_000, 12, (0.0, 0.5, 0.0), estimator=2), 1, 1), clock.mono_ns())
