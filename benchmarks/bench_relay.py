@@ -21,8 +21,10 @@ the live runs.
 
     python benchmarks/bench_relay.py [--duration 30] [--runs defaults,ekf,paper] [--offline] [--no-live]
 
-Run it pinned (``taskset -c 1``) on an otherwise idle machine: the nodes must keep up with their
-cameras in real time (the frames they skipped are printed).
+Run it on an otherwise idle machine with a core for each node, as each drone has its own computer: the
+nodes must keep up with their cameras in real time (the frames they skipped are printed; pinned to one
+core, ``taskset -c 1``, the two nodes share it and the leader skips frames). ``--offline`` alone
+(``--no-live``) may be pinned: it measures no time.
 """
 
 from __future__ import annotations
