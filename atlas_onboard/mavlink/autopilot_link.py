@@ -197,11 +197,13 @@ class AutopilotLink:
         self.link.send(self.link.dialect.MAVLink_command_long_message(**fields))
         self.counters.inc(counter)
 
-    def _stamp(self, stream: _Stream, msg: Any, arrival_ns: int, name: str) -> int | None:
-        """The wall time (us) of a sample stamped ``time_boot_ms`` (ODOMETRY: ``time_usec``; see BootClock),
-        or None when refused as mapping after its arrival (counted ``<name>_ahead``)."""
+    def _stamp(self, stream: _Stream, msg: Any, arrival_ns: int, name: str, boot_us: int | None = None) -> int | None:
+        """The wall time (us) of a sample stamped ``boot_us`` on the autopilot's clock (default: its
+        ``time_boot_ms``; see BootClock), or None when refused as mapping after its arrival (counted
+        ``<name>_ahead``)."""
         arrival_wall_us = (wall_ns(self.wall) - (self.monotonic_ns() - arrival_ns)) // 1000
-        boot_us = int(msg.time_usec) if msg.get_type() == "ODOMETRY" else int(msg.time_boot_ms) * 1000
+        if boot_us is None:
+            boot_us = int(msg.time_boot_ms) * 1000
         since_us = (arrival_ns - stream.taken_ns) // 1000 if stream.taken_ns is not None else 0
         if stream.clock.lead_us(boot_us, arrival_wall_us) > ATTITUDE_LEAD_US + ATTITUDE_DRIFT * since_us:
             self.counters.inc(f"{name}_ahead")
@@ -260,7 +262,7 @@ class AutopilotLink:
         v = None if v_ned is None else level_enu_of_ned(*v_ned)
         if v is None:  # a sender that fills no velocity
             return
-        t_us = self._stamp(self._odometry_stream, msg, arrival_ns, "odometry")
+        t_us = self._stamp(self._odometry_stream, msg, arrival_ns, "odometry", int(msg.time_usec))
         if t_us is not None:
             self.velocities.add(t_us, v)
 
