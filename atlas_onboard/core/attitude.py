@@ -7,15 +7,13 @@ may come from a compass or from our own poses, so it is never trusted here; up d
 so the level frame's heading is irrelevant (the world file's z is up, internally ENU).
 
 Times: samples are stamped on the node's wall clock (UNIX epoch, microseconds), the clock of capture
-times. :class:`BootClock` maps the autopilot's ``time_boot_ms`` to it by the lower envelope of the lags
-seen, which follows a clock that drifts: a stamp is then late by about the link's smallest latency.
+times (:class:`atlas_onboard.core.bootclock.BootClock` maps the autopilot's ``time_boot_ms`` to it).
 
 Pure: numpy, scipy and the standard library; times are passed in.
 """
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections import deque
 from dataclasses import dataclass
@@ -44,8 +42,6 @@ MIN_LIKELIHOOD_RATIO = 1000.0
 """The agreeing solution must be at least this many times as likely as the other under the same
 Gaussian model; otherwise gravity cannot tell the two apart (their difference is mostly a turn about
 the vertical, or the observation's own tilt is too uncertain)."""
-REBOOT_BACK_US = 1_000_000
-"""``time_boot_ms`` going back by more than this is a reboot of the autopilot: the mapping restarts."""
 
 
 class TiltVerdict(StrEnum):
@@ -116,100 +112,6 @@ def choose_by_tilt(
     else:
         verdict = TiltVerdict.PRIMARY if r2_a <= r2_b else TiltVerdict.ALT
     return TiltCheck(verdict, e_a, e_b, sigma)
-
-
-class BootClock:
-    """Maps the autopilot's boot time (``time_boot_ms``) to the node's wall clock (us), following its drift.
-
-    Each sample gives ``offset = arrival - boot``: the clocks' offset, which drifts at the rate the two
-    clocks differ (their skew), plus the link's delay, never below its floor. The mapping is the lower
-    envelope of the recent offsets: the line below every (boot, offset) point of the last
-    ``BOOT_WINDOW_US`` that lies closest to them on average, a linear programme solved by the lower
-    convex hull's edge over their mean boot time (Moon, Skelly and Towsley, "Estimation and removal of
-    clock skew from network delay measurements", INFOCOM 1999). Late packets sit above it and never
-    move it; a clock that runs slow or fast tilts it. A mapped stamp is late by the link's delay floor
-    (which no one-way measurement can tell from an offset) plus the envelope's own error, a small part
-    of the delays' spread over a window of thousands of samples. One point is kept per ``BOOT_BIN_US``
-    of boot time (the lowest about the current line), so that the hull stays small.
-
-    Until the samples span ``BOOT_MIN_SPAN_US`` the offset is the smallest seen (no rate yet). A boot
-    time that goes back by more than ``REBOOT_BACK_US`` starts over.
-    """
-
-    def __init__(self) -> None:
-        self._points: deque[tuple[int, int]] = deque()  # (boot us, offset us): one per bin, oldest first
-        self._last_boot_us = -1
-        self._line: tuple[float, float, float] | None = None  # (boot0 us, offset at boot0 us, slope)
-
-    def wall_us(self, time_boot_us: int, arrival_wall_us: int) -> int:
-        """The wall time (us) of a sample the autopilot stamped ``time_boot_us`` and that arrived at
-        ``arrival_wall_us`` (both integers); never later than its arrival."""
-        if time_boot_us < self._last_boot_us - REBOOT_BACK_US:
-            self._points.clear()
-            self._line = None
-        self._last_boot_us = time_boot_us
-        offset = arrival_wall_us - time_boot_us
-        points = self._points
-        slope = self._line[2] if self._line is not None else 0.0
-        if points and points[-1][0] // BOOT_BIN_US == time_boot_us // BOOT_BIN_US:
-            b, o = points[-1]
-            if offset - slope * time_boot_us < o - slope * b:  # lower than the bin's point about the line
-                points[-1] = (time_boot_us, offset)
-                self._line = None
-        else:
-            points.append((time_boot_us, offset))
-            while points[0][0] < time_boot_us - BOOT_WINDOW_US:
-                points.popleft()
-            self._line = None
-        if self._line is None:
-            self._line = _lower_envelope(list(points))
-        b0, o0, slope = self._line
-        return min(time_boot_us + round(o0 + slope * (time_boot_us - b0)), arrival_wall_us)
-
-    def lead_us(self, time_boot_us: int, arrival_wall_us: int) -> int:
-        """How far after its own arrival a sample stamped ``time_boot_us`` would map on the mapping so
-        far (0 before any, or after a reboot): never positive for a real sample but for the clocks'
-        drift since the mapping was set; a stamp ahead of the autopilot's clock is what makes it so."""
-        if self._line is None or time_boot_us < self._last_boot_us - REBOOT_BACK_US:
-            return 0
-        b0, o0, slope = self._line
-        return time_boot_us + round(o0 + slope * (time_boot_us - b0)) - arrival_wall_us
-
-
-BOOT_BIN_US = 500_000
-"""Boot time per point of :class:`BootClock`'s envelope (its lowest sample about the current line)."""
-BOOT_WINDOW_US = 60_000_000
-"""How far back :class:`BootClock`'s envelope reaches: long enough that the delays' spread over it is a
-small tilt, short enough to follow a clock whose rate changes with its temperature."""
-BOOT_MIN_SPAN_US = 1_000_000
-"""The boot time the points must span before the envelope's slope is believed (before: the smallest offset)."""
-MAX_SKEW = 0.05
-"""The fastest drift believed (5 %): a steeper envelope is a degenerate fit (a reboot not seen as one)."""
-
-
-def _lower_envelope(points: list[tuple[int, int]]) -> tuple[float, float, float]:
-    """(boot0, offset0, slope) of the line below every (boot, offset) point, sorted by boot, with the
-    least summed distance to them: the lower hull's edge over their mean boot time (the smallest offset,
-    flat, while they span less than ``BOOT_MIN_SPAN_US``)."""
-    if points[-1][0] - points[0][0] < BOOT_MIN_SPAN_US:
-        lowest = min(points, key=lambda p: p[1])
-        return float(lowest[0]), float(lowest[1]), 0.0
-    hull: list[tuple[int, int]] = []  # Andrew's monotone chain, lower half, in exact integers
-    for p in points:
-        px, py = p
-        while len(hull) >= 2:
-            (ax, ay), (bx, by) = hull[-2], hull[-1]
-            if (bx - ax) * (py - ay) - (by - ay) * (px - ax) > 0:  # a, b, p turn counter-clockwise
-                break
-            hull.pop()
-        hull.append(p)
-    mean_boot = sum(p[0] for p in points) / len(points)
-    for (b0, o0), (b1, o1) in itertools.pairwise(hull):
-        if b1 >= mean_boot:
-            slope = min(max((o1 - o0) / (b1 - b0), -MAX_SKEW), MAX_SKEW)
-            # Clamped or not, the line through the vertex nearer the mean stays below its neighbours.
-            return (float(b0), float(o0), slope) if mean_boot - b0 <= b1 - mean_boot else (float(b1), float(o1), slope)
-    return float(hull[-1][0]), float(hull[-1][1]), 0.0
 
 
 class AttitudeHistory:

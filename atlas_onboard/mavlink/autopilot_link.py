@@ -20,7 +20,8 @@ from typing import Any
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import NodeConfig
-from atlas_onboard.core.attitude import AttitudeHistory, BootClock
+from atlas_onboard.core.attitude import AttitudeHistory
+from atlas_onboard.core.bootclock import BootClock
 from atlas_onboard.core.records import AutopilotPose
 from atlas_onboard.core.shutter import BodyRate, BodyVelocity, RateHistory
 from atlas_onboard.core.velocity import VelocityHistory, level_enu_of_ned
