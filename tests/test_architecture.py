@@ -8,6 +8,7 @@ resolved to the submodule ``name`` when there is one (to the package's ``__init_
 from __future__ import annotations
 
 import ast
+import functools
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -46,7 +47,7 @@ def _is_package(files: dict[str, Path], name: str) -> bool:
 def _imports(files: dict[str, Path], name: str, path: Path) -> list[Import]:
     """Every import of one module, wherever it stands in the file."""
     found: list[Import] = []
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    for node in _nodes(path):
         if isinstance(node, ast.Import):
             found.extend(Import(name, alias.name, node.lineno) for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
@@ -63,7 +64,19 @@ def _imports(files: dict[str, Path], name: str, path: Path) -> list[Import]:
     return found
 
 
+@functools.cache
+def _nodes(path: Path) -> tuple[ast.AST, ...]:
+    """Every node of a module's syntax tree (parsed once for all the tests)."""
+    return tuple(ast.walk(ast.parse(path.read_text(), str(path))))
+
+
 def _graph() -> tuple[dict[str, Path], dict[str, list[Import]]]:
+    return _graph_at(ROOT)
+
+
+@functools.cache
+def _graph_at(root: Path) -> tuple[dict[str, Path], dict[str, list[Import]]]:
+    """The package under ``root`` (the module-wide ``ROOT``), read once for all the tests."""
     files = _files()
     return files, {name: _imports(files, name, path) for name, path in files.items()}
 
@@ -257,7 +270,7 @@ def test_no_getattr_with_a_literal_name():
     """``getattr(x, "name", default)`` looks up by duck typing what a declared type should say."""
     bad = []
     for path in _files().values():
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        for node in _nodes(path):
             if (
                 isinstance(node, ast.Call)
                 and isinstance(node.func, ast.Name)
@@ -278,7 +291,7 @@ def test_argument_parsing_and_printing_only_in_the_command_line():
     for name, path in _files().items():
         if _inside(name, f"{PACKAGE}.cli") or name in allowed:
             continue
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        for node in _nodes(path):
             if isinstance(node, ast.Import | ast.ImportFrom):
                 modules = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
                 if "argparse" in modules:
@@ -299,7 +312,7 @@ def test_the_apriltag_library_detector_is_made_only_by_the_backend():
     ):
         if path == owner:
             continue
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        for node in _nodes(path):
             named = (
                 [a.name for a in node.names]
                 if isinstance(node, ast.ImportFrom) and node.module == "pupil_apriltags"
@@ -316,7 +329,7 @@ def test_no_attribute_forwarding():
     bad = [
         f"{path.relative_to(ROOT)}:{node.lineno}"
         for path in _files().values()
-        for node in ast.walk(ast.parse(path.read_text(), str(path)))
+        for node in _nodes(path)
         if isinstance(node, ast.FunctionDef) and node.name in ("__getattr__", "__getattribute__")
     ]
     assert not bad, "\n".join(bad)
