@@ -1,11 +1,14 @@
 """``atlas-onboard params``: the values written against the world file they come from, in the formats
 QGroundControl and Mission Planner load (the command itself run once, in a real subprocess)."""
 
+import contextlib
+import io
 import subprocess
 import sys
 
 import pytest
 
+from atlas_onboard.cli import main
 from tests.e2e.helpers import write_world
 
 
@@ -24,14 +27,20 @@ def doc(body="FLU", filt="none", output="vision_position_estimate", system_id=7)
     }
 
 
-def run(tmp_path, world, *args):
-    path = write_world(tmp_path, world)
-    proc = subprocess.run(
-        [sys.executable, "-m", "atlas_onboard", "params", "--config", str(path), "--entity", "d1", *args],
-        capture_output=True, text=True, check=False,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
-    return proc.stdout
+def run(tmp_path, world, *args, real_process=False):
+    """The command's output: through the command line's ``main`` in this process, or as a real process."""
+    argv = ["params", "--config", str(write_world(tmp_path, world)), "--entity", "d1", *args]
+    if real_process:
+        proc = subprocess.run(
+            [sys.executable, "-m", "atlas_onboard", *argv], capture_output=True, text=True, check=False
+        )
+        assert proc.returncode == 0, proc.stderr
+        return proc.stdout
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(argv)
+    assert code == 0, err.getvalue()
+    return out.getvalue()
 
 
 def inproc(tmp_path, world, autopilot, vehicle_id=1, **kw):
@@ -60,7 +69,8 @@ def mission_planner(text):
 def test_px4_values_follow_the_world_file(tmp_path):
     # The centre of gravity 2 cm behind, 1 cm left of and 5 cm below the entity origin (FLU): the
     # origin is 2 cm ahead (FRD x +0.02), 1 cm right (FRD y +0.01) and 5 cm above (FRD z -0.05) of it.
-    p = qgc(run(tmp_path, doc(), "--autopilot", "px4", "--delay-ms", "25", "--cog-m", "-0.02", "0.01", "-0.05"))
+    argv = ("--autopilot", "px4", "--delay-ms", "25", "--cog-m", "-0.02", "0.01", "-0.05")
+    p = qgc(run(tmp_path, doc(), *argv, real_process=True))
     # Loaded onto a new flight controller (system id 1): the rows are for vehicle 1, MAV_SYS_ID the node's.
     assert p["MAV_SYS_ID"] == (1, 1, 7.0, 6)
     offset = (p["EKF2_EV_POS_X"][2], p["EKF2_EV_POS_Y"][2], p["EKF2_EV_POS_Z"][2])
