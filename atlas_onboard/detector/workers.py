@@ -15,12 +15,15 @@ between workers.
 
 from __future__ import annotations
 
+import math
+import mmap
 import multiprocessing
 import os
 import signal
 import threading
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from multiprocessing import reduction
 from multiprocessing.connection import Connection
 from typing import Protocol
 
@@ -114,6 +117,25 @@ class Outcome:
     error: str = ""
 
 
+@dataclass(frozen=True)
+class _SharedJob:
+    """A :class:`Job` on the pipe whose image is in the worker's frame buffer: the job with an empty
+    image, and the image's shape."""
+
+    job: Job
+    shape: tuple[int, ...]
+
+
+@dataclass(frozen=True)
+class _FrameBuffer:
+    """The worker's frame buffer is now the memory (``size`` bytes) whose descriptor follows on the pipe."""
+
+    size: int
+
+
+_NO_IMAGE = np.empty((0, 0), np.uint8)
+
+
 def serve(conn: Connection, spec: DetectorSpec) -> None:
     """A worker process's loop: a :class:`Job` in, an :class:`Outcome` out; an int is a world marker whose
     pose the node's map changed; None or a closed pipe ends it. Any other exception ends the process
@@ -124,9 +146,15 @@ def serve(conn: Connection, spec: DetectorSpec) -> None:
     cv2.setNumThreads(1)  # the workers are the parallelism; OpenCV's own threads would compete with them
     detector = spec.build()
     conn.send(READY)
+    frames: mmap.mmap | None = None
     while True:
         try:
             msg = conn.recv()
+            if isinstance(msg, _FrameBuffer):
+                fd = reduction.recv_handle(conn)
+                frames = mmap.mmap(fd, msg.size)
+                os.close(fd)
+                continue
         except (EOFError, OSError):
             return
         if msg is None:
@@ -134,6 +162,9 @@ def serve(conn: Connection, spec: DetectorSpec) -> None:
         if isinstance(msg, int):
             detector.map_pose_changed(msg)
             continue
+        if isinstance(msg, _SharedJob):  # copied out: the node writes the next frame there once answered
+            image = np.frombuffer(frames, np.uint8, count=math.prod(msg.shape)).reshape(msg.shape)  # type: ignore[arg-type]
+            msg = replace(msg.job, gray=image.copy())
         error = ""
         try:
             found = list(
@@ -168,12 +199,21 @@ class WorkerDiedError(Exception):
 
 class ProcessWorker:
     """One worker process and its pipe. Not thread-safe for receiving; sends are locked (the camera's
-    thread sends frames, the node's loop map changes)."""
+    thread sends frames, the node's loop map changes).
+
+    A frame's image goes through memory the node and the worker share (an anonymous file whose
+    descriptor is passed on the pipe, Linux's ``memfd``), not through the pipe: the worker has at most
+    one frame in flight (:mod:`atlas_onboard.detector.inorder`), so one buffer, written before the job
+    is sent and copied out by the worker, serves every frame. Where there is no ``memfd`` the image is
+    pickled on the pipe."""
 
     def __init__(self, spec: DetectorSpec, name: str) -> None:
         self.spec = spec
         self.name = name
         self._send_lock = threading.Lock()
+        self._frames: mmap.mmap | None = None  # the shared buffer, and its descriptor
+        self._frames_fd = -1
+        self._frames_told = False  # whether this process has been sent the buffer
         self._start()
 
     def _start(self) -> None:
@@ -184,14 +224,44 @@ class ProcessWorker:
         self.process.start()
         child.close()
         self.conn = parent
+        self._frames_told = False
 
     def send(self, msg: Job | int) -> None:
         """Raises :class:`WorkerDiedError` when the process is gone."""
         try:
             with self._send_lock:
-                self.conn.send(msg)
+                if isinstance(msg, Job) and self._share(msg.gray.nbytes):
+                    np.copyto(
+                        np.frombuffer(self._frames, np.uint8, count=msg.gray.size).reshape(msg.gray.shape), msg.gray
+                    )  # type: ignore[arg-type]
+                    self.conn.send(_SharedJob(replace(msg, gray=_NO_IMAGE), msg.gray.shape))
+                else:
+                    self.conn.send(msg)
         except (OSError, ValueError) as exc:
             raise WorkerDiedError(str(exc)) from None
+
+    def _share(self, nbytes: int) -> bool:
+        """Whether a frame of ``nbytes`` goes through the shared buffer (grown, and the process told of
+        it, as needed); False where there is no ``memfd``."""
+        if self._frames is None or len(self._frames) < nbytes:
+            self._close_frames()
+            try:
+                fd = os.memfd_create(f"atlas-onboard-{self.name}", os.MFD_CLOEXEC)
+            except (AttributeError, OSError):  # not Linux, or refused: the pipe carries the image
+                return False
+            os.ftruncate(fd, nbytes)
+            self._frames, self._frames_fd, self._frames_told = mmap.mmap(fd, nbytes), fd, False
+        if not self._frames_told:
+            self.conn.send(_FrameBuffer(len(self._frames)))
+            reduction.send_handle(self.conn, self._frames_fd, self.process.pid)
+            self._frames_told = True
+        return True
+
+    def _close_frames(self) -> None:
+        if self._frames is not None:
+            self._frames.close()
+            os.close(self._frames_fd)
+            self._frames, self._frames_fd = None, -1
 
     def result(self, timeout_s: float) -> Outcome | None:
         """The answer to the job sent, or None if not there within ``timeout_s``; raises
@@ -230,6 +300,8 @@ class ProcessWorker:
         except (OSError, ValueError):
             pass
         self._end(1.0)
+        with self._send_lock:
+            self._close_frames()
 
     def _end(self, wait_s: float) -> None:
         self.process.join(wait_s)

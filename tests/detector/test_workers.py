@@ -6,6 +6,7 @@ import random
 import signal
 import threading
 import time
+import zlib
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +42,8 @@ class _Stand:
         time.sleep(3.0 if slow else random.Random(capture_time_us).uniform(0.0, 0.03))
         self.counters["frames"] += 1
         self.counters["last_stamp"] = capture_time_us
+        self.counters["image_crc"] = zlib.crc32(np.ascontiguousarray(gray).tobytes())
+        self.counters["image_rows"], self.counters["image_cols"] = gray.shape
         return []
 
     def take_status(self):
@@ -105,6 +108,32 @@ def test_a_worker_killed_idle_is_restarted_when_its_frame_goes_out_and_nothing_i
     pipe, got = _stream(workers, stamps, kill_at=2011, idle=True)
     assert pipe.counts["worker_restarts"] == 1 and pipe.counts["frames_lost"] == 0
     assert got == [(t, t) for t in stamps]
+
+
+def test_every_image_reaches_its_worker_as_it_was_sent_whatever_its_size():
+    # Through the buffer the node and a worker share: frames of growing and shrinking sizes (the buffer
+    # grows), one a strided view, each the frame of that worker the one before could not overwrite.
+    rng = np.random.default_rng(5)
+    images = [rng.integers(0, 256, shape, dtype=np.uint8) for shape in [(8, 8), (480, 640), (16, 24), (720, 1280)] * 2]
+    images.append(images[1][::2, 1::3])
+    sent = {4000 + k: img for k, img in enumerate(images)}
+    got: list[tuple[int, int, tuple[int, int]]] = []
+    workers = [ProcessWorker(_StandSpec(), f"w{i}") for i in range(2)]
+
+    def on_result(job, out):
+        got.append(
+            (job.capture_time_us, out.counters["image_crc"], (out.counters["image_rows"], out.counters["image_cols"]))
+        )
+
+    pipe = InOrder(workers, on_result)
+    stop = threading.Event()
+    try:
+        for t, img in sent.items():
+            assert pipe.submit(img, t, None, stop)
+        pipe.drain(stop)
+    finally:
+        pipe.close()
+    assert got == [(t, zlib.crc32(np.ascontiguousarray(img).tobytes()), img.shape) for t, img in sent.items()]
 
 
 def test_a_worker_that_raises_is_restarted_counted_and_the_stream_goes_on():
