@@ -1,9 +1,9 @@
 """The simulated cameras inside a node: at each frame time a worker takes the ground truth, finds the
 markers in view (:class:`atlas_onboard.sim.world.SimWorld`), and reports them as a detector would, either
-from geometry with a noise model (pixel noise on the corners, solved by PnP: :func:`geometric_detector`)
-or by running the real detector on the frame the camera would see (:func:`rendered_detector`, images of
-:mod:`atlas_onboard.sim.camera`); or the node's own camera worker replays the run's frames as an image
-folder (:class:`SimReplayWorker`).
+from geometry with a noise model (pixel noise on the corners, posed by the real detector's pose stage:
+:func:`geometric_detector`) or by running the real detector on the frame the camera would see
+(:func:`rendered_detector`, images of :mod:`atlas_onboard.sim.camera`); or the node's own camera worker
+replays the run's frames as an image folder (:class:`SimReplayWorker`).
 """
 
 from __future__ import annotations
