@@ -1,23 +1,21 @@
 """The simulated cameras inside a node: at each frame time a worker takes the ground truth, finds the
 markers in view (:class:`atlas_onboard.sim.world.SimWorld`), and reports them as a detector would, either
-from geometry with a noise model (pixel noise on the corners, solved by PnP: :func:`geometric_detector`)
-or by running the real detector on the frame the camera would see (:func:`rendered_detector`, images of
-:mod:`atlas_onboard.sim.camera`); or the node's own camera worker replays the run's frames as an image
-folder (:class:`SimReplayWorker`).
+from geometry with a noise model (pixel noise on the corners, posed by the real detector's pose stage:
+:func:`geometric_detector`) or by running the real detector on the frame the camera would see
+(:func:`rendered_detector`, images of :mod:`atlas_onboard.sim.camera`); or the node's own camera worker
+replays the run's frames as an image folder (:class:`SimReplayWorker`).
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from atlas_onboard.config import RefineConfig, SensorConfig, WorldConfig
 from atlas_onboard.core.attitude import CameraTurn
@@ -28,7 +26,7 @@ from atlas_onboard.detector.sources import ImageFolder, ReplayClock
 from atlas_onboard.detector.workers import CameraDetectorSpec
 from atlas_onboard.sim.camera import FrameRenderer, frames_path
 from atlas_onboard.sim.context import SimContext
-from atlas_onboard.sim.world import Sighting, SimWorld
+from atlas_onboard.sim.world import Intrinsics, Sighting, SimWorld
 from atlas_onboard.worker import Deliver, SensorWorker
 
 _logger = logging.getLogger(__name__)
@@ -123,53 +121,61 @@ class SimReplayWorker(CameraWorker):
         self._consume(ImageFolder(Path(self.camera.source), self.camera.fps, self.context.replay, clock), deliver)
 
 
-def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: object, seed: int) -> FrameHandler:
-    """Observations from the true corners plus pixel noise, solved by IPPE PnP (no image)."""
-    import cv2
+def geometric_detector(context: SimContext, sensor: SensorConfig, intrinsics: Intrinsics, seed: int) -> FrameHandler:
+    """Observations from the true corners plus pixel noise (``NOISE_PX`` per axis, independent, in the
+    distorted image), posed by the real detector's pose stage for such corners (no image): undistorted
+    with their noise carried through the undistortion's Jacobian (:mod:`atlas_onboard.detector.pose`), then
+    :func:`atlas_onboard.detector.marker_poses.solve_markers` (IPPE, Levenberg-Marquardt, sigma, covariance
+    and the other planar solution) and :func:`atlas_onboard.detector.records.marker_data`, as
+    :class:`atlas_onboard.detector.pipeline` does with the corners its edge fit refines."""
+    from atlas_onboard.detector import pose
+    from atlas_onboard.detector.marker_poses import solve_markers
+    from atlas_onboard.detector.records import marker_data
 
-    from atlas_onboard.core.markerdata import matrix_to_upper
-    from atlas_onboard.detector.pose import CornerFit, pose_covariance
-    from atlas_onboard.sim.world import marker_corners
-
-    K = intrinsics.camera_matrix  # type: ignore[attr-defined]
-    dist = np.asarray(intrinsics.distortion, dtype=float)  # type: ignore[attr-defined]
+    K = intrinsics.camera_matrix
+    dist = np.asarray(intrinsics.distortion, dtype=float)
 
     def detect(t: float, sightings: list[Sighting], info: dict[str, object]) -> list[MarkerData]:
-        epoch = float(info["epoch"])  # type: ignore[arg-type]
+        if not sightings:
+            return []
+        capture_us = round((float(info["epoch"]) + t) * 1e6)  # type: ignore[arg-type]
+        # Noise drawn per frame and marker: a frame skipped in one run leaves every other frame's the same.
+        seen = np.concatenate(
+            [s.corners_px + np.random.default_rng([seed, round(t * 1e6), s.marker.id]).normal(0.0, NOISE_PX, (4, 2))
+             for s in sightings]
+        )  # fmt: skip
+        ideal = pose.undistort(seen, K, dist, False).reshape(-1, 4, 2)
+        stretch = pose.undistortion_jacobian(seen, K, dist, False)
+        stretches = [None if stretch is None else stretch[4 * k : 4 * k + 4] for k in range(len(sightings))]
+        poses = solve_markers(
+            list(ideal),
+            [s.marker.size_m for s in sightings],
+            K,
+            [NOISE_PX] * len(sightings),
+            stretches,
+            [NOISE_PX] * len(sightings),  # the corners' noise is known: as an edge fit's measured one
+            [_corner_covariance(a) for a in stretches],
+        )
         out = []
-        for s in sightings:
-            obj = marker_corners(s.marker.size_m)
-            # Noise drawn per frame and marker: a frame skipped in one run leaves every other frame's the same.
-            rng = np.random.default_rng([seed, round(t * 1e6), s.marker.id])
-            img = s.corners_px + rng.normal(0.0, NOISE_PX, (4, 2))
-            ok, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-            if not ok or not len(rvecs):
+        for s, mp in zip(sightings, poses, strict=True):
+            if mp is None:
                 continue
-            r = Rotation.from_rotvec(np.asarray(rvecs[0]).ravel())
-            p = np.asarray(tvecs[0]).ravel()
-            e = np.asarray(errs).ravel()
-            x, y, z, w = r.as_quat()
-            side_px = float(np.mean(np.linalg.norm(np.roll(img, -1, axis=0) - img, axis=1)))
-            # Range error of a square seen at side_px pixels with corner noise of NOISE_PX.
-            sigma = max(0.001, float(np.linalg.norm(p)) * 2.0 * NOISE_PX / max(side_px, 1.0))
-            cov = pose_covariance(CornerFit(r.as_matrix(), p, obj, K), NOISE_PX, float(e[0]) if len(e) else math.nan)
-            out.append(
-                MarkerData(
-                    sensor_id=sensor.id,
-                    marker_id=s.marker.id,
-                    sigma_m=sigma,
-                    p_sensor_marker_m=(float(p[0]), float(p[1]), float(p[2])),
-                    q_sensor_marker_wxyz=(float(w), float(x), float(y), float(z)),
-                    capture_time_us=round((epoch + t) * 1e6),
-                    reprojection_error_px=float(e[0]) if len(e) else float("nan"),
-                    ambiguity_ratio=float(e[0] / e[1]) if len(e) > 1 and e[1] > 0 else float("nan"),
-                    **_alt_fields(rvecs, tvecs),
-                    covariance=matrix_to_upper(cov) if cov is not None else (),
-                )
-            )
+            alt = (mp.p_alt_m, mp.q_alt_xyzw) if mp.p_alt_m is not None and mp.q_alt_xyzw is not None else None
+            out.append(marker_data(sensor.id, s.marker.id, mp.p_m, mp.q_xyzw, mp.sigma_m, mp.reprojection_error_px,
+                                   mp.ambiguity, capture_us, alt, mp.covariance))  # fmt: skip
         return out
 
     return FrameHandler(detect)
+
+
+def _corner_covariance(stretch: NDArray[np.float64] | None) -> NDArray[np.float64]:
+    """(8, 8) covariance, in undistorted pixels, of four corners with independent noise ``NOISE_PX`` per axis in
+    the image: each corner's ``NOISE_PX^2 A A^T`` with ``A`` its undistortion Jacobian (identity without one)."""
+    cov = np.zeros((8, 8))
+    for k in range(4):
+        A = np.eye(2) if stretch is None else stretch[k]
+        cov[2 * k : 2 * k + 2, 2 * k : 2 * k + 2] = NOISE_PX**2 * (A @ A.T)
+    return cov
 
 
 def rendered_detector(
@@ -207,15 +213,3 @@ def rendered_detector(
         )
 
     return FrameHandler(detect, needs_truth=False, map_pose_changed=detector.map_pose_changed)
-
-
-def _alt_fields(rvecs: Sequence[np.ndarray], tvecs: Sequence[np.ndarray]) -> dict[str, tuple[float, ...]]:
-    """MarkerData's fields of IPPE's other solution, as the real detector fills them (none: NaN)."""
-    if len(rvecs) < 2:
-        return {}
-    x, y, z, w = Rotation.from_rotvec(np.asarray(rvecs[1]).ravel()).as_quat()
-    p = np.asarray(tvecs[1], dtype=float).ravel()
-    return {
-        "p_sensor_marker_alt_m": (float(p[0]), float(p[1]), float(p[2])),
-        "q_sensor_marker_alt_wxyz": (float(w), float(x), float(y), float(z)),
-    }
