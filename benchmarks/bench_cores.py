@@ -8,8 +8,12 @@ tag36h11 tags in view (``write_demo(n_tags=10)``, 640x480), with a simulated aut
 
 - throughput: the image folder replayed ``every_frame`` at 1000 Hz, so frames come faster than one core
   can detect them. CPU ms per frame of the node's whole process tree (the node, the forkserver, the
-  workers) and of the node's own process = the difference of the medians of repeated runs of all the
-  frames and of half of them, over the frames between (start-up cancels; bench_pi's method). The machine
+  workers) and of the node's own process in the steady state: sampled (/proc) every 20 ms while the
+  frames flow, from the first poses at the autopilot to the folder's end, over the frames delivered
+  between (from the newest capture stamp the autopilot received); the median over the runs. Printed
+  beside: the difference of the medians of repeated runs of all the frames and of half of them, over the
+  frames between (bench_pi's method), whose resolution is the start-up's spread: with worker processes
+  (the forkserver's preload, each worker's detector) it was as large as the figure. The machine
   is shared (its load average is printed), so rates come from CPU time, not from the wall clock (printed
   beside, as a check only): 1 core: 1 / tree CPU; 2 cores: min(2 e / max(tree CPU, the 1-core run's),
   1 / node CPU), where e is the share of two cores the in-order schedule uses, replayed from each frame's
@@ -193,7 +197,11 @@ def node_run(tmp: Path, doc: dict, cpus: str) -> dict:
              "--entity", "drone"], stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"},
         )  # fmt: skip
         deadline = time.time() + 600
+        samples = []  # (newest stamp at the autopilot us, tree CPU s, own CPU s) while frames flow
         while time.time() < deadline and log_path.read_text(errors="replace").count(": end of ") < n_cameras:
+            received = ap.snapshot()
+            if received:
+                samples.append((received[-1].usec, sum(cpu_s(p) for p in tree(node.pid)), cpu_s(node.pid)))
             time.sleep(0.02)
         wall = time.time() - t0
         pids = tree(node.pid)
@@ -212,16 +220,30 @@ def node_run(tmp: Path, doc: dict, cpus: str) -> dict:
     final = re.search(r" final (.*)$", text, re.M)
     counters = dict(kv.split("=") for kv in final.group(1).split()) if final else {}
     usec = [r.usec for r in recs]
-    return {"tree_cpu_s": tree_cpu, "own_cpu_s": own_cpu, "wall_s": wall, "mem": mem, "idle_s": idle,
+    return {"steady": steady(samples, doc), "tree_cpu_s": tree_cpu, "own_cpu_s": own_cpu, "wall_s": wall,
+            "mem": mem, "idle_s": idle,
             "latency_ms": [(r.arrival_s * 1e6 - r.usec) / 1e3 for r in recs], "poses": len(recs),
             "out_of_order": sum(b < a for a, b in itertools.pairwise(usec)),
             "repeated": sum(b == a for a, b in itertools.pairwise(usec)),
             "counters": {k: int(v) for k, v in counters.items()}}  # fmt: skip
 
 
-def detect_times(world_path: Path, n: int) -> list[float]:
+def steady(samples: list[tuple[int, float, float]], doc: dict) -> dict[str, float]:
+    """CPU s of the tree and of the node's own process and the frames delivered between the first sample
+    with poses coming and the last before the folder's end (start-up and shutdown outside): the frames
+    from the newest capture stamp at the autopilot (a frame every 1 / fps of the folder's replay)."""
+    fps = doc["entities"]["drone"]["sensors"][0]["camera"]["fps"]
+    if len(samples) < 3:
+        return {"frames": 0.0, "tree_cpu_s": 0.0, "own_cpu_s": 0.0}
+    (u0, t0, o0), (u1, t1, o1) = samples[1], samples[-1]  # the first: poses may have only begun
+    return {"frames": (u1 - u0) * fps / 1e6, "tree_cpu_s": t1 - t0, "own_cpu_s": o1 - o0}
+
+
+def detect_times(world_path: Path, counts: tuple[int, ...]) -> dict[int, list[float]]:
     """Thread CPU s of each frame's ``Detector.detect``, the demo's frames dealt to ``n`` detectors in
-    turn as the node's workers get them (n = 1: the serial path), in this process."""
+    turn as the node's workers get them (n = 1: the serial path), for each n of ``counts``, in this
+    process; each frame goes through every n's detectors in turn before the next frame, so a change of
+    the machine's load touches every n alike."""
     from atlas_onboard.config import load_world
     from atlas_onboard.detector.calibration import load as load_calibration
     from atlas_onboard.detector.pipeline import Detector
@@ -230,13 +252,14 @@ def detect_times(world_path: Path, n: int) -> list[float]:
     world = load_world(world_path)
     cal = load_calibration(world_path.parent / "calibration.yaml")
     sensor = world.entity("drone").sensors[0]
-    detectors = [Detector(sensor, world, cal, decimate=2.0) for _ in range(n)]
+    detectors = {n: [Detector(sensor, world, cal, decimate=2.0) for _ in range(n)] for n in counts}
     frames = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in sorted((world_path.parent / "frames").iterdir())]
-    out = []
+    out: dict[int, list[float]] = {n: [] for n in counts}
     for k, img in enumerate(frames):
-        t0 = time.thread_time()
-        detectors[k % n].detect(img, k * 50_000)
-        out.append(time.thread_time() - t0)
+        for n in counts:
+            t0 = time.thread_time()
+            detectors[n][k % n].detect(img, k * 50_000)
+            out[n].append(time.thread_time() - t0)
     return out
 
 
@@ -296,7 +319,8 @@ def main() -> int:
             latency = node_run(tmp, world_doc(base, tmp / "long", cal, 30.0, "realtime", cores), cpus)
             out[name] = {"short": short, "long": long, "latency": latency, "cores": cores, "cpus": cpus}
         load = os.getloadavg()
-        times = {name: detect_times(world_path, cores) for name, _, cores in RUNS}
+        by_count = detect_times(world_path, tuple(cores for _, _, cores in RUNS))
+        times = {name: by_count[cores] for name, _, cores in RUNS}
         # memory: 1280x720, one camera and three, 1 core and 2
         mem_cal = scaled(tmp / "demo", tmp / "hd", 1280, 720, 20)
         memory = {}
@@ -314,6 +338,8 @@ def main() -> int:
     print(f"{'run':8} {'tree':>6} {'res':>5} {'node':>6} {'res':>5} {'idle':>6} {'frames':>6} {'restarts':>8}"
           f" {'fps wall':>8}")  # fmt: skip
     cpu: dict[str, tuple[float, float]] = {}
+    cpu_steady: dict[str, tuple[float, float]] = {}
+    rest: dict[str, float] = {}
     wall_fps: dict[str, float] = {}
     for name, r in out.items():
         tree_s, tree_res = _diff([x["tree_cpu_s"] for x in r["short"]], [x["tree_cpu_s"] for x in r["long"]], extra)
@@ -326,9 +352,25 @@ def main() -> int:
         print(f"{name:8} {tree_s * 1e3:>6.1f} {tree_res * 1e3:>5.1f} {own_s * 1e3:>6.1f} {own_res * 1e3:>5.1f}"
               f" {idle_s * 1e3:>6.1f} {frames:>6.0f} {restarts:>8} {wall_fps[name]:>8.1f}")  # fmt: skip
     print()
+    print("steady state (the same runs, start-up and shutdown left out): CPU ms per frame delivered between the"
+          " first poses at the autopilot and the folder's end, the median of the runs: of the tree, of the node's"
+          " own process, of the rest (the workers, the forkserver, the resource tracker); 'frames': delivered"
+          " between; 'tick': the CPU clock's tick over them (the sampling's resolution, ms a frame)")  # fmt: skip
+    print(f"{'run':8} {'tree':>6} {'node':>6} {'rest':>6} {'frames':>6} {'tick':>5}   tree, every run")
+    for name, r in out.items():
+        runs = [x["steady"] for x in r["short"] + r["long"] if x["steady"]["frames"] > 0]
+        tree_ms = [x["tree_cpu_s"] / x["frames"] * 1e3 for x in runs]
+        own_ms = [x["own_cpu_s"] / x["frames"] * 1e3 for x in runs]
+        rest_ms = statistics.median(a - b for a, b in zip(tree_ms, own_ms, strict=True))
+        frames = statistics.median(x["frames"] for x in runs)
+        cpu_steady[name] = (statistics.median(tree_ms) / 1e3, statistics.median(own_ms) / 1e3)
+        print(f"{name:8} {cpu_steady[name][0] * 1e3:>6.1f} {cpu_steady[name][1] * 1e3:>6.1f} {rest_ms:>6.1f}"
+              f" {frames:>6.0f} {TICK_S / frames * 1e3:>5.2f}   {' '.join(f'{v:.1f}' for v in tree_ms)}")  # fmt: skip
+        rest[name] = rest_ms / 1e3
+    print()
     # The schedule replayed from CPU times: what n free cores give (this machine's cores are not free).
     t1, t2 = times["1 core"], times["2 cores"]
-    (c1, _), (c2, o2) = cpu["1 core"], cpu["2 cores"]
+    (c1, _), (c2, o2) = cpu_steady["1 core"], cpu_steady["2 cores"]
     fps_hol, _ = schedule(t2, 2, 0.0)
     efficiency = fps_hol / (2 / statistics.mean(t2))  # in-order delivery: workers wait for each other's frames
     fps1 = 1 / c1
@@ -337,12 +379,18 @@ def main() -> int:
     # whatever the difference within the resolution says.
     fps2 = min(2 * efficiency / max(c2, c1), 1 / o2)
     s2 = fps2 / fps1
-    print("detector per frame (thread CPU ms, this process): serial", _fmt(t1), "| dealt to 2 detectors in turn",
-          _fmt(t2))  # fmt: skip
+    print("detector per frame (thread CPU ms, this process, each frame through both in turn): serial", _fmt(t1),
+          "| dealt to 2 detectors in turn", _fmt(t2))  # fmt: skip
+    over = rest["2 cores"] / statistics.mean(t2)
+    print(f"the 2-core run's workers (the steady 'rest') over that detection: {over:.2f} (the frames' passage"
+          " between processes, and two detectors running at once on the cores)")  # fmt: skip
     print(f"in-order schedule of 2 workers replayed from those times: {efficiency:.3f} of 2 cores used (the rest:"
           " waits for an earlier frame)")  # fmt: skip
     print(f"throughput: 1 core {fps1:.1f} fps = 1 / tree CPU; 2 cores {fps2:.1f} fps = min(2 x {efficiency:.3f} /"
-          " max(tree CPU, 1 core's tree CPU), 1 / node CPU)")  # fmt: skip
+          " max(tree CPU, 1 core's tree CPU), 1 / node CPU), the steady state's CPU")  # fmt: skip
+    (d1, _), (d2, do2) = cpu["1 core"], cpu["2 cores"]
+    s2_diff = min(2 * efficiency / max(d2, d1), 1 / do2) * d1
+    print(f"(from the difference of the medians instead, whose resolution is printed above: {s2_diff:.2f})")
     d1 = [x["counters"] for x in out["1 core"]["long"]]
     d2 = [x["counters"] for x in out["2 cores"]["long"]]
     work = ("camera_down_detector_roi_finds", "camera_down_detector_candidate_regions", "camera_down_detector_scans",

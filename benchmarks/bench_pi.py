@@ -17,12 +17,16 @@ other load on a shared core does not count; on a Pi given a core, wall time is c
   640x480) with 1, 2, 5 and 10 of them in the world file (the others are not looked for): ``detect`` per
   frame, and the least-squares slope of its mean over the mean number of markers found per frame.
 - node: ``atlas-onboard run`` itself, pinned, reading those images, every one, at 30 Hz, with a
-  simulated autopilot: its CPU time per frame (everything: reading, detection, graph, MAVLink),
-  the difference of the medians of repeated runs of all the frames and of half of them, over the
-  frames between, so start-up cancels. Its resolution is the CPU clock's tick plus the spread of the
-  repeated runs (start-up varies from run to run); a difference within it is printed as "below
-  resolution" with the bound it proves (CPU ms < resolution, fps > 1000 / resolution), never as a
-  figure. Frame rate on one core = 1000 / (CPU ms per frame).
+  simulated autopilot: its CPU time per frame (everything: reading, detection, graph, MAVLink). Where
+  poses come (tracking), the steady state: the process CPU sampled while the frames flow, from the
+  first poses at the autopilot to the folder's end, over the frames delivered between (the newest
+  capture stamp the autopilot received), the median of the runs; start-up and shutdown are left out.
+  Without poses (hunting), and printed beside, the difference of the medians of repeated runs of all
+  the frames and of half of them, over the frames between, so start-up cancels. Its resolution is the
+  CPU clock's tick plus the spread of the repeated runs (start-up varies from run to run); a
+  difference within it is printed as "below resolution" with the bound it proves (CPU ms <
+  resolution, fps > 1000 / resolution), never as a figure. Frame rate on one core = 1000 / (CPU ms per
+  frame).
 
 Scaling to a Pi: a Pi 4 core (Cortex-A72, 1.5-1.8 GHz) is taken as PI4_FACTOR = 3.0 times slower
 than one core of this machine (an AMD EPYC at 2.6 GHz), a Pi 5 core (Cortex-A76, 2.4 GHz) as
@@ -236,14 +240,25 @@ def node_run(tmp: Path, doc: dict) -> dict:
              "--entity", "drone"], stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "OMP_NUM_THREADS": "1"},
         )  # fmt: skip
         deadline = time.time() + 300
+        samples = []  # (newest capture stamp at the autopilot us, process CPU s) while poses come
         while time.time() < deadline and ": end of " not in log_path.read_text(errors="replace"):
+            received = ap.snapshot()
+            if received:
+                samples.append((received[-1].usec, cpu_s(node.pid)))
             time.sleep(0.05)
         cpu, wall = cpu_s(node.pid), time.time() - t0
         node.terminate()
         node.wait(timeout=10)
     recs = ap.snapshot()
     ap.stop()
-    return {"cpu_s": cpu, "wall_s": wall, "latency_ms": [(r.arrival_s * 1e6 - r.usec) / 1e3 for r in recs]}
+    # The steady state: CPU between the first poses and the folder's end over the frames delivered between
+    # (a frame every 1 / NODE_FPS of capture time); start-up and shutdown left out.
+    steady = None
+    if len(samples) >= 3 and samples[-1][0] > samples[1][0]:
+        (u0, c0), (u1, c1) = samples[1], samples[-1]
+        steady = (c1 - c0, (u1 - u0) * NODE_FPS / 1e6)
+    return {"cpu_s": cpu, "wall_s": wall, "latency_ms": [(r.arrival_s * 1e6 - r.usec) / 1e3 for r in recs],
+            "steady": steady}  # fmt: skip
 
 
 def cpu_per_frame(short_cpu_s: list[float], long_cpu_s: list[float], extra: int) -> tuple[float, float]:
@@ -268,9 +283,15 @@ def node_runs(tmp: Path, folders: dict[str, tuple[dict, dict, int]], repeats: in
             b.append(node_run(tmp, long))
         cpu_ms, resolution_ms = cpu_per_frame([r["cpu_s"] for r in a], [r["cpu_s"] for r in b], extra)
         lat = [x for r in b for x in r["latency_ms"]]
+        steady = [r["steady"] for r in a + b if r["steady"] is not None and r["steady"][1] > 0]
+        steady_ms = [c * 1e3 / n for c, n in steady]
+        tick_ms = 1e3 / os.sysconf("SC_CLK_TCK")
         node[key] = {"cpu_ms_per_frame": cpu_ms, "resolution_ms": resolution_ms,
                      "resolved": cpu_ms > resolution_ms, "poses": len(lat) / repeats,
-                     "latency": _stats(lat) if lat else None, "frames": 2 * extra}  # fmt: skip
+                     "latency": _stats(lat) if lat else None, "frames": 2 * extra,
+                     "steady_ms": statistics.median(steady_ms) if len(steady) == len(a + b) else None,
+                     "steady_runs": steady_ms,
+                     "steady_tick_ms": tick_ms / min((n for _, n in steady), default=1)}  # fmt: skip
     return node
 
 
@@ -325,28 +346,35 @@ def main() -> int:
     n_frames = next(iter(node.values()))["frames"]
     repeats = max(args.node_repeats, 2)
     print(f"node (atlas-onboard run, taskset -c 0), demo camera images, every one, at {NODE_FPS:g} Hz, {n_frames}"
-          f" frames; CPU ms per frame = the difference of the medians of the process CPU of {repeats} runs of all"
-          " and of half the frames, over the frames between; 'res' its resolution (CPU clock tick + the runs'"
-          " spread); below it, '<' the bound proven and '>' the fps it proves")  # fmt: skip
-    print(f"{'frames':25} {'CPU ms':>7} {'res':>5} {'core at 30 Hz':>13} {'poses':>6} {'lat mean':>8} {'median':>6}"
-          f" {'p95':>6} {'fps here':>8} {'Pi 4':>6} {'Pi 5':>6}")  # fmt: skip
+          f" frames; CPU ms per frame: 'steady' = the process CPU between its first poses at the autopilot and the"
+          f" folder's end over the frames delivered between (the median of the {2 * repeats} runs; 'tick' the CPU"
+          " clock's tick over those frames), the figure used where poses come (tracking); 'diff' = the difference"
+          f" of the medians of the process CPU of {repeats} runs of all and of half the frames, over the frames"
+          " between, with 'res' its resolution (CPU clock tick + the runs' spread: start-up's), the figure used"
+          " without poses (hunting); below its resolution, '<' the bound proven and '>' the fps it proves")  # fmt: skip
+    print(f"{'frames':25} {'steady':>7} {'tick':>5} {'diff':>7} {'res':>5} {'core at 30 Hz':>13} {'poses':>6}"
+          f" {'lat mean':>8} {'median':>6} {'p95':>6} {'fps here':>8} {'Pi 4':>6} {'Pi 5':>6}"
+          "   steady, every run")  # fmt: skip
     fps_at: dict[tuple[str, str], tuple[float, bool]] = {}
     for key, r in node.items():
         res, state = key.split("|")
-        resolved = r["resolved"]
+        steady = r["steady_ms"]
+        resolved = steady is not None or r["resolved"]
         # below the resolution only a bound is known: CPU ms < resolution, so fps > 1000 / resolution
-        cpu_ms = r["cpu_ms_per_frame"] if resolved else r["resolution_ms"]
+        cpu_ms = steady if steady is not None else r["cpu_ms_per_frame"] if resolved else r["resolution_ms"]
         fps = 1000 / cpu_ms
         mark = " " if resolved else "<"
         fmark = " " if resolved else ">"
         lat = r["latency"] or {"mean": float("nan"), "median": float("nan"), "p95": float("nan")}
         for pi, f in factors.items():
             fps_at[(pi, key)] = (fps / f, resolved)
-        print(f"{res + ' ' + state:25} {mark}{cpu_ms:>6.2f} {r['resolution_ms']:>5.2f}"
+        shown = f"{steady:>7.2f} {r['steady_tick_ms']:>5.2f}" if steady is not None else f"{'-':>7} {'-':>5}"
+        print(f"{res + ' ' + state:25} {shown} {r['cpu_ms_per_frame']:>7.2f} {r['resolution_ms']:>5.2f}"
               f" {mark}{100 * cpu_ms / 1e3 * NODE_FPS:>11.0f}% {r['poses']:>6.0f}"
               f" {lat['mean']:>8.1f} {lat['median']:>6.1f} {lat['p95']:>6.1f} {fmark}{fps:>7.0f}"
               f" {fmark}{fps / factors['Pi 4']:>5.0f} {fmark}{fps / factors['Pi 5']:>5.0f}"
-              f"{'' if resolved else '  (below resolution)'}")  # fmt: skip
+              f"{'' if resolved else '  (below resolution)'}"
+              f"   {' '.join(f'{v:.1f}' for v in r['steady_runs'])}")  # fmt: skip
     print(f"(latency: capture stamp to the autopilot, wall ms, on a core shared with this machine's other load;"
           f" Pi factors {factors['Pi 4']:g} and {factors['Pi 5']:g})")  # fmt: skip
     for pi, res, state in (("Pi 4", "640x480", "tracking"), ("Pi 4", "640x480", "hunting"),

@@ -8,6 +8,7 @@ Pure: the time is each image's capture stamp, passed in.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections import deque
 from collections.abc import Callable, Hashable, Mapping, Sequence
@@ -21,6 +22,7 @@ from scipy.special import chdtri  # chi-square's inverse survival function (scip
 from atlas_onboard.core import covariance
 from atlas_onboard.core.refine import Estimate, MapRefiner, RefineOptions, WorldMarkerPose, residuals
 from atlas_onboard.core.refine import Sighting as PlacedSighting
+from atlas_onboard.core.refine.records import Image
 from atlas_onboard.core.worldcheck import MAX_EVIDENCE, WINDOW_S
 from atlas_onboard.errors import GeometryError
 
@@ -152,6 +154,10 @@ class MeasuredPlaces:
         self.window_us = round(window_s * 1e6)
         self._places: dict[int, MeasuredPlace] = {}
         self._checks: dict[int, deque[tuple[int, bool]]] = {}  # marker -> (capture time us, fits) newest last
+        # Images not yet turned into evidence (no place to re-check in them), oldest first: see add_image.
+        self._pending: deque[Image] = deque()
+        self._first = 0  # the number of the oldest of them (images numbered as they come)
+        self._done: dict[int, int] = {}  # marker -> the number of the first image whose evidence it lacks
 
     def add_image(
         self,
@@ -160,9 +166,22 @@ class MeasuredPlaces:
         sightings: Sequence[PlacedSighting],
         trusted: Callable[[frozenset[int]], bool],
     ) -> list[MeasuredPlace]:
-        """One image's world markers (two or more); returns the places withdrawn by this image's evidence."""
-        if len(sightings) < 2 or not self.refiner.add_image(camera, capture_time_us, sightings):
+        """One image's world markers (two or more); returns the places withdrawn by this image's evidence.
+
+        The image is kept, and a marker's evidence from the kept images is computed (in capture order, the
+        same items) only when the marker's place is sought or re-checked: here, the markers of the image
+        that have a place. An image older than the window before the newest (capture stamps rising) is
+        forgotten, since no estimate would take it."""
+        if len(sightings) < 2:
             return []
+        self._pending.append(Image(camera, capture_time_us, tuple(sightings)))
+        while self._pending[0].capture_time_us < capture_time_us - self.window_us:
+            self._pending.popleft()
+            self._first += 1
+        placed = {s.marker_id for s in sightings if s.marker_id in self._places}
+        if not placed:
+            return []
+        self._catch_up(placed)
         out = []
         for s in sightings:
             place = self._places.get(s.marker_id)
@@ -185,6 +204,7 @@ class MeasuredPlaces:
         why there is none yet (one line)."""
         if marker_id in self._places:
             return self._places[marker_id]
+        self._catch_up({marker_id})
         since = now_us - self.window_us
         est = self.refiner.estimate(marker_id, accept=lambda e: e.capture_time_us >= since and trusted(e.others))
         if est is None:
@@ -209,6 +229,16 @@ class MeasuredPlaces:
 
     def place(self, marker_id: int) -> MeasuredPlace | None:
         return self._places.get(marker_id)
+
+    def _catch_up(self, markers: set[int]) -> None:
+        """The kept images' evidence of ``markers`` not computed yet, oldest first, the items the images
+        give one at a time (one marker at a time, the images with as many markers at once)."""
+        end = self._first + len(self._pending)
+        for m in sorted(markers):
+            since = max(self._done.get(m, self._first), self._first)
+            if since < end:
+                self.refiner.add_images(list(itertools.islice(self._pending, since - self._first, None)), m)
+                self._done[m] = end
 
     def drop(self, marker_id: int) -> None:
         """Forget a marker's place (it fits the world file again)."""

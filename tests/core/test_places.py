@@ -17,8 +17,9 @@ from atlas_onboard.core.places import (
     RECHECK_MISFITS,
     MeasuredPlace,
     MeasuredPlaces,
+    place_covariance,
 )
-from atlas_onboard.core.refine import RefineOptions, Sighting, residuals
+from atlas_onboard.core.refine import MapRefiner, RefineOptions, Sighting, residuals
 
 FRAME_US = 33_333
 SIGMA_M = 0.001
@@ -223,3 +224,47 @@ def test_the_corrected_sightings_covariance_is_the_sightings_and_the_places_toge
     np.testing.assert_allclose(np.sqrt(np.diag(predicted)), np.sqrt(np.diag(sampled)), rtol=0.05)
     # The place's share alone is smaller than the whole and larger than nothing.
     assert np.all(np.diag(C_sensor) < np.diag(predicted)) and np.all(np.diag(C_sensor) > 0)
+
+
+def test_evidence_waits_until_a_place_is_sought_and_is_then_what_every_image_at_once_gives():
+    """A marker's evidence is computed only when its place is sought or re-checked (an image shows it
+    with a place), and the place is the one from the same images fed to the evidence one at a time, every
+    item the same; images more than the window before the newest are forgotten unused (the estimate would
+    not take them)."""
+    rng = np.random.default_rng(5)
+    places = _places()
+    reference = MapRefiner({m: (np.array(p), np.eye(3)) for m, p in FILE.items()}, options=RefineOptions(min_others=1))
+    fed = []
+    for t0_s, seconds in ((0.0, 2.0), (places.window_us / 1e6 + 1.0, 2.5)):  # the first flight leaves the window
+        for k in range(round(seconds * 1e6 / FRAME_US)):
+            t_us = round(t0_s * 1e6) + k * FRAME_US
+            image = _image(rng, t_us / 1e6, (1, 2, 3, 5), _truth(np.zeros(3)))
+            assert places.add_image("cam", t_us, image, _not_2) == []
+            reference.add_image("cam", t_us, image)
+            fed.append(t_us)
+    assert all(not places.refiner.evidence(m) for m in FILE)  # nothing computed yet
+    place = places.establish(2, t_us, _not_2)
+    assert isinstance(place, MeasuredPlace)
+    since = t_us - places.window_us
+    est = reference.estimate(2, accept=lambda e: e.capture_time_us >= since and _not_2(e.others))
+    assert est is not None and est.items < len(fed)  # the first flight is outside the window
+    assert np.array_equal(place.p_world_marker_m, est.p_world_marker_m)
+    assert np.array_equal(place.R_world_marker, est.R_world_marker)
+    assert np.array_equal(place.cov, place_covariance(est))
+    assert (place.items, place.views) == (est.items - est.outliers, est.views)
+    kept = [e.capture_time_us for e in places.refiner.evidence(2)]
+    assert kept == [t for t in fed if t >= since]
+    assert not places.refiner.evidence(1)
+    t_us += FRAME_US  # an image showing the marker that has a place: its evidence, to re-check the place
+    image = _image(rng, t_us / 1e6, (1, 2, 3, 5), _truth(np.zeros(3)))
+    places.add_image("cam", t_us, image, _not_2)
+    reference.add_image("cam", t_us, image)
+    assert places.refiner.latest(2).capture_time_us == t_us and not places.refiner.evidence(1)
+    assert isinstance(places.establish(1, t_us, lambda others: True), MeasuredPlace)
+    for m in (1, 2):
+        got = places.refiner.evidence(m)
+        want = [e for e in reference.evidence(m) if e.capture_time_us >= since]
+        assert [e.capture_time_us for e in got] == [e.capture_time_us for e in want] and len(got) > 60
+        for a, b in zip(got, want, strict=True):
+            assert np.array_equal(a.p_world_marker_m, b.p_world_marker_m) and np.array_equal(a.cov, b.cov)
+            assert np.array_equal(a.R_world_marker, b.R_world_marker) and a.others == b.others

@@ -16,39 +16,52 @@ def leave_one_out(P: NDArray, Rs: NDArray, C: NDArray) -> tuple[NDArray, NDArray
     mean of the others: p (n, 3), R (n, 3, 3), its covariance (n, 6, 6), and the chi-square of those
     others about it (6 (n - 2) degrees of freedom when they agree). Gauss-Newton, twice, each mean
     about its own reference (the first of its others to start); of two poses, each other's as it is."""
-    n = len(P)
+    got = leave_one_out_many(P[None], Rs[None], C[None])
+    return None if got is None else (got[0][0], got[1][0], got[2][0], got[3][0])
+
+
+def leave_one_out_many(
+    P: NDArray, Rs: NDArray, C: NDArray, row: NDArray[np.int_] | None = None
+) -> tuple[NDArray, NDArray, NDArray, NDArray] | None:
+    """:func:`leave_one_out` of b images of n candidates each at once (every array with a leading axis
+    of b, the results too), each image's figures those it gives alone; None if any is singular. With
+    ``row`` (b,), only that candidate's placement by its others in each image (results of one row each)."""
+    b, n = P.shape[:2]
+    rows = np.broadcast_to(np.arange(n), (b, n)) if row is None else np.asarray(row)[:, None]
+    pick = np.arange(b)[:, None]
     try:
         W = np.linalg.inv(C)
     except np.linalg.LinAlgError:
         return None
     if n == 2:  # each one's others are the other alone: their mean is that pose, its covariance that one's
-        swap = [1, 0]
-        return P[swap], Rs[swap], 0.5 * (C[swap] + np.swapaxes(C[swap], -1, -2)), np.zeros(2)
-    others = ~np.eye(n, dtype=bool)
-    Wo = W[None] * others[:, :, None, None]  # (i, k, 6, 6): candidate k's weight in i's mean
-    info = Wo.sum(axis=1)
-    first = np.where(np.arange(n) == 0, 1, 0)
-    p_ref, R_ref = P[first], Rs[first]
+        other = 1 - rows
+        Cs = C[pick, other]
+        return P[pick, other], Rs[pick, other], 0.5 * (Cs + np.swapaxes(Cs, -1, -2)), np.zeros(rows.shape)
+    others = ~np.eye(n, dtype=bool)[rows]  # (b, i, k): whether candidate k is among i's others
+    Wo = W[:, None] * others[..., None, None]  # (b, i, k, 6, 6): candidate k's weight in i's mean
+    info = Wo.sum(axis=2)
+    first = np.where(rows == 0, 1, 0)
+    p_ref, R_ref = P[pick, first], Rs[pick, first]
     try:
         for _ in range(2):
             r = residuals_each(P, Rs, p_ref, R_ref)
-            x = np.linalg.solve(info, np.einsum("ikab,ikb->ia", Wo, r)[..., None])[..., 0]
-            p_ref = p_ref + x[:, :3]
-            R_ref = R_ref @ Rotation.from_rotvec(x[:, 3:]).as_matrix()
+            x = np.linalg.solve(info, np.einsum("bikac,bikc->bia", Wo, r)[..., None])[..., 0]
+            p_ref = p_ref + x[..., :3]
+            R_ref = R_ref @ Rotation.from_rotvec(x[..., 3:].reshape(-1, 3)).as_matrix().reshape(R_ref.shape)
         cov = np.linalg.inv(info)
     except np.linalg.LinAlgError:
         return None
     r = residuals_each(P, Rs, p_ref, R_ref)
-    values = np.einsum("ika,ikab,ikb->i", r, Wo, r)
+    values = np.einsum("bika,bikac,bikc->bi", r, Wo, r)
     return p_ref, R_ref, 0.5 * (cov + np.swapaxes(cov, -1, -2)), values
 
 
 def residuals_each(P: NDArray, Rs: NDArray, p_ref: NDArray, R_ref: NDArray) -> NDArray[np.float64]:
-    """(m, n, 6): the n poses' errors about each of m references (:func:`residuals`)."""
-    m, n = len(p_ref), len(P)
-    rel = np.swapaxes(R_ref, -1, -2)[:, None] @ Rs[None]
-    rot = rotvecs_from_matrices(rel.reshape(m * n, 3, 3)).reshape(m, n, 3)
-    return np.concatenate([P[None] - p_ref[:, None], rot], axis=2)
+    """(b, m, n, 6): each image's n poses' errors about each of its m references (:func:`residuals`)."""
+    b, m, n = len(P), p_ref.shape[1], P.shape[1]
+    rel = np.swapaxes(R_ref, -1, -2)[:, :, None] @ Rs[:, None]
+    rot = rotvecs_from_matrices(rel.reshape(b * m * n, 3, 3)).reshape(b, m, n, 3)
+    return np.concatenate([P[:, None] - p_ref[:, :, None], rot], axis=3)
 
 
 def rotvecs_from_matrices(R: NDArray) -> NDArray[np.float64]:

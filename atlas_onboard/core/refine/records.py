@@ -48,6 +48,15 @@ class Sighting:
 
 
 @dataclass(frozen=True)
+class Image:
+    """One camera's image: the world markers it shows."""
+
+    camera: Hashable
+    capture_time_us: int
+    sightings: tuple[Sighting, ...]
+
+
+@dataclass(frozen=True)
 class Evidence:
     """Where one image places one marker, from the other markers it shows (world frame)."""
 

@@ -19,8 +19,8 @@ from scipy.special import chdtri  # chi-square's inverse survival function (scip
 
 from atlas_onboard.core import covariance
 from atlas_onboard.core.refine.mean import residuals, robust_mean, view_labels, view_scatter
-from atlas_onboard.core.refine.placement import leave_one_out
-from atlas_onboard.core.refine.records import Estimate, Evidence, RefineOptions, Sighting, Update
+from atlas_onboard.core.refine.placement import leave_one_out_many
+from atlas_onboard.core.refine.records import Estimate, Evidence, Image, RefineOptions, Sighting, Update
 
 
 @dataclass
@@ -28,6 +28,23 @@ class _MapPose:
     p: NDArray[np.float64]
     R: NDArray[np.float64]
     cov: NDArray[np.float64] = field(default_factory=lambda: np.zeros((6, 6)))
+
+
+@dataclass(frozen=True)
+class _Placed:
+    """Where the others of b images place n markers of each (:meth:`MapRefiner._place`): arrays of b n
+    rows, image by image, or of one image's n (:meth:`image`)."""
+
+    n: int
+    p: NDArray[np.float64]
+    R: NDArray[np.float64]
+    cov: NDArray[np.float64]
+    direction: NDArray[np.float64]
+    chi2: NDArray[np.float64]
+
+    def image(self, j: int) -> _Placed:
+        rows = slice(j * self.n, (j + 1) * self.n)
+        return _Placed(self.n, self.p[rows], self.R[rows], self.cov[rows], self.direction[rows], self.chi2[rows])
 
 
 class MapRefiner:
@@ -73,27 +90,71 @@ class MapRefiner:
 
     def add_image(self, camera: Hashable, capture_time_us: int, sightings: Sequence[Sighting]) -> int:
         """One image's world markers (unknown ids ignored); returns how many evidence items it gave."""
+        return self.add_images([Image(camera, capture_time_us, tuple(sightings))])
+
+    def add_images(self, images: Sequence[Image], marker_id: int | None = None) -> int:
+        """Several images' world markers, oldest first: the evidence :meth:`add_image` of each in turn gives,
+        the arithmetic of the images with as many markers done at once; returns the evidence items added.
+        With ``marker_id``: that marker's evidence alone (the others' is not computed; the counters of
+        whole images, ``images`` and the image rejections, are left to the call without it)."""
+        whole = marker_id is None
+        seen = [self._screen(image.sightings, count=whole) for image in images]
+        rows: list[list[int]] = [[] for _ in images]
+        for k, found in enumerate(seen):
+            if found:
+                rows[k] = (
+                    list(range(len(found))) if whole else [i for i, s in enumerate(found) if s.marker_id == marker_id]
+                )
+        placed: list[_Placed | None] = [None] * len(images)
+        for n in sorted({len(s) for k, s in enumerate(seen) if s and rows[k]}):
+            group = [k for k, s in enumerate(seen) if s and rows[k] and len(s) == n]
+            row = None if whole else np.array([rows[k][0] for k in group])
+            got = self._place([seen[k] for k in group], row)
+            if got is None:  # some image is singular: each on its own, to tell which
+                for j, k in enumerate(group):
+                    placed[k] = self._place([seen[k]], None if row is None else row[j : j + 1])
+                    self.counters["rejected_singular"] += whole and placed[k] is None
+                continue
+            for j, k in enumerate(group):
+                placed[k] = got.image(j)
+        added = 0
+        for image, found, got, kept in zip(images, seen, placed, rows, strict=True):
+            if found and got is not None:
+                added += self._keep(image, found, kept, got, count=whole)
+        return added
+
+    def _screen(self, sightings: Sequence[Sighting], count: bool = True) -> list[Sighting] | None:
+        """An image's known markers, or None (counted with ``count``) when they cannot give evidence."""
         seen = [s for s in sightings if s.marker_id in self._map]
         ids = [s.marker_id for s in seen]
         if len(set(ids)) != len(ids):  # an id twice in one image: which one is it?
-            self.counters["rejected_duplicate"] += 1
-            return 0
+            self.counters["rejected_duplicate"] += count
+            return None
         if len(seen) < self.options.min_others + 1:
-            self.counters["rejected_few_markers"] += 1
-            return 0
-        n = len(seen)
-        p_sm = np.array([s.p_sensor_marker_m for s in seen])
-        R_sm = np.array([s.R_sensor_marker for s in seen])
-        C_sm = np.array([s.cov for s in seen])
-        cams = self._camera_candidates(seen, p_sm, R_sm, C_sm)
+            self.counters["rejected_few_markers"] += count
+            return None
+        return seen
+
+    def _place(self, images: Sequence[Sequence[Sighting]], row: NDArray[np.int_] | None = None) -> _Placed | None:
+        """Where the others of each image (all of n markers) place each marker (or the one of ``row``, see
+        :func:`leave_one_out_many`), with the covariance and the others' chi-square, image by image; None if
+        any image's covariances are singular."""
+        b, n = len(images), len(images[0])
+        flat = [s for seen in images for s in seen]
+        p_sm = np.array([s.p_sensor_marker_m for s in flat])
+        R_sm = np.array([s.R_sensor_marker for s in flat])
+        C_sm = np.array([s.cov for s in flat])
+        cams = self._camera_candidates(flat, p_sm, R_sm, C_sm)
         if cams is None:
-            self.counters["rejected_singular"] += 1
-            return 0
-        fused = leave_one_out(*cams)
+            return None
+        fused = leave_one_out_many(*(a.reshape(b, n, *a.shape[1:]) for a in cams), row)
         if fused is None:
-            self.counters["rejected_singular"] += 1
-            return 0
-        p_ws, R_ws, C_ws, chi2_values = fused
+            return None
+        m = n if row is None else 1
+        p_ws, R_ws, C_ws, chi2_values = (a.reshape(b * m, *a.shape[2:]) for a in fused)
+        if row is not None:  # the placed marker's own square in each image
+            mine = np.arange(b) * n + row
+            p_sm, R_sm, C_sm = p_sm[mine], R_sm[mine], C_sm[mine]
         # T_world_marker = T_world_sensor T_sensor_marker, the camera's and the square's errors together.
         Jp, Je = covariance.compose_jacobians(R_ws, p_sm, R_sm)
         cov = covariance.transform(Jp, C_ws) + covariance.transform(Je, C_sm)
@@ -102,23 +163,33 @@ class MapRefiner:
         R_wm = R_ws @ R_sm
         to_camera = -(np.swapaxes(R_sm, -1, -2) @ p_sm[..., None])[..., 0]
         directions = to_camera / np.maximum(np.linalg.norm(to_camera, axis=1, keepdims=True), 1e-9)
+        return _Placed(m, p_wm, R_wm, cov, directions, chi2_values)
+
+    def _keep(self, image: Image, seen: Sequence[Sighting], rows: Sequence[int], placed: _Placed, count: bool) -> int:
+        """An image's evidence items of the markers at ``rows`` of ``seen`` (``placed`` in that order) kept,
+        those whose others agree; returns how many (``count``: the image counted when it gave any)."""
+        n = len(seen)
         # With one other there is nothing to check it against: min_others 1 leaves trust to the caller.
         limit = chdtri(6 * (n - 2), self.options.consistency_p) if n > 2 else math.inf
         added = 0
-        ids_seen = frozenset(ids)
-        for i, s in enumerate(seen):
+        ids_seen = frozenset(s.marker_id for s in seen)
+        for j, i in enumerate(rows):
+            s = seen[i]
             if s.marker_id in self.anchors:
                 self.counters["rejected_anchor"] += 1
                 continue
-            if chi2_values[i] > limit:
+            if placed.chi2[j] > limit:
                 self.counters["rejected_inconsistent"] += 1
                 continue
             items = self._evidence.setdefault(s.marker_id, deque(maxlen=self.options.max_evidence))
             others = ids_seen - {s.marker_id}
-            items.append(Evidence(p_wm[i], R_wm[i], cov[i], directions[i], camera, int(capture_time_us), others))
+            items.append(
+                Evidence(placed.p[j], placed.R[j], placed.cov[j], placed.direction[j], image.camera,
+                         int(image.capture_time_us), others)
+            )  # fmt: skip
             added += 1
         if added:
-            self.counters["images"] += 1
+            self.counters["images"] += count
             self.counters["evidence"] += added
         return added
 

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from atlas_onboard.core.refine import MapRefiner, RefineOptions, Sighting
+from atlas_onboard.core.refine.records import Image
 
 FPS = 5  # slower than a camera: successive frames share their errors anyway (views count, not frames)
 FRAME_US = 1_000_000 // FPS
@@ -215,3 +216,42 @@ def test_two_cameras_count_their_views_apart(n_cameras):
     single = MapRefiner(_moved(truth, 3, [0.1, 0, 0]))
     _feed(single, truth, seconds=5, rng=np.random.default_rng(0), camera="cam0")
     assert est.views > single.estimate(3).views
+
+
+def test_images_added_at_once_give_the_evidence_of_each_in_turn():
+    """add_images over a mix of images (2 to 5 markers, an unknown id, a duplicate, one marker alone, a
+    flipped square, a singular covariance): every evidence item and counter bit for bit those of
+    add_image on each image in turn; and for one marker alone (``marker_id``), its items the same."""
+    truth = _floor()
+    rng = np.random.default_rng(7)
+    images = []
+    for k in range(60):
+        ids = list(rng.choice(8, size=int(rng.integers(1, 6)), replace=False))
+        seen = _sightings(truth, ids, k / FPS, rng, flips=ids[:1] if k % 11 == 3 else ())
+        if k % 13 == 5:
+            seen.append(Sighting(99, seen[0].p_sensor_marker_m, seen[0].R_sensor_marker, seen[0].cov))
+        if k % 17 == 6:
+            seen.append(seen[0])
+        if k % 19 == 7 and len(seen) > 2:
+            seen[1] = Sighting(seen[1].marker_id, seen[1].p_sensor_marker_m, seen[1].R_sensor_marker, np.zeros((6, 6)))
+        images.append(Image("cam" if k % 2 else "other", k * FRAME_US, tuple(seen)))
+    one, many = (MapRefiner(truth, options=RefineOptions(min_others=1)) for _ in range(2))
+    added = sum(one.add_image(im.camera, im.capture_time_us, im.sightings) for im in images)
+    assert many.add_images(images) == added > 0
+    assert many.counters == one.counters
+    assert one.counters["rejected_singular"] > 0 and one.counters["rejected_duplicate"] > 0
+    for m in truth:
+        got, want = many.evidence(m), one.evidence(m)
+        assert len(got) == len(want)
+        for a, b in zip(got, want, strict=True):
+            assert (a.camera, a.capture_time_us, a.others) == (b.camera, b.capture_time_us, b.others)
+            for f in ("p_world_marker_m", "R_world_marker", "cov", "direction"):
+                assert np.array_equal(getattr(a, f), getattr(b, f))
+    for m in truth:
+        alone = MapRefiner(truth, options=RefineOptions(min_others=1))
+        assert alone.add_images(images, m) == len(one.evidence(m))
+        assert all(not alone.evidence(k) for k in truth if k != m)
+        for a, b in zip(alone.evidence(m), one.evidence(m), strict=True):
+            assert (a.capture_time_us, a.others) == (b.capture_time_us, b.others)
+            for f in ("p_world_marker_m", "R_world_marker", "cov", "direction"):
+                assert np.array_equal(getattr(a, f), getattr(b, f))
