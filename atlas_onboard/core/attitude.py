@@ -115,24 +115,27 @@ def choose_by_tilt(
 
 
 class AttitudeHistory:
-    """The autopilot's recent attitudes (body FLU in a level ENU frame of arbitrary heading), by time.
+    """The autopilot's recent attitudes (body FLU in a level ENU frame of arbitrary heading), by time,
+    each with the body rate the autopilot sent with it when it sent one.
 
     Appended by one thread (the autopilot link's) and read by another (the node's loop): a deque's
     append and a copy of it are each atomic in CPython, so no lock is needed.
     """
 
     def __init__(self, capacity: int = HISTORY, max_gap_us: int = MAX_GAP_US) -> None:
-        self._samples: deque[tuple[int, NDArray[np.float64]]] = deque(maxlen=capacity)
+        self._samples: deque[tuple[int, NDArray[np.float64], NDArray[np.float64] | None]] = deque(maxlen=capacity)
         self.max_gap_us = max_gap_us
 
-    def add(self, time_us: int, R_level_body: Rotation) -> None:
-        """A sample at ``time_us`` (wall clock, us); out-of-order or repeated samples are ignored."""
+    def add(self, time_us: int, R_level_body: Rotation, omega_flu: NDArray[np.float64] | None = None) -> None:
+        """A sample at ``time_us`` (wall clock, us), with the body's angular rate (FLU, rad/s) at it if
+        known; out-of-order, repeated or non-finite samples are ignored (a non-finite rate: no rate)."""
         if self._samples and time_us <= self._samples[-1][0]:
             return
         q = R_level_body.as_quat()
         if not np.all(np.isfinite(q)):
             return
-        self._samples.append((int(time_us), q))
+        w = None if omega_flu is None else np.asarray(omega_flu, dtype=float)
+        self._samples.append((int(time_us), q, w if w is not None and np.all(np.isfinite(w)) else None))
 
     def __len__(self) -> int:
         return len(self._samples)
@@ -143,20 +146,31 @@ class AttitudeHistory:
         return samples[-1][0] if samples else None
 
     def attitude_at(self, t_us: int) -> Rotation | None:
-        """The attitude at ``t_us`` (wall clock, us): interpolated (slerp) between the samples around it
-        when they are at most ``max_gap_us`` apart, the nearest sample when it is within half of that
+        """The attitude at ``t_us`` (wall clock, us).
+
+        When the newest sample at or before ``t_us`` has a body rate and is at most ``max_gap_us``
+        before it: that sample turned on by its rate to ``t_us`` (``R Exp(omega dt)``). The answer then
+        does not depend on whether the sample after ``t_us`` has arrived yet, so a frame gets the same
+        gravity however late it is processed. Otherwise: interpolated (slerp) between the samples around
+        it when they are at most ``max_gap_us`` apart, the nearest sample when it is within half of that
         (before the first or after the last), else None."""
         samples = list(self._samples)
         if not samples:
             return None
         times = [s[0] for s in samples]
-        k = int(np.searchsorted(times, t_us))
+        k = int(np.searchsorted(times, t_us, side="right"))  # samples[k - 1]: the newest at or before t_us
+        if k > 0 and samples[k - 1][2] is not None and t_us - times[k - 1] <= self.max_gap_us:
+            t0, q0, w0 = samples[k - 1]
+            R0 = Rotation.from_quat(q0)
+            return R0 if t_us == t0 else R0 * Rotation.from_rotvec(w0 * ((t_us - t0) * 1e-6))
         half = self.max_gap_us // 2
+        if k > 0 and times[k - 1] == t_us:
+            return Rotation.from_quat(samples[k - 1][1])
         if k == 0:
             return Rotation.from_quat(samples[0][1]) if times[0] - t_us <= half else None
         if k == len(samples):
             return Rotation.from_quat(samples[-1][1]) if t_us - times[-1] <= half else None
-        (t0, q0), (t1, q1) = samples[k - 1], samples[k]
+        (t0, q0, _), (t1, q1, _) = samples[k - 1], samples[k]
         if t1 - t0 > self.max_gap_us:
             if t_us - t0 <= half:
                 return Rotation.from_quat(q0)

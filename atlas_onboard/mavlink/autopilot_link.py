@@ -232,8 +232,8 @@ class AutopilotLink:
         t_us = self._stamp(self._attitude_stream, msg, arrival_ns, "attitude")
         if t_us is None:
             return
-        self.attitude.add(t_us, R)
         rate = autopilot.body_rates_flu(msg.rollspeed, msg.pitchspeed, msg.yawspeed)
+        self.attitude.add(t_us, R, rate)
         if rate is not None:  # a sender that fills no rates leaves them all zero
             self.rates.add(t_us, rate)
 

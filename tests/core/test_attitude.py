@@ -64,6 +64,48 @@ def test_history_interpolates_and_says_none_outside_its_samples():
     assert h.attitude_at(1_200_000) is None  # inside a gap longer than max_gap_us
 
 
+@given(
+    st.tuples(st.floats(-1.5, 1.5), st.floats(-1.5, 1.5), st.floats(-1.5, 1.5)),
+    st.integers(1, 39_999),
+    st.integers(20_000, 60_000),
+)
+def test_with_rates_a_capture_gets_the_same_attitude_before_and_after_the_next_sample_arrives(
+    omega, after_us, period_us
+):
+    # A drone turning at a constant body rate, sampled with its rate: the attitude at a capture between
+    # two samples is the earlier one turned on by its rate, the truth, whether the later one is there yet.
+    omega = np.array(omega)
+    R_start = Rotation.from_euler("ZYX", [40, 5, -3], degrees=True)
+
+    def truth(t_us):
+        return R_start * Rotation.from_rotvec(omega * t_us * 1e-6)
+
+    t_capture = 1_000_000 + min(after_us, period_us - 1)
+    h = AttitudeHistory()
+    for t in (1_000_000 - period_us, 1_000_000):
+        h.add(t, truth(t), omega)
+    before = h.attitude_at(t_capture)
+    h.add(1_000_000 + period_us, truth(1_000_000 + period_us), omega)
+    after = h.attitude_at(t_capture)
+    assert np.allclose(before.as_matrix(), after.as_matrix(), atol=1e-12)
+    assert (before.inv() * truth(t_capture)).magnitude() < 1e-9
+
+
+def test_without_rates_the_history_interpolates_and_with_rates_it_turns_the_sample_before_on():
+    h = AttitudeHistory()
+    h.add(0, Rotation.identity())
+    h.add(40_000, Rotation.from_euler("x", 4, degrees=True))
+    assert h.attitude_at(10_000).as_euler("xyz", degrees=True)[0] == pytest.approx(1.0)  # slerp: no rates
+    rated = AttitudeHistory()
+    rated.add(0, Rotation.identity(), np.array([math.radians(50.0), 0.0, 0.0]))  # 50 deg/s about x
+    rated.add(40_000, Rotation.from_euler("x", 4, degrees=True), np.array([math.radians(50.0), 0.0, 0.0]))
+    assert rated.attitude_at(10_000).as_euler("xyz", degrees=True)[0] == pytest.approx(0.5)  # 10 ms at 50 deg/s
+    assert rated.attitude_at(40_000 + 100_000).as_euler("xyz", degrees=True)[0] == pytest.approx(9.0)
+    assert rated.attitude_at(40_000 + 100_001) is None  # beyond max_gap_us of the newest sample
+    rated.add(50_000, Rotation.identity(), np.array([np.nan, 0.0, 0.0]))  # a non-finite rate: none
+    assert rated.attitude_at(50_000 + 50_001) is None  # held no longer than half the gap
+
+
 def _pose_scene(seed: int):
     rng = np.random.default_rng(seed)
     R_world_marker = Rotation.from_euler("xz", [rng.choice([0.0, 90.0]), rng.uniform(0, 360)], degrees=True)

@@ -216,3 +216,23 @@ def test_odometry_velocity_reaches_the_cameras_when_the_autopilot_streams_no_loc
         got = both.velocity_at(t - dt)
         assert got is not None
         np.testing.assert_allclose(got.velocity_flu, [0.6, 0.0, 0.1], atol=1e-6)
+
+
+def test_attitude_after_its_newest_sample_is_turned_on_by_the_rate_sent_with_it() -> None:
+    """ATTITUDE's body rates (FRD) go into the history with its attitude: between samples, and after the
+    newest, the attitude is the sample before turned on by its rate (yawing right at 0.5 rad/s: FLU yaw
+    falls), whether or not the next sample has come."""
+    clock = Clock()
+    ap = _link(clock)
+    ap._on_message(None, _heartbeat(1), 0)
+    for k in range(6):
+        clock.s += 0.02
+        boot = 1000 + 20 * k
+        msg = D.MAVLink_attitude_message(boot, 0, 0, 0.01 * k, 0, 0, 0.5)
+        ap._on_message(None, _from(msg, 1, 1), clock.mono_ns())
+    t = ap.attitude.latest_us()
+    assert t is not None
+    R_now, R_later = ap.attitude_at(t), ap.attitude_at(t + 10_000)
+    assert R_now is not None and R_later is not None
+    turned = (R_now.inv() * R_later).as_rotvec()
+    np.testing.assert_allclose(turned, [0.0, 0.0, -0.5 * 0.01], atol=1e-12)
