@@ -23,7 +23,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
+from numpy.typing import NDArray
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import WorldConfig
@@ -138,7 +140,12 @@ def start_solo(
     def attitude(t_wall: float) -> Rotation | None:
         return sim_world.truth(t_wall - clock[0], (entity,))[entity].rotation if clock else None
 
-    autopilot = SimAutopilot(system_id=system_id, attitude=attitude, attitude_seed=seed + system_id).start()
+    def rates(t_wall: float) -> NDArray[np.float64] | None:  # ATTITUDE's body rates, as a real autopilot's
+        return scenario.trajectories[entity].body_rates(np.array([t_wall - clock[0]]))[0] if clock else None
+
+    autopilot = SimAutopilot(
+        system_id=system_id, attitude=attitude, attitude_seed=seed + system_id, rates=rates
+    ).start()
     port = free_udp_port()
     path = build_run_config(scenario, run_dir, free_udp_port(), {d: autopilot.port for d in scenario.drones})
     doc = yaml.safe_load(path.read_text(encoding="utf-8"))
