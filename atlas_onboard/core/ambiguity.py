@@ -29,16 +29,14 @@ Rotation distance is what separates IPPE flips; position rarely does, but it kee
 puts the marker in the wrong place from deciding anything (rule 1). Without a prediction nothing is
 decided (NO_PREDICTION).
 
-Cover. A pair whose two solutions lie within the detection's covariance C of each other,
-``d^T C^-1 d <= cover_r2`` with d the other solution's offset ``[dp, dtheta]`` (default 22.46,
-chi-square(6) at 0.999), is one measurement the corners cannot split: seen face on, the two are mirror
-tilts of one noisy view, the truth often between them. It is used as the two solutions' equal mixture,
-moment-matched: the pose halfway (``d / 2`` along the chosen one's error vector) with covariance
-``C + d d^T / 4`` (each solution one sigma from it along d). The cover comes first and needs no
-prediction: a prior precise enough to pick one of two solutions the view cannot tell apart would only
-pick the one it already believes. The rule above decides the pairs farther apart (a tilted tag's flip:
-the truth at one of them, the mixture's mean on neither); what it leaves undecided is refused. Pure:
-numpy and scipy only.
+Cover. A pair no prediction decides (TOO_CLOSE, NO_PREDICTION) whose two solutions lie within the
+detection's covariance C of each other, ``d^T C^-1 d <= cover_r2`` with d the other solution's offset
+``[dp, dtheta]`` (default 22.46, chi-square(6) at 0.999), is one measurement the corners cannot split:
+seen face on, the two are mirror tilts of one noisy view, the truth often between them. It is used as
+the two solutions' equal mixture, moment-matched: the pose halfway (``d / 2`` along the chosen one's
+error vector) with covariance ``C + d d^T / 4`` (each solution one sigma from it along d). A pair
+farther apart (a tilted tag's flip: the truth at one of them, the mixture's mean on neither) is still
+refused. Pure: numpy and scipy only.
 """
 
 from __future__ import annotations
@@ -61,7 +59,7 @@ GATE_R2 = 22.46
 MIN_LIKELIHOOD_RATIO = 1000.0
 """The nearer solution must be at least this many times as likely as the other."""
 COVER_R2 = 22.46
-"""chi-square(6) at 0.999: a pair this close in the detection's covariance is covered, never decided."""
+"""chi-square(6) at 0.999: an undecided pair this close in the detection's covariance is covered, not refused."""
 
 
 class Verdict(StrEnum):

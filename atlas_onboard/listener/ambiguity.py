@@ -51,8 +51,8 @@ class AmbiguityResolver:
 
     ``threshold``: IPPE ratio above which an observation must be resolved (or is rejected);
     ``attitude_sigma_rad``, ``gate_r2``, ``min_likelihood_ratio``: the resolution rule's parameters;
-    ``cover_r2``: how close (in the detection's covariance) a pair must be to be used as the two
-    solutions' mixture, before and instead of any decision (:mod:`atlas_onboard.core.ambiguity`).
+    ``cover_r2``: how close (in the detection's covariance) an undecided pair must be to be used as
+    the two solutions' mixture instead of refused (:mod:`atlas_onboard.core.ambiguity`).
     """
 
     def __init__(
@@ -94,12 +94,6 @@ class AmbiguityResolver:
     def resolve(self, det: Detections, notes: list[str]) -> tuple[dict[int, Rejection], set[int]]:
         """Resolve the ambiguous observations among ``det`` in place, batched.
 
-        First, and whatever the estimates or gravity say, an ambiguous view whose two solutions lie
-        within its detection's covariance is used as their mixture (:meth:`_cover`): its edge depends on
-        the detection alone, not on which estimates happened to be there when it arrived (asking them
-        would only have them confirm themselves). Gravity (:meth:`_by_tilt`) and then the estimates
-        decide the pairs the covariance separates; what they leave undecided is refused.
-
         Returns the rejections by index into ``det.records`` and the indices swapped to the other
         solution; appends counter names to ``notes``.
         """
@@ -107,16 +101,13 @@ class AmbiguityResolver:
         rejected: dict[int, Rejection] = {}
         swapped: set[int] = set()
         todo: list[tuple[int, EntityPose, EntityPose]] = []
-        pairs = [
-            j for j, md in enumerate(valid) if md.ambiguity_ratio > self.threshold and md.alt_state() is AltState.VALID
-        ]
-        covered = self._cover(det, pairs, notes)
-        by_tilt = self._by_tilt(det, notes, rejected, swapped, covered) if self._up_at else set()
+        undecided: list[int] = []  # no prediction, or too close for it: covered when close, else refused
+        by_tilt = self._by_tilt(det, notes, rejected, swapped) if self._up_at else set()
         for j, md in enumerate(valid):
             state = md.alt_state()
             if state is AltState.INVALID:
                 notes.append("alt_ignored")
-            if j in covered or j in by_tilt or not md.ambiguity_ratio > self.threshold:  # nan (unknown) passes
+            if j in by_tilt or not md.ambiguity_ratio > self.threshold:  # nan (unknown) passes
                 continue
             if state is not AltState.VALID:
                 rejected[j] = Rejection.AMBIGUOUS
@@ -124,11 +115,12 @@ class AmbiguityResolver:
             est_a = self._estimates.get(self._sensor_entity[md.sensor_id])
             est_b = self._estimates.get(self._marker_entity[md.marker_id])
             if est_a is None or est_b is None or est_a.frame != est_b.frame:
-                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+                undecided.append(j)
                 notes.append(f"ambiguity_{Verdict.NO_PREDICTION.value}")
                 continue
             todo.append((j, est_a, est_b))
         if not todo:
+            self._cover(det, undecided, notes, rejected)
             return rejected, swapped
         idx = [j for j, _, _ in todo]
         # Predicted T_sensor_marker = T1^-1 * T_frame_observer^-1 * T_frame_observed * T3 (eq. 1 backwards).
@@ -172,20 +164,26 @@ class AmbiguityResolver:
                 notes.append("ambiguity_swapped")
             if verdict.decided:
                 notes.append("ambiguity_resolved")
-            else:  # too close for the prediction (and farther apart than the covariance), or both far
+            else:
                 notes.append(f"ambiguity_{verdict.value}")
-                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+                if verdict is Verdict.TOO_CLOSE:
+                    undecided.append(j)
+                else:  # both far: the prediction contradicts the view
+                    rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
+        self._cover(det, undecided, notes, rejected)
         return rejected, swapped
 
-    def _cover(self, det: Detections, pairs: list[int], notes: list[str]) -> set[int]:
-        """The ``pairs`` (ambiguous, both solutions valid) whose two solutions lie within their detection's
-        covariance become the pair's mixture (:func:`atlas_onboard.core.ambiguity.cover`), in place: pose,
-        covariance, and a sigma grown as its camera-position spread grew (``ambiguity_covered``).
-        Returns their indices; the others, and those without a covariance, are left as they were."""
+    def _cover(self, det: Detections, undecided: list[int], notes: list[str], rejected: dict[int, Rejection]) -> None:
+        """The undecided observations whose two solutions lie within their detection's covariance become
+        the pair's mixture (:func:`atlas_onboard.core.ambiguity.cover`), in place: pose, covariance, and a
+        sigma grown as its camera-position spread grew (``ambiguity_covered``). The others, and those
+        without a covariance, are rejected."""
         valid, C_sm = det.records, det.C_sm
-        idx = [j for j in pairs if C_sm is not None or valid[j].covariance]
+        idx = [j for j in undecided if C_sm is not None or valid[j].covariance]
+        for j in set(undecided) - set(idx):
+            rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
         if not idx:
-            return set()
+            return
         C = C_sm[idx] if C_sm is not None else upper_to_matrix(np.array([valid[j].covariance for j in idx]))
         primary = ambiguity.Poses(det.p_sm[idx], det.q_sm_xyzw[idx])
         alt = ambiguity.Poses(
@@ -193,9 +191,9 @@ class AmbiguityResolver:
             np.array([valid[j].q_sensor_marker_alt_xyzw() for j in idx]),
         )
         mixed = ambiguity.cover(primary, alt, C, self.cover_r2)
-        covered: set[int] = set()
         for k, j in enumerate(idx):
             if not mixed.close[k]:
+                rejected[j] = Rejection.AMBIGUITY_UNRESOLVED
                 continue
             md, R_old, p_old = valid[j], det.R_sm[j].copy(), det.p_sm[j].copy()
             det.q_sm_xyzw[j] = mixed.pose.q_xyzw[k]
@@ -206,16 +204,13 @@ class AmbiguityResolver:
             valid[j] = replace(md, covariance=matrix_to_upper(C_new), sigma_m=md.sigma_m * math.sqrt(max(scale, 1.0)))
             if C_sm is not None:
                 C_sm[j] = C_new
-            covered.add(j)
             notes.append("ambiguity_covered")
-        return covered
 
     def _by_tilt(
-        self, det: Detections, notes: list[str], rejected: dict[int, Rejection], swapped: set[int], covered: set[int]
+        self, det: Detections, notes: list[str], rejected: dict[int, Rejection], swapped: set[int]
     ) -> set[int]:
         """The MegaTag2 step: observations between the attitude's entity and the world that carry both
-        solutions, decided by gravity (swapped in place, or rejected); the ``covered`` ones (already
-        their pair's mixture) are left alone. Returns the indices decided.
+        solutions, decided by gravity (swapped in place, or rejected). Returns the indices decided.
 
         A kept solution of the own camera with a detection covariance is then updated with the
         autopilot's up vector (:func:`atlas_onboard.core.attitude.constrain_tilt`): its record gets
@@ -226,8 +221,6 @@ class AmbiguityResolver:
             return set()
         decided: set[int] = set()
         for j, md in enumerate(valid):
-            if j in covered:
-                continue
             observer, observed = self._sensor_entity[md.sensor_id], self._marker_entity[md.marker_id]
             # The own camera's view of another entity's marker: that entity's estimated attitude
             # stands in for the world's (its heading error turns no up vector; its tilt error counts).

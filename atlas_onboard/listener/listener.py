@@ -94,8 +94,8 @@ class Listener:
         self.counters = Counters()
         """Beyond rejections: ``ambiguity_resolved``, ``ambiguity_swapped`` (the other solution won),
         ``ambiguity_<verdict>`` for each one the estimates leave unresolved, ``ambiguity_covered`` for
-        each pair within its detection's covariance, used as the pair's mixture, and ``alt_ignored``
-        (an unusable other solution, see :class:`MarkerData`)."""
+        those of them used as the pair's mixture, and ``alt_ignored`` (an unusable other solution, see
+        :class:`MarkerData`)."""
         self.accepted = 0
 
     def set_attitude(self, entity: str, up_at: Callable[[int], NDArray[np.float64] | None] | None) -> None:
