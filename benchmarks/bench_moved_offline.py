@@ -88,9 +88,9 @@ def run_world(scenario: str, name: str, world, frames: int) -> Run:
         now[0] = capture_time_us / 1e6
         return out
 
-    def add(self, e, C):
+    def add(self, e, C, t_s=float("nan")):
         n = len(self.errors)
-        orig_add(self, e, C)
+        orig_add(self, e, C, t_s)
         if len(self.errors) > n:  # (one not positive definite is counted, not kept)
             adds.append((id(self), now[0]))
 
