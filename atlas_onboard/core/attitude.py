@@ -161,11 +161,8 @@ class AttitudeHistory:
         k = int(np.searchsorted(times, t_us, side="right"))  # samples[k - 1]: the newest at or before t_us
         if k > 0 and samples[k - 1][2] is not None and t_us - times[k - 1] <= self.max_gap_us:
             t0, q0, w0 = samples[k - 1]
-            R0 = Rotation.from_quat(q0)
-            return R0 if t_us == t0 else R0 * Rotation.from_rotvec(w0 * ((t_us - t0) * 1e-6))
+            return Rotation.from_quat(q0) * Rotation.from_rotvec(w0 * ((t_us - t0) * 1e-6))
         half = self.max_gap_us // 2
-        if k > 0 and times[k - 1] == t_us:
-            return Rotation.from_quat(samples[k - 1][1])
         if k == 0:
             return Rotation.from_quat(samples[0][1]) if times[0] - t_us <= half else None
         if k == len(samples):

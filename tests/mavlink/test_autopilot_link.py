@@ -139,17 +139,27 @@ def test_attitude_rates_reach_the_cameras_in_body_flu() -> None:
     assert math.isfinite(float(np.trace(rate.cov)))
 
 
-def _heading_east(clock, velocity_message):
-    """An autopilot link fed 6 ATTITUDEs of a vehicle heading east (yaw 90 deg), each with the velocity
-    message ``velocity_message(time_boot_ms)`` from the autopilot: (the link, the newest velocity's stamp,
-    the velocity 10 ms before it)."""
+def _fed(clock, *messages):
+    """An autopilot link fed 6 rounds, 20 ms apart, of the autopilot's messages, each ``m(time_boot_ms)``."""
     ap = _link(clock)
     ap._on_message(None, _heartbeat(1), 0)
     for k in range(6):
         clock.s += 0.02
-        boot = 1000 + 20 * k
-        ap._on_message(None, _from(D.MAVLink_attitude_message(boot, 0, 0, math.pi / 2, 0, 0, 0), 1, 1), clock.mono_ns())
-        ap._on_message(None, _from(velocity_message(boot), 1, 1), clock.mono_ns())
+        for message in messages:
+            ap._on_message(None, _from(message(1000 + 20 * k), 1, 1), clock.mono_ns())
+    return ap
+
+
+def _east(boot):
+    """ATTITUDE of a vehicle heading east (yaw 90 deg)."""
+    return D.MAVLink_attitude_message(boot, 0, 0, math.pi / 2, 0, 0, 0)
+
+
+def _heading_east(clock, velocity_message):
+    """An autopilot link fed 6 ATTITUDEs of a vehicle heading east (yaw 90 deg), each with the velocity
+    message ``velocity_message(time_boot_ms)`` from the autopilot: (the link, the newest velocity's stamp,
+    the velocity 10 ms before it)."""
+    ap = _fed(clock, _east, velocity_message)
     t = ap.velocities.latest_us()
     assert t is not None
     v = ap.velocity_at(t - 10_000)
@@ -198,18 +208,12 @@ def test_odometry_velocity_reaches_the_cameras_when_the_autopilot_streams_no_loc
     ap._on_message(None, _from(_odometry(1200_000, 12, (0.0, 0.5, 0.0)), 2, 1), clock.mono_ns())
     assert ap.counters["odometry_not_from_autopilot"] == 1 and ap.velocities.latest_us() == t
 
-    clock = Clock()
-    both = _link(clock)
-    both._on_message(None, _heartbeat(1), 0)
-    for k in range(6):
-        clock.s += 0.02
-        boot = 1000 + 20 * k
-        both._on_message(None, _from(D.MAVLink_attitude_message(boot, 0, 0, math.pi / 2, 0, 0, 0), 1, 1),
-                         clock.mono_ns())  # fmt: skip
-        lp = D.MAVLink_local_position_ned_message(boot, 1.0, 2.0, -1.0, 0.0, 0.6, -0.1)
-        both._on_message(None, _from(lp, 1, 1), clock.mono_ns())
-        odometry = _odometry(boot * 1000 + 10_000, 1, (0.0, 0.3, 0.0))  # another estimate, between them
-        both._on_message(None, _from(odometry, 1, 1), clock.mono_ns())
+    both = _fed(
+        Clock(),
+        _east,
+        lambda boot: D.MAVLink_local_position_ned_message(boot, 1.0, 2.0, -1.0, 0.0, 0.6, -0.1),
+        lambda boot: _odometry(boot * 1000 + 10_000, 1, (0.0, 0.3, 0.0)),  # another estimate, between them
+    )
     t = both.velocities.latest_us()
     assert t is not None
     for dt in (0, 10_000, 30_000):
@@ -219,17 +223,9 @@ def test_odometry_velocity_reaches_the_cameras_when_the_autopilot_streams_no_loc
 
 
 def test_attitude_after_its_newest_sample_is_turned_on_by_the_rate_sent_with_it() -> None:
-    """ATTITUDE's body rates (FRD) go into the history with its attitude: between samples, and after the
-    newest, the attitude is the sample before turned on by its rate (yawing right at 0.5 rad/s: FLU yaw
-    falls), whether or not the next sample has come."""
-    clock = Clock()
-    ap = _link(clock)
-    ap._on_message(None, _heartbeat(1), 0)
-    for k in range(6):
-        clock.s += 0.02
-        boot = 1000 + 20 * k
-        msg = D.MAVLink_attitude_message(boot, 0, 0, 0.01 * k, 0, 0, 0.5)
-        ap._on_message(None, _from(msg, 1, 1), clock.mono_ns())
+    """ATTITUDE's body rates (FRD) go into the history with its attitude: after the newest sample the
+    attitude is that sample turned on by its rate (yawing right at 0.5 rad/s: FLU yaw falls)."""
+    ap = _fed(Clock(), lambda boot: D.MAVLink_attitude_message(boot, 0, 0, 0.0005 * (boot - 1000), 0, 0, 0.5))
     t = ap.attitude.latest_us()
     assert t is not None
     R_now, R_later = ap.attitude_at(t), ap.attitude_at(t + 10_000)
