@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.realtime  # commands' processes and their signals
+
 EXAMPLE = Path(__file__).resolve().parents[1] / "atlas_onboard" / "data" / "example.yaml"
 
 

@@ -16,6 +16,8 @@ from atlas_onboard.detector.calibrate import board, calibrate
 from atlas_onboard.detector.calibrate_live import Refusal, ViewSelector, collect_views
 from atlas_onboard.detector.calibration import load as load_calibration
 
+pytestmark = pytest.mark.realtime  # a capture command and its signals
+
 W, H = 640, 480
 K_TRUE = np.array([[520.0, 0.0, 322.0], [0.0, 515.0, 236.0], [0.0, 0.0, 1.0]])
 D_TRUE = np.array([-0.12, 0.05, 0.0, 0.0, 0.0])

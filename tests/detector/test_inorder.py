@@ -6,9 +6,12 @@ import random
 import threading
 
 import numpy as np
+import pytest
 
 from atlas_onboard.detector.inorder import InOrder
 from atlas_onboard.detector.workers import Outcome, WorkerDiedError
+
+pytestmark = pytest.mark.realtime  # worker threads and their deadlines
 
 IMAGE = np.zeros((4, 4), np.uint8)
 

@@ -23,6 +23,8 @@ from atlas_onboard.detector.sources import open_source
 from atlas_onboard.detector.workers import ProcessWorker
 from atlas_onboard.service.run import build_cameras
 
+pytestmark = pytest.mark.realtime  # worker processes and their deadlines
+
 IMAGE = np.zeros((8, 8), np.uint8)
 
 

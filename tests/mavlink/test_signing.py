@@ -6,9 +6,13 @@ import json
 import os
 import time
 
+import pytest
+
 from atlas_onboard.mavlink import codec
 from atlas_onboard.mavlink.signing import MAX_AHEAD_S, SIGNING_TICKS_PER_S, signing_timestamp
 from tests.mavlink.loopback import FP, MD, RawSender, drain, free_port, kinds, make_link, poll_until, write_key
+
+pytestmark = pytest.mark.realtime  # sockets and their deadlines
 
 TICKS_2_48 = (1 << 48) - 1
 

@@ -24,7 +24,10 @@ from tests.e2e.helpers import wait_for
 from tests.helpers import world_from
 from tests.mavlink.loopback import MD, D, RawSender, free_port
 
-pytestmark = pytest.mark.usefixtures("framing_mode")  # every test with the fast path and without
+pytestmark = [
+    pytest.mark.usefixtures("framing_mode"),  # every test with the fast path and without
+    pytest.mark.realtime,  # sockets and their deadlines
+]
 
 WALL_S = 1_700_000_000.25  # the transport's wall clock, frozen
 

@@ -13,6 +13,8 @@ from atlas_onboard.mavlink import codec, framing
 from atlas_onboard.mavlink.udp import MAX_BAD_FRAMES, ClientTable, parse_datagram
 from tests.mavlink.loopback import FP, MD, D, RawSender, drain, free_port, make_link, poll_until, write_key
 
+pytestmark = pytest.mark.realtime  # sockets and their deadlines
+
 
 def _mav():
     return framing.parser(D, None, 1, 197, frozenset())

@@ -10,6 +10,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 from pymavlink.dialects.v20 import common as mavlink
 from scipy.spatial.transform import Rotation
 
@@ -18,6 +19,8 @@ from atlas_onboard.sim.autopilot import SimAutopilot
 from atlas_onboard.sim.command import autopilot_track
 from atlas_onboard.sim.demo import ENTITY, FPS_HZ, SYSTEM_ID, read_truth
 from tests.e2e.helpers import NodeProcess, free_udp_port, wait_for
+
+pytestmark = pytest.mark.realtime  # node processes in real time
 
 SECONDS = 3.0
 

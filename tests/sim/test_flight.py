@@ -36,6 +36,7 @@ def test_a_flown_trajectory_reads_what_its_writer_wrote(tmp_path):
 # The static pad's bar holds whatever the machine's load; on the moving rover the touchdown error grows with
 # the peers' latency (the rover moves on while its view crosses the mesh), so its 8 cm bar is asserted on the
 # same code offline (test_landing.py, bench_land.py) and here the drone must land on the rover's deck.
+@pytest.mark.realtime
 @pytest.mark.parametrize(("scenario", "limit_m"), [("land-pad", 0.03), ("land-rover", FOOTPRINT_M)])
 def test_a_live_landing_touches_down_on_the_true_landing_point(monkeypatch, scenario, limit_m):
     monkeypatch.setenv("ATLAS_SIM_GEOMETRIC", "1")  # corners from the geometry: no rendering

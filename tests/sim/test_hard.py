@@ -99,6 +99,7 @@ def test_a_marker_cut_by_the_border_is_drawn(render):
     raise AssertionError("no frame with a tag cut by the border")
 
 
+@pytest.mark.realtime
 def test_a_short_run_of_the_hard_scenario_against_ground_truth():
     """4 s of the hard scene through the real node with the default settings: what holds today (the
     bars are the benchmark's, benchmarks/bench_hard.py)."""

@@ -8,10 +8,13 @@ import os
 import socket
 
 import numpy as np
+import pytest
 
 from atlas_onboard.sim.command import score_run, write_outputs
 from atlas_onboard.sim.runner import SimOptions, run
 from tests.helpers import PAPER_FUSION
+
+pytestmark = pytest.mark.realtime  # node processes in real time
 
 
 def run_and_score(scenario, duration, **kw):

@@ -4,7 +4,11 @@ leader's marker, with the leader's views played)."""
 
 import time
 
+import pytest
+
 from atlas_onboard.sim import peerplay
+
+pytestmark = pytest.mark.realtime  # node processes in real time
 
 SECONDS = 5.0
 
