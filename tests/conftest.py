@@ -19,28 +19,32 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-# Two workers (pyproject's addopts): the real-time tests (node processes, sockets and threads with
-# deadlines: every test of tests/e2e, and those marked ``realtime``) run one at a time on one worker, at
-# the machine's normal priority; everything else runs on the other, at the lowest priority, so that it
-# takes only the CPU the real-time tests leave and never makes them late.
-REALTIME_GROUP = "realtime"
-LOW_PRIORITY = 19  # nice value of the other worker
+# Two workers (pyproject's addopts). The real-time tests (node processes in real time: every test of
+# tests/e2e, and those marked ``realtime``) run one at a time on one worker; the tests of sockets and
+# threads with deadlines (marked ``deadlines``: little CPU) one at a time on the other; both at the
+# machine's normal priority. Each worker then runs the rest at the lowest priority, so that it takes
+# only the CPU the timed tests leave and never makes them late.
+GROUPS = ("realtime", "deadlines")
+LOW_PRIORITY = 19  # nice value of a worker once its timed group is done
 E2E = Path(__file__).parent / "e2e"
 
 
-def _realtime(item: pytest.Item) -> bool:
-    return item.get_closest_marker("realtime") is not None or E2E in item.path.parents
+def _group(item: pytest.Item) -> str | None:
+    if E2E in item.path.parents:
+        return "realtime"
+    return next((g for g in GROUPS if item.get_closest_marker(g) is not None), None)
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's hook reads the groups
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
-        if _realtime(item):
-            item.add_marker(pytest.mark.xdist_group(REALTIME_GROUP))
+        group = _group(item)
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
-    # The real-time group is the largest unit of work, so it is handed out first and runs before
-    # anything else on its worker: a worker at a test outside it has no real-time test to come.
-    if os.environ.get("PYTEST_XDIST_WORKER") and not _realtime(item) and os.nice(0) < LOW_PRIORITY:
+    # The two groups are the largest units of work, so each is handed out first, one to a worker, and
+    # runs before anything else there: a worker at a test outside them has no timed test to come.
+    if os.environ.get("PYTEST_XDIST_WORKER") and _group(item) is None and os.nice(0) < LOW_PRIORITY:
         os.nice(LOW_PRIORITY - os.nice(0))

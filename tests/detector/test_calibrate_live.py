@@ -16,8 +16,6 @@ from atlas_onboard.detector.calibrate import board, calibrate
 from atlas_onboard.detector.calibrate_live import Refusal, ViewSelector, collect_views
 from atlas_onboard.detector.calibration import load as load_calibration
 
-pytestmark = pytest.mark.realtime  # a capture command and its signals
-
 W, H = 640, 480
 K_TRUE = np.array([[520.0, 0.0, 322.0], [0.0, 515.0, 236.0], [0.0, 0.0, 1.0]])
 D_TRUE = np.array([-0.12, 0.05, 0.0, 0.0, 0.0])
@@ -159,6 +157,7 @@ def test_calibrate_device_that_cannot_be_opened_is_one_line(tmp_path):
     assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
 
 
+@pytest.mark.realtime
 def test_ctrl_c_ends_the_capture_and_calibrates_with_the_views_kept(b, stream, tmp_path):
     """Ctrl-C while the camera still delivers (here an image folder: the views, then a long stretch
     without the board): the command stops, calibrates with what it kept and writes the file (exit 0)."""

@@ -19,7 +19,7 @@ from atlas_onboard.detector.camera import CameraWorker
 from atlas_onboard.detector.pipeline import Detector
 from atlas_onboard.detector.sources import Frame, Source, SourceError
 
-pytestmark = pytest.mark.realtime  # camera threads and their deadlines
+pytestmark = pytest.mark.deadlines  # camera threads and their deadlines
 
 # A camera looking forward and 30 degrees down, off the body's centre (its optical frame in the body FLU frame).
 MOUNT = RigidTransform.from_components(

@@ -11,7 +11,7 @@ import pytest
 from atlas_onboard.detector.inorder import InOrder
 from atlas_onboard.detector.workers import Outcome, WorkerDiedError
 
-pytestmark = pytest.mark.realtime  # worker threads and their deadlines
+pytestmark = pytest.mark.deadlines  # worker threads and their deadlines
 
 IMAGE = np.zeros((4, 4), np.uint8)
 

@@ -12,7 +12,7 @@ from atlas_onboard.config import CameraConfig
 from atlas_onboard.detector import sources
 from atlas_onboard.detector.sources import ImageFolder
 
-pytestmark = pytest.mark.realtime  # replay at the camera's rate
+pytestmark = pytest.mark.deadlines  # replay at the camera's rate
 
 
 def test_image_folder_stamps_from_names_and_order(tmp_path):

@@ -25,7 +25,7 @@ from tests.mavlink.loopback import (
     write_key,
 )
 
-pytestmark = pytest.mark.realtime  # sockets and their deadlines
+pytestmark = pytest.mark.deadlines  # sockets and their deadlines
 
 
 def test_udp_round_trip_between_two_links(closing):

@@ -12,7 +12,7 @@ from atlas_onboard.mavlink import codec
 from atlas_onboard.mavlink.signing import MAX_AHEAD_S, SIGNING_TICKS_PER_S, signing_timestamp
 from tests.mavlink.loopback import FP, MD, RawSender, drain, free_port, kinds, make_link, poll_until, write_key
 
-pytestmark = pytest.mark.realtime  # sockets and their deadlines
+pytestmark = pytest.mark.deadlines  # sockets and their deadlines
 
 TICKS_2_48 = (1 << 48) - 1
 

@@ -26,7 +26,7 @@ from tests.mavlink.loopback import MD, D, RawSender, free_port
 
 pytestmark = [
     pytest.mark.usefixtures("framing_mode"),  # every test with the fast path and without
-    pytest.mark.realtime,  # sockets and their deadlines
+    pytest.mark.deadlines,  # sockets and their deadlines
 ]
 
 WALL_S = 1_700_000_000.25  # the transport's wall clock, frozen

@@ -13,7 +13,7 @@ from atlas_onboard.mavlink import codec, framing
 from atlas_onboard.mavlink.udp import MAX_BAD_FRAMES, ClientTable, parse_datagram
 from tests.mavlink.loopback import FP, MD, D, RawSender, drain, free_port, make_link, poll_until, write_key
 
-pytestmark = pytest.mark.realtime  # sockets and their deadlines
+pytestmark = pytest.mark.deadlines  # sockets and their deadlines
 
 
 def _mav():

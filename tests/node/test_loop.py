@@ -17,7 +17,7 @@ from atlas_onboard.node.schedule import Relevance
 from tests.e2e.helpers import wait_for
 from tests.helpers import assert_pose_close, observe, pose
 
-pytestmark = pytest.mark.realtime  # the node's threads and its edge timeout
+pytestmark = pytest.mark.deadlines  # the node's threads and its edge timeout
 
 WORLD = parse_world(
     {

@@ -22,7 +22,7 @@ from atlas_onboard.recording import onboard
 from tests.e2e.helpers import wait_for, write_world
 from tests.recording.test_format import gated_writer
 
-pytestmark = pytest.mark.realtime  # the recorder's thread and its deadlines
+pytestmark = pytest.mark.deadlines  # the recorder's thread and its deadlines
 
 K = np.array([[100.0, 0.0, 15.5], [0.0, 100.0, 11.5], [0.0, 0.0, 1.0]])
 CAL = Calibration(32, 24, K, np.zeros(5))

@@ -16,7 +16,7 @@ from atlas_onboard.sim.gyro import GyroNoise
 from tests.e2e.helpers import wait_for
 from tests.helpers import world_from
 
-pytestmark = pytest.mark.realtime  # the simulated autopilot's threads and sockets, in real time
+pytestmark = pytest.mark.deadlines  # the simulated autopilot's threads and sockets, in real time
 
 RATE_FLU = np.array([0.3, -0.2, 0.5])  # rad/s: roll right... about the body's forward, left and up axes
 
