@@ -19,20 +19,20 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-# Two workers (pyproject's addopts). The real-time tests (node processes in real time: every test of
-# tests/e2e, and those marked ``realtime``) run one at a time on one worker; the tests of sockets and
-# threads with deadlines (marked ``deadlines``: little CPU) one at a time on the other; both at the
-# machine's normal priority. Each worker then runs the rest at the lowest priority, so that it takes
-# only the CPU the timed tests leave and never makes them late.
+# Two workers (pyproject's addopts). The real-time tests (node processes in real time: those marked
+# ``realtime``, and every test of tests/e2e unless marked otherwise) run one at a time on one worker;
+# the timed tests that need little CPU (sockets and threads with deadlines, one node alone; marked
+# ``deadlines``) one at a time on the other; both at the machine's normal priority. Each worker then
+# runs the rest at the lowest priority, so that it takes only the CPU the timed tests leave and never
+# makes them late.
 GROUPS = ("realtime", "deadlines")
 LOW_PRIORITY = 19  # nice value of a worker once its timed group is done
 E2E = Path(__file__).parent / "e2e"
 
 
 def _group(item: pytest.Item) -> str | None:
-    if E2E in item.path.parents:
-        return "realtime"
-    return next((g for g in GROUPS if item.get_closest_marker(g) is not None), None)
+    marked = next((g for g in GROUPS if item.get_closest_marker(g) is not None), None)
+    return marked or ("realtime" if E2E in item.path.parents else None)
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's hook reads the groups

@@ -6,12 +6,15 @@ import time
 from dataclasses import replace
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.config import load_world
 from atlas_onboard.sim.autopilot import SimAutopilot
 from tests.e2e.helpers import NodeProcess, Peer, free_udp_port, wait_for, write_world
 from tests.helpers import observe, pose
+
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
 
 TRUTH = {"world": RigidTransform.identity(), "d1": pose([1.0, 2.0, 3.0], [6, -9, 90])}
 FLIP = RigidTransform.from_rotation(Rotation.from_euler("x", 20, degrees=True))  # about the marker's x axis

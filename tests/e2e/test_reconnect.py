@@ -3,12 +3,15 @@
 import time
 
 import numpy as np
+import pytest
 
 from atlas_onboard.config import load_world
 from atlas_onboard.sim.autopilot import SimAutopilot
 from tests.e2e.helpers import NodeProcess, Peer, free_udp_port, wait_for, write_world
 from tests.e2e.test_autopilot import TRUTH, world_doc
 from tests.helpers import observe
+
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
 
 
 def test_autopilot_tcp_link_restart(tmp_path):

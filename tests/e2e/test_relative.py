@@ -4,10 +4,13 @@ the node publishes the second's pose in the first's frame (ATLAS_FUSED_POSE with
 import time
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import RigidTransform, Rotation
 
 from tests.e2e.helpers import start_node_with_peer
 from tests.helpers import observe, pose
+
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
 
 
 def world_doc(peer_port, ap_port, relative):

@@ -9,6 +9,7 @@ import os
 import time
 
 import numpy as np
+import pytest
 
 from atlas_onboard.config import load_world
 from atlas_onboard.sim.autopilot import SimAutopilot
@@ -18,6 +19,8 @@ from tests.e2e.helpers import NodeProcess, free_udp_port, wait_for, write_world
 from tests.e2e.test_autopilot import world_doc
 from tests.e2e.test_signing import TRUTH_A, TRUTH_B, key_file
 from tests.helpers import observe
+
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
 
 LIE_M = (1.0, 0.0, 0.0)  # the claim: the drone stands 1 m east of where it is
 OWN_SENSOR, MARKER = 1, 2  # paper-test1: the drone's front camera; a floor tag

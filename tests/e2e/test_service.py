@@ -7,12 +7,15 @@ import socket
 import time
 
 import numpy as np
+import pytest
 from pymavlink.dialects.v20 import common
 
 from atlas_onboard.config import load_world
 from tests.e2e.helpers import NodeProcess, Peer, free_udp_port, wait_for, write_world
 from tests.e2e.test_autopilot import TRUTH, world_doc
 from tests.helpers import observe
+
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
 
 
 def test_notify_protocol(tmp_path):

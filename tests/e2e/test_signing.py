@@ -7,6 +7,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import RigidTransform
 
 from atlas_onboard.config import load_world
@@ -14,6 +15,8 @@ from atlas_onboard.sim.autopilot import SimAutopilot
 from tests.e2e.helpers import NodeProcess, Peer, free_udp_port, wait_for, write_world
 from tests.e2e.test_autopilot import world_doc
 from tests.helpers import observe, pose
+
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
 
 TRUTH_A = {"world": RigidTransform.identity(), "d1": pose([1.0, 2.0, 3.0], [0, 0, 90])}
 TRUTH_B = {"world": RigidTransform.identity(), "d1": pose([-2.0, 0.0, 1.0], [0, 0, 0])}

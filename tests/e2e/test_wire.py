@@ -8,6 +8,8 @@ import os
 import socket
 import time
 
+import pytest
+
 from atlas_onboard.config import load_world
 from atlas_onboard.mavlink import dialect
 from atlas_onboard.mavlink.signing import SIGNING_TICKS_PER_S, signing_timestamp
@@ -18,6 +20,8 @@ from tests.e2e.helpers import NodeProcess, free_udp_port, wait_for, write_world
 from tests.e2e.test_autopilot import world_doc
 from tests.e2e.test_signing import TRUTH_A, key_file
 from tests.helpers import observe
+
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
 
 D = dialect.load()
 TICKS_2_48 = (1 << 48) - 1
