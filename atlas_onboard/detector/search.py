@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
+from atlas_onboard.detector.families import family
 
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
 TRACKED_SIDE_PX = 30.0  # a tracked marker's region is decimated while the marker stays this wide in it (the hunt's)
@@ -27,6 +28,7 @@ MIN_RATIO = 0.6  # a candidate cell's contrast is at least this share of its bri
 TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small marker and its quiet zone
 BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
 MIN_CONTRAST = 20  # grey levels: a cell with less is not a marker's black and white (edge_profile.MIN_CONTRAST)
+PRINT_EDGE_PX = 2.0  # a print's edge in the image: blur and the corners' own error
 FOREIGN_FRAMES = 15  # a tag that is not ours is not searched again for this many frames (then checked again)
 
 
@@ -189,6 +191,18 @@ def box(c: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.concatenate([lo - grow, hi + grow, [decimate]])
 
 
+def printed_box(d: Detection) -> NDArray[np.float64]:
+    """The box (x0, y0, x1, y1) of a found marker's whole print: its detected square grown by the pattern
+    outside it and the white quiet zone (``Family.printed_cells``), at the scale of its longest side in
+    the image, and ``PRINT_EDGE_PX``. The black-white edge of the print's border (ink, then paper on
+    whatever it lies on) is strong contrast that no other marker can own."""
+    fam = family(d.family)
+    c = d.corners_px
+    longest = float(np.max(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
+    grow = longest * (fam.printed_cells - fam.cells) / (2 * fam.cells) + PRINT_EDGE_PX
+    return np.concatenate([c.min(axis=0) - grow, c.max(axis=0) + grow])
+
+
 def cell_contrast(gray: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
     """Each ``CELL_PX`` cell's contrast (brightest minus darkest pixel) and brightest pixel, after a 2x2
     average (so that one noisy pixel does not count); each of shape (ceil(h / CELL_PX), ceil(w / CELL_PX))."""
@@ -212,7 +226,8 @@ def contrast_regions(
     """Regions (x0, y0, x1, y1, decimate) of the strongest black-white contrast outside the boxes
     ``taken`` (x0, y0, x1, y1: the markers found already) and the ``quiet`` cells, the strongest first,
     at most ``budget_px`` pixels (divided by the decimation squared) in all; a region whose contrast
-    lies wholly within the boxes ``explained`` (x0, y0, x1, y1: tags not ours found there lately) is left out.
+    lies wholly within the boxes ``explained`` (x0, y0, x1, y1: tags not ours found there lately, the
+    prints of the markers found) is left out.
 
     ``contrast`` and ``top``: :func:`cell_contrast`. Black ink reflects a tenth or less of what white
     paper does, whatever the light: a printed marker's outline crosses cells whose darkest pixel is at

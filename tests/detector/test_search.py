@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import itertools
 
+import numpy as np
+
 from atlas_onboard.detector import pipeline
+from atlas_onboard.detector.render import render
 from atlas_onboard.detector.search import MAX_REGION_DECIMATE, side
-from tests.detector.test_finder import corner_errors_px, frame, tracker, truth_corners, view_at
+from tests.detector.test_finder import CAM, corner_errors_px, frame, tracker, truth_corners, view_at
 
 
 def test_a_tracked_marker_is_searched_decimated_and_kept_to_its_corners(monkeypatch):
@@ -143,3 +146,52 @@ def test_a_marker_of_ours_that_comes_in_beside_a_tag_not_ours_is_found_at_once()
     errs = corner_errors_px(det.find(frame(views, seed=4)), views)
     assert set(errs) == {40}
     assert errs[40] < 1.0
+
+
+def _print_box(view) -> tuple[float, float, float, float]:  # type: ignore[no-untyped-def]
+    """The box of a marker's whole print in the image: its true corners' box grown by the white quiet
+    zone (a cell of the 8 across tag36h11's detected square) at its longest side."""
+    c = truth_corners(view)
+    q = max(side_px for side_px in np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)) / 8
+    (x0, y0), (x1, y1) = c.min(axis=0) - q, c.max(axis=0) + q
+    return x0, y0, x1, y1
+
+
+def test_a_found_markers_own_print_is_explained_and_not_a_candidate():
+    """A marker close up on a floor darker than its paper, found: the edge of its print (the white quiet
+    zone on the floor) is strong contrast outside its corners, a candidate region unless the print explains it; with the
+    print's box among the explained ones, no candidate is left about it."""
+    from atlas_onboard.detector.search import cell_contrast, contrast_regions, printed_box
+
+    det = tracker()
+    view = view_at(11, 300, 240, 0.8)
+    gray = render(CAM, [view], seed=1, noise_sigma=3.0, supersample=3, background_style="smooth", background_seed=2)
+    found = det.find(gray)
+    assert [d.marker_id for d in found] == [11]
+    contrast, top = cell_contrast(gray)
+    taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found]
+    x0, y0, x1, y1 = _print_box(view)
+
+    def about_the_print(regions):  # type: ignore[no-untyped-def]
+        return [r for r in regions if r[0] < x1 and r[2] > x0 and r[1] < y1 and r[3] > y0]
+
+    assert about_the_print(contrast_regions(contrast, top, taken, 1e9)), "the print's edge is strong contrast"
+    explained = [printed_box(d) for d in found]
+    np.testing.assert_allclose(explained[0], [x0, y0, x1, y1], atol=3.0)  # the true print's box, within 3 px
+    assert about_the_print(contrast_regions(contrast, top, taken, 1e9, explained=explained)) == []
+
+
+def test_a_marker_of_ours_that_comes_in_print_to_print_beside_a_found_one_is_found_at_once():
+    """One of ours tracked, then another comes in with its print touching the first's: the new one's
+    contrast is its own, not explained by the first's print, and it is found in the frame it appears."""
+    det = tracker()
+    first = view_at(11, 260, 200, 3.0)
+    for k in range(4):
+        assert [d.marker_id for d in det.find(frame([first], seed=k))] == [11]
+    x0, _, x1, _ = _print_box(first)
+    beside = view_at(40, 260 + (x1 - x0) * 1.02, 200, 3.0)  # print to print, a 2 % gap
+    assert _print_box(beside)[0] - x1 < 0.05 * (x1 - x0)
+    views = [first, beside]
+    errs = corner_errors_px(det.find(frame(views, seed=4)), views)
+    assert set(errs) == {11, 40}
+    assert max(errs.values()) < 1.0
