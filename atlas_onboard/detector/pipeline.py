@@ -58,7 +58,6 @@ from atlas_onboard.detector.search import (
     box,
     cell_contrast,
     contrast_regions,
-    printed_box,
 )
 from atlas_onboard.detector.worldcheck import WorldCheck
 
@@ -166,8 +165,7 @@ class Detector:
         # Texture searched lately is not searched again unless its contrast rose (a marker came in).
         quiet = (self._quiet_until > k) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
         taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
-        # Contrast explained already: tags not ours searched lately, and the prints of the markers found.
-        explained = self.search.foreign_boxes(k, R_prev_now) + [printed_box(d) for d in found.values()]
+        explained = self.search.explained(k, R_prev_now, list(found.values()))
         for region in contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet, explained):
             before = len(found)
             self.search.find_in(gray, [region], found, only_new=True)

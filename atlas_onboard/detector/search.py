@@ -79,6 +79,11 @@ class RegionSearch:
         self.foreign = kept
         return [box(t.corners_px)[:4] for t in kept]
 
+    def explained(self, frame: int, R_prev_now: Rotation | None, found: list[Detection]) -> list[NDArray[np.float64]]:
+        """The boxes (x0, y0, x1, y1) of contrast explained already in ``frame``: the tags not ours searched
+        lately (:meth:`foreign_boxes`) and the prints of the markers ``found`` (:func:`printed_box`)."""
+        return self.foreign_boxes(frame, R_prev_now) + [printed_box(d) for d in found]
+
     def remember_foreign(self, frame: int) -> None:
         """Remember the tags not ours decoded in ``frame`` until ``FOREIGN_FRAMES`` later (each replaces
         what was remembered where it is)."""
