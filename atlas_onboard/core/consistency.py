@@ -11,7 +11,7 @@ Pure: the time is each image's capture stamp, passed in.
 from __future__ import annotations
 
 import math
-from collections import deque
+from collections import Counter, deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
@@ -81,11 +81,18 @@ class MarkerConsistency:
     def relation(self, entity: str, a: int, b: int, now_us: int) -> bool | None:
         """True (agree), False (disagree) or None (no sound relation) for the pair, at ``now_us``."""
         q = self._pairs.get((entity, min(a, b), max(a, b)))
-        if not q:
-            return None
-        recent = [agree for t, agree in q if t >= now_us - self.window_us]
-        n_agree = sum(recent)
-        n_dis = len(recent) - n_agree
+        return self._relation_of(q, now_us) if q else None
+
+    def _relation_of(self, q: deque[tuple[int, bool]], now_us: int) -> bool | None:
+        """:meth:`relation` of a pair's verdicts ``q`` (not empty)."""
+        start = now_us - self.window_us
+        n_agree = n_dis = 0
+        for t, agree in q:
+            if t >= start:
+                if agree:
+                    n_agree += 1
+                else:
+                    n_dis += 1
         if n_agree >= PAIR_MIN and n_agree > n_dis:
             return True
         if n_dis >= PAIR_MIN and n_dis > n_agree:
@@ -126,14 +133,14 @@ class MarkerConsistency:
             if q[-1][0] < now_us - self.window_us:
                 del self._pairs[(e, a, b)]
                 continue
-            rel = self.relation(entity, a, b, now_us)
+            rel = self._relation_of(q, now_us)
             find(a), find(b)
             if rel is True:
                 parent[find(a)] = find(b)
             elif rel is False:
                 disagree.append((a, b))
         group = {m: find(m) for m in parent}
-        size = {r: sum(g == r for g in group.values()) for r in set(group.values())}
+        size = Counter(group.values())
         suspects = set()
         for a, b in disagree:
             sa, sb = size[group[a]], size[group[b]]

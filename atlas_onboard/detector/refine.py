@@ -13,10 +13,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from atlas_onboard.detector import edge_profiles
 from atlas_onboard.detector.corner_noise import (
     NEXT,
     PREVIOUS,
@@ -26,8 +26,8 @@ from atlas_onboard.detector.corner_noise import (
     side_statistics,
 )
 from atlas_onboard.detector.edge_profile import place_edges
-from atlas_onboard.detector.edge_sampling import STEP_PX, sampling
-from atlas_onboard.detector.lens import bend_px, distort_columns
+from atlas_onboard.detector.edge_sampling import sampling
+from atlas_onboard.detector.lens import bend_px
 
 MAX_MOVE_PX = 2.0  # a refitted corner farther than this from where it started (beyond the lens's bend): a wrong fit
 # The library's sides are straight in the distorted image, so its corners are off by about the bend of those sides
@@ -119,29 +119,16 @@ def refine_markers_undistorted(
     lens_residual_px: float = 0.0,
 ) -> list[RefinedCorners | None]:
     """:func:`refine_corners_undistorted` of every marker of a frame (undistorted corners (4, 2) each), in
-    one pass: all their sample points laid out and sent through the lens at once, each marker's crop of
-    the image sampled once, every profile's edge placed at once, and the fits' statistics of markers with
+    one pass: all their sample points laid out, sent through the lens and sampled in the image at once
+    (:func:`edge_profiles.profiles`), every profile's edge placed at once, and the fits' statistics of markers with
     as many samples a side stacked. Each marker's result is what it gives alone."""
     out: list[RefinedCorners | None] = [None] * len(corners)
     plan = sampling(corners)
     if plan is None:
         return out
-    # Every side's sample points: one projection through the lens for all markers.
-    width = plan.offsets.shape[1]
-    u = plan.bases[:, 0, None] + plan.offsets * plan.normals[:, 0, None]
-    v = plan.bases[:, 1, None] + plan.offsets * plan.normals[:, 1, None]
-    xs, ys = (c.reshape(-1, width) for c in distort_columns(u.ravel(), v.ravel(), K, dist, fisheye))
-    profs, scales = [], {}
-    for i, s, start in zip(plan.markers, plan.samples, plan.starts, strict=True):
-        x, y = xs[start : start + 4 * s], ys[start : start + 4 * s]
-        img, (x0, y0) = _crop(gray, x, y)
-        mx, my = (x - x0).astype(np.float32), (y - y0).astype(np.float32)
-        profs.append(cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE))
-        # Undistorted pixels per image pixel about the marker: the lens residual is in image pixels.
-        dx, dy = mx[:, 1] - mx[:, 0], my[:, 1] - my[:, 0]
-        step_img = np.sqrt(dx * dx + dy * dy)  # np.linalg.norm's value
-        scales[i] = float(np.mean(STEP_PX / np.maximum(step_img, 1e-9)))
-    found_all, _, levels_all = place_edges(np.concatenate(profs), plan.offsets, plan.counts, plan.cells)
+    # Every side's sample points through the lens, and the image along them, for all markers at once.
+    sampled = edge_profiles.profiles(gray, plan, K, dist, fisheye)
+    found_all, _, levels_all = place_edges(sampled.values, plan.offsets, plan.counts, plan.cells)
     # Each marker's edge points (where no edge was placed, NaN), grouped by samples a side for the fits.
     points_all = plan.bases + found_all[:, None] * plan.normals
     keep_all = np.isfinite(found_all)
@@ -165,7 +152,8 @@ def refine_markers_undistorted(
             stats[plan.markers[k]] = tuple(x[j] for x in batch)  # type: ignore[assignment]
     ids = sorted(stats)
     if ids:
-        shifts = np.array([scales[i] * lens_residual_px for i in ids])
+        scale = dict(zip(plan.markers, sampled.scales.tolist(), strict=True))
+        shifts = np.array([scale[i] * lens_residual_px for i in ids])
         got = _corners_and_noise(np.array([corners[i] for i in ids]), [stats[i] for i in ids], shifts, K, dist, fisheye)
         for i, refined in zip(ids, got, strict=True):
             out[i] = refined
@@ -262,22 +250,6 @@ def _principal_axes(
         _, sv, vt = np.linalg.svd(e - mean, full_matrices=False)
         out.append((mean, sv, vt))
     return out
-
-
-def _crop(
-    gray: NDArray[np.uint8], x: NDArray[np.float64], y: NDArray[np.float64]
-) -> tuple[NDArray[np.float32], tuple[float, float]]:
-    """The part of ``gray`` that bilinear sampling at the points ``x``, ``y`` reads, as float32, and its
-    top-left corner (x, y): sampling it at the points less the corner gives what sampling the whole image
-    gives (a sample beyond the crop's edge is beyond the image's there, where both replicate the border)."""
-    h, w = gray.shape[:2]
-    # In python floats: a NaN bound counts as 0, an infinite one is clipped to the image.
-    lo = [float(x.min()), float(y.min())]
-    hi = [float(x.max()), float(y.max())]
-    lo, hi = ([0.0 if math.isnan(v) else min(max(v, -8.0), 8.0 + max(w, h)) for v in b] for b in (lo, hi))
-    x0, y0 = min(max(math.floor(lo[0]) - 2, 0), w - 1), min(max(math.floor(lo[1]) - 2, 0), h - 1)
-    x1, y1 = min(max(math.ceil(hi[0]) + 3, x0 + 1), w), min(max(math.ceil(hi[1]) + 3, y0 + 1), h)
-    return gray[y0:y1, x0:x1].astype(np.float32), (float(x0), float(y0))
 
 
 def _corner_covariance(

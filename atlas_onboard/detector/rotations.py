@@ -1,6 +1,7 @@
 """One rotation at a time in plain floats: a rotation vector, quaternion (x, y, z, w) or 3x3 matrix into
 another, with scipy's ``Rotation`` formulas (its values to a few ulps) without the cost of building a
-``Rotation`` for one small matrix, which is most of a marker's pose solve. Stacked rotations go to scipy."""
+``Rotation`` for one small matrix, which is most of a marker's pose solve; and quaternions to matrices stacked
+with the same arithmetic (:func:`matrices_from_quats`). Other stacked rotations go to scipy."""
 
 from __future__ import annotations
 
@@ -38,6 +39,21 @@ def matrix_from_quat(q: NDArray[np.float64]) -> NDArray[np.float64]:
             [2.0 * (xz - yw), 2.0 * (yz + xw), -x2 - y2 + z2 + w2],
         ]
     )
+
+
+def matrices_from_quats(q: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`matrix_from_quat` of quaternions (M, 4) (x, y, z, w), each normalised first: (M, 3, 3), each
+    the same floating-point operations on the same values (so the same bits)."""
+    x, y, z, w = (np.ascontiguousarray(c, dtype=np.float64) for c in np.asarray(q).T)
+    n = np.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    out = np.empty((len(x), 3, 3))
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = x2 - y2 - z2 + w2, 2.0 * (xy - zw), 2.0 * (xz + yw)
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = 2.0 * (xy + zw), -x2 + y2 - z2 + w2, 2.0 * (yz - xw)
+    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = 2.0 * (xz - yw), 2.0 * (yz + xw), -x2 - y2 + z2 + w2
+    return out
 
 
 def quat_from_matrix(R: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -29,7 +29,7 @@ from atlas_onboard.core.worldcheck import MovedMarker, MovedMarkerCheck
 from atlas_onboard.detector import pose
 from atlas_onboard.detector.joint import JointSolve
 from atlas_onboard.detector.records import FrameReport, JointResult, SingleSolve, marker_data
-from atlas_onboard.detector.rotations import matrix_from_quat
+from atlas_onboard.detector.rotations import matrices_from_quats, matrix_from_quat
 
 _logger = logging.getLogger(__name__)
 
@@ -228,21 +228,33 @@ class WorldCheck:
                 for b in trusted:
                     self.consistency.add(capture_time_us, entity, m, b, agree)
 
-    def _sighting(self, m: int, single: SingleSolve, capture_time_us: int) -> Sighting | None:
-        """Where marker ``m``'s own square puts the camera in its entity's frame, with the (3, 3)
-        covariance of that position from the pose's 6x6 (None without one, or when the pose may be the
-        mirrored planar solution)."""
-        mp = single.pose
-        if mp.covariance is None or not mp.ambiguity <= AMBIGUITY_THRESHOLD:
-            return None
-        R_cm = matrix_from_quat(mp.q_xyzw)
-        u = R_cm.T @ mp.p_m  # minus the camera's position in the marker frame
+    def _sightings(self, ids: list[int], singles: dict[int, SingleSolve], capture_time_us: int) -> dict[int, Sighting]:
+        """Where each marker's own square puts the camera in its entity's frame, with the (3, 3) covariance
+        of that position from the pose's 6x6, all at once (each one's products those of it alone); not for
+        a marker without a covariance, or whose pose may be the mirrored planar solution."""
+        use = [
+            m
+            for m in ids
+            if singles[m].pose.covariance is not None and singles[m].pose.ambiguity <= AMBIGUITY_THRESHOLD
+        ]
+        if not use:
+            return {}
+        poses = [singles[m].pose for m in use]
+        R_cm = matrices_from_quats(np.array([mp.q_xyzw for mp in poses]))
+        Rt = np.swapaxes(R_cm, 1, 2)
+        u = (Rt @ np.array([mp.p_m for mp in poses])[:, :, None])[..., 0]  # minus the camera's position, marker frame
         # c = -R^T p; with p + dp and R exp(dtheta): dc = -R^T dp - [u]x dtheta (pose_covariance's error vector)
-        ux = np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
-        J = np.hstack([-R_cm.T, -ux])
-        R_em, t_em = self._marker_rt(m)
-        cov = R_em @ J @ mp.covariance @ J.T @ R_em.T
-        return Sighting(capture_time_us, R_em @ -u + t_em, (cov + cov.T) / 2.0)
+        J = np.full((len(use), 3, 6), -0.0)
+        J[:, :, :3] = -Rt
+        J[:, 0, 4], J[:, 0, 5], J[:, 1, 5] = u[:, 2], -u[:, 1], u[:, 0]  # -[u]x
+        J[:, 1, 3], J[:, 2, 3], J[:, 2, 4] = -u[:, 2], u[:, 1], -u[:, 0]
+        frames = [self._marker_rt(m) for m in use]
+        R_em = np.array([R for R, _ in frames])
+        R_emT, Jt = np.swapaxes(R_em, 1, 2), np.swapaxes(J, 1, 2)
+        cov = R_em @ J @ np.array([mp.covariance for mp in poses]) @ Jt @ R_emT
+        p = (R_em @ -u[:, :, None])[..., 0] + np.array([t for _, t in frames])
+        cov = (cov + np.swapaxes(cov, 1, 2)) / 2.0
+        return {m: Sighting(capture_time_us, p[k], cov[k]) for k, m in enumerate(use)}
 
     def _marker_rt(self, m: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """Marker ``m``'s rotation matrix and translation in its entity (``T_entity_marker``), kept."""
@@ -261,7 +273,7 @@ class WorldCheck:
         turns add to it."""
         if entity != WORLD:
             return []
-        now = {m: s for m in ids if (s := self._sighting(m, singles[m], capture_time_us)) is not None}
+        now = self._sightings(ids, singles, capture_time_us)
         verdicts = self.motion.compare(entity, now)
         for v in verdicts:
             self.consistency.add(capture_time_us, entity, v.marker_id, v.other, v.agree)

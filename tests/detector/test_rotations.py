@@ -36,3 +36,15 @@ def test_each_conversion_gives_scipys_value(axis: list[float], angle: float):
 )
 def test_a_quaternion_not_of_unit_length_is_normalised_as_scipy_does(q: list[float]):
     np.testing.assert_allclose(rotations.matrix_from_quat(np.array(q)), Rotation.from_quat(q).as_matrix(), atol=1e-15)
+
+
+@settings(max_examples=100, deadline=None)
+@given(quats=st.lists(st.lists(st.floats(-2.0, 2.0, allow_nan=False), min_size=4, max_size=4), min_size=1, max_size=8))
+def test_stacked_quaternions_give_each_ones_matrix_bit_for_bit(quats: list[list[float]]):
+    q = np.array(quats)
+    q = q[np.linalg.norm(q, axis=1) > 1e-3]  # not normalisable
+    got = rotations.matrices_from_quats(q)
+    assert got.shape == (len(q), 3, 3)
+    for k in range(len(q)):
+        np.testing.assert_array_equal(got[k], rotations.matrix_from_quat(q[k]))
+        np.testing.assert_allclose(got[k], Rotation.from_quat(q[k]).as_matrix(), rtol=0, atol=1e-15)

@@ -6,15 +6,22 @@ from __future__ import annotations
 
 import functools
 import logging
+from collections import Counter
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import RigidTransform, Rotation
 
 from atlas_onboard.core import covariance
+from atlas_onboard.core.ambiguity import AMBIGUITY_THRESHOLD
 from atlas_onboard.core.refine.sampling import PerMarkerSchedule
 from atlas_onboard.core.worldcheck import MIN_VIEWS
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.pipeline import Detector
+from atlas_onboard.detector.pose import MarkerPose
+from atlas_onboard.detector.records import SingleSolve
+from atlas_onboard.detector.worldcheck import WorldCheck
 from tests.detector.scenes import DIST, H, K, W, moved_marker_image, moved_marker_world
 
 FRAME_US = 100_000
@@ -201,3 +208,56 @@ def test_a_suspect_marker_without_a_measured_place_is_not_used_alone():
     assert det.counters["dropped_suspect"] == 1 and det.counters["placed_used"] == 0
     assert det.counters["places_measured"] == 0
     assert "suspect" in det.report.dropped[5]
+
+
+class _Sensor:
+    name, id = "down", 1
+
+
+# Where each world marker's own square puts the camera (WorldCheck._sightings, the consistency check's
+# evidence) for a frame's markers at once, against the camera's position from the poses (scipy), and the
+# covariance against the first-order propagation of each pose's 6x6 by finite differences of its error
+# vector [dp, dtheta] (dp in the camera frame, dtheta about the marker's axes).
+
+
+def _camera_in_entity(T_em: RigidTransform, p: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Where the camera is in the entity: T_entity_marker (T_camera_marker)^-1, its translation."""
+    return (T_em * RigidTransform.from_components(p, Rotation.from_matrix(R)).inv()).translation
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31), n=st.integers(1, 6))
+def test_each_markers_sighting_is_where_its_pose_puts_the_camera(seed: int, n: int):
+    rng = np.random.default_rng(seed)
+    marker_pose = {
+        m: RigidTransform.from_components(rng.uniform(-3, 3, 3), Rotation.random(random_state=rng.integers(1 << 31)))
+        for m in range(n)
+    }
+    check = WorldCheck(_Sensor(), marker_pose, dict(marker_pose), Counter(), None)  # type: ignore[arg-type]
+    singles, truth = {}, {}
+    for m in range(n):
+        p = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(0.5, 4)])
+        R = Rotation.random(random_state=rng.integers(1 << 31))
+        A = rng.normal(0, 1e-3, (6, 6))
+        cov = None if m == 1 else A @ A.T
+        ambiguity = 0.9 if m == 2 else 0.1  # maybe the mirrored solution: no sighting
+        mp = MarkerPose(p, R.as_quat(), 0.1, None, None, ambiguity, 0.01, cov)
+        singles[m] = SingleSolve(mp, np.zeros((4, 2)), None, 0.1)
+        truth[m] = (p, R.as_matrix(), cov)
+    got = check._sightings(list(range(n)), singles, 123)
+    assert sorted(got) == [m for m in range(n) if m != 1 and not (m == 2 and 0.9 > AMBIGUITY_THRESHOLD)]
+    for m, s in got.items():
+        p, R, cov = truth[m]
+        assert s.capture_time_us == 123
+        np.testing.assert_allclose(s.p_m, _camera_in_entity(marker_pose[m], p, R), rtol=0, atol=1e-12)
+        J = np.empty((3, 6))  # the camera's position with respect to [dp, dtheta], central differences
+        h = 1e-6
+        for i in range(6):
+            d = np.zeros(6)
+            d[i] = h
+            plus = _camera_in_entity(marker_pose[m], p + d[:3], R @ Rotation.from_rotvec(d[3:]).as_matrix())
+            minus = _camera_in_entity(marker_pose[m], p - d[:3], R @ Rotation.from_rotvec(-d[3:]).as_matrix())
+            J[:, i] = (plus - minus) / (2 * h)
+        expected = J @ cov @ J.T
+        np.testing.assert_allclose(s.cov_m2, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+        np.testing.assert_array_equal(s.cov_m2, s.cov_m2.T)
