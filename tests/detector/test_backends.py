@@ -4,9 +4,14 @@ results of a detector made for each decimation."""
 import threading
 
 import numpy as np
+import pytest
 
 from atlas_onboard.detector.backends import AprilTagBackend, _library_detector
 from tests.detector.test_finder import frame, view_at
+
+# The AprilTag library's detectors live as long as the process (backends._library_detector), with
+# decoding tables of tens to hundreds of MB: one worker makes them all, not each.
+pytestmark = pytest.mark.xdist_group("apriltag_library")
 
 VIEWS = [view_at(3, 200, 150, 1.2), view_at(11, 430, 160, 2.0), view_at(25, 320, 360, 3.0), view_at(40, 90, 400, 4.0)]
 

@@ -15,6 +15,10 @@ from atlas_onboard.detector.images import marker_svg
 from atlas_onboard.detector.render import MarkerView, render
 from tests.detector.test_conventions import CAM, K, true_corners
 
+# The AprilTag library's detectors live as long as the process (backends._library_detector), with
+# decoding tables of tens to hundreds of MB: one worker makes them all, not each.
+pytestmark = pytest.mark.xdist_group("apriltag_library")
+
 NEW = list(APRILTAG3_LAYOUT)
 
 
