@@ -195,3 +195,18 @@ def test_a_marker_of_ours_that_comes_in_print_to_print_beside_a_found_one_is_fou
     errs = corner_errors_px(det.find(frame(views, seed=4)), views)
     assert set(errs) == {11, 40}
     assert max(errs.values()) < 1.0
+
+
+def test_the_search_explains_the_prints_of_the_markers_found_besides_the_tags_not_ours():
+    """What ``Detector.find`` hands the contrast search as explained: each found marker's print box."""
+    from atlas_onboard.detector.search import printed_box
+
+    det = tracker()
+    views = [view_at(11, 260, 200, 1.2), view_at(25, 420, 320, 1.2)]
+    found = det.find(frame(views, seed=0))
+    assert sorted(d.marker_id for d in found) == [11, 25]
+    explained = det.search.explained(1, None, found)
+    assert len(explained) == 2
+    for d, box_ in zip(found, explained, strict=True):
+        np.testing.assert_array_equal(box_, printed_box(d))
+        np.testing.assert_allclose(box_, _print_box(next(v for v in views if v.marker_id == d.marker_id)), atol=3.0)
