@@ -17,7 +17,9 @@ other load on a shared core does not count; on a Pi given a core, wall time is c
   640x480) with 1, 2, 5 and 10 of them in the world file (the others are not looked for): ``detect`` per
   frame, and the least-squares slope of its mean over the mean number of markers found per frame.
 - node: ``atlas-onboard run`` itself, pinned, reading those images, every one, at 30 Hz, with a
-  simulated autopilot: its CPU time per frame (everything: reading, detection, graph, MAVLink). Where
+  simulated autopilot (the images stored as PGM: raw 8-bit grey, what a camera's capture hands over
+  (a CSI camera's Y plane); the cost of decoding a PNG of each size is printed beside): its CPU time
+  per frame (everything: reading, detection, graph, MAVLink). Where
   poses come (tracking), the steady state: the process CPU sampled while the frames flow, from the
   first poses at the autopilot to the folder's end, over the frames delivered between (the newest
   capture stamp the autopilot received), the median of the runs; start-up and shutdown are left out.
@@ -67,6 +69,7 @@ PI5_FACTOR = 1.75
 RESOLUTIONS = ((640, 480), (1280, 720))  # bench_detector's sequences
 SCENE_RESOLUTIONS = ((320, 240), (640, 480), (1280, 720))  # the demo scene, the node
 NODE_FPS = 30.0
+FRAME_FORMAT = "pgm"  # the node's frames as a camera hands them over: raw 8-bit grey, nothing to decode
 PER_MARKER_TAGS = (1, 2, 5, 10)  # of the 10-tag scene's tags in the world file
 
 
@@ -127,6 +130,17 @@ def detector_child(frames_per_sequence: int, scene: Path) -> dict:
                 t0 = time.thread_time()
                 det.detect(img, 0)
                 out.setdefault(f"{w}x{h}|{state}|{setting}", []).append((time.thread_time() - t0) * 1e3)
+    decode: dict[str, list[float]] = {}
+    for folder in map(Path, doc["folders"]):  # what a compressed frame (PNG, as recorded) would cost to decode
+        img = cv2.imread(str(sorted(folder.iterdir())[0]), cv2.IMREAD_GRAYSCALE)
+        png = cv2.imencode(".png", img)[1]
+        for _ in range(20):
+            t0 = time.thread_time()
+            cv2.imdecode(png, cv2.IMREAD_GRAYSCALE)
+            decode.setdefault(f"{folder.name}: PNG decode", []).append((time.thread_time() - t0) * 1e3)
+            t0 = time.thread_time()
+            cv2.imread(str(sorted(folder.iterdir())[0]), cv2.IMREAD_GRAYSCALE)
+            decode.setdefault(f"{folder.name}: {FRAME_FORMAT.upper()} read", []).append((time.thread_time() - t0) * 1e3)
     ten = doc["ten"]
     cal = load_calibration(Path(ten["calibration"]))
     frames = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in sorted(Path(ten["frames"]).iterdir())]
@@ -143,7 +157,7 @@ def detector_child(frames_per_sequence: int, scene: Path) -> dict:
             out.setdefault(key, []).append((time.thread_time() - t0) * 1e3)
             seen.append(len(det.report.found))
         found[key] = statistics.mean(seen)
-    return {"times": out, "found": found}
+    return {"times": out, "found": found, "decode": decode}
 
 
 # --- the node on one core -------------------------------------------------------------------------
@@ -191,9 +205,9 @@ def node_folders(tmp: Path, seconds: float) -> dict[str, tuple[dict, dict, int]]
                 else:  # the floor without markers: nothing to track, every frame a hunt
                     img = render(Camera(w, h, Ks, np.zeros(5)), [], seed=k, noise_sigma=2.0, supersample=1,
                                  background_style="concrete", background_seed=3)  # fmt: skip
-                cv2.imwrite(str(folder / f"frame-{k:05d}.png"), img)
+                cv2.imwrite(str(folder / f"frame-{k:05d}.{FRAME_FORMAT}"), img)
                 if k < len(demo_frames) // 2:
-                    cv2.imwrite(str(short / f"frame-{k:05d}.png"), img)
+                    cv2.imwrite(str(short / f"frame-{k:05d}.{FRAME_FORMAT}"), img)
             docs = []
             for source in (short, folder):
                 d = yaml.safe_load(yaml.safe_dump(doc))
@@ -320,7 +334,7 @@ def main() -> int:
             capture_output=True, text=True, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"},
         )  # fmt: skip
         got = json.loads(child.stdout.strip().splitlines()[-1])
-        det, found = got["times"], got["found"]
+        det, found, decode = got["times"], got["found"], got["decode"]
         node = node_runs(tmp, folders, max(args.node_repeats, 2))
     print("detector, one core (taskset -c 0), thread CPU ms per frame; fps = 1000 / mean, here and scaled")
     print(f"{'frames':20} {'setting':30} {'mean':>6} {'median':>6} {'p95':>6} {'n':>4} {'vs lib':>6}"
@@ -334,6 +348,11 @@ def main() -> int:
         pi4, pi5 = fps / factors["Pi 4"], fps / factors["Pi 5"]
         print(f"{res + ' ' + state:20} {setting:30} {s['mean']:>6.2f} {s['median']:>6.2f} {s['p95']:>6.2f}"
               f" {s['n']:>4} {ratio} {fps:>8.0f} {pi4:>6.0f} {pi5:>6.0f}")  # fmt: skip
+    print(f"reading a frame, thread CPU ms (the node's frames are {FRAME_FORMAT.upper()}: raw grey, as a camera's"
+          " capture hands them over; a PNG, as recordings store them, costs its decoding on top)")  # fmt: skip
+    for key, ms in decode.items():
+        s = _stats(ms)
+        print(f"  {key:45} mean {s['mean']:6.2f} median {s['median']:6.2f} p95 {s['p95']:6.2f}")
     keys = [k for k in found]
     xs = [found[k] for k in keys]
     ys = [statistics.mean(det[k]) for k in keys]

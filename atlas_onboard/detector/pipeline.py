@@ -144,11 +144,11 @@ class Detector:
         if R_prev_now is not None and self._corners:
             # The turn from the attitude, plus the motion (the drone's travel) that the last turn left over.
             turned = {i: self.search.rotated(c, R_prev_now) for i, c in self._corners.items()}
-            self.search.regions = [box(c + self._drift.get(i, 0.0)) for i, c in turned.items()]
-        hunting = not self.search.regions
+            self.search.predicted = {i: c + self._drift.get(i, 0.0) for i, c in turned.items()}
+        hunting = not self.search.predicted
         k = self._frame
         if not hunting:
-            self.search.find_in(gray, self.search.regions, found)
+            self.search.track(gray, found)
         if hunting or k % SCAN_EVERY == 0:
             new = []
             for d in self.search.scan(gray, MAX_REGION_DECIMATE):
@@ -183,7 +183,7 @@ class Detector:
         previous = self._corners
         self._corners = {i: d.corners_px for i, d in found.items()}
         self._drift = {i: c - turned[i] for i, c in self._corners.items() if i in turned}
-        self.search.regions = [box(2 * c - previous[i] if i in previous else c) for i, c in self._corners.items()]
+        self.search.predicted = {i: 2 * c - previous[i] if i in previous else c for i, c in self._corners.items()}
         return list(found.values())
 
     def detect(

@@ -17,6 +17,7 @@ from atlas_onboard.detector import pose
 from atlas_onboard.detector.backends import Detection, MarkerFinder
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.families import family
+from atlas_onboard.detector.follow import follow
 
 SMALL_SIDE_PX = 40.0  # markers smaller than this are re-searched at full resolution
 TRACKED_SIDE_PX = 30.0  # a tracked marker's region is decimated while the marker stays this wide in it (the hunt's)
@@ -50,7 +51,7 @@ class RegionSearch:
         self.calibration = calibration
         self.finder = finder
         self.counters = counters
-        self.regions: list[NDArray[np.float64]] = []  # regions (x0, y0, x1, y1, decimate) to search next
+        self.predicted: dict[int, NDArray[np.float64]] = {}  # the tracked markers' corners predicted in the next frame
         self._tile = tile  # the next tile of the grid (in a phase of its own for each sensor)
         self.foreign: list[ForeignTag] = []  # tags not ours found lately: their places are not candidates
         self._foreign_now: list[NDArray[np.float64]] = []  # corners of those decoded in this frame
@@ -114,7 +115,17 @@ class RegionSearch:
     @property
     def tracking(self) -> bool:
         """Whether markers of the previous frame are tracked (False: the next frame is a hunt)."""
-        return bool(self.regions)
+        return bool(self.predicted)
+
+    def track(self, gray: NDArray[np.uint8], found: dict[int, Detection]) -> None:
+        """The tracked markers: each followed from its predicted corners (:func:`follow.follow`), and
+        the library's search of the regions (:func:`box`) of those not followed."""
+        wanted = self.finder.wanted
+        followed = follow(gray, {i: (wanted[i], c) for i, c in self.predicted.items() if i in wanted})
+        found.update(followed)
+        self.counters["followed"] += len(followed)
+        rest = [box(c) for i, c in self.predicted.items() if i not in followed]
+        self.find_in(gray, rest, found)
 
     def next_tile(self, w: int, h: int) -> NDArray[np.float64]:
         """The next tile of the grid, grown so that every small marker (the decimated search finds

@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 
-from atlas_onboard.detector import pipeline
+from atlas_onboard.detector import pipeline, search
 from atlas_onboard.detector.render import render
 from atlas_onboard.detector.search import MAX_REGION_DECIMATE, side
 from tests.detector.test_finder import CAM, corner_errors_px, frame, tracker, truth_corners, view_at
@@ -14,13 +14,15 @@ from tests.detector.test_finder import CAM, corner_errors_px, frame, tracker, tr
 
 def test_a_tracked_marker_is_searched_decimated_and_kept_to_its_corners(monkeypatch):
     """A marker about 70 px wide drifting across the image, the tracker alone (no contrast candidates,
-    no whole-image searches while tracking): every frame's region about it is searched at the largest
+    no whole-image searches while tracking) and never followed without the library (as a marker that
+    :func:`follow.follow` leaves to it): every frame's region about it is searched at the largest
     decimation that keeps the marker ``TRACKED_SIDE_PX`` wide, and it is found in it every frame with
     its corners within a pixel of the truth. The hunt's whole-image search at ``MAX_REGION_DECIMATE`` finds
     it (about 23 px wide there), so its region is searched decimated too (never at full resolution), the
     marker at least as wide in it as in the hunt."""
     monkeypatch.setattr(pipeline, "CANDIDATE_AREA", 0.0)
     monkeypatch.setattr(pipeline, "SCAN_EVERY", 10**6)
+    monkeypatch.setattr(search, "follow", lambda gray, predicted: {})
     det = tracker()
     searched: list[tuple[tuple[int, ...], float, list[int]]] = []
     find = det.finder.find

@@ -1,0 +1,190 @@
+"""Following a tracked marker from its predicted corners, without the AprilTag library.
+
+A marker found in the previous frame is predicted in this one (its motion, the camera's turn). Near
+that prediction its square's four edges are looked for along their normals: each is the rise from the
+black border to the white quiet zone, and within ``REACH_CELLS`` of a cell either side of the predicted
+edge no other edge of the marker rises outward (the border is one cell wide inside, the quiet zone one
+cell outside). A line through each side's edge points gives the corners; the marker's whole printed
+pattern is then read at its cells' centres through those corners and must match the expected bitmap
+cell for cell (black border and every data cell, on each side of a threshold fitted across the marker
+to its black and its white cells). Anything short of that (an edge not found within reach, a side
+that is not straight, a cell that does not match, too little contrast) leaves the marker to the
+library's search of its region, as before. The corners are the library's kind (straight lines in the
+image) for the corner refit that follows.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from atlas_onboard.detector.backends import Detection
+from atlas_onboard.detector.corner_noise import NEXT, PREVIOUS
+from atlas_onboard.detector.edge_profile import MIN_CONTRAST
+from atlas_onboard.detector.families import family
+
+MIN_CELL_PX = 3.0  # narrower cells are left to the library: their centres are not read clear of their edges
+REACH_CELLS = 0.8  # how far (in cells) from its predicted place an edge is looked for, either side
+SAMPLES_PER_SIDE = 8  # edge points on each side, spread between 15 % and 85 % of it (clear of the corners)
+STEPS = 10  # samples along a side's normal on each side of the predicted edge, over the reach and a step more
+LINE_TOLERANCE_PX = 1.0  # an edge point farther than this from its side's line is left out of the fit
+FINE_HALF_PX = 2.0  # the edges then placed within this of the lines found, at a quarter pixel
+FINE_STEPS = 8
+FINE_SAMPLES_PER_SIDE = 16
+
+_patterns: dict[tuple[str, int], NDArray[np.bool_] | None] = {}
+
+
+def pattern(family_name: str, marker_id: int) -> NDArray[np.bool_] | None:
+    """The cells (cells, cells) of a marker's detected square, True where white; None for a family whose
+    pattern reaches outside that square (its square's outer neighbours are data cells, not a quiet zone)."""
+    key = (family_name, marker_id)
+    if key not in _patterns:
+        fam = family(family_name)
+        if fam.total_cells and fam.total_cells != fam.cells:
+            _patterns[key] = None
+        else:
+            _patterns[key] = fam.bitmap(marker_id, cell_px=1, quiet_zone_cells=0) > 127
+    return _patterns[key]
+
+
+def _sample(gray: NDArray[np.uint8], pts: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The image at ``pts`` (..., 2) pixels, bilinear (0 outside the image)."""
+    flat = pts.reshape(1, -1, 2).astype(np.float32)
+    out = cv2.remap(gray, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.reshape(pts.shape[:-1]).astype(np.float64)
+
+
+def _inside(pts: NDArray[np.float64], shape: tuple[int, ...]) -> NDArray[np.bool_]:
+    """Per marker (the first axis of ``pts`` (M, ..., 2)): whether every point lies inside the image."""
+    h, w = shape[:2]
+    flat = pts.reshape(len(pts), -1, 2)
+    high = flat.max(axis=1)
+    return (flat.min(axis=1) >= 0).all(axis=1) & (high[:, 0] <= w - 1) & (high[:, 1] <= h - 1)
+
+
+def _lines(points: NDArray[np.float64], ok: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
+    """Least-squares lines through the ``ok`` points (..., S, 2): their centroid, unit direction and how
+    many points each has."""
+    wt = ok.astype(np.float64)
+    count = wt.sum(axis=-1)
+    m = (points * wt[..., None]).sum(axis=-2) / np.maximum(count, 1)[..., None]
+    q = (points - m[..., None, :]) * wt[..., None]
+    sxx, syy = (q[..., 0] ** 2).sum(axis=-1), (q[..., 1] ** 2).sum(axis=-1)
+    sxy = (q[..., 0] * q[..., 1]).sum(axis=-1)
+    angle = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # the scatter's principal direction
+    return m, np.stack([np.cos(angle), np.sin(angle)], axis=-1), count
+
+
+def _normals(quad: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Each side's vector (corner i to i + 1) and unit normal pointing out of the marker (quad (M, 4, 2))."""
+    d = quad[:, NEXT] - quad
+    n = np.stack([-d[..., 1], d[..., 0]], axis=-1) / np.maximum(np.linalg.norm(d, axis=-1), 1e-9)[..., None]
+    inward = np.einsum("mij,mij->mi", n, quad.mean(axis=1)[:, None, :] - quad) > 0
+    return d, np.where(inward[..., None], -n, n)
+
+
+def _refit(
+    gray: NDArray[np.uint8], quad: NDArray[np.float64], half_px: NDArray[np.float64], steps: int, samples: int
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Per marker (``quad`` (M, 4, 2)): the corners where the lines through its sides' edge points cross,
+    each edge point the rise (black border to white quiet zone) along the side's outward normal within
+    ``half_px`` (M,) of the side, sampled ``steps`` times each way (and a step more); with ``samples``
+    points a side. Coarse (``steps`` of about a pixel): the strongest rise within reach, not at its ends;
+    fine (a quarter pixel): the centroid of the squared rise. Whether all four sides were found."""
+    d, n = _normals(quad)
+    t = np.linspace(0.15, 0.85, samples)
+    step = half_px / (steps - 1)
+    offsets = np.arange(-steps, steps + 1)[None, :] * step[:, None]  # (M, K)
+    base = quad[:, :, None, :] + t[None, None, :, None] * d[:, :, None, :]  # (M, 4, S, 2)
+    pts = base[:, :, :, None, :] + offsets[:, None, None, :, None] * n[:, :, None, None, :]  # (M, 4, S, K, 2)
+    found = (np.linalg.norm(d, axis=-1).min(axis=1) >= 8) & _inside(pts, gray.shape)
+    values = _sample(gray, pts)
+    rise = values[..., 2:] - values[..., :-2]  # at offsets[1:-1]
+    k = np.argmax(rise, axis=-1)
+    ok = (k > 0) & (k < rise.shape[-1] - 1) & (rise.max(axis=-1) > 0)  # a rise within reach, not at its ends
+    if steps == FINE_STEPS:
+        weight = np.maximum(rise, 0.0) ** 2
+        s = (weight * offsets[:, None, None, 1:-1]).sum(axis=-1) / np.maximum(weight.sum(axis=-1), 1e-9)
+    else:
+        s = offsets[:, 1:-1][np.arange(len(quad))[:, None, None], k]
+    edges = base + s[..., None] * n[:, :, None, :]  # (M, 4, S, 2)
+    m, u, _ = _lines(edges, ok)
+    off = np.abs(np.einsum("mijk,mik->mij", edges - m[:, :, None, :], np.stack([-u[..., 1], u[..., 0]], axis=-1)))
+    ok &= off <= LINE_TOLERANCE_PX  # points off their side's line left out, and the lines fitted again
+    m, u, count = _lines(edges, ok)
+    found &= (count >= samples // 2 + 1).all(axis=1)
+    p1, d1 = m[:, PREVIOUS], u[:, PREVIOUS]  # corner i: where side i - 1 and side i cross
+    cross = d1[..., 0] * -u[..., 1] - d1[..., 1] * -u[..., 0]
+    found &= np.abs(cross).min(axis=1) > 1e-6
+    r = m - p1
+    along = (r[..., 0] * -u[..., 1] - r[..., 1] * -u[..., 0]) / np.where(np.abs(cross) > 1e-6, cross, 1.0)
+    return p1 + along[..., None] * d1, found
+
+
+def _corners(
+    gray: NDArray[np.uint8], predicted: NDArray[np.float64], reach_px: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Per marker (``predicted`` (M, 4, 2)): its corners, found near the prediction (the edges within
+    ``reach_px`` (M,)) and then placed to a fraction of a pixel; and whether they were found."""
+    coarse, found = _refit(gray, predicted, reach_px, STEPS, SAMPLES_PER_SIDE)
+    found &= np.abs(coarse - predicted).max(axis=(1, 2)) <= reach_px * math.sqrt(2) + LINE_TOLERANCE_PX
+    start = np.where(found[:, None, None], coarse, predicted)
+    fine, placed = _refit(gray, start, np.full(len(predicted), FINE_HALF_PX), FINE_STEPS, FINE_SAMPLES_PER_SIDE)
+    found &= placed & (np.abs(fine - coarse).max(axis=(1, 2)) <= FINE_HALF_PX)
+    return fine, found
+
+
+def _matching(gray: NDArray[np.uint8], corners: NDArray[np.float64], white: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """Per marker (``corners`` (M, 4, 2), OpenCV order): whether it shows its pattern ``white`` (M, cells,
+    cells): every cell's centre on its side of a threshold halfway between planes fitted to the black
+    and to the white cells, with at least ``MIN_CONTRAST`` between them everywhere."""
+    M, cells = len(corners), white.shape[1]
+    square = np.array([[0, 0], [cells, 0], [cells, cells], [0, cells]], np.float32)
+    H = np.array([cv2.getPerspectiveTransform(square, c.astype(np.float32)) for c in corners])
+    j, i = np.mgrid[0:cells, 0:cells]
+    A = np.stack([i.ravel() + 0.5, j.ravel() + 0.5, np.ones(cells * cells)], axis=1)  # (N, 3)
+    h = np.einsum("mij,nj->mni", H, A)
+    pts = h[..., :2] / h[..., 2:]
+    inside = _inside(pts, gray.shape)
+    values = _sample(gray, pts)  # (M, N)
+    w = white.reshape(M, -1)
+    planes = []
+    for sel in (w, ~w):  # the white and the black cells' planes (weighted least squares, in closed form)
+        wt = sel.astype(np.float64)
+        normal = np.einsum("mn,ni,nj->mij", wt, A, A) + 1e-9 * np.eye(3)
+        rhs = np.einsum("mn,ni,mn->mi", wt, A, values)
+        planes.append(np.einsum("ni,mi->mn", A, np.linalg.solve(normal, rhs[..., None])[..., 0]))
+    white_plane, black_plane = planes
+    enough = (w.sum(axis=1) >= 3) & ((~w).sum(axis=1) >= 3) & ((white_plane - black_plane).min(axis=1) >= MIN_CONTRAST)
+    same = ((values > 0.5 * (white_plane + black_plane)) == w).all(axis=1)
+    return inside & enough & same
+
+
+def follow(gray: NDArray[np.uint8], predicted: dict[int, tuple[str, NDArray[np.float64]]]) -> dict[int, Detection]:
+    """The markers found near their predicted corners (``predicted``: id -> (family, corners (4, 2))); the
+    others are left to the library."""
+    groups: dict[int, list[tuple[int, str, NDArray[np.float64], NDArray[np.bool_]]]] = {}
+    for marker_id, (family_name, corners) in predicted.items():
+        white = pattern(family_name, marker_id)
+        if white is None:
+            continue
+        side_px = float(np.linalg.norm(corners - corners[NEXT], axis=1).mean())
+        if side_px / white.shape[0] >= MIN_CELL_PX:
+            groups.setdefault(white.shape[0], []).append((marker_id, family_name, corners, white))
+    out: dict[int, Detection] = {}
+    for cells, group in groups.items():  # the markers of one size of pattern at once
+        P = np.array([g[2] for g in group], np.float64)
+        reach = REACH_CELLS * np.linalg.norm(P - P[:, NEXT], axis=2).mean(axis=1) / cells
+        corners, found = _corners(gray, P, reach)
+        if not found.any():
+            continue
+        idx = np.flatnonzero(found)
+        same = _matching(gray, corners[idx], np.array([group[k][3] for k in idx]))
+        for k, ok in zip(idx, same, strict=True):
+            if ok:
+                out[group[k][0]] = Detection(group[k][0], group[k][1], corners[k])
+    return out

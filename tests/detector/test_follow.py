@@ -1,0 +1,120 @@
+"""Following tracked markers without the library (detector.follow, driven by Detector.find): against the
+rendered truth and against the library's corners on real photographs; a wrong id, a wrong orientation,
+a prediction beyond reach and a marker gone are never followed."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from atlas_onboard.detector import pipeline
+from atlas_onboard.detector.backends import MarkerFinder
+from atlas_onboard.detector.follow import MIN_CELL_PX, REACH_CELLS, follow
+from atlas_onboard.detector.refine import refine_markers_undistorted
+from atlas_onboard.detector.search import side
+from tests.detector.test_finder import corner_errors_px, frame, tracker, truth_corners, view_at
+from tests.detector.test_realdata import images
+
+CELLS = 8  # tag36h11's detected square
+
+
+def test_a_drifting_marker_is_followed_without_the_library_as_exactly_as_it_places_corners(monkeypatch):
+    """A marker about 70 px wide drifting 20 px a frame, the tracker alone (no contrast candidates, no
+    whole-image searches): in the frame after the hunt's, 20 px from where it was (no motion known yet,
+    beyond the reach) the library finds it in its region; from then on (its motion predicted) the library
+    is never called, the marker is followed every frame, and its corners are no farther from the truth
+    than the library's own on the same frame (at decimate 1, its most exact), give or take a tenth of a
+    pixel."""
+    monkeypatch.setattr(pipeline, "CANDIDATE_AREA", 0.0)
+    monkeypatch.setattr(pipeline, "SCAN_EVERY", 10**6)
+    det = tracker()
+    library = MarkerFinder({25: "tag36h11"}, decimate=1.0)
+    calls = []
+    find = det.finder.find
+    det.finder.find = lambda gray, decimate=None: calls.append(gray.shape) or find(gray, decimate)  # type: ignore[method-assign]
+    for k in range(10):
+        views = [view_at(25, 220 + 20 * k, 240 - 6 * k, 1.05)]
+        img = frame(views, seed=k)
+        calls.clear()
+        errs = corner_errors_px(det.find(img), views)
+        assert set(errs) == {25}, f"frame {k}: lost"
+        if k == 1:
+            assert len(calls) == 1 and calls[0] != img.shape  # its region
+        if k > 1:
+            assert calls == [], f"frame {k}: the library was called"
+            truth = truth_corners(views[0])
+            lib_err = float(np.abs(library.find(img)[0].corners_px - truth).max())
+            assert errs[25] <= lib_err + 0.1, (k, errs[25], lib_err)
+    assert det.counters["followed"] == 8
+
+
+def _marker_image():
+    view = view_at(25, 320, 240, 1.0)
+    return frame([view], seed=4), truth_corners(view)
+
+
+def test_only_the_marker_with_the_pattern_in_its_orientation_is_followed():
+    """Predicted exactly where marker 25 is: followed as 25; as 11 or 3 (another code) not; as 25 with its
+    corners in another order (turned a quarter, a half; mirrored) not."""
+    img, truth = _marker_image()
+    got = follow(img, {25: ("tag36h11", truth + 0.8)})
+    assert set(got) == {25} and np.abs(got[25].corners_px - truth).max() < 0.3
+    assert follow(img, {11: ("tag36h11", truth), 3: ("tag36h11", truth)}) == {}
+    for turned in (np.roll(truth, 1, axis=0), np.roll(truth, 2, axis=0), truth[::-1]):
+        assert follow(img, {25: ("tag36h11", turned)}) == {}
+
+
+@pytest.mark.parametrize("direction_deg", [0, 60, 135, 250])
+def test_a_prediction_within_reach_is_placed_on_the_marker_and_one_beyond_it_is_left_to_the_library(direction_deg):
+    """Predicted off by up to the reach (a few tenths of a cell, in any direction): followed, its corners
+    within a third of a pixel of the truth. Off by two cells: not followed (no edge of its own within
+    reach; the library searches its region)."""
+    img, truth = _marker_image()
+    cell = side(truth) / CELLS
+    u = np.array([np.cos(np.radians(direction_deg)), np.sin(np.radians(direction_deg))])
+    for shift_cells in (0.2, 0.45, 0.6 * REACH_CELLS):
+        got = follow(img, {25: ("tag36h11", truth + shift_cells * cell * u)})
+        assert set(got) == {25}, shift_cells
+        assert np.abs(got[25].corners_px - truth).max() < 1 / 3
+    assert follow(img, {25: ("tag36h11", truth + 2.0 * cell * u)}) == {}
+
+
+def test_a_marker_gone_from_its_place_is_not_followed():
+    """The floor alone where the marker was: nothing followed, whatever the texture's edges."""
+    view = view_at(25, 320, 240, 1.0)
+    floor = frame([], seed=4)
+    assert follow(floor, {25: ("tag36h11", truth_corners(view))}) == {}
+    half = frame([view], seed=4)
+    half[:240] = floor[:240]  # its upper half gone (covered by the floor)
+    assert follow(half, {25: ("tag36h11", truth_corners(view))}) == {}
+
+
+def test_real_photographs_markers_are_followed_and_refitted_where_the_librarys_corners_are_refitted():
+    """The swatbotics photographs (real prints, light, blur and lens): of the markers the library finds at
+    decimate 1 with cells of at least ``MIN_CELL_PX``, each predicted a third of a cell away, nine in ten or
+    more are followed; from each followed marker's corners the corner refit (the detector's next step)
+    lands within a third of a pixel of where it lands from the library's."""
+    library = MarkerFinder({i: "tag36h11" for i in range(587)}, decimate=1.0)
+    rng = np.random.default_rng(1)
+    tried = followed = 0
+    for kind in ("mapping_feb_2014", "clipboard"):
+        for path, _expected in images(kind):
+            gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+            for d in library.find(gray):
+                cell = side(d.corners_px) / CELLS
+                if cell < MIN_CELL_PX:
+                    continue
+                tried += 1
+                u = rng.normal(size=2)
+                got = follow(gray, {d.marker_id: ("tag36h11", d.corners_px + cell / 3 * u / np.linalg.norm(u))})
+                if d.marker_id not in got:
+                    continue
+                followed += 1
+                K = np.array([[300.0, 0, (gray.shape[1] - 1) / 2], [0, 300.0, (gray.shape[0] - 1) / 2], [0, 0, 1]])
+                a, b = refine_markers_undistorted(gray, [d.corners_px, got[d.marker_id].corners_px], K, np.zeros(5))
+                assert (a is None) == (b is None), (path.name, d.marker_id)
+                if a is not None and b is not None:
+                    assert np.abs(a.corners - b.corners).max() < 1 / 3, (path.name, d.marker_id)
+    assert tried >= 100
+    assert followed >= 0.9 * tried
