@@ -60,6 +60,7 @@ PI4_FACTOR = 3.0  # bench_pi's: a Pi 4 core is about 3x slower than one core of 
 PI4_CORES = 3  # a Pi 4's four cores less the one the setting's default leaves
 RUNS = (("1 core", "0", 1), ("2 cores", "0,1", 2))
 TICK_S = 1.0 / os.sysconf("SC_CLK_TCK")
+FRAME_FORMAT = "pgm"  # bench_pi's: raw grey, as a camera's capture hands frames over
 
 
 def _stats(xs: list[float]) -> dict[str, float]:
@@ -150,7 +151,7 @@ def scaled(demo: Path, out: Path, w: int, h: int, n: int | None = None) -> Path:
         img = cv2.imread(str(src), cv2.IMREAD_GRAYSCALE)
         if scale != 1:
             img = cv2.resize(img, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)[int(crop) : int(crop) + h]
-        cv2.imwrite(str(out / f"frame-{k:05d}.png"), img)
+        cv2.imwrite(str(out / f"frame-{k:05d}.{FRAME_FORMAT}"), img)
     cal = out.with_name(out.name + "-cal.yaml")
     fs = cv2.FileStorage(str(cal), cv2.FILE_STORAGE_WRITE)
     fs.write("image_width", w)

@@ -58,12 +58,11 @@ def _sample(gray: NDArray[np.uint8], pts: NDArray[np.float64]) -> NDArray[np.flo
     return out.reshape(pts.shape[:-1]).astype(np.float64)
 
 
-def _inside(pts: NDArray[np.float64], shape: tuple[int, ...]) -> NDArray[np.bool_]:
-    """Per marker (the first axis of ``pts`` (M, ..., 2)): whether every point lies inside the image."""
+def _inside(quad: NDArray[np.float64], margin_px: NDArray[np.float64], shape: tuple[int, ...]) -> NDArray[np.bool_]:
+    """Per marker (``quad`` (M, 4, 2)): whether every point within ``margin_px`` (M,) of it lies inside the image."""
     h, w = shape[:2]
-    flat = pts.reshape(len(pts), -1, 2)
-    high = flat.max(axis=1)
-    return (flat.min(axis=1) >= 0).all(axis=1) & (high[:, 0] <= w - 1) & (high[:, 1] <= h - 1)
+    lo, hi = quad.min(axis=1) - margin_px[:, None], quad.max(axis=1) + margin_px[:, None]
+    return (lo[:, 0] >= 0) & (lo[:, 1] >= 0) & (hi[:, 0] <= w - 1) & (hi[:, 1] <= h - 1)
 
 
 def _lines(points: NDArray[np.float64], ok: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
@@ -101,7 +100,7 @@ def _refit(
     offsets = np.arange(-steps, steps + 1)[None, :] * step[:, None]  # (M, K)
     base = quad[:, :, None, :] + t[None, None, :, None] * d[:, :, None, :]  # (M, 4, S, 2)
     pts = base[:, :, :, None, :] + offsets[:, None, None, :, None] * n[:, :, None, None, :]  # (M, 4, S, K, 2)
-    found = (np.linalg.norm(d, axis=-1).min(axis=1) >= 8) & _inside(pts, gray.shape)
+    found = (np.linalg.norm(d, axis=-1).min(axis=1) >= 8) & _inside(quad, half_px + step, gray.shape)
     values = _sample(gray, pts)
     rise = values[..., 2:] - values[..., :-2]  # at offsets[1:-1]
     k = np.argmax(rise, axis=-1)
@@ -149,7 +148,7 @@ def _matching(gray: NDArray[np.uint8], corners: NDArray[np.float64], white: NDAr
     A = np.stack([i.ravel() + 0.5, j.ravel() + 0.5, np.ones(cells * cells)], axis=1)  # (N, 3)
     h = np.einsum("mij,nj->mni", H, A)
     pts = h[..., :2] / h[..., 2:]
-    inside = _inside(pts, gray.shape)
+    inside = _inside(corners, np.zeros(M), gray.shape)
     values = _sample(gray, pts)  # (M, N)
     w = white.reshape(M, -1)
     planes = []
