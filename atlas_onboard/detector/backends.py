@@ -154,6 +154,15 @@ def correction_bits(name: str) -> int:
     return 1 if n * (1 + bits) <= 6 * MAX_DECODE_ENTRIES else 0
 
 
+def accepted_bit_errors(name: str) -> int:
+    """Bit errors a marker of family ``name`` may be read with and still be reported: an AprilTag family's
+    correction bits, none for those whose codes lie close together (16h5, 21h7: bit errors give false ids)
+    and none for ArUco dictionaries."""
+    if not family(name).is_apriltag or _min_hamming(name) < 9:
+        return 0
+    return correction_bits(name)
+
+
 def _min_hamming(name: str) -> int:
     """The family's minimum Hamming distance between codes, from its name (tag36h11: 11)."""
     digits = name.rpartition("h")[2]
@@ -181,7 +190,7 @@ class AprilTagBackend:
         out = []
         for r in found:
             fam = r.tag_family.decode() if isinstance(r.tag_family, bytes) else str(r.tag_family)
-            if r.hamming > 0 and _min_hamming(fam) < 9:
+            if r.hamming > accepted_bit_errors(fam):
                 continue  # families of small code distance (16h5, 21h7) give false ids with bit errors
             # The library's corners start at the tag's bottom-left and use the pixel-corner origin.
             corners = np.asarray(r.corners, dtype=float)[[3, 2, 1, 0]] - 0.5

@@ -6,8 +6,9 @@ black border to the white quiet zone, and within ``REACH_CELLS`` of a cell eithe
 edge no other edge of the marker rises outward (the border is one cell wide inside, the quiet zone one
 cell outside). A line through each side's edge points gives the corners; the marker's whole printed
 pattern is then read at its cells' centres through those corners and must match the expected bitmap
-cell for cell (black border and every data cell, on each side of a threshold fitted across the marker
-to its black and its white cells). Anything short of that (an edge not found within reach, a side
+cell for cell (every cell of the black border, and the data cells but for the bit errors the library's
+decoding corrects, each on its side of a threshold fitted across the marker to its black and its white
+cells). Anything short of that (an edge not found within reach, a side
 that is not straight, a cell that does not match, too little contrast) leaves the marker to the
 library's search of its region, as before. The corners are the library's kind (straight lines in the
 image) for the corner refit that follows.
@@ -21,7 +22,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from atlas_onboard.detector.backends import Detection
+from atlas_onboard.detector.backends import Detection, accepted_bit_errors
 from atlas_onboard.detector.corner_noise import NEXT, PREVIOUS
 from atlas_onboard.detector.edge_profile import MIN_CONTRAST
 from atlas_onboard.detector.families import family
@@ -137,10 +138,14 @@ def _corners(
     return fine, found
 
 
-def _matching(gray: NDArray[np.uint8], corners: NDArray[np.float64], white: NDArray[np.bool_]) -> NDArray[np.bool_]:
+def _matching(
+    gray: NDArray[np.uint8], corners: NDArray[np.float64], white: NDArray[np.bool_], bit_errors: NDArray[np.int64]
+) -> NDArray[np.bool_]:
     """Per marker (``corners`` (M, 4, 2), OpenCV order): whether it shows its pattern ``white`` (M, cells,
     cells): every cell's centre on its side of a threshold halfway between planes fitted to the black
-    and to the white cells, with at least ``MIN_CONTRAST`` between them everywhere."""
+    and to the white cells, with at least ``MIN_CONTRAST`` between them everywhere; every cell of the
+    black border, and all but at most ``bit_errors`` (M,) of the data cells (the errors the library's
+    decoding corrects)."""
     M, cells = len(corners), white.shape[1]
     square = np.array([[0, 0], [cells, 0], [cells, cells], [0, cells]], np.float32)
     H = np.array([cv2.getPerspectiveTransform(square, c.astype(np.float32)) for c in corners])
@@ -159,7 +164,9 @@ def _matching(gray: NDArray[np.uint8], corners: NDArray[np.float64], white: NDAr
         planes.append(np.einsum("ni,mi->mn", A, np.linalg.solve(normal, rhs[..., None])[..., 0]))
     white_plane, black_plane = planes
     enough = (w.sum(axis=1) >= 3) & ((~w).sum(axis=1) >= 3) & ((white_plane - black_plane).min(axis=1) >= MIN_CONTRAST)
-    same = ((values > 0.5 * (white_plane + black_plane)) == w).all(axis=1)
+    wrong = ((values > 0.5 * (white_plane + black_plane)) != w).reshape(M, cells, cells)
+    border = wrong[:, [0, -1], :].any(axis=(1, 2)) | wrong[:, :, [0, -1]].any(axis=(1, 2))
+    same = ~border & (wrong[:, 1:-1, 1:-1].sum(axis=(1, 2)) <= bit_errors)
     return inside & enough & same
 
 
@@ -182,7 +189,8 @@ def follow(gray: NDArray[np.uint8], predicted: dict[int, tuple[str, NDArray[np.f
         if not found.any():
             continue
         idx = np.flatnonzero(found)
-        same = _matching(gray, corners[idx], np.array([group[k][3] for k in idx]))
+        errors = np.array([accepted_bit_errors(group[k][1]) for k in idx])
+        same = _matching(gray, corners[idx], np.array([group[k][3] for k in idx]), errors)
         for k, ok in zip(idx, same, strict=True):
             if ok:
                 out[group[k][0]] = Detection(group[k][0], group[k][1], corners[k])

@@ -10,7 +10,7 @@ import pytest
 
 from atlas_onboard.detector import pipeline
 from atlas_onboard.detector.backends import MarkerFinder
-from atlas_onboard.detector.follow import MIN_CELL_PX, REACH_CELLS, follow
+from atlas_onboard.detector.follow import MIN_CELL_PX, REACH_CELLS, follow, pattern
 from atlas_onboard.detector.refine import refine_markers_undistorted
 from atlas_onboard.detector.search import side
 from tests.detector.test_finder import corner_errors_px, frame, tracker, truth_corners, view_at
@@ -94,10 +94,13 @@ def test_real_photographs_markers_are_followed_and_refitted_where_the_librarys_c
     """The swatbotics photographs (real prints, light, blur and lens): of the markers the library finds at
     decimate 1 with cells of at least ``MIN_CELL_PX``, each predicted a third of a cell away, nine in ten or
     more are followed; from each followed marker's corners the corner refit (the detector's next step)
-    lands within a third of a pixel of where it lands from the library's."""
+    lands where it lands from the library's: a fiftieth of a pixel apart in the median, and no marker more
+    than half a pixel (the refit's own dependence on where it starts, on small markers in JPEG photos; a
+    marker followed onto something else would be pixels off)."""
     library = MarkerFinder({i: "tag36h11" for i in range(587)}, decimate=1.0)
     rng = np.random.default_rng(1)
     tried = followed = 0
+    apart: list[float] = []
     for kind in ("mapping_feb_2014", "clipboard"):
         for path, _expected in images(kind):
             gray = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
@@ -115,6 +118,33 @@ def test_real_photographs_markers_are_followed_and_refitted_where_the_librarys_c
                 a, b = refine_markers_undistorted(gray, [d.corners_px, got[d.marker_id].corners_px], K, np.zeros(5))
                 assert (a is None) == (b is None), (path.name, d.marker_id)
                 if a is not None and b is not None:
-                    assert np.abs(a.corners - b.corners).max() < 1 / 3, (path.name, d.marker_id)
+                    apart.append(float(np.abs(a.corners - b.corners).max()))
+                    assert apart[-1] < 0.5, (path.name, d.marker_id)
     assert tried >= 100
     assert followed >= 0.9 * tried
+    assert np.median(apart) < 0.02
+
+
+def _paint_cell(img: np.ndarray, corners: np.ndarray, col: int, row: int, value: int) -> np.ndarray:
+    """``img`` with the middle of cell (col, row) of the marker whose detected square has ``corners`` painted."""
+    square = np.array([[0, 0], [CELLS, 0], [CELLS, CELLS], [0, CELLS]], np.float32)
+    H = cv2.getPerspectiveTransform(square, corners.astype(np.float32))
+    patch = np.array([[col + 0.2, row + 0.2], [col + 0.8, row + 0.2], [col + 0.8, row + 0.8], [col + 0.2, row + 0.8]])
+    poly = cv2.perspectiveTransform(patch[None], H)[0]
+    out = img.copy()
+    cv2.fillConvexPoly(out, np.round(poly).astype(np.int32), value)
+    return out
+
+
+def test_data_cells_misread_are_accepted_as_the_librarys_decoding_corrects_them_border_cells_never():
+    """tag36h11: up to the library's two corrected bits of data cells read wrong (say, dirt on the print),
+    the marker is followed; three, or one cell of its black border, not."""
+    img, truth = _marker_image()
+    white = pattern("tag36h11", 25)
+    data = [(c, r) for r in range(1, CELLS - 1) for c in range(1, CELLS - 1)]
+    for n_wrong, ok in ((1, True), (2, True), (3, False)):
+        dirty = img
+        for c, r in data[:n_wrong]:
+            dirty = _paint_cell(dirty, truth, c, r, 0 if white[r, c] else 255)
+        assert (25 in follow(dirty, {25: ("tag36h11", truth)})) is ok, n_wrong
+    assert follow(_paint_cell(img, truth, 3, 0, 255), {25: ("tag36h11", truth)}) == {}
