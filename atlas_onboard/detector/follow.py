@@ -32,6 +32,7 @@ REACH_CELLS = 0.8  # how far (in cells) from its predicted place an edge is look
 SAMPLES_PER_SIDE = 8  # edge points on each side, spread between 15 % and 85 % of it (clear of the corners)
 STEPS = 10  # samples along a side's normal on each side of the predicted edge, over the reach and a step more
 LINE_TOLERANCE_PX = 1.0  # an edge point farther than this from its side's line is left out of the fit
+BATCH = 256  # markers sampled at once at most (OpenCV's remap takes fewer than 32767 rows)
 FINE_HALF_PX = 2.0  # the edges then placed within this of the lines found, at a quarter pixel
 FINE_STEPS = 8
 FINE_SAMPLES_PER_SIDE = 16
@@ -54,7 +55,7 @@ def pattern(family_name: str, marker_id: int) -> NDArray[np.bool_] | None:
 
 def _sample(gray: NDArray[np.uint8], pts: NDArray[np.float64]) -> NDArray[np.float64]:
     """The image at ``pts`` (..., 2) pixels, bilinear (0 outside the image)."""
-    flat = pts.reshape(1, -1, 2).astype(np.float32)
+    flat = pts.reshape(-1, pts.shape[-2], 2).astype(np.float32)  # rows of one profile (OpenCV's maps < 32767 wide)
     out = cv2.remap(gray, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
     return out.reshape(pts.shape[:-1]).astype(np.float64)
 
@@ -182,7 +183,8 @@ def follow(gray: NDArray[np.uint8], predicted: dict[int, tuple[str, NDArray[np.f
         if side_px / white.shape[0] >= MIN_CELL_PX:
             groups.setdefault(white.shape[0], []).append((marker_id, family_name, corners, white))
     out: dict[int, Detection] = {}
-    for cells, group in groups.items():  # the markers of one size of pattern at once
+    batches = [(c, g[i : i + BATCH]) for c, g in groups.items() for i in range(0, len(g), BATCH)]
+    for cells, group in batches:  # the markers of one size of pattern at once
         P = np.array([g[2] for g in group], np.float64)
         reach = REACH_CELLS * np.linalg.norm(P - P[:, NEXT], axis=2).mean(axis=1) / cells
         corners, found = _corners(gray, P, reach)

@@ -81,13 +81,17 @@ def test_a_prediction_within_reach_is_placed_on_the_marker_and_one_beyond_it_is_
 
 
 def test_a_marker_gone_from_its_place_is_not_followed():
-    """The floor alone where the marker was: nothing followed, whatever the texture's edges."""
+    """The floor alone where the marker was, or half of it: nothing followed, whatever the texture's edges;
+    nor any other id than the marker's where it is."""
     view = view_at(25, 320, 240, 1.0)
     floor = frame([], seed=4)
     assert follow(floor, {25: ("tag36h11", truth_corners(view))}) == {}
     half = frame([view], seed=4)
     half[:240] = floor[:240]  # its upper half gone (covered by the floor)
     assert follow(half, {25: ("tag36h11", truth_corners(view))}) == {}
+    # every id of the family predicted there at once (more than one batch): none is it
+    everyone = {i: ("tag36h11", truth_corners(view)) for i in range(587) if i != 25}
+    assert follow(frame([view], seed=4), everyone) == {}
 
 
 def test_real_photographs_markers_are_followed_and_refitted_where_the_librarys_corners_are_refitted():
