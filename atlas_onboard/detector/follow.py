@@ -17,6 +17,7 @@ image) for the corner refit that follows.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -37,19 +38,42 @@ FINE_HALF_PX = 2.0  # the edges then placed within this of the lines found, at a
 FINE_STEPS = 8
 FINE_SAMPLES_PER_SIDE = 16
 
-_patterns: dict[tuple[str, int], NDArray[np.bool_] | None] = {}
+
+@dataclass(frozen=True)
+class Pattern:
+    """A marker's cells as the detected square shows them, and what reading them needs."""
+
+    white: NDArray[np.bool_]  # (cells * cells,) row by row: True where white
+    to_white: NDArray[np.float64]  # (N, N): the cells' values to the plane fitted to the white cells, at every cell
+    to_black: NDArray[np.float64]  # (N, N): the same for the black cells
+    bit_errors: int  # data cells that may be read wrong (:func:`backends.accepted_bit_errors`)
 
 
-def pattern(family_name: str, marker_id: int) -> NDArray[np.bool_] | None:
-    """The cells (cells, cells) of a marker's detected square, True where white; None for a family whose
-    pattern reaches outside that square (its square's outer neighbours are data cells, not a quiet zone)."""
+_patterns: dict[tuple[str, int], Pattern | None] = {}
+_centres: dict[int, NDArray[np.float64]] = {}
+
+
+def _cell_centres(cells: int) -> NDArray[np.float64]:
+    """The cells' centres (N, 3) in cell units, row by row, homogeneous."""
+    if cells not in _centres:
+        j, i = np.mgrid[0:cells, 0:cells]
+        _centres[cells] = np.stack([i.ravel() + 0.5, j.ravel() + 0.5, np.ones(cells * cells)], axis=1)
+    return _centres[cells]
+
+
+def pattern(family_name: str, marker_id: int) -> Pattern | None:
+    """Marker ``marker_id``'s pattern; None for a family whose pattern reaches outside the detected square (its
+    square's outer neighbours are data cells, not a quiet zone) or with too few cells of a colour to fit a plane."""
     key = (family_name, marker_id)
     if key not in _patterns:
         fam = family(family_name)
-        if fam.total_cells and fam.total_cells != fam.cells:
-            _patterns[key] = None
-        else:
-            _patterns[key] = fam.bitmap(marker_id, cell_px=1, quiet_zone_cells=0) > 127
+        _patterns[key] = None
+        if not fam.total_cells or fam.total_cells == fam.cells:
+            white = (fam.bitmap(marker_id, cell_px=1, quiet_zone_cells=0) > 127).ravel()
+            A = _cell_centres(fam.cells)
+            if white.sum() >= 3 and (~white).sum() >= 3:
+                to = [A @ np.linalg.pinv(A[sel]) @ np.eye(len(A))[sel] for sel in (white, ~white)]
+                _patterns[key] = Pattern(white, to[0], to[1], accepted_bit_errors(family_name))
     return _patterns[key]
 
 
@@ -139,61 +163,46 @@ def _corners(
     return fine, found
 
 
-def _matching(
-    gray: NDArray[np.uint8], corners: NDArray[np.float64], white: NDArray[np.bool_], bit_errors: NDArray[np.int64]
-) -> NDArray[np.bool_]:
-    """Per marker (``corners`` (M, 4, 2), OpenCV order): whether it shows its pattern ``white`` (M, cells,
-    cells): every cell's centre on its side of a threshold halfway between planes fitted to the black
-    and to the white cells, with at least ``MIN_CONTRAST`` between them everywhere; every cell of the
-    black border, and all but at most ``bit_errors`` (M,) of the data cells (the errors the library's
-    decoding corrects)."""
-    M, cells = len(corners), white.shape[1]
+def _matching(gray: NDArray[np.uint8], corners: NDArray[np.float64], patterns: list[Pattern]) -> NDArray[np.bool_]:
+    """Per marker (``corners`` (M, 4, 2), OpenCV order): whether it shows its pattern: every cell's centre on
+    its side of a threshold halfway between planes fitted to the black and to the white cells, with at least
+    ``MIN_CONTRAST`` between them everywhere; every cell of the black border, and all but at most the
+    pattern's ``bit_errors`` of the data cells (the errors the library's decoding corrects)."""
+    M = len(corners)
+    cells = math.isqrt(len(patterns[0].white))
     square = np.array([[0, 0], [cells, 0], [cells, cells], [0, cells]], np.float32)
     H = np.array([cv2.getPerspectiveTransform(square, c.astype(np.float32)) for c in corners])
-    j, i = np.mgrid[0:cells, 0:cells]
-    A = np.stack([i.ravel() + 0.5, j.ravel() + 0.5, np.ones(cells * cells)], axis=1)  # (N, 3)
-    h = np.einsum("mij,nj->mni", H, A)
-    pts = h[..., :2] / h[..., 2:]
-    inside = _inside(corners, np.zeros(M), gray.shape)
-    values = _sample(gray, pts)  # (M, N)
-    w = white.reshape(M, -1)
-    planes = []
-    for sel in (w, ~w):  # the white and the black cells' planes (weighted least squares, in closed form)
-        wt = sel.astype(np.float64)
-        normal = np.einsum("mn,ni,nj->mij", wt, A, A) + 1e-9 * np.eye(3)
-        rhs = np.einsum("mn,ni,mn->mi", wt, A, values)
-        planes.append(np.einsum("ni,mi->mn", A, np.linalg.solve(normal, rhs[..., None])[..., 0]))
-    white_plane, black_plane = planes
-    enough = (w.sum(axis=1) >= 3) & ((~w).sum(axis=1) >= 3) & ((white_plane - black_plane).min(axis=1) >= MIN_CONTRAST)
+    h = np.einsum("mij,nj->mni", H, _cell_centres(cells))
+    values = _sample(gray, h[..., :2] / h[..., 2:])  # (M, N)
+    white_plane = np.einsum("mij,mj->mi", np.array([p.to_white for p in patterns]), values)
+    black_plane = np.einsum("mij,mj->mi", np.array([p.to_black for p in patterns]), values)
+    w = np.array([p.white for p in patterns])
     wrong = ((values > 0.5 * (white_plane + black_plane)) != w).reshape(M, cells, cells)
     border = wrong[:, [0, -1], :].any(axis=(1, 2)) | wrong[:, :, [0, -1]].any(axis=(1, 2))
-    same = ~border & (wrong[:, 1:-1, 1:-1].sum(axis=(1, 2)) <= bit_errors)
-    return inside & enough & same
+    data_wrong = wrong[:, 1:-1, 1:-1].sum(axis=(1, 2))
+    enough = (white_plane - black_plane).min(axis=1) >= MIN_CONTRAST
+    inside = _inside(corners, np.zeros(M), gray.shape)
+    return inside & enough & ~border & (data_wrong <= np.array([p.bit_errors for p in patterns]))
 
 
 def follow(gray: NDArray[np.uint8], predicted: dict[int, tuple[str, NDArray[np.float64]]]) -> dict[int, Detection]:
     """The markers found near their predicted corners (``predicted``: id -> (family, corners (4, 2))); the
     others are left to the library."""
-    groups: dict[int, list[tuple[int, str, NDArray[np.float64], NDArray[np.bool_]]]] = {}
+    groups: dict[int, list[tuple[int, str, NDArray[np.float64], Pattern]]] = {}
     for marker_id, (family_name, corners) in predicted.items():
-        white = pattern(family_name, marker_id)
-        if white is None:
-            continue
-        side_px = float(np.linalg.norm(corners - corners[NEXT], axis=1).mean())
-        if side_px / white.shape[0] >= MIN_CELL_PX:
-            groups.setdefault(white.shape[0], []).append((marker_id, family_name, corners, white))
+        p = pattern(family_name, marker_id)
+        if p is not None:
+            groups.setdefault(len(p.white), []).append((marker_id, family_name, corners, p))
     out: dict[int, Detection] = {}
-    batches = [(c, g[i : i + BATCH]) for c, g in groups.items() for i in range(0, len(g), BATCH)]
-    for cells, group in batches:  # the markers of one size of pattern at once
+    batches = [(n, g[i : i + BATCH]) for n, g in groups.items() for i in range(0, len(g), BATCH)]
+    for n, group in batches:  # the markers of one size of pattern at once
         P = np.array([g[2] for g in group], np.float64)
-        reach = REACH_CELLS * np.linalg.norm(P - P[:, NEXT], axis=2).mean(axis=1) / cells
-        corners, found = _corners(gray, P, reach)
-        if not found.any():
+        cell_px = np.linalg.norm(P - P[:, NEXT], axis=2).mean(axis=1) / math.isqrt(n)
+        corners, found = _corners(gray, P, REACH_CELLS * cell_px)
+        idx = np.flatnonzero(found & (cell_px >= MIN_CELL_PX))
+        if len(idx) == 0:
             continue
-        idx = np.flatnonzero(found)
-        errors = np.array([accepted_bit_errors(group[k][1]) for k in idx])
-        same = _matching(gray, corners[idx], np.array([group[k][3] for k in idx]), errors)
-        for k, ok in zip(idx, same, strict=True):
-            if ok:
-                out[group[k][0]] = Detection(group[k][0], group[k][1], corners[k])
+        same = _matching(gray, corners[idx], [group[k][3] for k in idx])
+        for k in idx[same]:
+            out[group[k][0]] = Detection(group[k][0], group[k][1], corners[k])
     return out

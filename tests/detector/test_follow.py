@@ -144,7 +144,7 @@ def test_data_cells_misread_are_accepted_as_the_librarys_decoding_corrects_them_
     """tag36h11: up to the library's two corrected bits of data cells read wrong (say, dirt on the print),
     the marker is followed; three, or one cell of its black border, not."""
     img, truth = _marker_image()
-    white = pattern("tag36h11", 25)
+    white = pattern("tag36h11", 25).white.reshape(CELLS, CELLS)
     data = [(c, r) for r in range(1, CELLS - 1) for c in range(1, CELLS - 1)]
     for n_wrong, ok in ((1, True), (2, True), (3, False)):
         dirty = img
