@@ -21,6 +21,25 @@ def render_frames(frames: list[int], sensor_id: int = 1) -> tuple[list[np.ndarra
     return [renderer(j) for j in frames], renderer.intr
 
 
+def truth_corners(frames: list[int], sensor_id: int = 1) -> dict[tuple[int, int], np.ndarray]:
+    """The true corners (4, 2) (distorted pixels, OpenCV order) of every marker in view in the frames of
+    :func:`render_frames`, by (the frame's place in ``frames``, marker id)."""
+    from atlas_onboard.detector.pose import object_corners
+    from atlas_onboard.sim import scenarios
+    from atlas_onboard.sim.camera import FrameRenderer
+
+    scenario = scenarios.get("map")
+    world = scenario.world()
+    renderer = FrameRenderer(scenario, world, world.sensors[sensor_id], seed=7)
+    out = {}
+    for k, j in enumerate(frames):
+        t = j / renderer.fps
+        for s in renderer.sim.sightings(sensor_id, renderer.sim.truth(t), t):
+            M = s.T_sensor_marker.as_matrix()
+            out[(k, s.marker.id)] = renderer.intr.project(object_corners(s.marker.size_m) @ M[:3, :3].T + M[:3, 3])
+    return out
+
+
 def write_folder(tmp: Path, images: list[np.ndarray], intr: object) -> tuple[Path, Path]:
     from atlas_onboard.sim.runner import write_calibration
 
