@@ -1,5 +1,6 @@
 """Test-wide settings."""
 
+import compileall
 import os
 import signal
 from pathlib import Path
@@ -28,6 +29,16 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 GROUPS = ("realtime", "deadlines")
 LOW_PRIORITY = 19  # nice value of a worker once its timed group is done
 E2E = Path(__file__).parent / "e2e"
+PACKAGE = Path(__file__).parents[1] / "atlas_onboard"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # The suite starts a few hundred ``python -m atlas_onboard`` processes from the source tree. Where
+    # the environment forbids writing bytecode (PYTHONDONTWRITEBYTECODE, as in many containers), each
+    # of them would compile the package afresh: compiled here once, before the workers start, they
+    # all load it (the loader still checks each file's size and time against its source).
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        compileall.compile_dir(PACKAGE, quiet=1)
 
 
 def _group(item: pytest.Item) -> str | None:
