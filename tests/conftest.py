@@ -1,7 +1,10 @@
 """Test-wide settings."""
 
+import compileall
 import os
+import re
 import signal
+from collections import Counter
 from pathlib import Path
 
 import pytest
@@ -28,6 +31,16 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 GROUPS = ("realtime", "deadlines")
 LOW_PRIORITY = 19  # nice value of a worker once its timed group is done
 E2E = Path(__file__).parent / "e2e"
+PACKAGE = Path(__file__).parents[1] / "atlas_onboard"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # The suite starts many ``python -m atlas_onboard`` processes from the source tree. Where
+    # the environment forbids writing bytecode (PYTHONDONTWRITEBYTECODE, as in many containers), each
+    # of them would compile the package afresh: compiled here once, before the workers start, they
+    # all load it (the loader still checks each file's size and time against its source).
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        compileall.compile_dir(PACKAGE, quiet=1)
 
 
 def _group(item: pytest.Item) -> str | None:
@@ -35,12 +48,30 @@ def _group(item: pytest.Item) -> str | None:
     return marked or ("realtime" if E2E in item.path.parents else None)
 
 
+# A module whose tests share a computation (a module- or class-scoped fixture, a functools cache) has
+# its other tests run on one worker, which computes it once: split between the two, each would. Such
+# a module stays a smaller unit than either timed group, which are handed out first.
+SHARES = re.compile(r"""scope=["'](module|class)["']|functools\.(cache|lru_cache)\b""")
+
+
+def _shares(path: Path, seen: dict[Path, bool]) -> bool:
+    if path not in seen:
+        seen[path] = SHARES.search(path.read_text(encoding="utf-8")) is not None
+    return seen[path]
+
+
 @pytest.hookimpl(tryfirst=True)  # before xdist's hook reads the groups
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    for item in items:
-        group = _group(item)
+    groups = {item: _group(item) for item in items}
+    timed = Counter(g for g in groups.values() if g is not None)
+    seen: dict[Path, bool] = {}
+    shared = Counter(item.path for item, g in groups.items() if g is None and _shares(item.path, seen))
+    smallest = min(timed.values(), default=len(items) + 1)
+    for item, group in groups.items():
         if group is not None:
             item.add_marker(pytest.mark.xdist_group(group))
+        elif 0 < shared[item.path] < smallest:
+            item.add_marker(pytest.mark.xdist_group(f"module {item.path.relative_to(E2E.parent)}"))
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:

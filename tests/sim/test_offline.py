@@ -5,6 +5,8 @@ runs (processes, MAVLink, faults) are in ``test_runner.py``."""
 
 import dataclasses
 
+import numpy as np
+import pytest
 import yaml
 
 from atlas_onboard.config.read_world import parse_world
@@ -51,11 +53,43 @@ def test_paper_test1_self_localization():
     )
 
 
-def test_relay_localizes_a_drone_that_sees_no_world_marker():
-    outputs, _, span = _scored("relay", 10.0)
+@pytest.fixture(scope="module")
+def relay():
+    return _scored("relay", 10.0)
+
+
+def test_relay_localizes_a_drone_that_sees_no_world_marker(relay):
+    outputs, _, span = relay
     c = outputs["drone_c"]
     assert c.availability(*span) >= 0.95, f"availability {c.availability(*span):.3f}"
     assert c.rmse_m() <= 0.10, f"RMSE {c.rmse_m():.4f} m"
+
+
+NEES_FRAMES = 24  # the relay's first frames from the warm-up on (each frame's output is the same in a longer run)
+
+
+def _first_frames(stage, t_end):
+    """The estimates of ``stage`` captured before ``t_end``."""
+    keep = [k for k, t in enumerate(stage.times_s) if t < t_end]
+    return offline.StageErrors([stage.errors[k] for k in keep], [stage.covariances[k] for k in keep], 0,
+                               [stage.times_s[k] for k in keep])  # fmt: skip
+
+
+def test_relay_publishes_positive_definite_6x6_whose_pose_nees_is_about_6(relay):
+    """drone_a over the floor tags, drone_b seeing only drone_a's tag, drone_c only drone_b's: each
+    drone's published 6x6 (NED/FRD, float32 on the wire) is positive definite, and the pose NEES of
+    what all three publish over the first frames averages about its dimension 6 (cross terms included:
+    a 6x6 whose cross terms are wrong gives a NEES far from 6 even when its diagonal is right)."""
+    everything, _, _ = relay
+    assert all(s.not_positive_definite == 0 for s in everything.values())
+    period = SimWorld(scenarios.get("relay")).frame_period_s()
+    outputs = {d: _first_frames(s, WARMUP_S + (NEES_FRAMES - 0.5) * period) for d, s in everything.items()}
+    assert all(len(s.errors) >= 15 for s in outputs.values()), {d: len(s.errors) for d, s in outputs.items()}
+    nees6 = np.concatenate([s.nees() for s in outputs.values()])
+    within = np.mean([np.abs(e) <= 3 * np.sqrt(np.diag(C)) for s in outputs.values() for e, C in s._pairs()], axis=0)
+    per_drone = {d: round(float(s.nees().mean()), 2) for d, s in outputs.items()}
+    assert 3.0 <= nees6.mean() <= 9.0, (nees6.mean(), per_drone)
+    assert np.all(within >= 0.95), within
 
 
 def test_swarm_each_drone_within_its_expected_availability():
