@@ -132,14 +132,14 @@ def detector_child(frames_per_sequence: int, scene: Path) -> dict:
                 out.setdefault(f"{w}x{h}|{state}|{setting}", []).append((time.thread_time() - t0) * 1e3)
     decode: dict[str, list[float]] = {}
     for folder in map(Path, doc["folders"]):  # what a compressed frame (PNG, as recorded) would cost to decode
-        img = cv2.imread(str(sorted(folder.iterdir())[0]), cv2.IMREAD_GRAYSCALE)
-        png = cv2.imencode(".png", img)[1]
+        first = str(sorted(folder.iterdir())[0])
+        png = cv2.imencode(".png", cv2.imread(first, cv2.IMREAD_GRAYSCALE))[1]
         for _ in range(20):
             t0 = time.thread_time()
             cv2.imdecode(png, cv2.IMREAD_GRAYSCALE)
             decode.setdefault(f"{folder.name}: PNG decode", []).append((time.thread_time() - t0) * 1e3)
             t0 = time.thread_time()
-            cv2.imread(str(sorted(folder.iterdir())[0]), cv2.IMREAD_GRAYSCALE)
+            cv2.imread(first, cv2.IMREAD_GRAYSCALE)
             decode.setdefault(f"{folder.name}: {FRAME_FORMAT.upper()} read", []).append((time.thread_time() - t0) * 1e3)
     ten = doc["ten"]
     cal = load_calibration(Path(ten["calibration"]))
