@@ -31,7 +31,7 @@ other load on a shared core does not count; on a Pi given a core, wall time is c
   frame).
 
 Scaling to a Pi: a Pi 4 core (Cortex-A72, 1.5-1.8 GHz) is taken as PI4_FACTOR = 3.0 times slower
-than one core of this machine (an AMD EPYC at 2.6 GHz), a Pi 5 core (Cortex-A76, 2.4 GHz) as
+than one core of a server-class x86 machine (AMD EPYC, Intel Xeon), a Pi 5 core (Cortex-A76, 2.4 GHz) as
 PI5_FACTOR = 1.75 times: the issue's measurement (issue 23, "a Pi 4/5 core is about 3x slower than one
 here"), consistent with published single-core scores (Geekbench 5 single-core: Pi 4 ~ 250-300, Pi 5
 ~ 750-850, server x86 cores of this class ~ 1000-1300) and Raspberry Pi's "2-3x a Pi 4" for the Pi 5.
