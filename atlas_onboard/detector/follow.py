@@ -8,10 +8,11 @@ cell outside). A line through each side's edge points gives the corners; the mar
 pattern is then read at its cells' centres through those corners and must match the expected bitmap
 cell for cell (every cell of the black border, and the data cells but for the bit errors the library's
 decoding corrects, each on its side of a threshold fitted across the marker to its black and its white
-cells). Anything short of that (an edge not found within reach, a side
-that is not straight, a cell that does not match, too little contrast) leaves the marker to the
-library's search of its region, as before. The corners are the library's kind (straight lines in the
-image) for the corner refit that follows.
+cells). Anything short of that (an edge not found within reach, a side that is not straight, a cell
+that does not match, too little contrast) leaves the marker to the library's search of its region, as
+before. With the camera's calibration the sides are fitted where they are straight, in undistorted
+pixels, and sampled where the lens bends them in the image; the corners are then where the lens puts
+the true ones (the library fits straight lines in the image, off by the lens's bend).
 """
 
 from __future__ import annotations
@@ -23,7 +24,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from atlas_onboard.detector import lens, pose
 from atlas_onboard.detector.backends import Detection, accepted_bit_errors
+from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.corner_noise import NEXT, PREVIOUS
 from atlas_onboard.detector.edge_profile import MIN_CONTRAST
 from atlas_onboard.detector.families import family
@@ -77,6 +80,14 @@ def pattern(family_name: str, marker_id: int) -> Pattern | None:
     return _patterns[key]
 
 
+def _to_image(pts: NDArray[np.float64], cal: Calibration | None) -> NDArray[np.float64]:
+    """Undistorted pixels (..., 2) where the lens puts them in the image (the same without a lens)."""
+    if cal is None:
+        return pts
+    flat = pts.reshape(-1, 2)
+    return lens.distort_uv(flat[:, 0], flat[:, 1], cal.K, cal.dist, cal.fisheye).reshape(pts.shape)
+
+
 def _sample(gray: NDArray[np.uint8], pts: NDArray[np.float64]) -> NDArray[np.float64]:
     """The image at ``pts`` (..., 2) pixels, bilinear (0 outside the image)."""
     flat = pts.reshape(-1, pts.shape[-2], 2).astype(np.float32)  # rows of one profile (OpenCV's maps < 32767 wide)
@@ -84,11 +95,11 @@ def _sample(gray: NDArray[np.uint8], pts: NDArray[np.float64]) -> NDArray[np.flo
     return out.reshape(pts.shape[:-1]).astype(np.float64)
 
 
-def _inside(quad: NDArray[np.float64], margin_px: NDArray[np.float64], shape: tuple[int, ...]) -> NDArray[np.bool_]:
-    """Per marker (``quad`` (M, 4, 2)): whether every point within ``margin_px`` (M,) of it lies inside the image."""
+def _inside(pts: NDArray[np.float64], shape: tuple[int, ...]) -> NDArray[np.bool_]:
+    """Per marker (the first axis of ``pts`` (M, ..., 2), image pixels): whether every point lies in the image."""
     h, w = shape[:2]
-    lo, hi = quad.min(axis=1) - margin_px[:, None], quad.max(axis=1) + margin_px[:, None]
-    return (lo[:, 0] >= 0) & (lo[:, 1] >= 0) & (hi[:, 0] <= w - 1) & (hi[:, 1] <= h - 1)
+    x, y = pts[..., 0].reshape(len(pts), -1), pts[..., 1].reshape(len(pts), -1)
+    return (x.min(axis=1) >= 0) & (y.min(axis=1) >= 0) & (x.max(axis=1) <= w - 1) & (y.max(axis=1) <= h - 1)
 
 
 def _lines(points: NDArray[np.float64], ok: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
@@ -113,21 +124,29 @@ def _normals(quad: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np
 
 
 def _refit(
-    gray: NDArray[np.uint8], quad: NDArray[np.float64], half_px: NDArray[np.float64], steps: int, samples: int
+    gray: NDArray[np.uint8],
+    quad: NDArray[np.float64],
+    half_px: NDArray[np.float64],
+    steps: int,
+    samples: int,
+    cal: Calibration | None,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Per marker (``quad`` (M, 4, 2)): the corners where the lines through its sides' edge points cross,
-    each edge point the rise (black border to white quiet zone) along the side's outward normal within
-    ``half_px`` (M,) of the side, sampled ``steps`` times each way (and a step more); with ``samples``
-    points a side. Coarse (``steps`` of about a pixel): the strongest rise within reach, not at its ends;
-    fine (a quarter pixel): the centroid of the squared rise. Whether all four sides were found."""
+    """Per marker (``quad`` (M, 4, 2), undistorted pixels: the sides are straight there, and each point
+    is sampled where the lens ``cal`` puts it in the image): the corners where the lines through its
+    sides' edge points cross, each edge point the rise (black border to white quiet zone) along the
+    side's outward normal within ``half_px`` (M,) of the side, sampled ``steps`` times each way (and a
+    step more); with ``samples`` points a side. Coarse (``steps`` of about a pixel): the strongest rise
+    within reach, not at its ends; fine (a quarter pixel): the centroid of the squared rise. Whether
+    all four sides were found."""
     d, n = _normals(quad)
     t = np.linspace(0.15, 0.85, samples)
     step = half_px / (steps - 1)
     offsets = np.arange(-steps, steps + 1)[None, :] * step[:, None]  # (M, K)
     base = quad[:, :, None, :] + t[None, None, :, None] * d[:, :, None, :]  # (M, 4, S, 2)
     pts = base[:, :, :, None, :] + offsets[:, None, None, :, None] * n[:, :, None, None, :]  # (M, 4, S, K, 2)
-    found = (np.linalg.norm(d, axis=-1).min(axis=1) >= 8) & _inside(quad, half_px + step, gray.shape)
-    values = _sample(gray, pts)
+    image_pts = _to_image(pts, cal)
+    found = (np.linalg.norm(d, axis=-1).min(axis=1) >= 8) & _inside(image_pts, gray.shape)
+    values = _sample(gray, image_pts)
     rise = values[..., 2:] - values[..., :-2]  # at offsets[1:-1]
     k = np.argmax(rise, axis=-1)
     ok = (k > 0) & (k < rise.shape[-1] - 1) & (rise.max(axis=-1) > 0)  # a rise within reach, not at its ends
@@ -151,20 +170,23 @@ def _refit(
 
 
 def _corners(
-    gray: NDArray[np.uint8], predicted: NDArray[np.float64], reach_px: NDArray[np.float64]
+    gray: NDArray[np.uint8], predicted: NDArray[np.float64], reach_px: NDArray[np.float64], cal: Calibration | None
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Per marker (``predicted`` (M, 4, 2)): its corners, found near the prediction (the edges within
-    ``reach_px`` (M,)) and then placed to a fraction of a pixel; and whether they were found."""
-    coarse, found = _refit(gray, predicted, reach_px, STEPS, SAMPLES_PER_SIDE)
+    """Per marker (``predicted`` (M, 4, 2), undistorted pixels): its corners there, found near the prediction
+    (the edges within ``reach_px`` (M,)) and then placed to a fraction of a pixel; and whether they were found."""
+    coarse, found = _refit(gray, predicted, reach_px, STEPS, SAMPLES_PER_SIDE, cal)
     found &= np.abs(coarse - predicted).max(axis=(1, 2)) <= reach_px * math.sqrt(2) + LINE_TOLERANCE_PX
     start = np.where(found[:, None, None], coarse, predicted)
-    fine, placed = _refit(gray, start, np.full(len(predicted), FINE_HALF_PX), FINE_STEPS, FINE_SAMPLES_PER_SIDE)
+    fine, placed = _refit(gray, start, np.full(len(predicted), FINE_HALF_PX), FINE_STEPS, FINE_SAMPLES_PER_SIDE, cal)
     found &= placed & (np.abs(fine - coarse).max(axis=(1, 2)) <= FINE_HALF_PX)
     return fine, found
 
 
-def _matching(gray: NDArray[np.uint8], corners: NDArray[np.float64], patterns: list[Pattern]) -> NDArray[np.bool_]:
-    """Per marker (``corners`` (M, 4, 2), OpenCV order): whether it shows its pattern: every cell's centre on
+def _matching(
+    gray: NDArray[np.uint8], corners: NDArray[np.float64], patterns: list[Pattern], cal: Calibration | None
+) -> NDArray[np.bool_]:
+    """Per marker (``corners`` (M, 4, 2), undistorted pixels, OpenCV order; the cells' centres read where the
+    lens ``cal`` puts them): whether it shows its pattern: every cell's centre on
     its side of a threshold halfway between planes fitted to the black and to the white cells, with at least
     ``MIN_CONTRAST`` between them everywhere; every cell of the black border, and all but at most the
     pattern's ``bit_errors`` of the data cells (the errors the library's decoding corrects)."""
@@ -173,7 +195,9 @@ def _matching(gray: NDArray[np.uint8], corners: NDArray[np.float64], patterns: l
     square = np.array([[0, 0], [cells, 0], [cells, cells], [0, cells]], np.float32)
     H = np.array([cv2.getPerspectiveTransform(square, c.astype(np.float32)) for c in corners])
     h = np.einsum("mij,nj->mni", H, _cell_centres(cells))
-    values = _sample(gray, h[..., :2] / h[..., 2:])  # (M, N)
+    centres = _to_image(h[..., :2] / h[..., 2:], cal)
+    inside = _inside(centres, gray.shape)
+    values = _sample(gray, centres)  # (M, N)
     white_plane = np.einsum("mij,mj->mi", np.array([p.to_white for p in patterns]), values)
     black_plane = np.einsum("mij,mj->mi", np.array([p.to_black for p in patterns]), values)
     w = np.array([p.white for p in patterns])
@@ -181,13 +205,18 @@ def _matching(gray: NDArray[np.uint8], corners: NDArray[np.float64], patterns: l
     border = wrong[:, [0, -1], :].any(axis=(1, 2)) | wrong[:, :, [0, -1]].any(axis=(1, 2))
     data_wrong = wrong[:, 1:-1, 1:-1].sum(axis=(1, 2))
     enough = (white_plane - black_plane).min(axis=1) >= MIN_CONTRAST
-    inside = _inside(corners, np.zeros(M), gray.shape)
     return inside & enough & ~border & (data_wrong <= np.array([p.bit_errors for p in patterns]))
 
 
-def follow(gray: NDArray[np.uint8], predicted: dict[int, tuple[str, NDArray[np.float64]]]) -> dict[int, Detection]:
-    """The markers found near their predicted corners (``predicted``: id -> (family, corners (4, 2))); the
-    others are left to the library."""
+def follow(
+    gray: NDArray[np.uint8],
+    predicted: dict[int, tuple[str, NDArray[np.float64]]],
+    calibration: Calibration | None = None,
+) -> dict[int, Detection]:
+    """The markers found near their predicted corners (``predicted``: id -> (family, corners (4, 2)), image
+    pixels); the others are left to the library. With a ``calibration`` whose lens distorts, the sides are
+    fitted straight where they are straight, in undistorted pixels, and sampled where the lens bends them."""
+    cal = calibration if calibration is not None and np.any(calibration.dist) else None
     groups: dict[int, list[tuple[int, str, NDArray[np.float64], Pattern]]] = {}
     for marker_id, (family_name, corners) in predicted.items():
         p = pattern(family_name, marker_id)
@@ -197,12 +226,17 @@ def follow(gray: NDArray[np.uint8], predicted: dict[int, tuple[str, NDArray[np.f
     batches = [(n, g[i : i + BATCH]) for n, g in groups.items() for i in range(0, len(g), BATCH)]
     for n, group in batches:  # the markers of one size of pattern at once
         P = np.array([g[2] for g in group], np.float64)
-        cell_px = np.linalg.norm(P - P[:, NEXT], axis=2).mean(axis=1) / math.isqrt(n)
-        corners, found = _corners(gray, P, REACH_CELLS * cell_px)
+        cells = math.isqrt(n)
+        cell_px = np.linalg.norm(P - P[:, NEXT], axis=2).mean(axis=1) / cells  # in the image
+        if cal is not None:
+            P = pose.undistort(P.reshape(-1, 2), cal.K, cal.dist, cal.fisheye).reshape(P.shape)
+        reach = REACH_CELLS * np.linalg.norm(P - P[:, NEXT], axis=2).mean(axis=1) / cells
+        corners, found = _corners(gray, P, reach, cal)
         idx = np.flatnonzero(found & (cell_px >= MIN_CELL_PX))
         if len(idx) == 0:
             continue
-        same = _matching(gray, corners[idx], [group[k][3] for k in idx])
-        for k in idx[same]:
-            out[group[k][0]] = Detection(group[k][0], group[k][1], corners[k])
+        same = _matching(gray, corners[idx], [group[k][3] for k in idx], cal)
+        image = _to_image(corners[idx[same]], cal)
+        for k, c in zip(idx[same], image, strict=True):
+            out[group[k][0]] = Detection(group[k][0], group[k][1], c)
     return out

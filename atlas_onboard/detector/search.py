@@ -121,7 +121,7 @@ class RegionSearch:
         """The tracked markers: each followed from its predicted corners (:func:`follow.follow`), and
         the library's search of the regions (:func:`box`) of those not followed."""
         wanted = self.finder.wanted
-        followed = follow(gray, {i: (wanted[i], c) for i, c in self.predicted.items() if i in wanted})
+        followed = follow(gray, {i: (wanted[i], c) for i, c in self.predicted.items() if i in wanted}, self.calibration)
         found.update(followed)
         self.counters["followed"] += len(followed)
         rest = [box(c) for i, c in self.predicted.items() if i not in followed]

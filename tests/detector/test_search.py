@@ -22,7 +22,7 @@ def test_a_tracked_marker_is_searched_decimated_and_kept_to_its_corners(monkeypa
     marker at least as wide in it as in the hunt."""
     monkeypatch.setattr(pipeline, "CANDIDATE_AREA", 0.0)
     monkeypatch.setattr(pipeline, "SCAN_EVERY", 10**6)
-    monkeypatch.setattr(search, "follow", lambda gray, predicted: {})
+    monkeypatch.setattr(search, "follow", lambda gray, predicted, calibration=None: {})
     det = tracker()
     searched: list[tuple[tuple[int, ...], float, list[int]]] = []
     find = det.finder.find
