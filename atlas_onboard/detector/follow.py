@@ -37,9 +37,9 @@ SAMPLES_PER_SIDE = 8  # edge points on each side, spread between 15 % and 85 % o
 STEPS = 10  # samples along a side's normal on each side of the predicted edge, over the reach and a step more
 LINE_TOLERANCE_PX = 1.0  # an edge point farther than this from its side's line is left out of the fit
 BATCH = 256  # markers sampled at once at most (OpenCV's remap takes fewer than 32767 rows)
-FINE_HALF_PX = 2.0  # the edges then placed within this of the lines found, at a quarter pixel
-FINE_STEPS = 8
-FINE_SAMPLES_PER_SIDE = 16
+FINE_HALF_PX = 2.0  # the edges then placed within this of the lines found, at a quarter pixel:
+FINE_STEPS = 8  # samples each way over it
+FINE_SAMPLES_PER_SIDE = 16  # edge points on each side in that pass
 
 
 @dataclass(frozen=True)
