@@ -24,10 +24,10 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from atlas_onboard.detector import lens, pose
+from atlas_onboard.detector import lens, pose, refine
 from atlas_onboard.detector.backends import Detection, accepted_bit_errors
 from atlas_onboard.detector.calibration import Calibration
-from atlas_onboard.detector.corner_noise import NEXT, PREVIOUS
+from atlas_onboard.detector.corner_noise import NEXT
 from atlas_onboard.detector.edge_profile import MIN_CONTRAST
 from atlas_onboard.detector.families import family
 
@@ -130,13 +130,14 @@ def _refit(
     steps: int,
     samples: int,
     cal: Calibration | None,
+    fine: bool,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Per marker (``quad`` (M, 4, 2), undistorted pixels: the sides are straight there, and each point
     is sampled where the lens ``cal`` puts it in the image): the corners where the lines through its
     sides' edge points cross, each edge point the rise (black border to white quiet zone) along the
     side's outward normal within ``half_px`` (M,) of the side, sampled ``steps`` times each way (and a
-    step more); with ``samples`` points a side. Coarse (``steps`` of about a pixel): the strongest rise
-    within reach, not at its ends; fine (a quarter pixel): the centroid of the squared rise. Whether
+    step more); with ``samples`` points a side. Coarse (steps of about a pixel): the strongest rise
+    within reach, not at its ends; ``fine`` (a quarter pixel): the centroid of the squared rise. Whether
     all four sides were found."""
     d, n = _normals(quad)
     t = np.linspace(0.15, 0.85, samples)
@@ -150,7 +151,7 @@ def _refit(
     rise = values[..., 2:] - values[..., :-2]  # at offsets[1:-1]
     k = np.argmax(rise, axis=-1)
     ok = (k > 0) & (k < rise.shape[-1] - 1) & (rise.max(axis=-1) > 0)  # a rise within reach, not at its ends
-    if steps == FINE_STEPS:
+    if fine:
         weight = np.maximum(rise, 0.0) ** 2
         s = (weight * offsets[:, None, None, 1:-1]).sum(axis=-1) / np.maximum(weight.sum(axis=-1), 1e-9)
     else:
@@ -161,12 +162,8 @@ def _refit(
     ok &= off <= LINE_TOLERANCE_PX  # points off their side's line left out, and the lines fitted again
     m, u, count = _lines(edges, ok)
     found &= (count >= samples // 2 + 1).all(axis=1)
-    p1, d1 = m[:, PREVIOUS], u[:, PREVIOUS]  # corner i: where side i - 1 and side i cross
-    cross = d1[..., 0] * -u[..., 1] - d1[..., 1] * -u[..., 0]
-    found &= np.abs(cross).min(axis=1) > 1e-6
-    r = m - p1
-    along = (r[..., 0] * -u[..., 1] - r[..., 1] * -u[..., 0]) / np.where(np.abs(cross) > 1e-6, cross, 1.0)
-    return p1 + along[..., None] * d1, found
+    corners, parallel = refine.crossings_many(m, u)
+    return corners, found & ~parallel
 
 
 def _corners(
@@ -174,12 +171,13 @@ def _corners(
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Per marker (``predicted`` (M, 4, 2), undistorted pixels): its corners there, found near the prediction
     (the edges within ``reach_px`` (M,)) and then placed to a fraction of a pixel; and whether they were found."""
-    coarse, found = _refit(gray, predicted, reach_px, STEPS, SAMPLES_PER_SIDE, cal)
+    coarse, found = _refit(gray, predicted, reach_px, STEPS, SAMPLES_PER_SIDE, cal, fine=False)
     found &= np.abs(coarse - predicted).max(axis=(1, 2)) <= reach_px * math.sqrt(2) + LINE_TOLERANCE_PX
     start = np.where(found[:, None, None], coarse, predicted)
-    fine, placed = _refit(gray, start, np.full(len(predicted), FINE_HALF_PX), FINE_STEPS, FINE_SAMPLES_PER_SIDE, cal)
-    found &= placed & (np.abs(fine - coarse).max(axis=(1, 2)) <= FINE_HALF_PX)
-    return fine, found
+    half = np.full(len(predicted), FINE_HALF_PX)
+    placed, ok = _refit(gray, start, half, FINE_STEPS, FINE_SAMPLES_PER_SIDE, cal, fine=True)
+    found &= ok & (np.abs(placed - coarse).max(axis=(1, 2)) <= FINE_HALF_PX)
+    return placed, found
 
 
 def _matching(

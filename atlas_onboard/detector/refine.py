@@ -160,7 +160,7 @@ def refine_markers_undistorted(
     return out
 
 
-def _crossings_many(
+def crossings_many(
     means: NDArray[np.float64], dirs: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """:func:`crossings` (without the move limit) of M markers' lines, points ``means`` and directions
@@ -192,7 +192,7 @@ def _corners_and_noise(
     cross, and their noise, from the sides' statistics (:func:`_side_statistics_each`) and the lens
     residual's shift (M,) (undistorted px); None where lines are parallel or the corners moved too far."""
     means, dirs, ss, npts, spread, edge_levels, lag0, lag1 = (np.array([x[k] for x in stats]) for k in range(8))
-    out, parallel = _crossings_many(means, dirs)
+    out, parallel = crossings_many(means, dirs)
     moves = np.abs(out - corners_und).max(axis=(1, 2))
     ok = ~parallel
     for k in np.flatnonzero(ok & (moves > MAX_MOVE_PX)):  # (the bend, which takes a while, only when needed)
