@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import mmap
 import os
 import re
 import shutil
@@ -244,16 +245,23 @@ def detect_times(world_path: Path, counts: tuple[int, ...]) -> dict[int, list[fl
     """Thread CPU s of each frame's ``Detector.detect``, the demo's frames dealt to ``n`` detectors in
     turn as the node's workers get them (n = 1: the serial path), for each n of ``counts``, in this
     process; each frame goes through every n's detectors in turn before the next frame, so a change of
-    the machine's load touches every n alike."""
+    the machine's load touches every n alike. The n detectors share a track board as the workers do (a
+    frame predicted from the one before it, which the node's workers have posted by then when a frame's
+    search takes less than a frame period: :mod:`atlas_onboard.detector.tracks`)."""
     from atlas_onboard.config import load_world
     from atlas_onboard.detector.calibration import load as load_calibration
     from atlas_onboard.detector.pipeline import Detector
+    from atlas_onboard.detector.tracks import BoardSlot, TrackBoard
 
     cv2.setNumThreads(1)
     world = load_world(world_path)
     cal = load_calibration(world_path.parent / "calibration.yaml")
     sensor = world.entity("drone").sensors[0]
     detectors = {n: [Detector(sensor, world, cal, decimate=2.0) for _ in range(n)] for n in counts}
+    for n, dets in detectors.items():
+        board = TrackBoard(mmap.mmap(-1, TrackBoard.size(n)), n)
+        for i, det in enumerate(dets if n > 1 else []):
+            det.shared = BoardSlot(board, i)
     frames = [cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) for f in sorted((world_path.parent / "frames").iterdir())]
     out: dict[int, list[float]] = {n: [] for n in counts}
     for k, img in enumerate(frames):

@@ -276,6 +276,12 @@ def constrain_body_tilt(
     return BodyPose(np.asarray(pose.p_world_m, dtype=float) + x[:3], R @ Rotation.from_rotvec(x[3:]).as_matrix(), C_new)
 
 
+def camera_orientation(R_level_body: Rotation | None, R_body_sensor: Rotation) -> Rotation | None:
+    """The camera's optical frame in the level frame (R_level_camera) from the autopilot's attitude
+    (None: no attitude); the turn between two frames is ``then.inv() * now``, as :class:`CameraTurn`'s."""
+    return None if R_level_body is None else R_level_body * R_body_sensor
+
+
 class CameraTurn:
     """A camera's rotation between its consecutive frames from the autopilot's attitude at their capture
     times: where a turn will move the markers in the image (a fast yaw moves them far more than their

@@ -13,16 +13,25 @@ camera goes on with the next frame.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 from collections import Counter
 
 from atlas_onboard.config import CameraConfig
-from atlas_onboard.core.attitude import CameraTurn
+from atlas_onboard.core.attitude import CameraTurn, camera_orientation
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.inorder import InOrder
 from atlas_onboard.detector.motion import body_rate_at, body_velocity_at
 from atlas_onboard.detector.sources import Frame, Source, SourceError, open_source
-from atlas_onboard.detector.workers import CameraDetectorSpec, FrameDetector, Job, Outcome, ProcessWorker
+from atlas_onboard.detector.tracks import TrackBoard
+from atlas_onboard.detector.workers import (
+    BoardPlace,
+    CameraDetectorSpec,
+    FrameDetector,
+    Job,
+    Outcome,
+    ProcessWorker,
+)
 from atlas_onboard.errors import AtlasError
 from atlas_onboard.recording.format import BackgroundRecorder
 from atlas_onboard.worker import Deliver, SensorWorker
@@ -61,7 +70,7 @@ class CameraWorker(SensorWorker):
         self._pipeline: InOrder | None = None
         self._workers: list[ProcessWorker] = []
         self._deliver: Deliver | None = None
-        self._turns: list[CameraTurn] = []  # with worker processes: each worker's turn since its last frame
+        self._board: int | None = None  # with worker processes: their track board's descriptor
         self._worker_counters: dict[int, dict[str, int]] = {}  # each worker's detector counters so far
         self._retired: Counter[str] = Counter()  # those of workers restarted
         self._status: list[str] = []
@@ -93,17 +102,25 @@ class CameraWorker(SensorWorker):
 
     def start(self, deliver: Deliver) -> None:
         if self.spec is not None:
-            workers = [ProcessWorker(self.spec, f"detect-{self.name}-{i}") for i in range(self.processes)]
+            self._board = TrackBoard.create(self.processes, self.name)
+            workers = [
+                ProcessWorker(self.spec, f"detect-{self.name}-{i}", self._place(i)) for i in range(self.processes)
+            ]
             self._workers = workers
             self._deliver = deliver
-            self._turns = [CameraTurn(self.spec.sensor.T_entity_sensor.rotation) for _ in workers]
             self._pipeline = InOrder(workers, self._on_result, self._on_restart)
         super().start(deliver)
+
+    def _place(self, i: int) -> BoardPlace | None:
+        return None if self._board is None else BoardPlace(self._board, self.processes, i)
 
     def stop(self) -> None:
         super().stop()
         if self._pipeline is not None:
             self._pipeline.close()
+        if self._board is not None:
+            os.close(self._board)
+            self._board = None
         if self.recorder is not None:  # what is queued is written before the node's final counters
             from atlas_onboard.recording.onboard import finish
 
@@ -183,15 +200,15 @@ class CameraWorker(SensorWorker):
             self.recorder.offer(frame.gray, frame.capture_time_us, found)
 
     def _submit(self, pipeline: InOrder, frame: Frame) -> None:
-        """Hand the frame to the next worker in turn (waiting until it is free), with the camera's turn
-        since that worker's previous frame."""
+        """Hand the frame to the next worker in turn (waiting until it is free), with the camera's
+        orientation at its capture (the worker turns its tracks by it, :mod:`.tracks`)."""
         t_us = frame.capture_time_us
-        R_prev_now = None
+        attitude = None
         if self.attitude_at is not None:
-            R_prev_now = self._turns[pipeline.next_index].since_last(self.attitude_at(t_us))
+            attitude = camera_orientation(self.attitude_at(t_us), self.spec.sensor.T_entity_sensor.rotation)  # type: ignore[union-attr]
         body_rate = body_rate_at(self.rate_at, t_us)  # a rolling shutter's shear
         body_velocity = body_velocity_at(self.velocity_at, t_us)
-        if pipeline.submit(frame.gray, t_us, R_prev_now, self._stop, body_rate, body_velocity):
+        if pipeline.submit(frame.gray, t_us, attitude, self._stop, body_rate, body_velocity):
             self.counts["frames"] += 1
 
     def _on_result(self, job: Job, outcome: Outcome) -> None:
@@ -210,9 +227,8 @@ class CameraWorker(SensorWorker):
             self.recorder.offer(job.gray, job.capture_time_us, outcome.found)
 
     def _on_restart(self, index: int) -> None:
-        """Worker ``index`` was restarted: its counters so far stay counted; its turn starts afresh."""
+        """Worker ``index`` was restarted: its counters so far stay counted."""
         self._retired.update(self._worker_counters.pop(index, {}))
-        self._turns[index] = CameraTurn(self.spec.sensor.T_entity_sensor.rotation)  # type: ignore[union-attr]
 
     def _consume(self, source: Source, deliver: Deliver) -> None:
         """Every frame, in order (a file replayed ``every_frame``, paced by the source unless fast), or

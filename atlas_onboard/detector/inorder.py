@@ -80,17 +80,18 @@ class InOrder:
         self,
         gray: NDArray[np.uint8],
         capture_time_us: int,
-        R_prev_now: Rotation | None,
+        attitude: Rotation | None,
         stop: threading.Event,
         body_rate: BodyRate | None = None,
         body_velocity: BodyVelocity | None = None,
     ) -> bool:
-        """Send the next frame to the next worker in turn, once that worker is free; False (nothing sent)
-        if ``stop`` was set or the pipeline closed meanwhile."""
+        """Send the next frame (``attitude``: the camera's orientation at its capture, or None) to the next
+        worker in turn, once that worker is free; False (nothing sent) if ``stop`` was set or the pipeline
+        closed meanwhile."""
         if not self.wait_free(stop):
             return False
         with self._cond:
-            job = Job(self._seq, gray, capture_time_us, R_prev_now, body_rate, body_velocity)
+            job = Job(self._seq, gray, capture_time_us, attitude, body_rate, body_velocity)
             self._seq += 1
             index = job.seq % len(self.workers)
             # Sent under the lock: the collector does not restart this worker while its frame goes out

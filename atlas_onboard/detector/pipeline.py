@@ -49,16 +49,13 @@ from atlas_onboard.detector.motion import CameraMotionModel, SeenSquare
 from atlas_onboard.detector.records import FrameReport, SingleSolve, marker_data
 from atlas_onboard.detector.refine import refine_markers_undistorted
 from atlas_onboard.detector.search import (
-    CELL_PX,
     MAX_REGION_DECIMATE,
-    MIN_CONTRAST,
     TILES,
     RegionSearch,
     at_border,
     box,
-    cell_contrast,
-    contrast_regions,
 )
+from atlas_onboard.detector.tracks import NO_TRACKS, SharedTracks
 from atlas_onboard.detector.worldcheck import WorldCheck
 
 MAX_AMBIGUITY = 1.0
@@ -68,7 +65,6 @@ equally well and the chosen one may be the mirror image (a "flip", tens of degre
 are kept with both solutions (counted ``ambiguous``) for the listener to resolve (core/ambiguity.py)."""
 SCAN_EVERY = 4  # frames between whole-image searches while tracking
 CANDIDATE_AREA = 0.06  # the most of the image searched each frame at full resolution around strong contrast
-QUIET_FRAMES = 4  # a candidate region in which nothing was found is not searched again for this many frames
 
 
 @dataclass
@@ -93,13 +89,12 @@ class Detector:
         self.marker_pose = {m.id: m.T_entity_marker for m in others}
         wanted = {m.id: m.family for m in self.world.markers.values() if m.entity != self.sensor.entity}
         self.finder = MarkerFinder(wanted, self.decimate, extra=(MAX_REGION_DECIMATE,) if self.track else ())
-        self._corners: dict[int, NDArray[np.float64]] = {}  # the previous frame's markers' corners
-        self._drift: dict[int, NDArray[np.float64]] = {}  # their last image motion that the turn did not explain
+        self.tracks = NO_TRACKS  # the markers of the last frame searched, to predict them in the next
+        self.shared: SharedTracks | None = None  # the camera's board, when its frames are dealt to workers
         # Whole-image searches and tiles in a phase of their own for each sensor: the cameras of one
         # node do not all search at once (their frames come at the same instants).
         self._frame = self.sensor.id % SCAN_EVERY
         self.search = RegionSearch(self.calibration, self.finder, self.counters, self.sensor.id % (TILES[0] * TILES[1]))
-        self._quiet_until = np.zeros((0, 0), np.int64)  # per cell: the frame until which it is not a candidate
         self.report = FrameReport()
         # The joint solve of an entity's markers seen together, and the sensor's MarkerData records.
         self.joint_solve = JointSolve(
@@ -113,9 +108,15 @@ class Detector:
     @property
     def tracking(self) -> bool:
         """Whether markers of the previous frame are tracked (False: the next frame is a hunt)."""
-        return self.search.tracking
+        return bool(self.tracks.corners)
 
-    def find(self, gray: NDArray[np.uint8], R_prev_now: Rotation | None = None) -> list[Detection]:
+    def find(
+        self,
+        gray: NDArray[np.uint8],
+        R_prev_now: Rotation | None = None,
+        capture_time_us: int | None = None,
+        attitude: Rotation | None = None,
+    ) -> list[Detection]:
         """Markers in the frame, tracked from the previous one.
 
         ``R_prev_now``: the camera's rotation since the previous frame (maps directions in the camera
@@ -135,16 +136,26 @@ class Detector:
         ``SCAN_EVERY`` frames while tracking, and the next tile of a ``TILES`` grid at full resolution
         (small ones), every other frame while hunting and every ``SCAN_EVERY`` frames while tracking.
         Without ``track`` (or with ``decimate`` 1), the whole image at full resolution.
+
+        ``capture_time_us``: the motion is scaled to the time since the previous frame searched;
+        ``attitude``: the camera's orientation at the capture (R_level_camera), the turn since a frame
+        of known orientation when ``R_prev_now`` is not given (a worker's, :mod:`.tracks`).
         """
         if not self.track or self.decimate <= 1.0:
             return self.finder.find(gray, 1.0)
         h, w = gray.shape[:2]
         found: dict[int, Detection] = {}
-        turned: dict[int, NDArray[np.float64]] = {}
-        if R_prev_now is not None and self._corners:
-            # The turn from the attitude, plus the motion (the drone's travel) that the last turn left over.
-            turned = {i: self.search.rotated(c, R_prev_now) for i, c in self._corners.items()}
-            self.search.predicted = {i: c + self._drift.get(i, 0.0) for i, c in turned.items()}
+        base = self.tracks  # a newer frame searched by another worker of the camera, if any
+        newer = None if self.shared is None or capture_time_us is None else self.shared.newer(base, capture_time_us)
+        if R_prev_now is None:
+            R_prev_now = base.turn_to(attitude)
+        if newer is not None:
+            self.counters["tracks_shared"] += 1
+            base, R_base_now = newer, newer.turn_to(attitude)
+        else:
+            R_base_now = R_prev_now
+        # The turn from the attitude, plus the motion (the drone's travel) that the last turn left over.
+        self.search.predicted, turned = base.predicted(capture_time_us, R_base_now, self.search.rotated)
         hunting = not self.search.predicted
         k = self._frame
         if not hunting:
@@ -157,33 +168,15 @@ class Detector:
                     new.append(box(d.corners_px))  # found again at the region's own decimation
             self.search.find_in(gray, new, found)
             self.counters["scans"] += 1
-        cells = (-(-h // CELL_PX), -(-w // CELL_PX))
-        if self._quiet_until.shape != cells:
-            self._quiet_until = np.zeros(cells, np.int64)
-            self._quiet_level = np.zeros(cells, np.uint8)
-        contrast, top = cell_contrast(gray)
-        # Texture searched lately is not searched again unless its contrast rose (a marker came in).
-        quiet = (self._quiet_until > k) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
-        taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
-        explained = self.search.explained(k, R_prev_now, list(found.values()))
-        for region in contrast_regions(contrast, top, taken, CANDIDATE_AREA * w * h, quiet, explained):
-            before = len(found)
-            self.search.find_in(gray, [region], found, only_new=True)
-            self.counters["candidate_regions"] += 1
-            if len(found) == before:
-                x0, y0, x1, y1 = (max(int(v), 0) // CELL_PX for v in region[:4])
-                self._quiet_until[y0 : y1 + 1, x0 : x1 + 1] = k + QUIET_FRAMES
-                self._quiet_level[y0 : y1 + 1, x0 : x1 + 1] = contrast[y0 : y1 + 1, x0 : x1 + 1]
+        self.search.candidates(gray, k, R_prev_now, found, CANDIDATE_AREA * w * h)
         if k % SCAN_EVERY == SCAN_EVERY // 2 or (hunting and k % 2 == 1):
             self.search.find_in(gray, [self.search.next_tile(w, h)], found, only_new=True)
         self.search.remember_foreign(k)
         self.counters["hunts" if hunting else "tracked_frames"] += 1
         self._frame += 1
-        # Where each marker will be: moved on by its last motion in the image (constant velocity).
-        previous = self._corners
-        self._corners = {i: d.corners_px for i, d in found.items()}
-        self._drift = {i: c - turned[i] for i, c in self._corners.items() if i in turned}
-        self.search.predicted = {i: 2 * c - previous[i] if i in previous else c for i, c in self._corners.items()}
+        self.tracks = base.then(capture_time_us, {i: d.corners_px for i, d in found.items()}, turned, attitude)
+        if self.shared is not None:  # before this frame's other work: the camera's next frame predicts from it
+            self.shared.post(self.tracks)
         return list(found.values())
 
     def detect(
@@ -193,9 +186,11 @@ class Detector:
         R_prev_now: Rotation | None = None,
         body_rate: BodyRate | None = None,
         body_velocity: BodyVelocity | None = None,
+        attitude: Rotation | None = None,
     ) -> list[MarkerData]:
-        """MarkerData of the configured markers in ``gray`` (``R_prev_now``: see :meth:`find`; ``body_rate``,
-        ``body_velocity``: the autopilot's at the capture, for a rolling shutter's shear, see :mod:`.motion`).
+        """MarkerData of the configured markers in ``gray`` (``R_prev_now``, ``attitude``: see :meth:`find`;
+        ``body_rate``, ``body_velocity``: the autopilot's at the capture, for a rolling shutter's shear,
+        see :mod:`.motion`).
 
         With ``joint`` (the default), the markers of one entity seen together are solved as one
         rigid pattern (every corner at once, far better conditioned than any single square) and
@@ -214,7 +209,7 @@ class Detector:
         motion = self.motion_model.at(capture_time_us, body_rate, body_velocity)
         per_marker = self.per_marker is not None and self.per_marker.due(capture_time_us)
         candidates = []
-        for d in self.find(gray, R_prev_now):
+        for d in self.find(gray, R_prev_now, capture_time_us, attitude):
             self.report.found.append(d.marker_id)
             if at_border(d.corners_px, w, h):
                 # A marker cut by the border, or one whose corner is extrapolated or nearly outside: its

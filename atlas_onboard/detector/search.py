@@ -30,6 +30,7 @@ TILE_OVERLAP_PX = 1.5 * SMALL_SIDE_PX  # adjacent tiles share this much: a small
 BORDER_MARGIN_PX = 6.0  # corners closer than this to an image or region border: the edge fit's reach, and 3 px
 MIN_CONTRAST = 20  # grey levels: a cell with less is not a marker's black and white (edge_profile.MIN_CONTRAST)
 PRINT_EDGE_PX = 2.0  # a print's edge in the image: blur and the corners' own error
+QUIET_FRAMES = 4  # a candidate region in which nothing was found is not searched again for this many frames
 FOREIGN_FRAMES = 15  # a tag that is not ours is not searched again for this many frames (then checked again)
 
 
@@ -55,6 +56,8 @@ class RegionSearch:
         self._tile = tile  # the next tile of the grid (in a phase of its own for each sensor)
         self.foreign: list[ForeignTag] = []  # tags not ours found lately: their places are not candidates
         self._foreign_now: list[NDArray[np.float64]] = []  # corners of those decoded in this frame
+        self._quiet_until = np.zeros((0, 0), np.int64)  # per cell: the frame until which it is not a candidate
+        self._quiet_level = np.zeros((0, 0), np.uint8)  # per cell: its contrast when last searched in vain
 
     def scan(self, gray: NDArray[np.uint8], decimate: float) -> list[Detection]:
         """The whole image searched at ``decimate``: our markers (the tags not ours noted)."""
@@ -126,6 +129,31 @@ class RegionSearch:
         self.counters["followed"] += len(followed)
         rest = [box(c) for i, c in self.predicted.items() if i not in followed]
         self.find_in(gray, rest, found)
+
+    def candidates(
+        self, gray: NDArray[np.uint8], frame: int, R_prev_now: Rotation | None, found: dict[int, Detection], area: float
+    ) -> None:
+        """The regions of strong contrast in ``frame`` outside the markers ``found`` and the contrast
+        explained already (:meth:`explained`), at most ``area`` pixels (:func:`contrast_regions`), each
+        searched for new markers. Texture searched in vain is not searched again for ``QUIET_FRAMES``
+        unless its contrast rose (a marker came in)."""
+        h, w = gray.shape[:2]
+        cells = (-(-h // CELL_PX), -(-w // CELL_PX))
+        if self._quiet_until.shape != cells:
+            self._quiet_until = np.zeros(cells, np.int64)
+            self._quiet_level = np.zeros(cells, np.uint8)
+        contrast, top = cell_contrast(gray)
+        quiet = (self._quiet_until > frame) & (contrast <= self._quiet_level.astype(np.int16) + MIN_CONTRAST)
+        taken = [np.concatenate([d.corners_px.min(axis=0), d.corners_px.max(axis=0)]) for d in found.values()]
+        explained = self.explained(frame, R_prev_now, list(found.values()))
+        for region in contrast_regions(contrast, top, taken, area, quiet, explained):
+            before = len(found)
+            self.find_in(gray, [region], found, only_new=True)
+            self.counters["candidate_regions"] += 1
+            if len(found) == before:
+                x0, y0, x1, y1 = (max(int(v), 0) // CELL_PX for v in region[:4])
+                self._quiet_until[y0 : y1 + 1, x0 : x1 + 1] = frame + QUIET_FRAMES
+                self._quiet_level[y0 : y1 + 1, x0 : x1 + 1] = contrast[y0 : y1 + 1, x0 : x1 + 1]
 
     def next_tile(self, w: int, h: int) -> NDArray[np.float64]:
         """The next tile of the grid, grown so that every small marker (the decimated search finds

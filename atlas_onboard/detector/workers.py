@@ -2,10 +2,10 @@
 
 A camera's frames go to its workers in turn (:class:`atlas_onboard.detector.inorder.InOrder`); each
 worker process holds a detector of its own, made from a picklable spec, so each detector sees every
-N-th frame of its camera and tracks from its own previous frame: the regions of frame k-N, moved on by
-the motion between frames k-2N and k-N, predict frame k (the same constant-velocity extrapolation over
-N frame periods). Processes, not threads: most of a frame's work (the per-marker refit, pose and checks)
-is Python that holds the interpreter lock; only the library's search and OpenCV's calls release it.
+N-th frame of its camera. Its markers are predicted from the newest frame any of the camera's workers
+has searched, shared on the camera's track board (:mod:`atlas_onboard.detector.tracks`), or else from its
+own previous frame. Processes, not threads: most of a frame's work (the per-marker refit, pose and
+checks) is Python that holds the interpreter lock; only the library's search and OpenCV's calls release it.
 
 Workers are forked from a server process that imported the detector and made the AprilTag library's
 detector once (``forkserver``, :mod:`atlas_onboard.detector.forkserver_preload`): no worker inherits the
@@ -38,6 +38,7 @@ from atlas_onboard.core.shutter import BodyRate, BodyVelocity
 from atlas_onboard.detector.backends import apriltag_families
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.forkserver_preload import FAMILIES_ENV
+from atlas_onboard.detector.tracks import BoardSlot, SharedTracks, TrackBoard
 from atlas_onboard.errors import AtlasError
 
 
@@ -45,6 +46,7 @@ class FrameDetector(Protocol):
     """What a camera needs of its detector (:class:`atlas_onboard.detector.pipeline.Detector`)."""
 
     counters: Counter[str]
+    shared: SharedTracks | None  # the camera's track board (:mod:`.tracks`), set by the worker
 
     def detect(
         self,
@@ -53,6 +55,7 @@ class FrameDetector(Protocol):
         R_prev_now: Rotation | None = None,
         body_rate: BodyRate | None = None,
         body_velocity: BodyVelocity | None = None,
+        attitude: Rotation | None = None,
     ) -> list[MarkerData]: ...
 
     def take_status(self) -> list[str]: ...
@@ -94,13 +97,14 @@ class CameraDetectorSpec:
 
 @dataclass(frozen=True)
 class Job:
-    """One frame for a worker: its place in the camera's sequence, its image, stamp, turn and the
-    autopilot's body rate at its capture."""
+    """One frame for a worker: its place in the camera's sequence, its image, stamp, the camera's
+    orientation (R_level_camera, from the autopilot's attitude) and the autopilot's body rate at its
+    capture."""
 
     seq: int
     gray: NDArray[np.uint8]
     capture_time_us: int
-    R_prev_now: Rotation | None = None
+    attitude: Rotation | None = None
     body_rate: BodyRate | None = None
     body_velocity: BodyVelocity | None = None
 
@@ -133,6 +137,25 @@ class _FrameBuffer:
     size: int
 
 
+@dataclass(frozen=True)
+class _Board:
+    """The camera's track board (:class:`~atlas_onboard.detector.tracks.TrackBoard` of ``slots``) is the
+    memory whose descriptor follows on the pipe; the worker posts in ``slot``."""
+
+    slots: int
+    slot: int
+
+
+@dataclass(frozen=True)
+class BoardPlace:
+    """A worker's place on its camera's track board: the board's descriptor (the camera's), its slots,
+    and the worker's slot."""
+
+    fd: int
+    slots: int
+    slot: int
+
+
 _NO_IMAGE = np.empty((0, 0), np.uint8)
 
 
@@ -155,6 +178,11 @@ def serve(conn: Connection, spec: DetectorSpec) -> None:
                 frames = mmap.mmap(fd, msg.size)
                 os.close(fd)
                 continue
+            if isinstance(msg, _Board):
+                fd = reduction.recv_handle(conn)
+                detector.shared = BoardSlot(TrackBoard.attach(fd, msg.slots), msg.slot)
+                os.close(fd)
+                continue
         except (EOFError, OSError):
             return
         if msg is None:
@@ -168,7 +196,9 @@ def serve(conn: Connection, spec: DetectorSpec) -> None:
         error = ""
         try:
             found = list(
-                detector.detect(msg.gray, msg.capture_time_us, msg.R_prev_now, msg.body_rate, msg.body_velocity)
+                detector.detect(
+                    msg.gray, msg.capture_time_us, None, msg.body_rate, msg.body_velocity, attitude=msg.attitude
+                )
             )
         except AtlasError as exc:  # e.g. frames of another size than the calibration
             found, error = [], str(exc)
@@ -207,9 +237,10 @@ class ProcessWorker:
     is sent and copied out by the worker, serves every frame. Where there is no ``memfd`` the image is
     pickled on the pipe."""
 
-    def __init__(self, spec: DetectorSpec, name: str) -> None:
+    def __init__(self, spec: DetectorSpec, name: str, board: BoardPlace | None = None) -> None:
         self.spec = spec
         self.name = name
+        self.board = board
         self._send_lock = threading.Lock()
         self._frames: mmap.mmap | None = None  # the shared buffer, and its descriptor
         self._frames_fd = -1
@@ -225,6 +256,12 @@ class ProcessWorker:
         child.close()
         self.conn = parent
         self._frames_told = False
+        if self.board is not None:
+            try:
+                self.conn.send(_Board(self.board.slots, self.board.slot))
+                reduction.send_handle(self.conn, self.board.fd, self.process.pid)
+            except OSError:
+                pass  # the process is gone already: the next frame's send finds it and restarts it
 
     def send(self, msg: Job | int) -> None:
         """Raises :class:`WorkerDiedError` when the process is gone."""

@@ -37,7 +37,7 @@ class _Stand:
         self.crash_at = crash_at
         self.slow_at = slow_at
 
-    def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None, body_velocity=None):
+    def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None, body_velocity=None, attitude=None):
         if capture_time_us == self.crash_at:
             raise RuntimeError("a bug")
         slow = capture_time_us == self.slow_at
@@ -211,7 +211,9 @@ def test_two_worker_processes_deliver_every_frame_in_order_with_the_same_recall(
     assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)  # capture order, each once
     c1, c2 = serial.counters(), camera.counters()
     assert c2["frames"] == c1["frames"] and c2.get("worker_restarts", 0) == 0
-    # Tracking from each worker's own previous frame (two frames back) finds what the serial path finds.
+    # Tracking from the newest frame either worker has searched (shared on the camera's board), or from
+    # the worker's own previous one (two frames back), finds what the serial path finds.
+    assert c2["detector_tracks_shared"] > 0 and "detector_tracks_shared" not in c1
     assert len(got2) == len(got1)
     assert c2["detector_detections"] == c1["detector_detections"]
     tracked1 = c1["detector_roi_finds"] + c1.get("detector_followed", 0)
@@ -232,7 +234,7 @@ def test_one_core_a_detector_that_raises_is_counted_and_the_camera_goes_on(tmp_p
         cv2.imwrite(str(tmp_path / f"img{k:03d}.png"), np.full((8, 8), k, np.uint8))
 
     class Flaky(_Stand):
-        def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None, body_velocity=None):
+        def detect(self, gray, capture_time_us, R_prev_now=None, body_rate=None, body_velocity=None, attitude=None):
             if int(gray[0, 0]) == 2:
                 raise RuntimeError("a bug")
             self.counters["frames"] += 1
