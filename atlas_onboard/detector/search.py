@@ -81,12 +81,12 @@ class RegionSearch:
             c = t.corners_px if R_prev_now is None else self.rotated(t.corners_px, R_prev_now)
             kept.append(ForeignTag(c, t.until))
         self.foreign = kept
-        return [box(t.corners_px)[:4] for t in kept]
+        return list(grown_boxes(np.array([t.corners_px for t in kept]))) if kept else []
 
     def explained(self, frame: int, R_prev_now: Rotation | None, found: list[Detection]) -> list[NDArray[np.float64]]:
         """The boxes (x0, y0, x1, y1) of contrast explained already in ``frame``: the tags not ours searched
-        lately (:meth:`foreign_boxes`) and the prints of the markers ``found`` (:func:`printed_box`)."""
-        return self.foreign_boxes(frame, R_prev_now) + [printed_box(d) for d in found]
+        lately (:meth:`foreign_boxes`) and the prints of the markers ``found`` (:func:`printed_boxes`)."""
+        return self.foreign_boxes(frame, R_prev_now) + printed_boxes(found)
 
     def remember_foreign(self, frame: int) -> None:
         """Remember the tags not ours decoded in ``frame`` until ``FOREIGN_FRAMES`` later (each replaces
@@ -229,22 +229,32 @@ def box(c: NDArray[np.float64]) -> NDArray[np.float64]:
     frame: its box grown by ``ROI_MARGIN``, decimated while the marker stays ``TRACKED_SIDE_PX`` wide
     (at most ``MAX_REGION_DECIMATE``, at which the hunt finds it). The library fits the quad's edges
     at full resolution whatever the decimation, and the corner refit places them again on the image."""
-    lo, hi = c.min(axis=0), c.max(axis=0)
-    grow = (hi - lo) * ROI_MARGIN + 8
     decimate = float(min(max(math.floor(side(c) / TRACKED_SIDE_PX), 1), MAX_REGION_DECIMATE))
-    return np.concatenate([lo - grow, hi + grow, [decimate]])
+    return np.concatenate([grown_boxes(c[None])[0], [decimate]])
 
 
-def printed_box(d: Detection) -> NDArray[np.float64]:
-    """The box (x0, y0, x1, y1) of a found marker's whole print: its detected square grown by the pattern
-    outside it and the white quiet zone (``Family.printed_cells``), at the scale of its longest side in
-    the image, and ``PRINT_EDGE_PX``. The black-white edge of the print's border (ink, then paper on
-    whatever it lies on) is strong contrast that no other marker can own."""
-    fam = family(d.family)
-    c = d.corners_px
-    longest = float(np.max(np.linalg.norm(c - np.roll(c, 1, axis=0), axis=1)))
-    grow = longest * (fam.printed_cells - fam.cells) / (2 * fam.cells) + PRINT_EDGE_PX
-    return np.concatenate([c.min(axis=0) - grow, c.max(axis=0) + grow])
+def grown_boxes(corners: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The boxes (M, 4: x0, y0, x1, y1) of :func:`box` (without its decimation) of markers with corners
+    ``corners`` (M, 4, 2)."""
+    lo, hi = corners.min(axis=1), corners.max(axis=1)
+    grow = (hi - lo) * ROI_MARGIN + 8
+    return np.concatenate([lo - grow, hi + grow], axis=1)
+
+
+def printed_boxes(found: list[Detection]) -> list[NDArray[np.float64]]:
+    """The box (x0, y0, x1, y1) of each found marker's whole print: its detected square grown by the
+    pattern outside it and the white quiet zone (``Family.printed_cells``), at the scale of its longest
+    side in the image, and ``PRINT_EDGE_PX``. The black-white edge of the print's border (ink, then
+    paper on whatever it lies on) is strong contrast that no other marker can own."""
+    if not found:
+        return []
+    c = np.array([d.corners_px for d in found])
+    fams = [family(d.family) for d in found]
+    outside = np.array([f.printed_cells - f.cells for f in fams], float)
+    cells = np.array([2 * f.cells for f in fams], float)
+    longest = np.linalg.norm(c - np.roll(c, 1, axis=1), axis=2).max(axis=1)
+    grow = (longest * outside / cells + PRINT_EDGE_PX)[:, None]
+    return list(np.concatenate([c.min(axis=1) - grow, c.max(axis=1) + grow], axis=1))
 
 
 def cell_contrast(gray: NDArray[np.uint8]) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:

@@ -163,7 +163,7 @@ def test_a_found_markers_own_print_is_explained_and_not_a_candidate():
     """A marker close up on a floor darker than its paper, found: the edge of its print (the white quiet
     zone on the floor) is strong contrast outside its corners, a candidate region unless the print explains it; with the
     print's box among the explained ones, no candidate is left about it."""
-    from atlas_onboard.detector.search import cell_contrast, contrast_regions, printed_box
+    from atlas_onboard.detector.search import cell_contrast, contrast_regions, printed_boxes
 
     det = tracker()
     view = view_at(11, 300, 240, 0.8)
@@ -178,7 +178,7 @@ def test_a_found_markers_own_print_is_explained_and_not_a_candidate():
         return [r for r in regions if r[0] < x1 and r[2] > x0 and r[1] < y1 and r[3] > y0]
 
     assert about_the_print(contrast_regions(contrast, top, taken, 1e9)), "the print's edge is strong contrast"
-    explained = [printed_box(d) for d in found]
+    explained = printed_boxes(found)
     np.testing.assert_allclose(explained[0], [x0, y0, x1, y1], atol=3.0)  # the true print's box, within 3 px
     assert about_the_print(contrast_regions(contrast, top, taken, 1e9, explained=explained)) == []
 
@@ -201,7 +201,7 @@ def test_a_marker_of_ours_that_comes_in_print_to_print_beside_a_found_one_is_fou
 
 def test_the_search_explains_the_prints_of_the_markers_found_besides_the_tags_not_ours():
     """What ``Detector.find`` hands the contrast search as explained: each found marker's print box."""
-    from atlas_onboard.detector.search import printed_box
+    from atlas_onboard.detector.search import printed_boxes
 
     det = tracker()
     views = [view_at(11, 260, 200, 1.2), view_at(25, 420, 320, 1.2)]
@@ -210,5 +210,5 @@ def test_the_search_explains_the_prints_of_the_markers_found_besides_the_tags_no
     explained = det.search.explained(1, None, found)
     assert len(explained) == 2
     for d, box_ in zip(found, explained, strict=True):
-        np.testing.assert_array_equal(box_, printed_box(d))
+        np.testing.assert_array_equal(box_, printed_boxes([d])[0])
         np.testing.assert_allclose(box_, _print_box(next(v for v in views if v.marker_id == d.marker_id)), atol=3.0)
