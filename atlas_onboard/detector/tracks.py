@@ -44,8 +44,11 @@ class Tracks:
 
     def ratio(self, capture_time_us: int | None) -> float:
         """The time from this frame to one captured at ``capture_time_us`` over the interval its motion
-        was measured over (1 where either is unknown)."""
+        was measured over (1 where either is unknown, or where the stamps do not increase: a replay
+        started again, a clock stepped back)."""
         if capture_time_us is None or self.capture_time_us is None or self.interval_us <= 0:
+            return 1.0
+        if capture_time_us <= self.capture_time_us:
             return 1.0
         return (capture_time_us - self.capture_time_us) / self.interval_us
 

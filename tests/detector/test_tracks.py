@@ -33,6 +33,9 @@ def test_constant_image_motion_is_predicted_over_any_time_passed():
         got, turned = tracks.predicted(t, None, lambda c, R: c)
         np.testing.assert_allclose(got[7], SQUARE + 100.0 + v * (1 + periods), atol=1e-9)
         assert turned == {}
+    # A stamp that does not increase (a replay started again): one period on, as without stamps.
+    got, _ = tracks.predicted(0, None, lambda c, R: c)
+    np.testing.assert_allclose(got[7], SQUARE + 100.0 + 2 * v, atol=1e-9)
     # Without stamps: one period on.
     unstamped = NO_TRACKS.then(None, {7: SQUARE}, {}, None).then(None, {7: SQUARE + v}, {}, None)
     got, _ = unstamped.predicted(None, None, None)
