@@ -402,8 +402,9 @@ def main() -> int:
     print(f"(from the difference of the medians instead, whose resolution is printed above: {s2_diff:.2f})")
     d1 = [x["counters"] for x in out["1 core"]["long"]]
     d2 = [x["counters"] for x in out["2 cores"]["long"]]
-    work = ("camera_down_detector_roi_finds", "camera_down_detector_candidate_regions", "camera_down_detector_scans",
-            "camera_down_detector_hunts", "camera_down_detector_detections")  # fmt: skip
+    work = ("camera_down_detector_followed", "camera_down_detector_roi_finds", "camera_down_detector_candidate_regions",
+            "camera_down_detector_scans", "camera_down_detector_hunts", "camera_down_detector_tracks_shared",
+            "camera_down_detector_detections")  # fmt: skip
     print(
         "the detectors' work, 1 core / 2 cores (a long run each):",
         ", ".join(f"{k.removeprefix('camera_down_detector_')} {d1[0].get(k, 0)}/{d2[0].get(k, 0)}" for k in work),
