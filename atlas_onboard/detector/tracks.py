@@ -98,7 +98,7 @@ class SharedTracks(Protocol):
 
 
 MAX_TRACKS = 1024  # markers a slot holds (the most of a frame's markers shared; more are tracked by the worker)
-_HEADER = 8  # float64 words: version, capture time, interval, count, attitude quaternion (x, y, z, w)
+_HEADER = 9  # float64 words: version, capture time, interval, count, attitude quaternion (x, y, z, w), checksum
 _RECORD = 25  # float64 words a marker: id, corners, previous corners, drift (NaN where none)
 _SLOT_WORDS = _HEADER + MAX_TRACKS * _RECORD
 
@@ -106,7 +106,8 @@ _SLOT_WORDS = _HEADER + MAX_TRACKS * _RECORD
 class TrackBoard:
     """Memory shared by a camera's workers (an anonymous file, Linux's ``memfd``), one slot per worker:
     each writes only its own, the others read it. A slot's version is odd while its worker writes it (a
-    sequence lock: a reader that saw it change reads again, or gives up and predicts from its own)."""
+    sequence lock: a reader that saw it change gives up and predicts from its own). A checksum over the
+    slot's words guards against a reader on a processor that makes the writes visible out of order."""
 
     def __init__(self, memory: mmap.mmap, slots: int) -> None:
         self.memory = memory
@@ -150,6 +151,7 @@ class TrackBoard:
             row[1:9] = tracks.corners[i].ravel()
             row[9:17] = tracks.previous.get(i, nan).ravel()
             row[17:25] = tracks.drift.get(i, nan).ravel()
+        s[8] = _checksum(s[1:8], rec)
         s[0] += 1.0  # even: complete
 
     def read(self, slot: int) -> Tracks | None:
@@ -159,8 +161,10 @@ class TrackBoard:
         if version == 0.0 or version % 2 == 1.0:
             return None
         header = s[:_HEADER].copy()
+        if not 0 <= header[3] <= MAX_TRACKS:  # (NaN too)
+            return None
         rec = s[_HEADER : _HEADER + int(header[3]) * _RECORD].copy().reshape(-1, _RECORD)
-        if float(s[0]) != version or np.isnan(header[1]):
+        if float(s[0]) != version or np.isnan(header[1]) or _checksum(header[1:8], rec) != header[8]:
             return None
         corners, previous, drift = {}, {}, {}
         for row in rec:
@@ -172,6 +176,10 @@ class TrackBoard:
                 drift[i] = row[17:25].reshape(4, 2)
         attitude = None if np.isnan(header[4]) else Rotation.from_quat(header[4:8])
         return Tracks(int(header[1]), corners, previous, drift, int(header[2]), attitude)
+
+
+def _checksum(header: NDArray[np.float64], records: NDArray[np.float64]) -> float:
+    return float(np.nansum(header) + np.nansum(records))
 
 
 @dataclass

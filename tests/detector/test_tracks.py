@@ -99,10 +99,14 @@ def test_the_board_gives_back_what_was_posted_and_nothing_before():
     assert got.capture_time_us == 5 * PERIOD_US and set(got.corners) == {9} and got.attitude is None
 
 
-def test_a_slot_being_written_is_not_read():
+def test_a_slot_being_written_or_not_yet_wholly_visible_is_not_read():
     board = _board(2)
     BoardSlot(board, 0).post(_moving(0, PERIOD_US, np.array([1.0, 0.0])))
     board._slots[0, 0] += 1.0  # its worker is between the two halves of a write
+    assert board.read(0) is None
+    board._slots[0, 0] += 1.0  # the version says written, but a corner's new value is not visible yet
+    assert board.read(0) is not None
+    board._slots[0, 12] += 0.5
     assert board.read(0) is None
     assert BoardSlot(board, 1).newer(NO_TRACKS, 10 * PERIOD_US) is None
 
