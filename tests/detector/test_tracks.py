@@ -169,3 +169,32 @@ def test_a_frame_skipped_by_a_busy_detector_is_crossed_not_taken_for_one_period(
         img = frame([view_at(25, 180.0 + 20.0 * k, 240.0 - 4.0 * k, 1.05)], seed=k)
         assert [d.marker_id for d in det.find(img, None, k * PERIOD_US)] == [25]
     assert det.counters["followed"] == len(seen) - 2
+
+
+def test_two_detectors_sharing_tracks_turn_them_by_the_attitudes_of_the_frames_between(monkeypatch):
+    """A camera turning fast, its turn reversing (the marker lost from its last image motion alone,
+    tests/detector/test_finder.py), its frames dealt to two detectors in turn with the camera's
+    orientation at each capture: each predicts from the other's newest frame turned by the orientations
+    of the two frames, and the marker is found every frame, where the frame's turn puts it."""
+    from atlas_onboard.detector.render import MarkerView, render
+    from tests.detector.test_finder import CAM_WIDE, SIZE, distorted_corners, turning, wide_tracker
+
+    monkeypatch.setattr(pipeline, "CANDIDATE_AREA", 0.0)
+    monkeypatch.setattr(pipeline, "SCAN_EVERY", 10**6)
+    poses = turning(14)
+    board = _board(2)
+    pair = [wide_tracker(), wide_tracker()]
+    for i, det in enumerate(pair):
+        det.shared = BoardSlot(board, i)
+    misses = []
+    for k, (R, T) in enumerate(poses):
+        img = render(
+            CAM_WIDE, [MarkerView("tag36h11", 25, SIZE, T)], seed=k, noise_sigma=2.0, background_style="concrete"
+        )
+        found = {d.marker_id: d for d in pair[k % 2].find(img, None, k * PERIOD_US, R)}
+        if 25 not in found:
+            misses.append(k)
+        else:
+            assert np.abs(found[25].corners_px - distorted_corners(T)).max() < 1.0
+    assert set(misses) <= {0, 1}, misses  # the hunt (no candidates here) has found it by frame 1
+    assert sum(d.counters["tracks_shared"] for d in pair) == len(poses) - 1
