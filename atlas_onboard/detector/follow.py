@@ -102,25 +102,47 @@ def _inside(pts: NDArray[np.float64], shape: tuple[int, ...]) -> NDArray[np.bool
     return (x.min(axis=1) >= 0) & (y.min(axis=1) >= 0) & (x.max(axis=1) <= w - 1) & (y.max(axis=1) <= h - 1)
 
 
-def _lines(points: NDArray[np.float64], ok: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
-    """Least-squares lines through the ``ok`` points (..., S, 2): their centroid, unit direction and how
-    many points each has."""
+def _profiles(
+    gray: NDArray[np.uint8], u: NDArray[np.float64], v: NDArray[np.float64], cal: Calibration | None
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The image along profiles whose points are at undistorted pixels ``u``, ``v`` (M, ..., K), where
+    the lens ``cal`` puts them, bilinear (0 outside the image); and per marker whether all lie inside it."""
+    shape = u.shape
+    if cal is not None:
+        x, y = lens.distort_columns(u.ravel(), v.ravel(), cal.K, cal.dist, cal.fisheye)
+    else:
+        x, y = u.ravel(), v.ravel()
+    h, w = gray.shape[:2]
+    xm, ym = x.reshape(shape[0], -1), y.reshape(shape[0], -1)
+    inside = (xm.min(axis=1) >= 0) & (ym.min(axis=1) >= 0) & (xm.max(axis=1) <= w - 1) & (ym.max(axis=1) <= h - 1)
+    # Rows of one profile each (OpenCV's maps take fewer than 32767 columns).
+    mx, my = x.reshape(-1, shape[-1]).astype(np.float32), y.reshape(-1, shape[-1]).astype(np.float32)
+    out = cv2.remap(gray, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    return out.reshape(shape).astype(np.float64), inside
+
+
+def _lines(x: NDArray[np.float64], y: NDArray[np.float64], ok: NDArray[np.bool_]) -> tuple[NDArray[np.float64], ...]:
+    """Least-squares lines through the ``ok`` points ``x``, ``y`` (..., S): their centroid (x, y), unit
+    direction (x, y) and how many points each has."""
     wt = ok.astype(np.float64)
     count = wt.sum(axis=-1)
-    m = (points * wt[..., None]).sum(axis=-2) / np.maximum(count, 1)[..., None]
-    q = (points - m[..., None, :]) * wt[..., None]
-    sxx, syy = (q[..., 0] ** 2).sum(axis=-1), (q[..., 1] ** 2).sum(axis=-1)
-    sxy = (q[..., 0] * q[..., 1]).sum(axis=-1)
+    inv = 1.0 / np.maximum(count, 1)
+    mx, my = (x * wt).sum(axis=-1) * inv, (y * wt).sum(axis=-1) * inv
+    qx, qy = (x - mx[..., None]) * wt, (y - my[..., None]) * wt
+    sxx, syy, sxy = (qx * qx).sum(axis=-1), (qy * qy).sum(axis=-1), (qx * qy).sum(axis=-1)
     angle = 0.5 * np.arctan2(2 * sxy, sxx - syy)  # the scatter's principal direction
-    return m, np.stack([np.cos(angle), np.sin(angle)], axis=-1), count
+    return mx, my, np.cos(angle), np.sin(angle), count
 
 
-def _normals(quad: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Each side's vector (corner i to i + 1) and unit normal pointing out of the marker (quad (M, 4, 2))."""
-    d = quad[:, NEXT] - quad
-    n = np.stack([-d[..., 1], d[..., 0]], axis=-1) / np.maximum(np.linalg.norm(d, axis=-1), 1e-9)[..., None]
-    inward = np.einsum("mij,mij->mi", n, quad.mean(axis=1)[:, None, :] - quad) > 0
-    return d, np.where(inward[..., None], -n, n)
+_GRIDS: dict[tuple[int, int], tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
+
+
+def _grid(samples: int, steps: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Where along a side its edge points lie (fractions of it, clear of the corners), and the steps
+    along its normal (in steps, each way and a step more)."""
+    if (samples, steps) not in _GRIDS:
+        _GRIDS[(samples, steps)] = (np.linspace(0.15, 0.85, samples), np.arange(-steps, steps + 1, dtype=np.float64))
+    return _GRIDS[(samples, steps)]
 
 
 def _refit(
@@ -139,30 +161,37 @@ def _refit(
     step more); with ``samples`` points a side. Coarse (steps of about a pixel): the strongest rise
     within reach, not at its ends; ``fine`` (a quarter pixel): the centroid of the squared rise. Whether
     all four sides were found."""
-    d, n = _normals(quad)
-    t = np.linspace(0.15, 0.85, samples)
-    step = half_px / (steps - 1)
-    offsets = np.arange(-steps, steps + 1)[None, :] * step[:, None]  # (M, K)
-    base = quad[:, :, None, :] + t[None, None, :, None] * d[:, :, None, :]  # (M, 4, S, 2)
-    pts = base[:, :, :, None, :] + offsets[:, None, None, :, None] * n[:, :, None, None, :]  # (M, 4, S, K, 2)
-    image_pts = _to_image(pts, cal)
-    found = (np.linalg.norm(d, axis=-1).min(axis=1) >= 8) & _inside(image_pts, gray.shape)
-    values = _sample(gray, image_pts)
+    t, k_steps = _grid(samples, steps)
+    dx, dy = quad[:, NEXT, 0] - quad[..., 0], quad[:, NEXT, 1] - quad[..., 1]  # each side (M, 4)
+    length = np.sqrt(dx * dx + dy * dy)
+    inv = 1.0 / np.maximum(length, 1e-9)
+    nx, ny = -dy * inv, dx * inv
+    centre = quad.mean(axis=1)
+    flip = np.where(nx * (centre[:, None, 0] - quad[..., 0]) + ny * (centre[:, None, 1] - quad[..., 1]) > 0, -1.0, 1.0)
+    nx, ny = nx * flip, ny * flip  # pointing out of the marker
+    offsets = k_steps[None, :] * (half_px / (steps - 1))[:, None]  # (M, K)
+    bx = quad[..., 0, None] + t * dx[..., None]  # (M, 4, S)
+    by = quad[..., 1, None] + t * dy[..., None]
+    along = offsets[:, None, None, :]
+    values, inside = _profiles(
+        gray, bx[..., None] + along * nx[..., None, None], by[..., None] + along * ny[..., None, None], cal
+    )
+    found = (length.min(axis=1) >= 8) & inside
     rise = values[..., 2:] - values[..., :-2]  # at offsets[1:-1]
     k = np.argmax(rise, axis=-1)
     ok = (k > 0) & (k < rise.shape[-1] - 1) & (rise.max(axis=-1) > 0)  # a rise within reach, not at its ends
     if fine:
         weight = np.maximum(rise, 0.0) ** 2
-        s = (weight * offsets[:, None, None, 1:-1]).sum(axis=-1) / np.maximum(weight.sum(axis=-1), 1e-9)
+        s = (weight * along[..., 1:-1]).sum(axis=-1) / np.maximum(weight.sum(axis=-1), 1e-9)
     else:
         s = offsets[:, 1:-1][np.arange(len(quad))[:, None, None], k]
-    edges = base + s[..., None] * n[:, :, None, :]  # (M, 4, S, 2)
-    m, u, _ = _lines(edges, ok)
-    off = np.abs(np.einsum("mijk,mik->mij", edges - m[:, :, None, :], np.stack([-u[..., 1], u[..., 0]], axis=-1)))
+    ex, ey = bx + s * nx[..., None], by + s * ny[..., None]  # (M, 4, S)
+    mx, my, ux, uy, _ = _lines(ex, ey, ok)
+    off = np.abs((ey - my[..., None]) * ux[..., None] - (ex - mx[..., None]) * uy[..., None])
     ok &= off <= LINE_TOLERANCE_PX  # points off their side's line left out, and the lines fitted again
-    m, u, count = _lines(edges, ok)
+    mx, my, ux, uy, count = _lines(ex, ey, ok)
     found &= (count >= samples // 2 + 1).all(axis=1)
-    corners, parallel = refine.crossings_many(m, u)
+    corners, parallel = refine.crossings_many(np.stack([mx, my], axis=-1), np.stack([ux, uy], axis=-1))
     return corners, found & ~parallel
 
 

@@ -173,10 +173,12 @@ def crossings_many(
     parallel = np.abs(cross).min(axis=1) < 2e-9
     for k in np.flatnonzero(parallel):
         parallel[k] = bool(np.any(np.abs(np.linalg.det(A[k])) < 1e-9))
-    out = np.full(means.shape, np.nan)
-    fine = ~parallel
-    s = np.linalg.solve(A[fine], (means - p1)[fine][..., None])[..., 0, :]  # how far along d1
-    out[fine] = p1[fine] + s * d1[fine]
+    # How far along d1, by Cramer's rule (the 2x2 systems' LAPACK solve costs more than the arithmetic).
+    b = means - p1
+    with np.errstate(divide="ignore", invalid="ignore"):  # parallel lines: NaN below
+        s = (b[..., 0] * A[..., 1, 1] - A[..., 0, 1] * b[..., 1]) / cross
+        out = p1 + s[..., None] * d1
+    out[parallel] = np.nan
     return out, parallel
 
 
