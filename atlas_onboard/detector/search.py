@@ -74,12 +74,10 @@ class RegionSearch:
         (:func:`contrast_regions`' ``explained``): each moved by the camera's turn ``R_prev_now`` (if
         given) and grown as a tracked marker's region is; those due a check again are forgotten (their
         place is a candidate again)."""
-        kept = []
-        for t in self.foreign:
-            if t.until <= frame:
-                continue
-            c = t.corners_px if R_prev_now is None else self.rotated(t.corners_px, R_prev_now)
-            kept.append(ForeignTag(c, t.until))
+        kept = [t for t in self.foreign if t.until > frame]
+        if kept and R_prev_now is not None:
+            turned = self.rotated(np.array([t.corners_px for t in kept]), R_prev_now)
+            kept = [ForeignTag(c, t.until) for c, t in zip(turned, kept, strict=True)]
         self.foreign = kept
         return list(grown_boxes(np.array([t.corners_px for t in kept]))) if kept else []
 
@@ -99,21 +97,24 @@ class RegionSearch:
         self._foreign_now = []
 
     def rotated(self, corners_px: NDArray[np.float64], R_prev_now: Rotation) -> NDArray[np.float64]:
-        """Where corners (N, 2) of the previous image are seen now after the camera turned by
-        ``R_prev_now`` (far points: a turn moves them alike whatever their depth)."""
+        """Where corners (..., N, 2) of the previous image are seen now after the camera turned by
+        ``R_prev_now`` (far points: a turn moves them alike whatever their depth), every set of N at once;
+        a set turned out of view (a corner behind the camera) stays where it was: nothing to predict from."""
         cal = self.calibration
-        ideal = pose.undistort(corners_px, cal.K, cal.dist, cal.fisheye)
+        flat = corners_px.reshape(-1, 2)
+        ideal = pose.undistort(flat, cal.K, cal.dist, cal.fisheye)
         rays_prev = np.column_stack([ideal, np.ones(len(ideal))]) @ np.linalg.inv(cal.K).T
         rays_now = R_prev_now.inv().apply(rays_prev)
-        if np.any(rays_now[:, 2] <= 1e-3):  # turned out of view: nothing to predict from
-            return corners_px
+        behind = np.any((rays_now[:, 2] <= 1e-3).reshape(corners_px.shape[:-1]), axis=-1)
         pts = rays_now.reshape(-1, 1, 3)
         zero = np.zeros(3)
         if cal.fisheye:
             out, _ = cv2.fisheye.projectPoints(pts, zero, zero, cal.K, cal.dist)
         else:
             out, _ = cv2.projectPoints(pts, zero, zero, cal.K, cal.dist)
-        return out.reshape(-1, 2)
+        out = out.reshape(corners_px.shape)
+        out[behind] = corners_px[behind]
+        return out
 
     @property
     def tracking(self) -> bool:

@@ -66,11 +66,15 @@ class Tracks:
         rotate: Callable[[NDArray[np.float64], Rotation], NDArray[np.float64]],
     ) -> tuple[Corners, Corners]:
         """Each marker's corners predicted in a frame captured at ``capture_time_us``, and (given the
-        camera's turn ``R_prev_now`` since this frame) where the turn alone moves them (``rotate``:
-        :meth:`atlas_onboard.detector.search.RegionSearch.rotated`), empty without it."""
+        camera's turn ``R_prev_now`` since this frame) where the turn alone moves them (``rotate``: every
+        marker's corners (M, 4, 2) at once, :meth:`atlas_onboard.detector.search.RegionSearch.rotated`),
+        empty without it."""
         r = self.ratio(capture_time_us)
         if R_prev_now is not None:
-            turned = {i: rotate(c, R_prev_now) for i, c in self.corners.items()}
+            ids = list(self.corners)
+            turned = (
+                dict(zip(ids, rotate(np.array([self.corners[i] for i in ids]), R_prev_now), strict=True)) if ids else {}
+            )
             return {i: c + self.drift.get(i, 0.0) * r for i, c in turned.items()}, turned
         if r == 1.0:  # one period on, as most frames are: 2c - c_prev, exactly as it always was
             return {i: 2 * c - self.previous[i] if i in self.previous else c for i, c in self.corners.items()}, {}
