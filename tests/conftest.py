@@ -22,12 +22,13 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-# Two workers (pyproject's addopts). The real-time tests (node processes in real time: those marked
-# ``realtime``, and every test of tests/e2e unless marked otherwise) run one at a time on one worker;
-# the timed tests that need little CPU (sockets and threads with deadlines, one node alone; marked
-# ``deadlines``) one at a time on the other; both at the machine's normal priority. Each worker then
-# runs the rest at the lowest priority, so that it takes only the CPU the timed tests leave and never
-# makes them late.
+# Three workers on two cores (pyproject's addopts). The real-time tests (node processes in real time:
+# those marked ``realtime``, and every test of tests/e2e unless marked otherwise) run one at a time on
+# one worker; the timed tests that need little CPU (sockets and threads with deadlines, one node alone;
+# marked ``deadlines``) one at a time on another; both at the machine's normal priority. Both groups
+# wait on the clock for much of their time: the third worker runs the rest from the start at the lowest
+# priority, so that it takes only the CPU the timed tests leave and never makes them late, and each of
+# the other two joins it, at that priority, once its timed group is done.
 GROUPS = ("realtime", "deadlines")
 LOW_PRIORITY = 19  # nice value of a worker once its timed group is done
 E2E = Path(__file__).parent / "e2e"

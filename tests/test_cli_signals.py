@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.realtime  # commands' processes and their signals
+pytestmark = pytest.mark.deadlines  # commands' processes and their signals, little CPU
 
 EXAMPLE = Path(__file__).resolve().parents[1] / "atlas_onboard" / "data" / "example.yaml"
 
@@ -67,6 +67,7 @@ def test_the_service_starts_without_the_other_commands_modules():
         assert command in helped.stdout, command
 
 
+@pytest.mark.realtime  # a simulation's rendering and node processes
 def test_a_terminated_sim_stops_its_nodes_and_leaves_no_folders(tmp_path):
     """SIGTERM (systemd, a CI timeout, ``kill``) mid-run: the nodes stopped, the run's and the rendered
     frames' temporary folders removed, status 143, one line; the default action left both folders."""

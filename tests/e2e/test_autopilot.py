@@ -13,6 +13,8 @@ from scipy.spatial.transform import RigidTransform, Rotation
 from tests.e2e.helpers import start_node_with_peer, wait_for
 from tests.helpers import observe, pose
 
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
+
 MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD = 20, 12
 
 

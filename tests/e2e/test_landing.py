@@ -12,6 +12,8 @@ from atlas_onboard.sim.lander import Lander, LanderSettings
 from tests.e2e.helpers import start_node_with_peer, wait_for
 from tests.helpers import observe, pose
 
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
+
 
 def world_doc(peer_port, ap_port, form):
     return {

@@ -10,7 +10,11 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -58,17 +62,67 @@ def _line(out: str, name: str) -> str:
     return lines[0]
 
 
-def test_right_setup_passes(tmp_path: Path, frames_dir: Path) -> None:
-    code, out = _preflight(tmp_path, frames_dir, None, {"EKF2_EV_DELAY": 20, "EKF2_EV_CTRL": 3})
+@dataclass(frozen=True)
+class Service:
+    checked: bool  # the node logged its startup check's attitude line in time
+    poses_before: int  # poses the autopilot had received by then
+    log: str
+    statustexts: list[bytes]
+
+
+def _service(tmp: Path, frames: Path) -> Service:
+    """``run`` on the world file with the frame mistake, until its startup check is logged."""
+    from atlas_onboard.core.geometry import rotation_from_rpy_deg
+    from atlas_onboard.sim.autopilot import SimAutopilot
+    from tests.e2e.helpers import NodeProcess, wait_for
+
+    R = rotation_from_rpy_deg(BENCH_RPY_DEG)
+    autopilot = SimAutopilot(system_id=1, attitude=lambda _t: R).start()
+    node = NodeProcess(write_bench(tmp, frames, autopilot.port, "mount90"), "drone")
+    try:
+        checked = wait_for(lambda: "startup check:" in node.log(), timeout=60.0)
+        checked = checked and wait_for(
+            lambda: "startup check: " in node.log() and "attitude" in node.log(), timeout=10.0
+        )
+        poses_before = len(autopilot.snapshot())
+    finally:
+        node.stop()
+        autopilot.stop()
+    return Service(checked, poses_before, node.log(), list(autopilot.statustexts))
+
+
+# Runs at the same time: each is a node replaying the bench's frames at 15 Hz, its autopilot and the
+# command, waiting on the clock for most of the window; on one core three still keep the pose rate.
+AT_ONCE = 3
+
+
+@pytest.fixture(scope="module")
+def runs(frames_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Future[Any]]:
+    """The right setup's and the mistakes' preflight, and the service's startup check, AT_ONCE at a
+    time; each test reads its own (a run that failed fails its test)."""
+    plans: dict[str, Callable[[Path], Any]] = {
+        "right": lambda tmp: _preflight(tmp, frames_dir, None, {"EKF2_EV_DELAY": 20, "EKF2_EV_CTRL": 3}),
+        "mistakes": lambda tmp: _preflight(tmp, frames_dir, "mount90", {"EKF2_EV_DELAY": 200}),
+        "service": lambda tmp: _service(tmp, frames_dir),
+    }
+    with ThreadPoolExecutor(AT_ONCE) as pool:
+        futures = {name: pool.submit(plan, tmp_path_factory.mktemp(name)) for name, plan in plans.items()}
+        for f in futures.values():
+            f.exception()  # all done before the first test reads one
+    return futures
+
+
+def test_right_setup_passes(runs: dict[str, Future[Any]]) -> None:
+    code, out = runs["right"].result()
     assert _line(out, "attitude").startswith("PASS"), out
     for name in ("delay", "timesync", "EKF origin", "local position"):
         assert _line(out, name).startswith("PASS"), out
     assert code == 0, out
 
 
-def test_a_frame_mistake_and_a_delay_far_over_the_latency_are_each_named(tmp_path: Path, frames_dir: Path) -> None:
+def test_a_frame_mistake_and_a_delay_far_over_the_latency_are_each_named(runs: dict[str, Future[Any]]) -> None:
     # Independent checks on one run: the attitude check reads the poses, the delay check their latency.
-    code, out = _preflight(tmp_path, frames_dir, "mount90", {"EKF2_EV_DELAY": 200})
+    code, out = runs["mistakes"].result()
     line = _line(out, "attitude")
     named = "likely the world file turns camera down +90 deg about its optical axis"
     assert line.startswith("FAIL") and named in line and "(or:" not in line, out
@@ -77,26 +131,14 @@ def test_a_frame_mistake_and_a_delay_far_over_the_latency_are_each_named(tmp_pat
     assert code == 1
 
 
-def test_the_service_checks_once_at_start(tmp_path: Path, frames_dir: Path) -> None:
+def test_the_service_checks_once_at_start(runs: dict[str, Future[Any]]) -> None:
     """``run`` judges its first seconds of poses against the autopilot's attitude, in its log and as
     STATUSTEXT, without holding the poses back."""
-    from atlas_onboard.core.geometry import rotation_from_rpy_deg
-    from atlas_onboard.sim.autopilot import SimAutopilot
-    from tests.e2e.helpers import NodeProcess, wait_for
-
-    R = rotation_from_rpy_deg(BENCH_RPY_DEG)
-    autopilot = SimAutopilot(system_id=1, attitude=lambda _t: R).start()
-    node = NodeProcess(write_bench(tmp_path, frames_dir, autopilot.port, "mount90"), "drone")
-    try:
-        assert wait_for(lambda: "startup check:" in node.log(), timeout=60.0), node.log()
-        assert wait_for(lambda: "startup check: " in node.log() and "attitude" in node.log(), timeout=10.0)
-        poses_before = len(autopilot.snapshot())
-    finally:
-        node.stop()
-        autopilot.stop()
-    log = [ln for ln in node.log().splitlines() if "startup check:" in ln]
+    run: Service = runs["service"].result()
+    assert run.checked, run.log
+    log = [ln for ln in run.log.splitlines() if "startup check:" in ln]
     attitude = [ln for ln in log if "attitude:" in ln]
     assert len(attitude) == 1, log
-    assert poses_before > 50  # the poses went out meanwhile
+    assert run.poses_before > 50  # the poses went out meanwhile
     assert "FAIL  attitude" in attitude[0] and "+90 deg about its optical axis" in attitude[0]
-    assert b"atlas FAIL attitude: down mount +90deg about axis" in autopilot.statustexts, autopilot.statustexts
+    assert b"atlas FAIL attitude: down mount +90deg about axis" in run.statustexts, run.statustexts

@@ -4,12 +4,16 @@ peers seen and lost, clock skew noticed."""
 
 import time
 
+import pytest
+
 from atlas_onboard.config import load_world
 from atlas_onboard.mavlink import dialect
 from atlas_onboard.sim.autopilot import SimAutopilot
 from tests.e2e.helpers import NodeProcess, Peer, free_udp_port, wait_for, write_world
 from tests.e2e.test_autopilot import TRUTH, world_doc
 from tests.helpers import observe, pose
+
+pytestmark = pytest.mark.deadlines  # one node, little CPU: beside the real-time group
 
 TRUTH_D2 = {**TRUTH, "d2": pose([0.0, 2.0, 3.0], [0, 0, 0])}  # 1 m from d1, looking along +x at its tag
 

@@ -1,32 +1,42 @@
-"""A solo node's simulated autopilot (:mod:`atlas_onboard.sim.solo`): it streams its drone's attitude
-as a real autopilot does, and the node uses it for its single tags (here the relay drone's view of its
-leader's marker, with the leader's views played)."""
+"""What a solo node's peers are told (:mod:`atlas_onboard.sim.solo`): a view forged as if its drone stood
+elsewhere. The solo node itself, with its autopilot's attitude and its peers played, runs end to end
+in tests/e2e/test_trust.py."""
 
-import time
+import numpy as np
+from scipy.spatial.transform import RigidTransform, Rotation
 
-import pytest
+from atlas_onboard.config import load_world
+from atlas_onboard.sim import scenarios
+from atlas_onboard.sim.peerplay import LEADER, LEADER_SENSOR
+from atlas_onboard.sim.solo import forged_view
+from atlas_onboard.sim.world import SimWorld
 
-from atlas_onboard.sim import peerplay
-
-pytestmark = pytest.mark.realtime  # node processes in real time
-
-SECONDS = 5.0
+MARKER = 3  # a floor tag
 
 
-def test_the_relay_drones_autopilot_streams_its_attitude_and_the_node_checks_its_leaders_tag_with_it():
-    node = peerplay.start("relay", SECONDS + 0.5)
-    leader = None
-    try:
-        epoch = node.start_scenario()
-        leader = peerplay.honest_leader(node)
-        leader.run_between(epoch, epoch + SECONDS + 0.5)
-        time.sleep(max(0.0, epoch + SECONDS + 0.3 - time.time()))
-    finally:
-        if leader is not None:
-            leader.join()
-        assert node.stop() == 0, node.log[-3000:]
-    c = node.final_counters()
-    # 25 Hz from the scenario's start: the node heard most of them.
-    assert c.get("autopilot_rx_attitude", 0) >= 0.5 * 25 * SECONDS, c
-    checked = sum(c.get(f"attitude_{v}", 0) for v in ("primary", "alt", "both", "neither"))
-    assert checked >= 10, sorted((k, v) for k, v in c.items() if "attitude" in k or "ambig" in k)
+def _seen_from_the_true_pose(offset_m, t_s=2.0):
+    """The forged view's marker, placed in the world through the observer's true pose, and the truth."""
+    scenario = scenarios.get("relay")
+    world = load_world(scenario.world_path())
+    sim_world = SimWorld(scenario, world)
+    md = forged_view(world, sim_world, LEADER, LEADER_SENSOR, MARKER, t_s, offset_m, 0.002, 123)
+    w, x, y, z = md.q_sensor_marker_wxyz
+    T_sensor_marker = RigidTransform.from_components(md.p_sensor_marker_m, Rotation.from_quat([x, y, z, w]))
+    truth = sim_world.truth(t_s)
+    sensor, marker = world.sensors[LEADER_SENSOR], world.markers[MARKER]
+    seen = truth[LEADER] * sensor.T_entity_sensor * T_sensor_marker
+    return md, seen, truth[marker.entity] * marker.T_entity_marker
+
+
+def test_an_honest_view_is_the_truth():
+    md, seen, true = _seen_from_the_true_pose((0.0, 0.0, 0.0))
+    np.testing.assert_allclose(seen.translation, true.translation, atol=1e-9)
+    assert (seen.rotation.inv() * true.rotation).magnitude() < 1e-9
+    assert md.sigma_m == 0.002 and md.capture_time_us == 123
+
+
+def test_a_view_forged_as_if_its_drone_stood_off_puts_the_marker_off_by_the_opposite():
+    offset = np.array([2.0, -0.5, 0.25])
+    _, seen, true = _seen_from_the_true_pose(tuple(offset))
+    np.testing.assert_allclose(seen.translation, true.translation - offset, atol=1e-9)
+    assert (seen.rotation.inv() * true.rotation).magnitude() < 1e-9
