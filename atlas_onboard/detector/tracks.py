@@ -15,6 +15,7 @@ stays within the follow's reach far more often than one over N periods.
 
 from __future__ import annotations
 
+import math
 import mmap
 import os
 from collections.abc import Callable
@@ -158,6 +159,11 @@ class TrackBoard:
         s[8] = _checksum(s[1:8], rec)
         s[0] += 1.0  # even: complete
 
+    def stamp(self, slot: int) -> float:
+        """The capture stamp of the slot's tracks as last written (NaN if none; read whole with :meth:`read`)."""
+        s = self._slots[slot]
+        return math.nan if s[0] == 0.0 else float(s[1])
+
     def read(self, slot: int) -> Tracks | None:
         """The slot's tracks, None if empty or being written (read twice over and changed between)."""
         s = self._slots[slot]
@@ -200,16 +206,14 @@ class BoardSlot:
 
     def newer(self, own: Tracks, capture_time_us: int) -> Tracks | None:
         """The newest tracks another worker posted of a frame captured after ``own``'s and before
-        ``capture_time_us``; None if there are none."""
-        best = None
-        for k in range(self.board.slots):
-            if k == self.slot:
-                continue
-            t = self.board.read(k)
-            if t is None or t.capture_time_us is None or t.capture_time_us >= capture_time_us:
-                continue
-            if own.capture_time_us is not None and t.capture_time_us <= own.capture_time_us:
-                continue
-            if best is None or t.capture_time_us > best.capture_time_us:  # type: ignore[operator]
-                best = t
-        return best
+        ``capture_time_us``; None if there are none (or the newest cannot be read whole). Only that
+        slot is read whole: the others' stamps are enough to pass them over."""
+        after = -math.inf if own.capture_time_us is None else own.capture_time_us
+        stamps = [(self.board.stamp(k), k) for k in range(self.board.slots) if k != self.slot]
+        fit = [(t, k) for t, k in stamps if after < t < capture_time_us]  # (NaN: never written)
+        if not fit:
+            return None
+        got = self.board.read(max(fit)[1])
+        if got is None or got.capture_time_us is None or not after < got.capture_time_us < capture_time_us:
+            return None
+        return got
