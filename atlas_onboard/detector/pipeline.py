@@ -160,10 +160,6 @@ class Detector:
         k = self._frame
         if not hunting:
             self.search.track(gray, found)
-            if self.shared is not None:  # the tracked markers at once, the new ones below with the rest
-                self.shared.post(
-                    base.then(capture_time_us, {i: d.corners_px for i, d in found.items()}, turned, attitude)
-                )
         if hunting or k % SCAN_EVERY == 0:
             new = []
             for d in self.search.scan(gray, MAX_REGION_DECIMATE):
@@ -179,7 +175,7 @@ class Detector:
         self.counters["hunts" if hunting else "tracked_frames"] += 1
         self._frame += 1
         self.tracks = base.then(capture_time_us, {i: d.corners_px for i, d in found.items()}, turned, attitude)
-        if self.shared is not None:  # before this frame's refit and poses: the camera's next frame predicts from it
+        if self.shared is not None:  # before this frame's other work: the camera's next frame predicts from it
             self.shared.post(self.tracks)
         return list(found.values())
 
