@@ -29,6 +29,7 @@ from atlas_onboard.detector.backends import Detection, accepted_bit_errors
 from atlas_onboard.detector.calibration import Calibration
 from atlas_onboard.detector.corner_noise import NEXT
 from atlas_onboard.detector.edge_profile import MIN_CONTRAST
+from atlas_onboard.detector.edge_sampling import sample_places
 from atlas_onboard.detector.families import family
 
 MIN_CELL_PX = 3.0  # narrower cells are left to the library: their centres are not read clear of their edges
@@ -88,25 +89,11 @@ def _to_image(pts: NDArray[np.float64], cal: Calibration | None) -> NDArray[np.f
     return lens.distort_uv(flat[:, 0], flat[:, 1], cal.K, cal.dist, cal.fisheye).reshape(pts.shape)
 
 
-def _sample(gray: NDArray[np.uint8], pts: NDArray[np.float64]) -> NDArray[np.float64]:
-    """The image at ``pts`` (..., 2) pixels, bilinear (0 outside the image)."""
-    flat = pts.reshape(-1, pts.shape[-2], 2).astype(np.float32)  # rows of one profile (OpenCV's maps < 32767 wide)
-    out = cv2.remap(gray, flat[..., 0], flat[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-    return out.reshape(pts.shape[:-1]).astype(np.float64)
-
-
-def _inside(pts: NDArray[np.float64], shape: tuple[int, ...]) -> NDArray[np.bool_]:
-    """Per marker (the first axis of ``pts`` (M, ..., 2), image pixels): whether every point lies in the image."""
-    h, w = shape[:2]
-    x, y = pts[..., 0].reshape(len(pts), -1), pts[..., 1].reshape(len(pts), -1)
-    return (x.min(axis=1) >= 0) & (y.min(axis=1) >= 0) & (x.max(axis=1) <= w - 1) & (y.max(axis=1) <= h - 1)
-
-
 def _profiles(
     gray: NDArray[np.uint8], u: NDArray[np.float64], v: NDArray[np.float64], cal: Calibration | None
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """The image along profiles whose points are at undistorted pixels ``u``, ``v`` (M, ..., K), where
-    the lens ``cal`` puts them, bilinear (0 outside the image); and per marker whether all lie inside it."""
+    """The image at the points whose undistorted pixels are ``u``, ``v`` (M, ..., K), where the lens ``cal``
+    puts them, bilinear (0 outside the image); and per marker whether all lie inside it."""
     shape = u.shape
     if cal is not None:
         x, y = lens.distort_columns(u.ravel(), v.ravel(), cal.K, cal.dist, cal.fisheye)
@@ -134,17 +121,6 @@ def _lines(x: NDArray[np.float64], y: NDArray[np.float64], ok: NDArray[np.bool_]
     return mx, my, np.cos(angle), np.sin(angle), count
 
 
-_GRIDS: dict[tuple[int, int], tuple[NDArray[np.float64], NDArray[np.float64]]] = {}
-
-
-def _grid(samples: int, steps: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Where along a side its edge points lie (fractions of it, clear of the corners), and the steps
-    along its normal (in steps, each way and a step more)."""
-    if (samples, steps) not in _GRIDS:
-        _GRIDS[(samples, steps)] = (np.linspace(0.15, 0.85, samples), np.arange(-steps, steps + 1, dtype=np.float64))
-    return _GRIDS[(samples, steps)]
-
-
 def _refit(
     gray: NDArray[np.uint8],
     quad: NDArray[np.float64],
@@ -161,7 +137,7 @@ def _refit(
     step more); with ``samples`` points a side. Coarse (steps of about a pixel): the strongest rise
     within reach, not at its ends; ``fine`` (a quarter pixel): the centroid of the squared rise. Whether
     all four sides were found."""
-    t, k_steps = _grid(samples, steps)
+    t, k_steps = sample_places(samples), np.arange(-steps, steps + 1, dtype=np.float64)
     dx, dy = quad[:, NEXT, 0] - quad[..., 0], quad[:, NEXT, 1] - quad[..., 1]  # each side (M, 4)
     length = np.sqrt(dx * dx + dy * dy)
     inv = 1.0 / np.maximum(length, 1e-9)
@@ -222,9 +198,8 @@ def _matching(
     square = np.array([[0, 0], [cells, 0], [cells, cells], [0, cells]], np.float32)
     H = np.array([cv2.getPerspectiveTransform(square, c.astype(np.float32)) for c in corners])
     h = np.einsum("mij,nj->mni", H, _cell_centres(cells))
-    centres = _to_image(h[..., :2] / h[..., 2:], cal)
-    inside = _inside(centres, gray.shape)
-    values = _sample(gray, centres)  # (M, N)
+    centres = h[..., :2] / h[..., 2:]
+    values, inside = _profiles(gray, centres[..., 0], centres[..., 1], cal)  # (M, N)
     white_plane = np.einsum("mij,mj->mi", np.array([p.to_white for p in patterns]), values)
     black_plane = np.einsum("mij,mj->mi", np.array([p.to_black for p in patterns]), values)
     w = np.array([p.white for p in patterns])
