@@ -116,11 +116,6 @@ class RegionSearch:
         out[behind] = corners_px[behind]
         return out
 
-    @property
-    def tracking(self) -> bool:
-        """Whether markers of the previous frame are tracked (False: the next frame is a hunt)."""
-        return bool(self.predicted)
-
     def track(self, gray: NDArray[np.uint8], found: dict[int, Detection]) -> None:
         """The tracked markers: each followed from its predicted corners (:func:`follow.follow`), and
         the library's search of the regions (:func:`box`) of those not followed."""
